@@ -1,0 +1,102 @@
+//! Device traits: what the sequencer may ask of a tracer, an environment sensor, a machine
+//! and whoever moves the tracer between stations. Real, simulated and replay drivers implement them.
+
+use std::collections::BTreeMap;
+
+use async_trait::async_trait;
+
+/// Commanded or reported axis positions by axis name (`"x"`, `"y"`, `"z"`), metres.
+pub type AxisPositions = BTreeMap<String, f64>;
+
+#[derive(Debug, thiserror::Error)]
+pub enum DeviceError {
+    #[error("{device}: timed out after {after_s} s waiting for {what}")]
+    Timeout {
+        device: String,
+        what: String,
+        after_s: f64,
+    },
+    #[error("{device}: protocol error: {message}")]
+    Protocol { device: String, message: String },
+    #[error("{device}: disconnected: {message}")]
+    Disconnected { device: String, message: String },
+    #[error("{device}: {message}")]
+    Rejected { device: String, message: String },
+    #[error("{device}: stream ended")]
+    EndOfStream { device: String },
+}
+
+/// One raw interferometer sample, as the device (or its driver) reports it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TracerReading {
+    /// Frame counter; a gap shows lost frames.
+    pub seq: u64,
+    /// Device time since device start, seconds.
+    pub t_s: f64,
+    /// Relative interferometric length since the last homing, metres.
+    pub length_m: f64,
+    /// Beam signal level, 0..1.
+    pub signal: f64,
+    /// False while the beam is broken.
+    pub tracking: bool,
+    /// Increments at every re-homing after a beam break.
+    pub beam_segment: u32,
+}
+
+/// One environment sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EnvReading {
+    pub t_s: f64,
+    pub air_temp_k: f64,
+    pub pressure_pa: f64,
+    pub humidity_pct: f64,
+    pub material_temp_k: Vec<f64>,
+}
+
+/// A tracking interferometer: a continuous stream of relative lengths.
+#[async_trait]
+pub trait Tracer: Send {
+    fn id(&self) -> &str;
+    /// Wait for the next sample of the stream.
+    async fn next_sample(&mut self) -> Result<TracerReading, DeviceError>;
+    /// Zero the length counter at the current target position.
+    async fn home(&mut self) -> Result<(), DeviceError>;
+}
+
+/// Air and material temperature, pressure and humidity sensors.
+#[async_trait]
+pub trait Environment: Send {
+    fn id(&self) -> &str;
+    /// Samples that became available since the last call (possibly none); never blocks long.
+    async fn poll(&mut self) -> Result<Vec<EnvReading>, DeviceError>;
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum MachineState {
+    Moving,
+    /// At rest at the reported position (metres, by axis name).
+    Idle { position: AxisPositions },
+}
+
+/// A machine whose axes geocal commands.
+#[async_trait]
+pub trait Machine: Send {
+    fn id(&self) -> &str;
+    /// Start a move to the given axis positions (returns once the command is accepted).
+    async fn start_move(&mut self, target: &AxisPositions) -> Result<(), DeviceError>;
+    /// Current motion state; cheap to call often (drivers rate-limit their own queries).
+    async fn state(&mut self) -> Result<MachineState, DeviceError>;
+}
+
+/// Whoever puts the tracer on the next station: an operator at a prompt, a rotary table
+/// the tracer stands on, or the simulated world.
+#[async_trait]
+pub trait StationMover: Send {
+    /// Place the tracer at station `index` (named `id`, near `hint_m` if given).
+    async fn place(
+        &mut self,
+        index: usize,
+        id: &str,
+        hint_m: Option<[f64; 3]>,
+    ) -> Result<(), DeviceError>;
+}

@@ -1,0 +1,1 @@
+//! Models: what a measurement predicts, with Jacobians. No solver and no I/O here.

@@ -1,0 +1,251 @@
+//! The geocal-session/1 message types (../docs/session-format.md) and their JSON Schemas.
+//! Readers ignore unknown fields and default missing optional ones, as the contract says.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+
+pub const SESSION_FORMAT: &str = "geocal-session/1";
+
+pub const TOPIC_SESSION: &str = "/geocal/session";
+pub const TOPIC_EVENT: &str = "/run/event";
+pub fn tracer_topic(id: &str) -> String {
+    format!("/tracer/{id}/range")
+}
+pub fn env_topic(id: &str) -> String {
+    format!("/env/{id}")
+}
+
+pub const SCHEMA_SESSION: &str = "geocal.Session";
+pub const SCHEMA_TRACER: &str = "geocal.TracerSample";
+pub const SCHEMA_ENV: &str = "geocal.EnvSample";
+pub const SCHEMA_EVENT: &str = "geocal.RunEvent";
+
+/// `/geocal/session`: exactly one, first in the file.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SessionHeader {
+    pub format: String,
+    pub session_id: String,
+    pub started_at: String,
+    pub kind: String,
+    pub machine: MachineInfo,
+    #[serde(default)]
+    pub devices: Vec<DeviceInfo>,
+    #[serde(default)]
+    pub plan: serde_json::Value,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MachineInfo {
+    #[serde(default)]
+    pub name: String,
+    pub structure: String,
+    pub axes: Vec<String>,
+    #[serde(default)]
+    pub travel_m: BTreeMap<String, [f64; 2]>,
+    #[serde(default)]
+    pub targets: Vec<TargetInfo>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct TargetInfo {
+    pub id: String,
+    pub offset_m: [f64; 3],
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct DeviceInfo {
+    pub id: String,
+    pub kind: String,
+    pub driver: String,
+    /// Per-sample sigma = noise_m + noise_ppm * 1e-6 * |L|.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_ppm: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub dead_path_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub wavelength_m: Option<f64>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub compensated: Option<bool>,
+    /// Anything else the device declares (sample rate, port, ...).
+    #[serde(flatten)]
+    pub extra: BTreeMap<String, serde_json::Value>,
+}
+
+/// `/tracer/<id>/range`.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct TracerSample {
+    pub seq: u64,
+    pub t_s: f64,
+    pub length_m: f64,
+    #[serde(default = "default_signal")]
+    pub signal: f64,
+    #[serde(default = "default_true")]
+    pub tracking: bool,
+    #[serde(default)]
+    pub beam_segment: u32,
+}
+
+fn default_signal() -> f64 {
+    1.0
+}
+fn default_true() -> bool {
+    true
+}
+
+/// `/env/<id>`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct EnvSample {
+    pub t_s: f64,
+    pub air_temp_k: f64,
+    pub pressure_pa: f64,
+    pub humidity_pct: f64,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub material_temp_k: Vec<f64>,
+}
+
+/// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(tag = "kind", rename_all = "snake_case")]
+pub enum RunEvent {
+    StationBegin {
+        station: String,
+        station_index: usize,
+        #[serde(default)]
+        hint_m: Option<[f64; 3]>,
+    },
+    PointBegin {
+        station: String,
+        point: usize,
+        pass: usize,
+        #[serde(default)]
+        target: String,
+        nominal_m: [f64; 3],
+        #[serde(default)]
+        axes: BTreeMap<String, f64>,
+        #[serde(default)]
+        approach: BTreeMap<String, i8>,
+    },
+    PointEnd {
+        station: String,
+        point: usize,
+        pass: usize,
+    },
+    StationEnd {
+        station: String,
+    },
+    Rehome {
+        station: String,
+        beam_segment: u32,
+    },
+    Rotation {
+        table: String,
+        commanded_rad: f64,
+    },
+    Fault {
+        device: String,
+        code: String,
+        message: String,
+    },
+    #[serde(other)]
+    Other,
+}
+
+/// JSON Schema (draft 2020-12) of each channel's messages.
+pub mod schema {
+    pub const SESSION: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.Session",
+  "type": "object",
+  "required": ["format", "session_id", "started_at", "kind", "machine"],
+  "properties": {
+    "format": {"const": "geocal-session/1"},
+    "session_id": {"type": "string"},
+    "started_at": {"type": "string"},
+    "kind": {"type": "string"},
+    "machine": {
+      "type": "object",
+      "required": ["structure", "axes"],
+      "properties": {
+        "name": {"type": "string"},
+        "structure": {"type": "string"},
+        "axes": {"type": "array", "items": {"type": "string"}},
+        "travel_m": {"type": "object", "additionalProperties": {"type": "array", "items": {"type": "number"}, "minItems": 2, "maxItems": 2}},
+        "targets": {"type": "array", "items": {"type": "object", "required": ["id", "offset_m"],
+          "properties": {"id": {"type": "string"}, "offset_m": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}}}}
+      }
+    },
+    "devices": {"type": "array", "items": {"type": "object", "required": ["id", "kind", "driver"],
+      "properties": {"id": {"type": "string"}, "kind": {"type": "string"}, "driver": {"type": "string"},
+        "noise_m": {"type": "number"}, "noise_ppm": {"type": "number"}, "dead_path_m": {"type": "number"},
+        "wavelength_m": {"type": "number"}, "compensated": {"type": "boolean"}}}},
+    "plan": {"type": "object"}
+  }
+}"#;
+
+    pub const TRACER: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.TracerSample",
+  "type": "object",
+  "required": ["seq", "t_s", "length_m"],
+  "properties": {
+    "seq": {"type": "integer", "minimum": 0},
+    "t_s": {"type": "number"},
+    "length_m": {"type": "number"},
+    "signal": {"type": "number"},
+    "tracking": {"type": "boolean"},
+    "beam_segment": {"type": "integer", "minimum": 0}
+  }
+}"#;
+
+    pub const ENV: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.EnvSample",
+  "type": "object",
+  "required": ["t_s", "air_temp_k", "pressure_pa", "humidity_pct"],
+  "properties": {
+    "t_s": {"type": "number"},
+    "air_temp_k": {"type": "number"},
+    "pressure_pa": {"type": "number"},
+    "humidity_pct": {"type": "number"},
+    "material_temp_k": {"type": "array", "items": {"type": "number"}}
+  }
+}"#;
+
+    pub const EVENT: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.RunEvent",
+  "type": "object",
+  "required": ["kind"],
+  "properties": {
+    "kind": {"type": "string"},
+    "station": {"type": "string"},
+    "station_index": {"type": "integer", "minimum": 0},
+    "hint_m": {"anyOf": [{"type": "null"}, {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}]},
+    "point": {"type": "integer", "minimum": 0},
+    "pass": {"type": "integer", "minimum": 0},
+    "target": {"type": "string"},
+    "nominal_m": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "axes": {"type": "object", "additionalProperties": {"type": "number"}},
+    "approach": {"type": "object", "additionalProperties": {"type": "integer", "minimum": -1, "maximum": 1}},
+    "beam_segment": {"type": "integer", "minimum": 0},
+    "table": {"type": "string"},
+    "commanded_rad": {"type": "number"},
+    "device": {"type": "string"},
+    "code": {"type": "string"},
+    "message": {"type": "string"}
+  },
+  "allOf": [
+    {"if": {"properties": {"kind": {"const": "point_begin"}}},
+     "then": {"required": ["station", "point", "pass", "nominal_m"]}},
+    {"if": {"properties": {"kind": {"const": "point_end"}}},
+     "then": {"required": ["station", "point", "pass"]}},
+    {"if": {"properties": {"kind": {"const": "station_begin"}}},
+     "then": {"required": ["station", "station_index"]}},
+    {"if": {"properties": {"kind": {"const": "fault"}}},
+     "then": {"required": ["device", "code", "message"]}}
+  ]
+}"#;
+}

@@ -1,0 +1,1 @@
+//! Solvers: minimisers and the methods that wire a model to a solver. No device access.
