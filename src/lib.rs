@@ -1,7 +1,16 @@
 //! geocal: geometric calibration of machine tools, CMMs, rotary tables and hexapods.
 //! See ../README.md and docs/ for the architecture; each module's top comment says what it owns.
 
-pub mod session;
+pub mod clock;
+pub mod config;
+pub mod devices;
+pub mod extract;
+pub mod method;
 pub mod model;
-pub mod solve;
+pub mod plan;
+pub mod report;
+pub mod run;
+pub mod sequencer;
+pub mod session;
 pub mod sim;
+pub mod solve;

@@ -1,1 +1,123 @@
-fn main(){}
+//! The geocal command line.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Parser, Subcommand};
+
+#[derive(Parser)]
+#[command(name = "geocal", version, about = "Geometric calibration of machine tools, CMMs, rotary tables and hexapods")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Run a calibration (live or simulated), record the session, then solve it.
+    Run {
+        config: PathBuf,
+        /// Output directory for session.mcap and results.json.
+        #[arg(long, default_value = "geocal-out")]
+        out: PathBuf,
+        /// Write the simulated truth (stations, actual points, error functions) as JSON.
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Print the results JSON instead of the text report.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Re-solve a recorded session (replay): the same results as the live run.
+    Solve {
+        session: PathBuf,
+        /// Print geocal-results/1 JSON instead of the text report.
+        #[arg(long)]
+        json: bool,
+        /// Write the results JSON to this file.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
+    /// Validate a configuration file.
+    Check {
+        config: PathBuf,
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+fn main() -> ExitCode {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
+        )
+        .with_writer(std::io::stderr)
+        .init();
+    match dispatch(Cli::parse().command) {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
+fn dispatch(command: Command) -> anyhow::Result<()> {
+    use std::io::IsTerminal;
+    match command {
+        Command::Run { config, out, truth, json } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            let output = geocal::run::run(
+                &cfg,
+                &geocal::run::RunOptions {
+                    out_dir: out,
+                    truth,
+                    progress: std::io::stderr().is_terminal(),
+                },
+            )?;
+            if json {
+                println!("{}", output.results.to_json_pretty());
+            } else {
+                print!("{}", geocal::report::text(&output.results));
+                println!(
+                    "\n  {} samples recorded to {}\n  results in {}",
+                    output.summary.samples,
+                    output.session_path.display(),
+                    output.results_path.display()
+                );
+            }
+        }
+        Command::Solve { session, json, out } => {
+            let results = geocal::run::solve_file(&session)?;
+            if let Some(path) = out {
+                std::fs::write(&path, results.to_json_pretty())
+                    .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
+            }
+            if json {
+                println!("{}", results.to_json_pretty());
+            } else {
+                print!("{}", geocal::report::text(&results));
+            }
+        }
+        Command::Check { config, json } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            let plan = geocal::plan::Plan::from_config(&cfg);
+            if json {
+                println!(
+                    "{}",
+                    serde_json::json!({"config": config, "valid": true,
+                        "points": plan.points.len(), "stations": plan.stations.len(), "passes": plan.passes.len()})
+                );
+            } else {
+                println!(
+                    "{}: valid — {} points x {} stations x {} passes",
+                    config.display(),
+                    plan.points.len(),
+                    plan.stations.len(),
+                    plan.passes.len()
+                );
+            }
+        }
+    }
+    Ok(())
+}

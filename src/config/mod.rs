@@ -1,0 +1,305 @@
+//! Configuration files (TOML): machine, devices, plan and simulated world, parsed strictly
+//! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
+
+mod validate;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+
+pub use validate::validate;
+
+/// A configuration error: which file, which key, what was expected.
+#[derive(Debug, thiserror::Error)]
+pub enum ConfigError {
+    #[error("{file}: cannot read: {source}")]
+    Read {
+        file: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("{file}: key `{key}`: {message}")]
+    Parse {
+        file: PathBuf,
+        key: String,
+        message: String,
+    },
+    #[error("{file}: key `{key}`: {message}")]
+    Invalid {
+        file: PathBuf,
+        key: String,
+        message: String,
+    },
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct Config {
+    /// Plan kind; only `multilateration` runs so far.
+    pub kind: PlanKind,
+    pub machine: MachineConfig,
+    pub devices: DevicesConfig,
+    pub plan: PlanConfig,
+    /// The simulated world; required when any device uses the `sim` driver.
+    #[serde(default)]
+    pub sim: Option<SimConfig>,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PlanKind {
+    Multilateration,
+}
+
+impl PlanKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            PlanKind::Multilateration => "multilateration",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MachineConfig {
+    #[serde(default)]
+    pub name: String,
+    /// ISO 230-1 style chain, e.g. `FYXZ` (letters left of F carry the workpiece).
+    pub structure: String,
+    /// Travel of each axis `x`, `y`, `z`: [low, high], metres.
+    pub travel_m: BTreeMap<String, [f64; 2]>,
+    /// Reflector offsets from the tool point.
+    pub targets: Vec<TargetConfig>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TargetConfig {
+    pub id: String,
+    pub offset_m: [f64; 3],
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct DevicesConfig {
+    pub tracer: TracerConfig,
+    #[serde(default)]
+    pub environment: Option<EnvironmentConfig>,
+    pub machine: MachineDeviceConfig,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum DriverKind {
+    Sim,
+}
+
+impl DriverKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            DriverKind::Sim => "sim",
+        }
+    }
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct TracerConfig {
+    pub id: String,
+    pub driver: DriverKind,
+    /// Per-sample standard deviation: noise_m + noise_ppm * 1e-6 * |L|.
+    pub noise_m: f64,
+    pub noise_ppm: f64,
+    /// Samples per second of the length stream.
+    pub sample_rate_hz: f64,
+    #[serde(default = "default_wavelength")]
+    pub wavelength_m: f64,
+    #[serde(default)]
+    pub dead_path_m: f64,
+    /// True when the tracer corrects the air refractive index itself.
+    #[serde(default = "default_true")]
+    pub compensated: bool,
+}
+
+fn default_wavelength() -> f64 {
+    632.991e-9
+}
+fn default_true() -> bool {
+    true
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct EnvironmentConfig {
+    pub id: String,
+    pub driver: DriverKind,
+    #[serde(default = "default_env_rate")]
+    pub sample_rate_hz: f64,
+}
+
+fn default_env_rate() -> f64 {
+    1.0
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct MachineDeviceConfig {
+    pub id: String,
+    pub driver: DriverKind,
+    /// Path feed rate, m/s.
+    pub feed_m_s: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct PlanConfig {
+    /// Which target (by id) the plan measures.
+    pub target: String,
+    pub grid: GridConfig,
+    /// Pass directions, in order; every pass starts by homing at point 0.
+    pub passes: Vec<PassDirection>,
+    pub stations: Vec<StationConfig>,
+    /// Minimum dwell at each point, seconds.
+    pub dwell_s: f64,
+    /// Give up waiting for stillstand after this long (a `fault` event), seconds.
+    pub max_dwell_s: f64,
+    pub stillstand: StillstandConfig,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct GridConfig {
+    pub x: AxisRange,
+    pub y: AxisRange,
+    pub z: AxisRange,
+    #[serde(default)]
+    pub order: GridOrder,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct AxisRange {
+    pub from: f64,
+    pub to: f64,
+    pub count: usize,
+}
+
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum GridOrder {
+    #[default]
+    Serpentine,
+    Raster,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PassDirection {
+    Forward,
+    Backward,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StationConfig {
+    pub id: String,
+    #[serde(default)]
+    pub hint_m: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct StillstandConfig {
+    /// The readings must stay within `tolerance_m` (peak to peak) for this long, seconds.
+    pub window_s: f64,
+    pub tolerance_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SimConfig {
+    pub seed: u64,
+    /// True stations lie this far (standard deviation per coordinate) from their hints, metres.
+    #[serde(default = "default_station_hint_error")]
+    pub station_hint_error_m: f64,
+    /// Sizes of the machine's geometric errors.
+    #[serde(default)]
+    pub errors: crate::sim::truth::ErrorSizes,
+    /// Time the operator needs to move the tracer to the next station, seconds.
+    #[serde(default = "default_relocation_s")]
+    pub relocation_s: f64,
+    #[serde(default)]
+    pub environment: SimEnvironmentConfig,
+}
+
+fn default_station_hint_error() -> f64 {
+    0.02
+}
+fn default_relocation_s() -> f64 {
+    120.0
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimEnvironmentConfig {
+    pub air_temp_k: f64,
+    pub pressure_pa: f64,
+    pub humidity_pct: f64,
+    pub material_temp_k: Vec<f64>,
+    /// Slow sinusoidal temperature swing (amplitude, kelvin; period, seconds).
+    pub temp_swing_k: f64,
+    pub temp_period_s: f64,
+}
+
+impl Default for SimEnvironmentConfig {
+    fn default() -> Self {
+        Self {
+            air_temp_k: 293.15,
+            pressure_pa: 101_325.0,
+            humidity_pct: 45.0,
+            material_temp_k: vec![293.2, 293.1],
+            temp_swing_k: 0.05,
+            temp_period_s: 3600.0,
+        }
+    }
+}
+
+impl Config {
+    /// Read, parse and validate a configuration file.
+    pub fn load(path: &Path) -> Result<Config, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse and validate configuration text; `file` names it in errors.
+    pub fn parse(text: &str, file: &Path) -> Result<Config, ConfigError> {
+        let parse_error = |key: String, message: String| ConfigError::Parse {
+            file: file.to_path_buf(),
+            key,
+            message,
+        };
+        let deserializer = toml::de::Deserializer::parse(text)
+            .map_err(|e| parse_error(String::from("(document)"), e.to_string()))?;
+        let config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
+            let key = e.path().to_string();
+            parse_error(key, e.into_inner().to_string().trim_end().to_string())
+        })?;
+        validate(&config).map_err(|(key, message)| ConfigError::Invalid {
+            file: file.to_path_buf(),
+            key,
+            message,
+        })?;
+        Ok(config)
+    }
+
+    pub fn target_offset(&self) -> Option<[f64; 3]> {
+        self.machine
+            .targets
+            .iter()
+            .find(|t| t.id == self.plan.target)
+            .map(|t| t.offset_m)
+    }
+}

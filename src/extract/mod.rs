@@ -1,0 +1,8 @@
+//! From raw streams to measured points: stillstand detection (sans-I/O, shared with the
+//! live sequencer) and extraction of the settled part of each dwell window of a session.
+
+pub mod points;
+pub mod stillstand;
+
+pub use points::{extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement};
+pub use stillstand::{Stillstand, StillstandDetector};

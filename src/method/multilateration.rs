@@ -1,0 +1,263 @@
+//! Multilateration method: settled point lengths from the session, the station/point
+//! adjustment, and the geocal-results/1 record of stations and point errors.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+use serde::{Deserialize, Serialize};
+
+use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
+use crate::session::reader::Session;
+use crate::solve::multilateration::{
+    solve as adjust, LengthObservation, MultilaterationProblem, Segment, SolveError, SolveOptions,
+};
+
+pub const RESULTS_FORMAT: &str = "geocal-results/1";
+
+#[derive(Debug, thiserror::Error)]
+pub enum MultilaterationError {
+    #[error("point extraction: {0}")]
+    Extract(#[from] crate::extract::points::ExtractError),
+    #[error("no settled point windows in the session ({dropped} dropped)")]
+    NoPoints { dropped: usize },
+    #[error("multilateration: {0}")]
+    Solve(#[from] SolveError),
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MultilaterationResults {
+    pub format: String,
+    pub kind: String,
+    pub session_id: String,
+    pub residual_rms_m: f64,
+    pub chi2_per_dof: f64,
+    pub dof: usize,
+    pub iterations: usize,
+    pub converged: bool,
+    /// How the datum (position and orientation) was fixed.
+    pub gauge: String,
+    /// Where the observation sigmas came from.
+    pub noise_model: String,
+    pub stations: Vec<StationResult>,
+    pub points: Vec<PointResult>,
+    pub extraction: ExtractionSummary,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct StationResult {
+    pub id: String,
+    pub position_m: [f64; 3],
+    /// |P - A_0| of the first beam segment.
+    pub home_distance_m: f64,
+    pub sigma_m: [f64; 3],
+    pub segments: Vec<SegmentResult>,
+    pub observations: usize,
+    pub residual_rms_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct SegmentResult {
+    pub beam_segment: u32,
+    pub home_distance_m: f64,
+    pub sigma_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PointResult {
+    pub point: usize,
+    pub target: String,
+    pub nominal_m: [f64; 3],
+    pub actual_m: [f64; 3],
+    pub error_m: [f64; 3],
+    pub sigma_m: [f64; 3],
+    pub observations: usize,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ExtractionSummary {
+    pub tracer: String,
+    pub windows_used: usize,
+    pub windows_dropped: usize,
+    /// Why windows were dropped, with counts.
+    pub dropped_reasons: BTreeMap<String, usize>,
+    pub samples_used: usize,
+}
+
+fn arr(v: &Vector3<f64>) -> [f64; 3] {
+    [v.x, v.y, v.z]
+}
+
+/// Solve a multilateration session.
+pub fn solve(session: &Session) -> Result<MultilaterationResults, MultilaterationError> {
+    let tracer_id = match session.tracers.keys().next() {
+        Some(id) if session.tracers.len() == 1 => id.clone(),
+        _ => {
+            // Let extraction report the precise problem (none or several tracers).
+            extract_points(session, None, None, &ExtractOptions::default())?;
+            String::new()
+        }
+    };
+    let declared_noise = NoiseModel::from_header(&session.header, &tracer_id);
+    let options = ExtractOptions::from_header(&session.header);
+    let extraction = extract_points(session, Some(&tracer_id), declared_noise, &options)?;
+    if extraction.measurements.is_empty() {
+        return Err(MultilaterationError::NoPoints {
+            dropped: extraction.dropped.len(),
+        });
+    }
+    let problem = Problem::build(&extraction);
+    let solution = adjust(&problem.problem, &SolveOptions::default())?;
+
+    let mut per_station = vec![(0usize, 0.0f64); problem.problem.station_hints.len()];
+    let mut per_point = vec![0usize; problem.points.len()];
+    for (obs, r) in problem.problem.observations.iter().zip(&solution.residuals_m) {
+        let station = problem.problem.segments[obs.segment].station;
+        per_station[station].0 += 1;
+        per_station[station].1 += r * r;
+        per_point[obs.point] += 1;
+    }
+    let stations = extraction
+        .stations
+        .iter()
+        .enumerate()
+        .map(|(j, seen)| {
+            let segments: Vec<SegmentResult> = problem
+                .segments
+                .iter()
+                .enumerate()
+                .filter(|(_, (station, _))| *station == j)
+                .map(|(s, &(_, beam_segment))| SegmentResult {
+                    beam_segment,
+                    home_distance_m: solution.segment_distance_m[s],
+                    sigma_m: solution.segment_distance_sigma_m[s],
+                })
+                .collect();
+            let cov = solution.station_covariance[j];
+            let (count, ss) = per_station[j];
+            StationResult {
+                id: seen.id.clone(),
+                position_m: arr(&solution.stations[j]),
+                home_distance_m: segments.first().map_or(f64::NAN, |s| s.home_distance_m),
+                sigma_m: [cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt(), cov[(2, 2)].sqrt()],
+                segments,
+                observations: count,
+                residual_rms_m: if count > 0 { (ss / count as f64).sqrt() } else { 0.0 },
+            }
+        })
+        .collect();
+    let points = problem
+        .points
+        .iter()
+        .enumerate()
+        .map(|(i, (target, point, nominal))| {
+            let actual = arr(&solution.points[i]);
+            let cov = solution.point_covariance[i];
+            PointResult {
+                point: *point,
+                target: target.clone(),
+                nominal_m: *nominal,
+                actual_m: actual,
+                error_m: std::array::from_fn(|k| actual[k] - nominal[k]),
+                sigma_m: [cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt(), cov[(2, 2)].sqrt()],
+                observations: per_point[i],
+            }
+        })
+        .collect();
+    let mut dropped_reasons = BTreeMap::new();
+    for d in &extraction.dropped {
+        *dropped_reasons.entry(d.reason.clone()).or_insert(0) += 1;
+    }
+    Ok(MultilaterationResults {
+        format: RESULTS_FORMAT.into(),
+        kind: "multilateration".into(),
+        session_id: session.header.session_id.clone(),
+        residual_rms_m: solution.residual_rms_m,
+        chi2_per_dof: if solution.dof > 0 {
+            solution.chi2 / solution.dof as f64
+        } else {
+            f64::NAN
+        },
+        dof: solution.dof,
+        iterations: solution.iterations,
+        converged: solution.converged,
+        gauge: solution.gauge.to_string(),
+        noise_model: match declared_noise {
+            Some(n) => format!(
+                "declared by the session: sigma = {} m + {} ppm * |L| per sample, divided by sqrt(samples averaged)",
+                n.noise_m, n.noise_ppm
+            ),
+            None => "none declared: each point's sigma is the scatter of its settled samples / sqrt(count)".into(),
+        },
+        stations,
+        points,
+        extraction: ExtractionSummary {
+            tracer: tracer_id,
+            windows_used: extraction.measurements.len(),
+            windows_dropped: extraction.dropped.len(),
+            dropped_reasons,
+            samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
+        },
+    })
+}
+
+/// The adjustment problem with the bookkeeping that maps it back to session names.
+struct Problem {
+    problem: MultilaterationProblem,
+    /// (target, plan point index, nominal) of each problem point.
+    points: Vec<(String, usize, [f64; 3])>,
+    /// (station index, beam segment) of each problem segment.
+    segments: Vec<(usize, u32)>,
+}
+
+impl Problem {
+    fn build(extraction: &Extraction) -> Problem {
+        let mut point_index: BTreeMap<(String, usize), usize> = BTreeMap::new();
+        let mut points = Vec::new();
+        // Point order: by target, then plan index, so results read in plan order.
+        let mut keys: Vec<(String, usize, [f64; 3])> = extraction
+            .measurements
+            .iter()
+            .map(|m| (m.target.clone(), m.point, m.nominal_m))
+            .collect();
+        keys.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
+        keys.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
+        for key in keys {
+            point_index.insert((key.0.clone(), key.1), points.len());
+            points.push(key);
+        }
+        let mut segment_index: BTreeMap<(usize, u32), usize> = BTreeMap::new();
+        let mut segments = Vec::new();
+        let mut observations = Vec::with_capacity(extraction.measurements.len());
+        for m in &extraction.measurements {
+            let seg_key = (m.station_index, m.beam_segment);
+            let segment = *segment_index.entry(seg_key).or_insert_with(|| {
+                segments.push(seg_key);
+                segments.len() - 1
+            });
+            observations.push(LengthObservation {
+                point: point_index[&(m.target.clone(), m.point)],
+                segment,
+                length_m: m.length_m,
+                sigma_m: m.sigma_m,
+            });
+        }
+        let problem = MultilaterationProblem {
+            nominal_points: points.iter().map(|p| Vector3::from(p.2)).collect(),
+            station_hints: extraction
+                .stations
+                .iter()
+                .map(|s| s.hint_m.map(Vector3::from))
+                .collect(),
+            segments: segments
+                .iter()
+                .map(|&(station, _)| Segment { station })
+                .collect(),
+            observations,
+        };
+        Problem {
+            problem,
+            points,
+            segments,
+        }
+    }
+}

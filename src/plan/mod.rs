@@ -1,0 +1,152 @@
+//! The measurement plan: a validated configuration expanded into points (grid order),
+//! stations and the visiting order of each pass. Pure data; the sequencer executes it.
+
+use serde::Serialize;
+
+use crate::config::{AxisRange, Config, GridOrder, PassDirection};
+
+/// Axis names in the order of `PlanPoint::axes_m`.
+pub const AXES: [&str; 3] = ["x", "y", "z"];
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PlanPoint {
+    pub index: usize,
+    /// Commanded axis positions x, y, z, metres.
+    pub axes_m: [f64; 3],
+    /// Commanded target position in the machine frame: axes + target offset.
+    pub nominal_m: [f64; 3],
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PlanStation {
+    pub id: String,
+    pub hint_m: Option<[f64; 3]>,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct Plan {
+    pub target: String,
+    pub target_offset_m: [f64; 3],
+    /// Point 0 is the homing point.
+    pub points: Vec<PlanPoint>,
+    pub stations: Vec<PlanStation>,
+    pub passes: Vec<PassDirection>,
+    pub dwell_s: f64,
+    pub max_dwell_s: f64,
+    pub stillstand_window_s: f64,
+    pub stillstand_tolerance_m: f64,
+}
+
+impl Plan {
+    /// Expand a validated configuration.
+    pub fn from_config(config: &Config) -> Plan {
+        let offset = config.target_offset().unwrap_or([0.0; 3]);
+        let grid = &config.plan.grid;
+        let points = grid_axes(&grid.x, &grid.y, &grid.z, grid.order)
+            .into_iter()
+            .enumerate()
+            .map(|(index, axes_m)| PlanPoint {
+                index,
+                axes_m,
+                nominal_m: [axes_m[0] + offset[0], axes_m[1] + offset[1], axes_m[2] + offset[2]],
+            })
+            .collect();
+        Plan {
+            target: config.plan.target.clone(),
+            target_offset_m: offset,
+            points,
+            stations: config
+                .plan
+                .stations
+                .iter()
+                .map(|s| PlanStation {
+                    id: s.id.clone(),
+                    hint_m: s.hint_m,
+                })
+                .collect(),
+            passes: config.plan.passes.clone(),
+            dwell_s: config.plan.dwell_s,
+            max_dwell_s: config.plan.max_dwell_s,
+            stillstand_window_s: config.plan.stillstand.window_s,
+            stillstand_tolerance_m: config.plan.stillstand.tolerance_m,
+        }
+    }
+
+    /// Point indices visited in a pass after homing at point 0 (which comes first in both).
+    pub fn pass_order(&self, direction: PassDirection) -> Vec<usize> {
+        let n = self.points.len();
+        match direction {
+            PassDirection::Forward => (0..n).collect(),
+            PassDirection::Backward => std::iter::once(0).chain((1..n).rev()).collect(),
+        }
+    }
+}
+
+fn linspace(range: &AxisRange) -> Vec<f64> {
+    if range.count == 1 {
+        return vec![range.from];
+    }
+    let step = (range.to - range.from) / (range.count - 1) as f64;
+    (0..range.count)
+        .map(|i| range.from + step * i as f64)
+        .collect()
+}
+
+/// Grid points with z slowest and x fastest; serpentine reverses every other row and layer
+/// so that consecutive points are neighbours.
+fn grid_axes(x: &AxisRange, y: &AxisRange, z: &AxisRange, order: GridOrder) -> Vec<[f64; 3]> {
+    let (xs, ys, zs) = (linspace(x), linspace(y), linspace(z));
+    let mut out = Vec::with_capacity(xs.len() * ys.len() * zs.len());
+    let mut row = 0usize;
+    for (layer, &zv) in zs.iter().enumerate() {
+        let y_iter: Vec<f64> = if order == GridOrder::Serpentine && layer % 2 == 1 {
+            ys.iter().rev().copied().collect()
+        } else {
+            ys.clone()
+        };
+        for yv in y_iter {
+            let reverse_x = order == GridOrder::Serpentine && row % 2 == 1;
+            row += 1;
+            let x_iter: Box<dyn Iterator<Item = &f64>> = if reverse_x {
+                Box::new(xs.iter().rev())
+            } else {
+                Box::new(xs.iter())
+            };
+            out.extend(x_iter.map(|&xv| [xv, yv, zv]));
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn range(from: f64, to: f64, count: usize) -> AxisRange {
+        AxisRange { from, to, count }
+    }
+
+    #[test]
+    fn serpentine_steps_between_neighbours() {
+        let pts = grid_axes(
+            &range(0.0, 1.0, 3),
+            &range(0.0, 2.0, 3),
+            &range(0.0, 1.0, 2),
+            GridOrder::Serpentine,
+        );
+        assert_eq!(pts.len(), 18);
+        for pair in pts.windows(2) {
+            let moved: usize = (0..3).filter(|&k| pair[0][k] != pair[1][k]).count();
+            assert_eq!(moved, 1, "consecutive points {pair:?} differ in more than one axis");
+        }
+        let unique: std::collections::BTreeSet<String> =
+            pts.iter().map(|p| format!("{p:?}")).collect();
+        assert_eq!(unique.len(), 18);
+    }
+
+    #[test]
+    fn raster_is_row_major() {
+        let pts = grid_axes(&range(0.0, 1.0, 2), &range(0.0, 1.0, 2), &range(0.0, 0.0, 1), GridOrder::Raster);
+        assert_eq!(pts, vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]]);
+    }
+}

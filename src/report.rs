@@ -1,0 +1,77 @@
+//! Human-readable reports of results: what an engineer reads at the end of a run.
+
+use std::fmt::Write;
+
+use crate::method::multilateration::MultilaterationResults;
+use crate::method::Results;
+
+pub fn text(results: &Results) -> String {
+    match results {
+        Results::Multilateration(r) => multilateration_text(r),
+    }
+}
+
+fn um(v: f64) -> f64 {
+    v * 1e6
+}
+
+fn multilateration_text(r: &MultilaterationResults) -> String {
+    let mut s = String::new();
+    let _ = writeln!(s, "geocal multilateration — session {}", r.session_id);
+    let _ = writeln!(
+        s,
+        "  {} windows used, {} dropped; {} samples averaged",
+        r.extraction.windows_used, r.extraction.windows_dropped, r.extraction.samples_used
+    );
+    for (reason, count) in &r.extraction.dropped_reasons {
+        let _ = writeln!(s, "    dropped {count}: {reason}");
+    }
+    let _ = writeln!(
+        s,
+        "  residual RMS {:.3} µm, chi²/dof {:.2} ({} dof), {} iterations{}",
+        um(r.residual_rms_m),
+        r.chi2_per_dof,
+        r.dof,
+        r.iterations,
+        if r.converged { "" } else { " — NOT CONVERGED" }
+    );
+    let _ = writeln!(s, "  gauge: {}", r.gauge);
+    let _ = writeln!(s, "\n  station        x [m]        y [m]        z [m]   σxyz [µm]           d0 [m]    rms [µm]");
+    for st in &r.stations {
+        let _ = writeln!(
+            s,
+            "  {:<8} {:>12.6} {:>12.6} {:>12.6}   {:>5.2} {:>5.2} {:>5.2}  {:>12.6}  {:>8.3}",
+            st.id,
+            st.position_m[0],
+            st.position_m[1],
+            st.position_m[2],
+            um(st.sigma_m[0]),
+            um(st.sigma_m[1]),
+            um(st.sigma_m[2]),
+            st.home_distance_m,
+            um(st.residual_rms_m)
+        );
+    }
+    let n = r.points.len().max(1) as f64;
+    let mut rms = [0.0f64; 3];
+    let mut max = [0.0f64; 3];
+    let mut sigma = [0.0f64; 3];
+    for p in &r.points {
+        for k in 0..3 {
+            rms[k] += p.error_m[k].powi(2) / n;
+            max[k] = max[k].max(p.error_m[k].abs());
+            sigma[k] += p.sigma_m[k].powi(2) / n;
+        }
+    }
+    let _ = writeln!(s, "\n  volumetric error over {} points (actual − nominal):", r.points.len());
+    for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+        let _ = writeln!(
+            s,
+            "    {axis}: RMS {:>7.3} µm, max |e| {:>7.3} µm, mean σ {:>6.3} µm",
+            um(rms[k].sqrt()),
+            um(max[k]),
+            um(sigma[k].sqrt())
+        );
+    }
+    s
+}

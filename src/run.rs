@@ -1,0 +1,172 @@
+//! A whole run: config -> plan -> devices -> sequencer -> recorded session -> solve -> results.
+//! The results come from reading the recorded session back, exactly as `geocal solve` does.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+
+use crate::clock::system_now_ns;
+use crate::config::Config;
+use crate::method::{solve_session, Results};
+use crate::plan::{Plan, AXES};
+use crate::sequencer::{RunSummary, Sequencer};
+use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT};
+use crate::session::reader::read_session;
+use crate::session::recorder::{Recorder, RecorderOptions};
+
+pub struct RunOptions {
+    pub out_dir: PathBuf,
+    /// Write the simulated truth here (simulated runs only).
+    pub truth: Option<PathBuf>,
+    /// Show a progress bar.
+    pub progress: bool,
+}
+
+pub struct RunOutput {
+    pub session_path: PathBuf,
+    pub results_path: PathBuf,
+    pub summary: RunSummary,
+    pub results: Results,
+}
+
+pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
+    let plan = Plan::from_config(config);
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    let session_path = options.out_dir.join("session.mcap");
+    let epoch_ns = system_now_ns();
+    let built = crate::devices::build(config, &plan, epoch_ns)?;
+    let recorder = Recorder::create(&session_path, RecorderOptions::default())
+        .with_context(|| format!("creating {}", session_path.display()))?;
+    let handle = recorder.handle();
+    handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+
+    let bar = progress_bar(options.progress);
+    let mut progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+    };
+    let sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let summary = runtime.block_on(sequencer.run(&mut progress));
+    bar.finish_and_clear();
+    // Finish the file even after a failed run: every recorded sample stays readable.
+    let stats = recorder.finish().context("finishing the session file")?;
+    let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    tracing::info!(
+        samples = summary.samples,
+        points = summary.points_measured,
+        bytes = stats.bytes,
+        "run recorded to {}",
+        session_path.display()
+    );
+
+    if let (Some(path), Some(world)) = (&options.truth, &built.world) {
+        let world = world
+            .lock()
+            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
+        let truth = world.truth(config, &plan);
+        std::fs::write(path, serde_json::to_string_pretty(&truth)?)
+            .with_context(|| format!("writing truth to {}", path.display()))?;
+    }
+
+    let results = solve_file(&session_path)?;
+    let results_path = options.out_dir.join("results.json");
+    std::fs::write(&results_path, results.to_json_pretty())
+        .with_context(|| format!("writing {}", results_path.display()))?;
+    Ok(RunOutput {
+        session_path,
+        results_path,
+        summary,
+        results,
+    })
+}
+
+/// Read a session file and solve it with the method of its kind.
+pub fn solve_file(path: &Path) -> anyhow::Result<Results> {
+    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    solve_session(&session).with_context(|| format!("solving {}", path.display()))
+}
+
+fn progress_bar(show: bool) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(0);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} points ({eta} left)",
+    ) {
+        bar.set_style(style);
+    }
+    bar
+}
+
+fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
+    let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
+        .ok()
+        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+        .unwrap_or_default();
+    let tracer = &config.devices.tracer;
+    let mut devices = vec![DeviceInfo {
+        id: tracer.id.clone(),
+        kind: "tracer".into(),
+        driver: tracer.driver.as_str().into(),
+        noise_m: Some(tracer.noise_m),
+        noise_ppm: Some(tracer.noise_ppm),
+        dead_path_m: Some(tracer.dead_path_m),
+        wavelength_m: Some(tracer.wavelength_m),
+        compensated: Some(tracer.compensated),
+        extra: BTreeMap::from([("sample_rate_hz".into(), tracer.sample_rate_hz.into())]),
+    }];
+    if let Some(env) = &config.devices.environment {
+        devices.push(plain_device(&env.id, "environment", env.driver.as_str()));
+    }
+    let machine = &config.devices.machine;
+    let mut machine_device = plain_device(&machine.id, "machine", machine.driver.as_str());
+    machine_device
+        .extra
+        .insert("feed_m_s".into(), machine.feed_m_s.into());
+    devices.push(machine_device);
+    let seed = config.sim.as_ref().map(|s| format!("-seed{}", s.seed)).unwrap_or_default();
+    SessionHeader {
+        format: SESSION_FORMAT.into(),
+        session_id: format!("{}-{}{}", config.kind.as_str(), epoch_ns / 1_000_000, seed),
+        started_at,
+        kind: config.kind.as_str().into(),
+        machine: MachineInfo {
+            name: config.machine.name.clone(),
+            structure: config.machine.structure.clone(),
+            axes: AXES.iter().map(|a| a.to_string()).collect(),
+            travel_m: config.machine.travel_m.clone(),
+            targets: config
+                .machine
+                .targets
+                .iter()
+                .map(|t| TargetInfo {
+                    id: t.id.clone(),
+                    offset_m: t.offset_m,
+                })
+                .collect(),
+        },
+        devices,
+        plan: serde_json::to_value(&config.plan).unwrap_or_default(),
+    }
+}
+
+fn plain_device(id: &str, kind: &str, driver: &str) -> DeviceInfo {
+    DeviceInfo {
+        id: id.into(),
+        kind: kind.into(),
+        driver: driver.into(),
+        noise_m: None,
+        noise_ppm: None,
+        dead_path_m: None,
+        wavelength_m: None,
+        compensated: None,
+        extra: BTreeMap::new(),
+    }
+}

@@ -1,0 +1,279 @@
+//! The simulated world's state: truth machine, true stations, the machine's motion in
+//! virtual time, the tracer's counter and noise, the environment. Simulated drivers share it.
+
+use std::sync::Arc;
+
+use nalgebra::Vector3;
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::Serialize;
+
+use crate::clock::VirtualClock;
+use crate::config::{Config, SimEnvironmentConfig};
+use crate::extract::NoiseModel;
+use crate::model::kinematics::{actual_position, Structure};
+use crate::plan::Plan;
+use crate::sim::truth::TruthErrors;
+
+#[derive(Debug, thiserror::Error)]
+pub enum SimError {
+    #[error("the configuration has no [sim] table")]
+    NoSimTable,
+    #[error("machine.structure: {0}")]
+    Structure(String),
+}
+
+/// A move in virtual time with a smooth (zero end velocity) profile.
+#[derive(Debug, Clone, Copy)]
+struct Motion {
+    from: [f64; 3],
+    to: [f64; 3],
+    start_s: f64,
+    duration_s: f64,
+}
+
+impl Motion {
+    fn at(&self, t_s: f64) -> [f64; 3] {
+        let tau = ((t_s - self.start_s) / self.duration_s).clamp(0.0, 1.0);
+        // Cycloidal profile: velocity and acceleration vanish at both ends.
+        let s = tau - (2.0 * std::f64::consts::PI * tau).sin() / (2.0 * std::f64::consts::PI);
+        std::array::from_fn(|k| self.from[k] + (self.to[k] - self.from[k]) * s)
+    }
+
+    fn end_s(&self) -> f64 {
+        self.start_s + self.duration_s
+    }
+}
+
+pub struct SimWorld {
+    pub(crate) clock: Arc<VirtualClock>,
+    structure: Structure,
+    truth: TruthErrors,
+    target_offset_m: [f64; 3],
+    stations_m: Vec<Vector3<f64>>,
+    current_station: usize,
+    motion: Motion,
+    feed_m_s: f64,
+    relocation_s: f64,
+    // Tracer.
+    sample_period_s: f64,
+    next_seq: u64,
+    last_sample_s: f64,
+    home_distance_m: f64,
+    beam_segment: u32,
+    noise: NoiseModel,
+    rng: ChaCha8Rng,
+    // Environment.
+    env: SimEnvironmentConfig,
+    env_period_s: f64,
+    next_env_s: f64,
+}
+
+/// Everything the simulation knows that a solver must find: exported with `--truth`.
+#[derive(Debug, Clone, Serialize)]
+pub struct Truth {
+    pub structure: String,
+    pub seed: u64,
+    pub target_offset_m: [f64; 3],
+    pub stations: Vec<TruthStation>,
+    pub points: Vec<TruthPoint>,
+    pub errors: serde_json::Value,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthStation {
+    pub id: String,
+    pub position_m: [f64; 3],
+    /// |P - A_0|: distance to the homing point.
+    pub home_distance_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthPoint {
+    pub point: usize,
+    pub axes_m: [f64; 3],
+    pub nominal_m: [f64; 3],
+    pub actual_m: [f64; 3],
+}
+
+impl SimWorld {
+    pub fn new(config: &Config, plan: &Plan, clock: Arc<VirtualClock>) -> Result<SimWorld, SimError> {
+        let sim = config.sim.as_ref().ok_or(SimError::NoSimTable)?;
+        let structure =
+            Structure::parse(&config.machine.structure).map_err(|e| SimError::Structure(e.to_string()))?;
+        let travel = ["x", "y", "z"].map(|a| config.machine.travel_m.get(a).copied().unwrap_or([0.0, 1.0]));
+        let truth = TruthErrors::random(sim.seed, travel, &sim.errors);
+        // Separate streams so that changing the noise does not move the stations.
+        let mut station_rng = ChaCha8Rng::seed_from_u64(sim.seed ^ 0x5157_4154_494f_4e53);
+        let offset = Normal::new(0.0, sim.station_hint_error_m.max(0.0)).map_err(|e| SimError::Structure(e.to_string()))?;
+        let stations_m = plan
+            .stations
+            .iter()
+            .map(|s| {
+                let hint = s.hint_m.unwrap_or([0.0; 3]);
+                Vector3::from_fn(|k, _| hint[k] + offset.sample(&mut station_rng))
+            })
+            .collect();
+        let tracer = &config.devices.tracer;
+        let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
+        let env_rate = config.devices.environment.as_ref().map_or(1.0, |e| e.sample_rate_hz);
+        Ok(SimWorld {
+            clock,
+            structure,
+            truth,
+            target_offset_m: plan.target_offset_m,
+            stations_m,
+            current_station: 0,
+            motion: Motion {
+                from: home,
+                to: home,
+                start_s: 0.0,
+                duration_s: 1.0,
+            },
+            feed_m_s: config.devices.machine.feed_m_s,
+            relocation_s: sim.relocation_s,
+            sample_period_s: 1.0 / tracer.sample_rate_hz,
+            next_seq: 0,
+            last_sample_s: 0.0,
+            home_distance_m: 0.0,
+            beam_segment: 0,
+            noise: NoiseModel {
+                noise_m: tracer.noise_m,
+                noise_ppm: tracer.noise_ppm,
+            },
+            rng: ChaCha8Rng::seed_from_u64(sim.seed.wrapping_add(1)),
+            env: sim.environment.clone(),
+            env_period_s: 1.0 / env_rate,
+            next_env_s: 0.0,
+        })
+    }
+
+    pub fn now_s(&self) -> f64 {
+        self.clock.elapsed_s()
+    }
+
+    fn target_at(&self, axes_m: [f64; 3]) -> Vector3<f64> {
+        Vector3::from(actual_position(&self.structure, &self.truth, axes_m, self.target_offset_m))
+    }
+
+    fn true_distance_m(&self, t_s: f64) -> f64 {
+        (self.stations_m[self.current_station] - self.target_at(self.motion.at(t_s))).norm()
+    }
+
+    // --- tracer ---
+
+    /// The next sample of the length stream; advances virtual time by one period.
+    pub fn next_tracer_sample(&mut self) -> geocal_drivers::TracerReading {
+        let t_s = (self.last_sample_s + self.sample_period_s).max(self.now_s());
+        self.last_sample_s = t_s;
+        self.clock.advance_to(t_s);
+        let length_m = self.true_distance_m(t_s) - self.home_distance_m;
+        let sigma = self.noise.sample_sigma_m(length_m);
+        let noise = Normal::new(0.0, sigma).map_or(0.0, |n| n.sample(&mut self.rng));
+        let seq = self.next_seq;
+        self.next_seq += 1;
+        geocal_drivers::TracerReading {
+            seq,
+            t_s,
+            length_m: length_m + noise,
+            signal: 0.9,
+            tracking: true,
+            beam_segment: self.beam_segment,
+        }
+    }
+
+    pub fn home_tracer(&mut self) {
+        self.home_distance_m = self.true_distance_m(self.now_s());
+    }
+
+    // --- machine ---
+
+    pub fn start_move(&mut self, target: [f64; 3]) {
+        let now = self.now_s();
+        let from = self.motion.at(now);
+        let distance: f64 = (0..3).map(|k| (target[k] - from[k]).powi(2)).sum::<f64>().sqrt();
+        // The cycloidal profile peaks at twice the mean speed: keep the peak at the feed.
+        let duration_s = (2.0 * distance / self.feed_m_s).max(0.1);
+        self.motion = Motion {
+            from,
+            to: target,
+            start_s: now,
+            duration_s,
+        };
+    }
+
+    /// The commanded end position once the move has finished, else None.
+    pub fn machine_idle_at(&self) -> Option<[f64; 3]> {
+        (self.now_s() >= self.motion.end_s()).then_some(self.motion.to)
+    }
+
+    // --- station mover ---
+
+    pub fn place_station(&mut self, index: usize) {
+        let index = index.min(self.stations_m.len().saturating_sub(1));
+        if index != self.current_station || self.next_seq > 0 {
+            self.clock.advance_to(self.now_s() + self.relocation_s);
+        }
+        self.current_station = index;
+        // The counter is meaningless until the sequencer homes again.
+        self.home_distance_m = self.true_distance_m(self.now_s());
+    }
+
+    // --- environment ---
+
+    pub fn env_samples_until_now(&mut self) -> Vec<geocal_drivers::EnvReading> {
+        let now = self.now_s();
+        let mut out = Vec::new();
+        while self.next_env_s <= now {
+            let t = self.next_env_s;
+            let swing = self.env.temp_swing_k
+                * (2.0 * std::f64::consts::PI * t / self.env.temp_period_s).sin();
+            out.push(geocal_drivers::EnvReading {
+                t_s: t,
+                air_temp_k: self.env.air_temp_k + swing,
+                pressure_pa: self.env.pressure_pa,
+                humidity_pct: self.env.humidity_pct,
+                material_temp_k: self.env.material_temp_k.iter().map(|m| m + 0.5 * swing).collect(),
+            });
+            self.next_env_s += self.env_period_s;
+        }
+        out
+    }
+
+    // --- truth ---
+
+    pub fn truth(&self, config: &Config, plan: &Plan) -> Truth {
+        let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
+        let home_target = self.target_at(home);
+        Truth {
+            structure: self.structure.as_str().to_string(),
+            seed: config.sim.as_ref().map_or(0, |s| s.seed),
+            target_offset_m: self.target_offset_m,
+            stations: plan
+                .stations
+                .iter()
+                .zip(&self.stations_m)
+                .map(|(s, p)| TruthStation {
+                    id: s.id.clone(),
+                    position_m: [p.x, p.y, p.z],
+                    home_distance_m: (p - home_target).norm(),
+                })
+                .collect(),
+            points: plan
+                .points
+                .iter()
+                .map(|p| {
+                    let a = self.target_at(p.axes_m);
+                    TruthPoint {
+                        point: p.index,
+                        axes_m: p.axes_m,
+                        nominal_m: p.nominal_m,
+                        actual_m: [a.x, a.y, a.z],
+                    }
+                })
+                .collect(),
+            errors: self.truth.sample_table(21),
+        }
+    }
+}
