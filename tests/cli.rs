@@ -1,0 +1,74 @@
+//! The command line as a user drives it: run, solve (replay) and check.
+
+use std::path::Path;
+use std::process::Command;
+
+const DEMO: &str = include_str!("../config/demo-multilateration.toml");
+
+fn geocal(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(args)
+        .output()
+        .expect("run geocal")
+}
+
+/// The demo shrunk to 4 stations x 3x3x2 points, one pass, so the CLI test stays quick.
+fn small_config(dir: &Path) -> std::path::PathBuf {
+    let cut = DEMO.find("[[plan.stations]]\nid = \"s5\"").expect("station s5");
+    let sim = DEMO.find("[sim]").expect("[sim]");
+    let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..])
+        .replace("count = 5 }", "count = 3 }")
+        .replace("count = 4 }", "count = 2 }")
+        .replace("passes = [\"forward\", \"backward\"]", "passes = [\"forward\"]");
+    let path = dir.join("small.toml");
+    std::fs::write(&path, text).expect("write config");
+    path
+}
+
+#[test]
+fn run_then_solve_prints_identical_json() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = small_config(dir.path());
+    let out = dir.path().join("out");
+    let run = geocal(&["run", config.to_str().unwrap(), "--out", out.to_str().unwrap(), "--json"]);
+    assert!(run.status.success(), "run failed: {}", String::from_utf8_lossy(&run.stderr));
+    let session = out.join("session.mcap");
+    let solve = geocal(&["solve", session.to_str().unwrap(), "--json"]);
+    assert!(solve.status.success(), "solve failed: {}", String::from_utf8_lossy(&solve.stderr));
+    assert_eq!(run.stdout, solve.stdout);
+    let results: serde_json::Value = serde_json::from_slice(&solve.stdout).expect("json");
+    assert_eq!(results["format"], "geocal-results/1");
+    assert_eq!(results["points"].as_array().map(Vec::len), Some(18));
+    // The text report names the stations and the volumetric error.
+    let text = geocal(&["solve", session.to_str().unwrap()]);
+    let text = String::from_utf8_lossy(&text.stdout);
+    assert!(text.contains("s4") && text.contains("volumetric error"), "{text}");
+}
+
+#[test]
+fn check_reports_a_bad_config_and_exits_nonzero() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("bad.toml");
+    std::fs::write(&path, DEMO.replace("feed_m_s = 0.3", "feed_m_s = -1.0")).expect("write");
+    let out = geocal(&["check", path.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        stderr.contains("bad.toml") && stderr.contains("devices.machine.feed_m_s") && stderr.contains("positive"),
+        "{stderr}"
+    );
+    let ok = geocal(&["check", concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-multilateration.toml")]);
+    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+}
+
+#[test]
+fn solve_of_a_missing_or_bad_file_is_a_clear_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let junk = dir.path().join("junk.mcap");
+    std::fs::write(&junk, b"this is not an mcap file at all").expect("write");
+    let out = geocal(&["solve", junk.to_str().unwrap()]);
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("junk.mcap"), "{stderr}");
+    assert!(!stderr.contains("panicked"), "{stderr}");
+}

@@ -1,0 +1,59 @@
+//! Helpers shared by the whole-run tests: comparing estimates with the simulated truth.
+#![allow(dead_code)]
+
+use nalgebra::{Matrix3, Rotation3, Vector3};
+
+/// Rigid motion (R, t) minimising sum |R a_i + t - b_i|^2 (Kabsch), written independently of
+/// the solver's own datum code so that the tests do not grade the solver with itself.
+pub fn rigid_fit(a: &[[f64; 3]], b: &[[f64; 3]]) -> (Rotation3<f64>, Vector3<f64>) {
+    assert_eq!(a.len(), b.len());
+    let n = a.len() as f64;
+    let ca = a.iter().map(|p| Vector3::from(*p)).sum::<Vector3<f64>>() / n;
+    let cb = b.iter().map(|p| Vector3::from(*p)).sum::<Vector3<f64>>() / n;
+    let mut h = Matrix3::zeros();
+    for (p, q) in a.iter().zip(b) {
+        h += (Vector3::from(*p) - ca) * (Vector3::from(*q) - cb).transpose();
+    }
+    let svd = h.svd(true, true);
+    let (u, v_t) = (svd.u.expect("u"), svd.v_t.expect("v_t"));
+    let mut d = Matrix3::identity();
+    if (v_t.transpose() * u.transpose()).determinant() < 0.0 {
+        d[(2, 2)] = -1.0;
+    }
+    let r = Rotation3::from_matrix_unchecked(v_t.transpose() * d * u.transpose());
+    (r, cb - r * ca)
+}
+
+/// RMS over points of |R a_i + t - b_i| per coordinate (i.e. sqrt(mean |.|^2 / 3)).
+pub fn rms_after(r: &Rotation3<f64>, t: &Vector3<f64>, a: &[[f64; 3]], b: &[[f64; 3]]) -> f64 {
+    let ss: f64 = a
+        .iter()
+        .zip(b)
+        .map(|(p, q)| (r * Vector3::from(*p) + t - Vector3::from(*q)).norm_squared())
+        .sum();
+    (ss / (3.0 * a.len() as f64)).sqrt()
+}
+
+/// The RMS per coordinate that the reported sigmas predict.
+pub fn predicted_rms(sigmas: &[[f64; 3]]) -> f64 {
+    let ss: f64 = sigmas.iter().map(|s| s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sum();
+    (ss / (3.0 * sigmas.len() as f64)).sqrt()
+}
+
+/// Run the Python checker on a session; fails the test if Python or its packages are missing.
+pub fn python_check_session(session: &std::path::Path, expect_tracer_samples: u64) {
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/check_session.py");
+    let output = std::process::Command::new("python3")
+        .arg(script)
+        .arg(session)
+        .arg("--expect-tracer-samples")
+        .arg(expect_tracer_samples.to_string())
+        .output()
+        .expect("python3 must be installed to run the independent session reader");
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(
+        output.status.success(),
+        "independent reader failed (pip install mcap jsonschema?)\nstdout:\n{stdout}\nstderr:\n{stderr}"
+    );
+}
