@@ -748,6 +748,18 @@ mod tests {
     }
 
     #[test]
+    fn fyxz_without_offset_cannot_see_four_rotations() {
+        // ref1: with the target at the tool point, ECX, EAZ, EBZ, ECZ have zero columns.
+        let s = Structure::parse("FYXZ").unwrap();
+        let j = error_jacobian(&s, [0.3, -0.7, 0.4], [0.0; 3]);
+        let zero: Vec<&str> = (0..N_ERRORS)
+            .filter(|&c| j.column(c).iter().all(|v| *v == 0.0))
+            .map(|c| ERROR_NAMES[c])
+            .collect();
+        assert_eq!(zero, ["ECX", "EAZ", "EBZ", "ECZ"]);
+    }
+
+    #[test]
     fn error_vector_order_matches_names() {
         let mut e = ConstantErrors::default();
         e.axes[Axis::Y.index()].angular_rad[1] = 3.0; // EBY
