@@ -1,1 +1,3 @@
 //! Models: what a measurement predicts, with Jacobians. No solver and no I/O here.
+
+pub mod kinematics;

@@ -1,2 +1,4 @@
 //! The simulated world: a seeded truth machine, instruments with their noise models, and
 //! simulated drivers behind the same traits as real ones.
+
+pub mod truth;
