@@ -2,3 +2,5 @@
 //! simulated drivers behind the same traits as real ones.
 
 pub mod truth;
+pub mod devices;
+pub mod world;
