@@ -742,7 +742,7 @@ fn covariance(
     let mut points = Vec::with_capacity(n);
     let max_k = (0..n).map(|i| layout.k(i)).max().unwrap_or(0);
     let mut tmp = vec![0.0; max_k];
-    for i in 0..n {
+    for (i, bxi) in bx.iter().enumerate() {
         let k = layout.k(i);
         let off = layout.w_offset(i);
         let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
@@ -763,7 +763,7 @@ fn covariance(
             }
         }
         let g = generator(&p.points[i], &centre);
-        points.push(inner(q, &g, &bx[i]));
+        points.push(inner(q, &g, bxi));
     }
     let mut stations = Vec::with_capacity(m);
     for j in 0..m {
