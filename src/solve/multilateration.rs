@@ -789,16 +789,35 @@ fn covariance(
 /// Moves points and stations by the rigid motion that best fits the points onto the nominal
 /// points: that realises the inner constraints Σ(X−N) = 0, Σ N×(X−N) = 0.
 fn align_to_nominal(problem: &MultilaterationProblem, p: &mut Params) -> Result<(), SolveError> {
-    // Twice: the second pass removes what rounding left of the first.
-    for _ in 0..2 {
+    let limit = 1e-12 * p.points.len() as f64;
+    // A second pass removes what rounding left of the first; a third is a safety margin.
+    for _ in 0..3 {
         let (r, t) = best_fit_rigid(&p.points, &problem.nominal_points).ok_or_else(|| {
             SolveError::Singular("rigid alignment to the nominal points failed".into())
         })?;
         for x in p.points.iter_mut().chain(p.stations.iter_mut()) {
             *x = r * *x + t;
         }
+        let (sum, moment) = inner_constraint_sums(&problem.nominal_points, &p.points);
+        if sum.amax() < limit && moment.amax() < limit {
+            break;
+        }
     }
     Ok(())
+}
+
+/// Σ (X−N) in m and Σ N×(X−N) in m²: both vanish under the inner constraints.
+fn inner_constraint_sums(
+    nominal: &[Vector3<f64>],
+    points: &[Vector3<f64>],
+) -> (Vector3<f64>, Vector3<f64>) {
+    let mut sum = Vector3::zeros();
+    let mut moment = Vector3::zeros();
+    for (x, nom) in points.iter().zip(nominal) {
+        sum += x - nom;
+        moment += nom.cross(&(x - nom));
+    }
+    (sum, moment)
 }
 
 /// Self-calibrating multilateration: stations, homing distances and points from relative lengths.
@@ -860,8 +879,12 @@ pub fn solve(
             std::mem::swap(&mut params, &mut trial);
             current_cost = new_cost;
             need_build = true;
+            // A tiny decrease only means convergence when the step was not heavily damped.
+            let nearly_gauss_newton = lambda < 1.0;
             lambda = (lambda / 10.0).max(1e-15);
-            if decrease <= options.tolerance || max_step <= options.step_tolerance_m {
+            if (decrease <= options.tolerance && nearly_gauss_newton)
+                || max_step <= options.step_tolerance_m
+            {
                 converged = true;
             }
         } else {
@@ -1160,12 +1183,7 @@ mod tests {
         let syn = synthetic(21, [5, 5, 4], &stations5(), &[], 30e-9, true);
         let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
         let n = sol.points.len() as f64;
-        let mut sum = Vector3::zeros();
-        let mut moment = Vector3::zeros();
-        for (x, nom) in sol.points.iter().zip(&syn.problem.nominal_points) {
-            sum += x - nom;
-            moment += nom.cross(&(x - nom));
-        }
+        let (sum, moment) = inner_constraint_sums(&syn.problem.nominal_points, &sol.points);
         assert!(sum.amax() < 1e-12 * n, "translation sum {sum}");
         assert!(moment.amax() < 1e-12 * n, "rotation sum {moment}");
         assert!(sol.gauge.contains("inner constraints"));
