@@ -18,6 +18,7 @@ pub struct Segment {
     pub station: usize,
 }
 
+/// n target points seen from m stations through S beam segments.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MultilaterationProblem {
     /// Commanded positions of the n target points; also the datum of the result.
@@ -28,6 +29,7 @@ pub struct MultilaterationProblem {
     pub observations: Vec<LengthObservation>,
 }
 
+/// Levenberg–Marquardt controls.
 #[derive(Debug, Clone, PartialEq)]
 pub struct SolveOptions {
     pub max_iterations: usize,
@@ -50,6 +52,8 @@ impl Default for SolveOptions {
     }
 }
 
+/// Estimates in the inner-constraint gauge relative to the nominal points, with their
+/// Cramér–Rao covariances (JᵀWJ)⁻¹ from the given sigmas.
 #[derive(Debug, Clone, PartialEq)]
 pub struct MultilaterationSolution {
     pub points: Vec<Vector3<f64>>,
@@ -63,8 +67,11 @@ pub struct MultilaterationSolution {
     /// Per observation, measured − predicted.
     pub residuals_m: Vec<f64>,
     pub residual_rms_m: f64,
+    /// Σ (r/σ)²; expect about `dof` when the noise model holds.
     pub chi2: f64,
+    /// Observations − (unknowns − 6 gauge freedoms).
     pub dof: usize,
+    /// LM iterations (accepted and rejected steps).
     pub iterations: usize,
     pub converged: bool,
     pub gauge: &'static str,
@@ -72,15 +79,19 @@ pub struct MultilaterationSolution {
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SolveError {
+    /// The problem is malformed or has too little data; the message says which part.
     #[error("invalid multilateration problem: {0}")]
     InvalidInput(String),
+    /// The data cannot determine the unknowns (degenerate geometry or start).
     #[error("multilateration is singular: {0}")]
     Singular(String),
 }
 
-pub const GAUGE_DESCRIPTION: &str = "inner constraints relative to the nominal points: the \
-corrections (estimated − nominal) carry no net translation or rotation; covariances are in \
-the same gauge";
+/// How the datum of every solution is fixed (also in `MultilaterationSolution::gauge`).
+pub const GAUGE_DESCRIPTION: &str = "Datum: inner constraints relative to the nominal points; \
+the solution was moved by the rigid motion that best fits its points onto the nominal points, \
+so the corrections (estimated - nominal) carry no net translation or rotation, and the \
+covariances are S-transformed to the same gauge.";
 
 fn invalid(msg: String) -> SolveError {
     SolveError::InvalidInput(msg)
@@ -331,13 +342,19 @@ fn closed_form_station(
         .iter()
         .fold(Vector3::zeros(), |acc, p| acc + p)
         / n;
+    // A segment with fewer than 3 lengths adds 2 unknowns it cannot carry: leave it out here;
+    // its distance is fitted afterwards from the station position.
+    let mut per_segment = vec![0usize; problem.segments.len()];
+    for o in &problem.observations {
+        per_segment[o.segment] += 1;
+    }
     let segs: Vec<usize> = (0..problem.segments.len())
-        .filter(|&s| problem.segments[s].station == station)
+        .filter(|&s| problem.segments[s].station == station && per_segment[s] >= 3)
         .collect();
     let rows: Vec<&LengthObservation> = problem
         .observations
         .iter()
-        .filter(|o| problem.segments[o.segment].station == station)
+        .filter(|o| segs.contains(&o.segment))
         .collect();
     let cols = 3 + 2 * segs.len();
     if rows.len() < cols {
@@ -1265,6 +1282,29 @@ mod tests {
         }
     }
 
+    #[test]
+    fn closed_form_start_skips_short_segments() {
+        let mut syn = synthetic(41, [4, 4, 3], &stations5(), &[], 30e-9, false);
+        // A beam break right after re-homing: a third segment on station 0 with two lengths.
+        let d = (syn.true_stations[0] - syn.true_points[0]).norm() + 2e-6;
+        let s = syn.problem.segments.len();
+        syn.problem.segments.push(Segment { station: 0 });
+        syn.true_distances_m.push(d);
+        for i in [5, 6] {
+            syn.problem.observations.push(LengthObservation {
+                point: i,
+                segment: s,
+                length_m: (syn.true_stations[0] - syn.true_points[i]).norm() - d,
+                sigma_m: 30e-9,
+            });
+        }
+        syn.problem.station_hints = vec![None; 5];
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        assert!(sol.converged);
+        assert!(errors(&sol, &syn).max_point_m < 1e-10);
+        assert!((sol.segment_distance_m[s] - d).abs() < 1e-10);
+    }
+
     fn small_problem() -> MultilaterationProblem {
         synthetic(1, [3, 3, 2], &stations5(), &[], 30e-9, true).problem
     }
@@ -1305,6 +1345,15 @@ mod tests {
         let mut p = small_problem();
         p.segments.push(Segment { station: 7 });
         assert!(message(&p).contains("segment 5 refers to station 7"));
+
+        // Every point seen from exactly 3 of 4 stations: 3n lengths for 3n + 16 − 6 unknowns.
+        let mut p = small_problem();
+        p.station_hints.truncate(4);
+        p.segments.truncate(4);
+        p.observations
+            .retain(|o| o.segment < 4 && o.segment != o.point % 4);
+        let msg = message(&p);
+        assert!(msg.contains("54 observations for 70 unknowns"), "{msg}");
     }
 
     #[test]
