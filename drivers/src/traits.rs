@@ -75,7 +75,9 @@ pub trait Environment: Send {
 pub enum MachineState {
     Moving,
     /// At rest at the reported position (metres, by axis name).
-    Idle { position: AxisPositions },
+    Idle {
+        position: AxisPositions,
+    },
 }
 
 /// A machine whose axes geocal commands.

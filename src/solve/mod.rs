@@ -1,1 +1,3 @@
 //! Solvers: minimisers and the methods that wire a model to a solver. No device access.
+
+pub mod multilateration;

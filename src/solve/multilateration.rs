@@ -1,0 +1,1407 @@
+//! Multilateration with a tracking interferometer: self-calibrates stations and homing distances
+//! and estimates every target point by sparse Levenberg–Marquardt (Schur complement on points).
+
+use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6, Vector3};
+
+/// One relative length: |station − point| − d(segment), measured by the tracer.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LengthObservation {
+    pub point: usize,
+    pub segment: usize,
+    pub length_m: f64,
+    pub sigma_m: f64,
+}
+
+/// A beam segment (between two homings at point 0) and the station it belongs to.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Segment {
+    pub station: usize,
+}
+
+/// n target points seen from m stations through S beam segments.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MultilaterationProblem {
+    /// Commanded positions of the n target points; also the datum of the result.
+    pub nominal_points: Vec<Vector3<f64>>,
+    /// One entry per station: an approximate position, or `None` for the closed-form start.
+    pub station_hints: Vec<Option<Vector3<f64>>>,
+    pub segments: Vec<Segment>,
+    pub observations: Vec<LengthObservation>,
+}
+
+/// Levenberg–Marquardt controls.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveOptions {
+    pub max_iterations: usize,
+    /// Converged when an accepted step lowers the cost by less than this fraction.
+    pub tolerance: f64,
+    /// Converged when no parameter moves by more than this.
+    pub step_tolerance_m: f64,
+    /// Initial Marquardt damping factor (multiplies the diagonal of the normal matrix).
+    pub initial_lambda: f64,
+}
+
+impl Default for SolveOptions {
+    fn default() -> Self {
+        Self {
+            max_iterations: 100,
+            tolerance: 1e-12,
+            step_tolerance_m: 1e-13,
+            initial_lambda: 1e-3,
+        }
+    }
+}
+
+/// Estimates in the inner-constraint gauge relative to the nominal points, with their
+/// Cramér–Rao covariances (JᵀWJ)⁻¹ from the given sigmas.
+#[derive(Debug, Clone, PartialEq)]
+pub struct MultilaterationSolution {
+    pub points: Vec<Vector3<f64>>,
+    /// Per point, 3x3 covariance in the inner-constraint gauge (m²).
+    pub point_covariance: Vec<Matrix3<f64>>,
+    pub stations: Vec<Vector3<f64>>,
+    pub station_covariance: Vec<Matrix3<f64>>,
+    /// Per segment, distance from the station to the homing point.
+    pub segment_distance_m: Vec<f64>,
+    pub segment_distance_sigma_m: Vec<f64>,
+    /// Per observation, measured − predicted.
+    pub residuals_m: Vec<f64>,
+    pub residual_rms_m: f64,
+    /// Σ (r/σ)²; expect about `dof` when the noise model holds.
+    pub chi2: f64,
+    /// Observations − (unknowns − 6 gauge freedoms).
+    pub dof: usize,
+    /// LM iterations (accepted and rejected steps).
+    pub iterations: usize,
+    pub converged: bool,
+    pub gauge: &'static str,
+}
+
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
+pub enum SolveError {
+    /// The problem is malformed or has too little data; the message says which part.
+    #[error("invalid multilateration problem: {0}")]
+    InvalidInput(String),
+    /// The data cannot determine the unknowns (degenerate geometry or start).
+    #[error("multilateration is singular: {0}")]
+    Singular(String),
+}
+
+/// How the datum of every solution is fixed (also in `MultilaterationSolution::gauge`).
+pub const GAUGE_DESCRIPTION: &str = "Datum: inner constraints relative to the nominal points; \
+the solution was moved by the rigid motion that best fits its points onto the nominal points, \
+so the corrections (estimated - nominal) carry no net translation or rotation, and the \
+covariances are S-transformed to the same gauge.";
+
+fn invalid(msg: String) -> SolveError {
+    SolveError::InvalidInput(msg)
+}
+
+/// Index bookkeeping built once per problem, so the iterations allocate nothing per observation.
+struct Layout {
+    n: usize,
+    m: usize,
+    /// Columns of the reduced (station + segment) system: 3m station coordinates, then S distances.
+    nv: usize,
+    /// Observation indices grouped by point (CSR with `point_obs_start`).
+    obs_order: Vec<usize>,
+    point_obs_start: Vec<usize>,
+    /// Per point, the global reduced-system columns it couples to (CSR with `point_cols_start`).
+    cols: Vec<usize>,
+    point_cols_start: Vec<usize>,
+    /// Per entry of `obs_order`: local column of its station block (3 wide) and of its segment.
+    obs_local_station: Vec<usize>,
+    obs_local_segment: Vec<usize>,
+    /// Six point coordinates held during the iterations: (point, axis).
+    fixed: [(usize, usize); 6],
+}
+
+impl Layout {
+    fn k(&self, i: usize) -> usize {
+        self.point_cols_start[i + 1] - self.point_cols_start[i]
+    }
+    /// Offset of point i's 3×k block in the flat W / Y buffers.
+    fn w_offset(&self, i: usize) -> usize {
+        3 * self.point_cols_start[i]
+    }
+}
+
+fn validate(problem: &MultilaterationProblem) -> Result<(), SolveError> {
+    let n = problem.nominal_points.len();
+    let m = problem.station_hints.len();
+    let s_count = problem.segments.len();
+    if m < 4 {
+        return Err(invalid(format!(
+            "{m} stations given; multilateration needs at least 4"
+        )));
+    }
+    if n < 4 {
+        return Err(invalid(format!(
+            "{n} points given; multilateration needs at least 4"
+        )));
+    }
+    for (i, p) in problem.nominal_points.iter().enumerate() {
+        if !p.iter().all(|v| v.is_finite()) {
+            return Err(invalid(format!("nominal point {i} is not finite")));
+        }
+    }
+    for (j, h) in problem.station_hints.iter().enumerate() {
+        if let Some(h) = h {
+            if !h.iter().all(|v| v.is_finite()) {
+                return Err(invalid(format!("station hint {j} is not finite")));
+            }
+        }
+    }
+    for (s, seg) in problem.segments.iter().enumerate() {
+        if seg.station >= m {
+            return Err(invalid(format!(
+                "segment {s} refers to station {} but there are only {m} stations",
+                seg.station
+            )));
+        }
+    }
+    for (o, obs) in problem.observations.iter().enumerate() {
+        if obs.point >= n {
+            return Err(invalid(format!(
+                "observation {o} refers to point {} but there are only {n} points",
+                obs.point
+            )));
+        }
+        if obs.segment >= s_count {
+            return Err(invalid(format!(
+                "observation {o} refers to segment {} but there are only {s_count} segments",
+                obs.segment
+            )));
+        }
+        if !obs.length_m.is_finite() {
+            return Err(invalid(format!("observation {o} has a non-finite length")));
+        }
+        if !(obs.sigma_m.is_finite() && obs.sigma_m > 0.0) {
+            return Err(invalid(format!(
+                "observation {o} has sigma {} m; sigma must be positive and finite",
+                obs.sigma_m
+            )));
+        }
+    }
+    // Distinct points per station and distinct stations per point.
+    let mut seen_station_point = vec![false; m * n];
+    let mut segment_used = vec![false; s_count];
+    for obs in &problem.observations {
+        let j = problem.segments[obs.segment].station;
+        seen_station_point[j * n + obs.point] = true;
+        segment_used[obs.segment] = true;
+    }
+    for j in 0..m {
+        let count = seen_station_point[j * n..(j + 1) * n]
+            .iter()
+            .filter(|&&b| b)
+            .count();
+        if count < 4 {
+            return Err(invalid(format!(
+                "station {j} observes {count} distinct points; each station needs at least 4"
+            )));
+        }
+    }
+    for i in 0..n {
+        let count = (0..m).filter(|&j| seen_station_point[j * n + i]).count();
+        if count < 3 {
+            return Err(invalid(format!(
+                "point {i} is observed from {count} stations; each point needs at least 3"
+            )));
+        }
+    }
+    if let Some(s) = segment_used.iter().position(|&u| !u) {
+        return Err(invalid(format!(
+            "segment {s} has no observations, so its homing distance is undetermined"
+        )));
+    }
+    let unknowns = 3 * n + 3 * m + s_count;
+    let nobs = problem.observations.len();
+    if nobs + 6 < unknowns {
+        return Err(invalid(format!(
+            "{nobs} observations for {unknowns} unknowns less 6 gauge freedoms; need at least {}",
+            unknowns - 6
+        )));
+    }
+    Ok(())
+}
+
+/// Three well-spread, non-collinear points and the 6 coordinates held fixed on them.
+fn choose_gauge(points: &[Vector3<f64>]) -> Result<[(usize, usize); 6], SolveError> {
+    let n = points.len() as f64;
+    let centroid = points.iter().fold(Vector3::zeros(), |acc, p| acc + p) / n;
+    let farthest = |from: &Vector3<f64>| {
+        points
+            .iter()
+            .enumerate()
+            .map(|(i, p)| (i, (p - from).norm_squared()))
+            .fold((0, -1.0), |best, c| if c.1 > best.1 { c } else { best })
+    };
+    let (a, _) = farthest(&centroid);
+    let (b, ab2) = farthest(&points[a]);
+    let dir_ab = points[b] - points[a];
+    let (c, area) = points
+        .iter()
+        .enumerate()
+        .map(|(i, p)| (i, dir_ab.cross(&(p - points[a])).norm()))
+        .fold((0, -1.0), |best, c| if c.1 > best.1 { c } else { best });
+    if ab2 <= 0.0 || area <= 1e-6 * ab2 {
+        return Err(SolveError::Singular(
+            "the nominal points are collinear or coincident; the datum cannot be fixed".into(),
+        ));
+    }
+    let normal = dir_ab.cross(&(points[c] - points[a]));
+    let b_axis = dir_ab.iamax();
+    let c_axis = normal.iamax();
+    let b_free: Vec<usize> = (0..3).filter(|&k| k != b_axis).collect();
+    Ok([
+        (a, 0),
+        (a, 1),
+        (a, 2),
+        (b, b_free[0]),
+        (b, b_free[1]),
+        (c, c_axis),
+    ])
+}
+
+fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> {
+    let n = problem.nominal_points.len();
+    let m = problem.station_hints.len();
+    let s_count = problem.segments.len();
+    let nv = 3 * m + s_count;
+    let mut counts = vec![0usize; n + 1];
+    for obs in &problem.observations {
+        counts[obs.point + 1] += 1;
+    }
+    for i in 0..n {
+        counts[i + 1] += counts[i];
+    }
+    let point_obs_start = counts.clone();
+    let mut fill = counts;
+    let mut obs_order = vec![0usize; problem.observations.len()];
+    for (o, obs) in problem.observations.iter().enumerate() {
+        obs_order[fill[obs.point]] = o;
+        fill[obs.point] += 1;
+    }
+    let mut cols = Vec::new();
+    let mut point_cols_start = Vec::with_capacity(n + 1);
+    let mut obs_local_station = vec![0usize; obs_order.len()];
+    let mut obs_local_segment = vec![0usize; obs_order.len()];
+    // Marks: global column → local column for the current point (usize::MAX = unset).
+    let mut local_of = vec![usize::MAX; nv];
+    for i in 0..n {
+        let start = cols.len();
+        point_cols_start.push(start);
+        for e in point_obs_start[i]..point_obs_start[i + 1] {
+            let obs = &problem.observations[obs_order[e]];
+            let j = problem.segments[obs.segment].station;
+            if local_of[3 * j] == usize::MAX {
+                for a in 0..3 {
+                    local_of[3 * j + a] = cols.len() - start;
+                    cols.push(3 * j + a);
+                }
+            }
+            let sc = 3 * m + obs.segment;
+            if local_of[sc] == usize::MAX {
+                local_of[sc] = cols.len() - start;
+                cols.push(sc);
+            }
+            obs_local_station[e] = local_of[3 * j];
+            obs_local_segment[e] = local_of[sc];
+        }
+        for &c in &cols[start..] {
+            local_of[c] = usize::MAX;
+        }
+    }
+    point_cols_start.push(cols.len());
+    let fixed = choose_gauge(&problem.nominal_points)?;
+    Ok(Layout {
+        n,
+        m,
+        nv,
+        obs_order,
+        point_obs_start,
+        cols,
+        point_cols_start,
+        obs_local_station,
+        obs_local_segment,
+        fixed,
+    })
+}
+
+/// Closed-form start for one station from the linearised equations, taking X_i ≈ N_i:
+/// −2 N_i·P − 2 l_i d_s + ρ_s = l_i² − N_i·N_i with ρ_s = P·P − d_s² free (one per segment).
+fn closed_form_station(
+    problem: &MultilaterationProblem,
+    station: usize,
+) -> Result<Vector3<f64>, SolveError> {
+    let n = problem.nominal_points.len() as f64;
+    // Centre the coordinates for conditioning.
+    let centre = problem
+        .nominal_points
+        .iter()
+        .fold(Vector3::zeros(), |acc, p| acc + p)
+        / n;
+    // A segment with fewer than 3 lengths adds 2 unknowns it cannot carry: leave it out here;
+    // its distance is fitted afterwards from the station position.
+    let mut per_segment = vec![0usize; problem.segments.len()];
+    for o in &problem.observations {
+        per_segment[o.segment] += 1;
+    }
+    let segs: Vec<usize> = (0..problem.segments.len())
+        .filter(|&s| problem.segments[s].station == station && per_segment[s] >= 3)
+        .collect();
+    let rows: Vec<&LengthObservation> = problem
+        .observations
+        .iter()
+        .filter(|o| segs.contains(&o.segment))
+        .collect();
+    let cols = 3 + 2 * segs.len();
+    if rows.len() < cols {
+        return Err(SolveError::Singular(format!(
+            "station {station}: {} observations cannot give a closed-form start with {} segments; \
+             give a station hint",
+            rows.len(),
+            segs.len()
+        )));
+    }
+    let mut a = DMatrix::zeros(rows.len(), cols);
+    let mut b = DVector::zeros(rows.len());
+    for (r, obs) in rows.iter().enumerate() {
+        let q = problem.nominal_points[obs.point] - centre;
+        let k = segs.iter().position(|&s| s == obs.segment).unwrap_or(0);
+        // Weighting by 1/sigma keeps the start sensible when sigmas differ a lot.
+        let w = 1.0 / obs.sigma_m;
+        for ax in 0..3 {
+            a[(r, ax)] = -2.0 * q[ax] * w;
+        }
+        a[(r, 3 + 2 * k)] = -2.0 * obs.length_m * w;
+        a[(r, 4 + 2 * k)] = w;
+        b[r] = (obs.length_m * obs.length_m - q.norm_squared()) * w;
+    }
+    let svd = a.svd(true, true);
+    let smax = svd.singular_values.max();
+    let smin = svd.singular_values.min();
+    if !(smax > 0.0 && smin > 1e-12 * smax) {
+        return Err(SolveError::Singular(format!(
+            "station {station}: the closed-form start is singular (points coplanar?); give a \
+             station hint"
+        )));
+    }
+    let x = svd
+        .solve(&b, 0.0)
+        .map_err(|e| SolveError::Singular(format!("station {station}: {e}")))?;
+    let p = Vector3::new(x[0], x[1], x[2]) + centre;
+    if !p.iter().all(|v| v.is_finite()) {
+        return Err(SolveError::Singular(format!(
+            "station {station}: closed-form start is not finite"
+        )));
+    }
+    Ok(p)
+}
+
+/// Starting station positions: the hint where given, else the closed-form linearised solution.
+pub fn initial_stations(problem: &MultilaterationProblem) -> Result<Vec<Vector3<f64>>, SolveError> {
+    validate(problem)?;
+    problem
+        .station_hints
+        .iter()
+        .enumerate()
+        .map(|(j, h)| match h {
+            Some(p) => Ok(*p),
+            None => closed_form_station(problem, j),
+        })
+        .collect()
+}
+
+/// Homing distances that best fit the lengths for given stations and points.
+fn initial_segment_distances(
+    problem: &MultilaterationProblem,
+    stations: &[Vector3<f64>],
+    points: &[Vector3<f64>],
+) -> Vec<f64> {
+    let s_count = problem.segments.len();
+    let mut num = vec![0.0; s_count];
+    let mut den = vec![0.0; s_count];
+    for obs in &problem.observations {
+        let j = problem.segments[obs.segment].station;
+        let w = 1.0 / (obs.sigma_m * obs.sigma_m);
+        num[obs.segment] += w * ((stations[j] - points[obs.point]).norm() - obs.length_m);
+        den[obs.segment] += w;
+    }
+    num.iter().zip(&den).map(|(a, b)| a / b).collect()
+}
+
+#[derive(Clone)]
+struct Params {
+    points: Vec<Vector3<f64>>,
+    stations: Vec<Vector3<f64>>,
+    distances_m: Vec<f64>,
+}
+
+/// Half the weighted sum of squared residuals.
+fn cost(problem: &MultilaterationProblem, p: &Params) -> f64 {
+    let mut c = 0.0;
+    for obs in &problem.observations {
+        let j = problem.segments[obs.segment].station;
+        let pred = (p.stations[j] - p.points[obs.point]).norm() - p.distances_m[obs.segment];
+        let r = (obs.length_m - pred) / obs.sigma_m;
+        c += r * r;
+    }
+    0.5 * c
+}
+
+/// Normal equations JᵀWJ, JᵀWr in block form, and buffers for the reduced solve.
+struct Normal {
+    u: Vec<Matrix3<f64>>,
+    gx: Vec<Vector3<f64>>,
+    /// Per point, 3×k cross block with the reduced columns, row-major, flat.
+    w: Vec<f64>,
+    v: DMatrix<f64>,
+    gv: DVector<f64>,
+    // Work buffers.
+    uinv: Vec<Matrix3<f64>>,
+    y: Vec<f64>,
+    yg: Vec<Vector3<f64>>,
+    a: DMatrix<f64>,
+    b: DVector<f64>,
+}
+
+impl Normal {
+    fn new(layout: &Layout) -> Self {
+        let wlen = 3 * layout.cols.len();
+        Self {
+            u: vec![Matrix3::zeros(); layout.n],
+            gx: vec![Vector3::zeros(); layout.n],
+            w: vec![0.0; wlen],
+            v: DMatrix::zeros(layout.nv, layout.nv),
+            gv: DVector::zeros(layout.nv),
+            uinv: vec![Matrix3::zeros(); layout.n],
+            y: vec![0.0; wlen],
+            yg: vec![Vector3::zeros(); layout.n],
+            a: DMatrix::zeros(layout.nv, layout.nv),
+            b: DVector::zeros(layout.nv),
+        }
+    }
+
+    fn build(
+        &mut self,
+        problem: &MultilaterationProblem,
+        layout: &Layout,
+        p: &Params,
+    ) -> Result<(), SolveError> {
+        let m = layout.m;
+        self.w.iter_mut().for_each(|x| *x = 0.0);
+        self.v.fill(0.0);
+        self.gv.fill(0.0);
+        for i in 0..layout.n {
+            let mut u = Matrix3::zeros();
+            let mut g = Vector3::zeros();
+            let k = layout.k(i);
+            let off = layout.w_offset(i);
+            for e in layout.point_obs_start[i]..layout.point_obs_start[i + 1] {
+                let obs = &problem.observations[layout.obs_order[e]];
+                let s = obs.segment;
+                let j = problem.segments[s].station;
+                let diff = p.stations[j] - p.points[i];
+                let dist = diff.norm();
+                if !(dist > 0.0 && dist.is_finite()) {
+                    return Err(SolveError::Singular(format!(
+                        "point {i} coincides with station {j}"
+                    )));
+                }
+                let dir = diff / dist;
+                let r = obs.length_m - (dist - p.distances_m[s]);
+                let wt = 1.0 / (obs.sigma_m * obs.sigma_m);
+                let uu = dir * dir.transpose() * wt;
+                // d(pred)/dX = −dir, d(pred)/dP = dir, d(pred)/dd = −1.
+                u += uu;
+                g -= dir * (wt * r);
+                let sj = 3 * j;
+                let sc = 3 * m + s;
+                for a in 0..3 {
+                    for c in 0..3 {
+                        self.v[(sj + a, sj + c)] += uu[(a, c)];
+                    }
+                    self.v[(sj + a, sc)] -= wt * dir[a];
+                    self.v[(sc, sj + a)] -= wt * dir[a];
+                    self.gv[sj + a] += wt * r * dir[a];
+                }
+                self.v[(sc, sc)] += wt;
+                self.gv[sc] -= wt * r;
+                let ls = layout.obs_local_station[e];
+                let lg = layout.obs_local_segment[e];
+                for a in 0..3 {
+                    for c in 0..3 {
+                        self.w[off + a * k + ls + c] -= uu[(a, c)];
+                    }
+                    self.w[off + a * k + lg] += wt * dir[a];
+                }
+            }
+            // Held coordinates: decouple their row and column, unit diagonal, no gradient.
+            for &(fp, ax) in &layout.fixed {
+                if fp == i {
+                    for c in 0..3 {
+                        u[(ax, c)] = 0.0;
+                        u[(c, ax)] = 0.0;
+                    }
+                    u[(ax, ax)] = 1.0;
+                    g[ax] = 0.0;
+                    for c in 0..k {
+                        self.w[off + ax * k + c] = 0.0;
+                    }
+                }
+            }
+            self.u[i] = u;
+            self.gx[i] = g;
+        }
+        Ok(())
+    }
+
+    /// Solves (H + λ diag H) δ = g by eliminating the points. On success, δ is in
+    /// `dx` / `dv`; `Ok(false)` means the reduced matrix was not positive definite.
+    fn solve_damped(
+        &mut self,
+        layout: &Layout,
+        lambda: f64,
+        dx: &mut [Vector3<f64>],
+        dv: &mut DVector<f64>,
+    ) -> Result<bool, SolveError> {
+        let nv = layout.nv;
+        self.a.copy_from(&self.v);
+        self.b.copy_from(&self.gv);
+        for c in 0..nv {
+            self.a[(c, c)] *= 1.0 + lambda;
+        }
+        for i in 0..layout.n {
+            let mut ud = self.u[i];
+            for c in 0..3 {
+                ud[(c, c)] *= 1.0 + lambda;
+            }
+            let Some(inv) = ud.try_inverse() else {
+                return Err(SolveError::Singular(format!(
+                    "point {i}: its 3x3 normal block is singular (stations collinear with it?)"
+                )));
+            };
+            self.uinv[i] = inv;
+            self.yg[i] = inv * self.gx[i];
+            self.eliminate_point(layout, i);
+        }
+        let Some(chol) = self.a.clone().cholesky() else {
+            return Ok(false);
+        };
+        let sol = chol.solve(&self.b);
+        dv.copy_from(&sol);
+        for (i, d) in dx.iter_mut().enumerate() {
+            let k = layout.k(i);
+            let off = layout.w_offset(i);
+            let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+            let mut t = self.yg[i];
+            for a in 0..3 {
+                let row = &self.y[off + a * k..off + (a + 1) * k];
+                t[a] -= row.iter().zip(cols).map(|(y, &c)| y * sol[c]).sum::<f64>();
+            }
+            *d = t;
+        }
+        Ok(true)
+    }
+
+    /// Y_i = U_i⁻¹ W_i, then A −= W_iᵀ Y_i and b −= W_iᵀ U_i⁻¹ g_i (uses `uinv`, `yg`).
+    fn eliminate_point(&mut self, layout: &Layout, i: usize) {
+        let k = layout.k(i);
+        let off = layout.w_offset(i);
+        let inv = self.uinv[i];
+        for a in 0..3 {
+            for c in 0..k {
+                self.y[off + a * k + c] = inv[(a, 0)] * self.w[off + c]
+                    + inv[(a, 1)] * self.w[off + k + c]
+                    + inv[(a, 2)] * self.w[off + 2 * k + c];
+            }
+        }
+        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+        let yg = self.yg[i];
+        for (r, &gr) in cols.iter().enumerate() {
+            let w0 = self.w[off + r];
+            let w1 = self.w[off + k + r];
+            let w2 = self.w[off + 2 * k + r];
+            if w0 == 0.0 && w1 == 0.0 && w2 == 0.0 {
+                continue;
+            }
+            for (c, &gc) in cols.iter().enumerate() {
+                // The update is symmetric; writing (gc, gr) walks the column-major storage.
+                self.a[(gc, gr)] -=
+                    w0 * self.y[off + c] + w1 * self.y[off + k + c] + w2 * self.y[off + 2 * k + c];
+            }
+            self.b[gr] -= w0 * yg[0] + w1 * yg[1] + w2 * yg[2];
+        }
+    }
+}
+
+/// Best-fit rigid motion (Kabsch, no scale): R, t minimising Σ |R x_i + t − y_i|².
+pub fn best_fit_rigid(
+    from: &[Vector3<f64>],
+    to: &[Vector3<f64>],
+) -> Option<(Matrix3<f64>, Vector3<f64>)> {
+    if from.len() != to.len() || from.is_empty() {
+        return None;
+    }
+    let n = from.len() as f64;
+    let cx = from.iter().fold(Vector3::zeros(), |a, p| a + p) / n;
+    let cy = to.iter().fold(Vector3::zeros(), |a, p| a + p) / n;
+    let mut h = Matrix3::zeros();
+    for (x, y) in from.iter().zip(to) {
+        h += (x - cx) * (y - cy).transpose();
+    }
+    let svd = h.svd(true, true);
+    let u = svd.u?;
+    let vt = svd.v_t?;
+    let d = (vt.transpose() * u.transpose()).determinant().signum();
+    let r = vt.transpose() * Matrix3::from_diagonal(&Vector3::new(1.0, 1.0, d)) * u.transpose();
+    Some((r, cy - r * cx))
+}
+
+/// Rigid-motion generators of a position q (translation, then small rotation about `centre`).
+fn generator(q: &Vector3<f64>, centre: &Vector3<f64>) -> Matrix3x6<f64> {
+    let p = q - centre;
+    let mut g = Matrix3x6::zeros();
+    g.fixed_view_mut::<3, 3>(0, 0)
+        .copy_from(&Matrix3::identity());
+    // ω × p = −[p]× ω
+    g.fixed_view_mut::<3, 3>(0, 3)
+        .copy_from(&(-p.cross_matrix()));
+    g
+}
+
+/// Cramér–Rao covariance in the minimal-constraint gauge, S-transformed to inner constraints
+/// relative to the nominal points, computed blockwise so the cost stays linear in n.
+struct Covariance {
+    points: Vec<Matrix3<f64>>,
+    stations: Vec<Matrix3<f64>>,
+    distance_var_m2: Vec<f64>,
+}
+
+fn covariance(
+    problem: &MultilaterationProblem,
+    layout: &Layout,
+    normal: &mut Normal,
+    p: &Params,
+) -> Result<Covariance, SolveError> {
+    let (n, m, nv) = (layout.n, layout.m, layout.nv);
+    normal.build(problem, layout, p)?;
+    let mut dx = vec![Vector3::zeros(); n];
+    let mut dv = DVector::zeros(nv);
+    if !normal.solve_damped(layout, 0.0, &mut dx, &mut dv)? {
+        return Err(SolveError::Singular(
+            "the station/segment system is not positive definite at the solution".into(),
+        ));
+    }
+    // Held coordinates have zero variance in the minimal-constraint gauge.
+    for &(i, ax) in &layout.fixed {
+        normal.uinv[i][(ax, ax)] = 0.0;
+    }
+    let chol = normal.a.clone().cholesky().ok_or_else(|| {
+        SolveError::Singular("reduced normal matrix is singular at the solution".into())
+    })?;
+    let ainv = chol.inverse();
+    let centre = problem
+        .nominal_points
+        .iter()
+        .fold(Vector3::zeros(), |a, q| a + q)
+        / n as f64;
+    // Z = Σ Y_iᵀ E_i (nv×6), EᵀG (6×6).
+    let mut z = DMatrix::<f64>::zeros(nv, 6);
+    let mut etg = Matrix6::<f64>::zeros();
+    for i in 0..n {
+        let e = generator(&problem.nominal_points[i], &centre);
+        let g = generator(&p.points[i], &centre);
+        etg += e.transpose() * g;
+        let k = layout.k(i);
+        let off = layout.w_offset(i);
+        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+        for (c, &gc) in cols.iter().enumerate() {
+            for q in 0..6 {
+                z[(gc, q)] += (0..3)
+                    .map(|a| normal.y[off + a * k + c] * e[(a, q)])
+                    .sum::<f64>();
+            }
+        }
+    }
+    let kmat = etg.try_inverse().ok_or_else(|| {
+        SolveError::Singular("the rigid-motion generators of the points are degenerate".into())
+    })?;
+    // M = A⁻¹ Z; B_v = Q_vx E = −M; B_x,i = U_i⁻¹ E_i + Y_i M.
+    let mmat = &ainv * &z;
+    let mut c6 = Matrix6::<f64>::zeros();
+    let mut bx = vec![Matrix3x6::<f64>::zeros(); n];
+    for (i, bxi) in bx.iter_mut().enumerate() {
+        let e = generator(&problem.nominal_points[i], &centre);
+        let k = layout.k(i);
+        let off = layout.w_offset(i);
+        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+        let mut b = normal.uinv[i] * e;
+        for a in 0..3 {
+            for q in 0..6 {
+                b[(a, q)] += cols
+                    .iter()
+                    .enumerate()
+                    .map(|(c, &gc)| normal.y[off + a * k + c] * mmat[(gc, q)])
+                    .sum::<f64>();
+            }
+        }
+        c6 += e.transpose() * b;
+        *bxi = b;
+    }
+    let kck = kmat * c6 * kmat.transpose();
+    let inner = |q: Matrix3<f64>, g: &Matrix3x6<f64>, b: &Matrix3x6<f64>| {
+        let gkb = g * kmat * b.transpose();
+        q - gkb - gkb.transpose() + g * kck * g.transpose()
+    };
+    let mut points = Vec::with_capacity(n);
+    let max_k = (0..n).map(|i| layout.k(i)).max().unwrap_or(0);
+    let mut tmp = vec![0.0; max_k];
+    for (i, bxi) in bx.iter().enumerate() {
+        let k = layout.k(i);
+        let off = layout.w_offset(i);
+        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+        // Q_ii = U_i⁻¹ + Y_i A⁻¹ Y_iᵀ over the point's columns only.
+        let mut q = normal.uinv[i];
+        for c in 0..3 {
+            let yc = &normal.y[off + c * k..off + (c + 1) * k];
+            for (r1, &g1) in cols.iter().enumerate() {
+                tmp[r1] = cols
+                    .iter()
+                    .zip(yc)
+                    .map(|(&g2, y)| ainv[(g2, g1)] * y)
+                    .sum::<f64>();
+            }
+            for a in 0..3 {
+                let ya = &normal.y[off + a * k..off + (a + 1) * k];
+                q[(a, c)] += ya.iter().zip(&tmp[..k]).map(|(y, t)| y * t).sum::<f64>();
+            }
+        }
+        let g = generator(&p.points[i], &centre);
+        points.push(inner(q, &g, bxi));
+    }
+    let mut stations = Vec::with_capacity(m);
+    for j in 0..m {
+        let q = ainv.fixed_view::<3, 3>(3 * j, 3 * j).into_owned();
+        let g = generator(&p.stations[j], &centre);
+        let mut b = Matrix3x6::zeros();
+        for a in 0..3 {
+            for c in 0..6 {
+                b[(a, c)] = -mmat[(3 * j + a, c)];
+            }
+        }
+        stations.push(inner(q, &g, &b));
+    }
+    // Homing distances are invariant under rigid motions: no S-transform correction.
+    let distance_var_m2 = (3 * m..nv).map(|c| ainv[(c, c)]).collect();
+    Ok(Covariance {
+        points,
+        stations,
+        distance_var_m2,
+    })
+}
+
+/// Moves points and stations by the rigid motion that best fits the points onto the nominal
+/// points: that realises the inner constraints Σ(X−N) = 0, Σ N×(X−N) = 0.
+fn align_to_nominal(problem: &MultilaterationProblem, p: &mut Params) -> Result<(), SolveError> {
+    let limit = 1e-12 * p.points.len() as f64;
+    // A second pass removes what rounding left of the first; a third is a safety margin.
+    for _ in 0..3 {
+        let (r, t) = best_fit_rigid(&p.points, &problem.nominal_points).ok_or_else(|| {
+            SolveError::Singular("rigid alignment to the nominal points failed".into())
+        })?;
+        for x in p.points.iter_mut().chain(p.stations.iter_mut()) {
+            *x = r * *x + t;
+        }
+        let (sum, moment) = inner_constraint_sums(&problem.nominal_points, &p.points);
+        if sum.amax() < limit && moment.amax() < limit {
+            break;
+        }
+    }
+    Ok(())
+}
+
+/// Σ (X−N) in m and Σ N×(X−N) in m²: both vanish under the inner constraints.
+fn inner_constraint_sums(
+    nominal: &[Vector3<f64>],
+    points: &[Vector3<f64>],
+) -> (Vector3<f64>, Vector3<f64>) {
+    let mut sum = Vector3::zeros();
+    let mut moment = Vector3::zeros();
+    for (x, nom) in points.iter().zip(nominal) {
+        sum += x - nom;
+        moment += nom.cross(&(x - nom));
+    }
+    (sum, moment)
+}
+
+/// Self-calibrating multilateration: stations, homing distances and points from relative lengths.
+pub fn solve(
+    problem: &MultilaterationProblem,
+    options: &SolveOptions,
+) -> Result<MultilaterationSolution, SolveError> {
+    let stations = initial_stations(problem)?;
+    let layout = build_layout(problem)?;
+    let points = problem.nominal_points.clone();
+    let distances_m = initial_segment_distances(problem, &stations, &points);
+    let mut params = Params {
+        points,
+        stations,
+        distances_m,
+    };
+    let mut trial = params.clone();
+    let mut normal = Normal::new(&layout);
+    let mut dx = vec![Vector3::zeros(); layout.n];
+    let mut dv = DVector::zeros(layout.nv);
+    let mut lambda = options.initial_lambda;
+    let mut current_cost = cost(problem, &params);
+    let mut converged = current_cost == 0.0;
+    let mut iterations = 0;
+    let mut need_build = true;
+    while !converged && iterations < options.max_iterations {
+        iterations += 1;
+        if need_build {
+            normal.build(problem, &layout, &params)?;
+            need_build = false;
+        }
+        if !normal.solve_damped(&layout, lambda, &mut dx, &mut dv)? {
+            lambda *= 10.0;
+            if lambda > 1e20 {
+                return Err(SolveError::Singular(
+                    "the reduced normal matrix stays indefinite under damping".into(),
+                ));
+            }
+            continue;
+        }
+        let m = layout.m;
+        let mut max_step: f64 = 0.0;
+        for (i, d) in dx.iter().enumerate() {
+            trial.points[i] = params.points[i] + d;
+            max_step = max_step.max(d.amax());
+        }
+        for j in 0..m {
+            let d = Vector3::new(dv[3 * j], dv[3 * j + 1], dv[3 * j + 2]);
+            trial.stations[j] = params.stations[j] + d;
+            max_step = max_step.max(d.amax());
+        }
+        for (s, dist) in trial.distances_m.iter_mut().enumerate() {
+            *dist = params.distances_m[s] + dv[3 * m + s];
+            max_step = max_step.max(dv[3 * m + s].abs());
+        }
+        let new_cost = cost(problem, &trial);
+        if new_cost.is_finite() && new_cost < current_cost {
+            let decrease = (current_cost - new_cost) / current_cost;
+            std::mem::swap(&mut params, &mut trial);
+            current_cost = new_cost;
+            need_build = true;
+            // A tiny decrease only means convergence when the step was not heavily damped.
+            let nearly_gauss_newton = lambda < 1.0;
+            lambda = (lambda / 10.0).max(1e-15);
+            if (decrease <= options.tolerance && nearly_gauss_newton)
+                || max_step <= options.step_tolerance_m
+            {
+                converged = true;
+            }
+        } else {
+            // A rejected step below the resolution means we sit at the rounding floor.
+            if max_step <= options.step_tolerance_m {
+                converged = true;
+            }
+            lambda *= 10.0;
+            if lambda > 1e20 {
+                break;
+            }
+        }
+    }
+    align_to_nominal(problem, &mut params)?;
+    let cov = covariance(problem, &layout, &mut normal, &params)?;
+    let mut residuals_m = Vec::with_capacity(problem.observations.len());
+    let mut chi2 = 0.0;
+    for obs in &problem.observations {
+        let j = problem.segments[obs.segment].station;
+        let pred = (params.stations[j] - params.points[obs.point]).norm()
+            - params.distances_m[obs.segment];
+        let r = obs.length_m - pred;
+        chi2 += (r / obs.sigma_m).powi(2);
+        residuals_m.push(r);
+    }
+    let nobs = residuals_m.len();
+    let residual_rms_m = (residuals_m.iter().map(|r| r * r).sum::<f64>() / nobs as f64).sqrt();
+    let unknowns = 3 * layout.n + layout.nv;
+    Ok(MultilaterationSolution {
+        points: params.points,
+        point_covariance: cov.points,
+        stations: params.stations,
+        station_covariance: cov.stations,
+        segment_distance_m: params.distances_m,
+        segment_distance_sigma_m: cov
+            .distance_var_m2
+            .iter()
+            .map(|v| v.max(0.0).sqrt())
+            .collect(),
+        residuals_m,
+        residual_rms_m,
+        chi2,
+        dof: nobs + 6 - unknowns,
+        iterations,
+        converged,
+        gauge: GAUGE_DESCRIPTION,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use rand::{Rng, SeedableRng};
+    use rand_chacha::ChaCha8Rng;
+    use rand_distr::StandardNormal;
+
+    struct Synthetic {
+        problem: MultilaterationProblem,
+        true_points: Vec<Vector3<f64>>,
+        true_stations: Vec<Vector3<f64>>,
+        true_distances_m: Vec<f64>,
+    }
+
+    fn stations5() -> Vec<Vector3<f64>> {
+        vec![
+            Vector3::new(-0.4, -0.4, 0.2),
+            Vector3::new(1.8, -0.3, 0.9),
+            Vector3::new(1.9, 2.8, 0.1),
+            Vector3::new(-0.3, 2.9, 1.1),
+            Vector3::new(0.7, 1.2, -0.5),
+        ]
+    }
+
+    /// Grid over 1.4 x 2.4 x 1.0 m; point 0 (a corner) is the homing point. Stations listed in
+    /// `two_segments` have their pass split by a beam break (re-homed with 1 µm repeatability).
+    fn synthetic(
+        seed: u64,
+        grid: [usize; 3],
+        stations: &[Vector3<f64>],
+        two_segments: &[usize],
+        sigma_m: f64,
+        noisy: bool,
+    ) -> Synthetic {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let mut nominal = Vec::new();
+        let size = [1.4, 2.4, 1.0];
+        for iz in 0..grid[2] {
+            for iy in 0..grid[1] {
+                for ix in 0..grid[0] {
+                    let f = |i: usize, k: usize| size[k] * i as f64 / (grid[k] - 1) as f64;
+                    nominal.push(Vector3::new(f(ix, 0), f(iy, 1), f(iz, 2)));
+                }
+            }
+        }
+        let true_points: Vec<Vector3<f64>> = nominal
+            .iter()
+            .map(|p| p + Vector3::from_fn(|_, _| rng.random_range(-4e-6..4e-6)))
+            .collect();
+        let n = nominal.len();
+        let mut segments = Vec::new();
+        let mut true_distances_m = Vec::new();
+        let mut observations = Vec::new();
+        for (j, pj) in stations.iter().enumerate() {
+            let home = (pj - true_points[0]).norm();
+            let parts = if two_segments.contains(&j) { 2 } else { 1 };
+            for part in 0..parts {
+                let s = segments.len();
+                segments.push(Segment { station: j });
+                let d = home + if part == 1 { 1e-6 } else { 0.0 };
+                true_distances_m.push(d);
+                let range = if parts == 1 {
+                    0..n
+                } else if part == 0 {
+                    0..n / 2
+                } else {
+                    n / 2..n
+                };
+                for i in range {
+                    let noise: f64 = if noisy {
+                        rng.sample::<f64, _>(StandardNormal) * sigma_m
+                    } else {
+                        0.0
+                    };
+                    observations.push(LengthObservation {
+                        point: i,
+                        segment: s,
+                        length_m: (pj - true_points[i]).norm() - d + noise,
+                        sigma_m,
+                    });
+                }
+            }
+        }
+        Synthetic {
+            problem: MultilaterationProblem {
+                nominal_points: nominal,
+                station_hints: stations.iter().map(|p| Some(*p)).collect(),
+                segments,
+                observations,
+            },
+            true_points,
+            true_stations: stations.to_vec(),
+            true_distances_m,
+        }
+    }
+
+    struct Errors {
+        point_ms_m2: f64,
+        point_pred_ms_m2: f64,
+        station_ms_m2: f64,
+        station_pred_ms_m2: f64,
+        max_point_m: f64,
+        max_station_m: f64,
+    }
+
+    /// Errors after removing the rigid motion that best fits the estimate onto the truth.
+    fn errors(sol: &MultilaterationSolution, syn: &Synthetic) -> Errors {
+        let (r, t) = best_fit_rigid(&sol.points, &syn.true_points).expect("kabsch");
+        let pe: Vec<Vector3<f64>> = sol
+            .points
+            .iter()
+            .zip(&syn.true_points)
+            .map(|(x, y)| r * x + t - y)
+            .collect();
+        let se: Vec<Vector3<f64>> = sol
+            .stations
+            .iter()
+            .zip(&syn.true_stations)
+            .map(|(x, y)| r * x + t - y)
+            .collect();
+        let n = pe.len() as f64;
+        let m = se.len() as f64;
+        Errors {
+            point_ms_m2: pe.iter().map(|e| e.norm_squared()).sum::<f64>() / (3.0 * n),
+            point_pred_ms_m2: sol.point_covariance.iter().map(|q| q.trace()).sum::<f64>()
+                / (3.0 * n),
+            station_ms_m2: se.iter().map(|e| e.norm_squared()).sum::<f64>() / (3.0 * m),
+            station_pred_ms_m2: sol
+                .station_covariance
+                .iter()
+                .map(|q| q.trace())
+                .sum::<f64>()
+                / (3.0 * m),
+            max_point_m: pe.iter().map(|e| e.amax()).fold(0.0, f64::max),
+            max_station_m: se.iter().map(|e| e.amax()).fold(0.0, f64::max),
+        }
+    }
+
+    #[test]
+    fn synthetic_noisy_within_covariance() {
+        let syn = synthetic(7, [5, 5, 4], &stations5(), &[1, 3], 30e-9, true);
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        assert!(sol.converged, "iterations {}", sol.iterations);
+        let e = errors(&sol, &syn);
+        let point_ratio = (e.point_ms_m2 / e.point_pred_ms_m2).sqrt();
+        let station_ratio = (e.station_ms_m2 / e.station_pred_ms_m2).sqrt();
+        assert!(point_ratio < 3.0, "point error ratio {point_ratio}");
+        assert!(station_ratio < 3.0, "station error ratio {station_ratio}");
+        for (s, d) in sol.segment_distance_m.iter().enumerate() {
+            let z = (d - syn.true_distances_m[s]) / sol.segment_distance_sigma_m[s];
+            assert!(z.abs() < 4.0, "segment {s}: {z} sigma");
+        }
+        // chi2 should be near its degrees of freedom.
+        let chi2_ratio = sol.chi2 / sol.dof as f64;
+        assert!((0.7..1.3).contains(&chi2_ratio), "chi2/dof {chi2_ratio}");
+        assert_eq!(sol.residuals_m.len(), syn.problem.observations.len());
+    }
+
+    #[test]
+    fn noise_free_is_recovered_exactly() {
+        let syn = synthetic(3, [5, 5, 4], &stations5(), &[0, 2], 30e-9, false);
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        assert!(sol.converged);
+        let e = errors(&sol, &syn);
+        assert!(e.max_point_m < 1e-10, "point error {}", e.max_point_m);
+        assert!(e.max_station_m < 1e-10, "station error {}", e.max_station_m);
+        for (d, t) in sol.segment_distance_m.iter().zip(&syn.true_distances_m) {
+            assert!((d - t).abs() < 1e-10);
+        }
+        assert!(sol.residual_rms_m < 1e-12);
+    }
+
+    #[test]
+    fn monte_carlo_error_matches_covariance() {
+        let seeds = 30;
+        let (mut pe, mut pp, mut se, mut sp) = (0.0, 0.0, 0.0, 0.0);
+        for seed in 0..seeds {
+            let syn = synthetic(100 + seed, [4, 4, 2], &stations5(), &[4], 30e-9, true);
+            let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+            assert!(sol.converged);
+            let e = errors(&sol, &syn);
+            pe += e.point_ms_m2;
+            pp += e.point_pred_ms_m2;
+            se += e.station_ms_m2;
+            sp += e.station_pred_ms_m2;
+        }
+        let point_ratio = (pe / pp).sqrt();
+        let station_ratio = (se / sp).sqrt();
+        eprintln!("monte carlo: point ratio {point_ratio:.3}, station ratio {station_ratio:.3}");
+        assert!(
+            (0.8..1.25).contains(&point_ratio),
+            "point ratio {point_ratio}"
+        );
+        assert!(
+            (0.75..1.33).contains(&station_ratio),
+            "station ratio {station_ratio}"
+        );
+    }
+
+    #[test]
+    fn converges_to_same_solution_from_any_start() {
+        let syn = synthetic(11, [4, 4, 3], &stations5(), &[1], 30e-9, true);
+        let from_hints = solve(&syn.problem, &SolveOptions::default()).expect("hints");
+        let mut no_hints = syn.problem.clone();
+        no_hints.station_hints = vec![None; 5];
+        let closed = initial_stations(&no_hints).expect("closed form");
+        for (c, t) in closed.iter().zip(&syn.true_stations) {
+            // The linearised start ignores the µm point deviations and the noise only.
+            assert!(
+                (c - t).norm() < 1e-3,
+                "closed-form start off by {}",
+                (c - t).norm()
+            );
+        }
+        let from_none = solve(&no_hints, &SolveOptions::default()).expect("no hints");
+        let mut rng = ChaCha8Rng::seed_from_u64(5);
+        let mut off = syn.problem.clone();
+        for h in off.station_hints.iter_mut().flatten() {
+            let dir = Vector3::from_fn(|_, _| rng.sample::<f64, _>(StandardNormal)).normalize();
+            *h += dir * 0.2;
+        }
+        let from_off = solve(&off, &SolveOptions::default()).expect("off hints");
+        for other in [&from_none, &from_off] {
+            assert!(other.converged);
+            for (a, b) in from_hints.points.iter().zip(&other.points) {
+                assert!((a - b).amax() < 1e-9, "points differ by {}", (a - b).amax());
+            }
+            for (a, b) in from_hints.stations.iter().zip(&other.stations) {
+                assert!(
+                    (a - b).amax() < 1e-9,
+                    "stations differ by {}",
+                    (a - b).amax()
+                );
+            }
+            for (a, b) in from_hints
+                .segment_distance_m
+                .iter()
+                .zip(&other.segment_distance_m)
+            {
+                assert!((a - b).abs() < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn inner_constraints_hold() {
+        let syn = synthetic(21, [5, 5, 4], &stations5(), &[], 30e-9, true);
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        let n = sol.points.len() as f64;
+        let (sum, moment) = inner_constraint_sums(&syn.problem.nominal_points, &sol.points);
+        assert!(sum.amax() < 1e-12 * n, "translation sum {sum}");
+        assert!(moment.amax() < 1e-12 * n, "rotation sum {moment}");
+        assert!(sol.gauge.contains("inner constraints"));
+    }
+
+    /// Dense reference: full Jacobian, a different minimal constraint (pseudo-inverse over the
+    /// free parameters), dense S-transform. The inner-constraint covariance must not depend on
+    /// which minimal constraint was used, so it must match the blockwise one.
+    #[test]
+    fn blockwise_covariance_matches_dense() {
+        let syn = synthetic(31, [3, 3, 2], &stations5(), &[2], 30e-9, true);
+        let p = &syn.problem;
+        let sol = solve(p, &SolveOptions::default()).expect("solve");
+        let (n, m, s) = (p.nominal_points.len(), 5, p.segments.len());
+        let np = 3 * n + 3 * m + s;
+        let mut h = DMatrix::<f64>::zeros(np, np);
+        for obs in &p.observations {
+            let j = p.segments[obs.segment].station;
+            let diff = sol.stations[j] - sol.points[obs.point];
+            let u = diff / diff.norm();
+            let mut row = DVector::<f64>::zeros(np);
+            for a in 0..3 {
+                row[3 * obs.point + a] = -u[a];
+                row[3 * n + 3 * j + a] = u[a];
+            }
+            row[3 * n + 3 * m + obs.segment] = -1.0;
+            h += &row * row.transpose() / (obs.sigma_m * obs.sigma_m);
+        }
+        // Minimal constraint: hold point 0 xyz, point 2 (on the x axis) y z, point 3 z.
+        let fixed = [0, 1, 2, 3 * 2 + 1, 3 * 2 + 2, 3 * 3 + 2];
+        let free: Vec<usize> = (0..np).filter(|c| !fixed.contains(c)).collect();
+        let hf = DMatrix::from_fn(free.len(), free.len(), |a, b| h[(free[a], free[b])]);
+        let qf = hf.cholesky().expect("dense normal").inverse();
+        let mut q = DMatrix::<f64>::zeros(np, np);
+        for (a, &fa) in free.iter().enumerate() {
+            for (b, &fb) in free.iter().enumerate() {
+                q[(fa, fb)] = qf[(a, b)];
+            }
+        }
+        let centre = Vector3::new(0.3, -0.2, 0.1);
+        let mut g = DMatrix::<f64>::zeros(np, 6);
+        let mut e = DMatrix::<f64>::zeros(np, 6);
+        for i in 0..n {
+            g.view_mut((3 * i, 0), (3, 6))
+                .copy_from(&generator(&sol.points[i], &centre));
+            e.view_mut((3 * i, 0), (3, 6))
+                .copy_from(&generator(&p.nominal_points[i], &centre));
+        }
+        for j in 0..m {
+            g.view_mut((3 * n + 3 * j, 0), (3, 6))
+                .copy_from(&generator(&sol.stations[j], &centre));
+        }
+        let etg = e.transpose() * &g;
+        let sm =
+            DMatrix::<f64>::identity(np, np) - &g * etg.try_inverse().expect("etg") * e.transpose();
+        let qi = &sm * q * sm.transpose();
+        let et_q = e.transpose() * &qi;
+        let scale = qi.amax();
+        assert!(et_q.amax() < 1e-9 * scale, "EᵀQ = {}", et_q.amax());
+        for i in 0..n {
+            let d = qi.view((3 * i, 3 * i), (3, 3)) - sol.point_covariance[i];
+            assert!(
+                d.amax() < 1e-6 * sol.point_covariance[i].amax(),
+                "point {i}: {d}"
+            );
+        }
+        for j in 0..m {
+            let c = 3 * n + 3 * j;
+            let d = qi.view((c, c), (3, 3)) - sol.station_covariance[j];
+            assert!(
+                d.amax() < 1e-6 * sol.station_covariance[j].amax(),
+                "station {j}"
+            );
+        }
+        for k in 0..s {
+            let c = 3 * n + 3 * m + k;
+            let sd = qi[(c, c)].sqrt();
+            assert!((sd - sol.segment_distance_sigma_m[k]).abs() < 1e-6 * sd);
+        }
+    }
+
+    #[test]
+    fn closed_form_start_skips_short_segments() {
+        let mut syn = synthetic(41, [4, 4, 3], &stations5(), &[], 30e-9, false);
+        // A beam break right after re-homing: a third segment on station 0 with two lengths.
+        let d = (syn.true_stations[0] - syn.true_points[0]).norm() + 2e-6;
+        let s = syn.problem.segments.len();
+        syn.problem.segments.push(Segment { station: 0 });
+        syn.true_distances_m.push(d);
+        for i in [5, 6] {
+            syn.problem.observations.push(LengthObservation {
+                point: i,
+                segment: s,
+                length_m: (syn.true_stations[0] - syn.true_points[i]).norm() - d,
+                sigma_m: 30e-9,
+            });
+        }
+        syn.problem.station_hints = vec![None; 5];
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        assert!(sol.converged);
+        assert!(errors(&sol, &syn).max_point_m < 1e-10);
+        assert!((sol.segment_distance_m[s] - d).abs() < 1e-10);
+    }
+
+    fn small_problem() -> MultilaterationProblem {
+        synthetic(1, [3, 3, 2], &stations5(), &[], 30e-9, true).problem
+    }
+
+    fn message(p: &MultilaterationProblem) -> String {
+        match solve(p, &SolveOptions::default()) {
+            Err(e) => e.to_string(),
+            Ok(_) => panic!("expected an error"),
+        }
+    }
+
+    #[test]
+    fn validation_errors_are_clear() {
+        let mut p = small_problem();
+        p.station_hints.truncate(3);
+        p.segments.retain(|s| s.station < 3);
+        p.observations.retain(|o| o.segment < 3);
+        assert!(message(&p).contains("3 stations given; multilateration needs at least 4"));
+
+        let mut p = small_problem();
+        p.observations[5].point = 99;
+        let msg = message(&p);
+        assert!(msg.contains("observation 5 refers to point 99"), "{msg}");
+
+        let mut p = small_problem();
+        p.observations[2].sigma_m = 0.0;
+        let msg = message(&p);
+        assert!(msg.contains("observation 2 has sigma 0 m"), "{msg}");
+
+        let mut p = small_problem();
+        p.observations.retain(|o| !(o.segment == 1 && o.point > 2));
+        let msg = message(&p);
+        assert!(
+            msg.contains("station 1 observes 3 distinct points"),
+            "{msg}"
+        );
+
+        let mut p = small_problem();
+        p.segments.push(Segment { station: 7 });
+        assert!(message(&p).contains("segment 5 refers to station 7"));
+
+        // Every point seen from exactly 3 of 4 stations: 3n lengths for 3n + 16 − 6 unknowns.
+        let mut p = small_problem();
+        p.station_hints.truncate(4);
+        p.segments.truncate(4);
+        p.observations
+            .retain(|o| o.segment < 4 && o.segment != o.point % 4);
+        let msg = message(&p);
+        assert!(msg.contains("54 observations for 70 unknowns"), "{msg}");
+    }
+
+    #[test]
+    fn degenerate_input_gives_errors_not_panics() {
+        // All points coplanar and no hints: the closed-form start is singular.
+        let mut p = small_problem();
+        for q in p.nominal_points.iter_mut() {
+            q.z = 0.0;
+        }
+        p.station_hints = vec![None; 5];
+        assert!(matches!(
+            solve(&p, &SolveOptions::default()),
+            Err(SolveError::Singular(_))
+        ));
+        // All points collinear: no datum.
+        let mut p = small_problem();
+        for (i, q) in p.nominal_points.iter_mut().enumerate() {
+            *q = Vector3::new(0.1 * i as f64, 0.0, 0.0);
+        }
+        assert!(solve(&p, &SolveOptions::default()).is_err());
+    }
+
+    /// 10 000 points x 16 stations; run with `cargo test --release -- --ignored large`.
+    #[test]
+    #[ignore]
+    fn large_problem_timing() {
+        let mut stations = Vec::new();
+        for k in 0..16 {
+            let a = k as f64 * std::f64::consts::TAU / 16.0;
+            stations.push(Vector3::new(
+                0.7 + 1.8 * a.cos(),
+                1.2 + 2.2 * a.sin(),
+                -0.3 + 0.1 * (k % 4) as f64 * 4.0,
+            ));
+        }
+        let two: Vec<usize> = (0..16).step_by(2).collect();
+        let syn = synthetic(9, [20, 25, 20], &stations, &two, 30e-9, true);
+        let t0 = std::time::Instant::now();
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        eprintln!(
+            "n={} m=16 obs={} time {:?} iterations {}",
+            sol.points.len(),
+            syn.problem.observations.len(),
+            t0.elapsed(),
+            sol.iterations
+        );
+        let e = errors(&sol, &syn);
+        eprintln!("ratio {}", (e.point_ms_m2 / e.point_pred_ms_m2).sqrt());
+        assert!(sol.converged);
+    }
+}
