@@ -1120,6 +1120,25 @@ mod tests {
     }
 
     #[test]
+    fn complete_files_are_read_through_the_index() {
+        let r = recorded();
+        let summary = mcap::Summary::read(&r.bytes).unwrap().unwrap();
+        let dec = read_indexed(&r.bytes, "x", &summary).unwrap();
+        assert!(dec.is_some(), "indexed path fell back to linear");
+        let linear = read_linear(&r.bytes, "x").unwrap();
+        assert!(linear.truncation.is_none());
+        let (a, b) = (
+            dec.unwrap().into_session("x", 0).unwrap(),
+            linear.into_session("x", 0).unwrap(),
+        );
+        assert_eq!(a, b);
+        // Unchunked messages are not in any chunk index: the reader must notice and go linear.
+        let bytes = foreign_file(mcap::WriteOptions::new().use_chunks(false));
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        assert!(read_indexed(&bytes, "x", &summary).unwrap().is_none());
+    }
+
+    #[test]
     fn topic_ids() {
         assert_eq!(tracer_id("/tracer/t0/range"), Some("t0"));
         assert_eq!(tracer_id("/tracer//range"), None);

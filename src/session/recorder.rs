@@ -569,3 +569,180 @@ fn encode<T: Serialize + ?Sized>(
         })
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::session::reader::testutil::*;
+    use crate::session::reader::{read_session, read_session_bytes, Completeness};
+
+    fn opts(compression: Compression, flush_interval: Duration) -> RecorderOptions {
+        RecorderOptions {
+            chunk_size: 64 * 1024,
+            flush_interval,
+            compression,
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        for compression in [Compression::Zstd, Compression::Lz4, Compression::None] {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("rt.mcap");
+            let rec = Recorder::create(&path, opts(compression, Duration::from_secs(1))).unwrap();
+            let h = rec.handle();
+            let h2 = h.clone();
+            let mut t = 1_700_000_000_000_000_000u64;
+            h.session(&header(), t);
+            let evs = events();
+            let mut want_tracer: BTreeMap<&str, Vec<(u64, TracerSample)>> = BTreeMap::new();
+            let mut want_env = vec![];
+            let mut want_events = vec![];
+            for i in 0..4000u64 {
+                t += 100_000;
+                let id = if i % 2 == 0 { "tracer0" } else { "tracer1" };
+                let s = tracer_sample(i / 2);
+                // Two handles from two threads' worth of clones share one file.
+                if i % 5 == 0 { &h2 } else { &h }.tracer(id, &s, t);
+                want_tracer.entry(id).or_default().push((t, s));
+                if i % 400 == 0 {
+                    let e = env_sample(i);
+                    h.env("air0", &e, t);
+                    want_env.push((t, e));
+                    let ev = evs[(i / 400) as usize % evs.len()].clone();
+                    h.event(&ev, t);
+                    want_events.push((t, ev));
+                }
+            }
+            let stats = rec.finish().unwrap();
+            assert_eq!(stats.messages, 1 + 4000 + 2 * 10);
+            assert_eq!(stats.lost, 0);
+            assert_eq!(stats.channels, 5);
+            assert_eq!(stats.bytes, std::fs::metadata(&path).unwrap().len());
+
+            let s = read_session(&path).unwrap();
+            assert_eq!(s.completeness, Completeness::Complete);
+            assert_eq!(s.header, header());
+            assert_eq!((s.skipped, s.ignored), (0, 0));
+            assert_eq!(s.tracers.len(), 2);
+            for (id, want) in &want_tracer {
+                let got: Vec<_> = s.tracers[*id]
+                    .iter()
+                    .map(|st| {
+                        assert_eq!(st.publish_time_ns, st.log_time_ns);
+                        (st.log_time_ns, st.msg)
+                    })
+                    .collect();
+                assert_eq!(&got, want);
+            }
+            let got: Vec<_> = s.env["air0"]
+                .iter()
+                .map(|st| (st.log_time_ns, st.msg.clone()))
+                .collect();
+            assert_eq!(got, want_env);
+            let got: Vec<_> = s
+                .events
+                .iter()
+                .map(|st| (st.log_time_ns, st.msg.clone()))
+                .collect();
+            assert_eq!(got, want_events);
+        }
+    }
+
+    fn poll<T>(limit: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(v) = f() {
+                return v;
+            }
+            assert!(Instant::now() < deadline, "nothing on disk after {limit:?}");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn killed_run_keeps_everything_before_the_last_flush() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("kill.mcap");
+        let interval = Duration::from_millis(100);
+        let rec = Recorder::create(&path, opts(Compression::Zstd, interval)).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        // The header alone is on disk at once, long before the first periodic flush.
+        let early = poll(Duration::from_millis(90), || {
+            read_session_bytes(&std::fs::read(&path).unwrap()).ok()
+        });
+        assert_eq!(early.header, header());
+        assert!(!early.completeness.is_complete());
+
+        for i in 0..500 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        // "kill -9": take the bytes on disk while the recorder still runs, once a flush
+        // interval has passed (polled, so a loaded machine does not make this flaky).
+        std::thread::sleep(interval);
+        let copy = poll(Duration::from_secs(5), || {
+            let bytes = std::fs::read(&path).unwrap();
+            let s = read_session_bytes(&bytes).ok()?;
+            (s.tracers.get("tracer0").map_or(0, Vec::len) == 500).then_some(bytes)
+        });
+        for i in 500..600 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        let s = read_session_bytes(&copy).unwrap();
+        match &s.completeness {
+            Completeness::Truncated {
+                bytes_read,
+                file_bytes,
+                ..
+            } => assert_eq!(bytes_read, file_bytes),
+            Completeness::Complete => panic!("a running recording cannot be complete"),
+        }
+        let got: Vec<_> = s.tracers["tracer0"].iter().map(|st| st.msg).collect();
+        let want: Vec<_> = (0..500).map(tracer_sample).collect();
+        assert_eq!(got, want);
+
+        let stats = rec.finish().unwrap();
+        assert!(stats.flushes >= 1, "{stats:?}");
+        let s = read_session(&path).unwrap();
+        assert!(s.completeness.is_complete());
+        assert_eq!(s.tracers["tracer0"].len(), 600);
+    }
+
+    #[test]
+    fn sends_after_finish_are_counted_not_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("late.mcap");
+        let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        rec.finish().unwrap();
+        h.tracer("tracer0", &tracer_sample(0), 2);
+        h.tracer("tracer0", &tracer_sample(1), 3);
+        assert_eq!(h.lost_after_close.load(Ordering::Relaxed), 2);
+    }
+
+    #[test]
+    fn unwritable_path_is_a_clear_error() {
+        let Err(e) = Recorder::create(
+            Path::new("/nonexistent/dir/x.mcap"),
+            RecorderOptions::default(),
+        ) else {
+            panic!("created a file in a missing directory");
+        };
+        assert!(e.to_string().contains("/nonexistent/dir/x.mcap"), "{e}");
+    }
+
+    #[test]
+    fn dropping_without_finish_still_finishes_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("drop.mcap");
+        {
+            let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+            rec.handle().session(&header(), 1);
+        }
+        assert!(read_session(&path).unwrap().completeness.is_complete());
+    }
+}
