@@ -2,3 +2,10 @@
 //! and the one session reader that solve, replay, diagnose and report share.
 
 pub mod messages;
+pub mod reader;
+pub mod recorder;
+
+pub use reader::{read_session, read_session_bytes, Completeness, ReadError, Session, Stamped};
+pub use recorder::{
+    Compression, RecordStats, Recorder, RecorderError, RecorderHandle, RecorderOptions,
+};

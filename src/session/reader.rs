@@ -1,0 +1,1150 @@
+//! The one session reader (solve, replay, diagnose, report): MCAP bytes -> typed, time-sorted
+//! streams per topic. Indexed through the summary when valid, linear (crash-tolerant) otherwise.
+
+use std::collections::{BTreeMap, HashMap};
+use std::path::Path;
+
+use mcap::records::op;
+use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
+use serde::de::DeserializeOwned;
+use serde::Deserialize;
+use thiserror::Error;
+
+use super::messages::{
+    EnvSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
+};
+
+/// A message with its MCAP times.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stamped<T> {
+    pub log_time_ns: u64,
+    pub publish_time_ns: u64,
+    pub msg: T,
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub enum Completeness {
+    /// The file ends with its footer and end magic.
+    Complete,
+    /// The file was cut short (crash, power loss) or is damaged after `bytes_read`; everything
+    /// before that point was read.
+    Truncated {
+        bytes_read: u64,
+        file_bytes: u64,
+        messages_read: u64,
+        reason: String,
+    },
+}
+
+impl Completeness {
+    pub fn is_complete(&self) -> bool {
+        matches!(self, Completeness::Complete)
+    }
+}
+
+#[derive(Debug, Clone, PartialEq)]
+pub struct Session {
+    pub header: SessionHeader,
+    /// Key: tracer id from the topic `/tracer/<id>/range`. Each Vec is sorted by log time.
+    pub tracers: BTreeMap<String, Vec<Stamped<TracerSample>>>,
+    /// Key: id from the topic `/env/<id>`.
+    pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    pub events: Vec<Stamped<RunEvent>>,
+    pub completeness: Completeness,
+    /// Messages on known topics that did not parse (each one is warned about).
+    pub skipped: u64,
+    /// Messages on topics this reader does not know (other plan kinds, other tools).
+    pub ignored: u64,
+}
+
+#[derive(Debug, Error)]
+pub enum ReadError {
+    #[error("cannot read session file {file}: {source}")]
+    Io {
+        file: String,
+        source: std::io::Error,
+    },
+    #[error("{file} is not an MCAP file: {reason}")]
+    NotMcap { file: String, reason: String },
+    #[error("{file} has no {TOPIC_SESSION} message ({messages} messages read{truncated})")]
+    NoHeader {
+        file: String,
+        messages: u64,
+        truncated: String,
+    },
+    #[error(
+        "{file}: the {TOPIC_SESSION} message at log_time {log_time_ns} ns does not parse: {error}"
+    )]
+    BadHeader {
+        file: String,
+        log_time_ns: u64,
+        error: serde_json::Error,
+    },
+    #[error("{file}: session format is {found:?}, expected {SESSION_FORMAT:?}")]
+    WrongFormat { file: String, found: String },
+}
+
+/// Reads a whole session file.
+pub fn read_session(path: &Path) -> Result<Session, ReadError> {
+    let bytes = std::fs::read(path).map_err(|source| ReadError::Io {
+        file: path.display().to_string(),
+        source,
+    })?;
+    read_impl(&bytes, &path.display().to_string())
+}
+
+/// Reads a session held in memory (tests, data received over the network).
+pub fn read_session_bytes(bytes: &[u8]) -> Result<Session, ReadError> {
+    read_impl(bytes, "<in-memory session>")
+}
+
+fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
+    if buf.len() < mcap::MAGIC.len() || &buf[..mcap::MAGIC.len()] != mcap::MAGIC {
+        let reason = if mcap::MAGIC.starts_with(buf) {
+            format!("only {} bytes, less than the MCAP magic", buf.len())
+        } else {
+            "it does not start with the MCAP magic bytes".to_owned()
+        };
+        return Err(ReadError::NotMcap {
+            file: file.to_owned(),
+            reason,
+        });
+    }
+    let decoded = match mcap::Summary::read(buf) {
+        Ok(Some(summary)) => match read_indexed(buf, file, &summary)? {
+            Some(d) => d,
+            None => read_linear(buf, file)?,
+        },
+        Ok(None) => read_linear(buf, file)?,
+        Err(err) => {
+            tracing::debug!("{file}: no usable summary ({err}); reading linearly");
+            read_linear(buf, file)?
+        }
+    };
+    decoded.into_session(file, buf.len() as u64)
+}
+
+/// Reads the chunks the summary lists. Returns None when the summary does not account for
+/// every message (unchunked messages, odd writers): the caller then reads linearly.
+fn read_indexed(
+    buf: &[u8],
+    file: &str,
+    summary: &mcap::Summary,
+) -> Result<Option<Decoder>, ReadError> {
+    let Some(stats) = &summary.stats else {
+        return Ok(None);
+    };
+    let mut dec = Decoder::new(file);
+    for channel in summary.channels.values() {
+        dec.define_channel(channel.id, &channel.topic, &channel.message_encoding);
+        if let Some(&n) = stats.channel_message_counts.get(&channel.id) {
+            dec.reserve(channel.id, n);
+        }
+    }
+    let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
+    chunks.sort_by_key(|c| c.chunk_start_offset);
+    let mut sans = chunk_reader();
+    for index in chunks {
+        let start = index.chunk_start_offset;
+        let range = usize::try_from(start)
+            .ok()
+            .zip(usize::try_from(start.saturating_add(index.chunk_length)).ok())
+            .filter(|&(s, e)| s < e && e <= buf.len());
+        let Some((s, e)) = range else {
+            tracing::debug!("{file}: chunk index points outside the file; reading linearly");
+            return Ok(None);
+        };
+        match dec.feed_chunk(&mut sans, &buf[s..e]) {
+            Ok(()) => {}
+            Err(Failure::Fatal(err)) => return Err(err),
+            Err(Failure::Mcap(err)) => {
+                tracing::debug!("{file}: chunk at byte {s}: {err}; reading linearly");
+                return Ok(None);
+            }
+        }
+    }
+    if dec.messages != stats.message_count {
+        tracing::debug!(
+            "{file}: chunk indexes hold {} of {} messages; reading linearly",
+            dec.messages,
+            stats.message_count
+        );
+        return Ok(None);
+    }
+    Ok(Some(dec))
+}
+
+fn chunk_reader() -> LinearReader {
+    // Only whole records are ever fed in, so a chunk is decoded only once complete; its CRC is
+    // checked before any of its messages is used.
+    LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_start_magic(true)
+            .with_skip_end_magic(true)
+            .with_prevalidate_chunk_crcs(true),
+    )
+}
+
+const RECORD_PREFIX: usize = 9; // opcode u8 + length u64
+
+/// Walks the top-level records itself, so that a cut anywhere stops cleanly at the last
+/// complete record (and so that the amount read is exact).
+fn read_linear(buf: &[u8], file: &str) -> Result<Decoder, ReadError> {
+    let mut dec = Decoder::new(file);
+    let mut sans = chunk_reader();
+    let mut pos = mcap::MAGIC.len();
+    let mut in_data_section = true;
+    let truncation: Option<(usize, String)> = loop {
+        let rest = &buf[pos..];
+        if rest.is_empty() {
+            break Some((pos, format!("the file ends at byte {pos} with no footer")));
+        }
+        if rest.len() < RECORD_PREFIX {
+            break Some((pos, format!("record header at byte {pos} is cut short")));
+        }
+        let opcode = rest[0];
+        let mut len_bytes = [0u8; 8];
+        len_bytes.copy_from_slice(&rest[1..RECORD_PREFIX]);
+        let len = u64::from_le_bytes(len_bytes);
+        let end = usize::try_from(len)
+            .ok()
+            .and_then(|l| l.checked_add(RECORD_PREFIX))
+            .filter(|&l| l <= rest.len());
+        let Some(end) = end else {
+            break Some((
+                pos,
+                format!(
+                    "record (opcode {opcode:#04x}, {len} bytes) at byte {pos} runs past the end \
+                     of the file"
+                ),
+            ));
+        };
+        let record = &rest[..end];
+        let body = &record[RECORD_PREFIX..];
+        let result = match opcode {
+            op::FOOTER => {
+                let after = &rest[end..];
+                if after.len() >= mcap::MAGIC.len() && &after[..mcap::MAGIC.len()] == mcap::MAGIC {
+                    break None;
+                }
+                break Some((
+                    pos + end,
+                    "the end magic after the footer is missing".into(),
+                ));
+            }
+            op::DATA_END => {
+                in_data_section = false;
+                Ok(())
+            }
+            _ if !in_data_section => Ok(()),
+            op::CHUNK => dec.feed_chunk(&mut sans, record),
+            op::CHANNEL | op::MESSAGE => dec.on_record(opcode, body),
+            _ => Ok(()),
+        };
+        match result {
+            Ok(()) => pos += end,
+            Err(Failure::Fatal(err)) => return Err(err),
+            Err(Failure::Mcap(err)) => {
+                break Some((
+                    pos,
+                    format!("record (opcode {opcode:#04x}) at byte {pos}: {err}"),
+                ))
+            }
+        }
+    };
+    if let Some((bytes_read, reason)) = truncation {
+        dec.truncation = Some((bytes_read as u64, reason));
+    }
+    Ok(dec)
+}
+
+enum Failure {
+    /// The file is damaged here: stop and report what was read.
+    Mcap(mcap::McapError),
+    /// The session itself is unusable (bad header).
+    Fatal(ReadError),
+}
+
+impl From<mcap::McapError> for Failure {
+    fn from(e: mcap::McapError) -> Self {
+        Failure::Mcap(e)
+    }
+}
+
+#[derive(Debug, Clone, Copy)]
+enum Slot {
+    Undefined,
+    Session,
+    Tracer(usize),
+    Env(usize),
+    Event,
+    /// A topic we do not read.
+    Other,
+    /// A known topic with a message encoding other than json: its messages are skipped.
+    NotJson,
+}
+
+/// Accumulates messages as records arrive, whatever their physical order.
+struct Decoder {
+    file: String,
+    /// By channel id.
+    slots: Vec<Slot>,
+    tracer_ids: HashMap<String, usize>,
+    tracers: Vec<(String, Vec<Stamped<TracerSample>>)>,
+    env_ids: HashMap<String, usize>,
+    env: Vec<(String, Vec<Stamped<EnvSample>>)>,
+    events: Vec<Stamped<RunEvent>>,
+    header: Option<Stamped<SessionHeader>>,
+    messages: u64,
+    skipped: u64,
+    ignored: u64,
+    truncation: Option<(u64, String)>,
+}
+
+const MAX_SKIP_WARNINGS: u64 = 20;
+
+impl Decoder {
+    fn new(file: &str) -> Self {
+        Decoder {
+            file: file.to_owned(),
+            slots: Vec::new(),
+            tracer_ids: HashMap::new(),
+            tracers: Vec::new(),
+            env_ids: HashMap::new(),
+            env: Vec::new(),
+            events: Vec::new(),
+            header: None,
+            messages: 0,
+            skipped: 0,
+            ignored: 0,
+            truncation: None,
+        }
+    }
+
+    fn define_channel(&mut self, id: u16, topic: &str, encoding: &str) {
+        let mut slot = if topic == TOPIC_SESSION {
+            Slot::Session
+        } else if topic == TOPIC_EVENT {
+            Slot::Event
+        } else if let Some(tid) = tracer_id(topic) {
+            let next = self.tracers.len();
+            let i = *self.tracer_ids.entry(tid.to_owned()).or_insert(next);
+            if i == next {
+                self.tracers.push((tid.to_owned(), Vec::new()));
+            }
+            Slot::Tracer(i)
+        } else if let Some(eid) = env_id(topic) {
+            let next = self.env.len();
+            let i = *self.env_ids.entry(eid.to_owned()).or_insert(next);
+            if i == next {
+                self.env.push((eid.to_owned(), Vec::new()));
+            }
+            Slot::Env(i)
+        } else {
+            Slot::Other
+        };
+        if !matches!(slot, Slot::Other) && encoding != "json" {
+            tracing::warn!(
+                "{}: channel {id} ({topic}) has message encoding {encoding:?}, not \"json\": \
+                 its messages are skipped",
+                self.file
+            );
+            slot = Slot::NotJson;
+        }
+        let i = usize::from(id);
+        if self.slots.len() <= i {
+            self.slots.resize(i + 1, Slot::Undefined);
+        }
+        self.slots[i] = slot;
+    }
+
+    fn reserve(&mut self, channel_id: u16, n: u64) {
+        let n = usize::try_from(n).unwrap_or(0);
+        match self.slots.get(usize::from(channel_id)) {
+            Some(Slot::Tracer(i)) => self.tracers[*i].1.reserve(n),
+            Some(Slot::Env(i)) => self.env[*i].1.reserve(n),
+            Some(Slot::Event) => self.events.reserve(n),
+            _ => {}
+        }
+    }
+
+    /// Feeds one whole chunk record (opcode and length included) and takes its records.
+    fn feed_chunk(&mut self, sans: &mut LinearReader, record: &[u8]) -> Result<(), Failure> {
+        sans.insert(record.len()).copy_from_slice(record);
+        sans.notify_read(record.len());
+        while let Some(event) = sans.next_event() {
+            match event? {
+                // The chunk is used up: the reader wants the next top-level record.
+                LinearReadEvent::ReadRequest(_) => return Ok(()),
+                LinearReadEvent::Record { opcode, data } => self.on_record(opcode, data)?,
+            }
+        }
+        Ok(())
+    }
+
+    fn on_record(&mut self, opcode: u8, body: &[u8]) -> Result<(), Failure> {
+        match opcode {
+            op::CHANNEL => {
+                if let mcap::records::Record::Channel(ch) = mcap::parse_record(opcode, body)? {
+                    self.define_channel(ch.id, &ch.topic, &ch.message_encoding);
+                }
+                Ok(())
+            }
+            op::MESSAGE => {
+                // channel_id u16, sequence u32, log_time u64, publish_time u64, then the data.
+                // Parsed by hand: this runs for every message.
+                if body.len() < 22 {
+                    return Err(Failure::Mcap(mcap::McapError::UnexpectedEoc));
+                }
+                let channel_id = u16::from_le_bytes([body[0], body[1]]);
+                let log_time = le_u64(&body[6..14]);
+                let publish_time = le_u64(&body[14..22]);
+                self.on_message(channel_id, log_time, publish_time, &body[22..])
+            }
+            _ => Ok(()),
+        }
+    }
+
+    fn on_message(
+        &mut self,
+        channel_id: u16,
+        log_time_ns: u64,
+        publish_time_ns: u64,
+        data: &[u8],
+    ) -> Result<(), Failure> {
+        self.messages += 1;
+        let slot = self
+            .slots
+            .get(usize::from(channel_id))
+            .copied()
+            .unwrap_or(Slot::Undefined);
+        match slot {
+            Slot::Tracer(i) => {
+                if let Some(msg) = self.parse::<TracerSample>(channel_id, log_time_ns, data) {
+                    self.tracers[i].1.push(Stamped {
+                        log_time_ns,
+                        publish_time_ns,
+                        msg,
+                    });
+                }
+            }
+            Slot::Env(i) => {
+                if let Some(msg) = self.parse::<EnvSample>(channel_id, log_time_ns, data) {
+                    self.env[i].1.push(Stamped {
+                        log_time_ns,
+                        publish_time_ns,
+                        msg,
+                    });
+                }
+            }
+            Slot::Event => {
+                if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
+                    self.events.push(Stamped {
+                        log_time_ns,
+                        publish_time_ns,
+                        msg,
+                    });
+                }
+            }
+            Slot::Session => {
+                if let Some(first) = &self.header {
+                    tracing::warn!(
+                        "{}: another {TOPIC_SESSION} message at log_time {log_time_ns} ns; \
+                         keeping the one at {} ns",
+                        self.file,
+                        first.log_time_ns
+                    );
+                    self.ignored += 1;
+                    return Ok(());
+                }
+                let msg = parse_header(&self.file, log_time_ns, data).map_err(Failure::Fatal)?;
+                self.header = Some(Stamped {
+                    log_time_ns,
+                    publish_time_ns,
+                    msg,
+                });
+            }
+            Slot::NotJson => self.skip(channel_id, log_time_ns, "message encoding is not json"),
+            Slot::Other => self.ignored += 1,
+            Slot::Undefined => {
+                if self.ignored == 0 {
+                    tracing::warn!(
+                        "{}: message at log_time {log_time_ns} ns on channel {channel_id}, \
+                         which was never declared: ignored",
+                        self.file
+                    );
+                }
+                self.ignored += 1;
+            }
+        }
+        Ok(())
+    }
+
+    fn parse<T: DeserializeOwned>(
+        &mut self,
+        channel_id: u16,
+        log_time_ns: u64,
+        data: &[u8],
+    ) -> Option<T> {
+        match serde_json::from_slice(data) {
+            Ok(msg) => Some(msg),
+            Err(err) => {
+                self.skip(channel_id, log_time_ns, &err.to_string());
+                None
+            }
+        }
+    }
+
+    fn skip(&mut self, channel_id: u16, log_time_ns: u64, why: &str) {
+        self.skipped += 1;
+        if self.skipped <= MAX_SKIP_WARNINGS {
+            tracing::warn!(
+                "{}: skipping the message on {} at log_time {log_time_ns} ns: {why}",
+                self.file,
+                self.topic_of(channel_id)
+            );
+        }
+    }
+
+    fn topic_of(&self, channel_id: u16) -> String {
+        match self.slots.get(usize::from(channel_id)) {
+            Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers[*i].0),
+            Some(Slot::Env(i)) => format!("/env/{}", self.env[*i].0),
+            Some(Slot::Event) => TOPIC_EVENT.to_owned(),
+            Some(Slot::Session) => TOPIC_SESSION.to_owned(),
+            _ => format!("channel {channel_id}"),
+        }
+    }
+
+    fn into_session(self, file: &str, file_bytes: u64) -> Result<Session, ReadError> {
+        let completeness = match self.truncation {
+            None => Completeness::Complete,
+            Some((bytes_read, reason)) => {
+                tracing::warn!(
+                    "{file} is incomplete: read {bytes_read} of {file_bytes} bytes \
+                     ({} messages): {reason}",
+                    self.messages
+                );
+                Completeness::Truncated {
+                    bytes_read,
+                    file_bytes,
+                    messages_read: self.messages,
+                    reason,
+                }
+            }
+        };
+        let Some(header) = self.header else {
+            let truncated = match &completeness {
+                Completeness::Complete => String::new(),
+                Completeness::Truncated { bytes_read, .. } => {
+                    format!("; the file is cut short after byte {bytes_read}")
+                }
+            };
+            return Err(ReadError::NoHeader {
+                file: file.to_owned(),
+                messages: self.messages,
+                truncated,
+            });
+        };
+        if self.skipped > 0 {
+            tracing::warn!(
+                "{file}: {} messages on known topics could not be parsed and were skipped",
+                self.skipped
+            );
+        }
+        // Stable sorts: equal log times keep file order. Nearly free on already sorted data.
+        let mut tracers = BTreeMap::new();
+        for (id, mut v) in self.tracers {
+            v.sort_by_key(|s| s.log_time_ns);
+            tracers.insert(id, v);
+        }
+        let mut env = BTreeMap::new();
+        for (id, mut v) in self.env {
+            v.sort_by_key(|s| s.log_time_ns);
+            env.insert(id, v);
+        }
+        let mut events = self.events;
+        events.sort_by_key(|s| s.log_time_ns);
+        Ok(Session {
+            header: header.msg,
+            tracers,
+            env,
+            events,
+            completeness,
+            skipped: self.skipped,
+            ignored: self.ignored,
+        })
+    }
+}
+
+fn le_u64(b: &[u8]) -> u64 {
+    let mut a = [0u8; 8];
+    a.copy_from_slice(&b[..8]);
+    u64::from_le_bytes(a)
+}
+
+fn tracer_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/tracer/")?.strip_suffix("/range")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn env_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/env/")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn parse_header(file: &str, log_time_ns: u64, data: &[u8]) -> Result<SessionHeader, ReadError> {
+    #[derive(Deserialize)]
+    struct FormatOnly {
+        format: Option<String>,
+    }
+    let wrong_format = |found: String| ReadError::WrongFormat {
+        file: file.to_owned(),
+        found,
+    };
+    match serde_json::from_slice::<SessionHeader>(data) {
+        Ok(h) if h.format == SESSION_FORMAT => Ok(h),
+        Ok(h) => Err(wrong_format(h.format)),
+        Err(error) => match serde_json::from_slice::<FormatOnly>(data) {
+            // A header of another format version fails for that reason first.
+            Ok(FormatOnly {
+                format: Some(found),
+            }) if found != SESSION_FORMAT => Err(wrong_format(found)),
+            _ => Err(ReadError::BadHeader {
+                file: file.to_owned(),
+                log_time_ns,
+                error,
+            }),
+        },
+    }
+}
+
+/// Shared by the session tests: a realistic header and sample streams.
+#[cfg(test)]
+pub(crate) mod testutil {
+    use std::collections::BTreeMap;
+
+    use crate::session::messages::*;
+
+    pub fn header() -> SessionHeader {
+        let mut extra = BTreeMap::new();
+        extra.insert("rate_hz".to_owned(), serde_json::json!(1000));
+        SessionHeader {
+            format: SESSION_FORMAT.to_owned(),
+            session_id: "s-test-1".to_owned(),
+            started_at: "2026-11-01T10:00:00Z".to_owned(),
+            kind: "multilateration".to_owned(),
+            machine: MachineInfo {
+                name: "mill".to_owned(),
+                structure: "FYXZ".to_owned(),
+                axes: vec!["x".into(), "y".into(), "z".into()],
+                travel_m: [("x".to_owned(), [0.0, 0.8]), ("y".to_owned(), [0.0, 0.6])]
+                    .into_iter()
+                    .collect(),
+                targets: vec![TargetInfo {
+                    id: "t0".into(),
+                    offset_m: [0.0, 0.0, 0.1],
+                }],
+            },
+            devices: vec![DeviceInfo {
+                id: "tracer0".into(),
+                kind: "tracer".into(),
+                driver: "sim".into(),
+                noise_m: Some(5e-8),
+                noise_ppm: Some(0.1),
+                dead_path_m: Some(0.1),
+                wavelength_m: Some(6.33e-7),
+                compensated: Some(true),
+                extra,
+            }],
+            plan: serde_json::json!({"stations": 2, "passes": 3}),
+        }
+    }
+
+    pub fn tracer_sample(seq: u64) -> TracerSample {
+        TracerSample {
+            seq,
+            t_s: seq as f64 * 1e-3,
+            length_m: 0.1 + (seq as f64 * 0.37).sin() * 0.05 + seq as f64 * 1.234_567_89e-6,
+            signal: 0.9 + (seq % 7) as f64 * 0.01,
+            tracking: seq % 97 != 5,
+            beam_segment: (seq / 1000) as u32,
+        }
+    }
+
+    pub fn env_sample(i: u64) -> EnvSample {
+        EnvSample {
+            t_s: i as f64,
+            air_temp_k: 293.15 + i as f64 * 1e-3,
+            pressure_pa: 101_325.0 - i as f64,
+            humidity_pct: 45.0,
+            material_temp_k: if i % 2 == 0 {
+                vec![293.2, 293.1]
+            } else {
+                vec![]
+            },
+        }
+    }
+
+    pub fn events() -> Vec<RunEvent> {
+        vec![
+            RunEvent::StationBegin {
+                station: "s1".into(),
+                station_index: 0,
+                hint_m: Some([0.1, 0.2, 0.3]),
+            },
+            RunEvent::PointBegin {
+                station: "s1".into(),
+                point: 0,
+                pass: 0,
+                target: "t0".into(),
+                nominal_m: [0.4, 0.3, -0.1],
+                axes: [("x".to_owned(), 0.4), ("y".to_owned(), 0.3)]
+                    .into_iter()
+                    .collect(),
+                approach: [("x".to_owned(), 1), ("y".to_owned(), -1)]
+                    .into_iter()
+                    .collect(),
+            },
+            RunEvent::PointEnd {
+                station: "s1".into(),
+                point: 0,
+                pass: 0,
+            },
+            RunEvent::Rehome {
+                station: "s1".into(),
+                beam_segment: 1,
+            },
+            RunEvent::Fault {
+                device: "tracer0".into(),
+                code: "beam".into(),
+                message: "beam broken".into(),
+            },
+            RunEvent::StationEnd {
+                station: "s1".into(),
+            },
+        ]
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+    use std::io::Cursor;
+
+    use mcap::records::MessageHeader;
+    use proptest::prelude::*;
+
+    use super::testutil::*;
+    use super::*;
+    use crate::session::messages::{self, schema};
+    use crate::session::recorder::{Compression, Recorder, RecorderOptions};
+
+    /// Writes with mcap::Writer directly, the way another tool would: given options, channels
+    /// declared tracer-first, the header not physically first, hand-written JSON with extra
+    /// fields and another field order, an unknown topic and one broken sample.
+    fn foreign_file(opts: mcap::WriteOptions) -> Vec<u8> {
+        let mut w = opts.create(Cursor::new(Vec::new())).unwrap();
+        let no_meta = BTreeMap::new();
+        let ts = w
+            .add_schema(
+                "geocal.TracerSample",
+                "jsonschema",
+                schema::TRACER.as_bytes(),
+            )
+            .unwrap();
+        let tracer = w
+            .add_channel(ts, "/tracer/laser-b/range", "json", &no_meta)
+            .unwrap();
+        let other = w.add_channel(0, "/machine/pose", "json", &no_meta).unwrap();
+        let es = w
+            .add_schema("geocal.RunEvent", "jsonschema", schema::EVENT.as_bytes())
+            .unwrap();
+        let event = w.add_channel(es, "/run/event", "json", &no_meta).unwrap();
+        let put = |w: &mut mcap::Writer<Cursor<Vec<u8>>>, ch: u16, t: u64, json: &str| {
+            let hdr = MessageHeader {
+                channel_id: ch,
+                sequence: 0,
+                log_time: t,
+                publish_time: t + 7,
+            };
+            w.write_to_known_channel(&hdr, json.as_bytes()).unwrap();
+        };
+        // Samples before the header, and out of log-time order.
+        for i in (0..50u64).rev() {
+            let json = format!(
+                r#"{{"beam_segment":0,"future_field":{{"a":[1,2]}},"length_m":{},"t_s":{},"seq":{i}}}"#,
+                0.5 + i as f64 * 1e-6,
+                i as f64 * 0.1
+            );
+            put(&mut w, tracer, 1_000 + i, &json);
+        }
+        put(&mut w, other, 1_001, r#"{"x":1}"#);
+        put(&mut w, tracer, 1_002, r#"{"seq":"not a number"}"#);
+        let ss = w
+            .add_schema("geocal.Session", "jsonschema", schema::SESSION.as_bytes())
+            .unwrap();
+        let session = w
+            .add_channel(ss, "/geocal/session", "json", &no_meta)
+            .unwrap();
+        let header = serde_json::to_string(&header()).unwrap();
+        // Same header, with an extra field and the format last.
+        let mut v: serde_json::Value = serde_json::from_str(&header).unwrap();
+        v["vendor_notes"] = serde_json::json!("made elsewhere");
+        put(&mut w, session, 500, &v.to_string());
+        put(
+            &mut w,
+            event,
+            1_200,
+            r#"{"station":"s1","kind":"station_begin","station_index":0,"extra":true}"#,
+        );
+        put(
+            &mut w,
+            event,
+            1_300,
+            r#"{"kind":"a_new_kind","station":"s1"}"#,
+        );
+        w.finish().unwrap();
+        w.into_inner().into_inner()
+    }
+
+    fn check_foreign(bytes: &[u8]) {
+        let s = read_session_bytes(bytes).unwrap();
+        assert_eq!(s.header, header());
+        assert!(s.completeness.is_complete(), "{:?}", s.completeness);
+        let t = &s.tracers["laser-b"];
+        assert_eq!(t.len(), 50);
+        for (i, st) in t.iter().enumerate() {
+            assert_eq!(st.log_time_ns, 1_000 + i as u64);
+            assert_eq!(st.publish_time_ns, st.log_time_ns + 7);
+            assert_eq!(st.msg.seq, i as u64);
+            assert_eq!(st.msg.length_m, 0.5 + i as f64 * 1e-6);
+            // Defaults from the contract for missing optional fields.
+            assert_eq!(st.msg.signal, 1.0);
+            assert!(st.msg.tracking);
+        }
+        assert_eq!(s.skipped, 1);
+        assert_eq!(s.ignored, 1);
+        assert_eq!(s.events.len(), 2);
+        assert_eq!(
+            s.events[0].msg,
+            RunEvent::StationBegin {
+                station: "s1".into(),
+                station_index: 0,
+                hint_m: None
+            }
+        );
+        assert_eq!(s.events[1].msg, RunEvent::Other);
+        assert!(s.env.is_empty());
+    }
+
+    #[test]
+    fn reads_other_writers() {
+        let variants = [
+            mcap::WriteOptions::new()
+                .compression(Some(mcap::Compression::Lz4))
+                .chunk_size(Some(200)),
+            mcap::WriteOptions::new()
+                .compression(Some(mcap::Compression::Zstd))
+                .chunk_size(Some(1)),
+            mcap::WriteOptions::new()
+                .compression(None)
+                .chunk_size(Some(700)),
+            mcap::WriteOptions::new().use_chunks(false),
+            mcap::WriteOptions::new()
+                .use_chunks(false)
+                .emit_summary_records(false)
+                .emit_statistics(false)
+                .emit_summary_offsets(false),
+            mcap::WriteOptions::new()
+                .chunk_size(Some(300))
+                .emit_chunk_indexes(false)
+                .emit_statistics(false),
+        ];
+        for opts in variants {
+            let bytes = foreign_file(opts.clone());
+            check_foreign(&bytes);
+            // And the same file cut before its summary: linear reading finds the same data.
+            let data_end = data_end_offset(&bytes);
+            let s = read_session_bytes(&bytes[..data_end]).unwrap();
+            assert!(!s.completeness.is_complete());
+            assert_eq!(s.tracers["laser-b"].len(), 50, "{opts:?}");
+        }
+    }
+
+    /// Offset of the DataEnd record, found by walking the top-level records.
+    fn data_end_offset(bytes: &[u8]) -> usize {
+        let mut pos = 8;
+        loop {
+            let len = u64::from_le_bytes(bytes[pos + 1..pos + 9].try_into().unwrap()) as usize;
+            if bytes[pos] == op::DATA_END {
+                return pos;
+            }
+            pos += 9 + len;
+        }
+    }
+
+    #[test]
+    fn errors_are_clear() {
+        let e = read_session_bytes(b"PK\x03\x04 not an mcap at all").unwrap_err();
+        assert!(matches!(e, ReadError::NotMcap { .. }), "{e}");
+        assert!(e.to_string().contains("not an MCAP file"), "{e}");
+        let e = read_session_bytes(&mcap::MAGIC[..3]).unwrap_err();
+        assert!(matches!(e, ReadError::NotMcap { .. }), "{e}");
+
+        // A valid MCAP with no header message.
+        let mut w = mcap::Writer::new(Cursor::new(Vec::new())).unwrap();
+        let ch = w
+            .add_channel(0, "/tracer/a/range", "json", &BTreeMap::new())
+            .unwrap();
+        let hdr = MessageHeader {
+            channel_id: ch,
+            sequence: 0,
+            log_time: 1,
+            publish_time: 1,
+        };
+        w.write_to_known_channel(&hdr, br#"{"seq":0,"t_s":0,"length_m":0}"#)
+            .unwrap();
+        w.finish().unwrap();
+        let e = read_session_bytes(&w.into_inner().into_inner()).unwrap_err();
+        assert!(
+            e.to_string().contains("has no /geocal/session message"),
+            "{e}"
+        );
+
+        // Wrong format string, and a header that does not parse.
+        for (json, want) in [
+            (
+                serde_json::to_string(&SessionHeader {
+                    format: "geocal-session/2".into(),
+                    ..header()
+                })
+                .unwrap(),
+                "expected \"geocal-session/1\"",
+            ),
+            (
+                r#"{"format":"geocal-session/1"}"#.to_owned(),
+                "does not parse",
+            ),
+        ] {
+            let mut w = mcap::Writer::new(Cursor::new(Vec::new())).unwrap();
+            let ch = w
+                .add_channel(0, "/geocal/session", "json", &BTreeMap::new())
+                .unwrap();
+            w.write_to_known_channel(
+                &MessageHeader {
+                    channel_id: ch,
+                    ..hdr
+                },
+                json.as_bytes(),
+            )
+            .unwrap();
+            w.finish().unwrap();
+            let e = read_session_bytes(&w.into_inner().into_inner()).unwrap_err();
+            assert!(e.to_string().contains(want), "{e}");
+            assert!(e.to_string().contains("in-memory"), "{e}");
+        }
+    }
+
+    #[test]
+    fn missing_file_names_the_path() {
+        let e = read_session(Path::new("/nonexistent/dir/s.mcap")).unwrap_err();
+        assert!(e.to_string().contains("/nonexistent/dir/s.mcap"), "{e}");
+    }
+
+    /// A session written by our recorder with small chunks, plus where each chunk ends.
+    struct Recorded {
+        bytes: Vec<u8>,
+        /// (end offset of the chunk record, last log time in it), in file order.
+        chunk_ends: Vec<(usize, u64)>,
+        tracers: BTreeMap<String, Vec<TracerSample>>,
+        /// log times of every message, all distinct.
+        all_log_times: Vec<u64>,
+    }
+
+    fn recorded() -> &'static Recorded {
+        static CELL: std::sync::OnceLock<Recorded> = std::sync::OnceLock::new();
+        CELL.get_or_init(|| {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("t.mcap");
+            let rec = Recorder::create(
+                &path,
+                RecorderOptions {
+                    chunk_size: 2048,
+                    flush_interval: std::time::Duration::from_secs(3600),
+                    compression: Compression::Zstd,
+                },
+            )
+            .unwrap();
+            let h = rec.handle();
+            let mut t = 1_000_000u64;
+            let mut all_log_times = vec![];
+            let mut stamp = || {
+                t += 1000;
+                all_log_times.push(t);
+                t
+            };
+            h.session(&header(), stamp());
+            let mut tracers: BTreeMap<String, Vec<TracerSample>> = BTreeMap::new();
+            let evs = events();
+            for i in 0..1500u64 {
+                let id = if i % 3 == 0 { "tracer1" } else { "tracer0" };
+                let v = tracers.entry(id.to_owned()).or_default();
+                let s = tracer_sample(v.len() as u64);
+                v.push(s);
+                h.tracer(id, &s, stamp());
+                if i % 100 == 0 {
+                    h.env("air", &env_sample(i / 100), stamp());
+                    h.event(&evs[(i / 100) as usize % evs.len()], stamp());
+                }
+            }
+            rec.finish().unwrap();
+            let bytes = std::fs::read(&path).unwrap();
+            let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+            let mut chunk_ends: Vec<(usize, u64)> = summary
+                .chunk_indexes
+                .iter()
+                .map(|c| {
+                    (
+                        (c.chunk_start_offset + c.chunk_length) as usize,
+                        c.message_end_time,
+                    )
+                })
+                .collect();
+            chunk_ends.sort();
+            Recorded {
+                bytes,
+                chunk_ends,
+                tracers,
+                all_log_times,
+            }
+        })
+    }
+
+    #[test]
+    fn recorded_file_has_many_chunks_and_reads_complete() {
+        let r = recorded();
+        assert!(r.chunk_ends.len() > 20, "{}", r.chunk_ends.len());
+        let s = read_session_bytes(&r.bytes).unwrap();
+        assert!(s.completeness.is_complete());
+        for (id, v) in &r.tracers {
+            let got: Vec<_> = s.tracers[id].iter().map(|st| st.msg).collect();
+            assert_eq!(&got, v);
+        }
+    }
+
+    fn check_cut(cut: usize) {
+        let r = recorded();
+        let bytes = &r.bytes[..cut];
+        let result = read_session_bytes(bytes);
+        // The header is alone in the first chunk (the recorder flushes right after it).
+        let header_end = r.chunk_ends[0].0;
+        if cut < header_end {
+            assert!(result.is_err(), "cut {cut}: read a header that was cut");
+            return;
+        }
+        let s = result.unwrap_or_else(|e| panic!("cut {cut}: {e}"));
+        assert_eq!(s.header, header());
+        if cut == r.bytes.len() {
+            assert!(s.completeness.is_complete());
+        } else {
+            match &s.completeness {
+                Completeness::Truncated {
+                    bytes_read,
+                    file_bytes,
+                    ..
+                } => {
+                    assert_eq!(*file_bytes, cut as u64);
+                    assert!(*bytes_read <= cut as u64);
+                }
+                Completeness::Complete => panic!("cut {cut}: reported complete"),
+            }
+        }
+        // Every sample read is the original one at that position (a prefix per tracer).
+        let mut n = 1;
+        for (id, got) in &s.tracers {
+            let orig = &r.tracers[id];
+            assert!(got.len() <= orig.len());
+            for (i, st) in got.iter().enumerate() {
+                assert_eq!(st.msg, orig[i], "cut {cut}, tracer {id}, index {i}");
+            }
+            n += got.len();
+        }
+        n += s.env.values().map(Vec::len).sum::<usize>() + s.events.len();
+        // Every message of every chunk that ended before the cut is there, and nothing of a
+        // chunk that did not.
+        let last_complete = r
+            .chunk_ends
+            .iter()
+            .take_while(|(end, _)| *end <= cut)
+            .last()
+            .map(|c| c.1)
+            .unwrap_or(0);
+        let expected = r
+            .all_log_times
+            .iter()
+            .filter(|&&t| t <= last_complete)
+            .count();
+        assert_eq!(n, expected, "cut {cut}");
+    }
+
+    #[test]
+    fn truncation_at_every_chunk_boundary() {
+        let r = recorded();
+        for &(end, _) in &r.chunk_ends {
+            for cut in [end - 1, end, end + 1] {
+                check_cut(cut.min(r.bytes.len()));
+            }
+        }
+        check_cut(r.bytes.len());
+        check_cut(r.bytes.len() - 1);
+    }
+
+    proptest! {
+        #![proptest_config(ProptestConfig::with_cases(256))]
+        #[test]
+        fn truncated_anywhere_reads_a_prefix(frac in 0.0f64..=1.0) {
+            let len = recorded().bytes.len();
+            check_cut(((len as f64) * frac) as usize);
+        }
+
+        #[test]
+        fn garbage_never_panics(cut in 0usize..20_000, flip in 0usize..20_000, byte: u8) {
+            let r = recorded();
+            let mut bytes = r.bytes[..cut.min(r.bytes.len())].to_vec();
+            if let Some(b) = bytes.get_mut(flip) {
+                *b ^= byte;
+            }
+            let _ = read_session_bytes(&bytes);
+        }
+    }
+
+    #[test]
+    fn complete_files_are_read_through_the_index() {
+        let r = recorded();
+        let summary = mcap::Summary::read(&r.bytes).unwrap().unwrap();
+        let dec = read_indexed(&r.bytes, "x", &summary).unwrap();
+        assert!(dec.is_some(), "indexed path fell back to linear");
+        let linear = read_linear(&r.bytes, "x").unwrap();
+        assert!(linear.truncation.is_none());
+        let (a, b) = (
+            dec.unwrap().into_session("x", 0).unwrap(),
+            linear.into_session("x", 0).unwrap(),
+        );
+        assert_eq!(a, b);
+        // Unchunked messages are not in any chunk index: the reader must notice and go linear.
+        let bytes = foreign_file(mcap::WriteOptions::new().use_chunks(false));
+        let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
+        assert!(read_indexed(&bytes, "x", &summary).unwrap().is_none());
+    }
+
+    #[test]
+    fn topic_ids() {
+        assert_eq!(tracer_id("/tracer/t0/range"), Some("t0"));
+        assert_eq!(tracer_id("/tracer//range"), None);
+        assert_eq!(tracer_id("/tracer/a/b/range"), None);
+        assert_eq!(env_id("/env/air"), Some("air"));
+        assert_eq!(env_id("/env/"), None);
+        assert_eq!(messages::tracer_topic("x"), "/tracer/x/range");
+    }
+}

@@ -1,0 +1,748 @@
+//! The MCAP session recorder: one writer thread owns the file, fed by an unbounded channel,
+//! and closes a chunk plus fsyncs every `flush_interval` so a killed run loses little.
+
+use std::collections::HashMap;
+use std::fs::File;
+use std::io::BufWriter;
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::mpsc::{self, Receiver, RecvTimeoutError, Sender};
+use std::sync::Arc;
+use std::thread::JoinHandle;
+use std::time::{Duration, Instant};
+
+use mcap::records::MessageHeader;
+use serde::Serialize;
+use thiserror::Error;
+
+use super::messages::{
+    self, EnvSample, RunEvent, SessionHeader, TracerSample, SCHEMA_ENV, SCHEMA_EVENT,
+    SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
+};
+
+/// Chunk compression of the recorded file.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Compression {
+    #[default]
+    Zstd,
+    Lz4,
+    None,
+}
+
+#[derive(Debug, Clone)]
+pub struct RecorderOptions {
+    /// Target uncompressed chunk size in bytes.
+    pub chunk_size: u64,
+    /// Wall time between chunk closes + fsync: the most a killed process can lose.
+    pub flush_interval: Duration,
+    pub compression: Compression,
+}
+
+impl Default for RecorderOptions {
+    fn default() -> Self {
+        RecorderOptions {
+            chunk_size: 1024 * 1024,
+            flush_interval: Duration::from_secs(1),
+            compression: Compression::Zstd,
+        }
+    }
+}
+
+#[derive(Debug, Error)]
+pub enum RecorderError {
+    #[error("cannot create session file {path}: {source}")]
+    Create {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("cannot start MCAP writer on {path}: {source}")]
+    Start {
+        path: PathBuf,
+        source: mcap::McapError,
+    },
+    #[error("writing session file {path} failed ({lost} later messages lost): {source}")]
+    Write {
+        path: PathBuf,
+        lost: u64,
+        source: mcap::McapError,
+    },
+    #[error("syncing session file {path} to disk failed: {source}")]
+    Sync {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("encoding a {topic} message as JSON failed: {source}")]
+    Encode {
+        topic: String,
+        source: serde_json::Error,
+    },
+    #[error("cannot start the recorder thread for {path}: {source}")]
+    Thread {
+        path: PathBuf,
+        source: std::io::Error,
+    },
+    #[error("the recorder thread for {path} panicked")]
+    Panicked { path: PathBuf },
+}
+
+/// What the writer thread did, returned by [`Recorder::finish`].
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct RecordStats {
+    /// Messages written to the file.
+    pub messages: u64,
+    /// File size after finishing.
+    pub bytes: u64,
+    /// Messages that could not be written (after a write error, or sent after finish).
+    pub lost: u64,
+    /// Periodic chunk closes + fsyncs done.
+    pub flushes: u64,
+    pub channels: u32,
+}
+
+/// Typed payloads: JSON encoding happens in the writer thread, off the sequencer.
+enum Payload {
+    Session(Box<SessionHeader>),
+    Tracer(String, TracerSample),
+    Env(String, Box<EnvSample>),
+    Event(Box<RunEvent>),
+}
+
+enum Command {
+    Write { payload: Payload, log_time_ns: u64 },
+    Finish,
+}
+
+/// Cheap, cloneable sender into the recorder. Sends never block and never panic.
+#[derive(Clone)]
+pub struct RecorderHandle {
+    tx: Sender<Command>,
+    lost_after_close: Arc<AtomicU64>,
+}
+
+impl RecorderHandle {
+    fn send(&self, payload: Payload, log_time_ns: u64) {
+        if self
+            .tx
+            .send(Command::Write {
+                payload,
+                log_time_ns,
+            })
+            .is_err()
+            && self.lost_after_close.fetch_add(1, Ordering::Relaxed) == 0
+        {
+            tracing::warn!("session recorder already finished: message dropped");
+        }
+    }
+
+    /// The `/geocal/session` header; the file is flushed and synced right after it.
+    pub fn session(&self, header: &SessionHeader, log_time_ns: u64) {
+        self.send(Payload::Session(Box::new(header.clone())), log_time_ns);
+    }
+
+    /// One `/tracer/<id>/range` sample; publish_time = log_time.
+    pub fn tracer(&self, tracer_id: &str, sample: &TracerSample, log_time_ns: u64) {
+        self.send(Payload::Tracer(tracer_id.to_owned(), *sample), log_time_ns);
+    }
+
+    pub fn env(&self, env_id: &str, sample: &EnvSample, log_time_ns: u64) {
+        self.send(
+            Payload::Env(env_id.to_owned(), Box::new(sample.clone())),
+            log_time_ns,
+        );
+    }
+
+    pub fn event(&self, event: &RunEvent, log_time_ns: u64) {
+        self.send(Payload::Event(Box::new(event.clone())), log_time_ns);
+    }
+}
+
+/// Owns the writer thread. Call [`Recorder::finish`]; dropping it finishes too but hides errors.
+pub struct Recorder {
+    handle: RecorderHandle,
+    thread: Option<JoinHandle<Result<RecordStats, RecorderError>>>,
+    path: PathBuf,
+}
+
+impl Recorder {
+    pub fn create(path: &Path, options: RecorderOptions) -> Result<Recorder, RecorderError> {
+        let file = File::create(path).map_err(|source| RecorderError::Create {
+            path: path.to_owned(),
+            source,
+        })?;
+        // A second descriptor on the same open file: the mcap Writer owns the first.
+        let sync_file = file.try_clone().map_err(|source| RecorderError::Create {
+            path: path.to_owned(),
+            source,
+        })?;
+        sync_parent_dir(path);
+        let compression = match options.compression {
+            Compression::Zstd => Some(mcap::Compression::Zstd),
+            Compression::Lz4 => Some(mcap::Compression::Lz4),
+            Compression::None => None,
+        };
+        let writer = mcap::WriteOptions::new()
+            .compression(compression)
+            .chunk_size(Some(options.chunk_size))
+            // The default spawns one zstd worker per physical core; one thread is plenty here.
+            .compression_threads(0)
+            .library(concat!("geocal/", env!("CARGO_PKG_VERSION")))
+            .create(BufWriter::with_capacity(256 * 1024, file))
+            .map_err(|source| RecorderError::Start {
+                path: path.to_owned(),
+                source,
+            })?;
+        let (tx, rx) = mpsc::channel();
+        let mut state = WriterThread {
+            path: path.to_owned(),
+            writer: Some(writer),
+            sync_file,
+            flush_interval: options.flush_interval,
+            schemas: [0; 4],
+            session_channel: None,
+            event_channel: None,
+            tracer_channels: HashMap::new(),
+            env_channels: HashMap::new(),
+            sequences: HashMap::new(),
+            buf: Vec::with_capacity(512),
+            stats: RecordStats::default(),
+            error: None,
+            dirty: false,
+        };
+        let thread = std::thread::Builder::new()
+            .name("geocal-recorder".into())
+            .spawn(move || state.run(rx))
+            .map_err(|source| RecorderError::Thread {
+                path: path.to_owned(),
+                source,
+            })?;
+        Ok(Recorder {
+            handle: RecorderHandle {
+                tx,
+                lost_after_close: Arc::new(AtomicU64::new(0)),
+            },
+            thread: Some(thread),
+            path: path.to_owned(),
+        })
+    }
+
+    pub fn handle(&self) -> RecorderHandle {
+        self.handle.clone()
+    }
+
+    /// Writes everything sent so far, the summary and indexes, and fsyncs the file.
+    pub fn finish(mut self) -> Result<RecordStats, RecorderError> {
+        self.stop()
+    }
+
+    fn stop(&mut self) -> Result<RecordStats, RecorderError> {
+        let Some(thread) = self.thread.take() else {
+            return Ok(RecordStats::default());
+        };
+        // Handles may outlive the recorder, so ask the thread to stop instead of waiting for
+        // every sender to drop. A send error means the thread is gone already; join tells why.
+        let _ = self.handle.tx.send(Command::Finish);
+        match thread.join() {
+            Ok(result) => result,
+            Err(_) => Err(RecorderError::Panicked {
+                path: self.path.clone(),
+            }),
+        }
+    }
+}
+
+impl Drop for Recorder {
+    fn drop(&mut self) {
+        if self.thread.is_some() {
+            if let Err(err) = self.stop() {
+                tracing::error!("session recorder dropped without finish(): {err}");
+            }
+        }
+    }
+}
+
+/// Makes the new file's directory entry durable too (best effort: not every OS allows it).
+fn sync_parent_dir(path: &Path) {
+    #[cfg(unix)]
+    if let Some(dir) = path.parent() {
+        let dir = if dir.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            dir
+        };
+        if let Ok(d) = File::open(dir) {
+            let _ = d.sync_all();
+        }
+    }
+    #[cfg(not(unix))]
+    let _ = path;
+}
+
+type McapWriter = mcap::Writer<BufWriter<File>>;
+
+#[derive(Clone, Copy)]
+enum SchemaKind {
+    Session = 0,
+    Tracer = 1,
+    Env = 2,
+    Event = 3,
+}
+
+impl SchemaKind {
+    fn name_and_text(self) -> (&'static str, &'static str) {
+        match self {
+            SchemaKind::Session => (SCHEMA_SESSION, messages::schema::SESSION),
+            SchemaKind::Tracer => (SCHEMA_TRACER, messages::schema::TRACER),
+            SchemaKind::Env => (SCHEMA_ENV, messages::schema::ENV),
+            SchemaKind::Event => (SCHEMA_EVENT, messages::schema::EVENT),
+        }
+    }
+}
+
+struct WriterThread {
+    path: PathBuf,
+    /// None once finished or after into_inner.
+    writer: Option<McapWriter>,
+    sync_file: File,
+    flush_interval: Duration,
+    /// Schema ids by SchemaKind; 0 = not added yet.
+    schemas: [u16; 4],
+    session_channel: Option<u16>,
+    event_channel: Option<u16>,
+    tracer_channels: HashMap<String, u16>,
+    env_channels: HashMap<String, u16>,
+    sequences: HashMap<u16, u32>,
+    buf: Vec<u8>,
+    stats: RecordStats,
+    /// First write error; later messages are counted as lost.
+    error: Option<RecorderError>,
+    /// Messages written since the last flush.
+    dirty: bool,
+}
+
+impl WriterThread {
+    fn run(&mut self, rx: Receiver<Command>) -> Result<RecordStats, RecorderError> {
+        let mut next_flush = Instant::now() + self.flush_interval;
+        loop {
+            let wait = next_flush.saturating_duration_since(Instant::now());
+            match rx.recv_timeout(wait) {
+                Ok(Command::Write {
+                    payload,
+                    log_time_ns,
+                }) => {
+                    let is_header = matches!(payload, Payload::Session(_));
+                    self.write(payload, log_time_ns);
+                    if is_header {
+                        // A run that crashes in its first second still has its header on disk.
+                        self.flush_and_sync();
+                        next_flush = Instant::now() + self.flush_interval;
+                    }
+                }
+                Ok(Command::Finish) | Err(RecvTimeoutError::Disconnected) => break,
+                Err(RecvTimeoutError::Timeout) => {}
+            }
+            if Instant::now() >= next_flush {
+                if self.dirty {
+                    self.flush_and_sync();
+                    self.stats.flushes += 1;
+                }
+                next_flush = Instant::now() + self.flush_interval;
+            }
+        }
+        // Messages still queued behind Finish were sent before finish() returned: count them.
+        while let Ok(cmd) = rx.try_recv() {
+            if let Command::Write {
+                payload,
+                log_time_ns,
+            } = cmd
+            {
+                self.write(payload, log_time_ns);
+            }
+        }
+        self.finish()
+    }
+
+    fn finish(&mut self) -> Result<RecordStats, RecorderError> {
+        if let Some(err) = self.error.take() {
+            return Err(match err {
+                RecorderError::Write { path, source, .. } => RecorderError::Write {
+                    path,
+                    lost: self.stats.lost,
+                    source,
+                },
+                other => other,
+            });
+        }
+        let Some(mut writer) = self.writer.take() else {
+            return Ok(self.stats.clone());
+        };
+        writer.finish().map_err(|source| RecorderError::Write {
+            path: self.path.clone(),
+            lost: 0,
+            source,
+        })?;
+        let file = writer
+            .into_inner()
+            .into_inner()
+            .map_err(|e| RecorderError::Sync {
+                path: self.path.clone(),
+                source: e.into_error(),
+            })?;
+        file.sync_all().map_err(|source| RecorderError::Sync {
+            path: self.path.clone(),
+            source,
+        })?;
+        self.stats.bytes = file
+            .metadata()
+            .map_err(|source| RecorderError::Sync {
+                path: self.path.clone(),
+                source,
+            })?
+            .len();
+        self.stats.channels = (self.tracer_channels.len()
+            + self.env_channels.len()
+            + usize::from(self.session_channel.is_some())
+            + usize::from(self.event_channel.is_some())) as u32;
+        Ok(self.stats.clone())
+    }
+
+    fn flush_and_sync(&mut self) {
+        if self.error.is_some() {
+            return;
+        }
+        let Some(writer) = self.writer.as_mut() else {
+            return;
+        };
+        if let Err(source) = writer.flush() {
+            self.fail(source);
+            return;
+        }
+        if let Err(source) = self.sync_file.sync_data() {
+            self.error = Some(RecorderError::Sync {
+                path: self.path.clone(),
+                source,
+            });
+            return;
+        }
+        self.dirty = false;
+    }
+
+    fn fail(&mut self, source: mcap::McapError) {
+        tracing::error!(
+            "session recorder: writing {} failed: {source}",
+            self.path.display()
+        );
+        self.error = Some(RecorderError::Write {
+            path: self.path.clone(),
+            lost: 0,
+            source,
+        });
+    }
+
+    fn write(&mut self, payload: Payload, log_time_ns: u64) {
+        if self.error.is_some() || self.writer.is_none() {
+            self.stats.lost += 1;
+            return;
+        }
+        match self.try_write(&payload, log_time_ns) {
+            Ok(()) => {
+                self.stats.messages += 1;
+                self.dirty = true;
+            }
+            Err(WriteFailure::Encode(err)) => {
+                // One unencodable message (e.g. a NaN in a header) must not end the recording.
+                tracing::error!("session recorder: {err}");
+                self.stats.lost += 1;
+            }
+            Err(WriteFailure::Mcap(source)) => {
+                self.stats.lost += 1;
+                self.fail(source);
+            }
+        }
+    }
+
+    fn try_write(&mut self, payload: &Payload, log_time_ns: u64) -> Result<(), WriteFailure> {
+        let channel_id = match payload {
+            Payload::Session(h) => {
+                encode(&mut self.buf, TOPIC_SESSION, h.as_ref())?;
+                match self.session_channel {
+                    Some(id) => id,
+                    None => {
+                        let id = self.add_channel(SchemaKind::Session, TOPIC_SESSION)?;
+                        self.session_channel = Some(id);
+                        id
+                    }
+                }
+            }
+            Payload::Event(e) => {
+                encode(&mut self.buf, TOPIC_EVENT, e.as_ref())?;
+                match self.event_channel {
+                    Some(id) => id,
+                    None => {
+                        let id = self.add_channel(SchemaKind::Event, TOPIC_EVENT)?;
+                        self.event_channel = Some(id);
+                        id
+                    }
+                }
+            }
+            Payload::Tracer(tracer_id, s) => match self.tracer_channels.get(tracer_id.as_str()) {
+                Some(&id) => {
+                    encode(&mut self.buf, "/tracer/*/range", s)?;
+                    id
+                }
+                None => {
+                    let topic = messages::tracer_topic(tracer_id);
+                    encode(&mut self.buf, &topic, s)?;
+                    let id = self.add_channel(SchemaKind::Tracer, &topic)?;
+                    self.tracer_channels.insert(tracer_id.clone(), id);
+                    id
+                }
+            },
+            Payload::Env(env_id, s) => match self.env_channels.get(env_id.as_str()) {
+                Some(&id) => {
+                    encode(&mut self.buf, "/env/*", s.as_ref())?;
+                    id
+                }
+                None => {
+                    let topic = messages::env_topic(env_id);
+                    encode(&mut self.buf, &topic, s.as_ref())?;
+                    let id = self.add_channel(SchemaKind::Env, &topic)?;
+                    self.env_channels.insert(env_id.clone(), id);
+                    id
+                }
+            },
+        };
+        let seq = self.sequences.entry(channel_id).or_insert(0);
+        let sequence = *seq;
+        *seq = seq.wrapping_add(1);
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(WriteFailure::Mcap(
+                mcap::McapError::AttemptedWriteAfterFailure,
+            ));
+        };
+        writer
+            .write_to_known_channel(
+                &MessageHeader {
+                    channel_id,
+                    sequence,
+                    log_time: log_time_ns,
+                    publish_time: log_time_ns,
+                },
+                &self.buf,
+            )
+            .map_err(WriteFailure::Mcap)
+    }
+
+    fn add_channel(&mut self, kind: SchemaKind, topic: &str) -> Result<u16, WriteFailure> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(WriteFailure::Mcap(
+                mcap::McapError::AttemptedWriteAfterFailure,
+            ));
+        };
+        let slot = kind as usize;
+        if self.schemas[slot] == 0 {
+            let (name, text) = kind.name_and_text();
+            self.schemas[slot] = writer
+                .add_schema(name, "jsonschema", text.as_bytes())
+                .map_err(WriteFailure::Mcap)?;
+        }
+        writer
+            .add_channel(self.schemas[slot], topic, "json", &Default::default())
+            .map_err(WriteFailure::Mcap)
+    }
+}
+
+enum WriteFailure {
+    Encode(RecorderError),
+    Mcap(mcap::McapError),
+}
+
+fn encode<T: Serialize + ?Sized>(
+    buf: &mut Vec<u8>,
+    topic: &str,
+    msg: &T,
+) -> Result<(), WriteFailure> {
+    buf.clear();
+    serde_json::to_writer(&mut *buf, msg).map_err(|source| {
+        WriteFailure::Encode(RecorderError::Encode {
+            topic: topic.to_owned(),
+            source,
+        })
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::session::reader::testutil::*;
+    use crate::session::reader::{read_session, read_session_bytes, Completeness};
+
+    fn opts(compression: Compression, flush_interval: Duration) -> RecorderOptions {
+        RecorderOptions {
+            chunk_size: 64 * 1024,
+            flush_interval,
+            compression,
+        }
+    }
+
+    #[test]
+    fn round_trip() {
+        for compression in [Compression::Zstd, Compression::Lz4, Compression::None] {
+            let dir = tempfile::tempdir().unwrap();
+            let path = dir.path().join("rt.mcap");
+            let rec = Recorder::create(&path, opts(compression, Duration::from_secs(1))).unwrap();
+            let h = rec.handle();
+            let h2 = h.clone();
+            let mut t = 1_700_000_000_000_000_000u64;
+            h.session(&header(), t);
+            let evs = events();
+            let mut want_tracer: BTreeMap<&str, Vec<(u64, TracerSample)>> = BTreeMap::new();
+            let mut want_env = vec![];
+            let mut want_events = vec![];
+            for i in 0..4000u64 {
+                t += 100_000;
+                let id = if i % 2 == 0 { "tracer0" } else { "tracer1" };
+                let s = tracer_sample(i / 2);
+                // Two handles from two threads' worth of clones share one file.
+                if i % 5 == 0 { &h2 } else { &h }.tracer(id, &s, t);
+                want_tracer.entry(id).or_default().push((t, s));
+                if i % 400 == 0 {
+                    let e = env_sample(i);
+                    h.env("air0", &e, t);
+                    want_env.push((t, e));
+                    let ev = evs[(i / 400) as usize % evs.len()].clone();
+                    h.event(&ev, t);
+                    want_events.push((t, ev));
+                }
+            }
+            let stats = rec.finish().unwrap();
+            assert_eq!(stats.messages, 1 + 4000 + 2 * 10);
+            assert_eq!(stats.lost, 0);
+            assert_eq!(stats.channels, 5);
+            assert_eq!(stats.bytes, std::fs::metadata(&path).unwrap().len());
+
+            let s = read_session(&path).unwrap();
+            assert_eq!(s.completeness, Completeness::Complete);
+            assert_eq!(s.header, header());
+            assert_eq!((s.skipped, s.ignored), (0, 0));
+            assert_eq!(s.tracers.len(), 2);
+            for (id, want) in &want_tracer {
+                let got: Vec<_> = s.tracers[*id]
+                    .iter()
+                    .map(|st| {
+                        assert_eq!(st.publish_time_ns, st.log_time_ns);
+                        (st.log_time_ns, st.msg)
+                    })
+                    .collect();
+                assert_eq!(&got, want);
+            }
+            let got: Vec<_> = s.env["air0"]
+                .iter()
+                .map(|st| (st.log_time_ns, st.msg.clone()))
+                .collect();
+            assert_eq!(got, want_env);
+            let got: Vec<_> = s
+                .events
+                .iter()
+                .map(|st| (st.log_time_ns, st.msg.clone()))
+                .collect();
+            assert_eq!(got, want_events);
+        }
+    }
+
+    fn poll<T>(limit: Duration, mut f: impl FnMut() -> Option<T>) -> T {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(v) = f() {
+                return v;
+            }
+            assert!(Instant::now() < deadline, "nothing on disk after {limit:?}");
+            std::thread::sleep(Duration::from_millis(5));
+        }
+    }
+
+    #[test]
+    fn killed_run_keeps_everything_before_the_last_flush() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("kill.mcap");
+        let interval = Duration::from_millis(100);
+        let rec = Recorder::create(&path, opts(Compression::Zstd, interval)).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        // The header alone is on disk at once, long before the first periodic flush.
+        let early = poll(Duration::from_millis(90), || {
+            read_session_bytes(&std::fs::read(&path).unwrap()).ok()
+        });
+        assert_eq!(early.header, header());
+        assert!(!early.completeness.is_complete());
+
+        for i in 0..500 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        // "kill -9": take the bytes on disk while the recorder still runs, once a flush
+        // interval has passed (polled, so a loaded machine does not make this flaky).
+        std::thread::sleep(interval);
+        let copy = poll(Duration::from_secs(5), || {
+            let bytes = std::fs::read(&path).unwrap();
+            let s = read_session_bytes(&bytes).ok()?;
+            (s.tracers.get("tracer0").map_or(0, Vec::len) == 500).then_some(bytes)
+        });
+        for i in 500..600 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        let s = read_session_bytes(&copy).unwrap();
+        match &s.completeness {
+            Completeness::Truncated {
+                bytes_read,
+                file_bytes,
+                ..
+            } => assert_eq!(bytes_read, file_bytes),
+            Completeness::Complete => panic!("a running recording cannot be complete"),
+        }
+        let got: Vec<_> = s.tracers["tracer0"].iter().map(|st| st.msg).collect();
+        let want: Vec<_> = (0..500).map(tracer_sample).collect();
+        assert_eq!(got, want);
+
+        let stats = rec.finish().unwrap();
+        assert!(stats.flushes >= 1, "{stats:?}");
+        let s = read_session(&path).unwrap();
+        assert!(s.completeness.is_complete());
+        assert_eq!(s.tracers["tracer0"].len(), 600);
+    }
+
+    #[test]
+    fn sends_after_finish_are_counted_not_panics() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("late.mcap");
+        let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        rec.finish().unwrap();
+        h.tracer("tracer0", &tracer_sample(0), 2);
+        h.tracer("tracer0", &tracer_sample(1), 3);
+        assert_eq!(h.lost_after_close.load(Ordering::Relaxed), 2);
+    }
+
+    #[test]
+    fn unwritable_path_is_a_clear_error() {
+        let Err(e) = Recorder::create(
+            Path::new("/nonexistent/dir/x.mcap"),
+            RecorderOptions::default(),
+        ) else {
+            panic!("created a file in a missing directory");
+        };
+        assert!(e.to_string().contains("/nonexistent/dir/x.mcap"), "{e}");
+    }
+
+    #[test]
+    fn dropping_without_finish_still_finishes_the_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("drop.mcap");
+        {
+            let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+            rec.handle().session(&header(), 1);
+        }
+        assert!(read_session(&path).unwrap().completeness.is_complete());
+    }
+}
