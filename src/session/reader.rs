@@ -1150,7 +1150,11 @@ mod tests {
         h.session(&header(), 0);
         let n = 1_700_000u64;
         for i in 0..n {
-            h.tracer(if i % 2 == 0 { "tracer0" } else { "tracer1" }, &tracer_sample(i), i + 1);
+            h.tracer(
+                if i % 2 == 0 { "tracer0" } else { "tracer1" },
+                &tracer_sample(i),
+                i + 1,
+            );
         }
         let stats = rec.finish().unwrap();
         let write = t0.elapsed();
