@@ -1,7 +1,7 @@
 //! geocal: geometric calibration of machine tools, CMMs, rotary tables and hexapods.
 //! See ../README.md and docs/ for the architecture; each module's top comment says what it owns.
 
-pub mod model;
 pub mod session;
-pub mod sim;
+pub mod model;
 pub mod solve;
+pub mod sim;
