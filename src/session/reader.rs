@@ -1138,6 +1138,41 @@ mod tests {
         assert!(read_indexed(&bytes, "x", &summary).unwrap().is_none());
     }
 
+    /// `cargo test --release --lib session::reader::tests::large -- --ignored --nocapture`
+    #[test]
+    #[ignore = "performance check, run in release"]
+    fn large_session_reads_fast() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("big.mcap");
+        let t0 = std::time::Instant::now();
+        let rec = Recorder::create(&path, RecorderOptions::default()).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 0);
+        let n = 1_700_000u64;
+        for i in 0..n {
+            h.tracer(
+                if i % 2 == 0 { "tracer0" } else { "tracer1" },
+                &tracer_sample(i),
+                i + 1,
+            );
+        }
+        let stats = rec.finish().unwrap();
+        let write = t0.elapsed();
+        let t1 = std::time::Instant::now();
+        let s = read_session(&path).unwrap();
+        let read = t1.elapsed();
+        assert_eq!(s.tracers.values().map(Vec::len).sum::<usize>(), n as usize);
+        let bytes = std::fs::read(&path).unwrap();
+        let t2 = std::time::Instant::now();
+        let lin = read_linear(&bytes, "x").unwrap();
+        let linear = t2.elapsed();
+        assert_eq!(lin.messages, n + 1);
+        println!(
+            "{n} samples, {} bytes: write {write:?}, read {read:?}, linear {linear:?}",
+            stats.bytes
+        );
+    }
+
     #[test]
     fn topic_ids() {
         assert_eq!(tracer_id("/tracer/t0/range"), Some("t0"));

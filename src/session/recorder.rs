@@ -725,6 +725,14 @@ mod tests {
     }
 
     #[test]
+    fn handles_cross_threads() {
+        fn assert_send_sync<T: Send + Sync + Clone>() {}
+        fn assert_send<T: Send>() {}
+        assert_send_sync::<RecorderHandle>();
+        assert_send::<Recorder>();
+    }
+
+    #[test]
     fn unwritable_path_is_a_clear_error() {
         let Err(e) = Recorder::create(
             Path::new("/nonexistent/dir/x.mcap"),
