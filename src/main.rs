@@ -6,7 +6,11 @@ use std::process::ExitCode;
 use clap::{Parser, Subcommand};
 
 #[derive(Parser)]
-#[command(name = "geocal", version, about = "Geometric calibration of machine tools, CMMs, rotary tables and hexapods")]
+#[command(
+    name = "geocal",
+    version,
+    about = "Geometric calibration of machine tools, CMMs, rotary tables and hexapods"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -65,7 +69,12 @@ fn main() -> ExitCode {
 fn dispatch(command: Command) -> anyhow::Result<()> {
     use std::io::IsTerminal;
     match command {
-        Command::Run { config, out, truth, json } => {
+        Command::Run {
+            config,
+            out,
+            truth,
+            json,
+        } => {
             let cfg = geocal::config::Config::load(&config)?;
             let output = geocal::run::run(
                 &cfg,

@@ -33,7 +33,11 @@ fn multilateration_text(r: &MultilaterationResults) -> String {
         r.chi2_per_dof,
         r.dof,
         r.iterations,
-        if r.converged { "" } else { " — NOT CONVERGED" }
+        if r.converged {
+            ""
+        } else {
+            " — NOT CONVERGED"
+        }
     );
     let _ = writeln!(s, "  gauge: {}", r.gauge);
     let _ = writeln!(s, "\n  station        x [m]        y [m]        z [m]   σxyz [µm]           d0 [m]    rms [µm]");
@@ -63,7 +67,11 @@ fn multilateration_text(r: &MultilaterationResults) -> String {
             sigma[k] += p.sigma_m[k].powi(2) / n;
         }
     }
-    let _ = writeln!(s, "\n  volumetric error over {} points (actual − nominal):", r.points.len());
+    let _ = writeln!(
+        s,
+        "\n  volumetric error over {} points (actual − nominal):",
+        r.points.len()
+    );
     for (k, axis) in ["x", "y", "z"].iter().enumerate() {
         let _ = writeln!(
             s,

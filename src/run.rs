@@ -11,7 +11,9 @@ use crate::config::Config;
 use crate::method::{solve_session, Results};
 use crate::plan::{Plan, AXES};
 use crate::sequencer::{RunSummary, Sequencer};
-use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT};
+use crate::session::messages::{
+    DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT,
+};
 use crate::session::reader::read_session;
 use crate::session::recorder::{Recorder, RecorderOptions};
 
@@ -108,7 +110,10 @@ fn progress_bar(show: bool) -> indicatif::ProgressBar {
 fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
     let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
         .ok()
-        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
         .unwrap_or_default();
     let tracer = &config.devices.tracer;
     let mut devices = vec![DeviceInfo {
@@ -131,7 +136,11 @@ fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
         .extra
         .insert("feed_m_s".into(), machine.feed_m_s.into());
     devices.push(machine_device);
-    let seed = config.sim.as_ref().map(|s| format!("-seed{}", s.seed)).unwrap_or_default();
+    let seed = config
+        .sim
+        .as_ref()
+        .map(|s| format!("-seed{}", s.seed))
+        .unwrap_or_default();
     SessionHeader {
         format: SESSION_FORMAT.into(),
         session_id: format!("{}-{}{}", config.kind.as_str(), epoch_ns / 1_000_000, seed),

@@ -14,12 +14,17 @@ fn geocal(args: &[&str]) -> std::process::Output {
 
 /// The demo shrunk to 4 stations x 3x3x2 points, one pass, so the CLI test stays quick.
 fn small_config(dir: &Path) -> std::path::PathBuf {
-    let cut = DEMO.find("[[plan.stations]]\nid = \"s5\"").expect("station s5");
-    let sim = DEMO.find("[sim]").expect("[sim]");
+    let cut = DEMO
+        .find("[[plan.stations]]\nid = \"s5\"")
+        .expect("station s5");
+    let sim = DEMO.find("\n[sim]").expect("[sim]");
     let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..])
         .replace("count = 5 }", "count = 3 }")
         .replace("count = 4 }", "count = 2 }")
-        .replace("passes = [\"forward\", \"backward\"]", "passes = [\"forward\"]");
+        .replace(
+            "passes = [\"forward\", \"backward\"]",
+            "passes = [\"forward\"]",
+        );
     let path = dir.join("small.toml");
     std::fs::write(&path, text).expect("write config");
     path
@@ -30,11 +35,25 @@ fn run_then_solve_prints_identical_json() {
     let dir = tempfile::tempdir().expect("tempdir");
     let config = small_config(dir.path());
     let out = dir.path().join("out");
-    let run = geocal(&["run", config.to_str().unwrap(), "--out", out.to_str().unwrap(), "--json"]);
-    assert!(run.status.success(), "run failed: {}", String::from_utf8_lossy(&run.stderr));
+    let run = geocal(&[
+        "run",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(
+        run.status.success(),
+        "run failed: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let session = out.join("session.mcap");
     let solve = geocal(&["solve", session.to_str().unwrap(), "--json"]);
-    assert!(solve.status.success(), "solve failed: {}", String::from_utf8_lossy(&solve.stderr));
+    assert!(
+        solve.status.success(),
+        "solve failed: {}",
+        String::from_utf8_lossy(&solve.stderr)
+    );
     assert_eq!(run.stdout, solve.stdout);
     let results: serde_json::Value = serde_json::from_slice(&solve.stdout).expect("json");
     assert_eq!(results["format"], "geocal-results/1");
@@ -42,7 +61,10 @@ fn run_then_solve_prints_identical_json() {
     // The text report names the stations and the volumetric error.
     let text = geocal(&["solve", session.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&text.stdout);
-    assert!(text.contains("s4") && text.contains("volumetric error"), "{text}");
+    assert!(
+        text.contains("s4") && text.contains("volumetric error"),
+        "{text}"
+    );
 }
 
 #[test]
@@ -54,11 +76,23 @@ fn check_reports_a_bad_config_and_exits_nonzero() {
     assert!(!out.status.success());
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(
-        stderr.contains("bad.toml") && stderr.contains("devices.machine.feed_m_s") && stderr.contains("positive"),
+        stderr.contains("bad.toml")
+            && stderr.contains("devices.machine.feed_m_s")
+            && stderr.contains("positive"),
         "{stderr}"
     );
-    let ok = geocal(&["check", concat!(env!("CARGO_MANIFEST_DIR"), "/config/demo-multilateration.toml")]);
-    assert!(ok.status.success(), "{}", String::from_utf8_lossy(&ok.stderr));
+    let ok = geocal(&[
+        "check",
+        concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/demo-multilateration.toml"
+        ),
+    ]);
+    assert!(
+        ok.status.success(),
+        "{}",
+        String::from_utf8_lossy(&ok.stderr)
+    );
 }
 
 #[test]

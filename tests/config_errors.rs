@@ -20,7 +20,10 @@ fn error_of(text: &str) -> String {
 
 fn assert_mentions(message: &str, parts: &[&str]) {
     for part in parts {
-        assert!(message.contains(part), "error {message:?} does not mention {part:?}");
+        assert!(
+            message.contains(part),
+            "error {message:?} does not mention {part:?}"
+        );
     }
 }
 
@@ -41,7 +44,10 @@ fn missing_key_names_it() {
 fn wrong_type_names_key_and_expected_type() {
     let text = DEMO.replace("sample_rate_hz = 50.0", "sample_rate_hz = \"fast\"");
     let message = error_of(&text);
-    assert_mentions(&message, &[FILE, "devices.tracer.sample_rate_hz", "expected"]);
+    assert_mentions(
+        &message,
+        &[FILE, "devices.tracer.sample_rate_hz", "expected"],
+    );
 }
 
 #[test]
@@ -56,10 +62,13 @@ fn fewer_than_four_stations_is_impossible() {
     let cut = DEMO
         .find("[[plan.stations]]\nid = \"s4\"")
         .expect("demo has station s4");
-    let sim = DEMO.find("[sim]").expect("demo has [sim]");
+    let sim = DEMO.find("\n[sim]").expect("demo has [sim]");
     let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..]);
     let message = error_of(&text);
-    assert_mentions(&message, &[FILE, "plan.stations", "at least 4 stations", "found 3"]);
+    assert_mentions(
+        &message,
+        &[FILE, "plan.stations", "at least 4 stations", "found 3"],
+    );
 }
 
 #[test]
@@ -86,11 +95,23 @@ fn bad_structure_string_is_explained() {
 #[test]
 fn too_few_points_for_the_unknowns() {
     let text = DEMO
-        .replace("x = { from = 0.1, to = 1.3, count = 5 }", "x = { from = 0.1, to = 1.3, count = 2 }")
-        .replace("y = { from = 0.2, to = 2.2, count = 5 }", "y = { from = 0.2, to = 2.2, count = 2 }")
-        .replace("z = { from = 0.15, to = 0.95, count = 4 }", "z = { from = 0.15, to = 0.95, count = 2 }");
+        .replace(
+            "x = { from = 0.1, to = 1.3, count = 5 }",
+            "x = { from = 0.1, to = 1.3, count = 2 }",
+        )
+        .replace(
+            "y = { from = 0.2, to = 2.2, count = 5 }",
+            "y = { from = 0.2, to = 2.2, count = 2 }",
+        )
+        .replace(
+            "z = { from = 0.15, to = 0.95, count = 4 }",
+            "z = { from = 0.15, to = 0.95, count = 2 }",
+        );
     let message = error_of(&text);
-    assert_mentions(&message, &[FILE, "plan.grid", "at least 16 points", "found 8"]);
+    assert_mentions(
+        &message,
+        &[FILE, "plan.grid", "at least 16 points", "found 8"],
+    );
 }
 
 #[test]

@@ -30,10 +30,15 @@ fn demo_recovers_truth_and_replays_identically() {
     )
     .expect("demo run");
     let Results::Multilateration(results) = &output.results;
-    let truth: Value = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file")).expect("truth json");
+    let truth: Value = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
 
     assert!(results.converged, "solver did not converge");
-    assert_eq!(results.extraction.windows_dropped, 0, "{:?}", results.extraction.dropped_reasons);
+    assert_eq!(
+        results.extraction.windows_dropped, 0,
+        "{:?}",
+        results.extraction.dropped_reasons
+    );
     assert_eq!(results.points.len(), 100);
     // The fit is consistent with the noise model: chi2/dof near 1 (dof ~ 800: 3 sigma ~ 0.15).
     assert!(
@@ -54,7 +59,8 @@ fn demo_recovers_truth_and_replays_identically() {
     let estimated: Vec<[f64; 3]> = results.points.iter().map(|p| p.actual_m).collect();
     let (r, t) = common::rigid_fit(&estimated, &truth_points);
     let point_rms = common::rms_after(&r, &t, &estimated, &truth_points);
-    let point_predicted = common::predicted_rms(&results.points.iter().map(|p| p.sigma_m).collect::<Vec<_>>());
+    let point_predicted =
+        common::predicted_rms(&results.points.iter().map(|p| p.sigma_m).collect::<Vec<_>>());
     println!("points: RMS error {point_rms:.3e} m, predicted {point_predicted:.3e} m");
     assert!(
         point_rms <= 3.0 * point_predicted,
@@ -77,8 +83,13 @@ fn demo_recovers_truth_and_replays_identically() {
         .collect();
     let est_stations: Vec<[f64; 3]> = results.stations.iter().map(|s| s.position_m).collect();
     let station_rms = common::rms_after(&r, &t, &est_stations, &truth_stations);
-    let station_predicted =
-        common::predicted_rms(&results.stations.iter().map(|s| s.sigma_m).collect::<Vec<_>>());
+    let station_predicted = common::predicted_rms(
+        &results
+            .stations
+            .iter()
+            .map(|s| s.sigma_m)
+            .collect::<Vec<_>>(),
+    );
     println!("stations: RMS error {station_rms:.3e} m, predicted {station_predicted:.3e} m");
     assert!(
         station_rms <= 3.0 * station_predicted,
@@ -111,7 +122,10 @@ fn demo_recovers_truth_and_replays_identically() {
         .iter()
         .flat_map(|p| p.error_m)
         .fold(0.0f64, |m, e| m.max(e.abs()));
-    assert!(max_error > 1e-6, "simulated errors should reach micrometres, max {max_error:e}");
+    assert!(
+        max_error > 1e-6,
+        "simulated errors should reach micrometres, max {max_error:e}"
+    );
 
     // Replay: solving the recorded session gives the same results JSON.
     let replayed = solve_file(&output.session_path).expect("replay");

@@ -44,7 +44,10 @@ fn validate_machine(config: &Config) -> Result<(), Invalid> {
     for axis in ["x", "y", "z"] {
         let key = format!("machine.travel_m.{axis}");
         let Some([lo, hi]) = machine.travel_m.get(axis) else {
-            return fail(&key, "missing: expected [low, high] in metres for each of x, y, z");
+            return fail(
+                &key,
+                "missing: expected [low, high] in metres for each of x, y, z",
+            );
         };
         if !(lo.is_finite() && hi.is_finite() && lo < hi) {
             return fail(&key, format!("expected low < high, found [{lo}, {hi}]"));
@@ -72,7 +75,10 @@ fn validate_machine(config: &Config) -> Result<(), Invalid> {
             );
         }
         if target.offset_m.iter().any(|v| !v.is_finite()) {
-            return fail(&format!("machine.targets[{i}].offset_m"), "expected finite numbers");
+            return fail(
+                &format!("machine.targets[{i}].offset_m"),
+                "expected finite numbers",
+            );
         }
     }
     Ok(())
@@ -94,13 +100,25 @@ fn validate_devices(config: &Config) -> Result<(), Invalid> {
 fn validate_plan(config: &Config) -> Result<(), Invalid> {
     let plan = &config.plan;
     if config.target_offset().is_none() {
-        let known: Vec<&str> = config.machine.targets.iter().map(|t| t.id.as_str()).collect();
+        let known: Vec<&str> = config
+            .machine
+            .targets
+            .iter()
+            .map(|t| t.id.as_str())
+            .collect();
         return fail(
             "plan.target",
-            format!("unknown target `{}`: expected one of {known:?}", plan.target),
+            format!(
+                "unknown target `{}`: expected one of {known:?}",
+                plan.target
+            ),
         );
     }
-    for (axis, range) in [("x", &plan.grid.x), ("y", &plan.grid.y), ("z", &plan.grid.z)] {
+    for (axis, range) in [
+        ("x", &plan.grid.x),
+        ("y", &plan.grid.y),
+        ("z", &plan.grid.z),
+    ] {
         let key = format!("plan.grid.{axis}");
         if range.count == 0 {
             return fail(&format!("{key}.count"), "expected at least 1 point");
@@ -124,7 +142,9 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
     if stations < 4 {
         return fail(
             "plan.stations",
-            format!("expected at least 4 stations (multilateration needs m >= 4), found {stations}"),
+            format!(
+                "expected at least 4 stations (multilateration needs m >= 4), found {stations}"
+            ),
         );
     }
     if points < 16 {
@@ -153,12 +173,18 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
         }
         if let Some(hint) = station.hint_m {
             if hint.iter().any(|v| !v.is_finite()) {
-                return fail(&format!("plan.stations[{i}].hint_m"), "expected finite numbers");
+                return fail(
+                    &format!("plan.stations[{i}].hint_m"),
+                    "expected finite numbers",
+                );
             }
         }
     }
     if plan.passes.is_empty() {
-        return fail("plan.passes", "expected at least one pass (\"forward\" or \"backward\")");
+        return fail(
+            "plan.passes",
+            "expected at least one pass (\"forward\" or \"backward\")",
+        );
     }
     positive("plan.dwell_s", plan.dwell_s)?;
     positive("plan.stillstand.window_s", plan.stillstand.window_s)?;
@@ -175,7 +201,10 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
     if !(plan.max_dwell_s >= plan.dwell_s) {
         return fail(
             "plan.max_dwell_s",
-            format!("expected max_dwell_s >= dwell_s = {} s, found {}", plan.dwell_s, plan.max_dwell_s),
+            format!(
+                "expected max_dwell_s >= dwell_s = {} s, found {}",
+                plan.dwell_s, plan.max_dwell_s
+            ),
         );
     }
     let samples_in_window = plan.stillstand.window_s * config.devices.tracer.sample_rate_hz;
@@ -200,7 +229,10 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
             .is_some_and(|e| e.driver == DriverKind::Sim);
     let Some(sim) = &config.sim else {
         if uses_sim {
-            return fail("sim", "missing: a device uses driver \"sim\", so a [sim] table is expected");
+            return fail(
+                "sim",
+                "missing: a device uses driver \"sim\", so a [sim] table is expected",
+            );
         }
         return Ok(());
     };
@@ -208,7 +240,10 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     non_negative("sim.relocation_s", sim.relocation_s)?;
     positive("sim.environment.air_temp_k", sim.environment.air_temp_k)?;
     positive("sim.environment.pressure_pa", sim.environment.pressure_pa)?;
-    positive("sim.environment.temp_period_s", sim.environment.temp_period_s)?;
+    positive(
+        "sim.environment.temp_period_s",
+        sim.environment.temp_period_s,
+    )?;
     if config.plan.stations.iter().any(|s| s.hint_m.is_none()) {
         return fail(
             "plan.stations",

@@ -4,5 +4,7 @@
 pub mod points;
 pub mod stillstand;
 
-pub use points::{extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement};
+pub use points::{
+    extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement,
+};
 pub use stillstand::{Stillstand, StillstandDetector};

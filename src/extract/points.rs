@@ -106,7 +106,9 @@ pub struct StationSeen {
 pub enum ExtractError {
     #[error("session has no tracer stream (/tracer/<id>/range)")]
     NoTracer,
-    #[error("session has {0} tracer streams; point extraction handles one tracer at a time, name it")]
+    #[error(
+        "session has {0} tracer streams; point extraction handles one tracer at a time, name it"
+    )]
     SeveralTracers(usize),
     #[error("session has no tracer `{0}`")]
     UnknownTracer(String),
@@ -148,7 +150,9 @@ pub fn extract_points(
 
     for event in &session.events {
         match &event.msg {
-            RunEvent::StationBegin { station, hint_m, .. } => {
+            RunEvent::StationBegin {
+                station, hint_m, ..
+            } => {
                 index_of(&mut out, station, *hint_m);
             }
             RunEvent::PointBegin {
@@ -161,7 +165,8 @@ pub fn extract_points(
                 approach,
             } => {
                 if let Some(w) = open.take() {
-                    out.dropped.push(dropped(&w, "point_begin without point_end"));
+                    out.dropped
+                        .push(dropped(&w, "point_begin without point_end"));
                 }
                 open = Some(OpenWindow {
                     log_time_ns: event.log_time_ns,
@@ -181,7 +186,8 @@ pub fn extract_points(
             } => {
                 let Some(w) = open.take() else { continue };
                 if (&w.station, w.point, w.pass) != (station, *point, *pass) {
-                    out.dropped.push(dropped(&w, "point_end does not match its point_begin"));
+                    out.dropped
+                        .push(dropped(&w, "point_end does not match its point_begin"));
                     continue;
                 }
                 let index = index_of(&mut out, &w.station, None);
@@ -210,7 +216,8 @@ pub fn extract_points(
         }
     }
     if let Some(w) = open.take() {
-        out.dropped.push(dropped(&w, "no point_end (session cut short?)"));
+        out.dropped
+            .push(dropped(&w, "no point_end (session cut short?)"));
     }
     Ok(out)
 }
@@ -227,7 +234,12 @@ fn select_tracer<'a>(
             .ok_or_else(|| ExtractError::UnknownTracer(id.to_string())),
         None => match session.tracers.len() {
             0 => Err(ExtractError::NoTracer),
-            1 => Ok(session.tracers.values().next().map(Vec::as_slice).unwrap_or(&[])),
+            1 => Ok(session
+                .tracers
+                .values()
+                .next()
+                .map(Vec::as_slice)
+                .unwrap_or(&[])),
             n => Err(ExtractError::SeveralTracers(n)),
         },
     }
@@ -243,7 +255,11 @@ fn dropped(w: &OpenWindow, reason: &str) -> DroppedWindow {
 }
 
 /// Samples with begin <= log_time <= end (the slice is sorted by log_time).
-fn in_window(samples: &[Stamped<TracerSample>], begin_ns: u64, end_ns: u64) -> &[Stamped<TracerSample>] {
+fn in_window(
+    samples: &[Stamped<TracerSample>],
+    begin_ns: u64,
+    end_ns: u64,
+) -> &[Stamped<TracerSample>] {
     let from = samples.partition_point(|s| s.log_time_ns < begin_ns);
     let to = samples.partition_point(|s| s.log_time_ns <= end_ns);
     &samples[from..to.max(from)]
@@ -293,7 +309,8 @@ fn settle(
     let sample_sigma = match noise {
         Some(model) => model.sample_sigma_m(mean_m),
         None => {
-            let var = settled.iter().map(|v| (v - mean_m).powi(2)).sum::<f64>() / (count - 1) as f64;
+            let var =
+                settled.iter().map(|v| (v - mean_m).powi(2)).sum::<f64>() / (count - 1) as f64;
             var.sqrt().max(1e-12)
         }
     };

@@ -109,7 +109,11 @@ mod tests {
         for k in 0..300 {
             let t = k as f64 * 0.01;
             // Moves at 10 mm/s until t = 1 s, then holds still with 0.1 um wiggle.
-            let x = if t < 1.0 { 0.01 * t } else { 0.01 + 1e-7 * (k % 3) as f64 };
+            let x = if t < 1.0 {
+                0.01 * t
+            } else {
+                0.01 + 1e-7 * (k % 3) as f64
+            };
             if let Stillstand::Settled { since_s } = d.push(t, x) {
                 settled_at.get_or_insert((t, since_s));
             }

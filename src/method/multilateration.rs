@@ -110,7 +110,12 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
 
     let mut per_station = vec![(0usize, 0.0f64); problem.problem.station_hints.len()];
     let mut per_point = vec![0usize; problem.points.len()];
-    for (obs, r) in problem.problem.observations.iter().zip(&solution.residuals_m) {
+    for (obs, r) in problem
+        .problem
+        .observations
+        .iter()
+        .zip(&solution.residuals_m)
+    {
         let station = problem.problem.segments[obs.segment].station;
         per_station[station].0 += 1;
         per_station[station].1 += r * r;
@@ -141,7 +146,11 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
                 sigma_m: [cov[(0, 0)].sqrt(), cov[(1, 1)].sqrt(), cov[(2, 2)].sqrt()],
                 segments,
                 observations: count,
-                residual_rms_m: if count > 0 { (ss / count as f64).sqrt() } else { 0.0 },
+                residual_rms_m: if count > 0 {
+                    (ss / count as f64).sqrt()
+                } else {
+                    0.0
+                },
             }
         })
         .collect();

@@ -48,7 +48,11 @@ impl Plan {
             .map(|(index, axes_m)| PlanPoint {
                 index,
                 axes_m,
-                nominal_m: [axes_m[0] + offset[0], axes_m[1] + offset[1], axes_m[2] + offset[2]],
+                nominal_m: [
+                    axes_m[0] + offset[0],
+                    axes_m[1] + offset[1],
+                    axes_m[2] + offset[2],
+                ],
             })
             .collect();
         Plan {
@@ -137,7 +141,10 @@ mod tests {
         assert_eq!(pts.len(), 18);
         for pair in pts.windows(2) {
             let moved: usize = (0..3).filter(|&k| pair[0][k] != pair[1][k]).count();
-            assert_eq!(moved, 1, "consecutive points {pair:?} differ in more than one axis");
+            assert_eq!(
+                moved, 1,
+                "consecutive points {pair:?} differ in more than one axis"
+            );
         }
         let unique: std::collections::BTreeSet<String> =
             pts.iter().map(|p| format!("{p:?}")).collect();
@@ -146,7 +153,20 @@ mod tests {
 
     #[test]
     fn raster_is_row_major() {
-        let pts = grid_axes(&range(0.0, 1.0, 2), &range(0.0, 1.0, 2), &range(0.0, 0.0, 1), GridOrder::Raster);
-        assert_eq!(pts, vec![[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [1.0, 1.0, 0.0]]);
+        let pts = grid_axes(
+            &range(0.0, 1.0, 2),
+            &range(0.0, 1.0, 2),
+            &range(0.0, 0.0, 1),
+            GridOrder::Raster,
+        );
+        assert_eq!(
+            pts,
+            vec![
+                [0.0, 0.0, 0.0],
+                [1.0, 0.0, 0.0],
+                [0.0, 1.0, 0.0],
+                [1.0, 1.0, 0.0]
+            ]
+        );
     }
 }

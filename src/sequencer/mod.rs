@@ -60,7 +60,12 @@ pub struct Sequencer<'a> {
 }
 
 impl<'a> Sequencer<'a> {
-    pub fn new(plan: &'a Plan, devices: Devices, recorder: RecorderHandle, clock: Arc<dyn Clock>) -> Self {
+    pub fn new(
+        plan: &'a Plan,
+        devices: Devices,
+        recorder: RecorderHandle,
+        clock: Arc<dyn Clock>,
+    ) -> Self {
         Self {
             plan,
             devices,
@@ -195,7 +200,8 @@ impl<'a> Sequencer<'a> {
     /// give up with a `fault` event. Returns whether stillstand was reached.
     async fn dwell(&mut self, point: usize, min_dwell_s: f64) -> Result<bool, SequencerError> {
         let plan = self.plan;
-        let mut detector = StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
+        let mut detector =
+            StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
         let begin_s = self.last_sample.map_or(0.0, |s| s.t_s);
         loop {
             let sample = self.sample().await?;
@@ -223,7 +229,12 @@ impl<'a> Sequencer<'a> {
     }
 
     /// The dwell at a point: point_begin, at least dwell_s and until settled, point_end.
-    async fn measure(&mut self, station: &str, point: usize, pass: usize) -> Result<(), SequencerError> {
+    async fn measure(
+        &mut self,
+        station: &str,
+        point: usize,
+        pass: usize,
+    ) -> Result<(), SequencerError> {
         let p = &self.plan.points[point];
         self.event(RunEvent::PointBegin {
             station: station.to_string(),

@@ -138,7 +138,8 @@ fn read_indexed(
     for channel in summary.channels.values() {
         dec.define_channel(channel.id, &channel.topic, &channel.message_encoding);
         if let Some(&n) = stats.channel_message_counts.get(&channel.id) {
-            dec.reserve(channel.id, n);
+            // Counts come from the file and may be corrupt: only a hint, bounded by its size.
+            dec.reserve(channel.id, n.min(buf.len() as u64 / 16));
         }
     }
     let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
@@ -181,9 +182,14 @@ fn chunk_reader() -> LinearReader {
         LinearReaderOptions::default()
             .with_skip_start_magic(true)
             .with_skip_end_magic(true)
-            .with_prevalidate_chunk_crcs(true),
+            .with_prevalidate_chunk_crcs(true)
+            .with_record_length_limit(MAX_RECORD_BYTES),
     )
 }
+
+/// Bound on a chunk's (de)compressed size: the sizes come from the file, and a corrupt one
+/// must give an error, not an allocation of terabytes.
+const MAX_RECORD_BYTES: usize = 1 << 30;
 
 const RECORD_PREFIX: usize = 9; // opcode u8 + length u64
 

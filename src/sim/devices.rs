@@ -96,7 +96,12 @@ pub struct SimStationMover {
 
 #[async_trait]
 impl StationMover for SimStationMover {
-    async fn place(&mut self, index: usize, _id: &str, _hint_m: Option<[f64; 3]>) -> Result<(), DeviceError> {
+    async fn place(
+        &mut self,
+        index: usize,
+        _id: &str,
+        _hint_m: Option<[f64; 3]>,
+    ) -> Result<(), DeviceError> {
         lock(&self.world, "operator")?.place_station(index);
         Ok(())
     }

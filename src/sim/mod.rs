@@ -1,6 +1,6 @@
 //! The simulated world: a seeded truth machine, instruments with their noise models, and
 //! simulated drivers behind the same traits as real ones.
 
-pub mod truth;
 pub mod devices;
+pub mod truth;
 pub mod world;

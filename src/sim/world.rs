@@ -98,15 +98,27 @@ pub struct TruthPoint {
 }
 
 impl SimWorld {
-    pub fn new(config: &Config, plan: &Plan, clock: Arc<VirtualClock>) -> Result<SimWorld, SimError> {
+    pub fn new(
+        config: &Config,
+        plan: &Plan,
+        clock: Arc<VirtualClock>,
+    ) -> Result<SimWorld, SimError> {
         let sim = config.sim.as_ref().ok_or(SimError::NoSimTable)?;
-        let structure =
-            Structure::parse(&config.machine.structure).map_err(|e| SimError::Structure(e.to_string()))?;
-        let travel = ["x", "y", "z"].map(|a| config.machine.travel_m.get(a).copied().unwrap_or([0.0, 1.0]));
+        let structure = Structure::parse(&config.machine.structure)
+            .map_err(|e| SimError::Structure(e.to_string()))?;
+        let travel = ["x", "y", "z"].map(|a| {
+            config
+                .machine
+                .travel_m
+                .get(a)
+                .copied()
+                .unwrap_or([0.0, 1.0])
+        });
         let truth = TruthErrors::random(sim.seed, travel, &sim.errors);
         // Separate streams so that changing the noise does not move the stations.
         let mut station_rng = ChaCha8Rng::seed_from_u64(sim.seed ^ 0x5157_4154_494f_4e53);
-        let offset = Normal::new(0.0, sim.station_hint_error_m.max(0.0)).map_err(|e| SimError::Structure(e.to_string()))?;
+        let offset = Normal::new(0.0, sim.station_hint_error_m.max(0.0))
+            .map_err(|e| SimError::Structure(e.to_string()))?;
         let stations_m = plan
             .stations
             .iter()
@@ -117,7 +129,11 @@ impl SimWorld {
             .collect();
         let tracer = &config.devices.tracer;
         let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
-        let env_rate = config.devices.environment.as_ref().map_or(1.0, |e| e.sample_rate_hz);
+        let env_rate = config
+            .devices
+            .environment
+            .as_ref()
+            .map_or(1.0, |e| e.sample_rate_hz);
         Ok(SimWorld {
             clock,
             structure,
@@ -154,7 +170,12 @@ impl SimWorld {
     }
 
     fn target_at(&self, axes_m: [f64; 3]) -> Vector3<f64> {
-        Vector3::from(actual_position(&self.structure, &self.truth, axes_m, self.target_offset_m))
+        Vector3::from(actual_position(
+            &self.structure,
+            &self.truth,
+            axes_m,
+            self.target_offset_m,
+        ))
     }
 
     fn true_distance_m(&self, t_s: f64) -> f64 {
@@ -192,7 +213,10 @@ impl SimWorld {
     pub fn start_move(&mut self, target: [f64; 3]) {
         let now = self.now_s();
         let from = self.motion.at(now);
-        let distance: f64 = (0..3).map(|k| (target[k] - from[k]).powi(2)).sum::<f64>().sqrt();
+        let distance: f64 = (0..3)
+            .map(|k| (target[k] - from[k]).powi(2))
+            .sum::<f64>()
+            .sqrt();
         // The cycloidal profile peaks at twice the mean speed: keep the peak at the feed.
         let duration_s = (2.0 * distance / self.feed_m_s).max(0.1);
         self.motion = Motion {
@@ -234,7 +258,12 @@ impl SimWorld {
                 air_temp_k: self.env.air_temp_k + swing,
                 pressure_pa: self.env.pressure_pa,
                 humidity_pct: self.env.humidity_pct,
-                material_temp_k: self.env.material_temp_k.iter().map(|m| m + 0.5 * swing).collect(),
+                material_temp_k: self
+                    .env
+                    .material_temp_k
+                    .iter()
+                    .map(|m| m + 0.5 * swing)
+                    .collect(),
             });
             self.next_env_s += self.env_period_s;
         }

@@ -36,7 +36,10 @@ pub fn rms_after(r: &Rotation3<f64>, t: &Vector3<f64>, a: &[[f64; 3]], b: &[[f64
 
 /// The RMS per coordinate that the reported sigmas predict.
 pub fn predicted_rms(sigmas: &[[f64; 3]]) -> f64 {
-    let ss: f64 = sigmas.iter().map(|s| s[0] * s[0] + s[1] * s[1] + s[2] * s[2]).sum();
+    let ss: f64 = sigmas
+        .iter()
+        .map(|s| s[0] * s[0] + s[1] * s[1] + s[2] * s[2])
+        .sum();
     (ss / (3.0 * sigmas.len() as f64)).sqrt()
 }
 
