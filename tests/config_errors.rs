@@ -42,7 +42,7 @@ fn missing_key_names_it() {
 
 #[test]
 fn wrong_type_names_key_and_expected_type() {
-    let text = DEMO.replace("sample_rate_hz = 50.0", "sample_rate_hz = \"fast\"");
+    let text = DEMO.replace("sample_rate_hz = 25.0", "sample_rate_hz = \"fast\"");
     let message = error_of(&text);
     assert_mentions(
         &message,

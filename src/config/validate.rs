@@ -198,7 +198,7 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
             ),
         );
     }
-    if !(plan.max_dwell_s >= plan.dwell_s) {
+    if plan.max_dwell_s.is_nan() || plan.max_dwell_s < plan.dwell_s {
         return fail(
             "plan.max_dwell_s",
             format!(
