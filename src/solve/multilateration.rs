@@ -1145,7 +1145,7 @@ mod tests {
             "point ratio {point_ratio}"
         );
         assert!(
-            (0.75..1.33).contains(&station_ratio),
+            (0.8..1.25).contains(&station_ratio),
             "station ratio {station_ratio}"
         );
     }
