@@ -7,7 +7,7 @@ use crate::clock::{Clock, VirtualClock};
 use crate::config::{Config, DriverKind};
 use crate::plan::Plan;
 use crate::sequencer::Devices;
-use crate::sim::devices::{SharedWorld, SimEnvironment, SimMachine, SimStationMover, SimTracer};
+use crate::sim::devices::{SharedWorld, SimEnvironment, SimMachine, SimOperator, SimTracer};
 use crate::sim::world::{SimError, SimWorld};
 
 pub struct BuiltDevices {
@@ -41,7 +41,7 @@ pub fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> Result<BuiltDevices
                 id: config.devices.machine.id.clone(),
                 world: world.clone(),
             }),
-            mover: Box::new(SimStationMover {
+            operator: Box::new(SimOperator {
                 world: world.clone(),
             }),
         },

@@ -80,9 +80,9 @@ fn grid_outside_travel_is_rejected() {
 
 #[test]
 fn unknown_target_lists_the_known_ones() {
-    let text = DEMO.replace("target = \"t0\"", "target = \"t9\"");
+    let text = DEMO.replace("targets = [\"t0\"]", "targets = [\"t9\"]");
     let message = error_of(&text);
-    assert_mentions(&message, &[FILE, "plan.target", "t9", "t0"]);
+    assert_mentions(&message, &[FILE, "plan.targets[0]", "t9", "t0"]);
 }
 
 #[test]

@@ -90,15 +90,18 @@ pub trait Machine: Send {
     async fn state(&mut self) -> Result<MachineState, DeviceError>;
 }
 
-/// Whoever puts the tracer on the next station: an operator at a prompt, a rotary table
-/// the tracer stands on, or the simulated world.
+/// Whoever changes the set-up between measurements: puts the tracer on the next station (an
+/// operator at a prompt, a rotary table the tracer stands on, the simulated world) and mounts
+/// a reflector at another offset on the tool. Either interrupts the beam.
 #[async_trait]
-pub trait StationMover: Send {
+pub trait Operator: Send {
     /// Place the tracer at station `index` (named `id`, near `hint_m` if given).
-    async fn place(
+    async fn place_station(
         &mut self,
         index: usize,
         id: &str,
         hint_m: Option<[f64; 3]>,
     ) -> Result<(), DeviceError>;
+    /// Mount the reflector `target` at `offset_m` from the tool point.
+    async fn mount_target(&mut self, target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError>;
 }

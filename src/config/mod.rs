@@ -153,8 +153,8 @@ pub struct MachineDeviceConfig {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct PlanConfig {
-    /// Which target (by id) the plan measures.
-    pub target: String,
+    /// Which targets (by id) the plan measures, in order; each at every station.
+    pub targets: Vec<String>,
     pub grid: GridConfig,
     /// Pass directions, in order; every pass starts by homing at point 0.
     pub passes: Vec<PassDirection>,
@@ -295,11 +295,12 @@ impl Config {
         Ok(config)
     }
 
-    pub fn target_offset(&self) -> Option<[f64; 3]> {
+    /// The offset of a machine target by id.
+    pub fn target_offset(&self, id: &str) -> Option<[f64; 3]> {
         self.machine
             .targets
             .iter()
-            .find(|t| t.id == self.plan.target)
+            .find(|t| t.id == id)
             .map(|t| t.offset_m)
     }
 }

@@ -99,20 +99,29 @@ fn validate_devices(config: &Config) -> Result<(), Invalid> {
 
 fn validate_plan(config: &Config) -> Result<(), Invalid> {
     let plan = &config.plan;
-    if config.target_offset().is_none() {
-        let known: Vec<&str> = config
-            .machine
-            .targets
-            .iter()
-            .map(|t| t.id.as_str())
-            .collect();
-        return fail(
-            "plan.target",
-            format!(
-                "unknown target `{}`: expected one of {known:?}",
-                plan.target
-            ),
-        );
+    if plan.targets.is_empty() {
+        return fail("plan.targets", "expected at least one target id");
+    }
+    let mut seen = BTreeSet::new();
+    for (i, id) in plan.targets.iter().enumerate() {
+        if config.target_offset(id).is_none() {
+            let known: Vec<&str> = config
+                .machine
+                .targets
+                .iter()
+                .map(|t| t.id.as_str())
+                .collect();
+            return fail(
+                &format!("plan.targets[{i}]"),
+                format!("unknown target `{id}`: expected one of {known:?}"),
+            );
+        }
+        if !seen.insert(id.as_str()) {
+            return fail(
+                &format!("plan.targets[{i}]"),
+                format!("target `{id}` listed twice"),
+            );
+        }
     }
     for (axis, range) in [
         ("x", &plan.grid.x),

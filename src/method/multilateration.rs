@@ -47,7 +47,7 @@ pub struct MultilaterationResults {
 pub struct StationResult {
     pub id: String,
     pub position_m: [f64; 3],
-    /// |P - A_0| of the first beam segment.
+    /// |P - A_0| of the first beam segment (first target).
     pub home_distance_m: f64,
     pub sigma_m: [f64; 3],
     pub segments: Vec<SegmentResult>,
@@ -57,6 +57,7 @@ pub struct StationResult {
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct SegmentResult {
+    pub target: String,
     pub beam_segment: u32,
     pub home_distance_m: f64,
     pub sigma_m: f64,
@@ -130,9 +131,10 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
                 .segments
                 .iter()
                 .enumerate()
-                .filter(|(_, (station, _))| *station == j)
-                .map(|(s, &(_, beam_segment))| SegmentResult {
-                    beam_segment,
+                .filter(|(_, (station, _, _))| *station == j)
+                .map(|(s, (_, target, beam_segment))| SegmentResult {
+                    target: target.clone(),
+                    beam_segment: *beam_segment,
                     home_distance_m: solution.segment_distance_m[s],
                     sigma_m: solution.segment_distance_sigma_m[s],
                 })
@@ -214,8 +216,9 @@ struct Problem {
     problem: MultilaterationProblem,
     /// (target, plan point index, nominal) of each problem point.
     points: Vec<(String, usize, [f64; 3])>,
-    /// (station index, beam segment) of each problem segment.
-    segments: Vec<(usize, u32)>,
+    /// (station index, target, beam segment) of each problem segment: every homing distance
+    /// differs per target, even if another recorder did not start a new beam segment.
+    segments: Vec<(usize, String, u32)>,
 }
 
 impl Problem {
@@ -234,12 +237,12 @@ impl Problem {
             point_index.insert((key.0.clone(), key.1), points.len());
             points.push(key);
         }
-        let mut segment_index: BTreeMap<(usize, u32), usize> = BTreeMap::new();
+        let mut segment_index: BTreeMap<(usize, String, u32), usize> = BTreeMap::new();
         let mut segments = Vec::new();
         let mut observations = Vec::with_capacity(extraction.measurements.len());
         for m in &extraction.measurements {
-            let seg_key = (m.station_index, m.beam_segment);
-            let segment = *segment_index.entry(seg_key).or_insert_with(|| {
+            let seg_key = (m.station_index, m.target.clone(), m.beam_segment);
+            let segment = *segment_index.entry(seg_key.clone()).or_insert_with(|| {
                 segments.push(seg_key);
                 segments.len() - 1
             });
@@ -259,7 +262,7 @@ impl Problem {
                 .collect(),
             segments: segments
                 .iter()
-                .map(|&(station, _)| Segment { station })
+                .map(|&(station, _, _)| Segment { station })
                 .collect(),
             observations,
         };

@@ -13,8 +13,13 @@ pub struct PlanPoint {
     pub index: usize,
     /// Commanded axis positions x, y, z, metres.
     pub axes_m: [f64; 3],
-    /// Commanded target position in the machine frame: axes + target offset.
-    pub nominal_m: [f64; 3],
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PlanTarget {
+    pub id: String,
+    /// Reflector offset from the tool point, metres.
+    pub offset_m: [f64; 3],
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -25,8 +30,8 @@ pub struct PlanStation {
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
 pub struct Plan {
-    pub target: String,
-    pub target_offset_m: [f64; 3],
+    /// Measured one after another at every station.
+    pub targets: Vec<PlanTarget>,
     /// Point 0 is the homing point.
     pub points: Vec<PlanPoint>,
     pub stations: Vec<PlanStation>,
@@ -40,24 +45,22 @@ pub struct Plan {
 impl Plan {
     /// Expand a validated configuration.
     pub fn from_config(config: &Config) -> Plan {
-        let offset = config.target_offset().unwrap_or([0.0; 3]);
         let grid = &config.plan.grid;
         let points = grid_axes(&grid.x, &grid.y, &grid.z, grid.order)
             .into_iter()
             .enumerate()
-            .map(|(index, axes_m)| PlanPoint {
-                index,
-                axes_m,
-                nominal_m: [
-                    axes_m[0] + offset[0],
-                    axes_m[1] + offset[1],
-                    axes_m[2] + offset[2],
-                ],
-            })
+            .map(|(index, axes_m)| PlanPoint { index, axes_m })
             .collect();
         Plan {
-            target: config.plan.target.clone(),
-            target_offset_m: offset,
+            targets: config
+                .plan
+                .targets
+                .iter()
+                .map(|id| PlanTarget {
+                    id: id.clone(),
+                    offset_m: config.target_offset(id).unwrap_or([0.0; 3]),
+                })
+                .collect(),
             points,
             stations: config
                 .plan
@@ -74,6 +77,12 @@ impl Plan {
             stillstand_window_s: config.plan.stillstand.window_s,
             stillstand_tolerance_m: config.plan.stillstand.tolerance_m,
         }
+    }
+
+    /// Commanded position of a target at a point: axes + target offset (machine frame).
+    pub fn nominal_m(&self, point: usize, target: &PlanTarget) -> [f64; 3] {
+        let axes = self.points[point].axes_m;
+        std::array::from_fn(|k| axes[k] + target.offset_m[k])
     }
 
     /// Point indices visited in a pass after homing at point 0 (which comes first in both).

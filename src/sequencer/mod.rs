@@ -5,13 +5,12 @@ use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use geocal_drivers::{
-    AxisPositions, DeviceError, Environment, Machine, MachineState, StationMover, Tracer,
-    TracerReading,
+    AxisPositions, DeviceError, Environment, Machine, MachineState, Operator, Tracer, TracerReading,
 };
 
 use crate::clock::Clock;
 use crate::extract::{Stillstand, StillstandDetector};
-use crate::plan::{Plan, AXES};
+use crate::plan::{Plan, PlanTarget, AXES};
 use crate::session::messages::{EnvSample, RunEvent, TracerSample};
 use crate::session::recorder::RecorderHandle;
 
@@ -20,7 +19,7 @@ pub struct Devices {
     pub tracer: Box<dyn Tracer>,
     pub environment: Option<Box<dyn Environment>>,
     pub machine: Box<dyn Machine>,
-    pub mover: Box<dyn StationMover>,
+    pub operator: Box<dyn Operator>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -82,7 +81,10 @@ impl<'a> Sequencer<'a> {
     /// Run the whole plan: every station, every pass, every point.
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
         let plan = self.plan;
-        let total = (plan.stations.len() * plan.passes.len() * plan.points.len()) as u64;
+        let total =
+            (plan.stations.len() * plan.targets.len() * plan.passes.len() * plan.points.len())
+                as u64;
+        let mut mounted: Option<&PlanTarget> = None;
         let mut done = 0;
         for (station_index, station) in plan.stations.iter().enumerate() {
             self.event(RunEvent::StationBegin {
@@ -91,20 +93,27 @@ impl<'a> Sequencer<'a> {
                 hint_m: station.hint_m,
             });
             self.devices
-                .mover
-                .place(station_index, &station.id, station.hint_m)
+                .operator
+                .place_station(station_index, &station.id, station.hint_m)
                 .await?;
-            for (pass, &direction) in plan.passes.iter().enumerate() {
-                for point in plan.pass_order(direction) {
-                    self.move_to(point).await?;
-                    if point == 0 {
-                        // Every pass is relative to point 0: zero the counter once at rest there.
-                        self.dwell(0, 0.0).await?;
-                        self.devices.tracer.home().await?;
+            for target in &plan.targets {
+                if mounted != Some(target) {
+                    self.devices
+                        .operator
+                        .mount_target(&target.id, target.offset_m)
+                        .await?;
+                    mounted = Some(target);
+                }
+                for (pass, &direction) in plan.passes.iter().enumerate() {
+                    for point in plan.pass_order(direction) {
+                        self.move_to(point).await?;
+                        if point == 0 {
+                            self.home(&station.id).await?;
+                        }
+                        self.measure(&station.id, target, point, pass).await?;
+                        done += 1;
+                        progress(done, total);
                     }
-                    self.measure(&station.id, point, pass).await?;
-                    done += 1;
-                    progress(done, total);
                 }
             }
             self.event(RunEvent::StationEnd {
@@ -228,10 +237,27 @@ impl<'a> Sequencer<'a> {
         }
     }
 
+    /// Zero the counter at point 0 once at rest there: every pass is relative to point 0.
+    /// A homing after the beam was interrupted starts a new beam segment: say so.
+    async fn home(&mut self, station: &str) -> Result<(), SequencerError> {
+        self.dwell(0, 0.0).await?;
+        let before = self.last_sample.map(|s| s.beam_segment);
+        self.devices.tracer.home().await?;
+        let after = self.sample().await?.beam_segment;
+        if before.is_some_and(|b| b != after) {
+            self.event(RunEvent::Rehome {
+                station: station.to_string(),
+                beam_segment: after,
+            });
+        }
+        Ok(())
+    }
+
     /// The dwell at a point: point_begin, at least dwell_s and until settled, point_end.
     async fn measure(
         &mut self,
         station: &str,
+        target: &PlanTarget,
         point: usize,
         pass: usize,
     ) -> Result<(), SequencerError> {
@@ -240,8 +266,8 @@ impl<'a> Sequencer<'a> {
             station: station.to_string(),
             point,
             pass,
-            target: self.plan.target.clone(),
-            nominal_m: p.nominal_m,
+            target: target.id.clone(),
+            nominal_m: self.plan.nominal_m(point, target),
             axes: AXES.iter().map(|a| a.to_string()).zip(p.axes_m).collect(),
             approach: self.approach.clone(),
         });

@@ -4,8 +4,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use async_trait::async_trait;
 use geocal_drivers::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, StationMover,
-    Tracer, TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Tracer,
+    TracerReading,
 };
 
 use super::world::SimWorld;
@@ -90,19 +90,23 @@ impl Machine for SimMachine {
 }
 
 /// The operator of the simulated world: moving the tracer takes `relocation_s`.
-pub struct SimStationMover {
+pub struct SimOperator {
     pub world: SharedWorld,
 }
 
 #[async_trait]
-impl StationMover for SimStationMover {
-    async fn place(
+impl Operator for SimOperator {
+    async fn place_station(
         &mut self,
         index: usize,
         _id: &str,
         _hint_m: Option<[f64; 3]>,
     ) -> Result<(), DeviceError> {
         lock(&self.world, "operator")?.place_station(index);
+        Ok(())
+    }
+    async fn mount_target(&mut self, _target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError> {
+        lock(&self.world, "operator")?.mount_target(offset_m);
         Ok(())
     }
 }

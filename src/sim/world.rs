@@ -62,6 +62,8 @@ pub struct SimWorld {
     last_sample_s: f64,
     home_distance_m: f64,
     beam_segment: u32,
+    /// Set when the tracer or the reflector was moved; the next homing starts a new segment.
+    beam_interrupted: bool,
     noise: NoiseModel,
     rng: ChaCha8Rng,
     // Environment.
@@ -75,7 +77,6 @@ pub struct SimWorld {
 pub struct Truth {
     pub structure: String,
     pub seed: u64,
-    pub target_offset_m: [f64; 3],
     pub stations: Vec<TruthStation>,
     pub points: Vec<TruthPoint>,
     pub errors: serde_json::Value,
@@ -85,12 +86,13 @@ pub struct Truth {
 pub struct TruthStation {
     pub id: String,
     pub position_m: [f64; 3],
-    /// |P - A_0|: distance to the homing point.
-    pub home_distance_m: f64,
+    /// |P - A_0| for each target: distance to the homing point.
+    pub home_distance_m: std::collections::BTreeMap<String, f64>,
 }
 
 #[derive(Debug, Clone, Serialize)]
 pub struct TruthPoint {
+    pub target: String,
     pub point: usize,
     pub axes_m: [f64; 3],
     pub nominal_m: [f64; 3],
@@ -138,7 +140,7 @@ impl SimWorld {
             clock,
             structure,
             truth,
-            target_offset_m: plan.target_offset_m,
+            target_offset_m: plan.targets.first().map_or([0.0; 3], |t| t.offset_m),
             stations_m,
             current_station: 0,
             motion: Motion {
@@ -154,6 +156,7 @@ impl SimWorld {
             last_sample_s: 0.0,
             home_distance_m: 0.0,
             beam_segment: 0,
+            beam_interrupted: false,
             noise: NoiseModel {
                 noise_m: tracer.noise_m,
                 noise_ppm: tracer.noise_ppm,
@@ -205,7 +208,19 @@ impl SimWorld {
     }
 
     pub fn home_tracer(&mut self) {
+        if self.beam_interrupted {
+            self.beam_interrupted = false;
+            self.beam_segment += 1;
+        }
         self.home_distance_m = self.true_distance_m(self.now_s());
+    }
+
+    /// The operator mounts another reflector: the beam is lost until the next homing.
+    pub fn mount_target(&mut self, offset_m: [f64; 3]) {
+        if offset_m != self.target_offset_m {
+            self.target_offset_m = offset_m;
+            self.beam_interrupted = self.next_seq > 0;
+        }
     }
 
     // --- machine ---
@@ -239,6 +254,7 @@ impl SimWorld {
         if index != self.current_station || self.next_seq > 0 {
             self.clock.advance_to(self.now_s() + self.relocation_s);
         }
+        self.beam_interrupted = self.next_seq > 0;
         self.current_station = index;
         // The counter is meaningless until the sequencer homes again.
         self.home_distance_m = self.true_distance_m(self.now_s());
@@ -274,11 +290,12 @@ impl SimWorld {
 
     pub fn truth(&self, config: &Config, plan: &Plan) -> Truth {
         let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
-        let home_target = self.target_at(home);
+        let at = |axes: [f64; 3], offset: [f64; 3]| {
+            Vector3::from(actual_position(&self.structure, &self.truth, axes, offset))
+        };
         Truth {
             structure: self.structure.as_str().to_string(),
             seed: config.sim.as_ref().map_or(0, |s| s.seed),
-            target_offset_m: self.target_offset_m,
             stations: plan
                 .stations
                 .iter()
@@ -286,20 +303,27 @@ impl SimWorld {
                 .map(|(s, p)| TruthStation {
                     id: s.id.clone(),
                     position_m: [p.x, p.y, p.z],
-                    home_distance_m: (p - home_target).norm(),
+                    home_distance_m: plan
+                        .targets
+                        .iter()
+                        .map(|t| (t.id.clone(), (p - at(home, t.offset_m)).norm()))
+                        .collect(),
                 })
                 .collect(),
             points: plan
-                .points
+                .targets
                 .iter()
-                .map(|p| {
-                    let a = self.target_at(p.axes_m);
-                    TruthPoint {
-                        point: p.index,
-                        axes_m: p.axes_m,
-                        nominal_m: p.nominal_m,
-                        actual_m: [a.x, a.y, a.z],
-                    }
+                .flat_map(|t| {
+                    plan.points.iter().map(move |p| {
+                        let a = at(p.axes_m, t.offset_m);
+                        TruthPoint {
+                            target: t.id.clone(),
+                            point: p.index,
+                            axes_m: p.axes_m,
+                            nominal_m: plan.nominal_m(p.index, t),
+                            actual_m: [a.x, a.y, a.z],
+                        }
+                    })
                 })
                 .collect(),
             errors: self.truth.sample_table(21),
