@@ -41,7 +41,7 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
-    /// Validate a configuration file.
+    /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
         #[arg(long)]
@@ -111,20 +111,13 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         Command::Check { config, json } => {
             let cfg = geocal::config::Config::load(&config)?;
             let plan = geocal::plan::Plan::from_config(&cfg);
+            let check = geocal::method::plan_check::check(&cfg, &plan)
+                .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", config.display()))?;
             if json {
-                println!(
-                    "{}",
-                    serde_json::json!({"config": config, "valid": true,
-                        "points": plan.points.len(), "stations": plan.stations.len(), "passes": plan.passes.len()})
-                );
+                println!("{}", serde_json::to_string_pretty(&check)?);
             } else {
-                println!(
-                    "{}: valid — {} points x {} stations x {} passes",
-                    config.display(),
-                    plan.points.len(),
-                    plan.stations.len(),
-                    plan.passes.len()
-                );
+                println!("{}: valid", config.display());
+                print!("{}", geocal::report::plan_check_text(&check));
             }
         }
     }

@@ -83,3 +83,85 @@ fn multilateration_text(r: &MultilaterationResults) -> String {
     }
     s
 }
+
+pub fn plan_check_text(check: &crate::method::plan_check::PlanCheck) -> String {
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "plan: {} points x {} targets x {} stations; {} lengths for {} unknowns (redundancy {})",
+        check.points,
+        check.targets,
+        check.stations,
+        check.observations,
+        check.unknowns,
+        check.redundancy
+    );
+    let _ = writeln!(
+        s,
+        "noise: {} m + {} ppm per sample, {} samples averaged per dwell",
+        check.noise_model.noise_m, check.noise_model.noise_ppm, check.samples_per_dwell
+    );
+    let _ = writeln!(
+        s,
+        "\npredicted standard uncertainty (Cramér–Rao bound, inner-constraint datum):"
+    );
+    let _ = writeln!(
+        s,
+        "  station   σx [µm]  σy [µm]  σz [µm]   σd [µm] per target"
+    );
+    for st in &check.station_sigmas {
+        let d: Vec<String> = st
+            .home_distance_sigma_m
+            .iter()
+            .map(|v| format!("{:.3}", um(*v)))
+            .collect();
+        let _ = writeln!(
+            s,
+            "  {:<8} {:>7.3}  {:>7.3}  {:>7.3}   {}",
+            st.id,
+            um(st.sigma_m[0]),
+            um(st.sigma_m[1]),
+            um(st.sigma_m[2]),
+            d.join(" ")
+        );
+    }
+    if let Some(p) = &check.point_sigma {
+        let _ = writeln!(
+            s,
+            "  points: RMS σ {:.3} / {:.3} / {:.3} µm, max {:.3} / {:.3} / {:.3} µm (x/y/z); worst {}/{}",
+            um(p.rms_sigma_m[0]),
+            um(p.rms_sigma_m[1]),
+            um(p.rms_sigma_m[2]),
+            um(p.max_sigma_m[0]),
+            um(p.max_sigma_m[1]),
+            um(p.max_sigma_m[2]),
+            p.worst_point.0,
+            p.worst_point.1
+        );
+    }
+    let id = &check.identifiability;
+    if id.analysed {
+        let _ = writeln!(
+            s,
+            "\nidentifiability: rank {} of {} unknowns (6 datum freedoms), deficiency {}, condition number {:.3e}",
+            id.rank, id.unknowns, id.deficiency, id.condition_number
+        );
+        for pair in &id.correlated_pairs {
+            let _ = writeln!(
+                s,
+                "  strongly correlated: {} ~ {} ({:+.3})",
+                pair.a, pair.b, pair.correlation
+            );
+        }
+    } else {
+        let _ = writeln!(
+            s,
+            "\nidentifiability: not analysed ({} unknowns is too many for the dense analysis)",
+            id.unknowns
+        );
+    }
+    for w in &check.warnings {
+        let _ = writeln!(s, "warning: {w}");
+    }
+    s
+}

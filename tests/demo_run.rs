@@ -130,6 +130,23 @@ fn demo_recovers_truth_and_replays_identically() {
         results.chi2_per_dof
     );
 
+    // The plan check predicted these uncertainties before measuring, from the plan alone.
+    let config = Config::parse(DEMO, Path::new("demo.toml")).expect("config");
+    let check =
+        geocal::method::plan_check::check(&config, &geocal::plan::Plan::from_config(&config))
+            .expect("check");
+    let predicted = check.point_sigma.expect("point sigmas").rms_sigma_m;
+    let reported =
+        common::predicted_rms(&results.points.iter().map(|p| p.sigma_m).collect::<Vec<_>>());
+    let predicted_rms = (predicted.iter().map(|s| s * s).sum::<f64>() / 3.0).sqrt();
+    println!(
+        "plan check predicted point sigma {predicted_rms:.3e} m, run reported {reported:.3e} m"
+    );
+    assert!(
+        (0.8..1.25).contains(&(reported / predicted_rms)),
+        "plan check predicted {predicted_rms:e} m, the run reported {reported:e} m"
+    );
+
     // The volumetric errors are real (micrometres) and resolved far above their sigma.
     let max_error = results
         .points

@@ -2,6 +2,7 @@
 //! results for one plan kind. `solve_session` picks the method from the session's kind.
 
 pub mod multilateration;
+pub mod plan_check;
 
 use serde::Serialize;
 
