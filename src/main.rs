@@ -30,6 +30,9 @@ enum Command {
         /// Print the results JSON instead of the text report.
         #[arg(long)]
         json: bool,
+        /// Down-weight outlier lengths with a Huber loss beyond this many sigmas (e.g. 3).
+        #[arg(long, value_name = "SIGMAS")]
+        huber: Option<f64>,
     },
     /// Re-solve a recorded session (replay): the same results as the live run.
     Solve {
@@ -40,6 +43,9 @@ enum Command {
         /// Write the results JSON to this file.
         #[arg(long)]
         out: Option<PathBuf>,
+        /// Down-weight outlier lengths with a Huber loss beyond this many sigmas (e.g. 3).
+        #[arg(long, value_name = "SIGMAS")]
+        huber: Option<f64>,
     },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
@@ -66,6 +72,12 @@ fn main() -> ExitCode {
     }
 }
 
+fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
+    geocal::method::SolveSettings {
+        huber: huber.map(|threshold_sigma| geocal::solve::robust::Huber { threshold_sigma }),
+    }
+}
+
 fn dispatch(command: Command) -> anyhow::Result<()> {
     use std::io::IsTerminal;
     match command {
@@ -74,6 +86,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             out,
             truth,
             json,
+            huber,
         } => {
             let cfg = geocal::config::Config::load(&config)?;
             let output = geocal::run::run(
@@ -82,6 +95,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                     out_dir: out,
                     truth,
                     progress: std::io::stderr().is_terminal(),
+                    settings: settings(huber),
                 },
             )?;
             if json {
@@ -96,8 +110,13 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 );
             }
         }
-        Command::Solve { session, json, out } => {
-            let results = geocal::run::solve_file(&session)?;
+        Command::Solve {
+            session,
+            json,
+            out,
+            huber,
+        } => {
+            let results = geocal::run::solve_file(&session, &settings(huber))?;
             if let Some(path) = out {
                 std::fs::write(&path, results.to_json_pretty())
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;

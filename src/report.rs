@@ -40,6 +40,28 @@ fn multilateration_text(r: &MultilaterationResults) -> String {
         }
     );
     let _ = writeln!(s, "  gauge: {}", r.gauge);
+    if let Some(robust) = &r.robust {
+        let _ = writeln!(
+            s,
+            "  robust: {} loss beyond {} sigma, {} rounds, {} length(s) down-weighted",
+            robust.loss,
+            robust.threshold_sigma,
+            robust.rounds,
+            robust.downweighted.len()
+        );
+        for d in robust.downweighted.iter().take(5) {
+            let _ = writeln!(
+                s,
+                "    station {} target {} point {} pass {}: residual {:.3} µm, weight {:.3}",
+                d.station,
+                d.target,
+                d.point,
+                d.pass,
+                um(d.residual_m),
+                d.weight
+            );
+        }
+    }
     let _ = writeln!(s, "\n  station        x [m]        y [m]        z [m]   σxyz [µm]           d0 [m]    rms [µm]");
     for st in &r.stations {
         let _ = writeln!(

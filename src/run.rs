@@ -8,7 +8,7 @@ use anyhow::Context;
 
 use crate::clock::system_now_ns;
 use crate::config::Config;
-use crate::method::{solve_session, Results};
+use crate::method::{solve_session, Results, SolveSettings};
 use crate::plan::{Plan, AXES};
 use crate::sequencer::{RunSummary, Sequencer};
 use crate::session::messages::{
@@ -23,6 +23,7 @@ pub struct RunOptions {
     pub truth: Option<PathBuf>,
     /// Show a progress bar.
     pub progress: bool,
+    pub settings: SolveSettings,
 }
 
 pub struct RunOutput {
@@ -76,7 +77,7 @@ pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
             .with_context(|| format!("writing truth to {}", path.display()))?;
     }
 
-    let results = solve_file(&session_path)?;
+    let results = solve_file(&session_path, &options.settings)?;
     let results_path = options.out_dir.join("results.json");
     std::fs::write(&results_path, results.to_json_pretty())
         .with_context(|| format!("writing {}", results_path.display()))?;
@@ -89,9 +90,9 @@ pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
 }
 
 /// Read a session file and solve it with the method of its kind.
-pub fn solve_file(path: &Path) -> anyhow::Result<Results> {
+pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    solve_session(&session).with_context(|| format!("solving {}", path.display()))
+    solve_session(&session, settings).with_context(|| format!("solving {}", path.display()))
 }
 
 fn progress_bar(show: bool) -> indicatif::ProgressBar {

@@ -23,6 +23,7 @@ fn run_with_truth(config_text: &str, dir: &Path) -> (RunOutput, Value) {
             out_dir: dir.to_path_buf(),
             truth: Some(truth_path.clone()),
             progress: false,
+            settings: Default::default(),
         },
     )
     .expect("run");
@@ -159,7 +160,7 @@ fn demo_recovers_truth_and_replays_identically() {
     );
 
     // Replay: solving the recorded session gives the same results JSON.
-    let replayed = solve_file(&output.session_path).expect("replay");
+    let replayed = solve_file(&output.session_path, &Default::default()).expect("replay");
     assert_eq!(replayed.to_json_pretty(), output.results.to_json_pretty());
     let written = std::fs::read_to_string(&output.results_path).expect("results.json");
     assert_eq!(written, output.results.to_json_pretty());

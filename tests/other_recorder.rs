@@ -31,6 +31,7 @@ fn small_run(dir: &Path) -> (PathBuf, Results) {
             out_dir: dir.to_path_buf(),
             truth: None,
             progress: false,
+            settings: Default::default(),
         },
     )
     .expect("run");
@@ -152,7 +153,7 @@ fn a_foreign_recording_of_the_same_data_solves_identically() {
         ),
     )
     .expect("write");
-    let again = solve_file(&foreign).expect("solve foreign session");
+    let again = solve_file(&foreign, &Default::default()).expect("solve foreign session");
     assert_eq!(again.to_json_pretty(), results.to_json_pretty());
 }
 
@@ -175,7 +176,8 @@ fn a_slower_recorder_without_a_noise_model_still_solves() {
         ),
     )
     .expect("write");
-    let Results::Multilateration(slow) = solve_file(&foreign).expect("solve slow session");
+    let Results::Multilateration(slow) =
+        solve_file(&foreign, &Default::default()).expect("solve slow session");
     assert_eq!(
         slow.extraction.windows_dropped, 0,
         "{:?}",

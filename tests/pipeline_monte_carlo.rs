@@ -35,6 +35,7 @@ fn reported_uncertainty_matches_actual_error_over_seeds() {
                 out_dir: dir.path().to_path_buf(),
                 truth: Some(truth_path.clone()),
                 progress: false,
+                settings: Default::default(),
             },
         )
         .expect("run");

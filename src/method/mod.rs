@@ -29,9 +29,18 @@ impl Results {
     }
 }
 
-pub fn solve_session(session: &Session) -> Result<Results, MethodError> {
+/// Choices a user makes when solving; a replay with the same settings gives the same results.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct SolveSettings {
+    /// Down-weight outlier lengths with a Huber loss (threshold in sigmas).
+    pub huber: Option<crate::solve::robust::Huber>,
+}
+
+pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
     match session.header.kind.as_str() {
-        "multilateration" => Ok(Results::Multilateration(multilateration::solve(session)?)),
+        "multilateration" => Ok(Results::Multilateration(multilateration::solve(
+            session, settings,
+        )?)),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }

@@ -7,10 +7,12 @@ use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
+use crate::method::SolveSettings;
 use crate::session::reader::Session;
 use crate::solve::multilateration::{
     solve as adjust, LengthObservation, MultilaterationProblem, Segment, SolveError, SolveOptions,
 };
+use crate::solve::robust::solve_huber;
 
 pub const RESULTS_FORMAT: &str = "geocal-results/1";
 
@@ -41,6 +43,28 @@ pub struct MultilaterationResults {
     pub stations: Vec<StationResult>,
     pub points: Vec<PointResult>,
     pub extraction: ExtractionSummary,
+    /// Present when a robust loss was used: what it down-weighted.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub robust: Option<RobustReport>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct RobustReport {
+    pub loss: String,
+    pub threshold_sigma: f64,
+    pub rounds: usize,
+    /// Observations with weight < 1, largest normalised residual first.
+    pub downweighted: Vec<DownWeighted>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct DownWeighted {
+    pub station: String,
+    pub target: String,
+    pub point: usize,
+    pub pass: usize,
+    pub weight: f64,
+    pub residual_m: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -89,7 +113,10 @@ fn arr(v: &Vector3<f64>) -> [f64; 3] {
 }
 
 /// Solve a multilateration session.
-pub fn solve(session: &Session) -> Result<MultilaterationResults, MultilaterationError> {
+pub fn solve(
+    session: &Session,
+    settings: &SolveSettings,
+) -> Result<MultilaterationResults, MultilaterationError> {
     let tracer_id = match session.tracers.keys().next() {
         Some(id) if session.tracers.len() == 1 => id.clone(),
         _ => {
@@ -107,7 +134,35 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
         });
     }
     let problem = Problem::build(&extraction);
-    let solution = adjust(&problem.problem, &SolveOptions::default())?;
+    let (solution, robust) = match settings.huber {
+        None => (adjust(&problem.problem, &SolveOptions::default())?, None),
+        Some(huber) => {
+            let r = solve_huber(&problem.problem, &SolveOptions::default(), huber)?;
+            let mut downweighted: Vec<DownWeighted> = r
+                .weights
+                .iter()
+                .zip(&r.solution.residuals_m)
+                .zip(&extraction.measurements)
+                .filter(|((w, _), _)| **w < 1.0)
+                .map(|((w, res), m)| DownWeighted {
+                    station: m.station.clone(),
+                    target: m.target.clone(),
+                    point: m.point,
+                    pass: m.pass,
+                    weight: *w,
+                    residual_m: *res,
+                })
+                .collect();
+            downweighted.sort_by(|a, b| a.weight.total_cmp(&b.weight));
+            let report = RobustReport {
+                loss: "huber".into(),
+                threshold_sigma: huber.threshold_sigma,
+                rounds: r.rounds,
+                downweighted,
+            };
+            (r.solution, Some(report))
+        }
+    };
 
     let mut per_station = vec![(0usize, 0.0f64); problem.problem.station_hints.len()];
     let mut per_point = vec![0usize; problem.points.len()];
@@ -208,6 +263,7 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
         },
+        robust,
     })
 }
 

@@ -952,20 +952,20 @@ pub fn solve(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use rand::{Rng, SeedableRng};
     use rand_chacha::ChaCha8Rng;
     use rand_distr::StandardNormal;
 
-    struct Synthetic {
-        problem: MultilaterationProblem,
-        true_points: Vec<Vector3<f64>>,
-        true_stations: Vec<Vector3<f64>>,
-        true_distances_m: Vec<f64>,
+    pub(crate) struct Synthetic {
+        pub(crate) problem: MultilaterationProblem,
+        pub(crate) true_points: Vec<Vector3<f64>>,
+        pub(crate) true_stations: Vec<Vector3<f64>>,
+        pub(crate) true_distances_m: Vec<f64>,
     }
 
-    fn stations5() -> Vec<Vector3<f64>> {
+    pub(crate) fn stations5() -> Vec<Vector3<f64>> {
         vec![
             Vector3::new(-0.4, -0.4, 0.2),
             Vector3::new(1.8, -0.3, 0.9),
@@ -977,7 +977,7 @@ mod tests {
 
     /// Grid over 1.4 x 2.4 x 1.0 m; point 0 (a corner) is the homing point. Stations listed in
     /// `two_segments` have their pass split by a beam break (re-homed with 1 µm repeatability).
-    fn synthetic(
+    pub(crate) fn synthetic(
         seed: u64,
         grid: [usize; 3],
         stations: &[Vector3<f64>],
