@@ -3,7 +3,9 @@
 use std::path::Path;
 use std::process::Command;
 
-const DEMO: &str = include_str!("../config/demo-multilateration.toml");
+mod common;
+
+use common::DEMO;
 
 fn geocal(args: &[&str]) -> std::process::Output {
     Command::new(env!("CARGO_BIN_EXE_geocal"))
@@ -14,17 +16,10 @@ fn geocal(args: &[&str]) -> std::process::Output {
 
 /// The demo shrunk to 4 stations x 3x3x2 points, one pass, so the CLI test stays quick.
 fn small_config(dir: &Path) -> std::path::PathBuf {
-    let cut = DEMO
-        .find("[[plan.stations]]\nid = \"s5\"")
-        .expect("station s5");
-    let sim = DEMO.find("\n[sim]").expect("[sim]");
-    let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..])
-        .replace("count = 5 }", "count = 3 }")
-        .replace("count = 4 }", "count = 2 }")
-        .replace(
-            "passes = [\"forward\", \"backward\"]",
-            "passes = [\"forward\"]",
-        );
+    let text = common::small_demo().replace(
+        "passes = [\"forward\", \"backward\"]",
+        "passes = [\"forward\"]",
+    );
     let path = dir.join("small.toml");
     std::fs::write(&path, text).expect("write config");
     path

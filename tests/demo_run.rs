@@ -12,7 +12,7 @@ use geocal::method::Results;
 use geocal::run::{run, solve_file, RunOptions, RunOutput};
 use serde_json::Value;
 
-const DEMO: &str = include_str!("../config/demo-multilateration.toml");
+use common::DEMO;
 
 fn run_with_truth(config_text: &str, dir: &Path) -> (RunOutput, Value) {
     let config = Config::parse(config_text, Path::new("test.toml")).expect("config");
@@ -171,13 +171,7 @@ fn demo_recovers_truth_and_replays_identically() {
 
 #[test]
 fn two_targets_each_get_their_own_homing_distance() {
-    let cut = DEMO
-        .find("[[plan.stations]]\nid = \"s5\"")
-        .expect("station s5");
-    let sim = DEMO.find("\n[sim]").expect("[sim]");
-    let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..])
-        .replace("count = 5 }", "count = 3 }")
-        .replace("count = 4 }", "count = 2 }")
+    let text = common::small_demo()
         .replace(
             "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }]",
             "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }, { id = \"t1\", offset_m = [0.15, 0.10, -0.12] }]",

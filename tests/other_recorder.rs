@@ -2,6 +2,8 @@
 //! chunking, field order, extra fields, channel order, no summary, a lower sample rate, no
 //! declared noise model) must solve just like geocal's own recording.
 
+mod common;
+
 use std::collections::BTreeMap;
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
@@ -13,17 +15,9 @@ use geocal::session::messages::{schema, tracer_topic};
 use geocal::session::reader::{read_session, Session};
 use serde_json::Value;
 
-const DEMO: &str = include_str!("../config/demo-multilateration.toml");
-
 /// The demo shrunk to 4 stations x 3x3x2 points, two passes.
 fn small_run(dir: &Path) -> (PathBuf, Results) {
-    let cut = DEMO
-        .find("[[plan.stations]]\nid = \"s5\"")
-        .expect("station s5");
-    let sim = DEMO.find("\n[sim]").expect("[sim]");
-    let text = format!("{}{}", &DEMO[..cut], &DEMO[sim..])
-        .replace("count = 5 }", "count = 3 }")
-        .replace("count = 4 }", "count = 2 }");
+    let text = common::small_demo();
     let config = Config::parse(&text, Path::new("small.toml")).expect("config");
     let out = run(
         &config,

@@ -11,7 +11,7 @@ use geocal::method::Results;
 use geocal::run::{run, RunOptions};
 use serde_json::Value;
 
-const DEMO: &str = include_str!("../config/demo-multilateration.toml");
+use common::DEMO;
 const SEEDS: u64 = 20;
 
 #[test]

@@ -310,28 +310,21 @@ fn whitened_jacobian(nominal: &NominalProblem) -> DMatrix<f64> {
 
 fn identifiability(nominal: &NominalProblem) -> Identifiability {
     let unknowns = nominal.names.len();
+    let not_analysed = Identifiability {
+        analysed: false,
+        rank: 0,
+        unknowns,
+        deficiency: 0,
+        condition_number: f64::NAN,
+        unidentifiable: Vec::new(),
+        correlated_pairs: Vec::new(),
+    };
     if unknowns > MAX_DENSE_UNKNOWNS {
-        return Identifiability {
-            analysed: false,
-            rank: 0,
-            unknowns,
-            deficiency: 0,
-            condition_number: f64::NAN,
-            unidentifiable: Vec::new(),
-            correlated_pairs: Vec::new(),
-        };
+        return not_analysed;
     }
     let svd = whitened_jacobian(nominal).svd(false, true);
     let Some(v_t) = svd.v_t else {
-        return Identifiability {
-            analysed: false,
-            rank: 0,
-            unknowns,
-            deficiency: 0,
-            condition_number: f64::NAN,
-            unidentifiable: Vec::new(),
-            correlated_pairs: Vec::new(),
-        };
+        return not_analysed;
     };
     let mut order: Vec<usize> = (0..svd.singular_values.len()).collect();
     order.sort_by(|&a, &b| svd.singular_values[b].total_cmp(&svd.singular_values[a]));

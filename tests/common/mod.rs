@@ -3,6 +3,19 @@
 
 use nalgebra::{Matrix3, Rotation3, Vector3};
 
+pub const DEMO: &str = include_str!("../../config/demo-multilateration.toml");
+
+/// The demo configuration shrunk to 4 stations x 3x3x2 points, so whole runs stay quick.
+pub fn small_demo() -> String {
+    let cut = DEMO
+        .find("[[plan.stations]]\nid = \"s5\"")
+        .expect("station s5");
+    let sim = DEMO.find("\n[sim]").expect("[sim]");
+    format!("{}{}", &DEMO[..cut], &DEMO[sim..])
+        .replace("count = 5 }", "count = 3 }")
+        .replace("count = 4 }", "count = 2 }")
+}
+
 /// Rigid motion (R, t) minimising sum |R a_i + t - b_i|^2 (Kabsch), written independently of
 /// the solver's own datum code so that the tests do not grade the solver with itself.
 pub fn rigid_fit(a: &[[f64; 3]], b: &[[f64; 3]]) -> (Rotation3<f64>, Vector3<f64>) {
