@@ -155,7 +155,7 @@ impl ElasticNet {
                 y.len()
             )));
         }
-        if !(options.tolerance > 0.0) || options.max_sweeps == 0 {
+        if options.tolerance.is_nan() || options.tolerance <= 0.0 || options.max_sweeps == 0 {
             return Err(ElasticNetError::InvalidInput(
                 "tolerance must be > 0 and max_sweeps >= 1".into(),
             ));
@@ -339,7 +339,7 @@ impl ElasticNet {
 }
 
 fn check_penalty(lambda: f64, alpha: f64) -> Result<(), ElasticNetError> {
-    if !(lambda >= 0.0 && lambda.is_finite()) || !(0.0..=1.0).contains(&alpha) {
+    if !(lambda >= 0.0 && lambda.is_finite() && (0.0..=1.0).contains(&alpha)) {
         return Err(ElasticNetError::InvalidInput(format!(
             "need λ >= 0 and 0 <= α <= 1, got λ = {lambda}, α = {alpha}"
         )));
