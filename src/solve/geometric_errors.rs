@@ -1226,9 +1226,8 @@ pub fn elastic_net_design(
     let layout = &sys.layout;
     let full = lsq(&sys.x, &sys.y, options.rank_tolerance)?;
     let (fixed, null) = apply_datum(layout, &full.null);
-    let cols: Vec<usize> = (0..layout.n_axis_params + 3)
-        .filter(|j| !fixed.contains(j) && row_norm(&null, *j) <= ESTIMABLE_TOL)
-        .collect();
+    let kept: Vec<usize> = (0..layout.len()).filter(|j| !fixed.contains(j)).collect();
+    let cols = first_step_columns(&sys, &kept, &null, options.rank_tolerance)?.en_cols;
     let rigid: Vec<usize> = (0..6).map(|r| layout.rigid(r)).collect();
     let q = select_columns(&sys.x, &rigid).qr().q();
     let a = select_columns(&sys.x, &cols);
