@@ -443,3 +443,16 @@ fn rejects_bad_input() {
     pts[3].error_m[1] = f64::NAN;
     assert!(decompose(&s, &g, &pts, &opts).is_err());
 }
+
+#[test]
+#[ignore = "prints the flags and notes of the brief's two-offset case"]
+fn print_two_offset_flags() {
+    let g = grid([5, 5, 4]);
+    let s = Structure::parse("FYXZ").unwrap();
+    let pts = simulate_observations(&s, &truth(1), &g, &[OFFSET_A, OFFSET_B], NOISE_M, 2);
+    let r = decompose(&s, &g, &pts, &DecompositionOptions::default()).unwrap();
+    eprintln!("{:?}\n{:#?}", r.unidentifiable, r.notes);
+    let pts = simulate_observations(&s, &truth(1), &g, &[OFFSET_A], NOISE_M, 2);
+    let r = decompose(&s, &g, &pts, &DecompositionOptions::default()).unwrap();
+    eprintln!("{:?}\n{:#?}", r.unidentifiable, r.notes);
+}
