@@ -117,6 +117,51 @@ fn assert_recovers_truth(results: &MultilaterationResults, truth: &Value) {
     }
 }
 
+/// Every identifiable geometric error value of the results beside the simulated truth,
+/// expressed in the decomposition's datum.
+fn grade_geometric_errors(
+    results: &MultilaterationResults,
+    truth: &Value,
+) -> Vec<geocal::solve::geometric_errors::validation::Comparison> {
+    use geocal::solve::geometric_errors::{grid_from_points, PointObservation};
+    let errors: geocal::sim::truth::TruthErrors =
+        serde_json::from_value(truth["error_model"].clone()).expect("truth error model");
+    let structure = geocal::model::kinematics::Structure::parse(
+        truth["structure"].as_str().expect("structure"),
+    )
+    .expect("structure");
+    let config = Config::parse(DEMO, Path::new("demo.toml")).expect("config");
+    let points: Vec<PointObservation> = results
+        .points
+        .iter()
+        .map(|p| {
+            let t = truth["points"]
+                .as_array()
+                .expect("truth points")
+                .iter()
+                .find(|t| t["point"] == p.point && t["target"] == p.target.as_str())
+                .expect("truth point");
+            PointObservation {
+                axes_m: xyz(&t["axes_m"]),
+                target_offset_m: config.target_offset(&p.target).expect("target"),
+                error_m: p.error_m,
+                covariance: nalgebra::Matrix3::from_diagonal(&nalgebra::Vector3::from(
+                    p.sigma_m.map(|s| s * s),
+                )),
+            }
+        })
+        .collect();
+    let grid = grid_from_points(&points, 1e-9);
+    let json = results
+        .geometric_errors
+        .as_ref()
+        .expect("geometric errors in results");
+    geocal::solve::geometric_errors::validation::compare_with_truth(
+        &structure, &grid, &points, json, &errors,
+    )
+    .expect("comparison")
+}
+
 #[test]
 fn demo_recovers_truth_and_replays_identically() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -130,6 +175,20 @@ fn demo_recovers_truth_and_replays_identically() {
         "chi2/dof = {}",
         results.chi2_per_dof
     );
+
+    // The 21 geometric errors, where identifiable, match the truth within their sigmas.
+    let graded = grade_geometric_errors(results, &truth);
+    let z: Vec<f64> = graded.iter().map(|c| c.normalised()).collect();
+    let within = z.iter().filter(|v| v.abs() <= 3.0).count() as f64 / z.len() as f64;
+    let rms = (z.iter().map(|v| v * v).sum::<f64>() / z.len() as f64).sqrt();
+    println!(
+        "geometric errors: {} values, {:.1}% within 3 sigma, normalised RMS {rms:.2}",
+        z.len(),
+        100.0 * within
+    );
+    assert!(z.len() > 40, "only {} identifiable values", z.len());
+    assert!(within >= 0.97, "{:.1}% within 3 sigma", 100.0 * within);
+    assert!((0.6..1.4).contains(&rms), "normalised RMS {rms}");
 
     // The plan check predicted these uncertainties before measuring, from the plan alone.
     let config = Config::parse(DEMO, Path::new("demo.toml")).expect("config");

@@ -8,7 +8,12 @@ use serde::{Deserialize, Serialize};
 
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::method::SolveSettings;
+use crate::model::kinematics::Structure;
 use crate::session::reader::Session;
+use crate::solve::geometric_errors::{
+    decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
+};
+use crate::solve::multilateration::{dense_point_covariance, MultilaterationSolution};
 use crate::solve::multilateration::{
     solve as adjust, LengthObservation, MultilaterationProblem, Segment, SolveError, SolveOptions,
 };
@@ -43,6 +48,11 @@ pub struct MultilaterationResults {
     pub stations: Vec<StationResult>,
     pub points: Vec<PointResult>,
     pub extraction: ExtractionSummary,
+    /// The 21 geometric errors of the machine from the volumetric errors, when the plan allows
+    /// (see docs/kinematics.md, "Decomposition"); null with a note otherwise.
+    pub geometric_errors: Option<serde_json::Value>,
+    /// What the engineer should know about how these results were obtained.
+    pub notes: Vec<String>,
     /// Present when a robust loss was used: what it down-weighted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub robust: Option<RobustReport>,
@@ -229,6 +239,14 @@ pub fn solve(
             }
         })
         .collect();
+    let mut notes = Vec::new();
+    let geometric_errors = match geometric_errors(session, &problem, &solution, &mut notes) {
+        Ok(value) => Some(value),
+        Err(why) => {
+            notes.push(format!("no geometric errors: {why}"));
+            None
+        }
+    };
     let mut dropped_reasons = BTreeMap::new();
     for d in &extraction.dropped {
         *dropped_reasons.entry(d.reason.clone()).or_insert(0) += 1;
@@ -263,8 +281,58 @@ pub fn solve(
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
         },
+        geometric_errors,
+        notes,
         robust,
     })
+}
+
+/// Decompose the measured volumetric errors into the machine's geometric errors.
+fn geometric_errors(
+    session: &Session,
+    problem: &Problem,
+    solution: &MultilaterationSolution,
+    notes: &mut Vec<String>,
+) -> Result<serde_json::Value, String> {
+    let machine = &session.header.machine;
+    let structure = Structure::parse(&machine.structure).map_err(|e| e.to_string())?;
+    let mut observations = Vec::with_capacity(problem.points.len());
+    for (i, (target, point, nominal)) in problem.points.iter().enumerate() {
+        let axes_m = problem.axes_m[i].ok_or_else(|| {
+            format!(
+                "point {point} of target {target} has no commanded axes x, y, z in its point_begin"
+            )
+        })?;
+        let offset = machine
+            .targets
+            .iter()
+            .find(|t| &t.id == target)
+            .map(|t| t.offset_m)
+            .ok_or_else(|| {
+                format!("target `{target}` is not in the session header's machine.targets")
+            })?;
+        observations.push(PointObservation {
+            axes_m,
+            target_offset_m: offset,
+            error_m: std::array::from_fn(|k| solution.points[i][k] - nominal[k]),
+            covariance: solution.point_covariance[i],
+        });
+    }
+    let options = DecompositionOptions::default();
+    let grid = grid_from_points(&observations, options.grid_tolerance_m);
+    // The points share stations, so their errors are correlated: use the full covariance
+    // where the dense algebra is affordable, else the per-point blocks (and say so).
+    let full = dense_point_covariance(&problem.problem, solution);
+    if full.is_none() {
+        notes.push(
+            "geometric error sigmas use per-point covariance blocks only (the plan is too large for \
+             the dense covariance): correlations between points through shared stations are ignored"
+                .into(),
+        );
+    }
+    let result = decompose_correlated(&structure, &grid, &observations, full.as_ref(), &options)
+        .map_err(|e| e.to_string())?;
+    serde_json::to_value(&result).map_err(|e| e.to_string())
 }
 
 /// The adjustment problem with the bookkeeping that maps it back to session names.
@@ -272,6 +340,8 @@ struct Problem {
     problem: MultilaterationProblem,
     /// (target, plan point index, nominal) of each problem point.
     points: Vec<(String, usize, [f64; 3])>,
+    /// Commanded axis positions x, y, z of each problem point.
+    axes_m: Vec<Option<[f64; 3]>>,
     /// (station index, target, beam segment) of each problem segment: every homing distance
     /// differs per target, even if another recorder did not start a new beam segment.
     segments: Vec<(usize, String, u32)>,
@@ -309,6 +379,17 @@ impl Problem {
                 sigma_m: m.sigma_m,
             });
         }
+        let axes_m = points
+            .iter()
+            .map(|(target, point, _)| {
+                let m = extraction
+                    .measurements
+                    .iter()
+                    .find(|m| &m.target == target && m.point == *point)?;
+                let axis = |name: &str| m.axes.get(name).copied();
+                Some([axis("x")?, axis("y")?, axis("z")?])
+            })
+            .collect();
         let problem = MultilaterationProblem {
             nominal_points: points.iter().map(|p| Vector3::from(p.2)).collect(),
             station_hints: extraction
@@ -325,6 +406,7 @@ impl Problem {
         Problem {
             problem,
             points,
+            axes_m,
             segments,
         }
     }

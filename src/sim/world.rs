@@ -79,7 +79,10 @@ pub struct Truth {
     pub seed: u64,
     pub stations: Vec<TruthStation>,
     pub points: Vec<TruthPoint>,
+    /// The error functions sampled along each axis, under their ISO names.
     pub errors: serde_json::Value,
+    /// The error functions themselves (coefficients), to evaluate anywhere.
+    pub error_model: TruthErrors,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -327,6 +330,7 @@ impl SimWorld {
                 })
                 .collect(),
             errors: self.truth.sample_table(21),
+            error_model: self.truth.clone(),
         }
     }
 }

@@ -177,6 +177,8 @@ pub struct ElasticNetSummary {
     pub folds: usize,
     pub n_parameters: usize,
     pub n_active: usize,
+    /// Wall time of the cross-validation; kept out of results, which must replay identically.
+    #[serde(skip)]
     pub cv_seconds: f64,
     pub curves: Vec<CvCurveSummary>,
 }
@@ -274,8 +276,32 @@ struct System {
     centre: Vector3<f64>,
     grid: [Vec<f64>; 3],
     n_offsets: usize,
-    /// Unwhitening: per point, the Cholesky factor L of its covariance.
-    chol: Vec<Matrix3<f64>>,
+    /// How the rows were whitened, to unwhiten residuals.
+    whitening: Whitening,
+}
+
+/// Rows are whitened by L⁻¹ with L the Cholesky factor of the errors' covariance: per point
+/// (3x3 blocks) or, when the correlations between points are known, of the whole 3n x 3n.
+enum Whitening {
+    Blocks(Vec<Matrix3<f64>>),
+    Full(DMatrix<f64>),
+}
+
+impl Whitening {
+    fn unwhiten(&self, whitened: &DVector<f64>) -> DVector<f64> {
+        match self {
+            Whitening::Blocks(chol) => {
+                let mut out = DVector::zeros(whitened.len());
+                for (i, l) in chol.iter().enumerate() {
+                    let r =
+                        l * Vector3::new(whitened[3 * i], whitened[3 * i + 1], whitened[3 * i + 2]);
+                    out.rows_mut(3 * i, 3).copy_from(&r);
+                }
+                out
+            }
+            Whitening::Full(l) => l * whitened,
+        }
+    }
 }
 
 /// Sorted distinct grid positions (values closer than `tol` merged).
@@ -311,8 +337,21 @@ fn build_system(
     structure: &Structure,
     grid_m: &[Vec<f64>; 3],
     points: &[PointObservation],
+    full_covariance: Option<&DMatrix<f64>>,
     options: &DecompositionOptions,
 ) -> Result<System, DecompositionError> {
+    if let Some(cov) = full_covariance {
+        if cov.nrows() != 3 * points.len() || cov.ncols() != 3 * points.len() {
+            return Err(invalid(format!(
+                "the full covariance is {}x{}, expected {}x{} for {} points",
+                cov.nrows(),
+                cov.ncols(),
+                3 * points.len(),
+                3 * points.len(),
+                points.len()
+            )));
+        }
+    }
     if points.is_empty() {
         return Err(invalid("no points"));
     }
@@ -369,11 +408,14 @@ fn build_system(
         }) {
             offsets.push(o.target_offset_m);
         }
-        let sym = 0.5 * (o.covariance + o.covariance.transpose());
-        let l = sym
-            .cholesky()
-            .ok_or_else(|| invalid(format!("point {i}: covariance is not positive definite")))?
-            .l();
+        // With a full covariance the rows are whitened all together below.
+        let l = match full_covariance {
+            Some(_) => Matrix3::identity(),
+            None => (0.5 * (o.covariance + o.covariance.transpose()))
+                .cholesky()
+                .ok_or_else(|| invalid(format!("point {i}: covariance is not positive definite")))?
+                .l(),
+        };
         let linv = l
             .try_inverse()
             .ok_or_else(|| invalid(format!("point {i}: covariance is singular")))?;
@@ -406,6 +448,32 @@ fn build_system(
             .copy_from(&(linv * Vector3::from(o.error_m)));
         chol.push(l);
     }
+    let whitening = match full_covariance {
+        None => Whitening::Blocks(chol),
+        Some(cov) => {
+            // The inner-constraint datum leaves the covariance singular along the rigid motions,
+            // which the model estimates as nuisance: T = Σ + c·R·Rᵀ (R = rigid columns) is
+            // regular and gives the same estimates and covariances of the geometric errors
+            // (Rao's unified least squares); only the nuisance sigmas grow.
+            let rigid = DMatrix::from_fn(3 * n, 6, |r, c| x[(r, layout.rigid(c))]);
+            let rrt = &rigid * rigid.transpose();
+            let c = cov.trace() / rrt.trace().max(f64::MIN_POSITIVE);
+            let t = 0.5 * (cov + cov.transpose()) + rrt * c;
+            let l = t
+                .cholesky()
+                .ok_or_else(|| {
+                    invalid("the full covariance is not positive definite off the rigid motions")
+                })?
+                .l();
+            x = l
+                .solve_lower_triangular(&x)
+                .ok_or_else(|| invalid("the full covariance is singular"))?;
+            y = l
+                .solve_lower_triangular(&y)
+                .ok_or_else(|| invalid("the full covariance is singular"))?;
+            Whitening::Full(l)
+        }
+    };
     Ok(System {
         layout,
         x,
@@ -414,7 +482,7 @@ fn build_system(
         centre,
         grid,
         n_offsets: offsets.len(),
-        chol,
+        whitening,
     })
 }
 
@@ -626,7 +694,19 @@ pub fn decompose(
     points: &[PointObservation],
     options: &DecompositionOptions,
 ) -> Result<GeometricErrorsResult, DecompositionError> {
-    let sys = build_system(structure, grid_m, points, options)?;
+    decompose_correlated(structure, grid_m, points, None, options)
+}
+
+/// As `decompose`, with the full 3n x 3n covariance of the stacked `error_m` (point-major)
+/// when known: the correlations between points then enter the estimates and their sigmas.
+pub fn decompose_correlated(
+    structure: &Structure,
+    grid_m: &[Vec<f64>; 3],
+    points: &[PointObservation],
+    full_covariance: Option<&DMatrix<f64>>,
+    options: &DecompositionOptions,
+) -> Result<GeometricErrorsResult, DecompositionError> {
+    let sys = build_system(structure, grid_m, points, full_covariance, options)?;
     let route = options.route.unwrap_or(if sys.n_offsets >= 2 {
         Route::WeightedLeastSquares
     } else {
@@ -689,11 +769,7 @@ pub fn decompose(
     // Residuals, unwhitened per point for an RMS in metres.
     let resid_w = &sys.y - &fitted_w;
     let chi2 = resid_w.norm_squared();
-    let mut sum_sq = 0.0;
-    for (i, l) in sys.chol.iter().enumerate() {
-        let r = l * Vector3::new(resid_w[3 * i], resid_w[3 * i + 1], resid_w[3 * i + 2]);
-        sum_sq += r.norm_squared();
-    }
+    let sum_sq = sys.whitening.unwhiten(&resid_w).norm_squared();
     let residual_rms_m = (sum_sq / (3 * points.len()) as f64).sqrt();
     let chi2_per_dof = if dof > 0 { chi2 / dof as f64 } else { f64::NAN };
 
@@ -1222,7 +1298,7 @@ pub fn elastic_net_design(
     points: &[PointObservation],
     options: &DecompositionOptions,
 ) -> Result<ElasticNetDesign, DecompositionError> {
-    let sys = build_system(structure, grid_m, points, options)?;
+    let sys = build_system(structure, grid_m, points, None, options)?;
     let layout = &sys.layout;
     let full = lsq(&sys.x, &sys.y, options.rank_tolerance)?;
     let (fixed, null) = apply_datum(layout, &full.null);
@@ -1252,3 +1328,4 @@ pub struct ElasticNetDesign {
 
 #[cfg(test)]
 mod tests;
+pub mod validation;

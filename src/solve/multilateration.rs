@@ -672,6 +672,78 @@ fn generator(q: &Vector3<f64>, centre: &Vector3<f64>) -> Matrix3x6<f64> {
     g
 }
 
+/// Largest problem (unknowns) for which `dense_point_covariance` answers.
+pub const MAX_DENSE_COVARIANCE_UNKNOWNS: usize = 1500;
+
+/// The full covariance of all points (3n x 3n, point-major) in the inner-constraint datum,
+/// including the correlations between points that shared stations cause; `None` when the
+/// problem has more than `MAX_DENSE_COVARIANCE_UNKNOWNS` unknowns (dense algebra).
+/// Pseudo-inverse of the normal matrix, then the S-transform to inner constraints on points.
+pub fn dense_point_covariance(
+    problem: &MultilaterationProblem,
+    solution: &MultilaterationSolution,
+) -> Option<DMatrix<f64>> {
+    let m = solution.stations.len();
+    let s = solution.segment_distance_m.len();
+    let n = solution.points.len();
+    let unknowns = 3 * m + s + 3 * n;
+    if unknowns > MAX_DENSE_COVARIANCE_UNKNOWNS {
+        return None;
+    }
+    let point_col = |i: usize| 3 * m + s + 3 * i;
+    let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);
+    let mut row = vec![0.0; 7];
+    let mut cols = [0usize; 7];
+    for obs in &problem.observations {
+        let j = problem.segments[obs.segment].station;
+        let d = solution.stations[j] - solution.points[obs.point];
+        let u = d / d.norm() / obs.sigma_m;
+        for k in 0..3 {
+            cols[k] = 3 * j + k;
+            row[k] = u[k];
+            cols[3 + k] = point_col(obs.point) + k;
+            row[3 + k] = -u[k];
+        }
+        cols[6] = 3 * m + obs.segment;
+        row[6] = -1.0 / obs.sigma_m;
+        for a in 0..7 {
+            for b in 0..7 {
+                normal[(cols[a], cols[b])] += row[a] * row[b];
+            }
+        }
+    }
+    let eigen = normal.symmetric_eigen();
+    let largest = eigen.eigenvalues.amax();
+    let mut pinv = DMatrix::<f64>::zeros(unknowns, unknowns);
+    for (k, &lambda) in eigen.eigenvalues.iter().enumerate() {
+        // The 6 rigid motions are the only null directions of a solvable problem.
+        if lambda > largest * 1e-12 {
+            let v = eigen.eigenvectors.column(k);
+            pinv += v * v.transpose() / lambda;
+        }
+    }
+    let centre = problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
+    let mut g = DMatrix::<f64>::zeros(unknowns, 6);
+    let mut e = DMatrix::<f64>::zeros(unknowns, 6);
+    for (j, station) in solution.stations.iter().enumerate() {
+        g.view_mut((3 * j, 0), (3, 6))
+            .copy_from(&generator(station, &centre));
+    }
+    for i in 0..n {
+        g.view_mut((point_col(i), 0), (3, 6))
+            .copy_from(&generator(&solution.points[i], &centre));
+        e.view_mut((point_col(i), 0), (3, 6))
+            .copy_from(&generator(&problem.nominal_points[i], &centre));
+    }
+    let etg_inv = (e.transpose() * &g).try_inverse()?;
+    let transform = DMatrix::<f64>::identity(unknowns, unknowns) - &g * etg_inv * e.transpose();
+    let q = &transform * pinv * transform.transpose();
+    Some(
+        q.view((point_col(0), point_col(0)), (3 * n, 3 * n))
+            .into_owned(),
+    )
+}
+
 /// Cramér–Rao covariance in the minimal-constraint gauge, S-transformed to inner constraints
 /// relative to the nominal points, computed blockwise so the cost stays linear in n.
 struct Covariance {
@@ -1121,6 +1193,27 @@ pub(crate) mod tests {
             assert!((d - t).abs() < 1e-10);
         }
         assert!(sol.residual_rms_m < 1e-12);
+    }
+
+    #[test]
+    fn dense_point_covariance_matches_the_blocks() {
+        let syn = synthetic(31, [4, 4, 3], &stations5(), &[2], 30e-9, true);
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        let q = dense_point_covariance(&syn.problem, &sol).expect("small problem");
+        for (i, block) in sol.point_covariance.iter().enumerate() {
+            let dense = q.fixed_view::<3, 3>(3 * i, 3 * i);
+            let scale = block.amax();
+            assert!(
+                (dense - block).amax() < 1e-6 * scale,
+                "point {i}: dense {dense} vs block {block}"
+            );
+        }
+        // Points are correlated through the shared stations: off-diagonal blocks are not zero.
+        let cross = q.fixed_view::<3, 3>(0, 3 * 7).amax();
+        assert!(
+            cross > 1e-3 * sol.point_covariance[0].amax(),
+            "cross covariance {cross}"
+        );
     }
 
     #[test]

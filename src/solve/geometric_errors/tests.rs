@@ -1,6 +1,7 @@
 //! Decomposition tests on simulated machines: exact kinematic model, rigid motion removed as
 //! the multilateration gauge does, 50 nm noise; truth expressed in the decomposition's datum.
 
+use super::validation::{compare_with_truth, Comparison};
 use super::*;
 use crate::sim::truth::{ErrorSizes, TruthErrors};
 
@@ -20,109 +21,24 @@ fn truth(seed: u64) -> TruthErrors {
     TruthErrors::random(seed, TRAVEL_M, &ErrorSizes::default())
 }
 
-/// The truth as a full layout vector (all grid values, squareness, rigid motion 0).
-fn truth_vector(layout: &Layout, grid: &[Vec<f64>; 3], t: &TruthErrors) -> DVector<f64> {
-    let mut v = DVector::zeros(layout.len());
-    for (a, axis) in Axis::ALL.iter().enumerate() {
-        for (pos, &q) in grid[a].iter().enumerate() {
-            let e = t.axis(*axis, q);
-            for k in 0..3 {
-                v[layout.axis(a, k, pos)] = e.linear_m[k];
-                v[layout.axis(a, k + 3, pos)] = e.angular_rad[k];
-            }
-        }
-    }
-    let s = t.squareness();
-    v[layout.square(0)] = s.xy_rad;
-    v[layout.square(1)] = s.yz_rad;
-    v[layout.square(2)] = s.zx_rad;
-    v
-}
-
-/// The truth in the decomposition's datum: the parameters of the (datum-constrained, and for
-/// the elastic-net route column-reduced) model that reproduce the truth's first-order error
-/// field exactly; `None` where not estimable. Estimable values are unique, so this is the
-/// datum conversion, independent of the solver's noise handling.
-fn truth_in_datum(
-    structure: &Structure,
-    grid: &[Vec<f64>; 3],
-    points: &[PointObservation],
-    t: &TruthErrors,
-    route: Route,
-) -> Vec<Option<f64>> {
-    let opts = DecompositionOptions::default();
-    let sys = build_system(structure, grid, points, &opts).unwrap();
-    let layout = &sys.layout;
-    let f = &sys.x * truth_vector(layout, grid, t);
-    let full = lsq(&sys.x, &f, opts.rank_tolerance).unwrap();
-    let (fixed, null) = apply_datum(layout, &full.null);
-    let mut out = vec![None; layout.len()];
-    fixed.iter().for_each(|&j| out[j] = Some(0.0));
-    let kept: Vec<usize> = (0..layout.len()).filter(|j| !fixed.contains(j)).collect();
-    let cols = match route {
-        Route::WeightedLeastSquares => kept.clone(),
-        Route::ElasticNetQr => {
-            let mut en = first_step_columns(&sys, &kept, &null, opts.rank_tolerance)
-                .unwrap()
-                .en_cols;
-            en.extend((0..6).map(|r| layout.rigid(r)));
-            en
-        }
-    };
-    let sol = lsq(&select_columns(&sys.x, &cols), &f, opts.rank_tolerance).unwrap();
-    for (c, &j) in cols.iter().enumerate() {
-        let free = match route {
-            Route::WeightedLeastSquares => row_norm(&null, j) <= ESTIMABLE_TOL,
-            Route::ElasticNetQr => row_norm(&sol.null, c) <= ESTIMABLE_TOL,
-        };
-        if free {
-            out[j] = Some(sol.theta[c]);
-        }
-    }
-    out
-}
-
-/// (estimate, sigma, truth) of every identifiable, non-datum value of the result.
-fn compare(
-    result: &GeometricErrorsResult,
-    layout: &Layout,
-    truth_d: &[Option<f64>],
-) -> Vec<(String, f64, f64, f64)> {
-    let mut out = Vec::new();
-    for (a, axis) in Axis::ALL.iter().enumerate() {
-        let ar = &result.axes.0[a].1;
-        for (k, name) in axis.iso_names().iter().enumerate() {
-            let f = ar.errors.get(name).unwrap();
-            for pos in 0..layout.n_pos[a] {
-                if let (Some(v), Some(s)) = (f.values[pos], f.sigma[pos]) {
-                    if s > 0.0 {
-                        let t = truth_d[layout.axis(a, k, pos)].expect("identifiable truth");
-                        out.push((format!("{name}[{pos}]"), v, s, t));
-                    }
-                }
-            }
-        }
-    }
-    for s in 0..3 {
-        let e = result.squareness.get(Squareness::ISO_NAMES[s]).unwrap();
-        if let (Some(v), Some(sg)) = (e.value_rad, e.sigma_rad) {
-            let t = truth_d[layout.square(s)].expect("identifiable squareness truth");
-            out.push((Squareness::ISO_NAMES[s].to_string(), v, sg, t));
-        }
-    }
-    out
-}
-
 /// (fraction within 3σ, RMS of (estimate − truth)/σ).
-fn coverage(rows: &[(String, f64, f64, f64)]) -> (f64, f64) {
-    let z: Vec<f64> = rows.iter().map(|(_, v, s, t)| (v - t) / s).collect();
+fn coverage(rows: &[Comparison]) -> (f64, f64) {
+    let z: Vec<f64> = rows.iter().map(Comparison::normalised).collect();
     let within = z.iter().filter(|z| z.abs() <= 3.0).count() as f64 / z.len() as f64;
     let rms = (z.iter().map(|z| z * z).sum::<f64>() / z.len() as f64).sqrt();
     (within, rms)
 }
 
-fn layout_for(grid: &[Vec<f64>; 3]) -> Layout {
-    Layout::new(grid)
+/// Every identifiable value of `r` beside the truth in the decomposition's datum.
+fn graded(
+    s: &Structure,
+    g: &[Vec<f64>; 3],
+    pts: &[PointObservation],
+    r: &GeometricErrorsResult,
+    t: &TruthErrors,
+) -> Vec<Comparison> {
+    let json = serde_json::to_value(r).unwrap();
+    compare_with_truth(s, g, pts, &json, t).unwrap()
 }
 
 const OFFSET_A: [f64; 3] = [0.0, 0.0, -0.12];
@@ -155,12 +71,11 @@ fn wls_noise_free_is_exact() {
             "{text}: {:?}",
             r.unidentifiable
         );
-        let td = truth_in_datum(&s, &g, &pts, &t, Route::WeightedLeastSquares);
-        let rows = compare(&r, &layout_for(&g), &td);
+        let rows = graded(&s, &g, &pts, &r, &t);
         assert!(rows.len() > 60);
         let worst = rows
             .iter()
-            .map(|(_, v, _, t)| (v - t).abs())
+            .map(|c| (c.estimate - c.truth).abs())
             .fold(0.0, f64::max);
         assert!(worst < 1e-12, "{text}: worst {worst}");
         assert!(r.residual_rms_m < 1e-13, "{text}: {}", r.residual_rms_m);
@@ -226,8 +141,7 @@ fn two_offsets_wls_within_three_sigma() {
                 "{text}: chi2 {}",
                 r.chi2_per_dof
             );
-            let td = truth_in_datum(&s, &g, &pts, &t, Route::WeightedLeastSquares);
-            all.extend(compare(&r, &layout_for(&g), &td));
+            all.extend(graded(&s, &g, &pts, &r, &t));
         }
         let (within, rms) = coverage(&all);
         eprintln!(
@@ -262,8 +176,7 @@ fn three_offsets_identify_all_21() {
                 "{text}: {:?}",
                 r.unidentifiable
             );
-            let td = truth_in_datum(&s, &g, &pts, &t, Route::WeightedLeastSquares);
-            all.extend(compare(&r, &layout_for(&g), &td));
+            all.extend(graded(&s, &g, &pts, &r, &t));
         }
         let (within, rms) = coverage(&all);
         eprintln!(
@@ -306,8 +219,7 @@ fn one_offset_elastic_net_and_flags() {
                 .skip(1)
                 .all(Option::is_none));
         }
-        let td = truth_in_datum(&s, &g, &pts, &t, Route::ElasticNetQr);
-        let rows = compare(&r, &layout_for(&g), &td);
+        let rows = graded(&s, &g, &pts, &r, &t);
         let (within, rms) = coverage(&rows);
         eprintln!(
             "{text} one offset: {} values, {:.2}% within 3σ, normalised RMS {rms:.3}",
