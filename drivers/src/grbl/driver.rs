@@ -113,6 +113,8 @@ pub struct GrblMachine<S> {
     version: Option<String>,
     status_queries: u64,
     garbled_lines: u64,
+    /// Heard an `ok`, `error:`, alarm or status since the last banner.
+    talked: bool,
 }
 
 impl GrblMachine<tokio_serial::SerialStream> {
@@ -164,6 +166,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
             version: None,
             status_queries: 0,
             garbled_lines: 0,
+            talked: false,
         })
     }
 
@@ -229,9 +232,19 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
                         }
                         self.last_status = Some(s.clone());
                     }
-                    ControllerLine::Banner { version } => self.version = Some(version.clone()),
-                    _ => {}
+                    ControllerLine::Banner { version } => {
+                        self.version = Some(version.clone());
+                        // The power-up banner (or one before any exchange) is no news; after
+                        // an exchange it means the controller reset and forgot its motion.
+                        if !std::mem::replace(&mut self.talked, false) {
+                            return Some(ControllerLine::Other(line.to_string()));
+                        }
+                        return Some(msg);
+                    }
+                    ControllerLine::Other(_) | ControllerLine::Feedback(_) => return Some(msg),
+                    ControllerLine::Ok | ControllerLine::Error(_) | ControllerLine::Alarm(_) => {}
                 }
+                self.talked = true;
                 Some(msg)
             }
             Err(_) => {
