@@ -413,7 +413,7 @@ pub fn format_move(axes: &[(char, f64)], feed_m_s: f64) -> String {
     for &(letter, pos_m) in axes {
         let _ = write!(s, " {}{:.4}", letter.to_ascii_uppercase(), pos_m * MM_PER_M);
     }
-    let _ = write!(s, " F{:.3}\n", feed_m_s * MM_PER_M * S_PER_MIN);
+    let _ = writeln!(s, " F{:.3}", feed_m_s * MM_PER_M * S_PER_MIN);
     s
 }
 
