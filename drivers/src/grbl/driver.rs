@@ -96,6 +96,45 @@ impl Default for GrblConfig {
     }
 }
 
+/// A usable duration in seconds (finite, not negative, not absurd): turning config into
+/// `Duration`s and deadlines must not panic.
+pub(crate) fn check_seconds(device: &str, name: &str, v: f64) -> Result<(), DeviceError> {
+    if v.is_finite() && (0.0..=1e6).contains(&v) {
+        Ok(())
+    } else {
+        Err(DeviceError::Protocol {
+            device: device.to_string(),
+            message: format!("{name} must be between 0 and 1e6 s, got {v}"),
+        })
+    }
+}
+
+impl GrblConfig {
+    /// Reject values the driver cannot work with.
+    pub fn validate(&self) -> Result<(), DeviceError> {
+        check_seconds(&self.id, "ack_timeout_s", self.ack_timeout_s)?;
+        check_seconds(&self.id, "status_timeout_s", self.status_timeout_s)?;
+        check_seconds(&self.id, "status_interval_s", self.status_interval_s)?;
+        let bad = |message: String| DeviceError::Protocol {
+            device: self.id.clone(),
+            message,
+        };
+        if !(self.feed_m_s.is_finite() && self.feed_m_s > 0.0) {
+            return Err(bad(format!(
+                "feed_m_s must be positive, got {}",
+                self.feed_m_s
+            )));
+        }
+        if !(self.position_tolerance_m.is_finite() && self.position_tolerance_m >= 0.0) {
+            return Err(bad(format!(
+                "position_tolerance_m must be >= 0, got {}",
+                self.position_tolerance_m
+            )));
+        }
+        Ok(())
+    }
+}
+
 /// A GRBL-style controller driven line by line (`ok`/`error:` per line, `?` status).
 pub struct GrblMachine<S> {
     cfg: GrblConfig,
@@ -134,6 +173,7 @@ impl GrblMachine<tokio_serial::SerialStream> {
 impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
     /// Drive a controller over any byte stream (a pty, a socket, an in-memory duplex).
     pub fn from_stream(io: S, cfg: GrblConfig) -> Result<Self, DeviceError> {
+        cfg.validate()?;
         let mut axis_index = BTreeMap::new();
         let mut used = [false; 3];
         for (name, letter) in &cfg.axis_letters {
@@ -345,6 +385,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
 
     /// Dwell on the controller (G4); the `ok` comes after the dwell ends.
     pub async fn dwell(&mut self, dwell_s: f64) -> Result<(), DeviceError> {
+        check_seconds(&self.cfg.id, "dwell", dwell_s)?;
         let line = format_dwell(dwell_s);
         self.send_line(&line, self.cfg.ack_timeout_s + dwell_s)
             .await
@@ -474,5 +515,28 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> Machine for GrblMachine<S> {
             Some(s) => self.evaluate(s),
             None => Ok(MachineState::Moving),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_defaults_and_unknown_keys() {
+        let c: GrblConfig = serde_json::from_str(r#"{"port": "/dev/ttyUSB0"}"#).expect("config");
+        assert_eq!(c.baud, 115_200);
+        assert_eq!(c.axis_letters["z"], 'Z');
+        assert!(serde_json::from_str::<GrblConfig>(r#"{"port": "p", "feed": 1}"#).is_err());
+        let bad = GrblConfig {
+            ack_timeout_s: f64::INFINITY,
+            ..GrblConfig::default()
+        };
+        assert!(bad.validate().is_err());
+        let twice = GrblConfig {
+            axis_letters: [("a".to_string(), 'X'), ("b".to_string(), 'x')].into(),
+            ..GrblConfig::default()
+        };
+        assert!(GrblMachine::from_stream(tokio::io::empty(), twice).is_err());
     }
 }

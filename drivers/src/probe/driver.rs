@@ -121,6 +121,7 @@ impl AsciiProbe<tokio_serial::SerialStream> {
 impl<S: AsyncRead + AsyncWrite + Unpin + Send> AsciiProbe<S> {
     /// Read a sensor over any byte stream.
     pub fn from_stream(io: S, cfg: ProbeConfig) -> Result<Self, DeviceError> {
+        crate::grbl::driver::check_seconds(&cfg.id, "timeout_s", cfg.timeout_s)?;
         Ok(Self {
             protocol: cfg.protocol()?,
             cfg,
@@ -236,5 +237,23 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> Probe for AsciiProbe<S> {
                 ),
             }),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_defaults_and_unknown_keys() {
+        let c: ProbeConfig = serde_json::from_str(r#"{"port": "/dev/ttyS0"}"#).expect("config");
+        assert_eq!(c.command, "M0\r");
+        assert!(c.protocol().is_ok());
+        assert!(serde_json::from_str::<ProbeConfig>(r#"{"port": "p", "scale": 1}"#).is_err());
+        let bad = ProbeConfig {
+            value_pattern: "no group".into(),
+            ..ProbeConfig::default()
+        };
+        assert!(AsciiProbe::from_stream(tokio::io::empty(), bad).is_err());
     }
 }
