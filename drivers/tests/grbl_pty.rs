@@ -233,3 +233,31 @@ async fn disconnect_is_reported() {
     assert!(matches!(err, DeviceError::Disconnected { .. }), "{err}");
     assert!(emu.is_finished());
 }
+
+#[tokio::test]
+async fn dwell_and_soft_reset() {
+    let (emu, mut m) = rig(GrblEmulatorConfig::default(), cfg());
+    let t0 = Instant::now();
+    m.dwell(0.2).await.expect("dwell");
+    assert!(
+        t0.elapsed() >= Duration::from_millis(195),
+        "ok came before the dwell ended"
+    );
+    // Reset in the middle of a long move: the machine stops short of the target.
+    m.start_move(&target(0.05, 0.0, 0.0)).await.expect("move");
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    m.soft_reset().await.expect("banner after reset");
+    assert_eq!(
+        emu.stats()
+            .resets
+            .load(std::sync::atomic::Ordering::Relaxed),
+        1
+    );
+    let (pos, _) = wait_idle(&mut m, Duration::from_secs(1)).await;
+    assert!(pos["x"] > 0.0 && pos["x"] < 0.05, "stopped at {}", pos["x"]);
+    m.start_move(&target(0.0, 0.0, 0.0))
+        .await
+        .expect("move after reset");
+    let (pos, _) = wait_idle(&mut m, Duration::from_secs(3)).await;
+    assert!(pos["x"].abs() < 1e-7);
+}
