@@ -1,5 +1,5 @@
-//! geocal-drivers: the device traits the sequencer sees, and (later) the real protocol
-//! drivers and device emulators. Nothing here depends on the geocal core.
+//! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (grbl,
+//! probe) and their device emulators. Nothing here depends on the geocal core.
 
 pub mod grbl;
 pub mod probe;
