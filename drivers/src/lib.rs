@@ -1,9 +1,11 @@
-//! geocal-drivers: the device traits the sequencer sees, and (later) the real protocol
-//! drivers and device emulators. Nothing here depends on the geocal core.
+//! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (grbl,
+//! probe) and their device emulators. Nothing here depends on the geocal core.
 
+pub mod grbl;
+pub mod probe;
 pub mod traits;
 
 pub use traits::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Tracer,
-    TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Probe,
+    ProbeReading, Tracer, TracerReading,
 };

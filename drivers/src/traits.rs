@@ -105,3 +105,21 @@ pub trait Operator: Send {
     /// Mount the reflector `target` at `offset_m` from the tool point.
     async fn mount_target(&mut self, target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError>;
 }
+
+/// One reading of a displacement probe.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct ProbeReading {
+    /// Host time of the reading, seconds since the driver was opened (midpoint of request
+    /// and reply, since the device stamps nothing).
+    pub t_s: f64,
+    /// Measured displacement, metres.
+    pub value_m: f64,
+}
+
+/// A displacement probe read on request (laser triangulation sensor, dial gauge readout).
+#[async_trait]
+pub trait Probe: Send {
+    fn id(&self) -> &str;
+    /// Request one reading and wait for it.
+    async fn read(&mut self) -> Result<ProbeReading, DeviceError>;
+}

@@ -1,0 +1,542 @@
+//! GRBL machine driver: owns the serial port and the timing (ack timeouts, status polling,
+//! rate limiting) and implements `Machine` on top of the sans-I/O codec.
+
+use std::collections::{BTreeMap, VecDeque};
+use std::time::Duration;
+
+use async_trait::async_trait;
+use serde::{Deserialize, Serialize};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::time::Instant;
+
+use super::codec::{
+    alarm_text, error_text, format_dwell, format_move, parse_controller_line, ControllerLine,
+    Framed, GrblState, LineFramer, PosFrame, StatusReport, MAX_LINE_BYTES, SOFT_RESET,
+    STATUS_QUERY,
+};
+use crate::traits::{AxisPositions, DeviceError, Machine, MachineState};
+
+/// G-code axis letters in the order GRBL reports positions.
+const LETTERS: [char; 3] = ['X', 'Y', 'Z'];
+
+/// How a GRBL controller is reached and judged. Lives in the machine's TOML config.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct GrblConfig {
+    #[serde(default = "default_id")]
+    pub id: String,
+    /// Serial device path, e.g. `/dev/ttyUSB0`.
+    pub port: String,
+    #[serde(default = "default_baud")]
+    pub baud: u32,
+    /// Longest wait for the `ok` of one line, seconds. A line is acknowledged once planned,
+    /// but a full planner (or a dwell) delays it, so this is generous.
+    #[serde(default = "default_ack_timeout_s")]
+    pub ack_timeout_s: f64,
+    /// Longest wait for the answer to `?`, seconds.
+    #[serde(default = "default_status_timeout_s")]
+    pub status_timeout_s: f64,
+    /// Minimum time between two `?` queries, seconds; `state()` returns the last report
+    /// in between so that a tight polling loop does not flood the controller.
+    #[serde(default = "default_status_interval_s")]
+    pub status_interval_s: f64,
+    /// Feed of every commanded move, m/s.
+    #[serde(default = "default_feed_m_s")]
+    pub feed_m_s: f64,
+    /// The machine counts as arrived when Idle within this distance of the target on every
+    /// commanded axis, metres.
+    #[serde(default = "default_tolerance_m")]
+    pub position_tolerance_m: f64,
+    /// geocal axis name -> GRBL axis letter (`X`, `Y` or `Z`).
+    #[serde(default = "default_axis_letters")]
+    pub axis_letters: BTreeMap<String, char>,
+}
+
+fn default_id() -> String {
+    "grbl".into()
+}
+fn default_baud() -> u32 {
+    115_200
+}
+fn default_ack_timeout_s() -> f64 {
+    5.0
+}
+fn default_status_timeout_s() -> f64 {
+    1.0
+}
+fn default_status_interval_s() -> f64 {
+    0.05
+}
+fn default_feed_m_s() -> f64 {
+    0.01
+}
+fn default_tolerance_m() -> f64 {
+    1e-6
+}
+fn default_axis_letters() -> BTreeMap<String, char> {
+    [("x", 'X'), ("y", 'Y'), ("z", 'Z')]
+        .into_iter()
+        .map(|(n, l)| (n.to_string(), l))
+        .collect()
+}
+
+impl Default for GrblConfig {
+    fn default() -> Self {
+        Self {
+            id: default_id(),
+            port: String::new(),
+            baud: default_baud(),
+            ack_timeout_s: default_ack_timeout_s(),
+            status_timeout_s: default_status_timeout_s(),
+            status_interval_s: default_status_interval_s(),
+            feed_m_s: default_feed_m_s(),
+            position_tolerance_m: default_tolerance_m(),
+            axis_letters: default_axis_letters(),
+        }
+    }
+}
+
+/// A usable duration in seconds (finite, not negative, not absurd): turning config into
+/// `Duration`s and deadlines must not panic.
+pub(crate) fn check_seconds(device: &str, name: &str, v: f64) -> Result<(), DeviceError> {
+    if v.is_finite() && (0.0..=1e6).contains(&v) {
+        Ok(())
+    } else {
+        Err(DeviceError::Protocol {
+            device: device.to_string(),
+            message: format!("{name} must be between 0 and 1e6 s, got {v}"),
+        })
+    }
+}
+
+impl GrblConfig {
+    /// Reject values the driver cannot work with.
+    pub fn validate(&self) -> Result<(), DeviceError> {
+        check_seconds(&self.id, "ack_timeout_s", self.ack_timeout_s)?;
+        check_seconds(&self.id, "status_timeout_s", self.status_timeout_s)?;
+        check_seconds(&self.id, "status_interval_s", self.status_interval_s)?;
+        let bad = |message: String| DeviceError::Protocol {
+            device: self.id.clone(),
+            message,
+        };
+        if !(self.feed_m_s.is_finite() && self.feed_m_s > 0.0) {
+            return Err(bad(format!(
+                "feed_m_s must be positive, got {}",
+                self.feed_m_s
+            )));
+        }
+        if !(self.position_tolerance_m.is_finite() && self.position_tolerance_m >= 0.0) {
+            return Err(bad(format!(
+                "position_tolerance_m must be >= 0, got {}",
+                self.position_tolerance_m
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A GRBL-style controller driven line by line (`ok`/`error:` per line, `?` status).
+pub struct GrblMachine<S> {
+    cfg: GrblConfig,
+    io: S,
+    framer: LineFramer,
+    lines: VecDeque<String>,
+    /// geocal axis name -> index into X, Y, Z.
+    axis_index: BTreeMap<String, usize>,
+    /// Last commanded absolute target per GRBL axis, metres (work coordinates).
+    commanded_m: [Option<f64>; 3],
+    /// Work coordinate offset, metres; GRBL sends it only now and then.
+    wco_m: [f64; 3],
+    last_status: Option<StatusReport>,
+    last_query: Option<Instant>,
+    version: Option<String>,
+    status_queries: u64,
+    garbled_lines: u64,
+    /// Heard an `ok`, `error:`, alarm or status since the last banner.
+    talked: bool,
+}
+
+impl GrblMachine<tokio_serial::SerialStream> {
+    /// Open the serial port named in the config.
+    pub fn open(cfg: GrblConfig) -> Result<Self, DeviceError> {
+        use tokio_serial::SerialPortBuilderExt;
+        let port = tokio_serial::new(&cfg.port, cfg.baud)
+            .open_native_async()
+            .map_err(|e| DeviceError::Disconnected {
+                device: cfg.id.clone(),
+                message: format!("cannot open {}: {e}", cfg.port),
+            })?;
+        Self::from_stream(port, cfg)
+    }
+}
+
+impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
+    /// Drive a controller over any byte stream (a pty, a socket, an in-memory duplex).
+    pub fn from_stream(io: S, cfg: GrblConfig) -> Result<Self, DeviceError> {
+        cfg.validate()?;
+        let mut axis_index = BTreeMap::new();
+        let mut used = [false; 3];
+        for (name, letter) in &cfg.axis_letters {
+            let k = LETTERS
+                .iter()
+                .position(|l| l.eq_ignore_ascii_case(letter))
+                .ok_or_else(|| DeviceError::Protocol {
+                    device: cfg.id.clone(),
+                    message: format!("axis {name:?}: letter {letter:?} is not X, Y or Z"),
+                })?;
+            if used[k] {
+                return Err(DeviceError::Protocol {
+                    device: cfg.id.clone(),
+                    message: format!("axis letter {letter:?} mapped twice"),
+                });
+            }
+            used[k] = true;
+            axis_index.insert(name.clone(), k);
+        }
+        Ok(Self {
+            cfg,
+            io,
+            framer: LineFramer::new(MAX_LINE_BYTES),
+            lines: VecDeque::new(),
+            axis_index,
+            commanded_m: [None; 3],
+            wco_m: [0.0; 3],
+            last_status: None,
+            last_query: None,
+            version: None,
+            status_queries: 0,
+            garbled_lines: 0,
+            talked: false,
+        })
+    }
+
+    pub fn config(&self) -> &GrblConfig {
+        &self.cfg
+    }
+
+    /// Controller version from the last banner seen (`1.1h`), if any.
+    pub fn controller_version(&self) -> Option<&str> {
+        self.version.as_deref()
+    }
+
+    /// `?` queries sent so far (for tests of the rate limit and for diagnostics).
+    pub fn status_queries(&self) -> u64 {
+        self.status_queries
+    }
+
+    /// Lines from the controller that could not be decoded (noise on the line).
+    pub fn garbled_lines(&self) -> u64 {
+        self.garbled_lines
+    }
+
+    /// Last status report received, if any.
+    pub fn last_status(&self) -> Option<&StatusReport> {
+        self.last_status.as_ref()
+    }
+
+    fn disconnected(&self, message: String) -> DeviceError {
+        DeviceError::Disconnected {
+            device: self.cfg.id.clone(),
+            message,
+        }
+    }
+
+    async fn write_all(&mut self, bytes: &[u8]) -> Result<(), DeviceError> {
+        let r = async {
+            self.io.write_all(bytes).await?;
+            self.io.flush().await
+        }
+        .await;
+        r.map_err(|e| self.disconnected(format!("write failed: {e}")))
+    }
+
+    /// Feed bytes read from the port into the framer.
+    fn take_bytes(&mut self, bytes: &[u8]) {
+        for f in self.framer.push(bytes) {
+            match f {
+                Framed::Line(l) => self.lines.push_back(l),
+                Framed::Overlong => self.garbled_lines += 1,
+                Framed::Realtime(_) => {}
+            }
+        }
+    }
+
+    /// Decode a line and remember what it tells about the controller.
+    fn observe(&mut self, line: &str) -> Option<ControllerLine> {
+        match parse_controller_line(line) {
+            Ok(msg) => {
+                match &msg {
+                    ControllerLine::Status(s) => {
+                        if let Some(w) = s.wco_m {
+                            self.wco_m = w;
+                        }
+                        self.last_status = Some(s.clone());
+                    }
+                    ControllerLine::Banner { version } => {
+                        self.version = Some(version.clone());
+                        // The power-up banner (or one before any exchange) is no news; after
+                        // an exchange it means the controller reset and forgot its motion.
+                        if !std::mem::replace(&mut self.talked, false) {
+                            return Some(ControllerLine::Other(line.to_string()));
+                        }
+                        return Some(msg);
+                    }
+                    ControllerLine::Other(_) | ControllerLine::Feedback(_) => return Some(msg),
+                    ControllerLine::Ok | ControllerLine::Error(_) | ControllerLine::Alarm(_) => {}
+                }
+                self.talked = true;
+                Some(msg)
+            }
+            Err(_) => {
+                self.garbled_lines += 1;
+                None
+            }
+        }
+    }
+
+    /// Next decoded controller line, waiting until `deadline`.
+    async fn next_line(
+        &mut self,
+        deadline: Instant,
+        what: &str,
+        timeout_s: f64,
+    ) -> Result<ControllerLine, DeviceError> {
+        let mut buf = [0u8; 256];
+        loop {
+            while let Some(l) = self.lines.pop_front() {
+                if let Some(msg) = self.observe(&l) {
+                    return Ok(msg);
+                }
+            }
+            match tokio::time::timeout_at(deadline, self.io.read(&mut buf)).await {
+                Err(_) => {
+                    return Err(DeviceError::Timeout {
+                        device: self.cfg.id.clone(),
+                        what: what.to_string(),
+                        after_s: timeout_s,
+                    })
+                }
+                Ok(Ok(0)) => return Err(self.disconnected("port closed by the controller".into())),
+                Ok(Ok(n)) => self.take_bytes(&buf[..n]),
+                Ok(Err(e)) => return Err(self.disconnected(format!("read failed: {e}"))),
+            }
+        }
+    }
+
+    /// Consume whatever has already arrived (late `ok`s of timed-out lines, stray reports),
+    /// so that it is not mistaken for the answer to the next command.
+    async fn drain(&mut self) -> Result<(), DeviceError> {
+        let mut buf = [0u8; 256];
+        loop {
+            // A zero timeout still polls the read once: it returns only bytes already here.
+            match tokio::time::timeout(Duration::ZERO, self.io.read(&mut buf)).await {
+                Err(_) => break,
+                Ok(Ok(0)) => return Err(self.disconnected("port closed by the controller".into())),
+                Ok(Ok(n)) => self.take_bytes(&buf[..n]),
+                Ok(Err(e)) => return Err(self.disconnected(format!("read failed: {e}"))),
+            }
+        }
+        while let Some(l) = self.lines.pop_front() {
+            self.observe(&l);
+        }
+        Ok(())
+    }
+
+    fn rejected(&self, message: String) -> DeviceError {
+        DeviceError::Rejected {
+            device: self.cfg.id.clone(),
+            message,
+        }
+    }
+
+    /// Send one G-code line and wait for its `ok`.
+    async fn send_line(&mut self, line: &str, timeout_s: f64) -> Result<(), DeviceError> {
+        self.drain().await?;
+        self.write_all(line.as_bytes()).await?;
+        let shown = line.trim_end();
+        let what = format!(
+            "`ok` to `{shown}` (reply lost or controller stalled; the line may or may not run)"
+        );
+        let deadline = Instant::now() + Duration::from_secs_f64(timeout_s.max(0.0));
+        loop {
+            match self.next_line(deadline, &what, timeout_s).await? {
+                ControllerLine::Ok => return Ok(()),
+                ControllerLine::Error(code) => {
+                    return Err(
+                        self.rejected(format!("error:{code} ({}) to `{shown}`", error_text(code)))
+                    )
+                }
+                ControllerLine::Alarm(code) => {
+                    return Err(self.rejected(format!(
+                        "ALARM:{code} ({}) after `{shown}`",
+                        alarm_text(code)
+                    )))
+                }
+                ControllerLine::Banner { .. } => {
+                    return Err(DeviceError::Protocol {
+                        device: self.cfg.id.clone(),
+                        message: format!("controller reset while waiting for `ok` to `{shown}`"),
+                    })
+                }
+                _ => {}
+            }
+        }
+    }
+
+    /// Dwell on the controller (G4); the `ok` comes after the dwell ends.
+    pub async fn dwell(&mut self, dwell_s: f64) -> Result<(), DeviceError> {
+        check_seconds(&self.cfg.id, "dwell", dwell_s)?;
+        let line = format_dwell(dwell_s);
+        self.send_line(&line, self.cfg.ack_timeout_s + dwell_s)
+            .await
+    }
+
+    /// Soft reset (Ctrl-X): aborts motion and waits for the banner. Clears the commanded
+    /// target, since the controller forgets what it was doing.
+    pub async fn soft_reset(&mut self) -> Result<(), DeviceError> {
+        self.write_all(&[SOFT_RESET]).await?;
+        self.commanded_m = [None; 3];
+        self.last_status = None;
+        self.framer.clear();
+        self.lines.clear();
+        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.ack_timeout_s);
+        loop {
+            if let ControllerLine::Banner { .. } = self
+                .next_line(deadline, "banner after soft reset", self.cfg.ack_timeout_s)
+                .await?
+            {
+                return Ok(());
+            }
+        }
+    }
+
+    async fn query_status(&mut self) -> Result<(), DeviceError> {
+        self.last_query = Some(Instant::now());
+        self.status_queries += 1;
+        self.write_all(&[STATUS_QUERY]).await?;
+        let t = self.cfg.status_timeout_s;
+        let deadline = Instant::now() + Duration::from_secs_f64(t.max(0.0));
+        loop {
+            match self.next_line(deadline, "status report to `?`", t).await? {
+                ControllerLine::Status(_) => return Ok(()),
+                ControllerLine::Alarm(code) => {
+                    return Err(self.rejected(format!("ALARM:{code} ({})", alarm_text(code))))
+                }
+                ControllerLine::Banner { .. } => {
+                    return Err(DeviceError::Protocol {
+                        device: self.cfg.id.clone(),
+                        message: "controller reset (banner) while polling status".into(),
+                    })
+                }
+                // Late `ok`/`error:` of an earlier line: already reported or timed out.
+                _ => {}
+            }
+        }
+    }
+
+    fn evaluate(&self, s: &StatusReport) -> Result<MachineState, DeviceError> {
+        if s.state == GrblState::Alarm {
+            return Err(self.rejected(
+                "controller in Alarm state (unlock with $X or reset, and check the position)"
+                    .into(),
+            ));
+        }
+        let work_m: [f64; 3] = match s.frame {
+            PosFrame::Work => s.position_m,
+            PosFrame::Machine => std::array::from_fn(|k| s.position_m[k] - self.wco_m[k]),
+        };
+        let arrived = self
+            .commanded_m
+            .iter()
+            .zip(work_m)
+            .all(|(c, p)| c.is_none_or(|c| (c - p).abs() <= self.cfg.position_tolerance_m));
+        if s.state == GrblState::Idle && arrived {
+            let position = self
+                .axis_index
+                .iter()
+                .map(|(name, &k)| (name.clone(), work_m[k]))
+                .collect();
+            Ok(MachineState::Idle { position })
+        } else {
+            Ok(MachineState::Moving)
+        }
+    }
+}
+
+#[async_trait]
+impl<S: AsyncRead + AsyncWrite + Unpin + Send> Machine for GrblMachine<S> {
+    fn id(&self) -> &str {
+        &self.cfg.id
+    }
+
+    async fn start_move(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
+        let mut axes = Vec::new();
+        let mut next = self.commanded_m;
+        for (name, &pos_m) in target {
+            let k = *self
+                .axis_index
+                .get(name)
+                .ok_or_else(|| self.rejected(format!("no GRBL axis mapped to axis {name:?}")))?;
+            if !pos_m.is_finite() {
+                return Err(self.rejected(format!("target of axis {name:?} is not finite")));
+            }
+            axes.push((k, pos_m));
+            next[k] = Some(pos_m);
+        }
+        if axes.is_empty() {
+            return Ok(());
+        }
+        axes.sort_by_key(|&(k, _)| k);
+        let words: Vec<(char, f64)> = axes.iter().map(|&(k, p)| (LETTERS[k], p)).collect();
+        let line = format_move(&words, self.cfg.feed_m_s);
+        let before = self.commanded_m;
+        // Judge arrival against the new target from now on: if the `ok` is lost the line
+        // most likely ran, and an old status must not count as arrival.
+        self.commanded_m = next;
+        self.last_status = None;
+        match self.send_line(&line, self.cfg.ack_timeout_s).await {
+            Err(e @ DeviceError::Rejected { .. }) => {
+                self.commanded_m = before;
+                Err(e)
+            }
+            r => r,
+        }
+    }
+
+    async fn state(&mut self) -> Result<MachineState, DeviceError> {
+        let interval = Duration::from_secs_f64(self.cfg.status_interval_s.max(0.0));
+        // Inside the interval the last report stands; with none (just after a move was
+        // started) the answer is Moving, which is what the controller would say anyway.
+        let fresh = self.last_query.is_some_and(|t| t.elapsed() < interval);
+        if !fresh {
+            self.query_status().await?;
+        }
+        match &self.last_status {
+            Some(s) => self.evaluate(s),
+            None => Ok(MachineState::Moving),
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_defaults_and_unknown_keys() {
+        let c: GrblConfig = serde_json::from_str(r#"{"port": "/dev/ttyUSB0"}"#).expect("config");
+        assert_eq!(c.baud, 115_200);
+        assert_eq!(c.axis_letters["z"], 'Z');
+        assert!(serde_json::from_str::<GrblConfig>(r#"{"port": "p", "feed": 1}"#).is_err());
+        let bad = GrblConfig {
+            ack_timeout_s: f64::INFINITY,
+            ..GrblConfig::default()
+        };
+        assert!(bad.validate().is_err());
+        let twice = GrblConfig {
+            axis_letters: [("a".to_string(), 'X'), ("b".to_string(), 'x')].into(),
+            ..GrblConfig::default()
+        };
+        assert!(GrblMachine::from_stream(tokio::io::empty(), twice).is_err());
+    }
+}

@@ -1,0 +1,504 @@
+//! GRBL controller emulator: the device side of the protocol over a pty (or any stream),
+//! reusing the codec, with values from a `MachineSink` and seeded fault injection.
+
+use std::collections::VecDeque;
+use std::io;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::Duration;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
+use tokio::task::JoinHandle;
+use tokio::time::Instant;
+
+use super::codec::{
+    format_banner, format_status, parse_block, Block, Framed, GrblState, LineFramer, PosFrame,
+    StatusReport, MAX_LINE_BYTES, SOFT_RESET, STATUS_QUERY,
+};
+
+/// How often the emulator looks at its clock when no byte arrives: bounds the latency of
+/// the `ok` after a dwell and of accepting a queued move once the previous one ends.
+const TICK: Duration = Duration::from_millis(2);
+
+/// The machine behind the emulated controller: it is told what was commanded and asked
+/// where the axes are. The core's simulated world implements it; `KinematicSink` is a
+/// simple stand-in. Times are seconds since the emulator started; positions are X, Y, Z in
+/// metres (machine coordinates).
+pub trait MachineSink: Send {
+    /// A move to `axes_m` at `feed_m_s` was accepted at `t_s`.
+    fn commanded(&mut self, axes_m: [f64; 3], feed_m_s: f64, t_s: f64);
+    /// Axis positions at `t_s`, and whether the axes are still moving.
+    fn position(&mut self, t_s: f64) -> ([f64; 3], bool);
+}
+
+/// Straight-line moves at constant speed (no acceleration), arriving exactly on target.
+#[derive(Debug, Clone)]
+pub struct KinematicSink {
+    from_m: [f64; 3],
+    to_m: [f64; 3],
+    t0_s: f64,
+    duration_s: f64,
+}
+
+impl KinematicSink {
+    pub fn new(start_m: [f64; 3]) -> Self {
+        Self {
+            from_m: start_m,
+            to_m: start_m,
+            t0_s: 0.0,
+            duration_s: 0.0,
+        }
+    }
+}
+
+impl MachineSink for KinematicSink {
+    fn commanded(&mut self, axes_m: [f64; 3], feed_m_s: f64, t_s: f64) {
+        let (here, _) = self.position(t_s);
+        let dist_m = (0..3)
+            .map(|k| (axes_m[k] - here[k]).powi(2))
+            .sum::<f64>()
+            .sqrt();
+        self.from_m = here;
+        self.to_m = axes_m;
+        self.t0_s = t_s;
+        self.duration_s = if feed_m_s > 0.0 {
+            dist_m / feed_m_s
+        } else {
+            0.0
+        };
+    }
+
+    fn position(&mut self, t_s: f64) -> ([f64; 3], bool) {
+        let dt = t_s - self.t0_s;
+        if dt >= self.duration_s {
+            return (self.to_m, false);
+        }
+        let f = (dt / self.duration_s).max(0.0);
+        (
+            std::array::from_fn(|k| self.from_m[k] + f * (self.to_m[k] - self.from_m[k])),
+            true,
+        )
+    }
+}
+
+/// Faults the emulator injects; line numbers count G-code lines received, from 1.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GrblFaults {
+    /// Seed of the generator behind the probabilities.
+    pub seed: u64,
+    /// Probability that an accepted line's `ok` is never sent.
+    pub drop_ok_probability: f64,
+    /// Lines whose `ok` is never sent (the line still runs).
+    pub drop_ok_at_lines: Vec<u64>,
+    /// Probability that a line is answered `error:{error_code}` and not run.
+    pub error_probability: f64,
+    /// Lines answered `error:{error_code}` and not run (once: a resend is a new line).
+    pub error_at_lines: Vec<u64>,
+    pub error_code: u16,
+    /// From this line on the controller is silent for `silence_s`: input (including `?`) is
+    /// dropped and nothing is sent; motion already under way continues.
+    pub silence_at_line: Option<u64>,
+    pub silence_s: f64,
+    /// At this line the controller closes the port (the pty master), as a pulled cable.
+    pub disconnect_at_line: Option<u64>,
+}
+
+impl Default for GrblFaults {
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            drop_ok_probability: 0.0,
+            drop_ok_at_lines: Vec::new(),
+            error_probability: 0.0,
+            error_at_lines: Vec::new(),
+            error_code: 20,
+            silence_at_line: None,
+            silence_s: 0.0,
+            disconnect_at_line: None,
+        }
+    }
+}
+
+/// The emulated controller's settings.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct GrblEmulatorConfig {
+    /// Version shown in the banner.
+    pub version: String,
+    /// Soft limits (machine travel), metres per X, Y, Z.
+    pub travel_min_m: [f64; 3],
+    pub travel_max_m: [f64; 3],
+    /// Real GRBL raises ALARM:2 on a move beyond travel; by default the emulator answers
+    /// `error:15` instead so the line is rejected without locking the controller.
+    pub soft_limit_alarm: bool,
+    /// Speed of G0 moves, m/s.
+    pub rapid_m_s: f64,
+    pub faults: GrblFaults,
+}
+
+impl Default for GrblEmulatorConfig {
+    fn default() -> Self {
+        Self {
+            version: "1.1h".into(),
+            travel_min_m: [-1.0; 3],
+            travel_max_m: [1.0; 3],
+            soft_limit_alarm: false,
+            rapid_m_s: 0.1,
+            faults: GrblFaults::default(),
+        }
+    }
+}
+
+/// Counters of what the emulator saw and did (tests read them).
+#[derive(Debug, Default)]
+pub struct GrblEmulatorStats {
+    pub lines: AtomicU64,
+    pub status_queries: AtomicU64,
+    pub oks_sent: AtomicU64,
+    pub errors_sent: AtomicU64,
+    pub moves: AtomicU64,
+    pub resets: AtomicU64,
+}
+
+impl GrblEmulatorStats {
+    fn bump(counter: &AtomicU64) {
+        counter.fetch_add(1, Ordering::Relaxed);
+    }
+}
+
+struct Queued {
+    line: String,
+    drop_ok: bool,
+}
+
+/// What the controller loop should do after a step.
+enum Action {
+    Continue,
+    Disconnect,
+}
+
+/// The controller's state machine; no I/O: fed bytes and a clock, it appends output bytes.
+struct Controller {
+    cfg: GrblEmulatorConfig,
+    sink: Box<dyn MachineSink>,
+    framer: LineFramer,
+    queue: VecDeque<Queued>,
+    feed_m_s: Option<f64>,
+    alarm: Option<u16>,
+    /// End of the current dwell and whether its `ok` is dropped.
+    dwell: Option<(f64, bool)>,
+    silent_until_s: Option<f64>,
+    line_no: u64,
+    rng: ChaCha8Rng,
+    stats: Arc<GrblEmulatorStats>,
+    out: Vec<u8>,
+}
+
+impl Controller {
+    fn new(
+        cfg: GrblEmulatorConfig,
+        sink: Box<dyn MachineSink>,
+        stats: Arc<GrblEmulatorStats>,
+    ) -> Self {
+        let rng = ChaCha8Rng::seed_from_u64(cfg.faults.seed);
+        Self {
+            cfg,
+            sink,
+            framer: LineFramer::with_realtime(MAX_LINE_BYTES),
+            queue: VecDeque::new(),
+            feed_m_s: None,
+            alarm: None,
+            dwell: None,
+            silent_until_s: None,
+            line_no: 0,
+            rng,
+            stats,
+            out: Vec::new(),
+        }
+    }
+
+    fn say(&mut self, s: &str) {
+        self.out.extend_from_slice(s.as_bytes());
+    }
+
+    fn ok(&mut self, drop: bool) {
+        if !drop {
+            self.say("ok\r\n");
+            GrblEmulatorStats::bump(&self.stats.oks_sent);
+        }
+    }
+
+    fn error(&mut self, code: u16) {
+        self.say(&format!("error:{code}\r\n"));
+        GrblEmulatorStats::bump(&self.stats.errors_sent);
+    }
+
+    fn silent(&mut self, t_s: f64) -> bool {
+        match self.silent_until_s {
+            Some(end) if t_s < end => true,
+            Some(_) => {
+                self.silent_until_s = None;
+                false
+            }
+            None => false,
+        }
+    }
+
+    fn chance(&mut self, p: f64) -> bool {
+        p > 0.0 && self.rng.random::<f64>() < p
+    }
+
+    fn status(&mut self, t_s: f64) {
+        let (pos, moving) = self.sink.position(t_s);
+        let state = if self.alarm.is_some() {
+            GrblState::Alarm
+        } else if moving || self.dwell.is_some() {
+            GrblState::Run
+        } else {
+            GrblState::Idle
+        };
+        let report = StatusReport {
+            state,
+            substate: None,
+            position_m: pos,
+            frame: PosFrame::Machine,
+            wco_m: None,
+            feed_m_s: Some(if moving {
+                self.feed_m_s.unwrap_or(0.0)
+            } else {
+                0.0
+            }),
+        };
+        let s = format_status(&report);
+        self.say(&s);
+    }
+
+    fn input(&mut self, bytes: &[u8], t_s: f64) -> Action {
+        for f in self.framer.push(bytes) {
+            if self.silent(t_s) {
+                continue;
+            }
+            match f {
+                Framed::Realtime(STATUS_QUERY) => {
+                    GrblEmulatorStats::bump(&self.stats.status_queries);
+                    self.status(t_s);
+                }
+                Framed::Realtime(SOFT_RESET) => self.reset(t_s),
+                // Feed hold and resume are not emulated.
+                Framed::Realtime(_) => {}
+                Framed::Overlong => {
+                    self.line_no += 1;
+                    GrblEmulatorStats::bump(&self.stats.lines);
+                    self.error(11);
+                }
+                Framed::Line(line) => {
+                    self.line_no += 1;
+                    GrblEmulatorStats::bump(&self.stats.lines);
+                    let n = self.line_no;
+                    let faults = &self.cfg.faults;
+                    if faults.disconnect_at_line == Some(n) {
+                        return Action::Disconnect;
+                    }
+                    if faults.silence_at_line == Some(n) {
+                        self.silent_until_s = Some(t_s + faults.silence_s);
+                        continue;
+                    }
+                    let forced_error = faults.error_at_lines.contains(&n);
+                    let forced_drop = faults.drop_ok_at_lines.contains(&n);
+                    let (p_err, p_drop, code) = (
+                        faults.error_probability,
+                        faults.drop_ok_probability,
+                        faults.error_code,
+                    );
+                    if forced_error || self.chance(p_err) {
+                        self.error(code);
+                        continue;
+                    }
+                    let drop_ok = forced_drop || self.chance(p_drop);
+                    self.queue.push_back(Queued { line, drop_ok });
+                }
+            }
+        }
+        Action::Continue
+    }
+
+    fn reset(&mut self, t_s: f64) {
+        GrblEmulatorStats::bump(&self.stats.resets);
+        let (here, _) = self.sink.position(t_s);
+        // Commanding the current position stops the axes where they are.
+        self.sink.commanded(here, 0.0, t_s);
+        self.queue.clear();
+        self.dwell = None;
+        self.alarm = None;
+        self.framer.clear();
+        let banner = format_banner(&self.cfg.version);
+        self.say(&banner);
+    }
+
+    /// Run queued lines as far as motion allows.
+    fn step(&mut self, t_s: f64) {
+        if self.silent(t_s) {
+            return;
+        }
+        if let Some((end_s, drop)) = self.dwell {
+            if t_s < end_s {
+                return;
+            }
+            self.dwell = None;
+            self.ok(drop);
+        }
+        while let Some(q) = self.queue.front() {
+            let drop_ok = q.drop_ok;
+            let block = parse_block(&q.line);
+            let (here, moving) = self.sink.position(t_s);
+            match block {
+                Err(code) => self.error(code),
+                Ok(Block::Empty) => self.ok(drop_ok),
+                Ok(Block::Unlock) => {
+                    self.alarm = None;
+                    self.say("[MSG:Caution: Unlocked]\r\n");
+                    self.ok(drop_ok);
+                }
+                Ok(Block::System(_)) => self.error(3),
+                Ok(Block::Move { .. } | Block::Dwell { .. }) if self.alarm.is_some() => {
+                    self.error(9)
+                }
+                // One motion at a time: the line waits (and its `ok` with it).
+                Ok(Block::Move { .. } | Block::Dwell { .. }) if moving => return,
+                Ok(Block::Dwell { dwell_s }) => {
+                    self.queue.pop_front();
+                    self.dwell = Some((t_s + dwell_s, drop_ok));
+                    return;
+                }
+                Ok(Block::Move {
+                    rapid,
+                    target_m,
+                    feed_m_s,
+                }) => {
+                    if let Some(f) = feed_m_s {
+                        self.feed_m_s = Some(f);
+                    }
+                    let target: [f64; 3] = std::array::from_fn(|k| target_m[k].unwrap_or(here[k]));
+                    let within = (0..3).all(|k| {
+                        target[k] >= self.cfg.travel_min_m[k]
+                            && target[k] <= self.cfg.travel_max_m[k]
+                    });
+                    let feed = if rapid {
+                        Some(self.cfg.rapid_m_s)
+                    } else {
+                        self.feed_m_s
+                    };
+                    match feed {
+                        None => self.error(22),
+                        Some(_) if !within && self.cfg.soft_limit_alarm => {
+                            self.alarm = Some(2);
+                            self.say("ALARM:2\r\n");
+                        }
+                        Some(_) if !within => self.error(15),
+                        Some(f) => {
+                            GrblEmulatorStats::bump(&self.stats.moves);
+                            self.sink.commanded(target, f, t_s);
+                            self.ok(drop_ok);
+                        }
+                    }
+                }
+            }
+            self.queue.pop_front();
+        }
+    }
+}
+
+async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut ctl: Controller) -> io::Result<()> {
+    let t0 = Instant::now();
+    let banner = format_banner(&ctl.cfg.version);
+    io.write_all(banner.as_bytes()).await?;
+    io.flush().await?;
+    let mut buf = [0u8; 256];
+    loop {
+        let t_s = t0.elapsed().as_secs_f64();
+        match tokio::time::timeout(TICK, io.read(&mut buf)).await {
+            Err(_) => {}
+            Ok(Ok(0)) => return Ok(()),
+            Ok(Ok(n)) => {
+                if let Action::Disconnect = ctl.input(&buf[..n], t_s) {
+                    return Ok(());
+                }
+            }
+            // EIO on a pty master: the other side was closed.
+            Ok(Err(e)) => return Err(e),
+        }
+        ctl.step(t0.elapsed().as_secs_f64());
+        if !ctl.out.is_empty() {
+            let out = std::mem::take(&mut ctl.out);
+            io.write_all(&out).await?;
+            io.flush().await?;
+        }
+    }
+}
+
+/// A running emulated controller. Dropping it stops the emulator.
+pub struct GrblEmulator {
+    task: JoinHandle<io::Result<()>>,
+    stats: Arc<GrblEmulatorStats>,
+    slave: Option<tokio_serial::SerialStream>,
+    slave_path: Option<String>,
+}
+
+impl GrblEmulator {
+    /// Serve the controller side on any stream (the host talks on the other end).
+    pub fn spawn<S>(io: S, cfg: GrblEmulatorConfig, sink: Box<dyn MachineSink>) -> Self
+    where
+        S: AsyncRead + AsyncWrite + Unpin + Send + 'static,
+    {
+        let stats = Arc::new(GrblEmulatorStats::default());
+        let ctl = Controller::new(cfg, sink, stats.clone());
+        Self {
+            task: tokio::spawn(run(io, ctl)),
+            stats,
+            slave: None,
+            slave_path: None,
+        }
+    }
+
+    /// Serve on a new pseudo-terminal. The emulator keeps the slave end open so that an
+    /// external process can open `slave_path()` at any time; an in-process driver takes it
+    /// with `take_slave()`.
+    pub fn spawn_pty(cfg: GrblEmulatorConfig, sink: Box<dyn MachineSink>) -> io::Result<Self> {
+        use tokio_serial::SerialPort;
+        let (master, slave) = tokio_serial::SerialStream::pair().map_err(io::Error::other)?;
+        let path = slave.name();
+        let mut emu = Self::spawn(master, cfg, sink);
+        emu.slave = Some(slave);
+        emu.slave_path = path;
+        Ok(emu)
+    }
+
+    /// Device path of the pty's slave end (`/dev/pts/N`), for a driver in another process.
+    pub fn slave_path(&self) -> Option<&str> {
+        self.slave_path.as_deref()
+    }
+
+    /// The pty's slave end, for a driver in this process.
+    pub fn take_slave(&mut self) -> Option<tokio_serial::SerialStream> {
+        self.slave.take()
+    }
+
+    pub fn stats(&self) -> &GrblEmulatorStats {
+        &self.stats
+    }
+
+    /// True once the emulator stopped (disconnect fault, peer gone, I/O error).
+    pub fn is_finished(&self) -> bool {
+        self.task.is_finished()
+    }
+}
+
+impl Drop for GrblEmulator {
+    fn drop(&mut self) {
+        self.task.abort();
+    }
+}
