@@ -296,6 +296,7 @@ fn build_problem(extraction: &Extraction) -> MultilaterationProblem {
 struct Phase {
     name: &'static str,
     times: Vec<Duration>,
+    cpu: Vec<Duration>,
     peak_bytes: usize,
     heap_after: usize,
     note: String,
@@ -306,6 +307,7 @@ impl Phase {
         Phase {
             name,
             times: Vec::new(),
+            cpu: Vec::new(),
             peak_bytes: 0,
             heap_after: 0,
             note: String::new(),
@@ -314,7 +316,11 @@ impl Phase {
 
     /// Times `f`; keeps the largest heap peak (above the heap at its start) over the runs.
     fn run<T>(&mut self, f: impl FnOnce() -> T) -> T {
+        let cpu0 = common::cpu_time();
         let (v, dt, peak) = measure(f);
+        if let (Some(a), Some(b)) = (cpu0, common::cpu_time()) {
+            self.cpu.push(b.saturating_sub(a));
+        }
         self.times.push(dt);
         self.peak_bytes = self.peak_bytes.max(peak);
         self.heap_after = common::heap_now();
@@ -385,19 +391,26 @@ fn main() {
     println!();
     println!(
         "whole pipeline on {} ({:.1} MB), median of {repeats} runs; peak heap = the highest \
-         heap above the phase's starting heap; heap after = live heap when it returned",
+         heap above the phase's starting heap; heap after = live heap when it returned; CPU time = \
+         user + system of all threads (10 ms resolution)",
         path.display(),
         file_bytes as f64 / 1e6
     );
-    println!("| phase | wall time | peak heap | heap after | notes |");
-    println!("|---|---:|---:|---:|---|");
+    println!("| phase | wall time | CPU time | peak heap | heap after | notes |");
+    println!("|---|---:|---:|---:|---:|---|");
     for p in [
         &file_read, &decode, &read, &extract, &build, &adjust, &method, &whole,
     ] {
+        let cpu = if p.cpu.is_empty() {
+            "-".to_string()
+        } else {
+            fmt_time(median(p.cpu.clone()))
+        };
         println!(
-            "| {} | {} | {:.0} MiB | {:.0} MiB | {} |",
+            "| {} | {} | {} | {:.0} MiB | {:.0} MiB | {} |",
             p.name,
             fmt_time(median(p.times.clone())),
+            cpu,
             mib(p.peak_bytes),
             mib(p.heap_after),
             p.note
