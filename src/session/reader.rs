@@ -131,6 +131,22 @@ fn read_indexed(
     file: &str,
     summary: &mcap::Summary,
 ) -> Result<Option<Decoder>, ReadError> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    read_indexed_with(buf, file, summary, threads.min(MAX_DECODE_THREADS))
+}
+
+/// Decompressing and parsing is most of the time a large session takes to read, and chunks
+/// are independent: up to this many threads decode contiguous runs of chunks.
+const MAX_DECODE_THREADS: usize = 8;
+/// Fewer chunks than this per thread are not worth a thread.
+const MIN_CHUNKS_PER_THREAD: usize = 2;
+
+fn read_indexed_with(
+    buf: &[u8],
+    file: &str,
+    summary: &mcap::Summary,
+    threads: usize,
+) -> Result<Option<Decoder>, ReadError> {
     let Some(stats) = &summary.stats else {
         return Ok(None);
     };
@@ -144,24 +160,77 @@ fn read_indexed(
     }
     let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
     chunks.sort_by_key(|c| c.chunk_start_offset);
-    let mut sans = chunk_reader();
+    let mut ranges = Vec::with_capacity(chunks.len());
     for index in chunks {
         let start = index.chunk_start_offset;
         let range = usize::try_from(start)
             .ok()
             .zip(usize::try_from(start.saturating_add(index.chunk_length)).ok())
             .filter(|&(s, e)| s < e && e <= buf.len());
-        let Some((s, e)) = range else {
+        let Some(range) = range else {
+            // The linear read that follows meets every chunk before this one in the same order,
+            // so decoding them here first could not change the outcome.
             tracing::debug!("{file}: chunk index points outside the file; reading linearly");
             return Ok(None);
         };
-        match dec.feed_chunk(&mut sans, &buf[s..e]) {
-            Ok(()) => {}
-            Err(Failure::Fatal(err)) => return Err(err),
-            Err(Failure::Mcap(err)) => {
-                tracing::debug!("{file}: chunk at byte {s}: {err}; reading linearly");
-                return Ok(None);
-            }
+        ranges.push(range);
+    }
+    // A chunk may define a channel that later chunks use: threads are only safe when the
+    // summary already defines every channel that has messages.
+    let all_defined = stats
+        .channel_message_counts
+        .keys()
+        .all(|id| summary.channels.contains_key(id))
+        && stats.channel_message_counts.values().sum::<u64>() == stats.message_count;
+    let threads = if all_defined { threads } else { 1 };
+    let groups = split_by_bytes(&ranges, threads.min(ranges.len() / MIN_CHUNKS_PER_THREAD));
+    let (failure, undefined) = match groups.split_first() {
+        None => (None, false),
+        Some((first, [])) => (dec.feed_chunks(buf, first).err(), false),
+        Some((first, rest)) => {
+            // Workers keep any session header raw: only the merge, in file order, knows
+            // whether it is the first one (parsed) or a later one (ignored).
+            let workers: Vec<Decoder> = rest.iter().map(|_| dec.worker()).collect();
+            std::thread::scope(|scope| {
+                let handles: Vec<_> = rest
+                    .iter()
+                    .zip(workers)
+                    .map(|(group, mut worker)| {
+                        scope.spawn(move || {
+                            let failure = worker.feed_chunks(buf, group).err();
+                            (worker, failure)
+                        })
+                    })
+                    .collect();
+                let mut failure = dec.feed_chunks(buf, first).err();
+                let mut undefined = false;
+                for handle in handles {
+                    let (worker, worker_failure) = handle
+                        .join()
+                        .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
+                    undefined |= worker.saw_undefined;
+                    // The first failure in file order decides, as in a serial read.
+                    if failure.is_none() {
+                        failure = match dec.absorb(worker) {
+                            Ok(()) => worker_failure,
+                            Err(f) => Some((0, f)),
+                        };
+                    }
+                }
+                (failure, undefined)
+            })
+        }
+    };
+    if undefined {
+        // A worker met a message on a channel it did not know: decode serially instead.
+        return read_indexed_with(buf, file, summary, 1);
+    }
+    match failure {
+        None => {}
+        Some((_, Failure::Fatal(err))) => return Err(err),
+        Some((s, Failure::Mcap(err))) => {
+            tracing::debug!("{file}: chunk at byte {s}: {err}; reading linearly");
+            return Ok(None);
         }
     }
     if dec.messages != stats.message_count {
@@ -173,6 +242,28 @@ fn read_indexed(
         return Ok(None);
     }
     Ok(Some(dec))
+}
+
+/// Splits `ranges` into at most `parts` contiguous runs of about equal bytes (at least one run
+/// when there are ranges), so that concatenating the runs' messages keeps file order.
+fn split_by_bytes(ranges: &[(usize, usize)], parts: usize) -> Vec<&[(usize, usize)]> {
+    let parts = parts.max(1);
+    let total: usize = ranges.iter().map(|(s, e)| e - s).sum();
+    let mut groups = Vec::with_capacity(parts);
+    let mut start = 0;
+    let mut bytes = 0;
+    for (i, (s, e)) in ranges.iter().enumerate() {
+        bytes += e - s;
+        // Close the run once it holds its share of all bytes so far.
+        if groups.len() + 1 < parts && bytes * parts >= total * (groups.len() + 1) {
+            groups.push(&ranges[start..=i]);
+            start = i + 1;
+        }
+    }
+    if start < ranges.len() {
+        groups.push(&ranges[start..]);
+    }
+    groups
 }
 
 fn chunk_reader() -> LinearReader {
@@ -301,6 +392,11 @@ struct Decoder {
     env: Vec<(String, Vec<Stamped<EnvSample>>)>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
+    /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
+    lazy_header: bool,
+    raw_headers: Vec<(u64, u64, Vec<u8>)>,
+    /// A worker met a message on a channel it had no definition for.
+    saw_undefined: bool,
     messages: u64,
     skipped: u64,
     ignored: u64,
@@ -320,6 +416,9 @@ impl Decoder {
             env: Vec::new(),
             events: Vec::new(),
             header: None,
+            lazy_header: false,
+            raw_headers: Vec::new(),
+            saw_undefined: false,
             messages: 0,
             skipped: 0,
             ignored: 0,
@@ -362,6 +461,93 @@ impl Decoder {
             self.slots.resize(i + 1, Slot::Undefined);
         }
         self.slots[i] = slot;
+    }
+
+    /// The first `/geocal/session` message is the header; later ones are ignored.
+    fn session_message(
+        &mut self,
+        log_time_ns: u64,
+        publish_time_ns: u64,
+        data: &[u8],
+    ) -> Result<(), Failure> {
+        if let Some(first) = &self.header {
+            tracing::warn!(
+                "{}: another {TOPIC_SESSION} message at log_time {log_time_ns} ns; \
+                 keeping the one at {} ns",
+                self.file,
+                first.log_time_ns
+            );
+            self.ignored += 1;
+            return Ok(());
+        }
+        let msg = parse_header(&self.file, log_time_ns, data).map_err(Failure::Fatal)?;
+        self.header = Some(Stamped {
+            log_time_ns,
+            publish_time_ns,
+            msg,
+        });
+        Ok(())
+    }
+
+    /// An empty decoder with the same channels, for a thread that decodes a later run of chunks.
+    fn worker(&self) -> Decoder {
+        let mut w = Decoder::new(&self.file);
+        w.slots = self.slots.clone();
+        w.tracer_ids = self.tracer_ids.clone();
+        w.tracers = self
+            .tracers
+            .iter()
+            .map(|(id, _)| (id.clone(), Vec::new()))
+            .collect();
+        w.env_ids = self.env_ids.clone();
+        w.env = self
+            .env
+            .iter()
+            .map(|(id, _)| (id.clone(), Vec::new()))
+            .collect();
+        w.lazy_header = true;
+        w
+    }
+
+    /// Appends what a worker decoded from the chunks that follow this decoder's chunks.
+    fn absorb(&mut self, other: Decoder) -> Result<(), Failure> {
+        self.messages += other.messages;
+        self.skipped += other.skipped;
+        self.ignored += other.ignored;
+        for (id, v) in other.tracers {
+            let next = self.tracers.len();
+            let i = *self.tracer_ids.entry(id.clone()).or_insert(next);
+            if i == next {
+                self.tracers.push((id, Vec::new()));
+            }
+            self.tracers[i].1.extend(v);
+        }
+        for (id, v) in other.env {
+            let next = self.env.len();
+            let i = *self.env_ids.entry(id.clone()).or_insert(next);
+            if i == next {
+                self.env.push((id, Vec::new()));
+            }
+            self.env[i].1.extend(v);
+        }
+        self.events.extend(other.events);
+        for (log_time_ns, publish_time_ns, data) in other.raw_headers {
+            self.session_message(log_time_ns, publish_time_ns, &data)?;
+        }
+        Ok(())
+    }
+
+    /// Feeds whole chunk records; on failure, the byte offset of the chunk and why.
+    fn feed_chunks(
+        &mut self,
+        buf: &[u8],
+        ranges: &[(usize, usize)],
+    ) -> Result<(), (usize, Failure)> {
+        let mut sans = chunk_reader();
+        for &(s, e) in ranges {
+            self.feed_chunk(&mut sans, &buf[s..e]).map_err(|f| (s, f))?;
+        }
+        Ok(())
     }
 
     fn reserve(&mut self, channel_id: u16, n: u64) {
@@ -452,26 +638,17 @@ impl Decoder {
                     });
                 }
             }
-            Slot::Session => {
-                if let Some(first) = &self.header {
-                    tracing::warn!(
-                        "{}: another {TOPIC_SESSION} message at log_time {log_time_ns} ns; \
-                         keeping the one at {} ns",
-                        self.file,
-                        first.log_time_ns
-                    );
-                    self.ignored += 1;
-                    return Ok(());
-                }
-                let msg = parse_header(&self.file, log_time_ns, data).map_err(Failure::Fatal)?;
-                self.header = Some(Stamped {
-                    log_time_ns,
-                    publish_time_ns,
-                    msg,
-                });
+            Slot::Session if self.lazy_header => {
+                self.raw_headers
+                    .push((log_time_ns, publish_time_ns, data.to_vec()));
             }
+            Slot::Session => self.session_message(log_time_ns, publish_time_ns, data)?,
             Slot::NotJson => self.skip(channel_id, log_time_ns, "message encoding is not json"),
             Slot::Other => self.ignored += 1,
+            Slot::Undefined if self.lazy_header => {
+                self.saw_undefined = true;
+                self.ignored += 1;
+            }
             Slot::Undefined => {
                 if self.ignored == 0 {
                     tracing::warn!(
@@ -1142,6 +1319,130 @@ mod tests {
         let bytes = foreign_file(mcap::WriteOptions::new().use_chunks(false));
         let summary = mcap::Summary::read(&bytes).unwrap().unwrap();
         assert!(read_indexed(&bytes, "x", &summary).unwrap().is_none());
+    }
+
+    /// The threaded indexed read gives exactly what one thread and the linear read give.
+    #[test]
+    fn threads_read_the_same_session() {
+        let foreign = foreign_file(
+            mcap::WriteOptions::new()
+                .compression(Some(mcap::Compression::Zstd))
+                .chunk_size(Some(1)),
+        );
+        for bytes in [&recorded().bytes, &foreign] {
+            let summary = mcap::Summary::read(bytes).unwrap().unwrap();
+            assert!(summary.chunk_indexes.len() > 8);
+            let serial = read_indexed_with(bytes, "x", &summary, 1)
+                .unwrap()
+                .expect("indexed")
+                .into_session("x", 0)
+                .unwrap();
+            let linear = read_linear(bytes, "x")
+                .unwrap()
+                .into_session("x", 0)
+                .unwrap();
+            assert_eq!(serial, linear);
+            for threads in 2..=7 {
+                let dec = read_indexed_with(bytes, "x", &summary, threads)
+                    .unwrap()
+                    .expect("indexed");
+                assert_eq!(
+                    dec.into_session("x", 0).unwrap(),
+                    serial,
+                    "{threads} threads"
+                );
+            }
+        }
+        check_foreign(&foreign);
+    }
+
+    /// A second header in a later run of chunks is ignored, and a bad one there still fails
+    /// only when it is the first header.
+    #[test]
+    fn threads_keep_the_first_header() {
+        let write = |headers: &[&[u8]]| {
+            let mut w = mcap::WriteOptions::new()
+                .chunk_size(Some(1))
+                .create(Cursor::new(Vec::new()))
+                .unwrap();
+            let no_meta = BTreeMap::new();
+            let hs = w
+                .add_schema("geocal.Session", "jsonschema", schema::SESSION.as_bytes())
+                .unwrap();
+            let hc = w.add_channel(hs, TOPIC_SESSION, "json", &no_meta).unwrap();
+            let ts = w
+                .add_schema(
+                    "geocal.TracerSample",
+                    "jsonschema",
+                    schema::TRACER.as_bytes(),
+                )
+                .unwrap();
+            let tc = w
+                .add_channel(ts, "/tracer/a/range", "json", &no_meta)
+                .unwrap();
+            let mut t = 0;
+            let mut put = |w: &mut mcap::Writer<_>, ch: u16, data: &[u8]| {
+                t += 1;
+                let hdr = MessageHeader {
+                    channel_id: ch,
+                    sequence: 0,
+                    log_time: t,
+                    publish_time: t,
+                };
+                w.write_to_known_channel(&hdr, data).unwrap();
+            };
+            // Samples before every header, so that with threads the first header lies in a
+            // worker's run of chunks.
+            for h in headers {
+                for i in 0..20 {
+                    let json = serde_json::to_vec(&tracer_sample(i)).unwrap();
+                    put(&mut w, tc, &json);
+                }
+                put(&mut w, hc, h);
+            }
+            w.finish().unwrap();
+            w.into_inner().into_inner()
+        };
+        let good = serde_json::to_vec(&header()).unwrap();
+        let bad = b"{\"format\": \"geocal-session/1\"}".to_vec();
+        let read = |bytes: &[u8], threads| {
+            let summary = mcap::Summary::read(bytes).unwrap().unwrap();
+            read_indexed_with(bytes, "x", &summary, threads)
+                .map(|d| d.expect("indexed").into_session("x", 0).unwrap())
+        };
+        let bytes = write(&[&good, &bad, &good]);
+        let serial = read(&bytes, 1).unwrap();
+        assert_eq!(serial.header, header());
+        assert_eq!(serial.ignored, 2);
+        for threads in 2..=5 {
+            assert_eq!(read(&bytes, threads).unwrap(), serial);
+        }
+        let bytes = write(&[&bad, &good]);
+        for threads in 1..=5 {
+            assert!(matches!(
+                read(&bytes, threads),
+                Err(ReadError::BadHeader { .. })
+            ));
+        }
+    }
+
+    #[test]
+    fn split_by_bytes_keeps_order_and_balance() {
+        let ranges: Vec<(usize, usize)> = (0..10).map(|i| (i * 10, i * 10 + 10)).collect();
+        for parts in 0..=12 {
+            let groups = split_by_bytes(&ranges, parts);
+            assert!(!groups.is_empty() && groups.len() <= parts.max(1));
+            assert_eq!(groups.concat(), ranges, "{parts} parts");
+            assert!(groups.iter().all(|g| !g.is_empty()));
+        }
+        assert_eq!(
+            split_by_bytes(&ranges, 2)
+                .iter()
+                .map(|g| g.len())
+                .collect::<Vec<_>>(),
+            [5, 5]
+        );
+        assert!(split_by_bytes(&[], 3).is_empty());
     }
 
     /// `cargo test --release --lib session::reader::tests::large -- --ignored --nocapture`

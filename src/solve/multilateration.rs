@@ -692,7 +692,7 @@ pub fn dense_point_covariance(
     }
     let point_col = |i: usize| 3 * m + s + 3 * i;
     let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);
-    let mut row = vec![0.0; 7];
+    let mut row = [0.0; 7];
     let mut cols = [0usize; 7];
     for obs in &problem.observations {
         let j = problem.segments[obs.segment].station;
