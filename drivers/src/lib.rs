@@ -1,6 +1,7 @@
 //! geocal-drivers: the device traits the sequencer sees, and (later) the real protocol
 //! drivers and device emulators. Nothing here depends on the geocal core.
 
+pub mod hpi3d;
 pub mod traits;
 
 pub use traits::{
