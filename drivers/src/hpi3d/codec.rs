@@ -385,3 +385,208 @@ mod tests {
         assert_eq!(s.bytes_skipped, 3 + 16);
     }
 }
+
+#[cfg(test)]
+mod proptests {
+    use proptest::prelude::*;
+    use proptest::test_runner::RngSeed;
+
+    use super::*;
+    use crate::hpi3d::frame::{POSITION_MAX_COUNTS, POSITION_MIN_COUNTS};
+
+    fn config() -> ProptestConfig {
+        // A fixed seed keeps CI deterministic; the properties hold for any seed.
+        ProptestConfig {
+            cases: 256,
+            rng_seed: RngSeed::Fixed(0x4850_4933),
+            failure_persistence: None,
+            ..ProptestConfig::default()
+        }
+    }
+
+    fn status() -> impl Strategy<Value = Status> {
+        (any::<[u8; 3]>()).prop_map(Status::from_bytes)
+    }
+
+    fn device_frame() -> impl Strategy<Value = DeviceFrame> {
+        prop_oneof![
+            (0..HostCommand::KNOWN.len(), any::<[u8; 12]>()).prop_map(|(i, data)| {
+                DeviceFrame::Ack {
+                    command: HostCommand::KNOWN[i],
+                    data,
+                }
+            }),
+            (
+                POSITION_MIN_COUNTS..=POSITION_MAX_COUNTS,
+                any::<[u8; 2]>(),
+                status()
+            )
+                .prop_map(|(position_counts, spare, status)| {
+                    DeviceFrame::Distance(Distance {
+                        position_counts,
+                        spare,
+                        status,
+                    })
+                }),
+            (any::<i32>(), any::<[u8; 5]>(), status()).prop_map(
+                |(velocity_counts, spare, status)| {
+                    DeviceFrame::Velocity(Velocity {
+                        velocity_counts,
+                        spare,
+                        status,
+                    })
+                }
+            ),
+            any::<([u8; 6], u16, [u8; 4])>().prop_map(|(b, p, spare)| {
+                DeviceFrame::Meteo(Meteo {
+                    sensor: b[0],
+                    temperature_centi_c: i16::from_be_bytes([b[1], b[2]]),
+                    humidity_pct: b[3],
+                    battery: b[4],
+                    link: b[5],
+                    pressure_deca_pa: p,
+                    spare,
+                })
+            }),
+            (any::<u16>(), any::<[u8; 12]>())
+                .prop_filter_map("documented cmd", |(cmd, data)| {
+                    let documented = HostCommand::known(cmd).is_some()
+                        || [CMD_DISTANCE, CMD_VELOCITY, CMD_METEO].contains(&cmd);
+                    (!documented).then_some(DeviceFrame::Unknown { cmd, data })
+                }),
+        ]
+    }
+
+    fn host_frame() -> impl Strategy<Value = HostFrame> {
+        (any::<u16>(), any::<[u8; 4]>()).prop_map(|(code, data)| HostFrame {
+            command: HostCommand::from_code(code),
+            data,
+        })
+    }
+
+    fn wire<F: WireFrame>(frames: &[F]) -> Vec<u8> {
+        frames.iter().flat_map(|f| f.to_wire()).collect()
+    }
+
+    /// Feed `bytes` cut at the given positions (taken modulo the length).
+    fn feed_split<F: WireFrame>(bytes: &[u8], cuts: &[usize]) -> (Vec<F>, DecoderStats) {
+        let mut cuts: Vec<usize> = cuts
+            .iter()
+            .map(|c| if bytes.is_empty() { 0 } else { c % bytes.len() })
+            .collect();
+        cuts.push(0);
+        cuts.push(bytes.len());
+        cuts.sort_unstable();
+        let mut d = Decoder::<F>::new();
+        let mut out = Vec::new();
+        for w in cuts.windows(2) {
+            d.feed_into(&bytes[w[0]..w[1]], &mut out);
+        }
+        (out, d.stats())
+    }
+
+    /// `expected` frames missing from `got` (in order), and frames of `got` not in `expected`.
+    fn lost_and_spurious(expected: &[DeviceFrame], got: &[DeviceFrame]) -> (Vec<usize>, usize) {
+        let mut lost = Vec::new();
+        let mut spurious = 0;
+        let mut j = 0;
+        for (i, e) in expected.iter().enumerate() {
+            // Skip spurious frames until this expected one, if it is there at all.
+            match got[j..].iter().position(|g| g == e) {
+                Some(k) => {
+                    spurious += k;
+                    j += k + 1;
+                }
+                None => lost.push(i),
+            }
+        }
+        spurious += got.len() - j;
+        (lost, spurious)
+    }
+
+    proptest! {
+        #![proptest_config(config())]
+
+        #[test]
+        fn device_roundtrip(f in device_frame()) {
+            let b = encode_device(&f);
+            prop_assert_eq!(decode_device(&b).unwrap(), f);
+            prop_assert_eq!(encode_device(&decode_device(&b).unwrap()), b);
+        }
+
+        #[test]
+        fn host_roundtrip(f in host_frame()) {
+            let b = encode_host(&f);
+            prop_assert_eq!(decode_host(&b).unwrap(), f);
+        }
+
+        #[test]
+        fn random_bytes_never_panic(bytes in proptest::collection::vec(any::<u8>(), 0..600),
+                                    cuts in proptest::collection::vec(any::<usize>(), 0..8)) {
+            let (frames, stats) = feed_split::<DeviceFrame>(&bytes, &cuts);
+            prop_assert!(stats.bytes_skipped as usize + 16 * frames.len() <= bytes.len());
+            let _ = feed_split::<HostFrame>(&bytes, &cuts);
+        }
+
+        #[test]
+        fn any_split_decodes_identically(frames in proptest::collection::vec(device_frame(), 0..20),
+                                         cuts in proptest::collection::vec(any::<usize>(), 0..30)) {
+            let bytes = wire(&frames);
+            let (got, stats) = feed_split::<DeviceFrame>(&bytes, &cuts);
+            prop_assert_eq!(&got, &frames);
+            prop_assert_eq!(stats.bytes_skipped, 0);
+            prop_assert_eq!(stats.frames_corrupted, 0);
+        }
+
+        #[test]
+        fn host_frames_any_split(frames in proptest::collection::vec(host_frame(), 0..20),
+                                 cuts in proptest::collection::vec(any::<usize>(), 0..30)) {
+            let (got, _) = feed_split::<HostFrame>(&wire(&frames), &cuts);
+            prop_assert_eq!(got, frames);
+        }
+
+        #[test]
+        fn garbage_between_frames(
+            items in proptest::collection::vec(
+                (device_frame(), proptest::collection::vec(any::<u8>(), 0..40)), 0..15),
+            cuts in proptest::collection::vec(any::<usize>(), 0..10),
+        ) {
+            let mut bytes = Vec::new();
+            let mut frames = Vec::new();
+            for (f, garbage) in &items {
+                bytes.extend_from_slice(garbage);
+                bytes.extend_from_slice(&encode_device(f));
+                frames.push(*f);
+            }
+            let (got, _) = feed_split::<DeviceFrame>(&bytes, &cuts);
+            let (lost, spurious) = lost_and_spurious(&frames, &got);
+            // A real frame is lost only when a false start in the garbage passed the CRC
+            // (p = 1/256) and swallowed its start byte.
+            prop_assert!(lost.len() <= spurious, "lost {:?}, spurious {}", lost, spurious);
+            if !bytes.is_empty() && items.iter().all(|(_, g)| !g.contains(&START)) {
+                prop_assert_eq!(&got, &frames);
+            }
+        }
+
+        #[test]
+        fn corrupted_byte_loses_only_touched_frames(
+            frames in proptest::collection::vec(device_frame(), 1..15),
+            at in any::<usize>(),
+            flip in 1u8..=255,
+            cuts in proptest::collection::vec(any::<usize>(), 0..10),
+        ) {
+            let mut bytes = wire(&frames);
+            let at = at % bytes.len();
+            bytes[at] ^= flip;
+            let touched = at / DEVICE_FRAME_LEN;
+            let (got, stats) = feed_split::<DeviceFrame>(&bytes, &cuts);
+            let (lost, spurious) = lost_and_spurious(&frames, &got);
+            // CRC-8 catches every error within 8 bits, so the touched frame is always lost;
+            // a later one only if a false start (p = 1/256) swallowed it.
+            prop_assert!(lost.contains(&touched));
+            prop_assert!(lost.iter().all(|&i| i >= touched));
+            prop_assert!(lost.len() <= 1 + spurious, "lost {:?}, spurious {}", lost, spurious);
+            prop_assert!(stats.frames_corrupted <= 1 + spurious as u64 || at % DEVICE_FRAME_LEN == 0);
+        }
+    }
+}
