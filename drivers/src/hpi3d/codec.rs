@@ -308,10 +308,7 @@ mod tests {
         let b = encode_host(&HostFrame::new(HostCommand::Home));
         assert_eq!(&b[..7], &[0xAA, 0xB0, 0x48, 0, 0, 0, 0]);
         assert_eq!(b[7], crc8(&b[..7]));
-        assert_eq!(
-            decode_host(&b).unwrap(),
-            HostFrame::new(HostCommand::Home)
-        );
+        assert_eq!(decode_host(&b).unwrap(), HostFrame::new(HostCommand::Home));
     }
 
     #[test]
@@ -346,7 +343,8 @@ mod tests {
             pressure_deca_pa: 10132,
             spare: [0; 4],
         };
-        let DeviceFrame::Meteo(back) = decode_device(&encode_device(&DeviceFrame::Meteo(m))).unwrap()
+        let DeviceFrame::Meteo(back) =
+            decode_device(&encode_device(&DeviceFrame::Meteo(m))).unwrap()
         else {
             panic!("not meteo")
         };
@@ -448,12 +446,11 @@ mod proptests {
                     spare,
                 })
             }),
-            (any::<u16>(), any::<[u8; 12]>())
-                .prop_filter_map("documented cmd", |(cmd, data)| {
-                    let documented = HostCommand::known(cmd).is_some()
-                        || [CMD_DISTANCE, CMD_VELOCITY, CMD_METEO].contains(&cmd);
-                    (!documented).then_some(DeviceFrame::Unknown { cmd, data })
-                }),
+            (any::<u16>(), any::<[u8; 12]>()).prop_filter_map("documented cmd", |(cmd, data)| {
+                let documented = HostCommand::known(cmd).is_some()
+                    || [CMD_DISTANCE, CMD_VELOCITY, CMD_METEO].contains(&cmd);
+                (!documented).then_some(DeviceFrame::Unknown { cmd, data })
+            }),
         ]
     }
 

@@ -320,7 +320,10 @@ impl Device {
             | HostCommand::ClearExternalCapture
             | HostCommand::Other(_) => {}
         }
-        if self.ack_rng.random_bool(self.faults.ack_drop_fraction.clamp(0.0, 1.0)) {
+        if self
+            .ack_rng
+            .random_bool(self.faults.ack_drop_fraction.clamp(0.0, 1.0))
+        {
             self.stats().acks_dropped += 1;
             return;
         }

@@ -263,7 +263,10 @@ pub enum DeviceFrame {
     Velocity(Velocity),
     Meteo(Meteo),
     /// Any other cmd, kept verbatim.
-    Unknown { cmd: u16, data: [u8; 12] },
+    Unknown {
+        cmd: u16,
+        data: [u8; 12],
+    },
 }
 
 impl DeviceFrame {
