@@ -290,5 +290,5 @@ async fn silence_times_out_next_sample() {
         DeviceError::Timeout { after_s, .. } => assert_eq!(after_s, 0.15),
         e => panic!("{e}"),
     }
-    assert!(last_t_s >= 0.19 && last_t_s < 0.3, "{last_t_s}");
+    assert!((0.15..0.5).contains(&last_t_s), "{last_t_s}");
 }
