@@ -1,5 +1,5 @@
-//! geocal-drivers: the device traits the sequencer sees, and (later) the real protocol
-//! drivers and device emulators. Nothing here depends on the geocal core.
+//! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (`hpi3d`)
+//! and their device emulators. Nothing here depends on the geocal core.
 
 pub mod hpi3d;
 pub mod traits;
