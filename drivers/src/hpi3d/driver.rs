@@ -447,3 +447,52 @@ async fn reader_task<R: AsyncRead + Unpin>(
     };
     *lock(&shared.closed) = Some(reason);
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_defaults_and_unknown_fields() {
+        let c: Hpi3dConfig =
+            serde_json::from_str(r#"{"port": "/dev/ttyACM0", "stream": "distance"}"#).unwrap();
+        assert_eq!(c.baud, 3_000_000);
+        assert_eq!(c.port, "/dev/ttyACM0");
+        assert!(c.meteo);
+        assert!(serde_json::from_str::<Hpi3dConfig>(r#"{"baudrate": 9600}"#).is_err());
+        assert!(serde_json::from_str::<Hpi3dConfig>(r#"{"stream": "velocity"}"#).is_err());
+    }
+
+    #[tokio::test]
+    async fn rejects_negative_timeouts() {
+        let (a, _b) = tokio::io::duplex(64);
+        let config = Hpi3dConfig {
+            ack_timeout_s: -1.0,
+            ..Hpi3dConfig::default()
+        };
+        let err = Hpi3dTracer::from_io(a, config).await.err().unwrap();
+        assert!(matches!(err, DeviceError::Rejected { .. }), "{err}");
+    }
+
+    #[test]
+    fn meteo_reading_on_the_air_frame() {
+        let mut m = MeteoAssembler::default();
+        let frame = |sensor, temperature_centi_c| Meteo {
+            sensor,
+            temperature_centi_c,
+            humidity_pct: 40,
+            battery: 100,
+            link: 100,
+            pressure_deca_pa: 10_000,
+            spare: [0; 4],
+        };
+        assert!(m.push(&frame(2, 2100), 0.0).is_none());
+        assert!(m.push(&frame(1, 2000), 0.0).is_none());
+        let r = m.push(&frame(0, -500), 0.5).unwrap();
+        assert!((r.air_temp_k - 268.15).abs() < 1e-9);
+        assert!((r.pressure_pa - 100_000.0).abs() < 1e-9);
+        assert_eq!(r.material_temp_k.len(), 2);
+        assert!((r.material_temp_k[0] - 293.15).abs() < 1e-9);
+        assert!((r.material_temp_k[1] - 294.15).abs() < 1e-9);
+    }
+}

@@ -190,6 +190,17 @@ impl Hpi3dEmulator {
             .ok()
             .filter(|d| !d.is_zero())
             .ok_or_else(|| invalid(format!("meteo_period_s = {}", config.meteo_period_s)))?;
+        let f = &config.faults;
+        for (name, p) in [
+            ("drop_fraction", f.drop_fraction),
+            ("corrupt_fraction", f.corrupt_fraction),
+            ("garbage_fraction", f.garbage_fraction),
+            ("ack_drop_fraction", f.ack_drop_fraction),
+        ] {
+            if !(0.0..=1.0).contains(&p) {
+                return Err(invalid(format!("{name} = {p} is not in [0, 1]")));
+            }
+        }
         let stats = Arc::new(Mutex::new(EmulatorStats::default()));
         let device = Device::new(config, source, stats.clone());
         let task = tokio::spawn(run(io, device, period, meteo_period));
@@ -320,10 +331,7 @@ impl Device {
             | HostCommand::ClearExternalCapture
             | HostCommand::Other(_) => {}
         }
-        if self
-            .ack_rng
-            .random_bool(self.faults.ack_drop_fraction.clamp(0.0, 1.0))
-        {
+        if self.ack_rng.random_bool(self.faults.ack_drop_fraction) {
             self.stats().acks_dropped += 1;
             return;
         }
@@ -420,11 +428,9 @@ impl Device {
     fn emit(&mut self, frame: &DeviceFrame, out: &mut Vec<u8>) {
         let f = &self.faults;
         let (drop, corrupt, garbage) = (
-            self.drop_rng.random_bool(f.drop_fraction.clamp(0.0, 1.0)),
-            self.corrupt_rng
-                .random_bool(f.corrupt_fraction.clamp(0.0, 1.0)),
-            self.garbage_rng
-                .random_bool(f.garbage_fraction.clamp(0.0, 1.0)),
+            self.drop_rng.random_bool(f.drop_fraction),
+            self.corrupt_rng.random_bool(f.corrupt_fraction),
+            self.garbage_rng.random_bool(f.garbage_fraction),
         );
         let mut stats = lock(&self.stats);
         if garbage {
@@ -484,5 +490,45 @@ where
         if !out.is_empty() && wr.write_all(&out).await.is_err() {
             tokio::time::sleep(Duration::from_millis(20)).await;
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn config_from_json_with_defaults() {
+        let c: EmulatorConfig = serde_json::from_str(
+            r#"{"rate_hz": 500, "faults": {"seed": 9, "beam_break": {"from_s": 1, "to_s": 2}}}"#,
+        )
+        .unwrap();
+        assert_eq!(c.meteo_period_s, 1.0);
+        assert_eq!(c.faults.seed, 9);
+        assert!(Window::contains(&c.faults.beam_break, 1.5));
+        assert!(!Window::contains(&c.faults.beam_break, 2.0));
+        assert!(serde_json::from_str::<EmulatorConfig>(r#"{"rate": 5}"#).is_err());
+        assert!(serde_json::from_str::<FaultConfig>(r#"{"drop": 0.1}"#).is_err());
+    }
+
+    #[tokio::test]
+    async fn rejects_bad_fractions() {
+        let (a, _b) = tokio::io::duplex(64);
+        let config = EmulatorConfig {
+            faults: FaultConfig {
+                drop_fraction: f64::NAN,
+                ..FaultConfig::default()
+            },
+            ..EmulatorConfig::default()
+        };
+        let source = FnSource {
+            sample: |_| SourceReading {
+                length_m: 0.0,
+                beam_ok: true,
+                signal: 1.0,
+            },
+            meteo: vec![],
+        };
+        assert!(Hpi3dEmulator::spawn(a, config, Box::new(source)).is_err());
     }
 }
