@@ -1,7 +1,8 @@
-//! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (grbl,
-//! probe) and their device emulators. Nothing here depends on the geocal core.
+//! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (hpi3d,
+//! grbl, probe) and their device emulators. Nothing here depends on the geocal core.
 
 pub mod grbl;
+pub mod hpi3d;
 pub mod probe;
 pub mod traits;
 
