@@ -4,6 +4,6 @@
 pub mod traits;
 
 pub use traits::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Tracer,
-    TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator,
+    RotaryState, RotaryTable, Tracer, TracerReading,
 };

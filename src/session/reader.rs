@@ -11,7 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT,
+    TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.
@@ -49,6 +50,8 @@ pub struct Session {
     pub tracers: BTreeMap<String, Vec<Stamped<TracerSample>>>,
     /// Key: id from the topic `/env/<id>`.
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    /// Key: table id from the topic `/rotary/<id>/state`.
+    pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
@@ -283,6 +286,7 @@ enum Slot {
     Session,
     Tracer(usize),
     Env(usize),
+    Rotary(usize),
     Event,
     /// A topic we do not read.
     Other,
@@ -299,6 +303,8 @@ struct Decoder {
     tracers: Vec<(String, Vec<Stamped<TracerSample>>)>,
     env_ids: HashMap<String, usize>,
     env: Vec<(String, Vec<Stamped<EnvSample>>)>,
+    rotary_ids: HashMap<String, usize>,
+    rotary: Vec<(String, Vec<Stamped<RotaryStateSample>>)>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     messages: u64,
@@ -318,6 +324,8 @@ impl Decoder {
             tracers: Vec::new(),
             env_ids: HashMap::new(),
             env: Vec::new(),
+            rotary_ids: HashMap::new(),
+            rotary: Vec::new(),
             events: Vec::new(),
             header: None,
             messages: 0,
@@ -346,6 +354,13 @@ impl Decoder {
                 self.env.push((eid.to_owned(), Vec::new()));
             }
             Slot::Env(i)
+        } else if let Some(rid) = rotary_id(topic) {
+            let next = self.rotary.len();
+            let i = *self.rotary_ids.entry(rid.to_owned()).or_insert(next);
+            if i == next {
+                self.rotary.push((rid.to_owned(), Vec::new()));
+            }
+            Slot::Rotary(i)
         } else {
             Slot::Other
         };
@@ -369,6 +384,7 @@ impl Decoder {
         match self.slots.get(usize::from(channel_id)) {
             Some(Slot::Tracer(i)) => self.tracers[*i].1.reserve(n),
             Some(Slot::Env(i)) => self.env[*i].1.reserve(n),
+            Some(Slot::Rotary(i)) => self.rotary[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -437,6 +453,15 @@ impl Decoder {
             Slot::Env(i) => {
                 if let Some(msg) = self.parse::<EnvSample>(channel_id, log_time_ns, data) {
                     self.env[i].1.push(Stamped {
+                        log_time_ns,
+                        publish_time_ns,
+                        msg,
+                    });
+                }
+            }
+            Slot::Rotary(i) => {
+                if let Some(msg) = self.parse::<RotaryStateSample>(channel_id, log_time_ns, data) {
+                    self.rotary[i].1.push(Stamped {
                         log_time_ns,
                         publish_time_ns,
                         msg,
@@ -516,6 +541,7 @@ impl Decoder {
         match self.slots.get(usize::from(channel_id)) {
             Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers[*i].0),
             Some(Slot::Env(i)) => format!("/env/{}", self.env[*i].0),
+            Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary[*i].0),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -569,12 +595,18 @@ impl Decoder {
             v.sort_by_key(|s| s.log_time_ns);
             env.insert(id, v);
         }
+        let mut rotary = BTreeMap::new();
+        for (id, mut v) in self.rotary {
+            v.sort_by_key(|s| s.log_time_ns);
+            rotary.insert(id, v);
+        }
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
             header: header.msg,
             tracers,
             env,
+            rotary,
             events,
             completeness,
             skipped: self.skipped,
@@ -596,6 +628,11 @@ fn tracer_id(topic: &str) -> Option<&str> {
 
 fn env_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/env/")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn rotary_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/rotary/")?.strip_suffix("/state")?;
     (!id.is_empty() && !id.contains('/')).then_some(id)
 }
 
@@ -1186,6 +1223,9 @@ mod tests {
         assert_eq!(tracer_id("/tracer/a/b/range"), None);
         assert_eq!(env_id("/env/air"), Some("air"));
         assert_eq!(env_id("/env/"), None);
+        assert_eq!(rotary_id("/rotary/c/state"), Some("c"));
+        assert_eq!(rotary_id("/rotary//state"), None);
+        assert_eq!(rotary_id("/rotary/c/x/state"), None);
         assert_eq!(messages::tracer_topic("x"), "/tracer/x/range");
     }
 }

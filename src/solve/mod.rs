@@ -1,3 +1,4 @@
 //! Solvers: minimisers and the methods that wire a model to a solver. No device access.
 
+pub mod circle;
 pub mod multilateration;
