@@ -2,6 +2,7 @@
 //! results for one plan kind. `solve_session` picks the method from the session's kind.
 
 pub mod multilateration;
+pub mod rotary_tracer;
 
 use serde::Serialize;
 
@@ -9,10 +10,12 @@ use crate::session::reader::Session;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration)")]
+    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer)")]
     UnknownKind(String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
+    #[error(transparent)]
+    RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -20,17 +23,27 @@ pub enum MethodError {
 #[serde(untagged)]
 pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
+    RotaryTracer(rotary_tracer::RotaryTracerResults),
 }
 
 impl Results {
     pub fn to_json_pretty(&self) -> String {
         serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
     }
+
+    /// The stations and points every tracer method has.
+    pub fn multilateration(&self) -> &multilateration::MultilaterationResults {
+        match self {
+            Results::Multilateration(r) => r,
+            Results::RotaryTracer(r) => &r.multilateration,
+        }
+    }
 }
 
 pub fn solve_session(session: &Session) -> Result<Results, MethodError> {
     match session.header.kind.as_str() {
         "multilateration" => Ok(Results::Multilateration(multilateration::solve(session)?)),
+        rotary_tracer::KIND => Ok(Results::RotaryTracer(rotary_tracer::solve(session)?)),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }

@@ -9,7 +9,8 @@ use serde::{Deserialize, Serialize};
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::session::reader::Session;
 use crate::solve::multilateration::{
-    solve as adjust, LengthObservation, MultilaterationProblem, Segment, SolveError, SolveOptions,
+    solve as adjust, LengthObservation, MultilaterationProblem, MultilaterationSolution, Segment,
+    SolveError, SolveOptions,
 };
 
 pub const RESULTS_FORMAT: &str = "geocal-results/1";
@@ -90,6 +91,15 @@ fn arr(v: &Vector3<f64>) -> [f64; 3] {
 
 /// Solve a multilateration session.
 pub fn solve(session: &Session) -> Result<MultilaterationResults, MultilaterationError> {
+    Ok(solve_detailed(session)?.0)
+}
+
+/// Solve a multilateration session; also return the adjustment itself (for methods built on
+/// it that need more than the results record, e.g. the stations' joint covariance). Station
+/// `j` of the solution is `results.stations[j]`.
+pub fn solve_detailed(
+    session: &Session,
+) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
     let tracer_id = match session.tracers.keys().next() {
         Some(id) if session.tracers.len() == 1 => id.clone(),
         _ => {
@@ -178,7 +188,7 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
     for d in &extraction.dropped {
         *dropped_reasons.entry(d.reason.clone()).or_insert(0) += 1;
     }
-    Ok(MultilaterationResults {
+    let results = MultilaterationResults {
         format: RESULTS_FORMAT.into(),
         kind: "multilateration".into(),
         session_id: session.header.session_id.clone(),
@@ -208,7 +218,8 @@ pub fn solve(session: &Session) -> Result<MultilaterationResults, Multilateratio
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
         },
-    })
+    };
+    Ok((results, solution))
 }
 
 /// The adjustment problem with the bookkeeping that maps it back to session names.
