@@ -19,6 +19,8 @@ pub enum MethodError {
 }
 
 /// Results of any method, serialised as geocal-results/1.
+// One value per solve: the size difference between variants costs nothing worth a Box.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Serialize)]
 #[serde(untagged)]
 pub enum Results {

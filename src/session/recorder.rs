@@ -643,8 +643,8 @@ mod tests {
                 if i % 1000 == 0 {
                     let r = RotaryStateSample {
                         t_s: i as f64 * 1e-4,
-                        commanded_rad: 0.5236,
-                        encoder_rad: (i % 2000 == 0).then_some(0.52359),
+                        commanded_rad: 0.25,
+                        encoder_rad: (i % 2000 == 0).then_some(0.2501),
                         in_position: i % 2000 == 0,
                     };
                     h.rotary("c", &r, t);

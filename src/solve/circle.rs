@@ -266,7 +266,7 @@ fn initial(
     let mut order = [0usize, 1, 2];
     order.sort_by(|&a, &b| eig.eigenvalues[a].total_cmp(&eig.eigenvalues[b]));
     let spread = eig.eigenvalues[order[2]];
-    if !(spread > 0.0) || eig.eigenvalues[order[1]] <= 1e-12 * spread {
+    if !spread.is_finite() || spread <= 0.0 || eig.eigenvalues[order[1]] <= 1e-12 * spread {
         return Err(CircleError::Degenerate);
     }
     let mut normal: Vector3<f64> = eig.eigenvectors.column(order[0]).into_owned().normalize();
@@ -300,7 +300,7 @@ fn initial(
     }
     let svd = a.svd(true, true);
     let smax = svd.singular_values.max();
-    if !(svd.singular_values.min() > 1e-12 * smax) {
+    if !smax.is_finite() || svd.singular_values.min() <= 1e-12 * smax {
         return Err(CircleError::Degenerate);
     }
     let sol = svd.solve(&b, 0.0).map_err(|_| CircleError::Degenerate)?;
