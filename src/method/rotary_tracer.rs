@@ -241,3 +241,134 @@ pub fn solve(session: &Session) -> Result<RotaryTracerResults, RotaryTracerError
         rotary,
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::session::messages::RotaryStateSample;
+    use crate::session::reader::testutil::header;
+    use crate::session::reader::{Completeness, Stamped};
+
+    fn session(events: Vec<RunEvent>, rotary: Vec<(u64, RotaryStateSample)>) -> Session {
+        let stamp = |(i, msg)| Stamped {
+            log_time_ns: 10 * i as u64,
+            publish_time_ns: 10 * i as u64,
+            msg,
+        };
+        Session {
+            header: header(),
+            tracers: BTreeMap::new(),
+            env: BTreeMap::new(),
+            rotary: BTreeMap::from([(
+                "c".to_string(),
+                rotary
+                    .into_iter()
+                    .map(|(t, msg)| Stamped {
+                        log_time_ns: t,
+                        publish_time_ns: t,
+                        msg,
+                    })
+                    .collect(),
+            )]),
+            events: events.into_iter().enumerate().map(stamp).collect(),
+            completeness: Completeness::Complete,
+            skipped: 0,
+            ignored: 0,
+        }
+    }
+
+    fn begin(station: &str) -> RunEvent {
+        RunEvent::StationBegin {
+            station: station.into(),
+            station_index: 0,
+            hint_m: None,
+        }
+    }
+    fn end(station: &str) -> RunEvent {
+        RunEvent::StationEnd {
+            station: station.into(),
+        }
+    }
+    fn rotation(table: &str, commanded_rad: f64) -> RunEvent {
+        RunEvent::Rotation {
+            table: table.into(),
+            commanded_rad,
+        }
+    }
+    fn state(commanded_rad: f64, encoder: Option<f64>) -> RotaryStateSample {
+        RotaryStateSample {
+            t_s: 0.0,
+            commanded_rad,
+            encoder_rad: encoder,
+            in_position: encoder.is_some(),
+        }
+    }
+
+    #[test]
+    fn table_stations_come_from_rotation_events() {
+        let s = session(
+            vec![
+                begin("c01"),       // 0
+                rotation("c", 0.0), // 10
+                end("c01"),         // 20
+                begin("c02"),       // 30
+                rotation("c", 0.4), // 40: retried below
+                rotation("c", 0.5), // 50
+                end("c02"),         // 60
+                begin("s13"),       // 70
+                end("s13"),         // 80
+            ],
+            vec![
+                (12, state(0.0, Some(0.0))),
+                (52, state(0.5, None)),
+                (55, state(0.5, Some(0.5001))),
+                (75, state(0.5, Some(9.0))),
+            ],
+        );
+        let (table, stations) = table_stations(&s).expect("table stations");
+        assert_eq!(table, "c");
+        let got: Vec<(&str, f64)> = stations
+            .iter()
+            .map(|t| (t.station.as_str(), t.commanded_rad))
+            .collect();
+        assert_eq!(got, [("c01", 0.0), ("c02", 0.5)]);
+        assert_eq!(encoder_rad(&s, "c", &stations[0]), Some(0.0));
+        // Only states inside the station count (not the one during s13).
+        assert_eq!(encoder_rad(&s, "c", &stations[1]), Some(0.5001));
+    }
+
+    #[test]
+    fn inconsistent_rotations_are_errors() {
+        let none = session(vec![begin("s1"), end("s1")], vec![]);
+        assert!(matches!(
+            table_stations(&none),
+            Err(RotaryTracerError::NoRotations)
+        ));
+        let outside = session(vec![rotation("c", 0.1), begin("s1")], vec![]);
+        assert!(matches!(
+            table_stations(&outside),
+            Err(RotaryTracerError::RotationOutsideStation { .. })
+        ));
+        let two = session(
+            vec![
+                begin("a"),
+                rotation("c", 0.1),
+                end("a"),
+                begin("b"),
+                rotation("b", 0.2),
+            ],
+            vec![],
+        );
+        let err = table_stations(&two).expect_err("two tables");
+        assert!(err.to_string().contains("`c`") && err.to_string().contains("`b`"));
+    }
+
+    #[test]
+    fn wrap_pi_keeps_the_half_open_interval() {
+        assert!((wrap_pi(3.0 * std::f64::consts::PI) - std::f64::consts::PI).abs() < 1e-12);
+        assert!((wrap_pi(-0.1) + 0.1).abs() < 1e-15);
+        assert!((wrap_pi(std::f64::consts::TAU + 0.2) - 0.2).abs() < 1e-12);
+    }
+}
