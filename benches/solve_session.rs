@@ -377,11 +377,13 @@ fn main() {
             solution.chi2 / solution.dof as f64
         );
         drop((solution, problem, extraction));
-        let results = method.run(|| geocal::method::solve_session(&session, &Default::default()).expect("method"));
+        let results = method
+            .run(|| geocal::method::solve_session(&session, &Default::default()).expect("method"));
         drop(results);
         drop(session);
-        let results = whole.run(|| geocal::run::solve_file(&path, &Default::default()).expect("solve_file"));
-        let geocal::method::Results::Multilateration(r) = &results;
+        let results =
+            whole.run(|| geocal::run::solve_file(&path, &Default::default()).expect("solve_file"));
+        let r = results.multilateration();
         whole.note = format!(
             "residual RMS {:.1} nm, {} points",
             r.residual_rms_m * 1e9,

@@ -7,7 +7,9 @@ use crate::clock::{Clock, VirtualClock};
 use crate::config::{Config, DriverKind};
 use crate::plan::Plan;
 use crate::sequencer::Devices;
-use crate::sim::devices::{SharedWorld, SimEnvironment, SimMachine, SimOperator, SimTracer};
+use crate::sim::devices::{
+    SharedWorld, SimEnvironment, SimMachine, SimOperator, SimRotaryTable, SimTracer,
+};
 use crate::sim::world::{SimError, SimWorld};
 
 pub struct BuiltDevices {
@@ -30,6 +32,12 @@ pub fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> Result<BuiltDevices
             world: world.clone(),
         }) as Box<dyn geocal_drivers::Environment>
     });
+    let rotary = config.devices.rotary_table.as_ref().map(|table| {
+        Box::new(SimRotaryTable {
+            id: table.id.clone(),
+            world: world.clone(),
+        }) as Box<dyn geocal_drivers::RotaryTable>
+    });
     Ok(BuiltDevices {
         devices: Devices {
             tracer: Box::new(SimTracer {
@@ -44,6 +52,7 @@ pub fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> Result<BuiltDevices
             operator: Box::new(SimOperator {
                 world: world.clone(),
             }),
+            rotary,
         },
         clock,
         world: Some(world),

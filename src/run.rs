@@ -137,6 +137,13 @@ fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
         .extra
         .insert("feed_m_s".into(), machine.feed_m_s.into());
     devices.push(machine_device);
+    if let Some(table) = &config.devices.rotary_table {
+        devices.push(plain_device(
+            &table.id,
+            "rotary_table",
+            table.driver.as_str(),
+        ));
+    }
     let seed = config
         .sim
         .as_ref()

@@ -132,3 +132,151 @@ fn unreadable_file_names_it() {
     let err = Config::load(Path::new("no/such/config.toml")).expect_err("must fail");
     assert_mentions(&err.to_string(), &["no/such/config.toml", "cannot read"]);
 }
+
+// --- plan kind rotary_tracer ---
+
+const ROTARY: &str = include_str!("../config/rotary-tracer.toml");
+
+/// Replace `from` (which must occur) in the rotary example.
+fn rotary_with(from: &str, to: &str) -> String {
+    assert!(ROTARY.contains(from), "rotary example lacks {from:?}");
+    ROTARY.replace(from, to)
+}
+
+#[test]
+fn rotary_config_is_valid_and_expands_to_13_stations() {
+    let config = parse(ROTARY).expect("rotary config must be valid");
+    let plan = geocal::plan::Plan::from_config(&config);
+    assert_eq!(plan.stations.len(), 13);
+    assert_eq!(plan.points.len(), 72);
+    let on_table: Vec<f64> = plan
+        .stations
+        .iter()
+        .filter_map(|s| s.rotation.as_ref().map(|r| r.commanded_rad))
+        .collect();
+    assert_eq!(on_table.len(), 12);
+    assert!((on_table[11] - 330f64.to_radians()).abs() < 1e-12);
+    assert_eq!(plan.stations[0].id, "c01");
+    assert_eq!(plan.stations[12].id, "s13");
+    // Hints turn about the nominal axis with the commanded angle.
+    let h = plan.stations[3].hint_m.expect("hint");
+    assert!((h[0] - 0.40).abs() < 1e-12 && (h[1] - 0.60).abs() < 1e-12);
+}
+
+#[test]
+fn rotary_kind_without_table_section() {
+    let cut = ROTARY.find("[plan.rotary]").expect("plan.rotary");
+    let end = ROTARY
+        .find("# The station off the table")
+        .expect("station comment");
+    let text = format!("{}{}", &ROTARY[..cut], &ROTARY[end..]);
+    assert_mentions(&error_of(&text), &[FILE, "plan.rotary", "missing"]);
+}
+
+#[test]
+fn rotary_kind_without_table_device() {
+    let text = rotary_with("[devices.rotary_table]\nid = \"c\"\ndriver = \"sim\"\n", "");
+    assert_mentions(&error_of(&text), &[FILE, "devices.rotary_table", "missing"]);
+}
+
+#[test]
+fn rotary_table_id_must_match_the_device() {
+    let text = rotary_with("table = \"c\"", "table = \"b\"");
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary.table", "`b`", "expected `c`"],
+    );
+}
+
+#[test]
+fn rotary_angles_listed_and_stepped_is_ambiguous() {
+    let text = rotary_with("count = 12", "count = 12\nangles_rad = [0.0, 1.0, 2.0]");
+    assert_mentions(&error_of(&text), &[FILE, "plan.rotary", "not both"]);
+}
+
+#[test]
+fn rotary_angles_in_degrees_are_caught() {
+    let text = rotary_with(
+        "step_rad = 0.5235987755982988           # 30°\ncount = 12",
+        "angles_rad = [0.0, 90.0, 180.0, 270.0]",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary.angles_rad", "radians", "not degrees"],
+    );
+}
+
+#[test]
+fn rotary_repeated_angle_is_rejected() {
+    let text = rotary_with(
+        "step_rad = 0.5235987755982988",
+        "step_rad = 3.141592653589793",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary.count", "same place", "modulo 2π"],
+    );
+}
+
+#[test]
+fn rotary_needs_three_table_stations() {
+    let text = rotary_with("count = 12", "count = 2");
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary.count", "at least 3", "found 2"],
+    );
+}
+
+#[test]
+fn rotary_tracer_on_the_axis_is_rejected() {
+    let text = rotary_with(
+        "tracer_hint_m = [0.60, 0.40, -0.15]",
+        "tracer_hint_m = [0.40, 0.40, -0.15]",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary.tracer_hint_m", "off-centre"],
+    );
+}
+
+#[test]
+fn rotary_needs_a_station_off_the_table_plane() {
+    let text = rotary_with(
+        "hint_m = [-0.25, 0.40, 0.30]",
+        "hint_m = [-0.25, 0.40, -0.15]",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.stations", "one plane", "off the table"],
+    );
+}
+
+#[test]
+fn rotary_unknown_key_is_named() {
+    let text = rotary_with("count = 12", "count = 12\nstep_deg = 30.0");
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary", "unknown field `step_deg`"],
+    );
+}
+
+#[test]
+fn rotary_section_needs_the_rotary_kind() {
+    let text = rotary_with("kind = \"rotary_tracer\"", "kind = \"multilateration\"");
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "plan.rotary", "kind = \"rotary_tracer\""],
+    );
+}
+
+#[test]
+fn rotary_sim_speed_must_be_positive() {
+    let text = rotary_with(
+        "axis_tilt_rad = 1e-4 }",
+        "axis_tilt_rad = 1e-4, speed_rad_s = 0.0 }",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &[FILE, "sim.rotary.speed_rad_s", "positive"],
+    );
+}

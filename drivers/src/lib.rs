@@ -8,5 +8,5 @@ pub mod traits;
 
 pub use traits::{
     AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Probe,
-    ProbeReading, Tracer, TracerReading,
+    ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
 };

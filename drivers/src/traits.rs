@@ -1,5 +1,6 @@
-//! Device traits: what the sequencer may ask of a tracer, an environment sensor, a machine
-//! and whoever moves the tracer between stations. Real, simulated and replay drivers implement them.
+//! Device traits: what the sequencer may ask of a tracer, an environment sensor, a machine,
+//! a rotary table and whoever moves the tracer between stations. Real, simulated and replay
+//! drivers implement them.
 
 use std::collections::BTreeMap;
 
@@ -122,4 +123,23 @@ pub trait Probe: Send {
     fn id(&self) -> &str;
     /// Request one reading and wait for it.
     async fn read(&mut self) -> Result<ProbeReading, DeviceError>;
+}
+
+/// Motion state of a rotary table.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum RotaryState {
+    /// Rotating, or not yet settled inside the in-position window.
+    Moving,
+    /// At rest inside the in-position window, at the angle its encoder reports (radians).
+    InPosition { encoder_rad: f64 },
+}
+
+/// A rotary table (an axis such as C) whose angle geocal commands, e.g. over Modbus.
+#[async_trait]
+pub trait RotaryTable: Send {
+    fn id(&self) -> &str;
+    /// Start a rotation to the absolute commanded angle, radians (returns once accepted).
+    async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), DeviceError>;
+    /// Current motion state; cheap to call often (drivers rate-limit their own queries).
+    async fn state(&mut self) -> Result<RotaryState, DeviceError>;
 }

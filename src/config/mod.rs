@@ -35,7 +35,7 @@ pub enum ConfigError {
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct Config {
-    /// Plan kind; only `multilateration` runs so far.
+    /// Plan kind: `multilateration` or `rotary_tracer` (the tracer stands on a rotary table).
     pub kind: PlanKind,
     pub machine: MachineConfig,
     pub devices: DevicesConfig,
@@ -49,12 +49,16 @@ pub struct Config {
 #[serde(rename_all = "snake_case")]
 pub enum PlanKind {
     Multilateration,
+    /// Multilateration with the tracer on a rotary table: the table's axis and the true angle
+    /// of every commanded step (DESIGN.md method 3).
+    RotaryTracer,
 }
 
 impl PlanKind {
     pub fn as_str(self) -> &'static str {
         match self {
             PlanKind::Multilateration => "multilateration",
+            PlanKind::RotaryTracer => "rotary_tracer",
         }
     }
 }
@@ -86,6 +90,17 @@ pub struct DevicesConfig {
     #[serde(default)]
     pub environment: Option<EnvironmentConfig>,
     pub machine: MachineDeviceConfig,
+    /// The rotary table the tracer stands on (plan kind `rotary_tracer`).
+    #[serde(default)]
+    pub rotary_table: Option<RotaryTableConfig>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RotaryTableConfig {
+    /// Axis name, e.g. `c`; the `/rotary/<id>/state` topic and `rotation` events carry it.
+    pub id: String,
+    pub driver: DriverKind,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -158,7 +173,12 @@ pub struct PlanConfig {
     pub grid: GridConfig,
     /// Pass directions, in order; every pass starts by homing at point 0.
     pub passes: Vec<PassDirection>,
+    /// Stations the operator places (off the table), measured after the table stations.
+    #[serde(default)]
     pub stations: Vec<StationConfig>,
+    /// Stations on the rotary table (plan kind `rotary_tracer`), measured first.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub rotary: Option<RotaryPlanConfig>,
     /// Minimum dwell at each point, seconds.
     pub dwell_s: f64,
     /// Give up waiting for stillstand after this long (a `fault` event), seconds.
@@ -207,6 +227,59 @@ pub struct StationConfig {
     pub hint_m: Option<[f64; 3]>,
 }
 
+/// The tracer on the rotary table: one station per commanded table angle. The angles are
+/// either listed (`angles_rad`) or stepped (`step_rad` and `count`, from `start_rad`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RotaryPlanConfig {
+    /// Id of the table (must equal `devices.rotary_table.id`).
+    pub table: String,
+    /// A point on the nominal table axis, machine frame, metres.
+    pub axis_point_m: [f64; 3],
+    /// Nominal direction of the table axis (positive angles turn right-handed about it).
+    pub axis_direction: [f64; 3],
+    /// Where the tracer stands when the table is at commanded angle 0, machine frame, metres.
+    pub tracer_hint_m: [f64; 3],
+    /// Commanded absolute table angles, radians, in the order measured.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub angles_rad: Option<Vec<f64>>,
+    /// First commanded angle of the stepped form, radians (default 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub start_rad: Option<f64>,
+    /// Step between commanded angles of the stepped form, radians.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub step_rad: Option<f64>,
+    /// Number of table stations of the stepped form.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub count: Option<usize>,
+    /// Table station ids are this prefix and the 1-based step number: `c01`, `c02`, ...
+    #[serde(default = "default_station_prefix")]
+    pub station_prefix: String,
+}
+
+fn default_station_prefix() -> String {
+    String::from("c")
+}
+
+impl RotaryPlanConfig {
+    /// The commanded angles in measuring order (listed, or expanded from the stepped form).
+    pub fn commanded_angles_rad(&self) -> Vec<f64> {
+        match (&self.angles_rad, self.step_rad, self.count) {
+            (Some(angles), _, _) => angles.clone(),
+            (None, Some(step), Some(count)) => {
+                let start = self.start_rad.unwrap_or(0.0);
+                (0..count).map(|k| start + step * k as f64).collect()
+            }
+            _ => Vec::new(),
+        }
+    }
+
+    /// Id of the table station at step `k` (0-based).
+    pub fn station_id(&self, k: usize) -> String {
+        format!("{}{:02}", self.station_prefix, k + 1)
+    }
+}
+
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct StillstandConfig {
@@ -230,6 +303,40 @@ pub struct SimConfig {
     pub relocation_s: f64,
     #[serde(default)]
     pub environment: SimEnvironmentConfig,
+    /// The simulated rotary table's errors (plan kind `rotary_tracer`).
+    #[serde(default)]
+    pub rotary: SimRotaryConfig,
+}
+
+/// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct SimRotaryConfig {
+    /// Peak angular positioning error (smooth harmonics of the angle), radians.
+    pub angle_error_rad: f64,
+    /// Number of harmonics (1, 2, ... per revolution) in the angular positioning error.
+    pub harmonics: usize,
+    /// Standard deviation of the true axis location from the nominal, per coordinate, metres.
+    pub axis_offset_m: f64,
+    /// Standard deviation of the true axis direction from the nominal (tilt), radians.
+    pub axis_tilt_rad: f64,
+    /// Rotation speed, rad/s.
+    pub speed_rad_s: f64,
+    /// Time to settle in position after a rotation, seconds.
+    pub settle_s: f64,
+}
+
+impl Default for SimRotaryConfig {
+    fn default() -> Self {
+        Self {
+            angle_error_rad: 2.4e-5,
+            harmonics: 4,
+            axis_offset_m: 5e-4,
+            axis_tilt_rad: 1e-4,
+            speed_rad_s: 0.2,
+            settle_s: 2.0,
+        }
+    }
 }
 
 fn default_station_hint_error() -> f64 {

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeSet;
 
-use super::{Config, DriverKind};
+use super::{Config, DriverKind, PlanKind};
 use crate::model::kinematics::Structure;
 
 type Invalid = (String, String);
@@ -32,6 +32,7 @@ fn non_negative(key: &str, value: f64) -> Result<(), Invalid> {
 pub fn validate(config: &Config) -> Result<(), Invalid> {
     validate_machine(config)?;
     validate_devices(config)?;
+    validate_rotary(config)?;
     validate_plan(config)?;
     validate_sim(config)
 }
@@ -147,7 +148,11 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
         }
     }
     let points = plan.grid.x.count * plan.grid.y.count * plan.grid.z.count;
-    let stations = plan.stations.len();
+    let table_stations = plan
+        .rotary
+        .as_ref()
+        .map_or(0, |r| r.commanded_angles_rad().len());
+    let stations = plan.stations.len() + table_stations;
     if stations < 4 {
         return fail(
             "plan.stations",
@@ -173,11 +178,19 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
         );
     }
     let mut ids = BTreeSet::new();
+    if let Some(rotary) = &plan.rotary {
+        for k in 0..table_stations {
+            ids.insert(rotary.station_id(k));
+        }
+    }
     for (i, station) in plan.stations.iter().enumerate() {
-        if !ids.insert(station.id.as_str()) {
+        if !ids.insert(station.id.clone()) {
             return fail(
                 &format!("plan.stations[{i}].id"),
-                format!("duplicate station id `{}`", station.id),
+                format!(
+                    "duplicate station id `{}` (table stations are named plan.rotary.station_prefix + step number)",
+                    station.id
+                ),
             );
         }
         if let Some(hint) = station.hint_m {
@@ -228,10 +241,190 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
     Ok(())
 }
 
+/// The rotary table and its stations: present exactly for plan kind `rotary_tracer`.
+fn validate_rotary(config: &Config) -> Result<(), Invalid> {
+    let table = config.devices.rotary_table.as_ref();
+    let Some(rotary) = &config.plan.rotary else {
+        if config.kind == PlanKind::RotaryTracer {
+            return fail(
+                "plan.rotary",
+                "missing: kind = \"rotary_tracer\" expects a [plan.rotary] table (table, axis_point_m, axis_direction, tracer_hint_m, and angles_rad or step_rad + count)",
+            );
+        }
+        if table.is_some() {
+            return fail(
+                "devices.rotary_table",
+                format!(
+                    "kind = \"{}\" uses no rotary table: expected no [devices.rotary_table] (or kind = \"rotary_tracer\")",
+                    config.kind.as_str()
+                ),
+            );
+        }
+        return Ok(());
+    };
+    if config.kind != PlanKind::RotaryTracer {
+        return fail(
+            "plan.rotary",
+            format!(
+                "kind = \"{}\" has no table stations: expected kind = \"rotary_tracer\" or no [plan.rotary]",
+                config.kind.as_str()
+            ),
+        );
+    }
+    let Some(table) = table else {
+        return fail(
+            "devices.rotary_table",
+            "missing: kind = \"rotary_tracer\" expects a [devices.rotary_table] with id and driver",
+        );
+    };
+    if table.id.is_empty() || table.id.contains('/') {
+        return fail(
+            "devices.rotary_table.id",
+            format!("expected a non-empty id without '/', found {:?}", table.id),
+        );
+    }
+    if rotary.table != table.id {
+        return fail(
+            "plan.rotary.table",
+            format!(
+                "unknown table `{}`: expected `{}` (devices.rotary_table.id)",
+                rotary.table, table.id
+            ),
+        );
+    }
+    for (key, v) in [
+        ("plan.rotary.axis_point_m", rotary.axis_point_m),
+        ("plan.rotary.axis_direction", rotary.axis_direction),
+        ("plan.rotary.tracer_hint_m", rotary.tracer_hint_m),
+    ] {
+        if v.iter().any(|x| !x.is_finite()) {
+            return fail(key, "expected 3 finite numbers");
+        }
+    }
+    let direction = nalgebra::Vector3::from(rotary.axis_direction);
+    if direction.norm() < 1e-9 {
+        return fail(
+            "plan.rotary.axis_direction",
+            "expected a non-zero direction vector",
+        );
+    }
+    let n = direction.normalize();
+    let arm = nalgebra::Vector3::from(rotary.tracer_hint_m)
+        - nalgebra::Vector3::from(rotary.axis_point_m);
+    let radius_m = (arm - n * arm.dot(&n)).norm();
+    if radius_m < 0.01 {
+        return fail(
+            "plan.rotary.tracer_hint_m",
+            format!(
+                "the tracer stands {radius_m:.4} m from the table axis: expected it off-centre (at least 0.01 m) so that rotating the table moves it"
+            ),
+        );
+    }
+    let stepped = rotary.step_rad.is_some() || rotary.count.is_some() || rotary.start_rad.is_some();
+    match (&rotary.angles_rad, stepped) {
+        (Some(_), true) => {
+            return fail(
+                "plan.rotary",
+                "expected either angles_rad or step_rad + count (+ start_rad), not both",
+            )
+        }
+        (None, false) => {
+            return fail(
+                "plan.rotary",
+                "missing: expected angles_rad (commanded angles, radians) or step_rad + count",
+            )
+        }
+        (None, true) => {
+            let Some(step) = rotary.step_rad else {
+                return fail(
+                    "plan.rotary.step_rad",
+                    "missing: expected the step between commanded angles, radians",
+                );
+            };
+            if rotary.count.is_none() {
+                return fail(
+                    "plan.rotary.count",
+                    "missing: expected the number of table stations",
+                );
+            }
+            if !(step.is_finite() && step != 0.0) {
+                return fail(
+                    "plan.rotary.step_rad",
+                    format!("expected a finite non-zero step in radians, found {step}"),
+                );
+            }
+            if let Some(start) = rotary.start_rad {
+                if !start.is_finite() {
+                    return fail(
+                        "plan.rotary.start_rad",
+                        "expected a finite angle in radians",
+                    );
+                }
+            }
+        }
+        (Some(_), false) => {}
+    }
+    let key = if rotary.angles_rad.is_some() {
+        "plan.rotary.angles_rad"
+    } else {
+        "plan.rotary.count"
+    };
+    let angles = rotary.commanded_angles_rad();
+    if angles.len() < 3 {
+        return fail(
+            key,
+            format!(
+                "expected at least 3 table angles (a circle needs 3 stations), found {}",
+                angles.len()
+            ),
+        );
+    }
+    for (i, a) in angles.iter().enumerate() {
+        if !a.is_finite() {
+            return fail(key, format!("angle {i} is {a}: expected finite radians"));
+        }
+        for (k, b) in angles[..i].iter().enumerate() {
+            let d = (a - b).rem_euclid(std::f64::consts::TAU);
+            if d.min(std::f64::consts::TAU - d) < 1e-3 {
+                return fail(
+                    key,
+                    format!(
+                        "angles {k} ({b} rad) and {i} ({a} rad) put the tracer at the same place: expected distinct angles modulo 2π"
+                    ),
+                );
+            }
+        }
+        if a.abs() > 100.0 {
+            return fail(
+                key,
+                format!("angle {i} is {a}: expected radians (|angle| <= 100), not degrees"),
+            );
+        }
+    }
+    // Stations on a circle lie in one plane: multilateration needs one off that plane.
+    let off_plane = config.plan.stations.iter().any(|s| {
+        s.hint_m.is_some_and(|h| {
+            let d = nalgebra::Vector3::from(h) - nalgebra::Vector3::from(rotary.tracer_hint_m);
+            d.dot(&n).abs() >= 0.05
+        })
+    });
+    if !off_plane {
+        return fail(
+            "plan.stations",
+            "the table stations all lie in one plane: expected at least one station off the table, with hint_m at least 0.05 m above or below the tracer on the table",
+        );
+    }
+    Ok(())
+}
+
 fn validate_sim(config: &Config) -> Result<(), Invalid> {
     let devices = &config.devices;
     let uses_sim = devices.tracer.driver == DriverKind::Sim
         || devices.machine.driver == DriverKind::Sim
+        || devices
+            .rotary_table
+            .as_ref()
+            .is_some_and(|r| r.driver == DriverKind::Sim)
         || devices
             .environment
             .as_ref()
@@ -253,6 +446,15 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
         "sim.environment.temp_period_s",
         sim.environment.temp_period_s,
     )?;
+    let rotary = &sim.rotary;
+    non_negative("sim.rotary.angle_error_rad", rotary.angle_error_rad)?;
+    if rotary.harmonics == 0 {
+        return fail("sim.rotary.harmonics", "expected at least 1 harmonic");
+    }
+    non_negative("sim.rotary.axis_offset_m", rotary.axis_offset_m)?;
+    non_negative("sim.rotary.axis_tilt_rad", rotary.axis_tilt_rad)?;
+    positive("sim.rotary.speed_rad_s", rotary.speed_rad_s)?;
+    non_negative("sim.rotary.settle_s", rotary.settle_s)?;
     if config.plan.stations.iter().any(|s| s.hint_m.is_none()) {
         return fail(
             "plan.stations",

@@ -3,6 +3,7 @@
 
 pub mod multilateration;
 pub mod plan_check;
+pub mod rotary_tracer;
 
 use serde::Serialize;
 
@@ -10,22 +11,35 @@ use crate::session::reader::Session;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration)")]
+    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer)")]
     UnknownKind(String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
+    #[error(transparent)]
+    RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
+// One value per solve: the size difference between variants costs nothing worth a Box.
+#[allow(clippy::large_enum_variant)]
 #[derive(Debug, Clone, Serialize)]
 #[serde(untagged)]
 pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
+    RotaryTracer(rotary_tracer::RotaryTracerResults),
 }
 
 impl Results {
     pub fn to_json_pretty(&self) -> String {
         serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    }
+
+    /// The stations and points every tracer method has.
+    pub fn multilateration(&self) -> &multilateration::MultilaterationResults {
+        match self {
+            Results::Multilateration(r) => r,
+            Results::RotaryTracer(r) => &r.multilateration,
+        }
     }
 }
 
@@ -39,6 +53,9 @@ pub struct SolveSettings {
 pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
     match session.header.kind.as_str() {
         "multilateration" => Ok(Results::Multilateration(multilateration::solve(
+            session, settings,
+        )?)),
+        rotary_tracer::KIND => Ok(Results::RotaryTracer(rotary_tracer::solve(
             session, settings,
         )?)),
         other => Err(MethodError::UnknownKind(other.to_string())),

@@ -13,9 +13,10 @@ use crate::session::reader::Session;
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
 };
-use crate::solve::multilateration::{dense_point_covariance, MultilaterationSolution};
+use crate::solve::multilateration::dense_point_covariance;
 use crate::solve::multilateration::{
-    solve as adjust, LengthObservation, MultilaterationProblem, Segment, SolveError, SolveOptions,
+    solve as adjust, LengthObservation, MultilaterationProblem, MultilaterationSolution, Segment,
+    SolveError, SolveOptions,
 };
 use crate::solve::robust::solve_huber;
 
@@ -127,6 +128,16 @@ pub fn solve(
     session: &Session,
     settings: &SolveSettings,
 ) -> Result<MultilaterationResults, MultilaterationError> {
+    Ok(solve_detailed(session, settings)?.0)
+}
+
+/// Solve a multilateration session; also return the adjustment itself (for methods built on
+/// it that need more than the results record, e.g. the stations' joint covariance). Station
+/// `j` of the solution is `results.stations[j]`.
+pub fn solve_detailed(
+    session: &Session,
+    settings: &SolveSettings,
+) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
     let tracer_id = match session.tracers.keys().next() {
         Some(id) if session.tracers.len() == 1 => id.clone(),
         _ => {
@@ -251,7 +262,7 @@ pub fn solve(
     for d in &extraction.dropped {
         *dropped_reasons.entry(d.reason.clone()).or_insert(0) += 1;
     }
-    Ok(MultilaterationResults {
+    let results = MultilaterationResults {
         format: RESULTS_FORMAT.into(),
         kind: "multilateration".into(),
         session_id: session.header.session_id.clone(),
@@ -284,7 +295,8 @@ pub fn solve(
         geometric_errors,
         notes,
         robust,
-    })
+    };
+    Ok((results, solution))
 }
 
 /// Decompose the measured volumetric errors into the machine's geometric errors.

@@ -1,6 +1,8 @@
 //! The measurement plan: a validated configuration expanded into points (grid order),
-//! stations and the visiting order of each pass. Pure data; the sequencer executes it.
+//! stations (placed by the operator or turned by a rotary table) and the visiting order of
+//! each pass. Pure data; the sequencer executes it.
 
+use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 
 use crate::config::{AxisRange, Config, GridOrder, PassDirection};
@@ -26,6 +28,16 @@ pub struct PlanTarget {
 pub struct PlanStation {
     pub id: String,
     pub hint_m: Option<[f64; 3]>,
+    /// Set when the tracer stands on a rotary table: the table turns it to this station.
+    pub rotation: Option<PlanRotation>,
+}
+
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct PlanRotation {
+    /// Table id.
+    pub table: String,
+    /// Commanded absolute table angle, radians.
+    pub commanded_rad: f64,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -62,14 +74,13 @@ impl Plan {
                 })
                 .collect(),
             points,
-            stations: config
-                .plan
-                .stations
-                .iter()
-                .map(|s| PlanStation {
+            stations: table_stations(config)
+                .into_iter()
+                .chain(config.plan.stations.iter().map(|s| PlanStation {
                     id: s.id.clone(),
                     hint_m: s.hint_m,
-                })
+                    rotation: None,
+                }))
                 .collect(),
             passes: config.plan.passes.clone(),
             dwell_s: config.plan.dwell_s,
@@ -93,6 +104,46 @@ impl Plan {
             PassDirection::Backward => std::iter::once(0).chain((1..n).rev()).collect(),
         }
     }
+}
+
+/// The stations on the rotary table, in commanded order; each hint is the tracer's nominal
+/// position turned about the nominal axis by the commanded angle.
+fn table_stations(config: &Config) -> Vec<PlanStation> {
+    let Some(rotary) = &config.plan.rotary else {
+        return Vec::new();
+    };
+    let axis_point = Vector3::from(rotary.axis_point_m);
+    let direction = Vector3::from(rotary.axis_direction);
+    let tracer = Vector3::from(rotary.tracer_hint_m);
+    rotary
+        .commanded_angles_rad()
+        .into_iter()
+        .enumerate()
+        .map(|(k, commanded_rad)| {
+            let hint = rotate_about_axis(&tracer, &axis_point, &direction, commanded_rad);
+            PlanStation {
+                id: rotary.station_id(k),
+                hint_m: Some([hint.x, hint.y, hint.z]),
+                rotation: Some(PlanRotation {
+                    table: rotary.table.clone(),
+                    commanded_rad,
+                }),
+            }
+        })
+        .collect()
+}
+
+/// `p` turned by `angle_rad` (right-handed) about the axis through `axis_point` along `direction`.
+pub fn rotate_about_axis(
+    p: &Vector3<f64>,
+    axis_point: &Vector3<f64>,
+    direction: &Vector3<f64>,
+    angle_rad: f64,
+) -> Vector3<f64> {
+    let Some(axis) = Unit::try_new(*direction, 1e-12) else {
+        return *p;
+    };
+    axis_point + Rotation3::from_axis_angle(&axis, angle_rad) * (p - axis_point)
 }
 
 fn linspace(range: &AxisRange) -> Vec<f64> {

@@ -1,17 +1,19 @@
-//! The run sequencer: executes a plan on devices seen only through their traits, waits for
-//! stillstand, homes, and records every raw sample and every step to the session.
+//! The run sequencer: executes a plan on devices seen only through their traits, turns the
+//! rotary table the tracer stands on, waits for stillstand, homes, and records every raw sample
+//! and every step to the session.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use geocal_drivers::{
-    AxisPositions, DeviceError, Environment, Machine, MachineState, Operator, Tracer, TracerReading,
+    AxisPositions, DeviceError, Environment, Machine, MachineState, Operator, RotaryState,
+    RotaryTable, Tracer, TracerReading,
 };
 
 use crate::clock::Clock;
 use crate::extract::{Stillstand, StillstandDetector};
-use crate::plan::{Plan, PlanTarget, AXES};
-use crate::session::messages::{EnvSample, RunEvent, TracerSample};
+use crate::plan::{Plan, PlanRotation, PlanTarget, AXES};
+use crate::session::messages::{EnvSample, RotaryStateSample, RunEvent, TracerSample};
 use crate::session::recorder::RecorderHandle;
 
 /// The devices of a run, as trait objects built from the configuration.
@@ -20,6 +22,8 @@ pub struct Devices {
     pub environment: Option<Box<dyn Environment>>,
     pub machine: Box<dyn Machine>,
     pub operator: Box<dyn Operator>,
+    /// The rotary table the tracer stands on (plans with table stations).
+    pub rotary: Option<Box<dyn RotaryTable>>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -28,6 +32,22 @@ pub enum SequencerError {
     Device(#[from] DeviceError),
     #[error("machine did not arrive at point {point} within {waited_s:.0} s of device time")]
     NoArrival { point: usize, waited_s: f64 },
+    #[error(
+        "station {station} is on rotary table `{table}`, but the run has no rotary table device"
+    )]
+    NoTable { station: String, table: String },
+    #[error("station {station} is on rotary table `{table}`, but the run's table is `{device}`")]
+    WrongTable {
+        station: String,
+        table: String,
+        device: String,
+    },
+    #[error("rotary table {table} not in position at {commanded_rad} rad within {waited_s:.0} s of device time")]
+    NoInPosition {
+        table: String,
+        commanded_rad: f64,
+        waited_s: f64,
+    },
 }
 
 /// Called after each finished point with (done, total).
@@ -43,6 +63,8 @@ pub struct RunSummary {
 
 /// How long device time may pass during one move before it counts as lost.
 const MAX_MOVE_S: f64 = 600.0;
+/// How long device time may pass during one rotation before it counts as lost.
+const MAX_ROTATION_S: f64 = 600.0;
 /// How often (device time) the environment is polled.
 const ENV_POLL_S: f64 = 0.5;
 
@@ -55,6 +77,10 @@ pub struct Sequencer<'a> {
     position: Option<[f64; 3]>,
     last_sample: Option<TracerReading>,
     next_env_poll_s: f64,
+    /// The tracer stands on the rotary table (placed there by the operator).
+    on_table: bool,
+    /// Clock reading at the start of the run: `/rotary/<id>/state` times count from here.
+    start_ns: u64,
     summary: RunSummary,
 }
 
@@ -65,6 +91,7 @@ impl<'a> Sequencer<'a> {
         recorder: RecorderHandle,
         clock: Arc<dyn Clock>,
     ) -> Self {
+        let start_ns = clock.now_ns();
         Self {
             plan,
             devices,
@@ -74,6 +101,8 @@ impl<'a> Sequencer<'a> {
             position: None,
             last_sample: None,
             next_env_poll_s: 0.0,
+            on_table: false,
+            start_ns,
             summary: RunSummary::default(),
         }
     }
@@ -92,10 +121,18 @@ impl<'a> Sequencer<'a> {
                 station_index,
                 hint_m: station.hint_m,
             });
-            self.devices
-                .operator
-                .place_station(station_index, &station.id, station.hint_m)
-                .await?;
+            // The operator places the tracer, once onto the table for all its table stations;
+            // from then on the table turns it from station to station.
+            if !(station.rotation.is_some() && self.on_table) {
+                self.devices
+                    .operator
+                    .place_station(station_index, &station.id, station.hint_m)
+                    .await?;
+                self.on_table = station.rotation.is_some();
+            }
+            if let Some(rotation) = &station.rotation {
+                self.rotate(&station.id, rotation).await?;
+            }
             for target in &plan.targets {
                 if mounted != Some(target) {
                     self.devices
@@ -203,6 +240,65 @@ impl<'a> Sequencer<'a> {
         }
         self.position = Some(target);
         Ok(())
+    }
+
+    /// Command the table to a station's angle (a `rotation` event), then keep recording the
+    /// tracer and the table's state until the table reports in position.
+    async fn rotate(
+        &mut self,
+        station: &str,
+        rotation: &PlanRotation,
+    ) -> Result<(), SequencerError> {
+        let Some(table_id) = self.devices.rotary.as_ref().map(|t| t.id().to_string()) else {
+            return Err(SequencerError::NoTable {
+                station: station.to_string(),
+                table: rotation.table.clone(),
+            });
+        };
+        if table_id != rotation.table {
+            return Err(SequencerError::WrongTable {
+                station: station.to_string(),
+                table: rotation.table.clone(),
+                device: table_id,
+            });
+        }
+        self.event(RunEvent::Rotation {
+            table: table_id.clone(),
+            commanded_rad: rotation.commanded_rad,
+        });
+        if let Some(table) = self.devices.rotary.as_mut() {
+            table.start_rotation(rotation.commanded_rad).await?;
+        }
+        let started_s = self.sample().await?.t_s;
+        loop {
+            let state = match self.devices.rotary.as_mut() {
+                Some(table) => table.state().await?,
+                None => RotaryState::Moving,
+            };
+            let encoder_rad = match state {
+                RotaryState::InPosition { encoder_rad } => Some(encoder_rad),
+                RotaryState::Moving => None,
+            };
+            let now_ns = self.clock.now_ns();
+            let sample = RotaryStateSample {
+                t_s: now_ns.saturating_sub(self.start_ns) as f64 * 1e-9,
+                commanded_rad: rotation.commanded_rad,
+                encoder_rad,
+                in_position: encoder_rad.is_some(),
+            };
+            self.recorder.rotary(&table_id, &sample, now_ns);
+            if encoder_rad.is_some() {
+                return Ok(());
+            }
+            let t_s = self.sample().await?.t_s;
+            if t_s - started_s > MAX_ROTATION_S {
+                return Err(SequencerError::NoInPosition {
+                    table: table_id,
+                    commanded_rad: rotation.commanded_rad,
+                    waited_s: t_s - started_s,
+                });
+            }
+        }
     }
 
     /// Record for at least `min_dwell_s` and until the readings settle; after max_dwell_s

@@ -15,11 +15,15 @@ pub fn tracer_topic(id: &str) -> String {
 pub fn env_topic(id: &str) -> String {
     format!("/env/{id}")
 }
+pub fn rotary_topic(id: &str) -> String {
+    format!("/rotary/{id}/state")
+}
 
 pub const SCHEMA_SESSION: &str = "geocal.Session";
 pub const SCHEMA_TRACER: &str = "geocal.TracerSample";
 pub const SCHEMA_ENV: &str = "geocal.EnvSample";
 pub const SCHEMA_EVENT: &str = "geocal.RunEvent";
+pub const SCHEMA_ROTARY: &str = "geocal.RotaryState";
 
 /// `/geocal/session`: exactly one, first in the file.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -104,6 +108,19 @@ pub struct EnvSample {
     pub humidity_pct: f64,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub material_temp_k: Vec<f64>,
+}
+
+/// `/rotary/<id>/state`: the table's state as the sequencer saw it while commanding it.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct RotaryStateSample {
+    /// Seconds since the run started (the table reports no time of its own).
+    pub t_s: f64,
+    /// The absolute angle last commanded, radians.
+    pub commanded_rad: f64,
+    /// The encoder angle once in position, radians; null while moving.
+    #[serde(default)]
+    pub encoder_rad: Option<f64>,
+    pub in_position: bool,
 }
 
 /// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
@@ -214,6 +231,19 @@ pub mod schema {
   }
 }"#;
 
+    pub const ROTARY: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.RotaryState",
+  "type": "object",
+  "required": ["t_s", "commanded_rad", "in_position"],
+  "properties": {
+    "t_s": {"type": "number"},
+    "commanded_rad": {"type": "number"},
+    "encoder_rad": {"type": ["number", "null"]},
+    "in_position": {"type": "boolean"}
+  }
+}"#;
+
     pub const EVENT: &str = r#"{
   "$schema": "https://json-schema.org/draft/2020-12/schema",
   "title": "geocal.RunEvent",
@@ -244,6 +274,8 @@ pub mod schema {
      "then": {"required": ["station", "point", "pass"]}},
     {"if": {"properties": {"kind": {"const": "station_begin"}}},
      "then": {"required": ["station", "station_index"]}},
+    {"if": {"properties": {"kind": {"const": "rotation"}}},
+     "then": {"required": ["table", "commanded_rad"]}},
     {"if": {"properties": {"kind": {"const": "fault"}}},
      "then": {"required": ["device", "code", "message"]}}
   ]

@@ -11,7 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT,
+    TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.
@@ -49,6 +50,8 @@ pub struct Session {
     pub tracers: BTreeMap<String, Vec<Stamped<TracerSample>>>,
     /// Key: id from the topic `/env/<id>`.
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    /// Key: table id from the topic `/rotary/<id>/state`.
+    pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
@@ -374,6 +377,7 @@ enum Slot {
     Session,
     Tracer(usize),
     Env(usize),
+    Rotary(usize),
     Event,
     /// A topic we do not read.
     Other,
@@ -386,10 +390,9 @@ struct Decoder {
     file: String,
     /// By channel id.
     slots: Vec<Slot>,
-    tracer_ids: HashMap<String, usize>,
-    tracers: Vec<(String, Vec<Stamped<TracerSample>>)>,
-    env_ids: HashMap<String, usize>,
-    env: Vec<(String, Vec<Stamped<EnvSample>>)>,
+    tracers: Streams<TracerSample>,
+    env: Streams<EnvSample>,
+    rotary: Streams<RotaryStateSample>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
@@ -405,15 +408,72 @@ struct Decoder {
 
 const MAX_SKIP_WARNINGS: u64 = 20;
 
+/// The streams of one message kind, by device id (from the topic), in order of definition.
+struct Streams<T> {
+    ids: HashMap<String, usize>,
+    streams: Vec<(String, Vec<Stamped<T>>)>,
+}
+
+impl<T> Default for Streams<T> {
+    fn default() -> Self {
+        Self {
+            ids: HashMap::new(),
+            streams: Vec::new(),
+        }
+    }
+}
+
+impl<T> Streams<T> {
+    /// The index of a device's stream, created on first sight.
+    fn index(&mut self, id: &str) -> usize {
+        let next = self.streams.len();
+        let i = *self.ids.entry(id.to_owned()).or_insert(next);
+        if i == next {
+            self.streams.push((id.to_owned(), Vec::new()));
+        }
+        i
+    }
+
+    /// The same streams (same indices), empty: for a worker decoding later chunks.
+    fn empty_like(&self) -> Self {
+        Self {
+            ids: self.ids.clone(),
+            streams: self
+                .streams
+                .iter()
+                .map(|(id, _)| (id.clone(), Vec::new()))
+                .collect(),
+        }
+    }
+
+    /// Append a worker's streams, which come later in the file.
+    fn absorb(&mut self, other: Streams<T>) {
+        for (id, samples) in other.streams {
+            let i = self.index(&id);
+            self.streams[i].1.extend(samples);
+        }
+    }
+
+    /// By id, each stream sorted by log time (stable: equal times keep file order).
+    fn into_sorted_map(self) -> BTreeMap<String, Vec<Stamped<T>>> {
+        self.streams
+            .into_iter()
+            .map(|(id, mut v)| {
+                v.sort_by_key(|s| s.log_time_ns);
+                (id, v)
+            })
+            .collect()
+    }
+}
+
 impl Decoder {
     fn new(file: &str) -> Self {
         Decoder {
             file: file.to_owned(),
             slots: Vec::new(),
-            tracer_ids: HashMap::new(),
-            tracers: Vec::new(),
-            env_ids: HashMap::new(),
-            env: Vec::new(),
+            tracers: Streams::default(),
+            env: Streams::default(),
+            rotary: Streams::default(),
             events: Vec::new(),
             header: None,
             lazy_header: false,
@@ -432,19 +492,11 @@ impl Decoder {
         } else if topic == TOPIC_EVENT {
             Slot::Event
         } else if let Some(tid) = tracer_id(topic) {
-            let next = self.tracers.len();
-            let i = *self.tracer_ids.entry(tid.to_owned()).or_insert(next);
-            if i == next {
-                self.tracers.push((tid.to_owned(), Vec::new()));
-            }
-            Slot::Tracer(i)
+            Slot::Tracer(self.tracers.index(tid))
         } else if let Some(eid) = env_id(topic) {
-            let next = self.env.len();
-            let i = *self.env_ids.entry(eid.to_owned()).or_insert(next);
-            if i == next {
-                self.env.push((eid.to_owned(), Vec::new()));
-            }
-            Slot::Env(i)
+            Slot::Env(self.env.index(eid))
+        } else if let Some(rid) = rotary_id(topic) {
+            Slot::Rotary(self.rotary.index(rid))
         } else {
             Slot::Other
         };
@@ -493,18 +545,9 @@ impl Decoder {
     fn worker(&self) -> Decoder {
         let mut w = Decoder::new(&self.file);
         w.slots = self.slots.clone();
-        w.tracer_ids = self.tracer_ids.clone();
-        w.tracers = self
-            .tracers
-            .iter()
-            .map(|(id, _)| (id.clone(), Vec::new()))
-            .collect();
-        w.env_ids = self.env_ids.clone();
-        w.env = self
-            .env
-            .iter()
-            .map(|(id, _)| (id.clone(), Vec::new()))
-            .collect();
+        w.tracers = self.tracers.empty_like();
+        w.env = self.env.empty_like();
+        w.rotary = self.rotary.empty_like();
         w.lazy_header = true;
         w
     }
@@ -514,22 +557,9 @@ impl Decoder {
         self.messages += other.messages;
         self.skipped += other.skipped;
         self.ignored += other.ignored;
-        for (id, v) in other.tracers {
-            let next = self.tracers.len();
-            let i = *self.tracer_ids.entry(id.clone()).or_insert(next);
-            if i == next {
-                self.tracers.push((id, Vec::new()));
-            }
-            self.tracers[i].1.extend(v);
-        }
-        for (id, v) in other.env {
-            let next = self.env.len();
-            let i = *self.env_ids.entry(id.clone()).or_insert(next);
-            if i == next {
-                self.env.push((id, Vec::new()));
-            }
-            self.env[i].1.extend(v);
-        }
+        self.tracers.absorb(other.tracers);
+        self.env.absorb(other.env);
+        self.rotary.absorb(other.rotary);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -553,8 +583,9 @@ impl Decoder {
     fn reserve(&mut self, channel_id: u16, n: u64) {
         let n = usize::try_from(n).unwrap_or(0);
         match self.slots.get(usize::from(channel_id)) {
-            Some(Slot::Tracer(i)) => self.tracers[*i].1.reserve(n),
-            Some(Slot::Env(i)) => self.env[*i].1.reserve(n),
+            Some(Slot::Tracer(i)) => self.tracers.streams[*i].1.reserve(n),
+            Some(Slot::Env(i)) => self.env.streams[*i].1.reserve(n),
+            Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -613,7 +644,7 @@ impl Decoder {
         match slot {
             Slot::Tracer(i) => {
                 if let Some(msg) = self.parse::<TracerSample>(channel_id, log_time_ns, data) {
-                    self.tracers[i].1.push(Stamped {
+                    self.tracers.streams[i].1.push(Stamped {
                         log_time_ns,
                         publish_time_ns,
                         msg,
@@ -622,7 +653,16 @@ impl Decoder {
             }
             Slot::Env(i) => {
                 if let Some(msg) = self.parse::<EnvSample>(channel_id, log_time_ns, data) {
-                    self.env[i].1.push(Stamped {
+                    self.env.streams[i].1.push(Stamped {
+                        log_time_ns,
+                        publish_time_ns,
+                        msg,
+                    });
+                }
+            }
+            Slot::Rotary(i) => {
+                if let Some(msg) = self.parse::<RotaryStateSample>(channel_id, log_time_ns, data) {
+                    self.rotary.streams[i].1.push(Stamped {
                         log_time_ns,
                         publish_time_ns,
                         msg,
@@ -691,8 +731,9 @@ impl Decoder {
 
     fn topic_of(&self, channel_id: u16) -> String {
         match self.slots.get(usize::from(channel_id)) {
-            Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers[*i].0),
-            Some(Slot::Env(i)) => format!("/env/{}", self.env[*i].0),
+            Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers.streams[*i].0),
+            Some(Slot::Env(i)) => format!("/env/{}", self.env.streams[*i].0),
+            Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -736,22 +777,16 @@ impl Decoder {
             );
         }
         // Stable sorts: equal log times keep file order. Nearly free on already sorted data.
-        let mut tracers = BTreeMap::new();
-        for (id, mut v) in self.tracers {
-            v.sort_by_key(|s| s.log_time_ns);
-            tracers.insert(id, v);
-        }
-        let mut env = BTreeMap::new();
-        for (id, mut v) in self.env {
-            v.sort_by_key(|s| s.log_time_ns);
-            env.insert(id, v);
-        }
+        let tracers = self.tracers.into_sorted_map();
+        let env = self.env.into_sorted_map();
+        let rotary = self.rotary.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
             header: header.msg,
             tracers,
             env,
+            rotary,
             events,
             completeness,
             skipped: self.skipped,
@@ -773,6 +808,11 @@ fn tracer_id(topic: &str) -> Option<&str> {
 
 fn env_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/env/")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn rotary_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/rotary/")?.strip_suffix("/state")?;
     (!id.is_empty() && !id.contains('/')).then_some(id)
 }
 
@@ -1487,6 +1527,9 @@ mod tests {
         assert_eq!(tracer_id("/tracer/a/b/range"), None);
         assert_eq!(env_id("/env/air"), Some("air"));
         assert_eq!(env_id("/env/"), None);
+        assert_eq!(rotary_id("/rotary/c/state"), Some("c"));
+        assert_eq!(rotary_id("/rotary//state"), None);
+        assert_eq!(rotary_id("/rotary/c/x/state"), None);
         assert_eq!(messages::tracer_topic("x"), "/tracer/x/range");
     }
 }

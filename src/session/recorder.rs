@@ -16,8 +16,8 @@ use serde::Serialize;
 use thiserror::Error;
 
 use super::messages::{
-    self, EnvSample, RunEvent, SessionHeader, TracerSample, SCHEMA_ENV, SCHEMA_EVENT,
-    SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
+    self, EnvSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SCHEMA_ENV,
+    SCHEMA_EVENT, SCHEMA_ROTARY, SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// Chunk compression of the recorded file.
@@ -104,6 +104,7 @@ enum Payload {
     Session(Box<SessionHeader>),
     Tracer(String, TracerSample),
     Env(String, Box<EnvSample>),
+    Rotary(String, RotaryStateSample),
     Event(Box<RunEvent>),
 }
 
@@ -149,6 +150,11 @@ impl RecorderHandle {
             Payload::Env(env_id.to_owned(), Box::new(sample.clone())),
             log_time_ns,
         );
+    }
+
+    /// One `/rotary/<id>/state` sample.
+    pub fn rotary(&self, table_id: &str, sample: &RotaryStateSample, log_time_ns: u64) {
+        self.send(Payload::Rotary(table_id.to_owned(), *sample), log_time_ns);
     }
 
     pub fn event(&self, event: &RunEvent, log_time_ns: u64) {
@@ -197,11 +203,12 @@ impl Recorder {
             writer: Some(writer),
             sync_file,
             flush_interval: options.flush_interval,
-            schemas: [0; 4],
+            schemas: [0; 5],
             session_channel: None,
             event_channel: None,
             tracer_channels: HashMap::new(),
             env_channels: HashMap::new(),
+            rotary_channels: HashMap::new(),
             sequences: HashMap::new(),
             buf: Vec::with_capacity(512),
             stats: RecordStats::default(),
@@ -285,6 +292,7 @@ enum SchemaKind {
     Tracer = 1,
     Env = 2,
     Event = 3,
+    Rotary = 4,
 }
 
 impl SchemaKind {
@@ -294,6 +302,7 @@ impl SchemaKind {
             SchemaKind::Tracer => (SCHEMA_TRACER, messages::schema::TRACER),
             SchemaKind::Env => (SCHEMA_ENV, messages::schema::ENV),
             SchemaKind::Event => (SCHEMA_EVENT, messages::schema::EVENT),
+            SchemaKind::Rotary => (SCHEMA_ROTARY, messages::schema::ROTARY),
         }
     }
 }
@@ -305,11 +314,12 @@ struct WriterThread {
     sync_file: File,
     flush_interval: Duration,
     /// Schema ids by SchemaKind; 0 = not added yet.
-    schemas: [u16; 4],
+    schemas: [u16; 5],
     session_channel: Option<u16>,
     event_channel: Option<u16>,
     tracer_channels: HashMap<String, u16>,
     env_channels: HashMap<String, u16>,
+    rotary_channels: HashMap<String, u16>,
     sequences: HashMap<u16, u32>,
     buf: Vec<u8>,
     stats: RecordStats,
@@ -400,6 +410,7 @@ impl WriterThread {
             .len();
         self.stats.channels = (self.tracer_channels.len()
             + self.env_channels.len()
+            + self.rotary_channels.len()
             + usize::from(self.session_channel.is_some())
             + usize::from(self.event_channel.is_some())) as u32;
         Ok(self.stats.clone())
@@ -510,6 +521,19 @@ impl WriterThread {
                     id
                 }
             },
+            Payload::Rotary(table_id, s) => match self.rotary_channels.get(table_id.as_str()) {
+                Some(&id) => {
+                    encode(&mut self.buf, "/rotary/*/state", s)?;
+                    id
+                }
+                None => {
+                    let topic = messages::rotary_topic(table_id);
+                    encode(&mut self.buf, &topic, s)?;
+                    let id = self.add_channel(SchemaKind::Rotary, &topic)?;
+                    self.rotary_channels.insert(table_id.clone(), id);
+                    id
+                }
+            },
         };
         let seq = self.sequences.entry(channel_id).or_insert(0);
         let sequence = *seq;
@@ -600,6 +624,7 @@ mod tests {
             let mut want_tracer: BTreeMap<&str, Vec<(u64, TracerSample)>> = BTreeMap::new();
             let mut want_env = vec![];
             let mut want_events = vec![];
+            let mut want_rotary = vec![];
             for i in 0..4000u64 {
                 t += 100_000;
                 let id = if i % 2 == 0 { "tracer0" } else { "tracer1" };
@@ -615,11 +640,21 @@ mod tests {
                     h.event(&ev, t);
                     want_events.push((t, ev));
                 }
+                if i % 1000 == 0 {
+                    let r = RotaryStateSample {
+                        t_s: i as f64 * 1e-4,
+                        commanded_rad: 0.25,
+                        encoder_rad: (i % 2000 == 0).then_some(0.2501),
+                        in_position: i % 2000 == 0,
+                    };
+                    h.rotary("c", &r, t);
+                    want_rotary.push((t, r));
+                }
             }
             let stats = rec.finish().unwrap();
-            assert_eq!(stats.messages, 1 + 4000 + 2 * 10);
+            assert_eq!(stats.messages, 1 + 4000 + 2 * 10 + 4);
             assert_eq!(stats.lost, 0);
-            assert_eq!(stats.channels, 5);
+            assert_eq!(stats.channels, 6);
             assert_eq!(stats.bytes, std::fs::metadata(&path).unwrap().len());
 
             let s = read_session(&path).unwrap();
@@ -642,6 +677,11 @@ mod tests {
                 .map(|st| (st.log_time_ns, st.msg.clone()))
                 .collect();
             assert_eq!(got, want_env);
+            let got: Vec<_> = s.rotary["c"]
+                .iter()
+                .map(|st| (st.log_time_ns, st.msg))
+                .collect();
+            assert_eq!(got, want_rotary);
             let got: Vec<_> = s
                 .events
                 .iter()

@@ -4,8 +4,8 @@ use std::sync::{Arc, Mutex, MutexGuard};
 
 use async_trait::async_trait;
 use geocal_drivers::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Tracer,
-    TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator,
+    RotaryState, RotaryTable, Tracer, TracerReading,
 };
 
 use super::world::SimWorld;
@@ -108,5 +108,47 @@ impl Operator for SimOperator {
     async fn mount_target(&mut self, _target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError> {
         lock(&self.world, "operator")?.mount_target(offset_m);
         Ok(())
+    }
+}
+
+/// The rotary table of the simulated world; the tracer on it turns with it.
+pub struct SimRotaryTable {
+    pub id: String,
+    pub world: SharedWorld,
+}
+
+#[async_trait]
+impl RotaryTable for SimRotaryTable {
+    fn id(&self) -> &str {
+        &self.id
+    }
+    async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), DeviceError> {
+        if !commanded_rad.is_finite() {
+            return Err(DeviceError::Rejected {
+                device: self.id.clone(),
+                message: format!("commanded angle {commanded_rad} rad is not finite"),
+            });
+        }
+        if lock(&self.world, &self.id)?.start_rotation(commanded_rad) {
+            Ok(())
+        } else {
+            Err(DeviceError::Disconnected {
+                device: self.id.clone(),
+                message: "the simulated world has no rotary table (no [plan.rotary])".into(),
+            })
+        }
+    }
+    async fn state(&mut self) -> Result<RotaryState, DeviceError> {
+        let world = lock(&self.world, &self.id)?;
+        if !world.has_table() {
+            return Err(DeviceError::Disconnected {
+                device: self.id.clone(),
+                message: "the simulated world has no rotary table (no [plan.rotary])".into(),
+            });
+        }
+        Ok(match world.table_in_position() {
+            Some(encoder_rad) => RotaryState::InPosition { encoder_rad },
+            None => RotaryState::Moving,
+        })
     }
 }

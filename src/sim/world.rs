@@ -1,5 +1,6 @@
-//! The simulated world's state: truth machine, true stations, the machine's motion in
-//! virtual time, the tracer's counter and noise, the environment. Simulated drivers share it.
+//! The simulated world's state: truth machine, true stations, the rotary table the tracer
+//! may stand on, the machine's motion in virtual time, the tracer's counter and noise, the
+//! environment. Simulated drivers share it.
 
 use std::sync::Arc;
 
@@ -14,6 +15,7 @@ use crate::config::{Config, SimEnvironmentConfig};
 use crate::extract::NoiseModel;
 use crate::model::kinematics::{actual_position, Structure};
 use crate::plan::Plan;
+use crate::sim::rotary::{AngleError, SimTable};
 use crate::sim::truth::TruthErrors;
 
 #[derive(Debug, thiserror::Error)]
@@ -51,8 +53,14 @@ pub struct SimWorld {
     structure: Structure,
     truth: TruthErrors,
     target_offset_m: [f64; 3],
+    /// True positions of the stations the operator places (unused for table stations).
     stations_m: Vec<Vector3<f64>>,
     current_station: usize,
+    /// Per plan station: does the tracer stand on the rotary table there?
+    table_station: Vec<bool>,
+    table: Option<SimTable>,
+    /// The tracer stands on the table (and turns with it).
+    on_table: bool,
     motion: Motion,
     feed_m_s: f64,
     relocation_s: f64,
@@ -83,6 +91,30 @@ pub struct Truth {
     pub errors: serde_json::Value,
     /// The error functions themselves (coefficients), to evaluate anywhere.
     pub error_model: TruthErrors,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub rotary: Option<TruthRotary>,
+}
+
+/// The rotary table's truth: axis, angular positioning error, the true angle of every step.
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthRotary {
+    pub table: String,
+    pub axis_point_m: [f64; 3],
+    pub axis_direction: [f64; 3],
+    /// The tracer's position at true table angle 0.
+    pub tracer_base_m: [f64; 3],
+    pub angle_error: AngleError,
+    pub steps: Vec<TruthStep>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthStep {
+    pub station: String,
+    pub commanded_rad: f64,
+    /// True table angle in position.
+    pub true_rad: f64,
+    /// true − commanded.
+    pub error_rad: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -132,6 +164,10 @@ impl SimWorld {
                 Vector3::from_fn(|k, _| hint[k] + offset.sample(&mut station_rng))
             })
             .collect();
+        let table = config.plan.rotary.as_ref().map(|rotary| {
+            SimTable::random(sim.seed, rotary, &sim.rotary, sim.station_hint_error_m)
+        });
+        let table_station = plan.stations.iter().map(|s| s.rotation.is_some()).collect();
         let tracer = &config.devices.tracer;
         let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
         let env_rate = config
@@ -146,6 +182,9 @@ impl SimWorld {
             target_offset_m: plan.targets.first().map_or([0.0; 3], |t| t.offset_m),
             stations_m,
             current_station: 0,
+            table_station,
+            table,
+            on_table: false,
             motion: Motion {
                 from: home,
                 to: home,
@@ -184,8 +223,16 @@ impl SimWorld {
         ))
     }
 
+    /// Where the tracer stands at `t_s`: on the turning table, or where the operator put it.
+    fn station_at(&self, t_s: f64) -> Vector3<f64> {
+        match (&self.table, self.on_table) {
+            (Some(table), true) => table.tracer_at(table.angle_at(t_s)),
+            _ => self.stations_m[self.current_station],
+        }
+    }
+
     fn true_distance_m(&self, t_s: f64) -> f64 {
-        (self.stations_m[self.current_station] - self.target_at(self.motion.at(t_s))).norm()
+        (self.station_at(t_s) - self.target_at(self.motion.at(t_s))).norm()
     }
 
     // --- tracer ---
@@ -252,15 +299,46 @@ impl SimWorld {
 
     // --- station mover ---
 
+    /// The operator puts the tracer on station `index`: on the table for a table station
+    /// (nothing to do if it already stands there), else at that station's true position.
     pub fn place_station(&mut self, index: usize) {
         let index = index.min(self.stations_m.len().saturating_sub(1));
+        let to_table = self.table_station.get(index).copied().unwrap_or(false);
+        if to_table && self.on_table {
+            return;
+        }
         if index != self.current_station || self.next_seq > 0 {
             self.clock.advance_to(self.now_s() + self.relocation_s);
         }
         self.beam_interrupted = self.next_seq > 0;
         self.current_station = index;
+        self.on_table = to_table;
         // The counter is meaningless until the sequencer homes again.
         self.home_distance_m = self.true_distance_m(self.now_s());
+    }
+
+    // --- rotary table ---
+
+    /// Start turning the table; the tracer on it turns too, so the beam is lost until the
+    /// next homing. False if the world has no table.
+    pub fn start_rotation(&mut self, commanded_rad: f64) -> bool {
+        let now = self.now_s();
+        let Some(table) = self.table.as_mut() else {
+            return false;
+        };
+        if table.start_rotation(commanded_rad, now) && self.on_table {
+            self.beam_interrupted = self.next_seq > 0;
+        }
+        true
+    }
+
+    pub fn has_table(&self) -> bool {
+        self.table.is_some()
+    }
+
+    /// The table's encoder angle when in position; None while moving (or without a table).
+    pub fn table_in_position(&self) -> Option<f64> {
+        self.table.as_ref()?.in_position_at(self.now_s())
     }
 
     // --- environment ---
@@ -303,6 +381,12 @@ impl SimWorld {
                 .stations
                 .iter()
                 .zip(&self.stations_m)
+                .map(|(s, p)| match (&s.rotation, &self.table) {
+                    (Some(r), Some(table)) => {
+                        (s, table.tracer_at(table.true_angle_rad(r.commanded_rad)))
+                    }
+                    _ => (s, *p),
+                })
                 .map(|(s, p)| TruthStation {
                     id: s.id.clone(),
                     position_m: [p.x, p.y, p.z],
@@ -331,6 +415,27 @@ impl SimWorld {
                 .collect(),
             errors: self.truth.sample_table(21),
             error_model: self.truth.clone(),
+            rotary: self.table.as_ref().map(|table| TruthRotary {
+                table: table.id.clone(),
+                axis_point_m: table.axis_point_m.into(),
+                axis_direction: table.axis_direction.into_inner().into(),
+                tracer_base_m: table.tracer_base_m.into(),
+                angle_error: table.error.clone(),
+                steps: plan
+                    .stations
+                    .iter()
+                    .filter_map(|s| {
+                        let r = s.rotation.as_ref()?;
+                        let true_rad = table.true_angle_rad(r.commanded_rad);
+                        Some(TruthStep {
+                            station: s.id.clone(),
+                            commanded_rad: r.commanded_rad,
+                            true_rad,
+                            error_rad: true_rad - r.commanded_rad,
+                        })
+                    })
+                    .collect(),
+            }),
         }
     }
 }

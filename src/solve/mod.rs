@@ -1,5 +1,6 @@
 //! Solvers: minimisers and the methods that wire a model to a solver. No device access.
 
+pub mod circle;
 pub mod elastic_net;
 pub mod geometric_errors;
 pub mod multilateration;

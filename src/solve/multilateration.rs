@@ -61,6 +61,9 @@ pub struct MultilaterationSolution {
     pub point_covariance: Vec<Matrix3<f64>>,
     pub stations: Vec<Vector3<f64>>,
     pub station_covariance: Vec<Matrix3<f64>>,
+    /// All stations jointly, 3m x 3m (x, y, z of station 0, then station 1, ...), in the same
+    /// gauge: functions of several stations (e.g. angles between them) need the correlations.
+    pub station_joint_covariance: DMatrix<f64>,
     /// Per segment, distance from the station to the homing point.
     pub segment_distance_m: Vec<f64>,
     pub segment_distance_sigma_m: Vec<f64>,
@@ -749,6 +752,7 @@ pub fn dense_point_covariance(
 struct Covariance {
     points: Vec<Matrix3<f64>>,
     stations: Vec<Matrix3<f64>>,
+    stations_joint: DMatrix<f64>,
     distance_var_m2: Vec<f64>,
 }
 
@@ -854,23 +858,38 @@ fn covariance(
         let g = generator(&p.points[i], &centre);
         points.push(inner(q, &g, bxi));
     }
-    let mut stations = Vec::with_capacity(m);
+    let station_g: Vec<Matrix3x6<f64>> = p.stations.iter().map(|s| generator(s, &centre)).collect();
+    let station_b: Vec<Matrix3x6<f64>> = (0..m)
+        .map(|j| Matrix3x6::from_fn(|a, c| -mmat[(3 * j + a, c)]))
+        .collect();
+    let mut stations_joint = DMatrix::<f64>::zeros(3 * m, 3 * m);
     for j in 0..m {
-        let q = ainv.fixed_view::<3, 3>(3 * j, 3 * j).into_owned();
-        let g = generator(&p.stations[j], &centre);
-        let mut b = Matrix3x6::zeros();
-        for a in 0..3 {
-            for c in 0..6 {
-                b[(a, c)] = -mmat[(3 * j + a, c)];
-            }
+        for l in 0..m {
+            let q = ainv.fixed_view::<3, 3>(3 * j, 3 * l).into_owned();
+            let (gj, gl) = (&station_g[j], &station_g[l]);
+            let (bj, bl) = (&station_b[j], &station_b[l]);
+            let block = q - gj * kmat * bl.transpose() - bj * kmat.transpose() * gl.transpose()
+                + gj * kck * gl.transpose();
+            stations_joint
+                .fixed_view_mut::<3, 3>(3 * j, 3 * l)
+                .copy_from(&block);
         }
-        stations.push(inner(q, &g, &b));
     }
+    let stations = (0..m)
+        .map(|j| {
+            inner(
+                ainv.fixed_view::<3, 3>(3 * j, 3 * j).into_owned(),
+                &station_g[j],
+                &station_b[j],
+            )
+        })
+        .collect();
     // Homing distances are invariant under rigid motions: no S-transform correction.
     let distance_var_m2 = (3 * m..nv).map(|c| ainv[(c, c)]).collect();
     Ok(Covariance {
         points,
         stations,
+        stations_joint,
         distance_var_m2,
     })
 }
@@ -1007,6 +1026,7 @@ pub fn solve(
         point_covariance: cov.points,
         stations: params.stations,
         station_covariance: cov.stations,
+        station_joint_covariance: cov.stations_joint,
         segment_distance_m: params.distances_m,
         segment_distance_sigma_m: cov
             .distance_var_m2
@@ -1362,6 +1382,20 @@ pub(crate) mod tests {
         }
         for j in 0..m {
             let c = 3 * n + 3 * j;
+            let joint: Matrix3<f64> = sol
+                .station_joint_covariance
+                .fixed_view::<3, 3>(3 * j, 3 * j)
+                .into_owned();
+            assert!((joint - sol.station_covariance[j]).amax() < 1e-12 * joint.amax());
+            for l in 0..sol.stations.len() {
+                let cl = 3 * n + 3 * l;
+                let d = qi.view((c, cl), (3, 3))
+                    - sol.station_joint_covariance.view((3 * j, 3 * l), (3, 3));
+                assert!(
+                    d.amax() < 1e-6 * sol.station_covariance[j].amax(),
+                    "stations {j},{l}: {d}"
+                );
+            }
             let d = qi.view((c, c), (3, 3)) - sol.station_covariance[j];
             assert!(
                 d.amax() < 1e-6 * sol.station_covariance[j].amax(),

@@ -1,7 +1,13 @@
 //! Helpers shared by the whole-run tests: comparing estimates with the simulated truth.
 #![allow(dead_code)]
 
+use std::path::Path;
+
+use geocal::config::Config;
+use geocal::method::multilateration::MultilaterationResults;
+use geocal::run::{run, RunOptions, RunOutput};
 use nalgebra::{Matrix3, Rotation3, Vector3};
+use serde_json::Value;
 
 pub const DEMO: &str = include_str!("../../config/demo-multilateration.toml");
 
@@ -72,4 +78,107 @@ pub fn python_check_session(session: &std::path::Path, expect_tracer_samples: u6
         output.status.success(),
         "independent reader failed (pip install mcap jsonschema?)\nstdout:\n{stdout}\nstderr:\n{stderr}"
     );
+}
+
+pub fn run_with_truth(config_text: &str, dir: &Path) -> (RunOutput, Value) {
+    let config = Config::parse(config_text, Path::new("test.toml")).expect("config");
+    let truth_path = dir.join("truth.json");
+    let output = run(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run");
+    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
+    (output, truth)
+}
+
+pub fn truth_station<'a>(truth: &'a Value, id: &str) -> &'a Value {
+    truth["stations"]
+        .as_array()
+        .expect("stations")
+        .iter()
+        .find(|x| x["id"] == id)
+        .expect("station in truth")
+}
+
+pub fn xyz(v: &Value) -> [f64; 3] {
+    [0, 1, 2].map(|k| v[k].as_f64().expect("coordinate"))
+}
+
+/// Points and stations within 3x the RMS the reported covariance predicts (after removing a
+/// best-fit rigid motion: the datum is a convention), home distances within 4 sigma.
+pub fn assert_recovers_truth(results: &MultilaterationResults, truth: &Value) {
+    assert!(results.converged, "solver did not converge");
+    assert_eq!(
+        results.extraction.windows_dropped, 0,
+        "{:?}",
+        results.extraction.dropped_reasons
+    );
+    let truth_points: Vec<[f64; 3]> = results
+        .points
+        .iter()
+        .map(|p| {
+            let t = truth["points"]
+                .as_array()
+                .expect("truth points")
+                .iter()
+                .find(|t| t["point"] == p.point && t["target"] == p.target.as_str())
+                .expect("truth point");
+            xyz(&t["actual_m"])
+        })
+        .collect();
+    let estimated: Vec<[f64; 3]> = results.points.iter().map(|p| p.actual_m).collect();
+    let (r, t) = rigid_fit(&estimated, &truth_points);
+    let point_rms = rms_after(&r, &t, &estimated, &truth_points);
+    let point_predicted =
+        predicted_rms(&results.points.iter().map(|p| p.sigma_m).collect::<Vec<_>>());
+    println!("points: RMS error {point_rms:.3e} m, predicted {point_predicted:.3e} m");
+    assert!(
+        point_rms <= 3.0 * point_predicted,
+        "point RMS {point_rms:e} m exceeds 3x the predicted {point_predicted:e} m"
+    );
+
+    let truth_stations: Vec<[f64; 3]> = results
+        .stations
+        .iter()
+        .map(|s| xyz(&truth_station(truth, &s.id)["position_m"]))
+        .collect();
+    let est_stations: Vec<[f64; 3]> = results.stations.iter().map(|s| s.position_m).collect();
+    let station_rms = rms_after(&r, &t, &est_stations, &truth_stations);
+    let station_predicted = predicted_rms(
+        &results
+            .stations
+            .iter()
+            .map(|s| s.sigma_m)
+            .collect::<Vec<_>>(),
+    );
+    println!("stations: RMS error {station_rms:.3e} m, predicted {station_predicted:.3e} m");
+    assert!(
+        station_rms <= 3.0 * station_predicted,
+        "station RMS {station_rms:e} m exceeds 3x the predicted {station_predicted:e} m"
+    );
+
+    // Distances to the homing point do not depend on the datum.
+    for s in &results.stations {
+        for seg in &s.segments {
+            let true_d = truth_station(truth, &s.id)["home_distance_m"][&seg.target]
+                .as_f64()
+                .expect("true home distance");
+            assert!(
+                (seg.home_distance_m - true_d).abs() <= 4.0 * seg.sigma_m,
+                "station {} target {}: d = {} m, truth {} m, sigma {} m",
+                s.id,
+                seg.target,
+                seg.home_distance_m,
+                true_d,
+                seg.sigma_m
+            );
+        }
+    }
 }

@@ -22,6 +22,7 @@ SCHEMA_BY_TOPIC = [
     (re.compile(r"^/run/event$"), "geocal.RunEvent"),
     (re.compile(r"^/tracer/[^/]+/range$"), "geocal.TracerSample"),
     (re.compile(r"^/env/[^/]+$"), "geocal.EnvSample"),
+    (re.compile(r"^/rotary/[^/]+/state$"), "geocal.RotaryState"),
 ]
 
 

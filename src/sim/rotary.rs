@@ -1,0 +1,229 @@
+//! The simulated rotary table: its true axis (near the nominal, slightly tilted), its smooth
+//! angular positioning error, and its motion in virtual time. The world turns the tracer with it.
+
+use std::f64::consts::TAU;
+
+use nalgebra::{Unit, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, Normal};
+use serde::Serialize;
+
+use crate::config::{RotaryPlanConfig, SimRotaryConfig};
+use crate::plan::rotate_about_axis;
+
+/// Angular positioning error: true angle − commanded angle = Σ a_k cos kθ + b_k sin kθ.
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct AngleError {
+    /// (k, a_k, b_k), radians.
+    pub harmonics: Vec<(u32, f64, f64)>,
+}
+
+impl AngleError {
+    /// Random harmonics 1..=count scaled so that the peak over a revolution is `peak_rad`.
+    pub fn random(rng: &mut ChaCha8Rng, count: usize, peak_rad: f64) -> AngleError {
+        let mut harmonics: Vec<(u32, f64, f64)> = (1..=count as u32)
+            .map(|k| {
+                // Lower harmonics dominate, as eccentricity and pitch errors of a worm gear do.
+                let w = 1.0 / f64::from(k);
+                (
+                    k,
+                    w * rng.random_range(-1.0..=1.0),
+                    w * rng.random_range(-1.0..=1.0),
+                )
+            })
+            .collect();
+        let unscaled = AngleError {
+            harmonics: harmonics.clone(),
+        };
+        let peak = (0..3600)
+            .map(|i| unscaled.at(TAU * f64::from(i) / 3600.0).abs())
+            .fold(0.0f64, f64::max);
+        let scale = if peak > 0.0 { peak_rad / peak } else { 0.0 };
+        for h in &mut harmonics {
+            h.1 *= scale;
+            h.2 *= scale;
+        }
+        AngleError { harmonics }
+    }
+
+    pub fn at(&self, commanded_rad: f64) -> f64 {
+        self.harmonics
+            .iter()
+            .map(|&(k, a, b)| {
+                let x = f64::from(k) * commanded_rad;
+                a * x.cos() + b * x.sin()
+            })
+            .sum()
+    }
+}
+
+/// The table's truth and its motion state.
+#[derive(Debug, Clone)]
+pub struct SimTable {
+    pub id: String,
+    /// A point on the true axis (the nominal point moved by the axis offset), metres.
+    pub axis_point_m: Vector3<f64>,
+    pub axis_direction: Unit<Vector3<f64>>,
+    /// Where the tracer stands at true table angle 0, metres.
+    pub tracer_base_m: Vector3<f64>,
+    pub error: AngleError,
+    speed_rad_s: f64,
+    settle_s: f64,
+    commanded_rad: f64,
+    from_true_rad: f64,
+    to_true_rad: f64,
+    start_s: f64,
+    move_s: f64,
+}
+
+impl SimTable {
+    /// The seeded truth of the table of `plan`; the tracer's true base is its hint moved by
+    /// `station_hint_error_m` per coordinate.
+    pub fn random(
+        seed: u64,
+        plan: &RotaryPlanConfig,
+        sim: &SimRotaryConfig,
+        station_hint_error_m: f64,
+    ) -> SimTable {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x524f_5441_5259_5442);
+        let normal = |sd: f64| Normal::new(0.0, sd.max(0.0)).ok();
+        let mut draw = |sd: f64| normal(sd).map_or(0.0, |n| n.sample(&mut rng));
+        let axis_point_m = Vector3::from(plan.axis_point_m).map(|v| v + draw(sim.axis_offset_m));
+        let nominal = Vector3::from(plan.axis_direction).normalize();
+        // Tilt: a small random rotation vector perpendicular to the nominal direction.
+        let helper = if nominal.x.abs() < 0.9 {
+            Vector3::x()
+        } else {
+            Vector3::y()
+        };
+        let e1 = nominal.cross(&helper).normalize();
+        let e2 = nominal.cross(&e1);
+        let tilt = e1 * draw(sim.axis_tilt_rad) + e2 * draw(sim.axis_tilt_rad);
+        let axis_direction = Unit::new_normalize(nominal + tilt);
+        let tracer_base_m =
+            Vector3::from(plan.tracer_hint_m).map(|v| v + draw(station_hint_error_m));
+        let error = AngleError::random(&mut rng, sim.harmonics, sim.angle_error_rad);
+        let start = error.at(0.0);
+        SimTable {
+            id: plan.table.clone(),
+            axis_point_m,
+            axis_direction,
+            tracer_base_m,
+            error,
+            speed_rad_s: sim.speed_rad_s,
+            settle_s: sim.settle_s,
+            commanded_rad: 0.0,
+            from_true_rad: start,
+            to_true_rad: start,
+            start_s: 0.0,
+            move_s: 0.0,
+        }
+    }
+
+    /// The true table angle reached when the table is in position at `commanded_rad`.
+    pub fn true_angle_rad(&self, commanded_rad: f64) -> f64 {
+        commanded_rad + self.error.at(commanded_rad)
+    }
+
+    /// The true table angle at `t_s` (a smooth move between rest angles).
+    pub fn angle_at(&self, t_s: f64) -> f64 {
+        if self.move_s <= 0.0 {
+            return self.to_true_rad;
+        }
+        let tau = ((t_s - self.start_s) / self.move_s).clamp(0.0, 1.0);
+        let s = tau - (TAU * tau).sin() / TAU;
+        self.from_true_rad + (self.to_true_rad - self.from_true_rad) * s
+    }
+
+    /// Where the tracer on the table is at true table angle `angle_rad`.
+    pub fn tracer_at(&self, angle_rad: f64) -> Vector3<f64> {
+        rotate_about_axis(
+            &self.tracer_base_m,
+            &self.axis_point_m,
+            &self.axis_direction,
+            angle_rad,
+        )
+    }
+
+    /// Start turning to `commanded_rad` at `now_s`; returns whether the table moves at all.
+    pub fn start_rotation(&mut self, commanded_rad: f64, now_s: f64) -> bool {
+        let from = self.angle_at(now_s);
+        let to = self.true_angle_rad(commanded_rad);
+        self.commanded_rad = commanded_rad;
+        self.from_true_rad = from;
+        self.to_true_rad = to;
+        self.start_s = now_s;
+        let moves = (to - from).abs() > 0.0;
+        // A cycloidal move peaks at twice the mean speed: keep the peak at the set speed.
+        self.move_s = if moves {
+            2.0 * (to - from).abs() / self.speed_rad_s
+        } else {
+            0.0
+        };
+        moves
+    }
+
+    /// The encoder angle once in position (the servo holds the encoder at the command; the
+    /// positioning error lies between encoder and table), else None while moving or settling.
+    pub fn in_position_at(&self, now_s: f64) -> Option<f64> {
+        let settle = if self.move_s > 0.0 {
+            self.settle_s
+        } else {
+            0.0
+        };
+        (now_s >= self.start_s + self.move_s + settle).then_some(self.commanded_rad)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn angle_error_has_the_configured_peak() {
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let e = AngleError::random(&mut rng, 4, 2.4e-5);
+        let peak = (0..36_000)
+            .map(|i| e.at(TAU * f64::from(i) / 36_000.0).abs())
+            .fold(0.0f64, f64::max);
+        assert!((peak - 2.4e-5).abs() < 1e-8, "peak {peak}");
+        // Periodic in the angle.
+        assert!((e.at(0.3) - e.at(0.3 + TAU)).abs() < 1e-15);
+    }
+
+    #[test]
+    fn tracer_turns_about_the_true_axis() {
+        let plan = RotaryPlanConfig {
+            table: "c".into(),
+            axis_point_m: [0.3, 0.3, -0.3],
+            axis_direction: [0.0, 0.0, 1.0],
+            tracer_hint_m: [0.45, 0.3, -0.2],
+            angles_rad: None,
+            start_rad: None,
+            step_rad: Some(0.5),
+            count: Some(4),
+            station_prefix: "c".into(),
+        };
+        let mut table = SimTable::random(1, &plan, &SimRotaryConfig::default(), 0.01);
+        assert!(table.in_position_at(0.0).is_some());
+        assert!(table.start_rotation(0.5, 10.0));
+        assert_eq!(table.in_position_at(10.1), None);
+        // The true move is 0.5 rad plus the (arcsecond) positioning errors.
+        let done_s = 10.0 + 2.0 * 0.5 / 0.2 + 2.0 + 1e-3;
+        assert_eq!(table.in_position_at(done_s), Some(0.5));
+        let angle = table.angle_at(done_s);
+        assert!((angle - 0.5 - table.error.at(0.5)).abs() < 1e-15);
+        // The tracer keeps its distance from the axis and its height along it.
+        let n = table.axis_direction.into_inner();
+        let arm = |p: Vector3<f64>| {
+            let d = p - table.axis_point_m;
+            (d - n * d.dot(&n), d.dot(&n))
+        };
+        let (r0, h0) = arm(table.tracer_at(0.0));
+        let (r1, h1) = arm(table.tracer_at(angle));
+        assert!((r0.norm() - r1.norm()).abs() < 1e-12);
+        assert!((h0 - h1).abs() < 1e-12);
+        assert!((r0.angle(&r1) - angle).abs() < 1e-9);
+    }
+}
