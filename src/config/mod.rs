@@ -230,6 +230,9 @@ pub struct SimConfig {
     pub relocation_s: f64,
     #[serde(default)]
     pub environment: SimEnvironmentConfig,
+    /// Unmodelled effects of the simulated world (the vocabulary of `geocal diagnose`).
+    #[serde(default)]
+    pub effects: crate::sim::effects::EffectsConfig,
 }
 
 fn default_station_hint_error() -> f64 {

@@ -2,5 +2,6 @@
 //! simulated drivers behind the same traits as real ones.
 
 pub mod devices;
+pub mod effects;
 pub mod truth;
 pub mod world;
