@@ -51,7 +51,7 @@ fn main() {
     }
     println!(
         "{:>12}{:>12}{:>14}",
-        "unexplained", "both-sel", "heldout/floor"
+        "unexplained", "both-sel", "heldout z-rms"
     );
     let only = std::env::var("ONLY").ok();
     for (truth, line) in CASES {
@@ -72,7 +72,7 @@ fn main() {
                 extra += 1;
             }
             unexplained += usize::from(d.unexplained);
-            ratio_sum += d.gap_after.heldout_rms_m / d.gap_after.heldout_floor_m;
+            ratio_sum += d.gap_after.heldout_ratio;
             if std::env::var("VERBOSE").is_ok() {
                 println!("{}", geocal::diagnose::text(&d));
             }

@@ -19,7 +19,7 @@ use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
-use stats::{chi2_sf, max_principal_cosine, Basis, RANK_TOL};
+use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -57,6 +57,10 @@ pub struct Gap {
     pub chi2_per_dof: f64,
     /// Held-out RMS expected from the noise model alone (noise plus prediction uncertainty).
     pub heldout_floor_m: f64,
+    /// RMS of the held-out residuals each in units of its own predicted standard deviation
+    /// (noise and prediction): 1 when the model holds. Steadier than the ratio of RMS values,
+    /// which a few high-leverage lengths dominate.
+    pub heldout_ratio: f64,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -179,7 +183,7 @@ impl Engine {
         design: &DMatrix<f64>,
         fit: &BaseFit,
         a: Option<&DMatrix<f64>>,
-    ) -> (f64, f64) {
+    ) -> (f64, f64, f64) {
         let rw = DVector::from_fn(fit.rows.len(), |k, _| {
             self.r[fit.rows[k]] * self.w[fit.rows[k]]
         });
@@ -194,18 +198,20 @@ impl Engine {
                 (beta, Some(theta))
             }
         };
-        let (mut ss, mut floor) = (0.0, 0.0);
+        let (mut ss, mut floor, mut zz) = (0.0, 0.0, 0.0);
         for &h in &fit.held {
             let row: Vec<f64> = design.row(h).iter().copied().collect();
             let mut pred: f64 = row.iter().zip(beta.iter()).map(|(b, x)| b * x).sum();
             if let (Some(a), Some(theta)) = (a, &theta) {
                 pred += (0..a.ncols()).map(|c| a[(h, c)] * theta[c]).sum::<f64>();
             }
-            ss += (self.r[h] - pred).powi(2);
             let sigma = 1.0 / self.w[h];
-            floor += sigma * sigma + fit.basis.prediction_variance(&row);
+            let var = sigma * sigma + fit.basis.prediction_variance(&row);
+            ss += (self.r[h] - pred).powi(2);
+            floor += var;
+            zz += (self.r[h] - pred).powi(2) / var;
         }
-        (ss, floor)
+        (ss, floor, zz)
     }
 
     fn evaluate(
@@ -334,11 +340,12 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             .iter()
             .map(|(train, held)| engine.fit_base(&design, train.clone(), held))
             .collect();
-        let (mut ss, mut floor, mut count) = (0.0, 0.0, 0);
+        let (mut ss, mut floor, mut zz, mut count) = (0.0, 0.0, 0.0, 0);
         for fit in &fold_fits {
-            let (s, f) = engine.heldout(&design, fit, None);
+            let (s, f, z) = engine.heldout(&design, fit, None);
             ss += s;
             floor += f;
+            zz += z;
             count += fit.held.len();
         }
         if round == 0 {
@@ -364,6 +371,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             heldout_rms_m: base_heldout_ms.sqrt(),
             chi2_per_dof: full.res_w.norm_squared() / (nobs - full.basis.rank()).max(1) as f64,
             heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
+            heldout_ratio: (zz / count.max(1) as f64).sqrt(),
         };
         if gap_before.is_none() {
             gap_before = Some(base_gap.clone());
@@ -394,11 +402,19 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             if eval.df == 0 {
                 continue;
             }
-            // A change point's location is a searched parameter: Bonferroni over the
-            // positions tried, and one more parameter in the BIC.
-            let p_value = (chi2_sf(eval.chi2_drop, eval.df as f64) * searched as f64).min(1.0);
+            // The test scales by the residual variance left after the candidate (F test,
+            // likelihood ratio with the noise scale profiled out): structure that no
+            // candidate expresses then inflates the denominator instead of making every
+            // flexible candidate look significant. A change point's location is a searched
+            // parameter: Bonferroni over the positions tried, one more parameter in the BIC.
+            let chi2_base = full.res_w.norm_squared();
+            let chi2_after = (chi2_base - eval.chi2_drop).max(f64::MIN_POSITIVE);
+            let dof_after = nobs.saturating_sub(full.basis.rank() + eval.df).max(1) as f64;
+            let f_stat = (eval.chi2_drop / eval.df as f64) / (chi2_after / dof_after);
+            let p_value = (f_sf(f_stat, eval.df as f64, dof_after) * searched as f64).min(1.0);
             let params_counted = eval.df + usize::from(searched > 1);
-            let bic_delta = -eval.chi2_drop + params_counted as f64 * ln_n;
+            let bic_delta =
+                nobs as f64 * (chi2_after / chi2_base).ln() + params_counted as f64 * ln_n;
             trials.push(Trial {
                 model,
                 eval,
@@ -502,6 +518,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         heldout_rms_m: cv_after.heldout_rms_m,
         chi2_per_dof: chi2 / dof as f64,
         heldout_floor_m: cv_after.heldout_floor_m,
+        heldout_ratio: cv_after.heldout_ratio,
     };
     let nominal_basis = {
         let jw = DMatrix::from_fn(nobs, nominal_j.ncols(), |i, c| {
@@ -575,6 +592,7 @@ fn empty_gap(v: f64) -> Gap {
         heldout_rms_m: v,
         chi2_per_dof: v,
         heldout_floor_m: v,
+        heldout_ratio: v,
     }
 }
 
@@ -690,10 +708,11 @@ pub fn text(d: &Diagnosis) -> String {
     let gap = |s: &mut String, label: &str, g: &Gap| {
         let _ = writeln!(
             s,
-            "  {label}: RMS {}, held-out RMS {} (floor {}), chi2/dof {:.2}",
+            "  {label}: RMS {}, held-out RMS {} (floor {}, standardised {:.2}), chi2/dof {:.2}",
             nm(g.rms_m),
             nm(g.heldout_rms_m),
             nm(g.heldout_floor_m),
+            g.heldout_ratio,
             g.chi2_per_dof
         );
     };

@@ -171,7 +171,9 @@ impl SimEffects {
     pub fn on_move(&mut self, from: [f64; 3], to: [f64; 3], now_s: f64) {
         for k in 0..3 {
             let d = to[k] - from[k];
-            if d != 0.0 {
+            // `from` is the end of the motion profile, equal to the last target only up to
+            // rounding: an axis counts as moved from a nanometre on (commanded moves are mm).
+            if d.abs() > 1e-9 {
                 self.approach[k] = d.signum();
             }
         }
