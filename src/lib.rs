@@ -4,6 +4,7 @@
 pub mod clock;
 pub mod config;
 pub mod devices;
+pub mod diagnose;
 pub mod extract;
 pub mod method;
 pub mod model;

@@ -47,6 +47,13 @@ enum Command {
         #[arg(long, value_name = "SIGMAS")]
         huber: Option<f64>,
     },
+    /// Where a session departs from the nominal model, which unmodelled effect explains it.
+    Diagnose {
+        session: PathBuf,
+        /// Print geocal-diagnosis/1 JSON instead of the text report.
+        #[arg(long)]
+        json: bool,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -125,6 +132,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 println!("{}", results.to_json_pretty());
             } else {
                 print!("{}", geocal::report::text(&results));
+            }
+        }
+        Command::Diagnose { session, json } => {
+            let diagnosis = geocal::diagnose::diagnose_file(&session, &Default::default())?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&diagnosis)?);
+            } else {
+                print!("{}", geocal::diagnose::text(&diagnosis));
             }
         }
         Command::Check { config, json } => {

@@ -306,6 +306,9 @@ pub struct SimConfig {
     /// The simulated rotary table's errors (plan kind `rotary_tracer`).
     #[serde(default)]
     pub rotary: SimRotaryConfig,
+    /// Unmodelled effects of the simulated world (the vocabulary of `geocal diagnose`).
+    #[serde(default)]
+    pub effects: crate::sim::effects::EffectsConfig,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

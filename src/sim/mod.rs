@@ -2,6 +2,7 @@
 //! simulated drivers behind the same traits as real ones.
 
 pub mod devices;
+pub mod effects;
 pub mod rotary;
 pub mod truth;
 pub mod world;

@@ -15,6 +15,7 @@ use crate::config::{Config, SimEnvironmentConfig};
 use crate::extract::NoiseModel;
 use crate::model::kinematics::{actual_position, Structure};
 use crate::plan::Plan;
+use crate::sim::effects::SimEffects;
 use crate::sim::rotary::{AngleError, SimTable};
 use crate::sim::truth::TruthErrors;
 
@@ -78,6 +79,8 @@ pub struct SimWorld {
     env: SimEnvironmentConfig,
     env_period_s: f64,
     next_env_s: f64,
+    /// Unmodelled effects (`[sim.effects]`), all off by default.
+    effects: SimEffects,
 }
 
 /// Everything the simulation knows that a solver must find: exported with `--truth`.
@@ -204,6 +207,13 @@ impl SimWorld {
                 noise_ppm: tracer.noise_ppm,
             },
             rng: ChaCha8Rng::seed_from_u64(sim.seed.wrapping_add(1)),
+            effects: SimEffects::new(
+                &sim.effects,
+                &sim.environment,
+                sim.seed,
+                plan.stations.len(),
+                plan.targets.len() * plan.passes.len() * plan.points.len(),
+            ),
             env: sim.environment.clone(),
             env_period_s: 1.0 / env_rate,
             next_env_s: 0.0,
@@ -218,7 +228,7 @@ impl SimWorld {
         Vector3::from(actual_position(
             &self.structure,
             &self.truth,
-            axes_m,
+            self.effects.actual_axes_m(axes_m),
             self.target_offset_m,
         ))
     }
@@ -232,7 +242,10 @@ impl SimWorld {
     }
 
     fn true_distance_m(&self, t_s: f64) -> f64 {
-        (self.station_at(t_s) - self.target_at(self.motion.at(t_s))).norm()
+        let target = self.target_at(self.motion.at(t_s));
+        let station = self.station_at(t_s);
+        self.effects
+            .distance_m(self.current_station, &station, &target, t_s)
     }
 
     // --- tracer ---
@@ -284,6 +297,7 @@ impl SimWorld {
             .sqrt();
         // The cycloidal profile peaks at twice the mean speed: keep the peak at the feed.
         let duration_s = (2.0 * distance / self.feed_m_s).max(0.1);
+        self.effects.on_move(from, target, now);
         self.motion = Motion {
             from,
             to: target,
@@ -313,6 +327,7 @@ impl SimWorld {
         self.beam_interrupted = self.next_seq > 0;
         self.current_station = index;
         self.on_table = to_table;
+        self.effects.on_station(index, self.now_s());
         // The counter is meaningless until the sequencer homes again.
         self.home_distance_m = self.true_distance_m(self.now_s());
     }
@@ -348,11 +363,11 @@ impl SimWorld {
         let mut out = Vec::new();
         while self.next_env_s <= now {
             let t = self.next_env_s;
-            let swing = self.env.temp_swing_k
-                * (2.0 * std::f64::consts::PI * t / self.env.temp_period_s).sin();
+            let air_temp_k = crate::sim::effects::air_temp_k(&self.env, t);
+            let swing = air_temp_k - self.env.air_temp_k;
             out.push(geocal_drivers::EnvReading {
                 t_s: t,
-                air_temp_k: self.env.air_temp_k + swing,
+                air_temp_k,
                 pressure_pa: self.env.pressure_pa,
                 humidity_pct: self.env.humidity_pct,
                 material_temp_k: self

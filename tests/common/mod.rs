@@ -22,6 +22,14 @@ pub fn small_demo() -> String {
         .replace("count = 4 }", "count = 2 }")
 }
 
+/// The demo shrunk for the diagnosis: all 5 stations, 3x3x3 points, both passes. Fewer
+/// lengths than this leave held-out lengths undetermined (cross-validation needs each point
+/// seen from 4 stations and each station to keep most of its points when a fold is held out).
+pub fn diagnose_demo() -> String {
+    DEMO.replace("count = 5 }", "count = 3 }")
+        .replace("count = 4 }", "count = 3 }")
+}
+
 /// Rigid motion (R, t) minimising sum |R a_i + t - b_i|^2 (Kabsch), written independently of
 /// the solver's own datum code so that the tests do not grade the solver with itself.
 pub fn rigid_fit(a: &[[f64; 3]], b: &[[f64; 3]]) -> (Rotation3<f64>, Vector3<f64>) {
@@ -181,4 +189,32 @@ pub fn assert_recovers_truth(results: &MultilaterationResults, truth: &Value) {
             );
         }
     }
+}
+
+/// A config with unmodelled effects switched on: `effects` is the body of `[sim.effects]`
+/// (TOML lines), `seed` replaces the demo's seed. The air temperature swings 0.5 K with a
+/// 15 min period (an air-conditioning cycle), so refraction has something to follow.
+pub fn with_effects(base: &str, seed: u64, effects: &str) -> String {
+    format!(
+        "{}\n[sim.environment]\ntemp_swing_k = 0.5\ntemp_period_s = 900.0\n\n[sim.effects]\n{effects}\n",
+        base.replace("seed = 20261121", &format!("seed = {seed}"))
+    )
+}
+
+/// Run a simulated session for `config_text` and diagnose the recorded file.
+pub fn run_and_diagnose(config_text: &str) -> geocal::diagnose::Diagnosis {
+    let config = geocal::config::Config::parse(config_text, std::path::Path::new("effects.toml"))
+        .expect("config");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let output = geocal::run::run(
+        &config,
+        &geocal::run::RunOptions {
+            out_dir: dir.path().to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run");
+    geocal::diagnose::diagnose_file(&output.session_path, &Default::default()).expect("diagnose")
 }

@@ -1,0 +1,227 @@
+//! The observations the diagnosis works on, from the session alone: settled lengths with their
+//! time, station, pass, approach directions, homing reference and the logged air at that time.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+
+use crate::extract::{extract_points, ExtractOptions, NoiseModel};
+use crate::session::reader::Session;
+use crate::sim::effects::edlen_dn;
+use crate::solve::multilateration::{LengthObservation, MultilaterationProblem, Segment};
+
+#[derive(Debug, Clone)]
+pub struct Obs {
+    pub station: usize,
+    pub segment: usize,
+    pub point: usize,
+    pub pass: usize,
+    /// Index into `Data::passes`: one homing (station, target, pass, beam segment).
+    pub pass_group: usize,
+    /// The observation taken right after this pass's homing (point 0), whose effect value
+    /// the homing zeroed: every effect column is f(obs) − f(home).
+    pub home: usize,
+    /// Middle of the settled stretch, device seconds.
+    pub t_s: f64,
+    pub length_m: f64,
+    pub sigma_m: f64,
+    /// Sign of the last move of x, y, z before this dwell.
+    pub approach: [f64; 3],
+    pub nominal_m: [f64; 3],
+    /// Edlén n − n_ref from the logged air at t_s, when the session has an environment log.
+    pub dn: Option<f64>,
+}
+
+#[derive(Debug, Clone)]
+pub struct Data {
+    pub session_id: String,
+    pub obs: Vec<Obs>,
+    pub station_ids: Vec<String>,
+    /// Per pass group: observation indices in time order, and a readable name.
+    pub passes: Vec<Vec<usize>>,
+    pub pass_names: Vec<String>,
+    pub problem: MultilaterationProblem,
+    /// Per station: the first observation time (origin of drift ramps).
+    pub station_start_s: Vec<f64>,
+    pub has_env: bool,
+    pub dropped_windows: usize,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DataError {
+    #[error("point extraction: {0}")]
+    Extract(#[from] crate::extract::points::ExtractError),
+    #[error("no settled point windows in the session ({0} dropped)")]
+    NoPoints(usize),
+    #[error("session kind `{0}`: diagnosis handles multilateration sessions")]
+    Kind(String),
+}
+
+/// Linear interpolation of the logged air at t (held constant outside the log).
+fn air_at(env: &[(f64, f64, f64, f64)], t_s: f64) -> Option<f64> {
+    let first = env.first()?;
+    let k = env.partition_point(|e| e.0 <= t_s);
+    let (_, temp, p, rh) = if k == 0 {
+        *first
+    } else if k >= env.len() {
+        env[env.len() - 1]
+    } else {
+        let (a, b) = (env[k - 1], env[k]);
+        let f = if b.0 > a.0 {
+            (t_s - a.0) / (b.0 - a.0)
+        } else {
+            0.0
+        };
+        let lerp = |x: f64, y: f64| x + f * (y - x);
+        (t_s, lerp(a.1, b.1), lerp(a.2, b.2), lerp(a.3, b.3))
+    };
+    Some(edlen_dn(temp, p, rh))
+}
+
+impl Data {
+    pub fn from_session(session: &Session) -> Result<Data, DataError> {
+        if session.header.kind != "multilateration" {
+            return Err(DataError::Kind(session.header.kind.clone()));
+        }
+        let tracer_id = match session.tracers.keys().next() {
+            Some(id) if session.tracers.len() == 1 => Some(id.clone()),
+            _ => None,
+        };
+        let noise = tracer_id
+            .as_deref()
+            .and_then(|id| NoiseModel::from_header(&session.header, id));
+        let options = ExtractOptions::from_header(&session.header);
+        let extraction = extract_points(session, tracer_id.as_deref(), noise, &options)?;
+        if extraction.measurements.is_empty() {
+            return Err(DataError::NoPoints(extraction.dropped.len()));
+        }
+        let mut env: Vec<(f64, f64, f64, f64)> = session
+            .env
+            .values()
+            .next()
+            .map(|v| {
+                v.iter()
+                    .map(|s| {
+                        (
+                            s.msg.t_s,
+                            s.msg.air_temp_k,
+                            s.msg.pressure_pa,
+                            s.msg.humidity_pct,
+                        )
+                    })
+                    .filter(|e| e.0.is_finite() && e.1.is_finite() && e.2.is_finite())
+                    .collect()
+            })
+            .unwrap_or_default();
+        env.sort_by(|a, b| a.0.total_cmp(&b.0));
+
+        // Problem points by (target, point), segments by (station, target, beam segment),
+        // as the solver's method does, so the nominal fit is the one `geocal solve` reports.
+        let mut keys: Vec<(String, usize, [f64; 3])> = extraction
+            .measurements
+            .iter()
+            .map(|m| (m.target.clone(), m.point, m.nominal_m))
+            .collect();
+        keys.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
+        keys.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
+        let point_index: BTreeMap<(String, usize), usize> = keys
+            .iter()
+            .enumerate()
+            .map(|(i, k)| ((k.0.clone(), k.1), i))
+            .collect();
+        let mut segment_index: BTreeMap<(usize, String, u32), usize> = BTreeMap::new();
+        let mut segments = Vec::new();
+        let mut pass_index: BTreeMap<(usize, String, usize, u32), usize> = BTreeMap::new();
+        let mut passes: Vec<Vec<usize>> = Vec::new();
+        let mut pass_names = Vec::new();
+        let mut obs = Vec::with_capacity(extraction.measurements.len());
+        let mut observations = Vec::with_capacity(extraction.measurements.len());
+        for m in &extraction.measurements {
+            let seg_key = (m.station_index, m.target.clone(), m.beam_segment);
+            let segment = *segment_index.entry(seg_key).or_insert_with(|| {
+                segments.push(Segment {
+                    station: m.station_index,
+                });
+                segments.len() - 1
+            });
+            let pass_key = (m.station_index, m.target.clone(), m.pass, m.beam_segment);
+            let pass_group = *pass_index.entry(pass_key).or_insert_with(|| {
+                passes.push(Vec::new());
+                pass_names.push(format!(
+                    "{} pass {}{}",
+                    m.station,
+                    m.pass,
+                    if m.beam_segment > 0 {
+                        format!(" segment {}", m.beam_segment)
+                    } else {
+                        String::new()
+                    }
+                ));
+                passes.len() - 1
+            });
+            let point = point_index[&(m.target.clone(), m.point)];
+            let t_s = 0.5 * (m.settled_from_s + m.settled_to_s);
+            let sign = |axis: &str| m.approach.get(axis).map_or(0.0, |&s| f64::from(s));
+            passes[pass_group].push(obs.len());
+            obs.push(Obs {
+                station: m.station_index,
+                segment,
+                point,
+                pass: m.pass,
+                pass_group,
+                home: usize::MAX,
+                t_s,
+                length_m: m.length_m,
+                sigma_m: m.sigma_m,
+                approach: [sign("x"), sign("y"), sign("z")],
+                nominal_m: m.nominal_m,
+                dn: air_at(&env, t_s),
+            });
+            observations.push(LengthObservation {
+                point,
+                segment,
+                length_m: m.length_m,
+                sigma_m: m.sigma_m,
+            });
+        }
+        for members in &mut passes {
+            members.sort_by(|&a, &b| obs[a].t_s.total_cmp(&obs[b].t_s));
+            // The homing point's dwell comes first after homing; if it was dropped, the
+            // earliest dwell of the pass stands in for the homing state.
+            let home = members
+                .iter()
+                .copied()
+                .find(|&i| keys[obs[i].point].1 == 0)
+                .unwrap_or(members[0]);
+            for &i in members.iter() {
+                obs[i].home = home;
+            }
+        }
+        let m = extraction.stations.len();
+        let mut station_start_s = vec![f64::INFINITY; m];
+        for o in &obs {
+            station_start_s[o.station] = station_start_s[o.station].min(o.t_s);
+        }
+        let problem = MultilaterationProblem {
+            nominal_points: keys.iter().map(|k| Vector3::from(k.2)).collect(),
+            station_hints: extraction
+                .stations
+                .iter()
+                .map(|s| s.hint_m.map(Vector3::from))
+                .collect(),
+            segments,
+            observations,
+        };
+        Ok(Data {
+            session_id: session.header.session_id.clone(),
+            has_env: obs.iter().all(|o| o.dn.is_some()),
+            obs,
+            station_ids: extraction.stations.iter().map(|s| s.id.clone()).collect(),
+            passes,
+            pass_names,
+            problem,
+            station_start_s,
+            dropped_windows: extraction.dropped.len(),
+        })
+    }
+}

@@ -1,0 +1,206 @@
+//! The effect library: for each unmodelled effect, a parametric model that adds to the nominal
+//! predicted lengths, as Jacobian columns in its own parameters evaluated at the fitted geometry.
+
+use nalgebra::{DMatrix, Vector3};
+
+use super::data::Data;
+use crate::solve::multilateration::MultilaterationSolution;
+
+/// The fitted geometry the columns are evaluated at.
+#[derive(Debug, Clone)]
+pub struct Geometry {
+    pub points: Vec<Vector3<f64>>,
+    pub stations: Vec<Vector3<f64>>,
+    pub distances_m: Vec<f64>,
+}
+
+impl Geometry {
+    pub fn from_solution(s: &MultilaterationSolution) -> Geometry {
+        Geometry {
+            points: s.points.clone(),
+            stations: s.stations.clone(),
+            distances_m: s.segment_distance_m.clone(),
+        }
+    }
+
+    /// Unit vector from the target point to the station (a station shift δP changes the
+    /// length by u·δP, a target shift δX by −u·δX) and the distance.
+    pub fn beam(&self, data: &Data, i: usize) -> (Vector3<f64>, f64) {
+        let o = &data.obs[i];
+        let v = self.stations[o.station] - self.points[o.point];
+        let d = v.norm();
+        (v / d, d)
+    }
+
+    pub fn predicted_m(&self, data: &Data, i: usize) -> f64 {
+        self.beam(data, i).1 - self.distances_m[data.obs[i].segment]
+    }
+
+    /// Number of nominal parameters: 3 per point, 3 per station, 1 per segment.
+    pub fn len(&self) -> usize {
+        3 * self.points.len() + 3 * self.stations.len() + self.distances_m.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Dense Jacobian of the predicted lengths (rows: observations).
+    pub fn jacobian(&self, data: &Data) -> DMatrix<f64> {
+        let (n, m) = (self.points.len(), self.stations.len());
+        let mut j = DMatrix::zeros(data.obs.len(), self.len());
+        for (i, o) in data.obs.iter().enumerate() {
+            let (u, _) = self.beam(data, i);
+            for a in 0..3 {
+                j[(i, 3 * o.point + a)] = -u[a];
+                j[(i, 3 * n + 3 * o.station + a)] = u[a];
+            }
+            j[(i, 3 * n + 3 * m + o.segment)] = -1.0;
+        }
+        j
+    }
+
+    /// Apply a step in the parameter order of `jacobian`.
+    pub fn apply(&mut self, step: &[f64]) {
+        let (n, m) = (self.points.len(), self.stations.len());
+        for (i, p) in self.points.iter_mut().enumerate() {
+            for a in 0..3 {
+                p[a] += step[3 * i + a];
+            }
+        }
+        for (j, p) in self.stations.iter_mut().enumerate() {
+            for a in 0..3 {
+                p[a] += step[3 * n + 3 * j + a];
+            }
+        }
+        for (s, d) in self.distances_m.iter_mut().enumerate() {
+            *d += step[3 * n + 3 * m + s];
+        }
+    }
+}
+
+#[derive(Debug, Clone, Copy, PartialEq, Eq, PartialOrd, Ord)]
+pub enum EffectKind {
+    StationDrift,
+    Reversal,
+    LengthStep,
+    AirRefraction,
+    TracerEccentricity,
+}
+
+/// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
+pub const LIBRARY: [EffectKind; 5] = [
+    EffectKind::StationDrift,
+    EffectKind::Reversal,
+    EffectKind::LengthStep,
+    EffectKind::AirRefraction,
+    EffectKind::TracerEccentricity,
+];
+
+impl EffectKind {
+    pub fn name(self) -> &'static str {
+        match self {
+            EffectKind::StationDrift => "station_drift",
+            EffectKind::Reversal => "reversal",
+            EffectKind::LengthStep => "length_step",
+            EffectKind::AirRefraction => "air_refraction",
+            EffectKind::TracerEccentricity => "tracer_eccentricity",
+        }
+    }
+}
+
+/// One effect as a model: its kind and, for a length step, where the step is (pass group and
+/// position in the pass's time order from which the lengths are shifted).
+#[derive(Debug, Clone, PartialEq)]
+pub struct EffectModel {
+    pub kind: EffectKind,
+    pub step: Option<(usize, usize)>,
+}
+
+impl EffectModel {
+    pub fn plain(kind: EffectKind) -> EffectModel {
+        EffectModel { kind, step: None }
+    }
+
+    /// Parameter names with their units, in column order.
+    pub fn param_names(&self, data: &Data) -> Vec<String> {
+        let per_station = |names: [&str; 3]| -> Vec<String> {
+            data.station_ids
+                .iter()
+                .flat_map(|s| names.iter().map(move |n| format!("{s}.{n}")))
+                .collect()
+        };
+        match self.kind {
+            EffectKind::StationDrift => per_station(["wx_m_s", "wy_m_s", "wz_m_s"]),
+            EffectKind::Reversal => vec!["bx_m".into(), "by_m".into(), "bz_m".into()],
+            EffectKind::LengthStep => vec!["step_m".into()],
+            EffectKind::AirRefraction => vec!["edlen_scale".into()],
+            EffectKind::TracerEccentricity => per_station(["e_cos_phi0_m", "e_sin_phi0_m", "ez_m"]),
+        }
+    }
+
+    /// Columns f(obs) − f(home of obs): the change of each measured relative length per unit
+    /// of each parameter. The homing zeroes the counter with the effect's value at the homing,
+    /// so the home term belongs to the model (it is what makes passes differ).
+    pub fn columns(&self, data: &Data, geom: &Geometry) -> DMatrix<f64> {
+        let f = self.absolute(data, geom);
+        DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
+            f[(i, c)] - f[(data.obs[i].home, c)]
+        })
+    }
+
+    /// f(obs): the effect's error in the absolute optical distance per unit parameter.
+    fn absolute(&self, data: &Data, geom: &Geometry) -> DMatrix<f64> {
+        let nobs = data.obs.len();
+        let m = data.station_ids.len();
+        match self.kind {
+            EffectKind::StationDrift => {
+                let mut f = DMatrix::zeros(nobs, 3 * m);
+                for (i, o) in data.obs.iter().enumerate() {
+                    let (u, _) = geom.beam(data, i);
+                    let dt = o.t_s - data.station_start_s[o.station];
+                    for a in 0..3 {
+                        f[(i, 3 * o.station + a)] = u[a] * dt;
+                    }
+                }
+                f
+            }
+            EffectKind::Reversal => {
+                let mut f = DMatrix::zeros(nobs, 3);
+                for (i, o) in data.obs.iter().enumerate() {
+                    let (u, _) = geom.beam(data, i);
+                    for a in 0..3 {
+                        f[(i, a)] = -u[a] * 0.5 * o.approach[a];
+                    }
+                }
+                f
+            }
+            EffectKind::LengthStep => {
+                let mut f = DMatrix::zeros(nobs, 1);
+                if let Some((g, k)) = self.step {
+                    for &i in data.passes[g].iter().skip(k) {
+                        f[(i, 0)] = 1.0;
+                    }
+                }
+                f
+            }
+            EffectKind::AirRefraction => DMatrix::from_fn(nobs, 1, |i, _| {
+                data.obs[i].dn.unwrap_or(0.0) * geom.beam(data, i).1
+            }),
+            EffectKind::TracerEccentricity => {
+                let mut f = DMatrix::zeros(nobs, 3 * m);
+                for (i, o) in data.obs.iter().enumerate() {
+                    let (u, _) = geom.beam(data, i);
+                    // The beam leaves the station towards the target: direction −u.
+                    let v = -u;
+                    let az = v.y.atan2(v.x);
+                    let el = v.z.clamp(-1.0, 1.0).asin();
+                    f[(i, 3 * o.station)] = az.cos();
+                    f[(i, 3 * o.station + 1)] = az.sin();
+                    f[(i, 3 * o.station + 2)] = el.sin();
+                }
+                f
+            }
+        }
+    }
+}

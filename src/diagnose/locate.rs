@@ -1,0 +1,192 @@
+//! "Where": splits the whitened residual sum of squares into groups (station, time block,
+//! approach direction, workspace octant, beam axis, pass) and tests each against the noise model.
+
+use serde::{Deserialize, Serialize};
+
+use super::data::Data;
+use super::effects::Geometry;
+use super::stats::{chi2_sf, Basis};
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct WhereEntry {
+    pub level: String,
+    pub group: String,
+    pub key: String,
+    /// Share of the residual sum of squares (m²) in this group.
+    pub share: f64,
+    pub rms_m: f64,
+    /// Bonferroni-corrected P(χ² ≥ observed) of the group under the noise model.
+    pub p_value: f64,
+}
+
+/// Time blocks: enough that a ramp or a step is localised, few enough that each block holds
+/// tens of lengths (the χ² test of a block needs more than a handful of degrees of freedom).
+const TIME_BLOCKS: usize = 8;
+
+/// The best single change point in any pass of `stations` (None = all): (pass group, position,
+/// score χ²(1) statistic, number of positions tried). `res_w` is orthogonal to span(basis).
+pub fn best_step(
+    data: &Data,
+    basis: &Basis,
+    res_w: &nalgebra::DVector<f64>,
+    station: Option<usize>,
+) -> Option<(usize, usize, f64, usize)> {
+    let w: Vec<f64> = data.obs.iter().map(|o| 1.0 / o.sigma_m).collect();
+    let r = basis.rank();
+    let mut best: Option<(usize, usize, f64)> = None;
+    let mut tried = 0;
+    for (g, members) in data.passes.iter().enumerate() {
+        if station.is_some_and(|s| data.obs[members[0]].station != s) {
+            continue;
+        }
+        // Walk the split from the end: the step column is the suffix indicator (whitened).
+        let mut proj = nalgebra::DVector::<f64>::zeros(r);
+        let (mut cc, mut cr) = (0.0, 0.0);
+        for k in (1..members.len()).rev() {
+            let i = members[k];
+            for c in 0..r {
+                proj[c] += w[i] * basis.u[(i, c)];
+            }
+            cc += w[i] * w[i];
+            cr += w[i] * res_w[i];
+            tried += 1;
+            let perp = cc - proj.norm_squared();
+            // A step that the nominal model absorbs (e.g. the whole pass) is not a candidate.
+            if perp <= 1e-6 * cc {
+                continue;
+            }
+            let stat = cr * cr / perp;
+            if best.is_none_or(|b| stat > b.2) {
+                best = Some((g, k, stat));
+            }
+        }
+    }
+    best.map(|(g, k, s)| (g, k, s, tried))
+}
+
+/// Groups whose whitened residuals exceed the noise model (family-wise level `alpha`).
+pub fn locate(
+    data: &Data,
+    geom: &Geometry,
+    resid_m: &[f64],
+    basis: &Basis,
+    alpha: f64,
+) -> Vec<WhereEntry> {
+    let nobs = data.obs.len();
+    let leverage = basis.leverages();
+    let mut groups: Vec<(&str, String, Vec<usize>)> = Vec::new();
+    for (j, id) in data.station_ids.iter().enumerate() {
+        let members = (0..nobs).filter(|&i| data.obs[i].station == j).collect();
+        groups.push(("station", id.clone(), members));
+    }
+    let (t0, t1) = data
+        .obs
+        .iter()
+        .fold((f64::INFINITY, f64::NEG_INFINITY), |a, o| {
+            (a.0.min(o.t_s), a.1.max(o.t_s))
+        });
+    let span = (t1 - t0).max(1e-9);
+    for b in 0..TIME_BLOCKS {
+        let lo = t0 + span * b as f64 / TIME_BLOCKS as f64;
+        let hi = t0 + span * (b + 1) as f64 / TIME_BLOCKS as f64;
+        let members = (0..nobs)
+            .filter(|&i| {
+                let t = data.obs[i].t_s;
+                t >= lo && (t < hi || b + 1 == TIME_BLOCKS)
+            })
+            .collect();
+        groups.push(("time", format!("{lo:.0}-{hi:.0} s"), members));
+    }
+    for (a, axis) in ["x", "y", "z"].iter().enumerate() {
+        for (s, sign) in [(1.0, "+"), (-1.0, "-")] {
+            let members = (0..nobs)
+                .filter(|&i| data.obs[i].approach[a] == s)
+                .collect();
+            groups.push(("direction", format!("{axis}{sign}"), members));
+        }
+    }
+    let centre: [f64; 3] = std::array::from_fn(|a| {
+        data.obs.iter().map(|o| o.nominal_m[a]).sum::<f64>() / nobs.max(1) as f64
+    });
+    for octant in 0..8 {
+        let key: String = (0..3)
+            .map(|a| {
+                format!(
+                    "{}{}",
+                    ["x", "y", "z"][a],
+                    if octant >> a & 1 == 1 { "+" } else { "-" }
+                )
+            })
+            .collect();
+        let members = (0..nobs)
+            .filter(|&i| {
+                (0..3).all(|a| (data.obs[i].nominal_m[a] > centre[a]) == (octant >> a & 1 == 1))
+            })
+            .collect();
+        groups.push(("region", key, members));
+    }
+    for (a, axis) in ["x", "y", "z"].iter().enumerate() {
+        let members = (0..nobs)
+            .filter(|&i| geom.beam(data, i).0.iamax() == a)
+            .collect();
+        groups.push(("axis", format!("beam along {axis}"), members));
+    }
+    let max_pass = data.obs.iter().map(|o| o.pass).max().unwrap_or(0);
+    for p in 0..=max_pass {
+        let members = (0..nobs).filter(|&i| data.obs[i].pass == p).collect();
+        groups.push(("pass", format!("pass {p}"), members));
+    }
+    groups.retain(|g| !g.2.is_empty());
+
+    let total_m2: f64 = resid_m
+        .iter()
+        .map(|r| r * r)
+        .sum::<f64>()
+        .max(f64::MIN_POSITIVE);
+    let tests = groups.len() + data.station_ids.len();
+    let mut out = Vec::new();
+    for (group, key, members) in &groups {
+        let stat: f64 = members
+            .iter()
+            .map(|&i| (resid_m[i] / data.obs[i].sigma_m).powi(2))
+            .sum();
+        // A residual's variance is (1 − leverage) σ²: the group's expected χ² and its dof.
+        let dof: f64 = members.iter().map(|&i| (1.0 - leverage[i]).max(0.0)).sum();
+        let p = (chi2_sf(stat, dof) * tests as f64).min(1.0);
+        if p < alpha {
+            let ss: f64 = members.iter().map(|&i| resid_m[i].powi(2)).sum();
+            out.push(WhereEntry {
+                level: "lengths".into(),
+                group: (*group).into(),
+                key: key.clone(),
+                share: ss / total_m2,
+                rms_m: (ss / members.len() as f64).sqrt(),
+                p_value: p,
+            });
+        }
+    }
+    // Change points in each station's passes (a fringe loss, a bump of the stand).
+    let res_w = nalgebra::DVector::from_fn(nobs, |i, _| resid_m[i] / data.obs[i].sigma_m);
+    for j in 0..data.station_ids.len() {
+        if let Some((g, k, stat, tried)) = best_step(data, basis, &res_w, Some(j)) {
+            let p = (chi2_sf(stat, 1.0) * (tried * tests) as f64).min(1.0);
+            if p < alpha {
+                let members = &data.passes[g][k..];
+                let ss: f64 = members.iter().map(|&i| resid_m[i].powi(2)).sum();
+                out.push(WhereEntry {
+                    level: "lengths".into(),
+                    group: "time".into(),
+                    key: format!(
+                        "change point in {} at {:.1} s",
+                        data.pass_names[g], data.obs[members[0]].t_s
+                    ),
+                    share: ss / total_m2,
+                    rms_m: (ss / members.len() as f64).sqrt(),
+                    p_value: p,
+                });
+            }
+        }
+    }
+    out.sort_by(|a, b| b.share.total_cmp(&a.share));
+    out
+}

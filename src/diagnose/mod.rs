@@ -1,0 +1,778 @@
+//! Sim-to-real gap diagnosis (`geocal diagnose`): where the lengths depart from the nominal
+//! multilateration model, which unmodelled effect explains it, and how far the gap shrinks.
+
+pub mod data;
+pub mod effects;
+pub mod locate;
+pub mod stats;
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::Context;
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use crate::session::reader::{read_session, Session};
+use crate::solve::multilateration::{solve, SolveOptions};
+use data::Data;
+use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
+use locate::{best_step, locate, WhereEntry};
+use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
+
+pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
+
+/// Settings of the tests; the defaults are the documented ones.
+#[derive(Debug, Clone, PartialEq)]
+pub struct DiagnoseOptions {
+    /// Family-wise false-alarm level of each round of selection and of the `where` tests.
+    pub alpha: f64,
+    /// Minimum number of cross-validation folds (at least the number of stations is used).
+    pub folds: usize,
+}
+
+impl Default for DiagnoseOptions {
+    fn default() -> Self {
+        Self {
+            alpha: 0.01,
+            folds: 5,
+        }
+    }
+}
+
+/// Two candidates are confounded when their projected column spaces are this close (largest
+/// principal angle cosine) and the data do not prefer one strongly (BIC difference below 10,
+/// "very strong evidence" on the Kass–Raftery scale).
+pub const CONFOUNDED_COSINE: f64 = 0.95;
+pub const DECISIVE_BIC: f64 = 10.0;
+/// A projected effect direction smaller than this fraction of the effect's own column norm
+/// is one the nominal model absorbs (e.g. the vertical eccentricity = station height).
+const EFFECT_RANK_TOL: f64 = 1e-6;
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Gap {
+    pub rms_m: f64,
+    pub heldout_rms_m: f64,
+    pub chi2_per_dof: f64,
+    /// Held-out RMS expected from the noise model alone (noise plus prediction uncertainty).
+    pub heldout_floor_m: f64,
+    /// RMS of the held-out residuals each in units of its own predicted standard deviation
+    /// (noise and prediction): 1 when the model holds. Steadier than the ratio of RMS values,
+    /// which a few high-leverage lengths dominate.
+    pub heldout_ratio: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Candidate {
+    pub effect: String,
+    pub params: BTreeMap<String, Value>,
+    pub rms_after_m: f64,
+    pub heldout_rms_after_m: f64,
+    pub bic_delta: f64,
+    pub p_value: f64,
+    /// Selection round (0 = against the nominal model) of this evaluation.
+    pub round: usize,
+    /// Identifiable parameters (projected rank) and the χ² drop when added.
+    pub df: usize,
+    pub chi2_drop: f64,
+    /// selected | rejected (why) | confounded.
+    pub status: String,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub confounded_with: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct Diagnosis {
+    pub format: String,
+    pub session_id: String,
+    pub noise_floor_m: f64,
+    pub gap: Gap,
+    #[serde(rename = "where")]
+    pub where_: Vec<WhereEntry>,
+    pub candidates: Vec<Candidate>,
+    pub selected: Vec<String>,
+    pub gap_after: Gap,
+    pub unexplained: bool,
+    /// Observations used and what the tests assumed.
+    pub observations: usize,
+    pub notes: Vec<String>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum DiagnoseError {
+    #[error(transparent)]
+    Data(#[from] data::DataError),
+    #[error("nominal multilateration fit: {0}")]
+    Solve(#[from] crate::solve::multilateration::SolveError),
+}
+
+/// Read a session file and diagnose it.
+pub fn diagnose_file(path: &Path, options: &DiagnoseOptions) -> anyhow::Result<Diagnosis> {
+    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    diagnose(&session, options).with_context(|| format!("diagnosing {}", path.display()))
+}
+
+/// The linearised model around the nominal optimum: a base design (nominal parameters plus
+/// accepted effects) fitted on a set of rows.
+struct BaseFit {
+    rows: Vec<usize>,
+    /// Held-out rows whose length the training rows determine (estimable: in the row space
+    /// of the training design); a length whose point or station the training rows leave
+    /// undetermined cannot be predicted, only guessed by the minimum-norm solution.
+    held: Vec<usize>,
+    basis: Basis,
+    /// Whitened residual of the base fit on `rows` (orthogonal to the basis).
+    res_w: DVector<f64>,
+}
+
+struct Engine {
+    /// Whitening weights 1/σ and the nominal residuals (m).
+    w: DVector<f64>,
+    r: DVector<f64>,
+    /// Per fold: training rows and held-out rows.
+    folds: Vec<(Vec<usize>, Vec<usize>)>,
+}
+
+/// The evaluation of adding one effect to a base.
+struct Eval {
+    chi2_drop: f64,
+    df: usize,
+    theta: DVector<f64>,
+    theta_sigma: DVector<f64>,
+    rms_after_m: f64,
+    heldout_ms_m2: f64,
+    /// Orthonormal basis of the effect's projected columns (full data).
+    u_perp: DMatrix<f64>,
+}
+
+impl Engine {
+    fn rows_of(&self, m: &DMatrix<f64>, rows: &[usize], whiten: bool) -> DMatrix<f64> {
+        DMatrix::from_fn(rows.len(), m.ncols(), |r, c| {
+            m[(rows[r], c)] * if whiten { self.w[rows[r]] } else { 1.0 }
+        })
+    }
+
+    fn fit_base(&self, design: &DMatrix<f64>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
+        let bw = self.rows_of(design, &rows, true);
+        let basis = Basis::new(&bw, RANK_TOL, 0.0);
+        let rw = DVector::from_fn(rows.len(), |k, _| self.r[rows[k]] * self.w[rows[k]]);
+        let res_w = basis.project_off_vec(&rw);
+        let held = held
+            .iter()
+            .copied()
+            .filter(|&h| {
+                let row = design.row(h).transpose();
+                let inside = &basis.vt * &row;
+                // Relative part outside the row space; rounding leaves ~1e-12.
+                row.norm_squared() - inside.norm_squared() <= 1e-12 * row.norm_squared()
+            })
+            .collect();
+        BaseFit {
+            rows,
+            held,
+            basis,
+            res_w,
+        }
+    }
+
+    /// Held-out residuals of a base fit with an optional extra effect (`a`: unwhitened columns
+    /// of all rows) on the fold's held-out rows: returns (Σ r², Σ (σ² + prediction variance)).
+    fn heldout(
+        &self,
+        design: &DMatrix<f64>,
+        fit: &BaseFit,
+        a: Option<&DMatrix<f64>>,
+    ) -> (f64, f64, f64) {
+        let rw = DVector::from_fn(fit.rows.len(), |k, _| {
+            self.r[fit.rows[k]] * self.w[fit.rows[k]]
+        });
+        let (beta, theta) = match a {
+            None => (fit.basis.solve(&rw), None),
+            Some(a) => {
+                let aw = self.rows_of(a, &fit.rows, true);
+                let reference = column_norm_max(&aw);
+                let perp = Basis::new(&fit.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
+                let theta = perp.solve(&fit.res_w);
+                let beta = fit.basis.solve(&(rw - &aw * &theta));
+                (beta, Some(theta))
+            }
+        };
+        let (mut ss, mut floor, mut zz) = (0.0, 0.0, 0.0);
+        for &h in &fit.held {
+            let row: Vec<f64> = design.row(h).iter().copied().collect();
+            let mut pred: f64 = row.iter().zip(beta.iter()).map(|(b, x)| b * x).sum();
+            if let (Some(a), Some(theta)) = (a, &theta) {
+                pred += (0..a.ncols()).map(|c| a[(h, c)] * theta[c]).sum::<f64>();
+            }
+            let sigma = 1.0 / self.w[h];
+            let var = sigma * sigma + fit.basis.prediction_variance(&row);
+            ss += (self.r[h] - pred).powi(2);
+            floor += var;
+            zz += (self.r[h] - pred).powi(2) / var;
+        }
+        (ss, floor, zz)
+    }
+
+    fn evaluate(
+        &self,
+        design: &DMatrix<f64>,
+        full: &BaseFit,
+        fold_fits: &[BaseFit],
+        a: &DMatrix<f64>,
+    ) -> Eval {
+        let aw = self.rows_of(a, &full.rows, true);
+        let reference = column_norm_max(&aw);
+        let perp = Basis::new(&full.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
+        let coeff = perp.u.transpose() * &full.res_w;
+        let chi2_drop = coeff.norm_squared();
+        let after_w = &full.res_w - &perp.u * &coeff;
+        let rms_after_m = (after_w
+            .iter()
+            .zip(&full.rows)
+            .map(|(r, &i)| (r / self.w[i]).powi(2))
+            .sum::<f64>()
+            / full.rows.len() as f64)
+            .sqrt();
+        let theta = perp.solve(&full.res_w);
+        // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
+        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
+            (0..perp.rank())
+                .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        });
+        let mut ss = 0.0;
+        let mut count = 0;
+        for fit in fold_fits {
+            ss += self.heldout(design, fit, Some(a)).0;
+            count += fit.held.len();
+        }
+        Eval {
+            chi2_drop,
+            df: perp.rank(),
+            theta,
+            theta_sigma,
+            rms_after_m,
+            heldout_ms_m2: ss / count.max(1) as f64,
+            u_perp: perp.u,
+        }
+    }
+}
+
+fn column_norm_max(m: &DMatrix<f64>) -> f64 {
+    (0..m.ncols())
+        .map(|c| m.column(c).norm())
+        .fold(0.0, f64::max)
+}
+
+fn hcat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(a.nrows(), a.ncols() + b.ncols());
+    out.columns_mut(0, a.ncols()).copy_from(a);
+    out.columns_mut(a.ncols(), b.ncols()).copy_from(b);
+    out
+}
+
+/// One round's bookkeeping of a candidate.
+struct Trial {
+    model: EffectModel,
+    eval: Eval,
+    p_value: f64,
+    bic_delta: f64,
+    /// Number of positions a change point was searched over (1 for the others).
+    searched: usize,
+}
+
+/// Diagnose a multilateration session: reads only the session.
+pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
+    let data = Data::from_session(session)?;
+    let solution = solve(&data.problem, &SolveOptions::default())?;
+    let nobs = data.obs.len();
+    let geom = Geometry::from_solution(&solution);
+    let k_folds = options.folds.max(data.station_ids.len());
+    // Fold of a length: (point + station) mod K, so every held-out length has its point seen
+    // from the other stations and its station from the other points (K ≥ stations: a point
+    // loses at most one station per fold).
+    let folds = (0..k_folds)
+        .map(|f| {
+            let (mut train, mut held) = (Vec::new(), Vec::new());
+            for (i, o) in data.obs.iter().enumerate() {
+                if (o.point + o.station) % k_folds == f {
+                    held.push(i);
+                } else {
+                    train.push(i);
+                }
+            }
+            (train, held)
+        })
+        .collect();
+    let engine = Engine {
+        w: DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m)),
+        r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
+        folds,
+    };
+    let mut notes = vec![format!(
+        "{} lengths from {} stations; {} dwell windows dropped by extraction",
+        nobs,
+        data.station_ids.len(),
+        data.dropped_windows
+    )];
+    let mut available: Vec<EffectKind> = LIBRARY.to_vec();
+    if !data.has_env {
+        available.retain(|k| *k != EffectKind::AirRefraction);
+        notes.push("no environment log: air_refraction cannot be tested".into());
+    }
+    let nominal_j = geom.jacobian(&data);
+    let all_rows: Vec<usize> = (0..nobs).collect();
+    let ln_n = (nobs as f64).ln();
+
+    let mut accepted: Vec<EffectModel> = Vec::new();
+    let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
+    let mut gap_before: Option<Gap> = None;
+    let mut last_base = None;
+    for round in 0..=LIBRARY.len() {
+        let design = accepted
+            .iter()
+            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(&data, &geom)));
+        let full = engine.fit_base(&design, all_rows.clone(), &[]);
+        let fold_fits: Vec<BaseFit> = engine
+            .folds
+            .iter()
+            .map(|(train, held)| engine.fit_base(&design, train.clone(), held))
+            .collect();
+        let (mut ss, mut floor, mut zz, mut count) = (0.0, 0.0, 0.0, 0);
+        for fit in &fold_fits {
+            let (s, f, z) = engine.heldout(&design, fit, None);
+            ss += s;
+            floor += f;
+            zz += z;
+            count += fit.held.len();
+        }
+        if round == 0 {
+            let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
+            notes.push(format!(
+                "cross-validation: {} folds of (point, station) pairs; {count} of {held_total} held-out lengths are determined by the rest and predicted",
+                engine.folds.len()
+            ));
+            if count == 0 {
+                notes.push("no held-out length is predictable: the plan has too few points or stations for cross-validation, so held-out RMS is not a criterion".into());
+            }
+        }
+        let base_heldout_ms = ss / count.max(1) as f64;
+        let base_gap = Gap {
+            rms_m: (full
+                .res_w
+                .iter()
+                .zip(&full.rows)
+                .map(|(r, &i)| (r / engine.w[i]).powi(2))
+                .sum::<f64>()
+                / nobs as f64)
+                .sqrt(),
+            heldout_rms_m: base_heldout_ms.sqrt(),
+            chi2_per_dof: full.res_w.norm_squared() / (nobs - full.basis.rank()).max(1) as f64,
+            heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
+            heldout_ratio: (zz / count.max(1) as f64).sqrt(),
+        };
+        if gap_before.is_none() {
+            gap_before = Some(base_gap.clone());
+        }
+        let candidates: Vec<EffectKind> = available
+            .iter()
+            .copied()
+            .filter(|k| !accepted.iter().any(|m| m.kind == *k))
+            .collect();
+        let mut trials = Vec::new();
+        for kind in &candidates {
+            let (model, searched) = if *kind == EffectKind::LengthStep {
+                match best_step(&data, &full.basis, &full.res_w, None) {
+                    Some((g, k, _, tried)) => (
+                        EffectModel {
+                            kind: *kind,
+                            step: Some((g, k)),
+                        },
+                        tried,
+                    ),
+                    None => continue,
+                }
+            } else {
+                (EffectModel::plain(*kind), 1)
+            };
+            let a = model.columns(&data, &geom);
+            let eval = engine.evaluate(&design, &full, &fold_fits, &a);
+            if eval.df == 0 {
+                continue;
+            }
+            // The test scales by the residual variance left after the candidate (F test,
+            // likelihood ratio with the noise scale profiled out): structure that no
+            // candidate expresses then inflates the denominator instead of making every
+            // flexible candidate look significant. A change point's location is a searched
+            // parameter: Bonferroni over the positions tried, one more parameter in the BIC.
+            let chi2_base = full.res_w.norm_squared();
+            let chi2_after = (chi2_base - eval.chi2_drop).max(f64::MIN_POSITIVE);
+            let dof_after = nobs.saturating_sub(full.basis.rank() + eval.df).max(1) as f64;
+            let f_stat = (eval.chi2_drop / eval.df as f64) / (chi2_after / dof_after);
+            let p_value = (f_sf(f_stat, eval.df as f64, dof_after) * searched as f64).min(1.0);
+            let params_counted = eval.df + usize::from(searched > 1);
+            let bic_delta =
+                nobs as f64 * (chi2_after / chi2_base).ln() + params_counted as f64 * ln_n;
+            trials.push(Trial {
+                model,
+                eval,
+                p_value,
+                bic_delta,
+                searched,
+            });
+        }
+        // Bonferroni over the candidates of this round: family-wise false selection ≤ alpha.
+        let alpha_each = options.alpha / candidates.len().max(1) as f64;
+        let passes = |t: &Trial| {
+            t.p_value < alpha_each
+                && t.bic_delta < 0.0
+                && (count == 0 || t.eval.heldout_ms_m2 < base_heldout_ms)
+        };
+        let mut order: Vec<usize> = (0..trials.len()).collect();
+        order.sort_by(|&a, &b| trials[a].bic_delta.total_cmp(&trials[b].bic_delta));
+        let winner = order.iter().copied().find(|&t| passes(&trials[t]));
+        let mut confounded: Vec<usize> = Vec::new();
+        if let Some(best) = winner {
+            for &other in &order {
+                if other != best
+                    && passes(&trials[other])
+                    && trials[other].bic_delta - trials[best].bic_delta < DECISIVE_BIC
+                    && max_principal_cosine(&trials[best].eval.u_perp, &trials[other].eval.u_perp)
+                        > CONFOUNDED_COSINE
+                {
+                    confounded.push(other);
+                }
+            }
+        }
+        for (t, trial) in trials.iter().enumerate() {
+            let status = if Some(t) == winner && confounded.is_empty() {
+                "selected".to_string()
+            } else if Some(t) == winner || confounded.contains(&t) {
+                "confounded".to_string()
+            } else if passes(trial) {
+                "passed, not the best this round".to_string()
+            } else {
+                let mut why = Vec::new();
+                if trial.p_value >= alpha_each {
+                    why.push(format!("p {:.2e} >= {:.2e}", trial.p_value, alpha_each));
+                }
+                if trial.bic_delta >= 0.0 {
+                    why.push("BIC does not improve".into());
+                }
+                if trial.eval.heldout_ms_m2 >= base_heldout_ms {
+                    why.push("held-out RMS does not improve".into());
+                }
+                format!("rejected: {}", why.join("; "))
+            };
+            let confounded_with = if status == "confounded" {
+                std::iter::once(winner)
+                    .flatten()
+                    .chain(confounded.iter().copied())
+                    .filter(|&o| o != t)
+                    .map(|o| trials[o].model.kind.name().to_string())
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            records.insert(
+                trial.model.kind,
+                candidate_record(&data, trial, round, status, confounded_with),
+            );
+        }
+        match winner {
+            Some(best) if confounded.is_empty() => accepted.push(trials[best].model.clone()),
+            Some(best) => {
+                // Neither is named: drop the confounded group from further rounds.
+                let out: Vec<EffectKind> = std::iter::once(best)
+                    .chain(confounded.iter().copied())
+                    .map(|t| trials[t].model.kind)
+                    .collect();
+                notes.push(format!(
+                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}",
+                    out.iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
+                ));
+                available.retain(|k| !out.contains(k));
+            }
+            None => {
+                last_base = Some(base_gap);
+                break;
+            }
+        }
+    }
+
+    // The final model: joint Gauss–Newton of geometry and accepted effects.
+    let final_fit = joint_fit(&data, &geom, &accepted);
+    let chi2: f64 = final_fit
+        .resid_m
+        .iter()
+        .zip(&data.obs)
+        .map(|(r, o)| (r / o.sigma_m).powi(2))
+        .sum();
+    let dof = nobs.saturating_sub(final_fit.basis.rank()).max(1);
+    let gap_before = gap_before.unwrap_or_else(|| empty_gap(f64::NAN));
+    let cv_after = last_base.unwrap_or_else(|| empty_gap(f64::NAN));
+    let gap_after = Gap {
+        rms_m: rms(&final_fit.resid_m),
+        heldout_rms_m: cv_after.heldout_rms_m,
+        chi2_per_dof: chi2 / dof as f64,
+        heldout_floor_m: cv_after.heldout_floor_m,
+        heldout_ratio: cv_after.heldout_ratio,
+    };
+    let nominal_basis = {
+        let jw = DMatrix::from_fn(nobs, nominal_j.ncols(), |i, c| {
+            nominal_j[(i, c)] * engine.w[i]
+        });
+        Basis::new(&jw, RANK_TOL, 0.0)
+    };
+    let where_ = locate(
+        &data,
+        &geom,
+        &solution.residuals_m,
+        &nominal_basis,
+        options.alpha,
+    );
+    let remaining = locate(
+        &data,
+        &final_fit.geom,
+        &final_fit.resid_m,
+        &final_fit.basis,
+        options.alpha,
+    );
+    let chi2_p = chi2_sf(chi2, dof as f64);
+    let unexplained = chi2_p < options.alpha || !remaining.is_empty();
+    if unexplained {
+        notes.push(format!(
+            "after the selected effects: chi2/dof {:.2} (p = {:.1e}), {} residual group(s) still fail the noise model{}",
+            chi2 / dof as f64,
+            chi2_p,
+            remaining.len(),
+            remaining
+                .first()
+                .map(|w| format!(", largest {} {}", w.group, w.key))
+                .unwrap_or_default()
+        ));
+    }
+    let noise_floor_m = (data.obs.iter().map(|o| o.sigma_m.powi(2)).sum::<f64>() / nobs as f64
+        * solution.dof as f64
+        / nobs as f64)
+        .sqrt();
+    let selected: Vec<String> = accepted.iter().map(|m| m.kind.name().to_string()).collect();
+    let mut candidates: Vec<Candidate> = records.into_values().collect();
+    let rank_of = |c: &Candidate| {
+        selected
+            .iter()
+            .position(|s| *s == c.effect)
+            .unwrap_or(usize::MAX)
+    };
+    candidates.sort_by(|a, b| {
+        rank_of(a)
+            .cmp(&rank_of(b))
+            .then(a.bic_delta.total_cmp(&b.bic_delta))
+    });
+    Ok(Diagnosis {
+        format: DIAGNOSIS_FORMAT.into(),
+        session_id: data.session_id.clone(),
+        noise_floor_m,
+        gap: gap_before,
+        where_,
+        candidates,
+        selected,
+        gap_after,
+        unexplained,
+        observations: nobs,
+        notes,
+    })
+}
+
+fn empty_gap(v: f64) -> Gap {
+    Gap {
+        rms_m: v,
+        heldout_rms_m: v,
+        chi2_per_dof: v,
+        heldout_floor_m: v,
+        heldout_ratio: v,
+    }
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|r| r * r).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+fn candidate_record(
+    data: &Data,
+    trial: &Trial,
+    round: usize,
+    status: String,
+    confounded_with: Vec<String>,
+) -> Candidate {
+    let mut params: BTreeMap<String, Value> = BTreeMap::new();
+    for ((name, v), s) in trial
+        .model
+        .param_names(data)
+        .into_iter()
+        .zip(trial.eval.theta.iter())
+        .zip(trial.eval.theta_sigma.iter())
+    {
+        params.insert(name.clone(), (*v).into());
+        params.insert(format!("{name}.sigma"), (*s).into());
+    }
+    if let Some((g, k)) = trial.model.step {
+        params.insert("pass".into(), data.pass_names[g].clone().into());
+        params.insert("after_t_s".into(), data.obs[data.passes[g][k]].t_s.into());
+        params.insert("positions_searched".into(), trial.searched.into());
+    }
+    Candidate {
+        effect: trial.model.kind.name().into(),
+        params,
+        rms_after_m: trial.eval.rms_after_m,
+        heldout_rms_after_m: trial.eval.heldout_ms_m2.sqrt(),
+        bic_delta: trial.bic_delta,
+        p_value: trial.p_value,
+        round,
+        df: trial.eval.df,
+        chi2_drop: trial.eval.chi2_drop,
+        status,
+        confounded_with,
+    }
+}
+
+struct JointFit {
+    geom: Geometry,
+    resid_m: Vec<f64>,
+    basis: Basis,
+}
+
+/// Gauss–Newton on the geometry and the effects' parameters together, relinearising the
+/// effect columns at the updated geometry (they depend on it through beam directions).
+fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -> JointFit {
+    let nobs = data.obs.len();
+    let mut geom = start.clone();
+    let widths: Vec<usize> = models.iter().map(|m| m.param_names(data).len()).collect();
+    let mut theta = DVector::zeros(widths.iter().sum());
+    let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
+    let design = |geom: &Geometry| {
+        models
+            .iter()
+            .fold(geom.jacobian(data), |d, m| hcat(&d, &m.columns(data, geom)))
+    };
+    let residual = |geom: &Geometry, a: &DMatrix<f64>, theta: &DVector<f64>| {
+        let np = geom.len();
+        DVector::from_fn(nobs, |i, _| {
+            let effect: f64 = (0..theta.len()).map(|c| a[(i, np + c)] * theta[c]).sum();
+            data.obs[i].length_m - geom.predicted_m(data, i) - effect
+        })
+    };
+    for _ in 0..10 {
+        let a = design(&geom);
+        let r = residual(&geom, &a, &theta);
+        let aw = DMatrix::from_fn(nobs, a.ncols(), |i, c| a[(i, c)] * w[i]);
+        let basis = Basis::new(&aw, RANK_TOL, 0.0);
+        let step = basis.solve(&r.component_mul(&w));
+        let np = geom.len();
+        geom.apply(&step.as_slice()[..np]);
+        for c in 0..theta.len() {
+            theta[c] += step[np + c];
+        }
+        // Converged when no length moves by more than a thousandth of a nanometre.
+        if step.rows(0, np).amax() < 1e-12 {
+            break;
+        }
+    }
+    let a = design(&geom);
+    let r = residual(&geom, &a, &theta);
+    let aw = DMatrix::from_fn(nobs, a.ncols(), |i, c| a[(i, c)] * w[i]);
+    JointFit {
+        basis: Basis::new(&aw, RANK_TOL, 0.0),
+        geom,
+        resid_m: r.iter().copied().collect(),
+    }
+}
+
+/// A readable report of a diagnosis.
+pub fn text(d: &Diagnosis) -> String {
+    use std::fmt::Write;
+    let nm = |v: f64| format!("{:.1} nm", v * 1e9);
+    let mut s = String::new();
+    let _ = writeln!(
+        s,
+        "Diagnosis of session {} ({} lengths)",
+        d.session_id, d.observations
+    );
+    let _ = writeln!(
+        s,
+        "  noise floor (fitted RMS expected from noise alone): {}",
+        nm(d.noise_floor_m)
+    );
+    let gap = |s: &mut String, label: &str, g: &Gap| {
+        let _ = writeln!(
+            s,
+            "  {label}: RMS {}, held-out RMS {} (floor {}, standardised {:.2}), chi2/dof {:.2}",
+            nm(g.rms_m),
+            nm(g.heldout_rms_m),
+            nm(g.heldout_floor_m),
+            g.heldout_ratio,
+            g.chi2_per_dof
+        );
+    };
+    gap(&mut s, "gap (nominal model)", &d.gap);
+    if d.where_.is_empty() {
+        let _ = writeln!(s, "  where: no group departs from the noise model");
+    } else {
+        let _ = writeln!(
+            s,
+            "  where (groups failing the noise model, largest share first):"
+        );
+        for w in &d.where_ {
+            let _ = writeln!(
+                s,
+                "    {:<9} {:<40} share {:5.1} %  RMS {}  p {:.1e}",
+                w.group,
+                w.key,
+                100.0 * w.share,
+                nm(w.rms_m),
+                w.p_value
+            );
+        }
+    }
+    let _ = writeln!(s, "  candidates:");
+    for c in &d.candidates {
+        let _ = writeln!(
+            s,
+            "    {:<20} round {} df {:>2}  chi2 drop {:>9.1}  p {:.1e}  BIC {:>+9.1}  RMS after {}  held-out {}  {}",
+            c.effect,
+            c.round,
+            c.df,
+            c.chi2_drop,
+            c.p_value,
+            c.bic_delta,
+            nm(c.rms_after_m),
+            nm(c.heldout_rms_after_m),
+            c.status
+        );
+    }
+    let _ = writeln!(
+        s,
+        "  selected: {}",
+        if d.selected.is_empty() {
+            "none".to_string()
+        } else {
+            d.selected.join(", ")
+        }
+    );
+    gap(&mut s, "gap after", &d.gap_after);
+    let _ = writeln!(
+        s,
+        "  {}",
+        if d.unexplained {
+            "UNEXPLAINED: structure remains that no candidate explains"
+        } else {
+            "explained: the remaining residuals agree with the noise model"
+        }
+    );
+    for n in &d.notes {
+        let _ = writeln!(s, "  note: {n}");
+    }
+    s
+}

@@ -1,0 +1,246 @@
+//! Unmodelled effects of the simulated world (`[sim.effects]`): each switchable and sized, applied
+//! through two hooks of `SimWorld` (the optical distance the tracer sees and the actual axes).
+
+use nalgebra::Vector3;
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use crate::config::SimEnvironmentConfig;
+
+/// Reference air of the tracer's wavelength (Edlén): 20 °C, 1013.25 hPa, 50 %RH.
+pub const REFERENCE_AIR_TEMP_K: f64 = 293.15;
+pub const REFERENCE_PRESSURE_PA: f64 = 101_325.0;
+pub const REFERENCE_HUMIDITY_PCT: f64 = 50.0;
+
+/// Refractive index change n − n_ref of air from the Edlén sensitivities near the reference
+/// (−0.93 ppm/K, +0.27 ppm/hPa, −0.008 ppm/%RH); linear is within 1 % over ±3 K.
+pub fn edlen_dn(air_temp_k: f64, pressure_pa: f64, humidity_pct: f64) -> f64 {
+    1e-6 * (-0.93 * (air_temp_k - REFERENCE_AIR_TEMP_K)
+        + 0.27 * (pressure_pa - REFERENCE_PRESSURE_PA) / 100.0
+        - 0.008 * (humidity_pct - REFERENCE_HUMIDITY_PCT))
+}
+
+/// The simulated air temperature at device time t (also what the environment sensor logs).
+pub fn air_temp_k(env: &SimEnvironmentConfig, t_s: f64) -> f64 {
+    env.air_temp_k + env.temp_swing_k * (2.0 * std::f64::consts::PI * t_s / env.temp_period_s).sin()
+}
+
+/// One switch with a size; `size_m` (or m/s for drift) is the effect's scale.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct EffectSwitch {
+    pub enabled: bool,
+    /// Size of the effect: metres (station_drift: metres per second; air_refraction: scale
+    /// of the Edlén-predicted error, 1 = an uncompensated tracer).
+    pub size: f64,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct EccentricitySwitch {
+    pub enabled: bool,
+    /// Horizontal eccentricity e of the tracer's reference, metres.
+    pub size_m: f64,
+    /// Vertical term ez, metres.
+    pub z_size_m: f64,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct PeriodicSwitch {
+    pub enabled: bool,
+    pub size_m: f64,
+    pub period_m: f64,
+}
+
+/// `[sim.effects]`: every effect off by default.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct EffectsConfig {
+    /// Station moves during its pass at `size` m/s in a random direction per station.
+    pub station_drift: EffectSwitch,
+    /// Axis reversal offset B/2·sign(approach), |B| about `size` metres per axis.
+    pub reversal: EffectSwitch,
+    /// An unflagged fringe loss of `size` metres in one station, at a random time in its pass.
+    pub length_step: EffectSwitch,
+    /// The tracer is not compensated for air: error dn·L, scaled by `size` (1 = physical).
+    pub air_refraction: EffectSwitch,
+    /// Length error e·cos(azimuth − φ0) + ez·sin(elevation) of the beam from each station.
+    pub tracer_eccentricity: EccentricitySwitch,
+    /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
+    /// size·sin(2π·L/period) in the absolute distance.
+    pub periodic_nonlinearity: PeriodicSwitch,
+}
+
+impl EffectsConfig {
+    pub fn any(&self) -> bool {
+        self.station_drift.enabled
+            || self.reversal.enabled
+            || self.length_step.enabled
+            || self.air_refraction.enabled
+            || self.tracer_eccentricity.enabled
+            || self.periodic_nonlinearity.enabled
+    }
+}
+
+/// The effects' drawn parameters and the little state they need (approach, station start).
+#[derive(Debug, Clone)]
+pub struct SimEffects {
+    config: EffectsConfig,
+    env: SimEnvironmentConfig,
+    /// Per station: drift velocity, m/s.
+    drift_m_s: Vec<Vector3<f64>>,
+    /// Per station: (e, φ0, ez).
+    eccentricity: Vec<(f64, f64, f64)>,
+    /// Full reversal span B per axis, metres.
+    reversal_m: [f64; 3],
+    /// (station, moves into its pass at which the fringe is lost, step size).
+    step: (usize, usize, f64),
+    step_time_s: Option<f64>,
+    approach: [f64; 3],
+    station: usize,
+    station_start_s: f64,
+    moves_in_station: usize,
+}
+
+impl SimEffects {
+    /// Draw every effect's parameters from their own seeded stream (changing one effect's
+    /// switch does not move the others, nor the truth machine or the noise).
+    pub fn new(
+        config: &EffectsConfig,
+        env: &SimEnvironmentConfig,
+        seed: u64,
+        stations: usize,
+        moves_per_station: usize,
+    ) -> SimEffects {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4546_4645_4354_5321);
+        let unit = |rng: &mut ChaCha8Rng| loop {
+            let v = Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0));
+            let n: f64 = v.norm();
+            if (0.2..=1.0).contains(&n) {
+                return v / n;
+            }
+        };
+        let drift_m_s = (0..stations)
+            .map(|_| unit(&mut rng) * config.station_drift.size)
+            .collect();
+        let sign = |rng: &mut ChaCha8Rng| if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+        let eccentricity = (0..stations)
+            .map(|_| {
+                let phi = rng.random_range(0.0..std::f64::consts::TAU);
+                let ez = config.tracer_eccentricity.z_size_m * sign(&mut rng);
+                (config.tracer_eccentricity.size_m, phi, ez)
+            })
+            .collect();
+        let reversal_m = std::array::from_fn(|_| {
+            config.reversal.size * rng.random_range(0.5..1.0) * sign(&mut rng)
+        });
+        let step_station = rng.random_range(0..stations.max(1));
+        let lo = (moves_per_station / 5).max(1);
+        let hi = (4 * moves_per_station / 5).max(lo + 1);
+        let step_move = rng.random_range(lo..hi);
+        let step = (
+            step_station,
+            step_move,
+            config.length_step.size * sign(&mut rng),
+        );
+        SimEffects {
+            config: *config,
+            env: env.clone(),
+            drift_m_s,
+            eccentricity,
+            reversal_m,
+            step,
+            step_time_s: None,
+            approach: [0.0; 3],
+            station: 0,
+            station_start_s: 0.0,
+            moves_in_station: 0,
+        }
+    }
+
+    /// The tracer now stands at `station` (the operator has finished placing it).
+    pub fn on_station(&mut self, station: usize, now_s: f64) {
+        self.station = station;
+        self.station_start_s = now_s;
+        self.moves_in_station = 0;
+    }
+
+    /// A move starts: remember each axis's approach direction (persistent when it does not move).
+    pub fn on_move(&mut self, from: [f64; 3], to: [f64; 3], now_s: f64) {
+        for k in 0..3 {
+            let d = to[k] - from[k];
+            // `from` is the end of the motion profile, equal to the last target only up to
+            // rounding: an axis counts as moved from a nanometre on (commanded moves are mm).
+            if d.abs() > 1e-9 {
+                self.approach[k] = d.signum();
+            }
+        }
+        self.moves_in_station += 1;
+        if self.config.length_step.enabled
+            && self.station == self.step.0
+            && self.moves_in_station == self.step.1
+            && self.step_time_s.is_none()
+        {
+            self.step_time_s = Some(now_s);
+        }
+    }
+
+    /// Where the axes really are: commanded plus the reversal offset of the approach direction.
+    pub fn actual_axes_m(&self, axes_m: [f64; 3]) -> [f64; 3] {
+        if !self.config.reversal.enabled {
+            return axes_m;
+        }
+        std::array::from_fn(|k| axes_m[k] + 0.5 * self.reversal_m[k] * self.approach[k])
+    }
+
+    /// The distance the tracer at `station` (nominally at `station_m`) reads to `target_m` at
+    /// time t: geometry with drift, plus the length errors of eccentricity, air and fringes.
+    /// Homing zeroes whatever this contains at the homing time.
+    pub fn distance_m(
+        &self,
+        station: usize,
+        station_m: &Vector3<f64>,
+        target_m: &Vector3<f64>,
+        t_s: f64,
+    ) -> f64 {
+        let c = &self.config;
+        let mut p = *station_m;
+        if c.station_drift.enabled {
+            if let Some(w) = self.drift_m_s.get(station) {
+                p += w * (t_s - self.station_start_s).max(0.0);
+            }
+        }
+        let v = target_m - p;
+        let d = v.norm();
+        let mut err = 0.0;
+        if c.tracer_eccentricity.enabled && d > 0.0 {
+            if let Some(&(e, phi0, ez)) = self.eccentricity.get(station) {
+                let az = v.y.atan2(v.x);
+                let el = (v.z / d).asin();
+                err += e * (az - phi0).cos() + ez * el.sin();
+            }
+        }
+        if c.air_refraction.enabled {
+            let dn = edlen_dn(
+                air_temp_k(&self.env, t_s),
+                self.env.pressure_pa,
+                self.env.humidity_pct,
+            );
+            err += c.air_refraction.size * dn * d;
+        }
+        if c.length_step.enabled && station == self.step.0 {
+            if let Some(t0) = self.step_time_s {
+                if t_s >= t0 {
+                    err += self.step.2;
+                }
+            }
+        }
+        let pn = &c.periodic_nonlinearity;
+        if pn.enabled && pn.period_m > 0.0 {
+            err += pn.size_m * (std::f64::consts::TAU * d / pn.period_m).sin();
+        }
+        d + err
+    }
+}

@@ -1,0 +1,163 @@
+//! `geocal diagnose` on simulated sessions with unmodelled effects switched on: the right
+//! effect is named, the held-out gap falls to the noise floor, and effect-free data stay clean.
+
+mod common;
+
+use common::{diagnose_demo, run_and_diagnose, with_effects};
+
+/// Held-out gap after the selected effects, each held-out residual in units of its predicted
+/// standard deviation (noise floor plus prediction uncertainty), RMS over ~270 lengths: 1 when
+/// the model holds, standard error sqrt(1/(2·270)) = 0.04, so 1.3 is a > 7-sigma departure.
+const HELDOUT_RATIO_MAX: f64 = 1.3;
+
+fn check_named(effect: &str, line: &str, seed: u64) {
+    let d = run_and_diagnose(&with_effects(&diagnose_demo(), seed, line));
+    assert_eq!(
+        d.selected.first().map(String::as_str),
+        Some(effect),
+        "{}",
+        geocal::diagnose::text(&d)
+    );
+    let ratio = d.gap_after.heldout_ratio;
+    assert!(
+        ratio < HELDOUT_RATIO_MAX,
+        "held-out ratio {ratio}\n{}",
+        geocal::diagnose::text(&d)
+    );
+    // The gap was there before, several times the floor.
+    assert!(d.gap.heldout_ratio > 2.0, "{}", geocal::diagnose::text(&d));
+    assert!(!d.unexplained, "{}", geocal::diagnose::text(&d));
+}
+
+#[test]
+fn station_drift_is_named() {
+    check_named(
+        "station_drift",
+        "station_drift = { enabled = true, size = 5e-9 }",
+        11,
+    );
+}
+
+#[test]
+fn reversal_is_named() {
+    check_named("reversal", "reversal = { enabled = true, size = 1e-6 }", 12);
+}
+
+#[test]
+fn length_step_is_named() {
+    check_named(
+        "length_step",
+        "length_step = { enabled = true, size = 1e-6 }",
+        13,
+    );
+}
+
+#[test]
+fn air_refraction_is_named() {
+    check_named(
+        "air_refraction",
+        "air_refraction = { enabled = true, size = 1.0 }",
+        14,
+    );
+}
+
+#[test]
+fn tracer_eccentricity_is_named() {
+    check_named(
+        "tracer_eccentricity",
+        "tracer_eccentricity = { enabled = true, size_m = 2e-6, z_size_m = 1e-6 }",
+        15,
+    );
+}
+
+/// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
+/// select anything (the requirement is >= 95 % clean; P(2+ of 20 at 1 %) = 1.7 %).
+#[test]
+fn effect_free_selects_nothing() {
+    let seeds = 20;
+    let mut clean = 0;
+    for seed in 0..seeds {
+        let d = run_and_diagnose(&with_effects(&diagnose_demo(), 100 + seed, ""));
+        if d.selected.is_empty() {
+            clean += 1;
+        } else {
+            eprintln!("seed {seed}: {}", geocal::diagnose::text(&d));
+        }
+    }
+    println!("effect-free: nothing selected in {clean} of {seeds} seeds");
+    assert!(clean * 100 >= 95 * seeds, "{clean} of {seeds} clean");
+}
+
+#[test]
+fn drift_and_reversal_both_selected() {
+    let d = run_and_diagnose(&with_effects(
+        &diagnose_demo(),
+        21,
+        "station_drift = { enabled = true, size = 5e-9 }\nreversal = { enabled = true, size = 1e-6 }",
+    ));
+    let text = geocal::diagnose::text(&d);
+    assert!(d.selected.iter().any(|s| s == "station_drift"), "{text}");
+    assert!(d.selected.iter().any(|s| s == "reversal"), "{text}");
+    assert_eq!(d.selected.len(), 2, "{text}");
+    assert!(!d.unexplained, "{text}");
+}
+
+/// An interferometer nonlinearity (sin of the distance with a 5 cm period) is outside the
+/// library: the diagnosis must say so rather than name something.
+#[test]
+fn effect_outside_the_library_is_unexplained() {
+    let d = run_and_diagnose(&with_effects(
+        &diagnose_demo(),
+        31,
+        "periodic_nonlinearity = { enabled = true, size_m = 3e-7, period_m = 0.05 }",
+    ));
+    let text = geocal::diagnose::text(&d);
+    assert!(d.unexplained, "{text}");
+    assert!(d.selected.is_empty(), "{text}");
+}
+
+/// The diagnosis reads the session file alone: a copy in an empty directory (no config, no
+/// truth) gives the same result, and the JSON is geocal-diagnosis/1.
+#[test]
+fn reads_only_the_session() {
+    let text = with_effects(
+        &diagnose_demo(),
+        41,
+        "reversal = { enabled = true, size = 1e-6 }",
+    );
+    let config =
+        geocal::config::Config::parse(&text, std::path::Path::new("x.toml")).expect("config");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let output = geocal::run::run(
+        &config,
+        &geocal::run::RunOptions {
+            out_dir: dir.path().to_path_buf(),
+            truth: Some(dir.path().join("truth.json")),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run");
+    let alone = tempfile::tempdir().expect("tempdir");
+    let copy = alone.path().join("copy.mcap");
+    std::fs::copy(&output.session_path, &copy).expect("copy");
+    drop(dir);
+    let options = Default::default();
+    let d = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
+    let json: serde_json::Value = serde_json::to_value(&d).expect("json");
+    assert_eq!(json["format"], "geocal-diagnosis/1");
+    for key in [
+        "noise_floor_m",
+        "gap",
+        "where",
+        "candidates",
+        "selected",
+        "gap_after",
+        "unexplained",
+    ] {
+        assert!(json.get(key).is_some(), "missing {key}");
+    }
+    assert_eq!(d.selected.first().map(String::as_str), Some("reversal"));
+    let again = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
+    assert_eq!(d, again);
+}
