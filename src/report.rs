@@ -221,6 +221,45 @@ pub fn plan_check_text(check: &crate::method::plan_check::PlanCheck) -> String {
             p.worst_point.1
         );
     }
+    if let Some(g) = &check.geometric_errors {
+        let unidentifiable: Vec<&str> = g["unidentifiable"]
+            .as_array()
+            .map(|a| a.iter().filter_map(|v| v.as_str()).collect())
+            .unwrap_or_default();
+        let _ = writeln!(
+            s,
+            "\n  geometric errors: largest predicted σ per error function (identifiable values):"
+        );
+        if let Some(axes) = g["axes"].as_object() {
+            for (axis, a) in axes {
+                let mut parts = Vec::new();
+                if let Some(errors) = a["errors"].as_object() {
+                    for (name, e) in errors {
+                        let max = e["sigma"]
+                            .as_array()
+                            .map(|v| v.iter().filter_map(|x| x.as_f64()).fold(0.0, f64::max))
+                            .unwrap_or(0.0);
+                        if max > 0.0 {
+                            let unit_um = e["unit"].as_str() == Some("m");
+                            parts.push(if unit_um {
+                                format!("{name} {:.3} µm", um(max))
+                            } else {
+                                format!("{name} {:.3} µrad", max * 1e6)
+                            });
+                        }
+                    }
+                }
+                let _ = writeln!(s, "    {axis}: {}", parts.join(", "));
+            }
+        }
+        if !unidentifiable.is_empty() {
+            let _ = writeln!(
+                s,
+                "    not identifiable with these target offsets: {}",
+                unidentifiable.join(", ")
+            );
+        }
+    }
     let id = &check.identifiability;
     if id.analysed {
         let _ = writeln!(

@@ -42,6 +42,8 @@ pub struct PlanCheck {
     /// Empty when the plan cannot be adjusted at all (see warnings).
     pub station_sigmas: Vec<StationSigma>,
     pub point_sigma: Option<PointSigmaSummary>,
+    /// Predicted sigma of every identifiable geometric error value, and what is unidentifiable.
+    pub geometric_errors: Option<serde_json::Value>,
     pub identifiability: Identifiability,
     /// Things in the plan an engineer should fix before measuring.
     pub warnings: Vec<String>,
@@ -208,15 +210,27 @@ pub fn check(config: &Config, plan: &Plan) -> Result<PlanCheck, PlanCheckError> 
             plan.stillstand_tolerance_m
         ));
     }
-    let (station_sigmas, point_sigma) = match solve(problem, &SolveOptions::default()) {
-        Ok(solution) => sigmas(plan, &nominal, &solution),
-        Err(e) => {
-            warnings.push(format!(
-                "no uncertainties: the adjustment of this plan fails: {e}"
-            ));
-            (Vec::new(), None)
-        }
-    };
+    let (station_sigmas, point_sigma, geometric_errors) =
+        match solve(problem, &SolveOptions::default()) {
+            Ok(solution) => {
+                let (stations, points) = sigmas(plan, &nominal, &solution);
+                let geometric = match predicted_geometric_errors(config, plan, &nominal, &solution)
+                {
+                    Ok(g) => Some(g),
+                    Err(why) => {
+                        warnings.push(format!("no geometric error prediction: {why}"));
+                        None
+                    }
+                };
+                (stations, points, geometric)
+            }
+            Err(e) => {
+                warnings.push(format!(
+                    "no uncertainties: the adjustment of this plan fails: {e}"
+                ));
+                (Vec::new(), None, None)
+            }
+        };
     Ok(PlanCheck {
         points: plan.points.len(),
         stations: plan.stations.len(),
@@ -228,9 +242,76 @@ pub fn check(config: &Config, plan: &Plan) -> Result<PlanCheck, PlanCheckError> 
         noise_model: noise,
         station_sigmas,
         point_sigma,
+        geometric_errors,
         identifiability,
         warnings,
     })
+}
+
+/// The standard uncertainty of each of the 21 geometric error values this plan would give
+/// (weighted least squares at the nominal geometry with the predicted point covariance), and
+/// the errors it cannot identify.
+fn predicted_geometric_errors(
+    config: &Config,
+    plan: &Plan,
+    nominal: &NominalProblem,
+    solution: &crate::solve::multilateration::MultilaterationSolution,
+) -> Result<serde_json::Value, String> {
+    use crate::solve::geometric_errors::{
+        decompose_correlated, grid_from_points, DecompositionOptions, PointObservation, Route,
+    };
+    let structure = crate::model::kinematics::Structure::parse(&config.machine.structure)
+        .map_err(|e| e.to_string())?;
+    let observations: Vec<PointObservation> = nominal
+        .points
+        .iter()
+        .zip(&solution.point_covariance)
+        .map(|((target, point), covariance)| PointObservation {
+            axes_m: plan.points[*point].axes_m,
+            target_offset_m: config.target_offset(target).unwrap_or([0.0; 3]),
+            error_m: [0.0; 3],
+            covariance: *covariance,
+        })
+        .collect();
+    let full = crate::solve::multilateration::dense_point_covariance(&nominal.problem, solution);
+    let options = DecompositionOptions {
+        route: Some(Route::WeightedLeastSquares),
+        ..DecompositionOptions::default()
+    };
+    let grid = grid_from_points(&observations, options.grid_tolerance_m);
+    let result = decompose_correlated(&structure, &grid, &observations, full.as_ref(), &options)
+        .map_err(|e| e.to_string())?;
+    let mut value = serde_json::to_value(&result).map_err(|e| e.to_string())?;
+    if let Some(notes) = value["notes"].as_array_mut() {
+        notes.push(serde_json::Value::from(
+            "prediction by weighted least squares: an error that is identifiable only in \
+             combination with another (the results then report the combination, marked \
+             `absorbs`) is listed as unidentifiable here",
+        ));
+    }
+    // Only the sigmas and the identifiability are predictions; the zero values are not.
+    strip_values(&mut value);
+    Ok(value)
+}
+
+/// Remove estimate fields (`values`, `value_rad`, residuals) from a predicted decomposition.
+fn strip_values(value: &mut serde_json::Value) {
+    match value {
+        serde_json::Value::Object(map) => {
+            for key in [
+                "values",
+                "value_rad",
+                "residual_rms_m",
+                "chi2_per_dof",
+                "rigid_motion",
+            ] {
+                map.remove(key);
+            }
+            map.values_mut().for_each(strip_values);
+        }
+        serde_json::Value::Array(items) => items.iter_mut().for_each(strip_values),
+        _ => {}
+    }
 }
 
 fn sigmas(
@@ -425,8 +506,41 @@ mod tests {
         assert!(c.warnings.is_empty(), "{:?}", c.warnings);
         assert_eq!(c.samples_per_dwell, 50);
         // Sub-micrometre everywhere for this plan and noise.
+        let geometric = c
+            .geometric_errors
+            .as_ref()
+            .expect("geometric error prediction");
+        // One offset: the four rotations of ref1 cannot be seen (and the errors they mix
+        // with only in combination); the rest carry a sigma.
+        let unidentifiable: Vec<&str> = geometric["unidentifiable"]
+            .as_array()
+            .expect("list")
+            .iter()
+            .filter_map(|v| v.as_str())
+            .collect();
+        for name in ["ECX", "EAZ", "EBZ", "ECZ"] {
+            assert!(unidentifiable.contains(&name), "{unidentifiable:?}");
+        }
+        let exx = geometric["axes"]["x"]["errors"]["EXX"]["sigma"][1]
+            .as_f64()
+            .expect("sigma");
+        assert!(exx > 0.0 && exx < 1e-6, "EXX sigma {exx}");
         let points = c.point_sigma.expect("sigmas");
         assert!(points.max_sigma_m.iter().all(|s| *s > 0.0 && *s < 1e-6));
+    }
+
+    #[test]
+    fn three_offsets_off_one_line_identify_all_21_errors() {
+        let text = DEMO
+            .replace(
+                "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }]",
+                "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }, { id = \"t1\", offset_m = [0.15, 0.10, -0.12] }, { id = \"t2\", offset_m = [-0.10, 0.12, -0.20] }]",
+            )
+            .replace("targets = [\"t0\"]", "targets = [\"t0\", \"t1\", \"t2\"]");
+        let c = check_text(&text);
+        let geometric = c.geometric_errors.expect("geometric error prediction");
+        assert_eq!(geometric["unidentifiable"], serde_json::json!([]));
+        assert!(c.warnings.is_empty(), "{:?}", c.warnings);
     }
 
     #[test]
