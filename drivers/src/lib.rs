@@ -1,5 +1,5 @@
 //! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (hpi3d,
-//! grbl, probe, modbus_table) and their device emulators. Nothing here depends on the geocal core.
+//! grbl, probe, modbus_table) and their device emulators. Nothing here depends on the core.
 
 pub mod grbl;
 pub mod hpi3d;

@@ -369,7 +369,7 @@ mod tests {
         serde_json::from_value(serde_json::json!({
             "unit_id": 1,
             "target": {"address": 100, "width_bits": 32, "word_order": "little",
-                        "counts_per_rad": 57295.779513082323},
+                        "counts_per_rad": 57_295.779_513_082_32},
             "actual": {"address": 200, "kind": "input", "width_bits": 32,
                         "rad_per_count": 1.7453292519943296e-5},
             "status": {"address": 300, "kind": "input", "in_position_bit": 0,
