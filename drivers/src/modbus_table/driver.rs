@@ -477,3 +477,49 @@ impl RotaryTable for ModbusTable {
         Ok(state)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[derive(Deserialize)]
+    struct Doc {
+        rotary: ModbusTableConfig,
+    }
+
+    /// The TOML example in docs/protocols/modbus-table.md parses and validates.
+    #[test]
+    fn documented_config_parses() {
+        let doc = include_str!("../../../docs/protocols/modbus-table.md");
+        let start = doc.find("```toml\n").expect("toml block") + 8;
+        let len = doc[start..].find("```").expect("block end");
+        let cfg = toml::from_str::<Doc>(&doc[start..start + len])
+            .expect("documented config parses")
+            .rotary;
+        cfg.validate().expect("documented config validates");
+        assert_eq!(
+            cfg.transport,
+            Some(ModbusTransport::Tcp {
+                address: "192.168.0.20:502".parse().expect("addr")
+            })
+        );
+        let c = &cfg.map.target;
+        assert!((c.scale_counts_per_rad() - 1000.0 * 180.0 / std::f64::consts::PI).abs() < 1e-3);
+        let bad = doc[start..start + len].replace("timeout_s = 0.5", "timeout_s = 0.5\ntimout = 1");
+        assert!(toml::from_str::<Doc>(&bad).is_err());
+    }
+
+    #[test]
+    fn bad_timing_rejected() {
+        let doc = include_str!("../../../docs/protocols/modbus-table.md");
+        let start = doc.find("```toml\n").expect("toml block") + 8;
+        let len = doc[start..].find("```").expect("block end");
+        let mut cfg = toml::from_str::<Doc>(&doc[start..start + len])
+            .expect("parses")
+            .rotary;
+        cfg.timeout_s = 0.0;
+        assert!(cfg.validate().is_err());
+        cfg.timeout_s = f64::NAN;
+        assert!(cfg.validate().is_err());
+    }
+}
