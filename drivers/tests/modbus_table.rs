@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use geocal_drivers::modbus_table::{
     KinematicTable, ModbusTable, ModbusTableConfig, ModbusTableEmulator, ModbusTableEmulatorConfig,
-    ModbusTableFaults, RegisterMap, WordOrder,
+    ModbusTableFaults, ModbusTransport, RegisterMap, WordOrder,
 };
 use geocal_drivers::{DeviceError, RotaryState, RotaryTable};
 
@@ -254,10 +254,14 @@ async fn rtu_over_pty() {
     let path = slave.name().expect("pty name");
     // Kept open: with every slave descriptor closed the pty reports errors to the master.
     let _slave = slave;
-    let _emu = ModbusTableEmulator::start_rtu(
+    // The reply to the go write is lost: the driver times out, reopens the port, retries.
+    let emu = ModbusTableEmulator::start_rtu(
         ModbusTableEmulatorConfig {
             map: map(),
-            faults: ModbusTableFaults::default(),
+            faults: ModbusTableFaults {
+                drop_at_requests: vec![2],
+                ..Default::default()
+            },
         },
         Box::new(KinematicTable::new(0.0, 2.0, 0.05)),
         master,
@@ -270,6 +274,39 @@ async fn rtu_over_pty() {
     t.start_rotation(target).await.expect("accepted");
     let got = wait_in_position(&mut t, Duration::from_secs(3)).await;
     assert!((got - target).abs() < 1e-6);
+    assert_eq!(t.stats().timeouts, 1);
+    assert_eq!(t.stats().reconnects, 1);
+    assert_eq!(emu.stats().go_commands, 1);
+}
+
+#[tokio::test]
+async fn connects_by_config_transport() {
+    let emu = emulator(map(), ModbusTableFaults::default()).await;
+    let mut c = cfg(map());
+    c.transport = Some(ModbusTransport::Tcp {
+        address: emu.addr().expect("addr"),
+    });
+    let mut t = ModbusTable::connect(c).await.expect("connects");
+    assert_eq!(t.id(), "c-table");
+    t.start_rotation(-0.2).await.expect("accepted");
+    let got = wait_in_position(&mut t, Duration::from_secs(3)).await;
+    assert!((got + 0.2).abs() < 1e-4);
+
+    // No transport configured, or nobody listening: clear errors, no panic.
+    let err = ModbusTable::connect(cfg(map()))
+        .await
+        .err()
+        .expect("no transport");
+    assert!(err.to_string().contains("no transport"), "{err}");
+    let closed = free_port();
+    let err = ModbusTable::connect_tcp(
+        format!("127.0.0.1:{closed}").parse().expect("addr"),
+        cfg(map()),
+    )
+    .await
+    .err()
+    .expect("refused");
+    assert!(matches!(err, DeviceError::Disconnected { .. }), "{err}");
 }
 
 /// A free loopback port (a short race with other processes is acceptable in tests).
