@@ -376,3 +376,26 @@ async fn rotates_against_pymodbus_peer() {
         );
     }
 }
+
+#[tokio::test]
+async fn seeded_random_drops_are_survived() {
+    let faults = ModbusTableFaults {
+        seed: 7,
+        drop_probability: 0.15,
+        ..Default::default()
+    };
+    let emu = emulator(map(), faults).await;
+    let mut c = cfg(map());
+    c.timeout_s = 0.05;
+    c.retries = 6;
+    let mut t = ModbusTable::connect_tcp(emu.addr().expect("addr"), c)
+        .await
+        .expect("connects");
+    for deg in [5.0f64, -5.0, 2.5] {
+        t.start_rotation(deg.to_radians()).await.expect("accepted");
+        let got = wait_in_position(&mut t, Duration::from_secs(3)).await;
+        assert!((got - deg.to_radians()).abs() < 1e-4);
+    }
+    assert!(emu.stats().dropped > 0, "{:?}", emu.stats());
+    assert_eq!(t.stats().timeouts, emu.stats().dropped);
+}
