@@ -1,8 +1,9 @@
 //! geocal-drivers: the device traits the sequencer sees, the real protocol drivers (hpi3d,
-//! grbl, probe) and their device emulators. Nothing here depends on the geocal core.
+//! grbl, probe, modbus_table) and their device emulators. Nothing here depends on the core.
 
 pub mod grbl;
 pub mod hpi3d;
+pub mod modbus_table;
 pub mod probe;
 pub mod traits;
 
