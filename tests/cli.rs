@@ -108,14 +108,36 @@ fn diagnose_prints_the_diagnosis_format() {
     let config = dir.path().join("diag.toml");
     std::fs::write(&config, common::diagnose_demo()).expect("write config");
     let out = dir.path().join("out");
-    let run = geocal(&["run", config.to_str().unwrap(), "--out", out.to_str().unwrap(), "--json"]);
-    assert!(run.status.success(), "run failed: {}", String::from_utf8_lossy(&run.stderr));
+    let run = geocal(&[
+        "run",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    assert!(
+        run.status.success(),
+        "run failed: {}",
+        String::from_utf8_lossy(&run.stderr)
+    );
     let session = out.join("session.mcap");
     let diag = geocal(&["diagnose", session.to_str().unwrap(), "--json"]);
-    assert!(diag.status.success(), "diagnose failed: {}", String::from_utf8_lossy(&diag.stderr));
+    assert!(
+        diag.status.success(),
+        "diagnose failed: {}",
+        String::from_utf8_lossy(&diag.stderr)
+    );
     let d: serde_json::Value = serde_json::from_slice(&diag.stdout).expect("json");
     assert_eq!(d["format"], "geocal-diagnosis/1");
-    for key in ["noise_floor_m", "gap", "where", "candidates", "selected", "gap_after", "unexplained"] {
+    for key in [
+        "noise_floor_m",
+        "gap",
+        "where",
+        "candidates",
+        "selected",
+        "gap_after",
+        "unexplained",
+    ] {
         assert!(d.get(key).is_some(), "missing `{key}` in {d}");
     }
     // Effect-free simulated data: nothing selected, nothing unexplained.
