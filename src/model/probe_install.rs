@@ -232,7 +232,10 @@ mod tests {
                 let mut xm = x;
                 xp[k] += h;
                 xm[k] -= h;
-                let (pp, pm) = (InstallParams::from_vector(&xp), InstallParams::from_vector(&xm));
+                let (pp, pm) = (
+                    InstallParams::from_vector(&xp),
+                    InstallParams::from_vector(&xm),
+                );
                 let fd = (sphere_residual(&pp, &obs, radius) - sphere_residual(&pm, &obs, radius))
                     / (2.0 * h);
                 assert!(

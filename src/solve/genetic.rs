@@ -76,7 +76,11 @@ pub fn minimise<F: FnMut(&[f64]) -> f64>(
             upper.len()
         )));
     }
-    if lower.iter().zip(upper).any(|(l, u)| !(u > l)) {
+    if lower
+        .iter()
+        .zip(upper)
+        .any(|(l, u)| u.partial_cmp(l) != Some(std::cmp::Ordering::Greater))
+    {
         return Err(GeneticError::InvalidInput(
             "every upper bound must exceed its lower bound".into(),
         ));

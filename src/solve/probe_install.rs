@@ -49,7 +49,7 @@ fn validate(problem: &ProbeInstallProblem) -> Result<(), ProbeInstallError> {
             "{n} observations given; 11 parameters with one constraint need at least 10"
         )));
     }
-    if !(problem.sphere_radius_m > 0.0) {
+    if problem.sphere_radius_m.is_nan() || problem.sphere_radius_m <= 0.0 {
         return Err(ProbeInstallError::InvalidInput(format!(
             "sphere_radius_m = {} must be positive",
             problem.sphere_radius_m
@@ -65,7 +65,7 @@ fn validate(problem: &ProbeInstallProblem) -> Result<(), ProbeInstallError> {
             && o.b_rad.is_finite()
             && o.reading_m.is_finite()
             && o.machine_m.iter().all(|v| v.is_finite());
-        if !finite || !(o.sigma_m > 0.0) {
+        if !finite || o.sigma_m.is_nan() || o.sigma_m <= 0.0 {
             return Err(ProbeInstallError::InvalidInput(format!(
                 "observation {i}: non-finite value or sigma_m <= 0"
             )));
@@ -161,7 +161,8 @@ impl BeamChart {
     /// ∂u/∂α, ∂u/∂β.
     fn beam_derivatives(&self, alpha: f64, beta: f64) -> (Vector3<f64>, Vector3<f64>) {
         let da = beta.cos() * (-alpha.sin() * self.e3 + alpha.cos() * self.e1);
-        let db = -beta.sin() * (alpha.cos() * self.e3 + alpha.sin() * self.e1) + beta.cos() * self.e2;
+        let db =
+            -beta.sin() * (alpha.cos() * self.e3 + alpha.sin() * self.e1) + beta.cos() * self.e2;
         (da, db)
     }
     fn params(&self, z: &SVector<f64, 10>) -> InstallParams {
@@ -311,8 +312,7 @@ pub fn solve_lm(
         .iter()
         .map(|o| sphere_residual(&params, o, radius))
         .collect();
-    let residual_rms_m =
-        (residuals_m.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
+    let residual_rms_m = (residuals_m.iter().map(|r| r * r).sum::<f64>() / n as f64).sqrt();
     let mut sigma = [0.0; N_PARAMS];
     let mut covariance = vec![[0.0; N_PARAMS]; N_PARAMS];
     for i in 0..N_PARAMS {
@@ -639,8 +639,8 @@ mod tests {
         let pr = problem(8, 1e-6, 21);
         let lm = solve_lm(&pr, &pr.nominal, &LmOptions::default()).unwrap();
         let opts = GeneticOptions {
-            population: 60,
-            generations: 600,
+            population: 100,
+            generations: 1000,
             seed: 7,
             ..Default::default()
         };
@@ -653,11 +653,16 @@ mod tests {
         );
         assert!(lm.objective <= ga.objective * (1.0 + 1e-9));
         // Penalty handling: M = 1e4 holds the unit norm.
-        assert!(ga.unit_norm_violation.abs() < 1e-4, "{:e}", ga.unit_norm_violation);
+        assert!(
+            ga.unit_norm_violation.abs() < 1e-4,
+            "{:e}",
+            ga.unit_norm_violation
+        );
     }
 
-    /// The GA objective may exceed LM's by at most this factor on the small case.
-    const GA_FACTOR: f64 = 1e4;
+    /// The GA objective may exceed LM's by at most this factor on the small case (32 readings,
+    /// N = 100, G = 1000, seed 7: observed 132; with 100 readings and G = 2000 the example sees 3.7).
+    const GA_FACTOR: f64 = 200.0;
 
     #[test]
     fn penalty_term_is_what_holds_the_norm() {
