@@ -2,6 +2,8 @@
 
 pub mod circle;
 pub mod elastic_net;
+pub mod genetic;
 pub mod geometric_errors;
 pub mod multilateration;
+pub mod probe_install;
 pub mod robust;
