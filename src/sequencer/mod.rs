@@ -109,6 +109,8 @@ pub struct Sequencer<'a> {
     /// Where the machine reported arrival; None while moving or unknown.
     position: Option<[f64; 3]>,
     last_sample: Option<TracerReading>,
+    /// The station being measured (for `rehome` events).
+    station: String,
     next_env_poll_s: f64,
     /// The tracer stands on the rotary table (placed there by the operator).
     on_table: bool,
@@ -134,6 +136,7 @@ impl<'a> Sequencer<'a> {
             commanded: None,
             position: None,
             last_sample: None,
+            station: String::new(),
             next_env_poll_s: 0.0,
             on_table: false,
             start_ns,
@@ -150,6 +153,7 @@ impl<'a> Sequencer<'a> {
         let mut mounted: Option<&PlanTarget> = None;
         let mut done = 0;
         for (station_index, station) in plan.stations.iter().enumerate() {
+            self.station = station.id.clone();
             self.event(RunEvent::StationBegin {
                 station: station.id.clone(),
                 station_index,
@@ -314,7 +318,15 @@ impl<'a> Sequencer<'a> {
         self.recorder
             .tracer(self.devices.tracer.id(), &sample, self.clock.now_ns());
         self.summary.samples += 1;
-        self.last_sample = Some(reading);
+        let before = self.last_sample.replace(reading);
+        // A homing after the beam was interrupted starts a new beam segment: say so, at the
+        // first sample of the new segment (a driver may still hold samples from before).
+        if before.is_some_and(|b| b.beam_segment != reading.beam_segment) {
+            self.event(RunEvent::Rehome {
+                station: self.station.clone(),
+                beam_segment: reading.beam_segment,
+            });
+        }
         if reading.t_s >= self.next_env_poll_s {
             self.next_env_poll_s = reading.t_s + ENV_POLL_S;
             self.poll_environment().await?;
@@ -364,7 +376,7 @@ impl<'a> Sequencer<'a> {
         if self.move_to(point).await? == Step::BeamBroken {
             return Ok(Step::BeamBroken);
         }
-        if point == 0 && self.home(station).await? == Step::BeamBroken {
+        if point == 0 && self.home().await? == Step::BeamBroken {
             return Ok(Step::BeamBroken);
         }
         self.measure(station, target, point, pass).await
@@ -387,12 +399,13 @@ impl<'a> Sequencer<'a> {
                  at point 0, repeating the pass from point {point}"
             ),
         });
+        let segment = self.last_sample.map_or(0, |s| s.beam_segment);
         for _ in 0..=MAX_BEAM_BREAKS {
             self.wait_for_beam(station).await?;
             if self.move_to(0).await? == Step::BeamBroken {
                 continue;
             }
-            if self.home(station).await? == Step::Done {
+            if self.home().await? == Step::Done && self.wait_for_segment(station, segment).await? {
                 return Ok(());
             }
         }
@@ -400,6 +413,27 @@ impl<'a> Sequencer<'a> {
             station: station.to_string(),
             breaks: MAX_BEAM_BREAKS,
         })
+    }
+
+    /// After a re-homing, keep recording until the samples show the new beam segment (the
+    /// `rehome` event then precedes the repeated windows). False if the beam broke again.
+    async fn wait_for_segment(&mut self, station: &str, old: u32) -> Result<bool, SequencerError> {
+        let begin_s = self.last_sample.map_or(0.0, |s| s.t_s);
+        loop {
+            let sample = self.sample().await?;
+            if !sample.tracking {
+                return Ok(false);
+            }
+            if sample.beam_segment != old {
+                return Ok(true);
+            }
+            if sample.t_s - begin_s > MAX_BEAM_WAIT_S {
+                return Err(SequencerError::NoBeam {
+                    station: station.to_string(),
+                    waited_s: sample.t_s - begin_s,
+                });
+            }
+        }
     }
 
     /// Keep recording until the tracer tracks again.
@@ -556,22 +590,14 @@ impl<'a> Sequencer<'a> {
     }
 
     /// Zero the counter at point 0 once at rest there: every pass is relative to point 0.
-    /// A homing after the beam was interrupted starts a new beam segment: say so.
-    async fn home(&mut self, station: &str) -> Result<Step, SequencerError> {
+    /// (A homing after the beam was interrupted starts a new beam segment: `sample` says so.)
+    async fn home(&mut self) -> Result<Step, SequencerError> {
         if let DwellEnd::BeamBroken = self.dwell(0, 0.0).await? {
             return Ok(Step::BeamBroken);
         }
-        let before = self.last_sample.map(|s| s.beam_segment);
         self.home_tracer().await?;
-        let after = self.sample().await?;
-        if !after.tracking {
+        if !self.sample().await?.tracking {
             return Ok(Step::BeamBroken);
-        }
-        if before.is_some_and(|b| b != after.beam_segment) {
-            self.event(RunEvent::Rehome {
-                station: station.to_string(),
-                beam_segment: after.beam_segment,
-            });
         }
         Ok(Step::Done)
     }

@@ -393,10 +393,12 @@ impl SimWorld {
         (self.true_distance_m(self.now_s()), self.home_distance_m)
     }
 
-    /// The machine's axis positions now, and whether it is still moving.
+    /// The machine's axis positions now, and whether it is still moving (a move to where
+    /// the axes already are is no motion).
     pub(crate) fn hil_machine_axes(&self) -> ([f64; 3], bool) {
         let now = self.now_s();
-        (self.motion.at(now), now < self.motion.end_s())
+        let moving = now < self.motion.end_s() && self.motion.from != self.motion.to;
+        (self.motion.at(now), moving)
     }
 
     // --- truth ---
