@@ -286,9 +286,7 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
         DriverKind::Grbl => {
             let cfg = grbl_config(config);
             let port = cfg.port.clone();
-            Box::new(
-                GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))?,
-            )
+            Box::new(GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))?)
         }
         kind => anyhow::bail!(
             "devices.machine.driver = \"{}\" in a real run: expected \"grbl\"",

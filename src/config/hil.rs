@@ -102,8 +102,7 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
     }
     let emulated = config.emulated();
     if !emulated {
-        if d.tracer.driver == Hpi3d && d.tracer.hpi3d.as_ref().is_none_or(|c| c.port.is_empty())
-        {
+        if d.tracer.driver == Hpi3d && d.tracer.hpi3d.as_ref().is_none_or(|c| c.port.is_empty()) {
             return fail(
                 "devices.tracer.hpi3d.port",
                 "missing: a real HPI-3D needs its serial port (or set [hil] emulate = true)",

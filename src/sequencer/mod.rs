@@ -221,7 +221,11 @@ impl<'a> Sequencer<'a> {
 
     /// Record a failed device call as a `fault` event; Ok if it may be retried (a timeout
     /// or a protocol error, at most `DEVICE_RETRIES` times), else the error.
-    fn retry_or_fail(&mut self, error: DeviceError, attempt: &mut u32) -> Result<(), SequencerError> {
+    fn retry_or_fail(
+        &mut self,
+        error: DeviceError,
+        attempt: &mut u32,
+    ) -> Result<(), SequencerError> {
         let (device, code) = match &error {
             DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
             DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
