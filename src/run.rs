@@ -39,7 +39,11 @@ pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
         .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
     let session_path = options.out_dir.join("session.mcap");
     let epoch_ns = system_now_ns();
-    let built = crate::devices::build(config, &plan, epoch_ns)?;
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let built = runtime.block_on(crate::devices::build(config, &plan, epoch_ns))?;
     let recorder = Recorder::create(&session_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", session_path.display()))?;
     let handle = recorder.handle();
@@ -51,11 +55,9 @@ pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
         bar.set_position(done);
     };
     let sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
     let summary = runtime.block_on(sequencer.run(&mut progress));
+    // Stop the emulators of an emulated run.
+    drop(built.emulators);
     bar.finish_and_clear();
     // Finish the file even after a failed run: every recorded sample stays readable.
     let stats = recorder.finish().context("finishing the session file")?;

@@ -280,3 +280,53 @@ fn rotary_sim_speed_must_be_positive() {
         &[FILE, "sim.rotary.speed_rad_s", "positive"],
     );
 }
+
+#[test]
+fn protocol_driver_errors_name_the_key() {
+    // A GRBL tracer does not exist.
+    let text = DEMO.replace(
+        "id = \"tracer0\"\ndriver = \"sim\"",
+        "id = \"tracer0\"\ndriver = \"grbl\"",
+    );
+    assert_mentions(
+        &error_of(&text),
+        &["devices.tracer.driver", "\"sim\" or \"hpi3d\""],
+    );
+    // A real GRBL controller needs its port.
+    let text = DEMO.replace(
+        "driver = \"sim\"\nfeed_m_s = 0.3",
+        "driver = \"grbl\"\nfeed_m_s = 0.3",
+    );
+    assert_mentions(&error_of(&text), &["devices.machine.grbl.port", "missing"]);
+    // Emulated runs need the HPI-3D tracer (its stream runs the world's clock).
+    let text = format!("{DEMO}\n[hil]\nemulate = true\n");
+    assert_mentions(&error_of(&text), &["devices.tracer.driver", "hpi3d"]);
+    // Unknown keys in the driver's and the emulator's settings are named.
+    let text = format!(
+        "{}\n[devices.tracer.hpi3d]\nbaudrate = 9600\n",
+        DEMO.replace(
+            "id = \"tracer0\"\ndriver = \"sim\"",
+            "id = \"tracer0\"\ndriver = \"hpi3d\""
+        )
+    );
+    assert_mentions(&error_of(&text), &["devices.tracer.hpi3d", "baudrate"]);
+    let text = format!(
+        "{}\n[hil]\ntracer_faults = {{ drop = 0.1 }}\n",
+        DEMO.replace(
+            "id = \"tracer0\"\ndriver = \"sim\"",
+            "id = \"tracer0\"\ndriver = \"hpi3d\""
+        )
+    );
+    assert_mentions(&error_of(&text), &["hil.tracer_faults", "drop"]);
+    let text = format!(
+        "{}\n[hil]\ntracer_faults = {{ drop_fraction = 1.5 }}\n",
+        DEMO.replace(
+            "id = \"tracer0\"\ndriver = \"sim\"",
+            "id = \"tracer0\"\ndriver = \"hpi3d\""
+        )
+    );
+    assert_mentions(
+        &error_of(&text),
+        &["hil.tracer_faults.drop_fraction", "[0, 1]"],
+    );
+}

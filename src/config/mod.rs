@@ -1,6 +1,7 @@
 //! Configuration files (TOML): machine, devices, plan and simulated world, parsed strictly
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
+mod hil;
 mod validate;
 
 use std::collections::BTreeMap;
@@ -8,6 +9,7 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
+pub use hil::HilConfig;
 pub use validate::validate;
 
 /// A configuration error: which file, which key, what was expected.
@@ -43,6 +45,9 @@ pub struct Config {
     /// The simulated world; required when any device uses the `sim` driver.
     #[serde(default)]
     pub sim: Option<SimConfig>,
+    /// Hardware-in-the-loop: host device emulators backed by `[sim]` (see `hil.rs`).
+    #[serde(default)]
+    pub hil: Option<HilConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -107,12 +112,18 @@ pub struct RotaryTableConfig {
 #[serde(rename_all = "snake_case")]
 pub enum DriverKind {
     Sim,
+    /// Lasertex HPI-3D serial protocol (tracer; its meteo stream as environment).
+    Hpi3d,
+    /// GRBL-style G-code streaming (machine).
+    Grbl,
 }
 
 impl DriverKind {
     pub fn as_str(self) -> &'static str {
         match self {
             DriverKind::Sim => "sim",
+            DriverKind::Hpi3d => "hpi3d",
+            DriverKind::Grbl => "grbl",
         }
     }
 }
@@ -134,6 +145,9 @@ pub struct TracerConfig {
     /// True when the tracer corrects the air refractive index itself.
     #[serde(default = "default_true")]
     pub compensated: bool,
+    /// `[devices.tracer.hpi3d]`: the driver's settings (driver `hpi3d`; `id` comes from here).
+    #[serde(default)]
+    pub hpi3d: Option<geocal_drivers::hpi3d::Hpi3dConfig>,
 }
 
 fn default_wavelength() -> f64 {
@@ -163,6 +177,10 @@ pub struct MachineDeviceConfig {
     pub driver: DriverKind,
     /// Path feed rate, m/s.
     pub feed_m_s: f64,
+    /// `[devices.machine.grbl]`: the driver's settings (driver `grbl`; `id` and `feed_m_s`
+    /// come from here).
+    #[serde(default)]
+    pub grbl: Option<geocal_drivers::grbl::GrblConfig>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

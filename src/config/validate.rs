@@ -34,6 +34,7 @@ pub fn validate(config: &Config) -> Result<(), Invalid> {
     validate_devices(config)?;
     validate_rotary(config)?;
     validate_plan(config)?;
+    super::hil::validate_drivers(config)?;
     validate_sim(config)
 }
 

@@ -92,6 +92,8 @@ pub struct DroppedWindow {
 pub struct Extraction {
     pub measurements: Vec<PointMeasurement>,
     pub dropped: Vec<DroppedWindow>,
+    /// Windows a beam break cut short: the sequencer re-homed (`rehome`) and repeated them.
+    pub repeated: Vec<DroppedWindow>,
     /// Station ids in order of their `station_begin`.
     pub stations: Vec<StationSeen>,
 }
@@ -178,6 +180,12 @@ pub fn extract_points(
                     axes: axes.clone(),
                     approach: approach.clone(),
                 });
+            }
+            RunEvent::Rehome { .. } => {
+                if let Some(w) = open.take() {
+                    out.repeated
+                        .push(dropped(&w, "beam broken: repeated after re-homing"));
+                }
             }
             RunEvent::PointEnd {
                 station,

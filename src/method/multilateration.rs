@@ -114,6 +114,9 @@ pub struct ExtractionSummary {
     pub tracer: String,
     pub windows_used: usize,
     pub windows_dropped: usize,
+    /// Windows cut short by a beam break and measured again after re-homing.
+    #[serde(default)]
+    pub windows_repeated: usize,
     /// Why windows were dropped, with counts.
     pub dropped_reasons: BTreeMap<String, usize>,
     pub samples_used: usize,
@@ -289,6 +292,7 @@ pub fn solve_detailed(
             tracer: tracer_id,
             windows_used: extraction.measurements.len(),
             windows_dropped: extraction.dropped.len(),
+            windows_repeated: extraction.repeated.len(),
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
         },

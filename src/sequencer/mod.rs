@@ -1,6 +1,12 @@
 //! The run sequencer: executes a plan on devices seen only through their traits, turns the
 //! rotary table the tracer stands on, waits for stillstand, homes, and records every raw sample
 //! and every step to the session.
+//!
+//! Real devices misbehave: a timeout or protocol error is retried (`DEVICE_RETRIES` times)
+//! and recorded as a `fault` event; lost frames (gaps in the tracer's `seq`) are recorded as
+//! `fault` events; a beam break stops the pass, waits for the beam, re-homes at point 0 (a new
+//! beam segment: `rehome` event) and repeats the pass from the first point whose window the
+//! break touched. Every sample is recorded throughout.
 
 use std::collections::BTreeMap;
 use std::sync::Arc;
@@ -42,6 +48,10 @@ pub enum SequencerError {
         table: String,
         device: String,
     },
+    #[error("beam still broken after {waited_s:.0} s of device time at station {station}")]
+    NoBeam { station: String, waited_s: f64 },
+    #[error("beam broken {breaks} times in one pass at station {station}; giving up")]
+    TooManyBeamBreaks { station: String, breaks: u32 },
     #[error("rotary table {table} not in position at {commanded_rad} rad within {waited_s:.0} s of device time")]
     NoInPosition {
         table: String,
@@ -67,6 +77,26 @@ const MAX_MOVE_S: f64 = 600.0;
 const MAX_ROTATION_S: f64 = 600.0;
 /// How often (device time) the environment is polled.
 const ENV_POLL_S: f64 = 0.5;
+/// Retries of a device call that timed out or hit a protocol error, before the run fails.
+const DEVICE_RETRIES: u32 = 5;
+/// How long device time may pass waiting for a broken beam to return.
+const MAX_BEAM_WAIT_S: f64 = 600.0;
+/// Beam breaks tolerated within one pass before the run fails.
+const MAX_BEAM_BREAKS: u32 = 10;
+
+/// How a step ended: done, or cut short by a beam break (the pass must be repeated from it).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Step {
+    Done,
+    BeamBroken,
+}
+
+/// How a dwell ended.
+enum DwellEnd {
+    Settled,
+    Unsettled,
+    BeamBroken,
+}
 
 pub struct Sequencer<'a> {
     plan: &'a Plan,
@@ -74,8 +104,13 @@ pub struct Sequencer<'a> {
     recorder: RecorderHandle,
     clock: Arc<dyn Clock>,
     approach: BTreeMap<String, i8>,
+    /// Where the machine was last sent (for the approach directions).
+    commanded: Option<[f64; 3]>,
+    /// Where the machine reported arrival; None while moving or unknown.
     position: Option<[f64; 3]>,
     last_sample: Option<TracerReading>,
+    /// The station being measured (for `rehome` events).
+    station: String,
     next_env_poll_s: f64,
     /// The tracer stands on the rotary table (placed there by the operator).
     on_table: bool,
@@ -98,8 +133,10 @@ impl<'a> Sequencer<'a> {
             recorder,
             clock,
             approach: AXES.iter().map(|a| (a.to_string(), 0)).collect(),
+            commanded: None,
             position: None,
             last_sample: None,
+            station: String::new(),
             next_env_poll_s: 0.0,
             on_table: false,
             start_ns,
@@ -116,6 +153,7 @@ impl<'a> Sequencer<'a> {
         let mut mounted: Option<&PlanTarget> = None;
         let mut done = 0;
         for (station_index, station) in plan.stations.iter().enumerate() {
+            self.station = station.id.clone();
             self.event(RunEvent::StationBegin {
                 station: station.id.clone(),
                 station_index,
@@ -142,14 +180,27 @@ impl<'a> Sequencer<'a> {
                     mounted = Some(target);
                 }
                 for (pass, &direction) in plan.passes.iter().enumerate() {
-                    for point in plan.pass_order(direction) {
-                        self.move_to(point).await?;
-                        if point == 0 {
-                            self.home(&station.id).await?;
+                    let order = plan.pass_order(direction);
+                    let mut next = 0;
+                    let mut breaks = 0;
+                    while let Some(&point) = order.get(next) {
+                        match self.visit(&station.id, target, point, pass).await? {
+                            Step::Done => {
+                                next += 1;
+                                done += 1;
+                                progress(done, total);
+                            }
+                            Step::BeamBroken => {
+                                breaks += 1;
+                                if breaks > MAX_BEAM_BREAKS {
+                                    return Err(SequencerError::TooManyBeamBreaks {
+                                        station: station.id.clone(),
+                                        breaks,
+                                    });
+                                }
+                                self.recover_beam(&station.id, point, pass).await?;
+                            }
                         }
-                        self.measure(&station.id, target, point, pass).await?;
-                        done += 1;
-                        progress(done, total);
                     }
                 }
             }
@@ -168,9 +219,98 @@ impl<'a> Sequencer<'a> {
         self.recorder.event(&event, self.clock.now_ns());
     }
 
+    /// Record a failed device call as a `fault` event; Ok if it may be retried (a timeout
+    /// or a protocol error, at most `DEVICE_RETRIES` times), else the error.
+    fn retry_or_fail(
+        &mut self,
+        error: DeviceError,
+        attempt: &mut u32,
+    ) -> Result<(), SequencerError> {
+        let (device, code) = match &error {
+            DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
+            DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
+            _ => return Err(error.into()),
+        };
+        *attempt += 1;
+        let retry = *attempt <= DEVICE_RETRIES;
+        self.event(RunEvent::Fault {
+            device,
+            code: code.into(),
+            message: if retry {
+                format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
+            } else {
+                format!("{error} (giving up after {DEVICE_RETRIES} retries)")
+            },
+        });
+        if retry {
+            Ok(())
+        } else {
+            Err(error.into())
+        }
+    }
+
+    /// The tracer's next reading, retried on timeouts; a gap in `seq` is a `fault` event.
+    async fn next_reading(&mut self) -> Result<TracerReading, SequencerError> {
+        let mut attempt = 0;
+        let reading = loop {
+            match self.devices.tracer.next_sample().await {
+                Ok(r) => break r,
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        };
+        if let Some(last) = self.last_sample {
+            if reading.seq > last.seq + 1 {
+                let lost = reading.seq - last.seq - 1;
+                self.event(RunEvent::Fault {
+                    device: self.devices.tracer.id().to_string(),
+                    code: "frames_lost".into(),
+                    message: format!(
+                        "{lost} frame(s) lost between seq {} and {} (dropped or failed CRC)",
+                        last.seq, reading.seq
+                    ),
+                });
+            }
+        }
+        Ok(reading)
+    }
+
+    /// Home the tracer, retried on timeouts.
+    async fn home_tracer(&mut self) -> Result<(), SequencerError> {
+        let mut attempt = 0;
+        loop {
+            match self.devices.tracer.home().await {
+                Ok(()) => return Ok(()),
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
+    /// Start a machine move, retried on timeouts (the move is absolute: a resend after a
+    /// lost `ok` is harmless).
+    async fn start_move(&mut self, command: &AxisPositions) -> Result<(), SequencerError> {
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.start_move(command).await {
+                Ok(()) => return Ok(()),
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
+    /// The machine's state, retried on timeouts.
+    async fn machine_state(&mut self) -> Result<MachineState, SequencerError> {
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.state().await {
+                Ok(s) => return Ok(s),
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
     /// Pull one sample from the tracer and record it; poll the environment now and then.
     async fn sample(&mut self) -> Result<TracerReading, SequencerError> {
-        let reading = self.devices.tracer.next_sample().await?;
+        let reading = self.next_reading().await?;
         let sample = TracerSample {
             seq: reading.seq,
             t_s: reading.t_s,
@@ -182,7 +322,15 @@ impl<'a> Sequencer<'a> {
         self.recorder
             .tracer(self.devices.tracer.id(), &sample, self.clock.now_ns());
         self.summary.samples += 1;
-        self.last_sample = Some(reading);
+        let before = self.last_sample.replace(reading);
+        // A homing after the beam was interrupted starts a new beam segment: say so, at the
+        // first sample of the new segment (a driver may still hold samples from before).
+        if before.is_some_and(|b| b.beam_segment != reading.beam_segment) {
+            self.event(RunEvent::Rehome {
+                station: self.station.clone(),
+                beam_segment: reading.beam_segment,
+            });
+        }
         if reading.t_s >= self.next_env_poll_s {
             self.next_env_poll_s = reading.t_s + ENV_POLL_S;
             self.poll_environment().await?;
@@ -195,7 +343,19 @@ impl<'a> Sequencer<'a> {
             return Ok(());
         };
         let id = env.id().to_string();
-        for reading in env.poll().await? {
+        let readings = match env.poll().await {
+            Ok(r) => r,
+            Err(e) => {
+                // Environment data are auxiliary: a failed poll is recorded, not retried.
+                self.event(RunEvent::Fault {
+                    device: id,
+                    code: "poll".into(),
+                    message: e.to_string(),
+                });
+                return Ok(());
+            }
+        };
+        for reading in readings {
             let sample = EnvSample {
                 t_s: reading.t_s,
                 air_temp_k: reading.air_temp_k,
@@ -209,13 +369,101 @@ impl<'a> Sequencer<'a> {
         Ok(())
     }
 
+    /// One point of a pass: move there, home at point 0, measure.
+    async fn visit(
+        &mut self,
+        station: &str,
+        target: &PlanTarget,
+        point: usize,
+        pass: usize,
+    ) -> Result<Step, SequencerError> {
+        if self.move_to(point).await? == Step::BeamBroken {
+            return Ok(Step::BeamBroken);
+        }
+        if point == 0 && self.home().await? == Step::BeamBroken {
+            return Ok(Step::BeamBroken);
+        }
+        self.measure(station, target, point, pass).await
+    }
+
+    /// After a beam break at (or on the way to) `point`: a `fault` event, wait for the beam,
+    /// go to point 0 and re-home there (a new beam segment: `rehome` event). The caller then
+    /// repeats the pass from `point`. A break during the recovery starts it over.
+    async fn recover_beam(
+        &mut self,
+        station: &str,
+        point: usize,
+        pass: usize,
+    ) -> Result<(), SequencerError> {
+        self.event(RunEvent::Fault {
+            device: self.devices.tracer.id().to_string(),
+            code: "beam_break".into(),
+            message: format!(
+                "beam broken at point {point} of pass {pass}: waiting for the beam, re-homing \
+                 at point 0, repeating the pass from point {point}"
+            ),
+        });
+        let segment = self.last_sample.map_or(0, |s| s.beam_segment);
+        for _ in 0..=MAX_BEAM_BREAKS {
+            self.wait_for_beam(station).await?;
+            if self.move_to(0).await? == Step::BeamBroken {
+                continue;
+            }
+            if self.home().await? == Step::Done && self.wait_for_segment(station, segment).await? {
+                return Ok(());
+            }
+        }
+        Err(SequencerError::TooManyBeamBreaks {
+            station: station.to_string(),
+            breaks: MAX_BEAM_BREAKS,
+        })
+    }
+
+    /// After a re-homing, keep recording until the samples show the new beam segment (the
+    /// `rehome` event then precedes the repeated windows). False if the beam broke again.
+    async fn wait_for_segment(&mut self, station: &str, old: u32) -> Result<bool, SequencerError> {
+        let begin_s = self.last_sample.map_or(0.0, |s| s.t_s);
+        loop {
+            let sample = self.sample().await?;
+            if !sample.tracking {
+                return Ok(false);
+            }
+            if sample.beam_segment != old {
+                return Ok(true);
+            }
+            if sample.t_s - begin_s > MAX_BEAM_WAIT_S {
+                return Err(SequencerError::NoBeam {
+                    station: station.to_string(),
+                    waited_s: sample.t_s - begin_s,
+                });
+            }
+        }
+    }
+
+    /// Keep recording until the tracer tracks again.
+    async fn wait_for_beam(&mut self, station: &str) -> Result<(), SequencerError> {
+        let begin_s = self.last_sample.map_or(0.0, |s| s.t_s);
+        loop {
+            let sample = self.sample().await?;
+            if sample.tracking {
+                return Ok(());
+            }
+            if sample.t_s - begin_s > MAX_BEAM_WAIT_S {
+                return Err(SequencerError::NoBeam {
+                    station: station.to_string(),
+                    waited_s: sample.t_s - begin_s,
+                });
+            }
+        }
+    }
+
     /// Command the move to a plan point and keep recording until the machine reports arrival.
-    async fn move_to(&mut self, point: usize) -> Result<(), SequencerError> {
+    async fn move_to(&mut self, point: usize) -> Result<Step, SequencerError> {
         let target = self.plan.points[point].axes_m;
         if self.position == Some(target) {
-            return Ok(());
+            return Ok(Step::Done);
         }
-        if let Some(from) = self.position {
+        if let Some(from) = self.commanded {
             for (k, axis) in AXES.iter().enumerate() {
                 let delta = target[k] - from[k];
                 if delta != 0.0 {
@@ -224,22 +472,31 @@ impl<'a> Sequencer<'a> {
             }
         }
         let command: AxisPositions = AXES.iter().map(|a| a.to_string()).zip(target).collect();
-        self.devices.machine.start_move(&command).await?;
-        let started_s = self.sample().await?.t_s;
+        self.position = None;
+        self.start_move(&command).await?;
+        self.commanded = Some(target);
+        let first = self.sample().await?;
+        let started_s = first.t_s;
+        let mut tracking = first.tracking;
         loop {
-            if let MachineState::Idle { .. } = self.devices.machine.state().await? {
+            if let MachineState::Idle { .. } = self.machine_state().await? {
                 break;
             }
-            let t_s = self.sample().await?.t_s;
-            if t_s - started_s > MAX_MOVE_S {
+            let sample = self.sample().await?;
+            tracking &= sample.tracking;
+            if sample.t_s - started_s > MAX_MOVE_S {
                 return Err(SequencerError::NoArrival {
                     point,
-                    waited_s: t_s - started_s,
+                    waited_s: sample.t_s - started_s,
                 });
             }
         }
         self.position = Some(target);
-        Ok(())
+        Ok(if tracking {
+            Step::Done
+        } else {
+            Step::BeamBroken
+        })
     }
 
     /// Command the table to a station's angle (a `rotation` event), then keep recording the
@@ -303,20 +560,23 @@ impl<'a> Sequencer<'a> {
 
     /// Record for at least `min_dwell_s` and until the readings settle; after max_dwell_s
     /// give up with a `fault` event. Returns whether stillstand was reached.
-    async fn dwell(&mut self, point: usize, min_dwell_s: f64) -> Result<bool, SequencerError> {
+    async fn dwell(&mut self, point: usize, min_dwell_s: f64) -> Result<DwellEnd, SequencerError> {
         let plan = self.plan;
         let mut detector =
             StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
         let begin_s = self.last_sample.map_or(0.0, |s| s.t_s);
         loop {
             let sample = self.sample().await?;
+            if !sample.tracking {
+                return Ok(DwellEnd::BeamBroken);
+            }
             let settled = matches!(
                 detector.push(sample.t_s, sample.length_m),
                 Stillstand::Settled { .. }
             );
             let elapsed_s = sample.t_s - begin_s;
             if settled && elapsed_s >= min_dwell_s {
-                return Ok(true);
+                return Ok(DwellEnd::Settled);
             }
             if elapsed_s >= plan.max_dwell_s {
                 let device = self.devices.tracer.id().to_string();
@@ -328,25 +588,22 @@ impl<'a> Sequencer<'a> {
                         plan.max_dwell_s, plan.stillstand_tolerance_m, plan.stillstand_window_s
                     ),
                 });
-                return Ok(false);
+                return Ok(DwellEnd::Unsettled);
             }
         }
     }
 
     /// Zero the counter at point 0 once at rest there: every pass is relative to point 0.
-    /// A homing after the beam was interrupted starts a new beam segment: say so.
-    async fn home(&mut self, station: &str) -> Result<(), SequencerError> {
-        self.dwell(0, 0.0).await?;
-        let before = self.last_sample.map(|s| s.beam_segment);
-        self.devices.tracer.home().await?;
-        let after = self.sample().await?.beam_segment;
-        if before.is_some_and(|b| b != after) {
-            self.event(RunEvent::Rehome {
-                station: station.to_string(),
-                beam_segment: after,
-            });
+    /// (A homing after the beam was interrupted starts a new beam segment: `sample` says so.)
+    async fn home(&mut self) -> Result<Step, SequencerError> {
+        if let DwellEnd::BeamBroken = self.dwell(0, 0.0).await? {
+            return Ok(Step::BeamBroken);
         }
-        Ok(())
+        self.home_tracer().await?;
+        if !self.sample().await?.tracking {
+            return Ok(Step::BeamBroken);
+        }
+        Ok(Step::Done)
     }
 
     /// The dwell at a point: point_begin, at least dwell_s and until settled, point_end.
@@ -356,7 +613,7 @@ impl<'a> Sequencer<'a> {
         target: &PlanTarget,
         point: usize,
         pass: usize,
-    ) -> Result<(), SequencerError> {
+    ) -> Result<Step, SequencerError> {
         let p = &self.plan.points[point];
         self.event(RunEvent::PointBegin {
             station: station.to_string(),
@@ -367,13 +624,16 @@ impl<'a> Sequencer<'a> {
             axes: AXES.iter().map(|a| a.to_string()).zip(p.axes_m).collect(),
             approach: self.approach.clone(),
         });
-        self.dwell(point, self.plan.dwell_s).await?;
+        if let DwellEnd::BeamBroken = self.dwell(point, self.plan.dwell_s).await? {
+            // No point_end: the window is abandoned, and repeated after the re-homing.
+            return Ok(Step::BeamBroken);
+        }
         self.event(RunEvent::PointEnd {
             station: station.to_string(),
             point,
             pass,
         });
         self.summary.points_measured += 1;
-        Ok(())
+        Ok(Step::Done)
     }
 }

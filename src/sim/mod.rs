@@ -3,6 +3,7 @@
 
 pub mod devices;
 pub mod effects;
+pub mod hil;
 pub mod rotary;
 pub mod truth;
 pub mod world;

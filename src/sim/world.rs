@@ -362,24 +362,43 @@ impl SimWorld {
         let now = self.now_s();
         let mut out = Vec::new();
         while self.next_env_s <= now {
-            let t = self.next_env_s;
-            let air_temp_k = crate::sim::effects::air_temp_k(&self.env, t);
-            let swing = air_temp_k - self.env.air_temp_k;
-            out.push(geocal_drivers::EnvReading {
-                t_s: t,
-                air_temp_k,
-                pressure_pa: self.env.pressure_pa,
-                humidity_pct: self.env.humidity_pct,
-                material_temp_k: self
-                    .env
-                    .material_temp_k
-                    .iter()
-                    .map(|m| m + 0.5 * swing)
-                    .collect(),
-            });
+            out.push(self.env_at(self.next_env_s));
             self.next_env_s += self.env_period_s;
         }
         out
+    }
+
+    /// The environment sensors' values at `t_s`.
+    pub(crate) fn env_at(&self, t_s: f64) -> geocal_drivers::EnvReading {
+        let air_temp_k = crate::sim::effects::air_temp_k(&self.env, t_s);
+        let swing = air_temp_k - self.env.air_temp_k;
+        geocal_drivers::EnvReading {
+            t_s,
+            air_temp_k,
+            pressure_pa: self.env.pressure_pa,
+            humidity_pct: self.env.humidity_pct,
+            material_temp_k: self
+                .env
+                .material_temp_k
+                .iter()
+                .map(|m| m + 0.5 * swing)
+                .collect(),
+        }
+    }
+
+    // --- hardware-in-the-loop (src/sim/hil.rs): the emulators read the world directly ---
+
+    /// True tracer-to-target distance now, and the distance at the last homing.
+    pub(crate) fn hil_distances_m(&self) -> (f64, f64) {
+        (self.true_distance_m(self.now_s()), self.home_distance_m)
+    }
+
+    /// The machine's axis positions now, and whether it is still moving (a move to where
+    /// the axes already are is no motion).
+    pub(crate) fn hil_machine_axes(&self) -> ([f64; 3], bool) {
+        let now = self.now_s();
+        let moving = now < self.motion.end_s() && self.motion.from != self.motion.to;
+        (self.motion.at(now), moving)
     }
 
     // --- truth ---
