@@ -1,3 +1,4 @@
 //! Models: what a measurement predicts, with Jacobians. No solver and no I/O here.
 
 pub mod kinematics;
+pub mod rotary_sphere;

@@ -5,3 +5,4 @@ pub mod elastic_net;
 pub mod geometric_errors;
 pub mod multilateration;
 pub mod robust;
+pub mod rotary_sphere;
