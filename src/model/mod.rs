@@ -1,4 +1,5 @@
 //! Models: what a measurement predicts, with Jacobians. No solver and no I/O here.
 
+pub mod hexapod;
 pub mod kinematics;
 pub mod rotary_sphere;

@@ -3,6 +3,7 @@
 pub mod circle;
 pub mod elastic_net;
 pub mod geometric_errors;
+pub mod hexapod;
 pub mod multilateration;
 pub mod robust;
 pub mod rotary_sphere;
