@@ -6,7 +6,7 @@ use serde::Serialize;
 
 use crate::model::rotary_sphere::{
     harmonic_basis, located_centre, located_centre_jacobian, motion_jacobian, rz, skew,
-    sphere_point_residual, LOCATION_NAMES, MOTION_NAMES,
+    sphere_point_residual, MOTION_NAMES,
 };
 
 #[derive(Debug, Clone, PartialEq, thiserror::Error)]
@@ -269,7 +269,7 @@ impl HarmonicFit {
 /// motion errors are what is left, so they carry no part that a fixed axis would explain).
 #[derive(Debug, Clone, Serialize)]
 pub struct RotaryAxisIdentification {
-    /// EXOC, EYOC (m), EAOC, EBOC (rad): see `LOCATION_NAMES`.
+    /// EXOC, EYOC (m), EAOC, EBOC (rad): see `model::rotary_sphere::LOCATION_NAMES`.
     pub location: [f64; 4],
     pub location_sigma: [f64; 4],
     pub location_covariance: [[f64; 4]; 4],
@@ -293,10 +293,6 @@ pub struct RotaryAxisIdentification {
 }
 
 impl RotaryAxisIdentification {
-    fn location_vec(&self) -> [f64; 4] {
-        self.location
-    }
-
     /// Motion errors at any angle from the harmonic fits.
     pub fn motion_model(&self, theta_rad: f64) -> Vector6<f64> {
         Vector6::from_fn(|k, _| self.harmonics[k].value(theta_rad))
@@ -305,7 +301,7 @@ impl RotaryAxisIdentification {
     /// Predicted centre of a sphere at `q_m` (its position at θ = 0) and the Jacobian of the
     /// prediction with respect to [location, coefficients] (for its covariance).
     pub fn predict(&self, theta_rad: f64, q_m: &Vector3<f64>) -> (Vector3<f64>, DMatrix<f64>) {
-        let loc = self.location_vec();
+        let loc = self.location;
         let p = rz(theta_rad) * q_m;
         let m = self.motion_model(theta_rad);
         let centre = located_centre(theta_rad, q_m, &loc) + motion_jacobian(&p) * m;
@@ -597,7 +593,6 @@ pub fn identify_rotary_axis(
             -s * m[0] + c * m[1] + reference_radius_m * m[5]
         })
         .collect();
-    let _ = LOCATION_NAMES;
     Ok(RotaryAxisIdentification {
         location: loc,
         location_sigma: std::array::from_fn(|k| loc_cov[(k, k)].max(0.0).sqrt()),
@@ -680,7 +675,7 @@ pub fn validate(
             series.centres_m.len().min(series.covariances_m2.len()),
         ));
     }
-    let loc = id.location_vec();
+    let loc = id.location;
     let weights: Vec<Matrix3<f64>> = series
         .covariances_m2
         .iter()
