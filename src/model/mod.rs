@@ -1,4 +1,6 @@
 //! Models: what a measurement predicts, with Jacobians. No solver and no I/O here.
 
+pub mod hexapod;
 pub mod kinematics;
 pub mod probe_install;
+pub mod rotary_sphere;

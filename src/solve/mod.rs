@@ -4,6 +4,8 @@ pub mod circle;
 pub mod elastic_net;
 pub mod genetic;
 pub mod geometric_errors;
+pub mod hexapod;
 pub mod multilateration;
 pub mod probe_install;
 pub mod robust;
+pub mod rotary_sphere;
