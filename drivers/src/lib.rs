@@ -5,6 +5,7 @@ pub mod grbl;
 pub mod hpi3d;
 pub mod modbus_table;
 pub mod probe;
+pub mod serial;
 pub mod traits;
 
 pub use traits::{

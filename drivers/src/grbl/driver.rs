@@ -14,6 +14,7 @@ use super::codec::{
     Framed, GrblState, LineFramer, PosFrame, StatusReport, MAX_LINE_BYTES, SOFT_RESET,
     STATUS_QUERY,
 };
+use crate::serial::check_seconds;
 use crate::traits::{AxisPositions, DeviceError, Machine, MachineState};
 
 /// G-code axis letters in the order GRBL reports positions.
@@ -96,19 +97,6 @@ impl Default for GrblConfig {
     }
 }
 
-/// A usable duration in seconds (finite, not negative, not absurd): turning config into
-/// `Duration`s and deadlines must not panic.
-pub(crate) fn check_seconds(device: &str, name: &str, v: f64) -> Result<(), DeviceError> {
-    if v.is_finite() && (0.0..=1e6).contains(&v) {
-        Ok(())
-    } else {
-        Err(DeviceError::Protocol {
-            device: device.to_string(),
-            message: format!("{name} must be between 0 and 1e6 s, got {v}"),
-        })
-    }
-}
-
 impl GrblConfig {
     /// Reject values the driver cannot work with.
     pub fn validate(&self) -> Result<(), DeviceError> {
@@ -159,13 +147,7 @@ pub struct GrblMachine<S> {
 impl GrblMachine<tokio_serial::SerialStream> {
     /// Open the serial port named in the config.
     pub fn open(cfg: GrblConfig) -> Result<Self, DeviceError> {
-        use tokio_serial::SerialPortBuilderExt;
-        let port = tokio_serial::new(&cfg.port, cfg.baud)
-            .open_native_async()
-            .map_err(|e| DeviceError::Disconnected {
-                device: cfg.id.clone(),
-                message: format!("cannot open {}: {e}", cfg.port),
-            })?;
+        let port = crate::serial::open_8n1(&cfg.id, &cfg.port, cfg.baud)?;
         Self::from_stream(port, cfg)
     }
 }

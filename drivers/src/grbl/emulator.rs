@@ -444,8 +444,7 @@ async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut ctl: Controller) 
 pub struct GrblEmulator {
     task: JoinHandle<io::Result<()>>,
     stats: Arc<GrblEmulatorStats>,
-    slave: Option<tokio_serial::SerialStream>,
-    slave_path: Option<String>,
+    pty: crate::serial::PtySlave,
 }
 
 impl GrblEmulator {
@@ -459,8 +458,7 @@ impl GrblEmulator {
         Self {
             task: tokio::spawn(run(io, ctl)),
             stats,
-            slave: None,
-            slave_path: None,
+            pty: crate::serial::PtySlave::default(),
         }
     }
 
@@ -468,23 +466,20 @@ impl GrblEmulator {
     /// external process can open `slave_path()` at any time; an in-process driver takes it
     /// with `take_slave()`.
     pub fn spawn_pty(cfg: GrblEmulatorConfig, sink: Box<dyn MachineSink>) -> io::Result<Self> {
-        use tokio_serial::SerialPort;
-        let (master, slave) = tokio_serial::SerialStream::pair().map_err(io::Error::other)?;
-        let path = slave.name();
+        let (master, pty) = crate::serial::pty_pair()?;
         let mut emu = Self::spawn(master, cfg, sink);
-        emu.slave = Some(slave);
-        emu.slave_path = path;
+        emu.pty = pty;
         Ok(emu)
     }
 
     /// Device path of the pty's slave end (`/dev/pts/N`), for a driver in another process.
     pub fn slave_path(&self) -> Option<&str> {
-        self.slave_path.as_deref()
+        self.pty.path()
     }
 
     /// The pty's slave end, for a driver in this process.
     pub fn take_slave(&mut self) -> Option<tokio_serial::SerialStream> {
-        self.slave.take()
+        self.pty.take()
     }
 
     pub fn stats(&self) -> &GrblEmulatorStats {

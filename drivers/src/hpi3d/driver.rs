@@ -128,17 +128,7 @@ pub struct Hpi3dTracer {
 impl Hpi3dTracer {
     /// Open `config.port` (8N1, no flow control) and start the streams.
     pub async fn open(config: Hpi3dConfig) -> Result<Self, DeviceError> {
-        use tokio_serial::SerialPortBuilderExt;
-        let port = tokio_serial::new(&config.port, config.baud)
-            .data_bits(tokio_serial::DataBits::Eight)
-            .parity(tokio_serial::Parity::None)
-            .stop_bits(tokio_serial::StopBits::One)
-            .flow_control(tokio_serial::FlowControl::None)
-            .open_native_async()
-            .map_err(|e| DeviceError::Disconnected {
-                device: config.id.clone(),
-                message: format!("cannot open {}: {e}", config.port),
-            })?;
+        let port = crate::serial::open_8n1(&config.id, &config.port, config.baud)?;
         Self::from_io(port, config).await
     }
 

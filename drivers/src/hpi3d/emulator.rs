@@ -12,7 +12,7 @@ use serde::{Deserialize, Serialize};
 use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::task::JoinHandle;
 use tokio::time::{Instant, MissedTickBehavior};
-use tokio_serial::{SerialPort, SerialStream};
+use tokio_serial::SerialStream;
 
 use super::codec::{encode_device, HostDecoder};
 use super::frame::{
@@ -218,8 +218,11 @@ impl Hpi3dEmulator {
         config: EmulatorConfig,
         source: Box<dyn TracerSource>,
     ) -> std::io::Result<(Self, SerialStream)> {
-        let (master, slave) = SerialStream::pair().map_err(std::io::Error::other)?;
-        let path = slave.name().map(PathBuf::from);
+        let (master, mut pty) = crate::serial::pty_pair()?;
+        let path = pty.path().map(PathBuf::from);
+        let slave = pty
+            .take()
+            .ok_or_else(|| std::io::Error::other("pty without a slave end"))?;
         let mut emulator = Self::spawn(master, config, source)?;
         emulator.slave_path = path;
         Ok((emulator, slave))

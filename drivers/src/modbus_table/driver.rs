@@ -12,7 +12,7 @@ use tokio_modbus::client::{Client as _, Context};
 use tokio_modbus::{ExceptionCode, Request, Response, Slave};
 
 use super::map::{RegisterKind, RegisterMap};
-use crate::grbl::driver::check_seconds;
+use crate::serial::check_seconds;
 use crate::traits::{DeviceError, RotaryState, RotaryTable};
 
 /// Where the table is reached.
@@ -415,10 +415,8 @@ async fn open_link(link: Link, unit_id: u8, timeout_s: f64) -> Result<Context, S
             }
         }
         Link::Rtu { port, baud } => {
-            use tokio_serial::SerialPortBuilderExt;
-            let serial = tokio_serial::new(port, *baud)
-                .open_native_async()
-                .map_err(|e| format!("cannot open {port}: {e}"))?;
+            let serial =
+                crate::serial::open_8n1("modbus", port, *baud).map_err(|e| e.to_string())?;
             Ok(tokio_modbus::client::rtu::attach_slave(serial, slave))
         }
     }

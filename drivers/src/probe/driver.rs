@@ -107,13 +107,7 @@ pub struct AsciiProbe<S> {
 impl AsciiProbe<tokio_serial::SerialStream> {
     /// Open the serial port named in the config.
     pub fn open(cfg: ProbeConfig) -> Result<Self, DeviceError> {
-        use tokio_serial::SerialPortBuilderExt;
-        let port = tokio_serial::new(&cfg.port, cfg.baud)
-            .open_native_async()
-            .map_err(|e| DeviceError::Disconnected {
-                device: cfg.id.clone(),
-                message: format!("cannot open {}: {e}", cfg.port),
-            })?;
+        let port = crate::serial::open_8n1(&cfg.id, &cfg.port, cfg.baud)?;
         Self::from_stream(port, cfg)
     }
 }
@@ -121,7 +115,7 @@ impl AsciiProbe<tokio_serial::SerialStream> {
 impl<S: AsyncRead + AsyncWrite + Unpin + Send> AsciiProbe<S> {
     /// Read a sensor over any byte stream.
     pub fn from_stream(io: S, cfg: ProbeConfig) -> Result<Self, DeviceError> {
-        crate::grbl::driver::check_seconds(&cfg.id, "timeout_s", cfg.timeout_s)?;
+        crate::serial::check_seconds(&cfg.id, "timeout_s", cfg.timeout_s)?;
         Ok(Self {
             protocol: cfg.protocol()?,
             cfg,

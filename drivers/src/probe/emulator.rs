@@ -167,8 +167,7 @@ async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut sensor: Sensor) -
 pub struct ProbeEmulator {
     task: JoinHandle<io::Result<()>>,
     stats: Arc<ProbeEmulatorStats>,
-    slave: Option<tokio_serial::SerialStream>,
-    slave_path: Option<String>,
+    pty: crate::serial::PtySlave,
 }
 
 impl ProbeEmulator {
@@ -189,29 +188,25 @@ impl ProbeEmulator {
         Self {
             task: tokio::spawn(run(io, sensor)),
             stats,
-            slave: None,
-            slave_path: None,
+            pty: crate::serial::PtySlave::default(),
         }
     }
 
     /// Serve on a new pseudo-terminal; the slave end stays open until taken, so another
     /// process can open `slave_path()`.
     pub fn spawn_pty(cfg: ProbeEmulatorConfig, source: Box<dyn ProbeSource>) -> io::Result<Self> {
-        use tokio_serial::SerialPort;
-        let (master, slave) = tokio_serial::SerialStream::pair().map_err(io::Error::other)?;
-        let path = slave.name();
+        let (master, pty) = crate::serial::pty_pair()?;
         let mut emu = Self::spawn(master, cfg, source);
-        emu.slave = Some(slave);
-        emu.slave_path = path;
+        emu.pty = pty;
         Ok(emu)
     }
 
     pub fn slave_path(&self) -> Option<&str> {
-        self.slave_path.as_deref()
+        self.pty.path()
     }
 
     pub fn take_slave(&mut self) -> Option<tokio_serial::SerialStream> {
-        self.slave.take()
+        self.pty.take()
     }
 
     pub fn stats(&self) -> &ProbeEmulatorStats {
