@@ -7,15 +7,13 @@ use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 use std::time::{Duration, Instant};
 
-use geocal::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
+use geocal::extract::{extract_points, ExtractOptions, NoiseModel};
 use geocal::session::messages::{
     DeviceInfo, MachineInfo, RunEvent, SessionHeader, TargetInfo, TracerSample, SESSION_FORMAT,
 };
 use geocal::session::reader::{read_session, read_session_bytes, Session};
 use geocal::session::recorder::{Recorder, RecorderOptions};
-use geocal::solve::multilateration::{
-    solve, LengthObservation, MultilaterationProblem, Segment, SolveOptions,
-};
+use geocal::solve::multilateration::{solve, SolveOptions};
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -248,51 +246,6 @@ fn generate(path: &Path) {
     );
 }
 
-/// The adjustment problem from the extraction, as the multilateration method builds it.
-fn build_problem(extraction: &Extraction) -> MultilaterationProblem {
-    let mut keys: Vec<(&str, usize, [f64; 3])> = extraction
-        .measurements
-        .iter()
-        .map(|m| (m.target.as_str(), m.point, m.nominal_m))
-        .collect();
-    keys.sort_by(|a, b| (a.0, a.1).cmp(&(b.0, b.1)));
-    keys.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
-    let index: BTreeMap<(&str, usize), usize> = keys
-        .iter()
-        .enumerate()
-        .map(|(i, k)| ((k.0, k.1), i))
-        .collect();
-    let mut segment_index: BTreeMap<(usize, u32), usize> = BTreeMap::new();
-    let mut segments = Vec::new();
-    let observations = extraction
-        .measurements
-        .iter()
-        .map(|m| {
-            let key = (m.station_index, m.beam_segment);
-            let segment = *segment_index.entry(key).or_insert_with(|| {
-                segments.push(Segment { station: key.0 });
-                segments.len() - 1
-            });
-            LengthObservation {
-                point: index[&(m.target.as_str(), m.point)],
-                segment,
-                length_m: m.length_m,
-                sigma_m: m.sigma_m,
-            }
-        })
-        .collect();
-    MultilaterationProblem {
-        nominal_points: keys.iter().map(|k| Vector3::from(k.2)).collect(),
-        station_hints: extraction
-            .stations
-            .iter()
-            .map(|s| s.hint_m.map(Vector3::from))
-            .collect(),
-        segments,
-        observations,
-    }
-}
-
 struct Phase {
     name: &'static str,
     times: Vec<Duration>,
@@ -366,7 +319,8 @@ fn main() {
             extraction.measurements.len(),
             extraction.dropped.len()
         );
-        let problem = build.run(|| build_problem(&extraction));
+        let problem =
+            build.run(|| geocal::method::multilateration::Problem::build(&extraction).problem);
         let solution = adjust.run(|| solve(&problem, &SolveOptions::default()).expect("solve"));
         adjust.note = format!(
             "n={} m={} obs={} iterations={} chi2/dof={:.3}",

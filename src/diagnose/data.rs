@@ -3,12 +3,10 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::Vector3;
-
 use crate::extract::{extract_points, ExtractOptions, NoiseModel};
 use crate::session::reader::Session;
 use crate::sim::effects::edlen_dn;
-use crate::solve::multilateration::{LengthObservation, MultilaterationProblem, Segment};
+use crate::solve::multilateration::MultilaterationProblem;
 
 #[derive(Debug, Clone)]
 pub struct Obs {
@@ -115,35 +113,18 @@ impl Data {
             .unwrap_or_default();
         env.sort_by(|a, b| a.0.total_cmp(&b.0));
 
-        // Problem points by (target, point), segments by (station, target, beam segment),
-        // as the solver's method does, so the nominal fit is the one `geocal solve` reports.
-        let mut keys: Vec<(String, usize, [f64; 3])> = extraction
-            .measurements
-            .iter()
-            .map(|m| (m.target.clone(), m.point, m.nominal_m))
-            .collect();
-        keys.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
-        keys.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
-        let point_index: BTreeMap<(String, usize), usize> = keys
-            .iter()
-            .enumerate()
-            .map(|(i, k)| ((k.0.clone(), k.1), i))
-            .collect();
-        let mut segment_index: BTreeMap<(usize, String, u32), usize> = BTreeMap::new();
-        let mut segments = Vec::new();
+        // The same adjustment problem `geocal solve` builds; observation i is measurement i.
+        let built = crate::method::multilateration::Problem::build(&extraction);
         let mut pass_index: BTreeMap<(usize, String, usize, u32), usize> = BTreeMap::new();
         let mut passes: Vec<Vec<usize>> = Vec::new();
         let mut pass_names = Vec::new();
         let mut obs = Vec::with_capacity(extraction.measurements.len());
-        let mut observations = Vec::with_capacity(extraction.measurements.len());
-        for m in &extraction.measurements {
-            let seg_key = (m.station_index, m.target.clone(), m.beam_segment);
-            let segment = *segment_index.entry(seg_key).or_insert_with(|| {
-                segments.push(Segment {
-                    station: m.station_index,
-                });
-                segments.len() - 1
-            });
+        for (m, o) in extraction
+            .measurements
+            .iter()
+            .zip(&built.problem.observations)
+        {
+            let (segment, point) = (o.segment, o.point);
             let pass_key = (m.station_index, m.target.clone(), m.pass, m.beam_segment);
             let pass_group = *pass_index.entry(pass_key).or_insert_with(|| {
                 passes.push(Vec::new());
@@ -159,7 +140,6 @@ impl Data {
                 ));
                 passes.len() - 1
             });
-            let point = point_index[&(m.target.clone(), m.point)];
             let t_s = 0.5 * (m.settled_from_s + m.settled_to_s);
             let sign = |axis: &str| m.approach.get(axis).map_or(0.0, |&s| f64::from(s));
             passes[pass_group].push(obs.len());
@@ -177,12 +157,6 @@ impl Data {
                 nominal_m: m.nominal_m,
                 dn: air_at(&env, t_s),
             });
-            observations.push(LengthObservation {
-                point,
-                segment,
-                length_m: m.length_m,
-                sigma_m: m.sigma_m,
-            });
         }
         for members in &mut passes {
             members.sort_by(|&a, &b| obs[a].t_s.total_cmp(&obs[b].t_s));
@@ -191,7 +165,7 @@ impl Data {
             let home = members
                 .iter()
                 .copied()
-                .find(|&i| keys[obs[i].point].1 == 0)
+                .find(|&i| built.points[obs[i].point].1 == 0)
                 .unwrap_or(members[0]);
             for &i in members.iter() {
                 obs[i].home = home;
@@ -202,16 +176,7 @@ impl Data {
         for o in &obs {
             station_start_s[o.station] = station_start_s[o.station].min(o.t_s);
         }
-        let problem = MultilaterationProblem {
-            nominal_points: keys.iter().map(|k| Vector3::from(k.2)).collect(),
-            station_hints: extraction
-                .stations
-                .iter()
-                .map(|s| s.hint_m.map(Vector3::from))
-                .collect(),
-            segments,
-            observations,
-        };
+        let problem = built.problem;
         Ok(Data {
             session_id: session.header.session_id.clone(),
             has_env: obs.iter().all(|o| o.dn.is_some()),

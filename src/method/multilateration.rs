@@ -351,61 +351,60 @@ fn geometric_errors(
     serde_json::to_value(&result).map_err(|e| e.to_string())
 }
 
-/// The adjustment problem with the bookkeeping that maps it back to session names.
-struct Problem {
-    problem: MultilaterationProblem,
+/// The adjustment problem of a session's settled windows, with the bookkeeping that maps it
+/// back to session names. Observation `i` is `extraction.measurements[i]`. The diagnosis
+/// builds its nominal fit from the same problem, so it is the one `geocal solve` reports.
+pub struct Problem {
+    pub problem: MultilaterationProblem,
     /// (target, plan point index, nominal) of each problem point.
-    points: Vec<(String, usize, [f64; 3])>,
+    pub points: Vec<(String, usize, [f64; 3])>,
     /// Commanded axis positions x, y, z of each problem point.
-    axes_m: Vec<Option<[f64; 3]>>,
+    pub axes_m: Vec<Option<[f64; 3]>>,
     /// (station index, target, beam segment) of each problem segment: every homing distance
     /// differs per target, even if another recorder did not start a new beam segment.
-    segments: Vec<(usize, String, u32)>,
+    pub segments: Vec<(usize, String, u32)>,
 }
 
 impl Problem {
-    fn build(extraction: &Extraction) -> Problem {
-        let mut point_index: BTreeMap<(String, usize), usize> = BTreeMap::new();
-        let mut points = Vec::new();
+    pub fn build(extraction: &Extraction) -> Problem {
         // Point order: by target, then plan index, so results read in plan order.
-        let mut keys: Vec<(String, usize, [f64; 3])> = extraction
-            .measurements
-            .iter()
-            .map(|m| (m.target.clone(), m.point, m.nominal_m))
-            .collect();
-        keys.sort_by(|a, b| (&a.0, a.1).cmp(&(&b.0, b.1)));
-        keys.dedup_by(|a, b| a.0 == b.0 && a.1 == b.1);
-        for key in keys {
-            point_index.insert((key.0.clone(), key.1), points.len());
-            points.push(key);
+        let mut first_seen: BTreeMap<(&str, usize), usize> = BTreeMap::new();
+        for (i, m) in extraction.measurements.iter().enumerate() {
+            first_seen.entry((m.target.as_str(), m.point)).or_insert(i);
         }
-        let mut segment_index: BTreeMap<(usize, String, u32), usize> = BTreeMap::new();
+        let point_index: BTreeMap<(&str, usize), usize> = first_seen
+            .keys()
+            .enumerate()
+            .map(|(k, key)| (*key, k))
+            .collect();
+        let axes = |m: &crate::extract::PointMeasurement| {
+            let axis = |name: &str| m.axes.get(name).copied();
+            Some([axis("x")?, axis("y")?, axis("z")?])
+        };
+        let mut points = Vec::with_capacity(first_seen.len());
+        let mut axes_m = Vec::with_capacity(first_seen.len());
+        for &i in first_seen.values() {
+            let m = &extraction.measurements[i];
+            points.push((m.target.clone(), m.point, m.nominal_m));
+            axes_m.push(axes(m));
+        }
+        let mut segment_index: BTreeMap<(usize, &str, u32), usize> = BTreeMap::new();
         let mut segments = Vec::new();
         let mut observations = Vec::with_capacity(extraction.measurements.len());
         for m in &extraction.measurements {
-            let seg_key = (m.station_index, m.target.clone(), m.beam_segment);
-            let segment = *segment_index.entry(seg_key.clone()).or_insert_with(|| {
-                segments.push(seg_key);
-                segments.len() - 1
-            });
+            let segment = *segment_index
+                .entry((m.station_index, m.target.as_str(), m.beam_segment))
+                .or_insert_with(|| {
+                    segments.push((m.station_index, m.target.clone(), m.beam_segment));
+                    segments.len() - 1
+                });
             observations.push(LengthObservation {
-                point: point_index[&(m.target.clone(), m.point)],
+                point: point_index[&(m.target.as_str(), m.point)],
                 segment,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,
             });
         }
-        let axes_m = points
-            .iter()
-            .map(|(target, point, _)| {
-                let m = extraction
-                    .measurements
-                    .iter()
-                    .find(|m| &m.target == target && m.point == *point)?;
-                let axis = |name: &str| m.axes.get(name).copied();
-                Some([axis("x")?, axis("y")?, axis("z")?])
-            })
-            .collect();
         let problem = MultilaterationProblem {
             nominal_points: points.iter().map(|p| Vector3::from(p.2)).collect(),
             station_hints: extraction
