@@ -303,6 +303,11 @@ pub fn solve_detailed(
     Ok((results, solution))
 }
 
+/// Largest decomposition (unknowns) done: its design matrix is dense.
+const MAX_DECOMPOSITION_PARAMETERS: usize = 1500;
+/// Bound on equations x unknowns² (about a second of dense linear algebra per 1e8).
+const MAX_DECOMPOSITION_WORK: f64 = 1e9;
+
 /// Decompose the measured volumetric errors into the machine's geometric errors.
 fn geometric_errors(
     session: &Session,
@@ -336,6 +341,28 @@ fn geometric_errors(
     }
     let options = DecompositionOptions::default();
     let grid = grid_from_points(&observations, options.grid_tolerance_m);
+    // Error functions are sampled at the grid positions: 6 per axis position, 3 squareness,
+    // 6 rigid motion. Points off a grid give as many unknowns as data (and a huge dense
+    // system); such a plan measures volumetric errors only.
+    let parameters = 6 * grid.iter().map(Vec::len).sum::<usize>() + 9;
+    let equations = 3 * observations.len();
+    if equations as f64 * (parameters as f64).powi(2) > MAX_DECOMPOSITION_WORK {
+        return Err(format!(
+            "{equations} equations x {parameters} unknowns is beyond the dense decomposition \
+             (its QR/SVD and cross-validation grow as equations x unknowns^2); decompose a \
+             subset of the points, or wait for the sparse version"
+        ));
+    }
+    if parameters > MAX_DECOMPOSITION_PARAMETERS || 2 * parameters > equations {
+        return Err(format!(
+            "the points are not on an axis grid the 21-error model can use: {} x {} x {} \
+             distinct axis positions give {parameters} unknowns for {equations} equations \
+             (needs at most {MAX_DECOMPOSITION_PARAMETERS} and at most half the equations)",
+            grid[0].len(),
+            grid[1].len(),
+            grid[2].len()
+        ));
+    }
     // The points share stations, so their errors are correlated: use the full covariance
     // where the dense algebra is affordable, else the per-point blocks (and say so).
     let full = dense_point_covariance(&problem.problem, solution);
