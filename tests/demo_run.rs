@@ -6,7 +6,7 @@ mod common;
 
 use std::path::Path;
 
-use common::{assert_recovers_truth, run_with_truth, xyz, DEMO};
+use common::{assert_recovers_truth, run_with_truth, truth_point, xyz, DEMO};
 use geocal::config::Config;
 use geocal::method::multilateration::MultilaterationResults;
 use geocal::run::solve_file;
@@ -30,12 +30,7 @@ fn grade_geometric_errors(
         .points
         .iter()
         .map(|p| {
-            let t = truth["points"]
-                .as_array()
-                .expect("truth points")
-                .iter()
-                .find(|t| t["point"] == p.point && t["target"] == p.target.as_str())
-                .expect("truth point");
+            let t = truth_point(truth, &p.target, p.point);
             PointObservation {
                 axes_m: xyz(&t["axes_m"]),
                 target_offset_m: config.target_offset(&p.target).expect("target"),

@@ -434,6 +434,14 @@ impl<T> Streams<T> {
         i
     }
 
+    fn push(&mut self, index: usize, log_time_ns: u64, publish_time_ns: u64, msg: T) {
+        self.streams[index].1.push(Stamped {
+            log_time_ns,
+            publish_time_ns,
+            msg,
+        });
+    }
+
     /// The same streams (same indices), empty: for a worker decoding later chunks.
     fn empty_like(&self) -> Self {
         Self {
@@ -644,29 +652,17 @@ impl Decoder {
         match slot {
             Slot::Tracer(i) => {
                 if let Some(msg) = self.parse::<TracerSample>(channel_id, log_time_ns, data) {
-                    self.tracers.streams[i].1.push(Stamped {
-                        log_time_ns,
-                        publish_time_ns,
-                        msg,
-                    });
+                    self.tracers.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
             Slot::Env(i) => {
                 if let Some(msg) = self.parse::<EnvSample>(channel_id, log_time_ns, data) {
-                    self.env.streams[i].1.push(Stamped {
-                        log_time_ns,
-                        publish_time_ns,
-                        msg,
-                    });
+                    self.env.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
             Slot::Rotary(i) => {
                 if let Some(msg) = self.parse::<RotaryStateSample>(channel_id, log_time_ns, data) {
-                    self.rotary.streams[i].1.push(Stamped {
-                        log_time_ns,
-                        publish_time_ns,
-                        msg,
-                    });
+                    self.rotary.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
             Slot::Event => {

@@ -115,6 +115,16 @@ pub fn truth_station<'a>(truth: &'a Value, id: &str) -> &'a Value {
         .expect("station in truth")
 }
 
+/// The simulated truth of one target's point.
+pub fn truth_point<'a>(truth: &'a Value, target: &str, point: usize) -> &'a Value {
+    truth["points"]
+        .as_array()
+        .expect("truth points")
+        .iter()
+        .find(|t| t["point"] == point && t["target"] == target)
+        .expect("truth point")
+}
+
 pub fn xyz(v: &Value) -> [f64; 3] {
     [0, 1, 2].map(|k| v[k].as_f64().expect("coordinate"))
 }
@@ -131,15 +141,7 @@ pub fn assert_recovers_truth(results: &MultilaterationResults, truth: &Value) {
     let truth_points: Vec<[f64; 3]> = results
         .points
         .iter()
-        .map(|p| {
-            let t = truth["points"]
-                .as_array()
-                .expect("truth points")
-                .iter()
-                .find(|t| t["point"] == p.point && t["target"] == p.target.as_str())
-                .expect("truth point");
-            xyz(&t["actual_m"])
-        })
+        .map(|p| xyz(&truth_point(truth, &p.target, p.point)["actual_m"]))
         .collect();
     let estimated: Vec<[f64; 3]> = results.points.iter().map(|p| p.actual_m).collect();
     let (r, t) = rigid_fit(&estimated, &truth_points);
