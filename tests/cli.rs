@@ -14,6 +14,30 @@ fn geocal(args: &[&str]) -> std::process::Output {
         .expect("run geocal")
 }
 
+/// Run geocal and require success, showing its stderr otherwise.
+fn geocal_ok(args: &[&str]) -> std::process::Output {
+    let out = geocal(args);
+    assert!(
+        out.status.success(),
+        "geocal {} failed: {}",
+        args.join(" "),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    out
+}
+
+/// `geocal run CONFIG --out DIR --json`; returns its output and the recorded session.
+fn run_json(config: &Path, out: &Path) -> (std::process::Output, std::path::PathBuf) {
+    let run = geocal_ok(&[
+        "run",
+        config.to_str().unwrap(),
+        "--out",
+        out.to_str().unwrap(),
+        "--json",
+    ]);
+    (run, out.join("session.mcap"))
+}
+
 /// The demo shrunk to 4 stations x 3x3x2 points, one pass, so the CLI test stays quick.
 fn small_config(dir: &Path) -> std::path::PathBuf {
     let text = common::small_demo().replace(
@@ -30,31 +54,14 @@ fn run_then_solve_prints_identical_json() {
     let dir = tempfile::tempdir().expect("tempdir");
     let config = small_config(dir.path());
     let out = dir.path().join("out");
-    let run = geocal(&[
-        "run",
-        config.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(
-        run.status.success(),
-        "run failed: {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let session = out.join("session.mcap");
-    let solve = geocal(&["solve", session.to_str().unwrap(), "--json"]);
-    assert!(
-        solve.status.success(),
-        "solve failed: {}",
-        String::from_utf8_lossy(&solve.stderr)
-    );
+    let (run, session) = run_json(&config, &out);
+    let solve = geocal_ok(&["solve", session.to_str().unwrap(), "--json"]);
     assert_eq!(run.stdout, solve.stdout);
     let results: serde_json::Value = serde_json::from_slice(&solve.stdout).expect("json");
     assert_eq!(results["format"], "geocal-results/1");
     assert_eq!(results["points"].as_array().map(Vec::len), Some(18));
     // The text report names the stations and the volumetric error.
-    let text = geocal(&["solve", session.to_str().unwrap()]);
+    let text = geocal_ok(&["solve", session.to_str().unwrap()]);
     let text = String::from_utf8_lossy(&text.stdout);
     assert!(
         text.contains("s4") && text.contains("volumetric error"),
@@ -76,18 +83,13 @@ fn check_reports_a_bad_config_and_exits_nonzero() {
             && stderr.contains("positive"),
         "{stderr}"
     );
-    let ok = geocal(&[
+    geocal_ok(&[
         "check",
         concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/config/demo-multilateration.toml"
         ),
     ]);
-    assert!(
-        ok.status.success(),
-        "{}",
-        String::from_utf8_lossy(&ok.stderr)
-    );
 }
 
 #[test]
@@ -108,42 +110,13 @@ fn diagnose_prints_the_diagnosis_format() {
     let config = dir.path().join("diag.toml");
     std::fs::write(&config, common::diagnose_demo()).expect("write config");
     let out = dir.path().join("out");
-    let run = geocal(&[
-        "run",
-        config.to_str().unwrap(),
-        "--out",
-        out.to_str().unwrap(),
-        "--json",
-    ]);
-    assert!(
-        run.status.success(),
-        "run failed: {}",
-        String::from_utf8_lossy(&run.stderr)
-    );
-    let session = out.join("session.mcap");
-    let diag = geocal(&["diagnose", session.to_str().unwrap(), "--json"]);
-    assert!(
-        diag.status.success(),
-        "diagnose failed: {}",
-        String::from_utf8_lossy(&diag.stderr)
-    );
+    let (_, session) = run_json(&config, &out);
+    let diag = geocal_ok(&["diagnose", session.to_str().unwrap(), "--json"]);
     let d: serde_json::Value = serde_json::from_slice(&diag.stdout).expect("json");
-    assert_eq!(d["format"], "geocal-diagnosis/1");
-    for key in [
-        "noise_floor_m",
-        "gap",
-        "where",
-        "candidates",
-        "selected",
-        "gap_after",
-        "unexplained",
-    ] {
-        assert!(d.get(key).is_some(), "missing `{key}` in {d}");
-    }
+    common::assert_diagnosis_format(&d);
     // Effect-free simulated data: nothing selected, nothing unexplained.
     assert_eq!(d["selected"], serde_json::json!([]), "{d}");
     assert_eq!(d["unexplained"], false, "{d}");
-    let text = geocal(&["diagnose", session.to_str().unwrap()]);
-    assert!(text.status.success());
+    let text = geocal_ok(&["diagnose", session.to_str().unwrap()]);
     assert!(!text.stdout.is_empty());
 }

@@ -145,18 +145,7 @@ fn reads_only_the_session() {
     let options = Default::default();
     let d = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
     let json: serde_json::Value = serde_json::to_value(&d).expect("json");
-    assert_eq!(json["format"], "geocal-diagnosis/1");
-    for key in [
-        "noise_floor_m",
-        "gap",
-        "where",
-        "candidates",
-        "selected",
-        "gap_after",
-        "unexplained",
-    ] {
-        assert!(json.get(key).is_some(), "missing {key}");
-    }
+    common::assert_diagnosis_format(&json);
     assert_eq!(d.selected.first().map(String::as_str), Some("reversal"));
     let again = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
     assert_eq!(d, again);

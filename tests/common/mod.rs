@@ -220,3 +220,19 @@ pub fn run_and_diagnose(config_text: &str) -> geocal::diagnose::Diagnosis {
     .expect("run");
     geocal::diagnose::diagnose_file(&output.session_path, &Default::default()).expect("diagnose")
 }
+
+/// A geocal-diagnosis/1 object with every field SESSION_FORMAT.md requires.
+pub fn assert_diagnosis_format(d: &Value) {
+    assert_eq!(d["format"], "geocal-diagnosis/1");
+    for key in [
+        "noise_floor_m",
+        "gap",
+        "where",
+        "candidates",
+        "selected",
+        "gap_after",
+        "unexplained",
+    ] {
+        assert!(d.get(key).is_some(), "missing `{key}` in {d}");
+    }
+}
