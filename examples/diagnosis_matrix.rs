@@ -5,7 +5,7 @@
 mod common;
 
 /// (true effect, the `[sim.effects]` line that switches it on at a realistic size).
-const CASES: [(&str, &str); 7] = [
+const CASES: [(&str, &str); 8] = [
     ("none", ""),
     (
         "station_drift",
@@ -25,6 +25,10 @@ const CASES: [(&str, &str); 7] = [
         "tracer_eccentricity = { enabled = true, size_m = 2e-6, z_size_m = 1e-6 }",
     ),
     (
+        "thermal_drift",
+        "thermal_drift = { enabled = true, size = 4e-9 }",
+    ),
+    (
         "periodic_nonlinearity",
         "periodic_nonlinearity = { enabled = true, size_m = 3e-7, period_m = 0.05 }",
     ),
@@ -36,54 +40,51 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(10);
     let base = common::diagnose_demo();
-    let names = [
-        "none",
-        "station_drift",
-        "reversal",
-        "length_step",
-        "air_refraction",
-        "tracer_eccentricity",
-    ];
+    let names: Vec<&str> = std::iter::once("none")
+        .chain(geocal::diagnose::effects::LIBRARY.iter().map(|k| k.name()))
+        .collect();
     println!("rows: true effect; columns: first selected effect; {seeds} seeds each; 5 stations, 27 points, 2 passes");
     print!("{:<22}", "");
-    for n in names {
-        print!("{:>12}", &n[..n.len().min(11)]);
+    for n in &names {
+        print!("{:>8}", &n[..n.len().min(7)]);
     }
     println!(
-        "{:>12}{:>12}{:>14}",
-        "unexplained", "both-sel", "heldout z-rms"
+        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}",
+        "top-1", "unexpl", "confd", "false", "z before", "z after"
     );
     let only = std::env::var("ONLY").ok();
     for (truth, line) in CASES {
         if only.as_deref().is_some_and(|o| o != truth) {
             continue;
         }
-        let mut counts = [0usize; 6];
-        let mut unexplained = 0;
-        let mut ratio_sum = 0.0;
-        let mut extra = 0;
+        let mut counts = vec![0usize; names.len()];
+        let (mut top1, mut unexplained, mut confounded, mut false_sel) = (0, 0, 0, 0);
+        let (mut before, mut after) = (0.0, 0.0);
         for seed in 0..seeds {
             let d = common::run_and_diagnose(&common::with_effects(&base, 5000 + seed, line));
             let first = d.selected.first().map_or("none", |s| s.as_str());
             if let Some(k) = names.iter().position(|n| *n == first) {
                 counts[k] += 1;
             }
-            if d.selected.len() > 1 {
-                extra += 1;
-            }
+            top1 += usize::from(first == truth);
+            // Every selected effect that is not the one switched on is a false selection.
+            false_sel += d.selected.iter().filter(|s| *s != truth).count();
+            confounded += usize::from(d.candidates.iter().any(|c| c.status == "confounded"));
             unexplained += usize::from(d.unexplained);
-            ratio_sum += d.gap_after.heldout_ratio;
+            before += d.gap.heldout_ratio;
+            after += d.gap_after.heldout_ratio;
             if std::env::var("VERBOSE").is_ok() {
                 println!("{}", geocal::diagnose::text(&d));
             }
         }
         print!("{truth:<22}");
         for c in counts {
-            print!("{c:>12}");
+            print!("{c:>8}");
         }
         println!(
-            "{unexplained:>12}{extra:>12}{:>14.2}",
-            ratio_sum / seeds as f64
+            "{top1:>7}{unexplained:>7}{confounded:>7}{false_sel:>7}{:>9.2}{:>9.2}",
+            before / seeds as f64,
+            after / seeds as f64
         );
     }
 }

@@ -70,6 +70,17 @@ fn tracer_eccentricity_is_named() {
     );
 }
 
+/// A drift common to all stations (the machine warming up): nested in station_drift (3
+/// parameters instead of 15), so the test also shows that BIC tells the two apart.
+#[test]
+fn thermal_drift_is_named() {
+    check_named(
+        "thermal_drift",
+        "thermal_drift = { enabled = true, size = 4e-9 }",
+        16,
+    );
+}
+
 /// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
 /// select anything (the requirement is >= 95 % clean; P(2+ of 20 at 1 %) = 1.7 %).
 #[test]

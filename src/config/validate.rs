@@ -456,6 +456,7 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     non_negative("sim.rotary.axis_tilt_rad", rotary.axis_tilt_rad)?;
     positive("sim.rotary.speed_rad_s", rotary.speed_rad_s)?;
     non_negative("sim.rotary.settle_s", rotary.settle_s)?;
+    sim.effects.validate()?;
     if config.plan.stations.iter().any(|s| s.hint_m.is_none()) {
         return fail(
             "plan.stations",

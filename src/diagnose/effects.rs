@@ -86,15 +86,17 @@ pub enum EffectKind {
     LengthStep,
     AirRefraction,
     TracerEccentricity,
+    ThermalDrift,
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
-pub const LIBRARY: [EffectKind; 5] = [
+pub const LIBRARY: [EffectKind; 6] = [
     EffectKind::StationDrift,
     EffectKind::Reversal,
     EffectKind::LengthStep,
     EffectKind::AirRefraction,
     EffectKind::TracerEccentricity,
+    EffectKind::ThermalDrift,
 ];
 
 impl EffectKind {
@@ -105,6 +107,7 @@ impl EffectKind {
             EffectKind::LengthStep => "length_step",
             EffectKind::AirRefraction => "air_refraction",
             EffectKind::TracerEccentricity => "tracer_eccentricity",
+            EffectKind::ThermalDrift => "thermal_drift",
         }
     }
 }
@@ -136,6 +139,7 @@ impl EffectModel {
             EffectKind::LengthStep => vec!["step_m".into()],
             EffectKind::AirRefraction => vec!["edlen_scale".into()],
             EffectKind::TracerEccentricity => per_station(["e_cos_phi0_m", "e_sin_phi0_m", "ez_m"]),
+            EffectKind::ThermalDrift => vec!["vx_m_s".into(), "vy_m_s".into(), "vz_m_s".into()],
         }
     }
 
@@ -198,6 +202,20 @@ impl EffectModel {
                     f[(i, 3 * o.station)] = az.cos();
                     f[(i, 3 * o.station + 1)] = az.sin();
                     f[(i, 3 * o.station + 2)] = el.sin();
+                }
+                f
+            }
+            // The target moves by v·t (session time) for every station alike: a target shift
+            // δX changes the length by −u·δX. Per station this is a special case of a station
+            // drift (w = −v, up to a station shift), so it is nested in station_drift with 3
+            // parameters instead of 3 per station: BIC tells them apart.
+            EffectKind::ThermalDrift => {
+                let mut f = DMatrix::zeros(nobs, 3);
+                for (i, o) in data.obs.iter().enumerate() {
+                    let (u, _) = geom.beam(data, i);
+                    for a in 0..3 {
+                        f[(i, a)] = -u[a] * o.t_s;
+                    }
                 }
                 f
             }

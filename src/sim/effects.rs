@@ -68,6 +68,9 @@ pub struct EffectsConfig {
     pub air_refraction: EffectSwitch,
     /// Length error e·cos(azimuth − φ0) + ez·sin(elevation) of the beam from each station.
     pub tracer_eccentricity: EccentricitySwitch,
+    /// The target (machine) drifts at `size` m/s in a random direction from the session start,
+    /// A(t) = A + v·t: every station sees the same motion.
+    pub thermal_drift: EffectSwitch,
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
@@ -80,7 +83,50 @@ impl EffectsConfig {
             || self.length_step.enabled
             || self.air_refraction.enabled
             || self.tracer_eccentricity.enabled
+            || self.thermal_drift.enabled
             || self.periodic_nonlinearity.enabled
+    }
+
+    /// Ranges serde cannot check; on failure (key, what was expected).
+    pub fn validate(&self) -> Result<(), (String, String)> {
+        let sizes = [
+            ("station_drift.size", self.station_drift.size),
+            ("reversal.size", self.reversal.size),
+            ("length_step.size", self.length_step.size),
+            ("air_refraction.size", self.air_refraction.size),
+            (
+                "tracer_eccentricity.size_m",
+                self.tracer_eccentricity.size_m,
+            ),
+            (
+                "tracer_eccentricity.z_size_m",
+                self.tracer_eccentricity.z_size_m,
+            ),
+            ("thermal_drift.size", self.thermal_drift.size),
+            (
+                "periodic_nonlinearity.size_m",
+                self.periodic_nonlinearity.size_m,
+            ),
+        ];
+        for (key, v) in sizes {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err((
+                    format!("sim.effects.{key}"),
+                    format!("expected a number >= 0, found {v}"),
+                ));
+            }
+        }
+        let pn = &self.periodic_nonlinearity;
+        if pn.enabled && !(pn.period_m.is_finite() && pn.period_m > 0.0) {
+            return Err((
+                "sim.effects.periodic_nonlinearity.period_m".into(),
+                format!(
+                    "expected a positive period when enabled, found {}",
+                    pn.period_m
+                ),
+            ));
+        }
+        Ok(())
     }
 }
 
@@ -93,6 +139,8 @@ pub struct SimEffects {
     drift_m_s: Vec<Vector3<f64>>,
     /// Per station: (e, φ0, ez).
     eccentricity: Vec<(f64, f64, f64)>,
+    /// Target drift velocity, m/s.
+    thermal_drift_m_s: Vector3<f64>,
     /// Full reversal span B per axis, metres.
     reversal_m: [f64; 3],
     /// (station, moves into its pass at which the fringe is lost, step size).
@@ -145,11 +193,14 @@ impl SimEffects {
             step_move,
             config.length_step.size * sign(&mut rng),
         );
+        // Effects added later draw after the first five, so those keep their values.
+        let thermal_drift_m_s = unit(&mut rng) * config.thermal_drift.size;
         SimEffects {
             config: *config,
             env: env.clone(),
             drift_m_s,
             eccentricity,
+            thermal_drift_m_s,
             reversal_m,
             step,
             step_time_s: None,
@@ -212,7 +263,11 @@ impl SimEffects {
                 p += w * (t_s - self.station_start_s).max(0.0);
             }
         }
-        let v = target_m - p;
+        let mut target = *target_m;
+        if c.thermal_drift.enabled {
+            target += self.thermal_drift_m_s * t_s.max(0.0);
+        }
+        let v = target - p;
         let d = v.norm();
         let mut err = 0.0;
         if c.tracer_eccentricity.enabled && d > 0.0 {
