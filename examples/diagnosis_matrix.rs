@@ -5,7 +5,7 @@
 mod common;
 
 /// (true effect, the `[sim.effects]` line that switches it on at a realistic size).
-const CASES: [(&str, &str); 8] = [
+const CASES: [(&str, &str); 9] = [
     ("none", ""),
     (
         "station_drift",
@@ -28,6 +28,7 @@ const CASES: [(&str, &str); 8] = [
         "thermal_drift",
         "thermal_drift = { enabled = true, size = 4e-9 }",
     ),
+    ("dead_path", "dead_path = { enabled = true, size = 1.0 }"),
     (
         "periodic_nonlinearity",
         "periodic_nonlinearity = { enabled = true, size_m = 3e-7, period_m = 0.05 }",

@@ -81,6 +81,17 @@ fn thermal_drift_is_named() {
     );
 }
 
+/// A dead path left uncompensated: dn(t)·(0.5..1 m) per station, about ±0.2-0.5 µm over the
+/// air's ±0.5 K cycle, with no dependence on where the target is.
+#[test]
+fn dead_path_is_named() {
+    check_named(
+        "dead_path",
+        "dead_path = { enabled = true, size = 1.0 }",
+        17,
+    );
+}
+
 /// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
 /// select anything (the requirement is >= 95 % clean; P(2+ of 20 at 1 %) = 1.7 %).
 #[test]

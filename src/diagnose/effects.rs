@@ -87,16 +87,18 @@ pub enum EffectKind {
     AirRefraction,
     TracerEccentricity,
     ThermalDrift,
+    DeadPath,
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
-pub const LIBRARY: [EffectKind; 6] = [
+pub const LIBRARY: [EffectKind; 7] = [
     EffectKind::StationDrift,
     EffectKind::Reversal,
     EffectKind::LengthStep,
     EffectKind::AirRefraction,
     EffectKind::TracerEccentricity,
     EffectKind::ThermalDrift,
+    EffectKind::DeadPath,
 ];
 
 impl EffectKind {
@@ -108,6 +110,7 @@ impl EffectKind {
             EffectKind::AirRefraction => "air_refraction",
             EffectKind::TracerEccentricity => "tracer_eccentricity",
             EffectKind::ThermalDrift => "thermal_drift",
+            EffectKind::DeadPath => "dead_path",
         }
     }
 }
@@ -140,6 +143,11 @@ impl EffectModel {
             EffectKind::AirRefraction => vec!["edlen_scale".into()],
             EffectKind::TracerEccentricity => per_station(["e_cos_phi0_m", "e_sin_phi0_m", "ez_m"]),
             EffectKind::ThermalDrift => vec!["vx_m_s".into(), "vy_m_s".into(), "vz_m_s".into()],
+            EffectKind::DeadPath => data
+                .station_ids
+                .iter()
+                .map(|s| format!("{s}.dead_path_m"))
+                .collect(),
         }
     }
 
@@ -216,6 +224,14 @@ impl EffectModel {
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.t_s;
                     }
+                }
+                f
+            }
+            // dn(t) times a fixed length per station: independent of where the target is.
+            EffectKind::DeadPath => {
+                let mut f = DMatrix::zeros(nobs, m);
+                for (i, o) in data.obs.iter().enumerate() {
+                    f[(i, o.station)] = o.dn.unwrap_or(0.0);
                 }
                 f
             }

@@ -319,8 +319,8 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     )];
     let mut available: Vec<EffectKind> = LIBRARY.to_vec();
     if !data.has_env {
-        available.retain(|k| *k != EffectKind::AirRefraction);
-        notes.push("no environment log: air_refraction cannot be tested".into());
+        available.retain(|k| !matches!(k, EffectKind::AirRefraction | EffectKind::DeadPath));
+        notes.push("no environment log: air_refraction and dead_path cannot be tested".into());
     }
     let nominal_j = geom.jacobian(&data);
     let all_rows: Vec<usize> = (0..nobs).collect();

@@ -71,6 +71,10 @@ pub struct EffectsConfig {
     /// The target (machine) drifts at `size` m/s in a random direction from the session start,
     /// A(t) = A + v·t: every station sees the same motion.
     pub thermal_drift: EffectSwitch,
+    /// The tracer compensates the measured length for air but not its dead path (the optical
+    /// path from the interferometer's zero): error dn(t)·dead path, [0.5, 1]·`size` metres
+    /// per station.
+    pub dead_path: EffectSwitch,
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
@@ -84,6 +88,7 @@ impl EffectsConfig {
             || self.air_refraction.enabled
             || self.tracer_eccentricity.enabled
             || self.thermal_drift.enabled
+            || self.dead_path.enabled
             || self.periodic_nonlinearity.enabled
     }
 
@@ -103,6 +108,7 @@ impl EffectsConfig {
                 self.tracer_eccentricity.z_size_m,
             ),
             ("thermal_drift.size", self.thermal_drift.size),
+            ("dead_path.size", self.dead_path.size),
             (
                 "periodic_nonlinearity.size_m",
                 self.periodic_nonlinearity.size_m,
@@ -141,6 +147,8 @@ pub struct SimEffects {
     eccentricity: Vec<(f64, f64, f64)>,
     /// Target drift velocity, m/s.
     thermal_drift_m_s: Vector3<f64>,
+    /// Per station: uncompensated dead path, metres.
+    dead_path_m: Vec<f64>,
     /// Full reversal span B per axis, metres.
     reversal_m: [f64; 3],
     /// (station, moves into its pass at which the fringe is lost, step size).
@@ -195,12 +203,16 @@ impl SimEffects {
         );
         // Effects added later draw after the first five, so those keep their values.
         let thermal_drift_m_s = unit(&mut rng) * config.thermal_drift.size;
+        let dead_path_m = (0..stations)
+            .map(|_| config.dead_path.size * rng.random_range(0.5..1.0))
+            .collect();
         SimEffects {
             config: *config,
             env: env.clone(),
             drift_m_s,
             eccentricity,
             thermal_drift_m_s,
+            dead_path_m,
             reversal_m,
             step,
             step_time_s: None,
@@ -277,13 +289,16 @@ impl SimEffects {
                 err += e * (az - phi0).cos() + ez * el.sin();
             }
         }
+        let dn = edlen_dn(
+            air_temp_k(&self.env, t_s),
+            self.env.pressure_pa,
+            self.env.humidity_pct,
+        );
         if c.air_refraction.enabled {
-            let dn = edlen_dn(
-                air_temp_k(&self.env, t_s),
-                self.env.pressure_pa,
-                self.env.humidity_pct,
-            );
             err += c.air_refraction.size * dn * d;
+        }
+        if c.dead_path.enabled {
+            err += dn * self.dead_path_m.get(station).copied().unwrap_or(0.0);
         }
         if c.length_step.enabled && station == self.step.0 {
             if let Some(t0) = self.step_time_s {
