@@ -5,7 +5,7 @@
 mod common;
 
 /// (true effect, the `[sim.effects]` line that switches it on at a realistic size).
-const CASES: [(&str, &str); 9] = [
+const CASES: [(&str, &str); 10] = [
     ("none", ""),
     (
         "station_drift",
@@ -29,6 +29,10 @@ const CASES: [(&str, &str); 9] = [
         "thermal_drift = { enabled = true, size = 4e-9 }",
     ),
     ("dead_path", "dead_path = { enabled = true, size = 1.0 }"),
+    (
+        "thermal_expansion",
+        "thermal_expansion = { enabled = true, size = 2e-6 }",
+    ),
     (
         "periodic_nonlinearity",
         "periodic_nonlinearity = { enabled = true, size_m = 3e-7, period_m = 0.05 }",

@@ -92,6 +92,17 @@ fn dead_path_is_named() {
     );
 }
 
+/// Scales compensated with a coefficient 2 ppm/K off (steel is 11.5 ppm/K) while the
+/// structure's temperature swings ±0.25 K, an eighth of the air's period late.
+#[test]
+fn thermal_expansion_is_named() {
+    check_named(
+        "thermal_expansion",
+        "thermal_expansion = { enabled = true, size = 2e-6 }",
+        18,
+    );
+}
+
 /// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
 /// select anything (the requirement is >= 95 % clean; P(2+ of 20 at 1 %) = 1.7 %).
 #[test]

@@ -28,6 +28,10 @@ pub struct Obs {
     pub nominal_m: [f64; 3],
     /// Edlén n − n_ref from the logged air at t_s, when the session has an environment log.
     pub dn: Option<f64>,
+    /// Mean logged material temperature at t_s minus 20 °C, when the log has material sensors.
+    pub material_dt_k: Option<f64>,
+    /// Commanded axis positions x, y, z (from `point_begin`; 0 for an axis not named).
+    pub axes_m: [f64; 3],
 }
 
 #[derive(Debug, Clone)]
@@ -42,6 +46,8 @@ pub struct Data {
     /// Per station: the first observation time (origin of drift ramps).
     pub station_start_s: Vec<f64>,
     pub has_env: bool,
+    /// Every length has a logged material temperature.
+    pub has_material: bool,
     pub dropped_windows: usize,
 }
 
@@ -74,6 +80,25 @@ fn air_at(env: &[(f64, f64, f64, f64)], t_s: f64) -> Option<f64> {
         (t_s, lerp(a.1, b.1), lerp(a.2, b.2), lerp(a.3, b.3))
     };
     Some(edlen_dn(temp, p, rh))
+}
+
+/// Linear interpolation of a (t, value) series at t (held constant outside it).
+fn interpolate(series: &[(f64, f64)], t_s: f64) -> Option<f64> {
+    let first = series.first()?;
+    let k = series.partition_point(|e| e.0 <= t_s);
+    Some(if k == 0 {
+        first.1
+    } else if k >= series.len() {
+        series[series.len() - 1].1
+    } else {
+        let (a, b) = (series[k - 1], series[k]);
+        let f = if b.0 > a.0 {
+            (t_s - a.0) / (b.0 - a.0)
+        } else {
+            0.0
+        };
+        a.1 + f * (b.1 - a.1)
+    })
 }
 
 impl Data {
@@ -112,6 +137,23 @@ impl Data {
             })
             .unwrap_or_default();
         env.sort_by(|a, b| a.0.total_cmp(&b.0));
+        // Mean of the material sensors (machine structure, scales) per environment sample.
+        let mut material: Vec<(f64, f64)> = session
+            .env
+            .values()
+            .next()
+            .map(|v| {
+                v.iter()
+                    .filter(|s| !s.msg.material_temp_k.is_empty())
+                    .map(|s| {
+                        let m = &s.msg.material_temp_k;
+                        (s.msg.t_s, m.iter().sum::<f64>() / m.len() as f64)
+                    })
+                    .filter(|e| e.0.is_finite() && e.1.is_finite())
+                    .collect()
+            })
+            .unwrap_or_default();
+        material.sort_by(|a, b| a.0.total_cmp(&b.0));
 
         // The same adjustment problem `geocal solve` builds; observation i is measurement i.
         let built = crate::method::multilateration::Problem::build(&extraction);
@@ -156,6 +198,9 @@ impl Data {
                 approach: [sign("x"), sign("y"), sign("z")],
                 nominal_m: m.nominal_m,
                 dn: air_at(&env, t_s),
+                material_dt_k: interpolate(&material, t_s)
+                    .map(|k| k - crate::sim::effects::REFERENCE_MATERIAL_TEMP_K),
+                axes_m: ["x", "y", "z"].map(|a| m.axes.get(a).copied().unwrap_or(0.0)),
             });
         }
         for members in &mut passes {
@@ -180,6 +225,7 @@ impl Data {
         Ok(Data {
             session_id: session.header.session_id.clone(),
             has_env: obs.iter().all(|o| o.dn.is_some()),
+            has_material: obs.iter().all(|o| o.material_dt_k.is_some()),
             obs,
             station_ids: extraction.stations.iter().map(|s| s.id.clone()).collect(),
             passes,

@@ -88,10 +88,11 @@ pub enum EffectKind {
     TracerEccentricity,
     ThermalDrift,
     DeadPath,
+    ThermalExpansion,
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
-pub const LIBRARY: [EffectKind; 7] = [
+pub const LIBRARY: [EffectKind; 8] = [
     EffectKind::StationDrift,
     EffectKind::Reversal,
     EffectKind::LengthStep,
@@ -99,6 +100,7 @@ pub const LIBRARY: [EffectKind; 7] = [
     EffectKind::TracerEccentricity,
     EffectKind::ThermalDrift,
     EffectKind::DeadPath,
+    EffectKind::ThermalExpansion,
 ];
 
 impl EffectKind {
@@ -111,6 +113,7 @@ impl EffectKind {
             EffectKind::TracerEccentricity => "tracer_eccentricity",
             EffectKind::ThermalDrift => "thermal_drift",
             EffectKind::DeadPath => "dead_path",
+            EffectKind::ThermalExpansion => "thermal_expansion",
         }
     }
 }
@@ -148,6 +151,11 @@ impl EffectModel {
                 .iter()
                 .map(|s| format!("{s}.dead_path_m"))
                 .collect(),
+            EffectKind::ThermalExpansion => vec![
+                "alpha_x_per_k".into(),
+                "alpha_y_per_k".into(),
+                "alpha_z_per_k".into(),
+            ],
         }
     }
 
@@ -232,6 +240,20 @@ impl EffectModel {
                 let mut f = DMatrix::zeros(nobs, m);
                 for (i, o) in data.obs.iter().enumerate() {
                     f[(i, o.station)] = o.dn.unwrap_or(0.0);
+                }
+                f
+            }
+            // Axis a's position scaled by α_a·ΔT_material(t): the target moves by
+            // α_a·ΔT·axis_a along machine axis a. A constant ΔT is a scale of the points the
+            // free points absorb: only the temperature's variation is seen.
+            EffectKind::ThermalExpansion => {
+                let mut f = DMatrix::zeros(nobs, 3);
+                for (i, o) in data.obs.iter().enumerate() {
+                    let (u, _) = geom.beam(data, i);
+                    let dt = o.material_dt_k.unwrap_or(0.0);
+                    for a in 0..3 {
+                        f[(i, a)] = -u[a] * o.axes_m[a] * dt;
+                    }
                 }
                 f
             }

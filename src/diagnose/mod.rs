@@ -322,6 +322,10 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         available.retain(|k| !matches!(k, EffectKind::AirRefraction | EffectKind::DeadPath));
         notes.push("no environment log: air_refraction and dead_path cannot be tested".into());
     }
+    if !data.has_material {
+        available.retain(|k| *k != EffectKind::ThermalExpansion);
+        notes.push("no material temperature in the log: thermal_expansion cannot be tested".into());
+    }
     let nominal_j = geom.jacobian(&data);
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();

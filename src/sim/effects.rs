@@ -26,6 +26,16 @@ pub fn air_temp_k(env: &SimEnvironmentConfig, t_s: f64) -> f64 {
     env.air_temp_k + env.temp_swing_k * (2.0 * std::f64::consts::PI * t_s / env.temp_period_s).sin()
 }
 
+/// A material temperature sensor's value at t (`base_k`: its mean): the structure follows the
+/// air's swing at half the amplitude and an eighth of a period late (its thermal lag).
+pub fn material_temp_k(env: &SimEnvironmentConfig, base_k: f64, t_s: f64) -> f64 {
+    use std::f64::consts::{FRAC_PI_4, TAU};
+    base_k + 0.5 * env.temp_swing_k * (TAU * t_s / env.temp_period_s - FRAC_PI_4).sin()
+}
+
+/// Reference temperature of machine scales and lengths (ISO 1): 20 °C.
+pub const REFERENCE_MATERIAL_TEMP_K: f64 = 293.15;
+
 /// One switch with a size; `size_m` (or m/s for drift) is the effect's scale.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
 #[serde(deny_unknown_fields, default)]
@@ -75,6 +85,10 @@ pub struct EffectsConfig {
     /// path from the interferometer's zero): error dn(t)·dead path, [0.5, 1]·`size` metres
     /// per station.
     pub dead_path: EffectSwitch,
+    /// The machine's scales are not compensated for temperature: each axis position is
+    /// scaled by `size`·(T_material − 20 °C), `size` the expansion coefficient in 1/K
+    /// (11.5e-6 for steel), T_material the mean of the material sensors.
+    pub thermal_expansion: EffectSwitch,
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
@@ -89,6 +103,7 @@ impl EffectsConfig {
             || self.tracer_eccentricity.enabled
             || self.thermal_drift.enabled
             || self.dead_path.enabled
+            || self.thermal_expansion.enabled
             || self.periodic_nonlinearity.enabled
     }
 
@@ -109,6 +124,7 @@ impl EffectsConfig {
             ),
             ("thermal_drift.size", self.thermal_drift.size),
             ("dead_path.size", self.dead_path.size),
+            ("thermal_expansion.size", self.thermal_expansion.size),
             (
                 "periodic_nonlinearity.size_m",
                 self.periodic_nonlinearity.size_m,
@@ -250,12 +266,29 @@ impl SimEffects {
         }
     }
 
-    /// Where the axes really are: commanded plus the reversal offset of the approach direction.
-    pub fn actual_axes_m(&self, axes_m: [f64; 3]) -> [f64; 3] {
-        if !self.config.reversal.enabled {
-            return axes_m;
+    /// Where the axes really are at t: commanded, scaled by the material's expansion, plus
+    /// the reversal offset of the approach direction.
+    pub fn actual_axes_m(&self, axes_m: [f64; 3], t_s: f64) -> [f64; 3] {
+        let c = &self.config;
+        let mut out = axes_m;
+        if c.thermal_expansion.enabled && !self.env.material_temp_k.is_empty() {
+            let sensors = &self.env.material_temp_k;
+            let mean_k = sensors
+                .iter()
+                .map(|&m| material_temp_k(&self.env, m, t_s))
+                .sum::<f64>()
+                / sensors.len() as f64;
+            let scale = c.thermal_expansion.size * (mean_k - REFERENCE_MATERIAL_TEMP_K);
+            for a in &mut out {
+                *a *= 1.0 + scale;
+            }
         }
-        std::array::from_fn(|k| axes_m[k] + 0.5 * self.reversal_m[k] * self.approach[k])
+        if c.reversal.enabled {
+            for (k, a) in out.iter_mut().enumerate() {
+                *a += 0.5 * self.reversal_m[k] * self.approach[k];
+            }
+        }
+        out
     }
 
     /// The distance the tracer at `station` (nominally at `station_m`) reads to `target_m` at

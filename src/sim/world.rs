@@ -224,11 +224,11 @@ impl SimWorld {
         self.clock.elapsed_s()
     }
 
-    fn target_at(&self, axes_m: [f64; 3]) -> Vector3<f64> {
+    fn target_at(&self, axes_m: [f64; 3], t_s: f64) -> Vector3<f64> {
         Vector3::from(actual_position(
             &self.structure,
             &self.truth,
-            self.effects.actual_axes_m(axes_m),
+            self.effects.actual_axes_m(axes_m, t_s),
             self.target_offset_m,
         ))
     }
@@ -242,7 +242,7 @@ impl SimWorld {
     }
 
     fn true_distance_m(&self, t_s: f64) -> f64 {
-        let target = self.target_at(self.motion.at(t_s));
+        let target = self.target_at(self.motion.at(t_s), t_s);
         let station = self.station_at(t_s);
         self.effects
             .distance_m(self.current_station, &station, &target, t_s)
@@ -371,7 +371,6 @@ impl SimWorld {
     /// The environment sensors' values at `t_s`.
     pub(crate) fn env_at(&self, t_s: f64) -> geocal_drivers::EnvReading {
         let air_temp_k = crate::sim::effects::air_temp_k(&self.env, t_s);
-        let swing = air_temp_k - self.env.air_temp_k;
         geocal_drivers::EnvReading {
             t_s,
             air_temp_k,
@@ -381,7 +380,7 @@ impl SimWorld {
                 .env
                 .material_temp_k
                 .iter()
-                .map(|m| m + 0.5 * swing)
+                .map(|&m| crate::sim::effects::material_temp_k(&self.env, m, t_s))
                 .collect(),
         }
     }
