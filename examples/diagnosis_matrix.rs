@@ -5,7 +5,7 @@
 mod common;
 
 /// (true effect, the `[sim.effects]` line that switches it on at a realistic size).
-const CASES: [(&str, &str); 10] = [
+const CASES: [(&str, &str); 11] = [
     ("none", ""),
     (
         "station_drift",
@@ -32,6 +32,10 @@ const CASES: [(&str, &str); 10] = [
     (
         "thermal_expansion",
         "thermal_expansion = { enabled = true, size = 2e-6 }",
+    ),
+    (
+        "settling",
+        "settling = { enabled = true, size_m = 1.5e-6, tau_s = 0.5 }",
     ),
     (
         "periodic_nonlinearity",

@@ -103,6 +103,17 @@ fn thermal_expansion_is_named() {
     );
 }
 
+/// Each moved axis lags 0.5-1 µm behind its target and settles with a 0.5 s time constant:
+/// the window means carry a reversal-like bias, the raw samples inside the windows a decay.
+#[test]
+fn settling_is_named() {
+    check_named(
+        "settling",
+        "settling = { enabled = true, size_m = 1.5e-6, tau_s = 0.5 }",
+        19,
+    );
+}
+
 /// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
 /// select anything (the requirement is >= 95 % clean; P(2+ of 20 at 1 %) = 1.7 %).
 #[test]

@@ -34,6 +34,15 @@ pub struct Obs {
     pub axes_m: [f64; 3],
 }
 
+/// The raw samples of one settled dwell window (what its mean length averages).
+#[derive(Debug, Clone)]
+pub struct RawWindow {
+    /// Device time of the first sample after `point_begin`: the machine has just arrived.
+    pub arrival_s: f64,
+    /// (t_s, length_m) of the settled stretch.
+    pub samples: Vec<(f64, f64)>,
+}
+
 #[derive(Debug, Clone)]
 pub struct Data {
     pub session_id: String,
@@ -48,6 +57,8 @@ pub struct Data {
     pub has_env: bool,
     /// Every length has a logged material temperature.
     pub has_material: bool,
+    /// Per observation: its raw window (None when the session's events do not locate it).
+    pub windows: Vec<Option<RawWindow>>,
     pub dropped_windows: usize,
 }
 
@@ -216,6 +227,7 @@ impl Data {
                 obs[i].home = home;
             }
         }
+        let windows = raw_windows(session, tracer_id.as_deref(), &extraction.measurements);
         let m = extraction.stations.len();
         let mut station_start_s = vec![f64::INFINITY; m];
         for o in &obs {
@@ -226,6 +238,7 @@ impl Data {
             session_id: session.header.session_id.clone(),
             has_env: obs.iter().all(|o| o.dn.is_some()),
             has_material: obs.iter().all(|o| o.material_dt_k.is_some()),
+            windows,
             obs,
             station_ids: extraction.stations.iter().map(|s| s.id.clone()).collect(),
             passes,
@@ -235,4 +248,46 @@ impl Data {
             dropped_windows: extraction.dropped.len(),
         })
     }
+}
+
+/// The raw settled samples of each measurement and the arrival time before them: the last
+/// `point_begin` of its (station, point, pass) (a repeat after a re-homing replaces the first).
+fn raw_windows(
+    session: &Session,
+    tracer_id: Option<&str>,
+    measurements: &[crate::extract::PointMeasurement],
+) -> Vec<Option<RawWindow>> {
+    let Some(samples) = tracer_id.and_then(|id| session.tracers.get(id)) else {
+        return vec![None; measurements.len()];
+    };
+    let mut begins: BTreeMap<(&str, usize, usize), u64> = BTreeMap::new();
+    for e in &session.events {
+        if let crate::session::messages::RunEvent::PointBegin {
+            station,
+            point,
+            pass,
+            ..
+        } = &e.msg
+        {
+            begins.insert((station.as_str(), *point, *pass), e.log_time_ns);
+        }
+    }
+    measurements
+        .iter()
+        .map(|m| {
+            let begin = *begins.get(&(m.station.as_str(), m.point, m.pass))?;
+            let from = samples.partition_point(|s| s.log_time_ns < begin);
+            let arrival_s = samples.get(from)?.msg.t_s;
+            let window: Vec<(f64, f64)> = samples[from..]
+                .iter()
+                .take_while(|s| s.msg.t_s <= m.settled_to_s)
+                .filter(|s| s.msg.t_s >= m.settled_from_s)
+                .map(|s| (s.msg.t_s, s.msg.length_m))
+                .collect();
+            (window.len() >= 2).then_some(RawWindow {
+                arrival_s,
+                samples: window,
+            })
+        })
+        .collect()
 }

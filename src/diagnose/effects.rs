@@ -89,10 +89,11 @@ pub enum EffectKind {
     ThermalDrift,
     DeadPath,
     ThermalExpansion,
+    Settling,
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
-pub const LIBRARY: [EffectKind; 8] = [
+pub const LIBRARY: [EffectKind; 9] = [
     EffectKind::StationDrift,
     EffectKind::Reversal,
     EffectKind::LengthStep,
@@ -101,6 +102,7 @@ pub const LIBRARY: [EffectKind; 8] = [
     EffectKind::ThermalDrift,
     EffectKind::DeadPath,
     EffectKind::ThermalExpansion,
+    EffectKind::Settling,
 ];
 
 impl EffectKind {
@@ -114,21 +116,28 @@ impl EffectKind {
             EffectKind::ThermalDrift => "thermal_drift",
             EffectKind::DeadPath => "dead_path",
             EffectKind::ThermalExpansion => "thermal_expansion",
+            EffectKind::Settling => "settling",
         }
     }
 }
 
 /// One effect as a model: its kind and, for a length step, where the step is (pass group and
-/// position in the pass's time order from which the lengths are shifted).
+/// position in the pass's time order from which the lengths are shifted); for settling, its
+/// time constant.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EffectModel {
     pub kind: EffectKind,
     pub step: Option<(usize, usize)>,
+    pub tau_s: Option<f64>,
 }
 
 impl EffectModel {
     pub fn plain(kind: EffectKind) -> EffectModel {
-        EffectModel { kind, step: None }
+        EffectModel {
+            kind,
+            step: None,
+            tau_s: None,
+        }
     }
 
     /// Parameter names with their units, in column order.
@@ -156,6 +165,14 @@ impl EffectModel {
                 "alpha_y_per_k".into(),
                 "alpha_z_per_k".into(),
             ],
+            // On the means: the offset settling leaves in each homing (the arrival before the
+            // homing is not in the session), a nuisance per pass. Its offsets per axis are
+            // fitted on the raw windows (settling.rs) and their bias taken off the means.
+            EffectKind::Settling => data
+                .pass_names
+                .iter()
+                .map(|p| format!("{p}.home_offset_m"))
+                .collect(),
         }
     }
 
@@ -164,6 +181,10 @@ impl EffectModel {
     /// so the home term belongs to the model (it is what makes passes differ).
     pub fn columns(&self, data: &Data, geom: &Geometry) -> DMatrix<f64> {
         let f = self.absolute(data, geom);
+        if self.kind == EffectKind::Settling {
+            // Already relative: the homing's own offset, constant over the pass.
+            return f;
+        }
         DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
             f[(i, c)] - f[(data.obs[i].home, c)]
         })
@@ -254,6 +275,14 @@ impl EffectModel {
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.axes_m[a] * dt;
                     }
+                }
+                f
+            }
+            // −1 on every length of a pass: the settling offset at its homing.
+            EffectKind::Settling => {
+                let mut f = DMatrix::zeros(nobs, data.passes.len());
+                for (i, o) in data.obs.iter().enumerate() {
+                    f[(i, o.pass_group)] = -1.0;
                 }
                 f
             }

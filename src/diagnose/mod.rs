@@ -4,6 +4,7 @@
 pub mod data;
 pub mod effects;
 pub mod locate;
+pub mod settling;
 pub mod stats;
 
 use std::collections::BTreeMap;
@@ -214,6 +215,46 @@ impl Engine {
         (ss, floor, zz)
     }
 
+    /// The base fit on all rows and per fold, its gap, held-out mean square and the number
+    /// of held-out lengths scored.
+    fn base(
+        &self,
+        design: &DMatrix<f64>,
+        all_rows: &[usize],
+    ) -> (BaseFit, Vec<BaseFit>, Gap, f64, usize) {
+        let nobs = all_rows.len();
+        let full = self.fit_base(design, all_rows.to_vec(), &[]);
+        let fold_fits: Vec<BaseFit> = self
+            .folds
+            .iter()
+            .map(|(train, held)| self.fit_base(design, train.clone(), held))
+            .collect();
+        let (mut ss, mut floor, mut zz, mut count) = (0.0, 0.0, 0.0, 0);
+        for fit in &fold_fits {
+            let (s, f, z) = self.heldout(design, fit, None);
+            ss += s;
+            floor += f;
+            zz += z;
+            count += fit.held.len();
+        }
+        let base_heldout_ms = ss / count.max(1) as f64;
+        let base_gap = Gap {
+            rms_m: (full
+                .res_w
+                .iter()
+                .zip(&full.rows)
+                .map(|(r, &i)| (r / self.w[i]).powi(2))
+                .sum::<f64>()
+                / nobs as f64)
+                .sqrt(),
+            heldout_rms_m: base_heldout_ms.sqrt(),
+            chi2_per_dof: full.res_w.norm_squared() / (nobs - full.basis.rank()).max(1) as f64,
+            heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
+            heldout_ratio: (zz / count.max(1) as f64).sqrt(),
+        };
+        (full, fold_fits, base_gap, base_heldout_ms, count)
+    }
+
     fn evaluate(
         &self,
         design: &DMatrix<f64>,
@@ -306,7 +347,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             (train, held)
         })
         .collect();
-    let engine = Engine {
+    let mut engine = Engine {
         w: DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m)),
         r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
         folds,
@@ -333,25 +374,54 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     let mut accepted: Vec<EffectModel> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
     let mut gap_before: Option<Gap> = None;
+
+    // Settling shows in the raw samples inside the dwell windows, which no other candidate
+    // predicts: it is tested there (its own block of data, in the first round's family), and
+    // once accepted its bias is taken off the window means before the selection on the means.
+    available.retain(|k| *k != EffectKind::Settling);
+    let settling_fit = settling::evaluate(&data, &geom);
+    match &settling_fit {
+        Some(fit) => {
+            let alpha_each = options.alpha / (available.len() + 1) as f64;
+            let improves = fit.heldout_ms_after_m2 < fit.heldout_ms_base_m2;
+            let passes = fit.p_value < alpha_each && fit.bic_delta < 0.0 && improves;
+            let status = if passes {
+                "selected".to_string()
+            } else {
+                let mut why = Vec::new();
+                if fit.p_value >= alpha_each {
+                    why.push(format!("p {:.2e} >= {:.2e}", fit.p_value, alpha_each));
+                }
+                if fit.bic_delta >= 0.0 {
+                    why.push("BIC does not improve".into());
+                }
+                if !improves {
+                    why.push("held-out RMS does not improve".into());
+                }
+                format!("rejected: {}", why.join("; "))
+            };
+            records.insert(EffectKind::Settling, settling_record(fit, status));
+            if passes {
+                gap_before = Some(engine.base(&nominal_j, &all_rows).2);
+                for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
+                    *r -= b;
+                }
+                accepted.push(EffectModel {
+                    tau_s: Some(fit.tau_s),
+                    ..EffectModel::plain(EffectKind::Settling)
+                });
+            }
+        }
+        None => notes.push(
+            "settling: no raw dwell window with a move into it, so it cannot be tested".into(),
+        ),
+    }
     let mut last_base = None;
     for round in 0..=LIBRARY.len() {
         let design = accepted
             .iter()
             .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(&data, &geom)));
-        let full = engine.fit_base(&design, all_rows.clone(), &[]);
-        let fold_fits: Vec<BaseFit> = engine
-            .folds
-            .iter()
-            .map(|(train, held)| engine.fit_base(&design, train.clone(), held))
-            .collect();
-        let (mut ss, mut floor, mut zz, mut count) = (0.0, 0.0, 0.0, 0);
-        for fit in &fold_fits {
-            let (s, f, z) = engine.heldout(&design, fit, None);
-            ss += s;
-            floor += f;
-            zz += z;
-            count += fit.held.len();
-        }
+        let (full, fold_fits, base_gap, base_heldout_ms, count) = engine.base(&design, &all_rows);
         if round == 0 {
             let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
             notes.push(format!(
@@ -362,21 +432,6 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
                 notes.push("no held-out length is predictable: the plan has too few points or stations for cross-validation, so held-out RMS is not a criterion".into());
             }
         }
-        let base_heldout_ms = ss / count.max(1) as f64;
-        let base_gap = Gap {
-            rms_m: (full
-                .res_w
-                .iter()
-                .zip(&full.rows)
-                .map(|(r, &i)| (r / engine.w[i]).powi(2))
-                .sum::<f64>()
-                / nobs as f64)
-                .sqrt(),
-            heldout_rms_m: base_heldout_ms.sqrt(),
-            chi2_per_dof: full.res_w.norm_squared() / (nobs - full.basis.rank()).max(1) as f64,
-            heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
-            heldout_ratio: (zz / count.max(1) as f64).sqrt(),
-        };
         if gap_before.is_none() {
             gap_before = Some(base_gap.clone());
         }
@@ -393,6 +448,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
                         EffectModel {
                             kind: *kind,
                             step: Some((g, k)),
+                            tau_s: None,
                         },
                         tried,
                     ),
@@ -427,8 +483,10 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
                 searched,
             });
         }
-        // Bonferroni over the candidates of this round: family-wise false selection ≤ alpha.
-        let alpha_each = options.alpha / candidates.len().max(1) as f64;
+        // Bonferroni over the candidates of this round (the first round's family includes the
+        // settling test): family-wise false selection ≤ alpha.
+        let tested = candidates.len() + usize::from(round == 0 && settling_fit.is_some());
+        let alpha_each = options.alpha / tested.max(1) as f64;
         let passes = |t: &Trial| {
             t.p_value < alpha_each
                 && t.bic_delta < 0.0
@@ -506,8 +564,20 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         }
     }
 
-    // The final model: joint Gauss–Newton of geometry and accepted effects.
-    let final_fit = joint_fit(&data, &geom, &accepted);
+    // The final model: joint Gauss–Newton of geometry and accepted effects, on the window
+    // means with the settling bias (when accepted) taken off.
+    let settled = accepted.iter().any(|m| m.kind == EffectKind::Settling);
+    let fit_data = match &settling_fit {
+        Some(fit) if settled => {
+            let mut d = data.clone();
+            for (o, b) in d.obs.iter_mut().zip(&fit.bias_m) {
+                o.length_m -= b;
+            }
+            std::borrow::Cow::Owned(d)
+        }
+        _ => std::borrow::Cow::Borrowed(&data),
+    };
+    let final_fit = joint_fit(&fit_data, &geom, &accepted);
     let chi2: f64 = final_fit
         .resid_m
         .iter()
@@ -538,7 +608,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         options.alpha,
     );
     let remaining = locate(
-        &data,
+        &fit_data,
         &final_fit.geom,
         &final_fit.resid_m,
         &final_fit.basis,
@@ -639,6 +709,37 @@ fn candidate_record(
         chi2_drop: trial.eval.chi2_drop,
         status,
         confounded_with,
+    }
+}
+
+/// The settling test's record: its figures are those of the within-window block (raw
+/// samples minus their window mean), not of the means.
+fn settling_record(fit: &settling::SettlingFit, status: String) -> Candidate {
+    let mut params: BTreeMap<String, Value> = BTreeMap::new();
+    for ((name, v), s) in ["sx_m", "sy_m", "sz_m"]
+        .iter()
+        .zip(fit.s_m)
+        .zip(fit.s_sigma_m)
+    {
+        params.insert(name.to_string(), v.into());
+        params.insert(format!("{name}.sigma"), s.into());
+    }
+    params.insert("tau_s".into(), fit.tau_s.into());
+    params.insert("tau_s_searched".into(), settling::TAU_GRID_S.len().into());
+    params.insert("windows".into(), fit.windows.into());
+    params.insert("within_window_dof".into(), fit.dof.into());
+    Candidate {
+        effect: EffectKind::Settling.name().into(),
+        params,
+        rms_after_m: fit.rms_after_m,
+        heldout_rms_after_m: fit.heldout_ms_after_m2.sqrt(),
+        bic_delta: fit.bic_delta,
+        p_value: fit.p_value,
+        round: 0,
+        df: fit.df,
+        chi2_drop: fit.chi2_drop,
+        status,
+        confounded_with: Vec::new(),
     }
 }
 

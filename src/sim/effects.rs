@@ -64,6 +64,16 @@ pub struct PeriodicSwitch {
     pub period_m: f64,
 }
 
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct SettlingSwitch {
+    pub enabled: bool,
+    /// Offset at the end of a move, [0.5, 1]·size_m per axis, metres.
+    pub size_m: f64,
+    /// Decay time constant, seconds.
+    pub tau_s: f64,
+}
+
 /// `[sim.effects]`: every effect off by default.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
 #[serde(deny_unknown_fields, default)]
@@ -89,6 +99,9 @@ pub struct EffectsConfig {
     /// scaled by `size`·(T_material − 20 °C), `size` the expansion coefficient in 1/K
     /// (11.5e-6 for steel), T_material the mean of the material sensors.
     pub thermal_expansion: EffectSwitch,
+    /// Each axis that moved lags behind its target along the approach direction by an offset
+    /// that decays after the move: −sign(move)·s_a·exp(−(t − t_end)/tau_s).
+    pub settling: SettlingSwitch,
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
@@ -104,6 +117,7 @@ impl EffectsConfig {
             || self.thermal_drift.enabled
             || self.dead_path.enabled
             || self.thermal_expansion.enabled
+            || self.settling.enabled
             || self.periodic_nonlinearity.enabled
     }
 
@@ -125,6 +139,7 @@ impl EffectsConfig {
             ("thermal_drift.size", self.thermal_drift.size),
             ("dead_path.size", self.dead_path.size),
             ("thermal_expansion.size", self.thermal_expansion.size),
+            ("settling.size_m", self.settling.size_m),
             (
                 "periodic_nonlinearity.size_m",
                 self.periodic_nonlinearity.size_m,
@@ -137,6 +152,16 @@ impl EffectsConfig {
                     format!("expected a number >= 0, found {v}"),
                 ));
             }
+        }
+        let st = &self.settling;
+        if st.enabled && !(st.tau_s.is_finite() && st.tau_s > 0.0) {
+            return Err((
+                "sim.effects.settling.tau_s".into(),
+                format!(
+                    "expected a positive time constant when enabled, found {}",
+                    st.tau_s
+                ),
+            ));
         }
         let pn = &self.periodic_nonlinearity;
         if pn.enabled && !(pn.period_m.is_finite() && pn.period_m > 0.0) {
@@ -165,6 +190,11 @@ pub struct SimEffects {
     thermal_drift_m_s: Vector3<f64>,
     /// Per station: uncompensated dead path, metres.
     dead_path_m: Vec<f64>,
+    /// Per axis: settling offset at the end of a move, metres.
+    settling_m: [f64; 3],
+    /// Sign of each axis's last move (0: it did not move) and when that move ends.
+    moved: [f64; 3],
+    move_end_s: f64,
     /// Full reversal span B per axis, metres.
     reversal_m: [f64; 3],
     /// (station, moves into its pass at which the fringe is lost, step size).
@@ -222,6 +252,8 @@ impl SimEffects {
         let dead_path_m = (0..stations)
             .map(|_| config.dead_path.size * rng.random_range(0.5..1.0))
             .collect();
+        let settling_m =
+            std::array::from_fn(|_| config.settling.size_m * rng.random_range(0.5..1.0));
         SimEffects {
             config: *config,
             env: env.clone(),
@@ -229,6 +261,9 @@ impl SimEffects {
             eccentricity,
             thermal_drift_m_s,
             dead_path_m,
+            settling_m,
+            moved: [0.0; 3],
+            move_end_s: 0.0,
             reversal_m,
             step,
             step_time_s: None,
@@ -246,16 +281,20 @@ impl SimEffects {
         self.moves_in_station = 0;
     }
 
-    /// A move starts: remember each axis's approach direction (persistent when it does not move).
-    pub fn on_move(&mut self, from: [f64; 3], to: [f64; 3], now_s: f64) {
+    /// A move starts (and ends at `end_s`): remember each axis's approach direction
+    /// (persistent when it does not move) and which axes move.
+    pub fn on_move(&mut self, from: [f64; 3], to: [f64; 3], now_s: f64, end_s: f64) {
         for k in 0..3 {
             let d = to[k] - from[k];
             // `from` is the end of the motion profile, equal to the last target only up to
             // rounding: an axis counts as moved from a nanometre on (commanded moves are mm).
+            self.moved[k] = 0.0;
             if d.abs() > 1e-9 {
                 self.approach[k] = d.signum();
+                self.moved[k] = d.signum();
             }
         }
+        self.move_end_s = end_s;
         self.moves_in_station += 1;
         if self.config.length_step.enabled
             && self.station == self.step.0
@@ -286,6 +325,13 @@ impl SimEffects {
         if c.reversal.enabled {
             for (k, a) in out.iter_mut().enumerate() {
                 *a += 0.5 * self.reversal_m[k] * self.approach[k];
+            }
+        }
+        if c.settling.enabled && c.settling.tau_s > 0.0 {
+            // Full lag while moving, then the exponential decay.
+            let decay = (-(t_s - self.move_end_s).max(0.0) / c.settling.tau_s).exp();
+            for (k, a) in out.iter_mut().enumerate() {
+                *a -= self.moved[k] * self.settling_m[k] * decay;
             }
         }
         out

@@ -297,7 +297,7 @@ impl SimWorld {
             .sqrt();
         // The cycloidal profile peaks at twice the mean speed: keep the peak at the feed.
         let duration_s = (2.0 * distance / self.feed_m_s).max(0.1);
-        self.effects.on_move(from, target, now);
+        self.effects.on_move(from, target, now, now + duration_s);
         self.motion = Motion {
             from,
             to: target,

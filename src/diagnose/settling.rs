@@ -1,0 +1,254 @@
+//! The settling effect: an axis offset along the approach direction that decays after each
+//! move, tested on the raw samples inside the dwell windows (their trend), not on the means.
+
+use nalgebra::{Matrix3, Vector3};
+
+use super::data::Data;
+use super::effects::Geometry;
+use super::stats::f_sf;
+
+/// Time constants searched (s); Bonferroni over them.
+pub const TAU_GRID_S: [f64; 11] = [0.1, 0.15, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0];
+/// Cross-validation folds over windows.
+const FOLDS: usize = 5;
+
+/// The settling model at one time constant on every usable window.
+#[derive(Debug, Clone)]
+pub struct SettlingFit {
+    pub tau_s: f64,
+    /// Offset per axis at arrival (m) and its standard deviation.
+    pub s_m: [f64; 3],
+    pub s_sigma_m: [f64; 3],
+    /// Identifiable parameters (axes that moved into some window).
+    pub df: usize,
+    pub windows: usize,
+    /// Within-window deviations (sample minus its window mean), independent ones.
+    pub dof: usize,
+    pub chi2_base: f64,
+    pub chi2_drop: f64,
+    /// F test, Bonferroni over the time constants.
+    pub p_value: f64,
+    /// Profiled BIC of the within-window block (time constant counted as a parameter).
+    pub bic_delta: f64,
+    /// RMS of the within-window deviations after the fit, and the held-out mean squares
+    /// (window folds) without and with the effect.
+    pub rms_after_m: f64,
+    pub heldout_ms_base_m2: f64,
+    pub heldout_ms_after_m2: f64,
+    /// Per observation: the settling bias of its window mean (0 where not modelled).
+    pub bias_m: Vec<f64>,
+}
+
+/// Per observation: the sign of each axis's move into its window (None for a pass's first
+/// window, whose arrival preceded the homing, and for windows without raw samples).
+fn moves(data: &Data) -> Vec<Option<[f64; 3]>> {
+    let mut out = vec![None; data.obs.len()];
+    for members in &data.passes {
+        for pair in members.windows(2) {
+            let (prev, i) = (&data.obs[pair[0]], pair[1]);
+            if data.obs[i].home == i || data.windows[i].is_none() {
+                continue;
+            }
+            let d: [f64; 3] = std::array::from_fn(|a| {
+                let step = data.obs[i].axes_m[a] - prev.axes_m[a];
+                if step.abs() > 1e-9 {
+                    step.signum()
+                } else {
+                    0.0
+                }
+            });
+            out[i] = Some(d);
+        }
+    }
+    out
+}
+
+/// Rows of one window at time constant tau: whitened deviations d/σ and regressors
+/// c_a·(e(t) − ē)/σ with c_a = −u_a·sign_a (a target shift δX changes the length by −u·δX),
+/// and ē·c_a, the mean's bias per unit offset.
+struct WindowRows {
+    obs: usize,
+    d: Vec<f64>,
+    x: Vec<[f64; 3]>,
+    mean_col: [f64; 3],
+}
+
+fn window_rows(
+    data: &Data,
+    geom: &Geometry,
+    moved: &[Option<[f64; 3]>],
+    tau_s: f64,
+) -> Vec<WindowRows> {
+    let mut out = Vec::new();
+    for (i, sign) in moved.iter().enumerate() {
+        let (Some(sign), Some(w)) = (sign, &data.windows[i]) else {
+            continue;
+        };
+        let n = w.samples.len();
+        let (u, _) = geom.beam(data, i);
+        let c: [f64; 3] = std::array::from_fn(|a| -u[a] * sign[a]);
+        let sigma = data.obs[i].sigma_m * (n as f64).sqrt();
+        let e: Vec<f64> = w
+            .samples
+            .iter()
+            .map(|(t, _)| (-(t - w.arrival_s).max(0.0) / tau_s).exp())
+            .collect();
+        let e_mean = e.iter().sum::<f64>() / n as f64;
+        let y_mean = w.samples.iter().map(|s| s.1).sum::<f64>() / n as f64;
+        out.push(WindowRows {
+            obs: i,
+            d: w.samples.iter().map(|s| (s.1 - y_mean) / sigma).collect(),
+            x: e.iter()
+                .map(|ek| std::array::from_fn(|a| c[a] * (ek - e_mean) / sigma))
+                .collect(),
+            mean_col: std::array::from_fn(|a| c[a] * e_mean),
+        });
+    }
+    out
+}
+
+/// A pass's first window follows the homing dwell, and the arrival before it is not in the
+/// session: its settling amplitude is unknown. It gets its own amplitude k (fitted to its
+/// trend at the shared time constant, e measured from the window's first sample), and its
+/// mean's bias is k·ē. These nuisance fits do not enter the test.
+fn home_biases(data: &Data, tau_s: f64, bias_m: &mut [f64]) {
+    for (i, o) in data.obs.iter().enumerate() {
+        let Some(w) = data.windows[i].as_ref().filter(|_| o.home == i) else {
+            continue;
+        };
+        let n = w.samples.len() as f64;
+        let e: Vec<f64> = w
+            .samples
+            .iter()
+            .map(|(t, _)| (-(t - w.arrival_s).max(0.0) / tau_s).exp())
+            .collect();
+        let e_mean = e.iter().sum::<f64>() / n;
+        let y_mean = w.samples.iter().map(|s| s.1).sum::<f64>() / n;
+        let (mut xx, mut xy) = (0.0, 0.0);
+        for (ek, (_, y)) in e.iter().zip(&w.samples) {
+            xx += (ek - e_mean).powi(2);
+            xy += (ek - e_mean) * (y - y_mean);
+        }
+        if xx > 0.0 {
+            bias_m[i] = xy / xx * e_mean;
+        }
+    }
+}
+
+/// Normal equations (XᵀX, Xᵀd, dᵀd, samples) over the windows `keep` selects.
+fn normal(
+    rows: &[WindowRows],
+    keep: impl Fn(usize) -> bool,
+) -> (Matrix3<f64>, Vector3<f64>, f64, usize) {
+    let (mut xtx, mut xtd, mut dtd, mut n) = (Matrix3::zeros(), Vector3::zeros(), 0.0, 0);
+    for (k, w) in rows.iter().enumerate() {
+        if !keep(k) {
+            continue;
+        }
+        for (d, x) in w.d.iter().zip(&w.x) {
+            let x = Vector3::from(*x);
+            xtx += x * x.transpose();
+            xtd += x * *d;
+            dtd += d * d;
+            n += 1;
+        }
+    }
+    (xtx, xtd, dtd, n)
+}
+
+/// Minimum-norm solution on the identifiable axes (an axis that never moved into a window
+/// has a zero column) and the covariance's diagonal.
+fn solve3(xtx: &Matrix3<f64>, xtd: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>, usize) {
+    let eig = xtx.symmetric_eigen();
+    let top = eig.eigenvalues.amax();
+    let (mut s, mut var, mut rank) = (Vector3::zeros(), Vector3::zeros(), 0);
+    for k in 0..3 {
+        let l = eig.eigenvalues[k];
+        if l > 1e-10 * top && l > 0.0 {
+            let v = eig.eigenvectors.column(k);
+            s += v * (v.dot(xtd) / l);
+            var += v.component_mul(&v) / l;
+            rank += 1;
+        }
+    }
+    (s, var, rank)
+}
+
+/// Fit settling at every time constant of the grid and return the best (largest χ² drop),
+/// or None when no window can show it (no raw samples, or no axis moved into a window).
+pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
+    let moved = moves(data);
+    let mut best: Option<SettlingFit> = None;
+    for &tau_s in &TAU_GRID_S {
+        let rows = window_rows(data, geom, &moved, tau_s);
+        if rows.is_empty() {
+            return None;
+        }
+        let (xtx, xtd, dtd, n) = normal(&rows, |_| true);
+        let (s, var, df) = solve3(&xtx, &xtd);
+        if df == 0 {
+            return None;
+        }
+        let chi2_drop = s.dot(&xtd);
+        if best.as_ref().is_some_and(|b| b.chi2_drop >= chi2_drop) {
+            continue;
+        }
+        let windows = rows.len();
+        let dof = n.saturating_sub(windows).max(df + 1);
+        let chi2_after = (dtd - chi2_drop).max(f64::MIN_POSITIVE);
+        let dof_after = (dof - df) as f64;
+        let f_stat = (chi2_drop / df as f64) / (chi2_after / dof_after);
+        let p_value = (f_sf(f_stat, df as f64, dof_after) * TAU_GRID_S.len() as f64).min(1.0);
+        let bic_delta = dof as f64 * (chi2_after / dtd).ln() + (df + 1) as f64 * (dof as f64).ln();
+        // Held out: fit on the other windows, score each fold's windows.
+        let (mut ms_base, mut ms_after, mut held) = (0.0, 0.0, 0usize);
+        for f in 0..FOLDS {
+            let (a, b, _, _) = normal(&rows, |k| k % FOLDS != f);
+            let (sf, _, _) = solve3(&a, &b);
+            for w in rows.iter().skip(f).step_by(FOLDS) {
+                let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
+                for (d, x) in w.d.iter().zip(&w.x) {
+                    let pred = Vector3::from(*x).dot(&sf);
+                    ms_base += (d * sigma).powi(2);
+                    ms_after += ((d - pred) * sigma).powi(2);
+                    held += 1;
+                }
+            }
+        }
+        let mut bias_m = vec![0.0; data.obs.len()];
+        for w in &rows {
+            bias_m[w.obs] = (0..3).map(|a| w.mean_col[a] * s[a]).sum();
+        }
+        home_biases(data, tau_s, &mut bias_m);
+        let rms_after_m = {
+            let ss: f64 = rows
+                .iter()
+                .map(|w| {
+                    let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
+                    w.d.iter()
+                        .zip(&w.x)
+                        .map(|(d, x)| ((d - Vector3::from(*x).dot(&s)) * sigma).powi(2))
+                        .sum::<f64>()
+                })
+                .sum();
+            (ss / n.max(1) as f64).sqrt()
+        };
+        best = Some(SettlingFit {
+            tau_s,
+            s_m: s.into(),
+            s_sigma_m: var.map(f64::sqrt).into(),
+            df,
+            windows,
+            dof,
+            chi2_base: dtd,
+            chi2_drop,
+            p_value,
+            bic_delta,
+            rms_after_m,
+            heldout_ms_base_m2: ms_base / held.max(1) as f64,
+            heldout_ms_after_m2: ms_after / held.max(1) as f64,
+            bias_m,
+        });
+    }
+    best
+}
