@@ -5,7 +5,7 @@
 mod common;
 
 /// (true effect, the `[sim.effects]` line that switches it on at a realistic size).
-const CASES: [(&str, &str); 11] = [
+const CASES: [(&str, &str); 12] = [
     ("none", ""),
     (
         "station_drift",
@@ -36,6 +36,10 @@ const CASES: [(&str, &str); 11] = [
     (
         "settling",
         "settling = { enabled = true, size_m = 1.5e-6, tau_s = 0.5 }",
+    ),
+    (
+        "target_offset",
+        "target_offset = { enabled = true, size_m = 1e-3 }",
     ),
     (
         "periodic_nonlinearity",

@@ -90,10 +90,11 @@ pub enum EffectKind {
     DeadPath,
     ThermalExpansion,
     Settling,
+    TargetOffset,
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
-pub const LIBRARY: [EffectKind; 9] = [
+pub const LIBRARY: [EffectKind; 10] = [
     EffectKind::StationDrift,
     EffectKind::Reversal,
     EffectKind::LengthStep,
@@ -103,6 +104,7 @@ pub const LIBRARY: [EffectKind; 9] = [
     EffectKind::DeadPath,
     EffectKind::ThermalExpansion,
     EffectKind::Settling,
+    EffectKind::TargetOffset,
 ];
 
 impl EffectKind {
@@ -117,6 +119,7 @@ impl EffectKind {
             EffectKind::DeadPath => "dead_path",
             EffectKind::ThermalExpansion => "thermal_expansion",
             EffectKind::Settling => "settling",
+            EffectKind::TargetOffset => "target_offset",
         }
     }
 }
@@ -173,6 +176,7 @@ impl EffectModel {
                 .iter()
                 .map(|p| format!("{p}.home_offset_m"))
                 .collect(),
+            EffectKind::TargetOffset => vec!["dox_m".into(), "doy_m".into(), "doz_m".into()],
         }
     }
 
@@ -274,6 +278,20 @@ impl EffectModel {
                     let dt = o.material_dt_k.unwrap_or(0.0);
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.axes_m[a] * dt;
+                    }
+                }
+                f
+            }
+            // The reflector off by δo moves every point by R(axes)·δo ≈ δo + ε(axes)×δo. Each
+            // (target, point) is a free point of the multilateration model, so any per-point
+            // displacement, this one included, is absorbed: projected rank 0, never a
+            // candidate on lengths (docs/diagnosis.md). The column is the constant part.
+            EffectKind::TargetOffset => {
+                let mut f = DMatrix::zeros(nobs, 3);
+                for i in 0..nobs {
+                    let (u, _) = geom.beam(data, i);
+                    for a in 0..3 {
+                        f[(i, a)] = -u[a];
                     }
                 }
                 f

@@ -460,6 +460,12 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             let a = model.columns(&data, &geom);
             let eval = engine.evaluate(&design, &full, &fold_fits, &a);
             if eval.df == 0 {
+                if round == 0 {
+                    notes.push(format!(
+                        "{}: absorbed by the nominal model (projected rank 0), not identifiable from these lengths",
+                        kind.name()
+                    ));
+                }
                 continue;
             }
             // The test scales by the residual variance left after the candidate (F test,

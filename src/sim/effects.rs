@@ -74,6 +74,14 @@ pub struct SettlingSwitch {
     pub tau_s: f64,
 }
 
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
+#[serde(deny_unknown_fields, default)]
+pub struct TargetOffsetSwitch {
+    pub enabled: bool,
+    /// Length of the offset error, metres.
+    pub size_m: f64,
+}
+
 /// `[sim.effects]`: every effect off by default.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
 #[serde(deny_unknown_fields, default)]
@@ -102,6 +110,9 @@ pub struct EffectsConfig {
     /// Each axis that moved lags behind its target along the approach direction by an offset
     /// that decays after the move: −sign(move)·s_a·exp(−(t − t_end)/tau_s).
     pub settling: SettlingSwitch,
+    /// The reflector sits `size_m` from its configured offset (tool frame), in a random
+    /// direction per target: the machine's angular errors turn it with the axes.
+    pub target_offset: TargetOffsetSwitch,
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
@@ -118,6 +129,7 @@ impl EffectsConfig {
             || self.dead_path.enabled
             || self.thermal_expansion.enabled
             || self.settling.enabled
+            || self.target_offset.enabled
             || self.periodic_nonlinearity.enabled
     }
 
@@ -140,6 +152,7 @@ impl EffectsConfig {
             ("dead_path.size", self.dead_path.size),
             ("thermal_expansion.size", self.thermal_expansion.size),
             ("settling.size_m", self.settling.size_m),
+            ("target_offset.size_m", self.target_offset.size_m),
             (
                 "periodic_nonlinearity.size_m",
                 self.periodic_nonlinearity.size_m,
@@ -195,6 +208,7 @@ pub struct SimEffects {
     /// Sign of each axis's last move (0: it did not move) and when that move ends.
     moved: [f64; 3],
     move_end_s: f64,
+    seed: u64,
     /// Full reversal span B per axis, metres.
     reversal_m: [f64; 3],
     /// (station, moves into its pass at which the fringe is lost, step size).
@@ -264,6 +278,7 @@ impl SimEffects {
             settling_m,
             moved: [0.0; 3],
             move_end_s: 0.0,
+            seed,
             reversal_m,
             step,
             step_time_s: None,
@@ -303,6 +318,29 @@ impl SimEffects {
         {
             self.step_time_s = Some(now_s);
         }
+    }
+
+    /// The reflector's true offset for a configured one: off by `size_m` in a direction drawn
+    /// from the seed and the configured offset (each target its own, the same every mount).
+    pub fn actual_offset_m(&self, offset_m: [f64; 3]) -> [f64; 3] {
+        let c = &self.config.target_offset;
+        if !c.enabled {
+            return offset_m;
+        }
+        let key = offset_m
+            .iter()
+            .fold(self.seed ^ 0x5441_5247_4554_4f46, |h, v| {
+                (h ^ v.to_bits()).wrapping_mul(0x0100_0000_01b3)
+            });
+        let mut rng = ChaCha8Rng::seed_from_u64(key);
+        let dir = loop {
+            let v = Vector3::from_fn(|_, _| rng.random_range(-1.0..1.0));
+            let n: f64 = v.norm();
+            if (0.2..=1.0).contains(&n) {
+                break v / n;
+            }
+        };
+        std::array::from_fn(|k| offset_m[k] + c.size_m * dir[k])
     }
 
     /// Where the axes really are at t: commanded, scaled by the material's expansion, plus

@@ -229,7 +229,7 @@ impl SimWorld {
             &self.structure,
             &self.truth,
             self.effects.actual_axes_m(axes_m, t_s),
-            self.target_offset_m,
+            self.effects.actual_offset_m(self.target_offset_m),
         ))
     }
 
@@ -405,7 +405,12 @@ impl SimWorld {
     pub fn truth(&self, config: &Config, plan: &Plan) -> Truth {
         let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
         let at = |axes: [f64; 3], offset: [f64; 3]| {
-            Vector3::from(actual_position(&self.structure, &self.truth, axes, offset))
+            Vector3::from(actual_position(
+                &self.structure,
+                &self.truth,
+                axes,
+                self.effects.actual_offset_m(offset),
+            ))
         };
         Truth {
             structure: self.structure.as_str().to_string(),
