@@ -71,6 +71,9 @@ pub struct EffectsConfig {
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
+    /// Not in the diagnosis library (a test of the points level): a local bump of the tool
+    /// position that the quasi-rigid 21-error model cannot express (src/sim/bump.rs).
+    pub local_bump: crate::sim::bump::BumpSwitch,
 }
 
 impl EffectsConfig {
@@ -81,6 +84,7 @@ impl EffectsConfig {
             || self.air_refraction.enabled
             || self.tracer_eccentricity.enabled
             || self.periodic_nonlinearity.enabled
+            || self.local_bump.enabled
     }
 }
 
@@ -189,6 +193,7 @@ impl SimEffects {
 
     /// Where the axes really are: commanded plus the reversal offset of the approach direction.
     pub fn actual_axes_m(&self, axes_m: [f64; 3]) -> [f64; 3] {
+        let axes_m = self.config.local_bump.displace(axes_m);
         if !self.config.reversal.enabled {
             return axes_m;
         }
