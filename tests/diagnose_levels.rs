@@ -53,3 +53,47 @@ fn effect_free_points_level_is_at_the_noise_floor() {
     }
     assert!(alarms <= 1, "{alarms} seeds with a points-level alarm");
 }
+
+/// Leave-one-station-out on a session with an unflagged fringe loss in one station: that
+/// station (the one the change-point search puts the step in) stands out; on effect-free
+/// data every station agrees with the others (standardised held-out RMS near 1).
+#[test]
+fn leave_one_station_out_singles_out_the_stepped_station() {
+    let d = run_and_diagnose(&with_effects(
+        &diagnose_demo(),
+        13,
+        "length_step = { enabled = true, size = 1e-6 }",
+    ));
+    let text = geocal::diagnose::text(&d);
+    println!("{text}");
+    let step = d
+        .candidates
+        .iter()
+        .find(|c| c.effect == "length_step" && c.status == "selected")
+        .expect("length_step selected");
+    let pass = step.params["pass"].as_str().expect("pass name");
+    let loso = &d.leave_one_station_out;
+    assert_eq!(loso.len(), 5, "{text}");
+    let worst = loso
+        .iter()
+        .max_by(|a, b| a.ratio.total_cmp(&b.ratio))
+        .expect("stations");
+    assert!(pass.starts_with(&format!("{} ", worst.station)), "{text}");
+    assert!(worst.ratio > 3.0 && worst.p_value < 0.01, "{text}");
+    let first_held_out = d.where_.iter().find(|w| w.key.ends_with(" held out"));
+    assert_eq!(
+        first_held_out.map(|w| w.key.clone()),
+        Some(format!("{} held out", worst.station)),
+        "{text}"
+    );
+
+    let clean = run_and_diagnose(&with_effects(&diagnose_demo(), 200, ""));
+    let text = geocal::diagnose::text(&clean);
+    println!("{text}");
+    for h in &clean.leave_one_station_out {
+        // sampling spread of the ratio: sqrt(1/(2 dof)) ≈ 0.1 for ~50 dof; 4 of them.
+        let spread = (0.5 / h.dof as f64).sqrt();
+        assert!((h.ratio - 1.0).abs() < 4.0 * spread, "{text}");
+        assert!(h.p_value > 0.01, "{text}");
+    }
+}

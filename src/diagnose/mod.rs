@@ -4,6 +4,7 @@
 pub mod data;
 pub mod effects;
 pub mod locate;
+pub mod loso;
 pub mod points;
 pub mod stats;
 
@@ -20,6 +21,7 @@ use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
+use loso::{leave_one_station_out, HeldOutStation};
 use points::{points_level, PointsLevel};
 use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
 
@@ -100,6 +102,9 @@ pub struct Diagnosis {
     /// model; absent when the session's points cannot be tested (the reason is in `notes`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub points_level: Option<PointsLevel>,
+    /// Each station's lengths predicted from the points of the others (nominal model).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub leave_one_station_out: Vec<HeldOutStation>,
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
@@ -546,9 +551,38 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         &final_fit.basis,
         options.alpha,
     );
+    let mut where_ = where_;
+    let (held_out, skipped) = leave_one_station_out(&data, &nominal_j, &solution.residuals_m);
+    if !skipped.is_empty() {
+        notes.push(format!(
+            "leave-one-station-out: without {} the other stations do not determine the points; not predicted",
+            skipped.join(", ")
+        ));
+    }
+    let excess = |h: &HeldOutStation| (h.ratio.powi(2) * h.dof as f64 - h.dof as f64).max(0.0);
+    let mut failing: Vec<WhereEntry> = held_out
+        .iter()
+        .filter(|h| h.p_value < options.alpha)
+        .map(|h| WhereEntry {
+            level: "lengths".into(),
+            group: "station".into(),
+            key: format!("{} held out", h.station),
+            // Its share of the stations' excess held-out χ² (χ² − dof): the held-out sums of
+            // squares themselves mostly reflect how well each station's points are determined.
+            share: excess(h)
+                / held_out
+                    .iter()
+                    .map(excess)
+                    .sum::<f64>()
+                    .max(f64::MIN_POSITIVE),
+            rms_m: h.heldout_rms_m,
+            p_value: h.p_value,
+        })
+        .collect();
+    failing.sort_by(|a, b| b.share.total_cmp(&a.share));
+    where_.extend(failing);
     // The points level, before (recorded lengths) and after (fitted effects removed): a
     // machine that departs from the quasi-rigid model is structure no candidate explains.
-    let mut where_ = where_;
     let recorded: Vec<f64> = data.obs.iter().map(|o| o.length_m).collect();
     let points_before = match points_level(&data, &recorded, options.alpha) {
         Ok((level, entries)) => {
@@ -625,6 +659,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         gap_after,
         unexplained,
         points_level: points_before,
+        leave_one_station_out: held_out,
         observations: nobs,
         notes,
     })
@@ -797,6 +832,24 @@ pub fn text(d: &Diagnosis) -> String {
                 nm(dep.residual_m[2]),
                 dep.chi2,
                 dep.p_value
+            );
+        }
+    }
+    if !d.leave_one_station_out.is_empty() {
+        let _ = writeln!(
+            s,
+            "  leave-one-station-out (lengths predicted from the other stations' points):"
+        );
+        for h in &d.leave_one_station_out {
+            let _ = writeln!(
+                s,
+                "    {:<9} {:>4} lengths  held-out RMS {} (floor {})  standardised {:.2}  p {:.1e}",
+                h.station,
+                h.lengths,
+                nm(h.heldout_rms_m),
+                nm(h.floor_m),
+                h.ratio,
+                h.p_value
             );
         }
     }
