@@ -7,6 +7,7 @@ pub mod locate;
 pub mod loso;
 pub mod points;
 pub mod stats;
+pub mod twin;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -105,6 +106,9 @@ pub struct Diagnosis {
     /// Each station's lengths predicted from the points of the others (nominal model).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub leave_one_station_out: Vec<HeldOutStation>,
+    /// The twin comparison, when the diagnosis is of a recording against its twin.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub twin: Option<twin::TwinReport>,
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
@@ -297,6 +301,15 @@ struct Trial {
 /// Diagnose a multilateration session: reads only the session.
 pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
     let data = Data::from_session(session)?;
+    Ok(diagnose_data(&data, options)?.0)
+}
+
+/// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
+/// the twin comparison does); also the selected effects' fitted contribution to each length.
+pub(crate) fn diagnose_data(
+    data: &Data,
+    options: &DiagnoseOptions,
+) -> Result<(Diagnosis, Vec<f64>), DiagnoseError> {
     let solution = solve(&data.problem, &SolveOptions::default())?;
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
@@ -333,7 +346,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         available.retain(|k| *k != EffectKind::AirRefraction);
         notes.push("no environment log: air_refraction cannot be tested".into());
     }
-    let nominal_j = geom.jacobian(&data);
+    let nominal_j = geom.jacobian(data);
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
 
@@ -344,7 +357,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     for round in 0..=LIBRARY.len() {
         let design = accepted
             .iter()
-            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(&data, &geom)));
+            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
         let full = engine.fit_base(&design, all_rows.clone(), &[]);
         let fold_fits: Vec<BaseFit> = engine
             .folds
@@ -395,7 +408,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         let mut trials = Vec::new();
         for kind in &candidates {
             let (model, searched) = if *kind == EffectKind::LengthStep {
-                match best_step(&data, &full.basis, &full.res_w, None) {
+                match best_step(data, &full.basis, &full.res_w, None) {
                     Some((g, k, _, tried)) => (
                         EffectModel {
                             kind: *kind,
@@ -408,7 +421,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             } else {
                 (EffectModel::plain(*kind), 1)
             };
-            let a = model.columns(&data, &geom);
+            let a = model.columns(data, &geom);
             let eval = engine.evaluate(&design, &full, &fold_fits, &a);
             if eval.df == 0 {
                 continue;
@@ -489,7 +502,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             };
             records.insert(
                 trial.model.kind,
-                candidate_record(&data, trial, round, status, confounded_with),
+                candidate_record(data, trial, round, status, confounded_with),
             );
         }
         match winner {
@@ -514,7 +527,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     }
 
     // The final model: joint Gauss–Newton of geometry and accepted effects.
-    let final_fit = joint_fit(&data, &geom, &accepted);
+    let final_fit = joint_fit(data, &geom, &accepted);
     let chi2: f64 = final_fit
         .resid_m
         .iter()
@@ -538,21 +551,21 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         Basis::new(&jw, RANK_TOL, 0.0)
     };
     let where_ = locate(
-        &data,
+        data,
         &geom,
         &solution.residuals_m,
         &nominal_basis,
         options.alpha,
     );
     let remaining = locate(
-        &data,
+        data,
         &final_fit.geom,
         &final_fit.resid_m,
         &final_fit.basis,
         options.alpha,
     );
     let mut where_ = where_;
-    let (held_out, skipped) = leave_one_station_out(&data, &nominal_j, &solution.residuals_m);
+    let (held_out, skipped) = leave_one_station_out(data, &nominal_j, &solution.residuals_m);
     if !skipped.is_empty() {
         notes.push(format!(
             "leave-one-station-out: without {} the other stations do not determine the points; not predicted",
@@ -584,7 +597,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     // The points level, before (recorded lengths) and after (fitted effects removed): a
     // machine that departs from the quasi-rigid model is structure no candidate explains.
     let recorded: Vec<f64> = data.obs.iter().map(|o| o.length_m).collect();
-    let points_before = match points_level(&data, &recorded, options.alpha) {
+    let points_before = match points_level(data, &recorded, options.alpha) {
         Ok((level, entries)) => {
             where_.extend(entries);
             Some(level)
@@ -605,7 +618,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             .zip(&final_fit.effect_m)
             .map(|(l, e)| l - e)
             .collect();
-        match points_level(&data, &corrected, options.alpha) {
+        match points_level(data, &corrected, options.alpha) {
             Ok((after, _)) => (after.gap.p_value < options.alpha)
                 .then_some((after.gap.chi2_per_dof, after.gap.p_value)),
             Err(_) => None,
@@ -648,7 +661,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             .cmp(&rank_of(b))
             .then(a.bic_delta.total_cmp(&b.bic_delta))
     });
-    Ok(Diagnosis {
+    let diagnosis = Diagnosis {
         format: DIAGNOSIS_FORMAT.into(),
         session_id: data.session_id.clone(),
         noise_floor_m,
@@ -662,7 +675,9 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         leave_one_station_out: held_out,
         observations: nobs,
         notes,
-    })
+        twin: None,
+    };
+    Ok((diagnosis, final_fit.effect_m))
 }
 
 fn empty_gap(v: f64) -> Gap {
@@ -827,6 +842,43 @@ pub fn text(d: &Diagnosis) -> String {
                 dep.nominal_m[0],
                 dep.nominal_m[1],
                 dep.nominal_m[2],
+                nm(dep.residual_m[0]),
+                nm(dep.residual_m[1]),
+                nm(dep.residual_m[2]),
+                dep.chi2,
+                dep.p_value
+            );
+        }
+    }
+    if let Some(t) = &d.twin {
+        let _ = writeln!(
+            s,
+            "  twin {} ({}): {} lengths matched, {} not",
+            t.session_id, t.source, t.matched_lengths, t.unmatched_lengths
+        );
+        for (label, g) in [
+            ("before", &t.points_before),
+            ("after the selected effects", &t.points_after),
+        ] {
+            if let Some(g) = g {
+                let _ = writeln!(
+                    s,
+                    "    points minus the twin's, {label}: chi2/dof {:.2} (dof {}, p {:.1e}), RMS {} (floor {})",
+                    g.chi2_per_dof,
+                    g.dof,
+                    g.p_value,
+                    nm(g.rms_m),
+                    nm(g.floor_m)
+                );
+            }
+        }
+        for dep in t.departures.iter().take(5) {
+            let _ = writeln!(
+                s,
+                "    point {} {} pass {}: recording minus twin [{}, {}, {}] chi2 {:.1} p {:.1e}",
+                dep.target,
+                dep.point,
+                dep.pass,
                 nm(dep.residual_m[0]),
                 nm(dep.residual_m[1]),
                 nm(dep.residual_m[2]),

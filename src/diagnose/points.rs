@@ -13,7 +13,8 @@ use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
 use crate::solve::multilateration::{
-    dense_point_covariance, solve, LengthObservation, MultilaterationProblem, SolveOptions,
+    dense_point_covariance, solve, LengthObservation, MultilaterationProblem,
+    MultilaterationSolution, SolveOptions,
 };
 
 /// Relative singular value below which a direction of the (column-normalised) quasi-rigid
@@ -59,40 +60,29 @@ pub struct PointsLevel {
     pub departures: Vec<PointDeparture>,
 }
 
+/// A pass point and its (target, plan point, nominal): what the group tests need of a point.
+pub type PointMeta<'a> = (&'a PassPoint, &'a (String, usize, [f64; 3]));
+
 /// One fitted point of the per-pass problem and its bookkeeping.
-struct PassPoint {
+pub struct PassPoint {
     /// Problem point of `data` and pass.
-    point: usize,
-    pass: usize,
-    approach: [f64; 3],
+    pub point: usize,
+    pub pass: usize,
+    pub approach: [f64; 3],
 }
 
-/// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
-/// is rᵀ C⁺ r over the group (pseudo-inverse: the rows the model fits exactly drop out).
-fn group_chi2(e: &DVector<f64>, c: &DMatrix<f64>, rows: &[usize]) -> (f64, f64) {
-    let sub = DMatrix::from_fn(rows.len(), rows.len(), |a, b| c[(rows[a], rows[b])]);
-    let v = DVector::from_fn(rows.len(), |a, _| e[rows[a]]);
-    let eigen = sub.symmetric_eigen();
-    let largest = eigen.eigenvalues.amax();
-    let (mut stat, mut dof) = (0.0, 0.0);
-    for (k, &lambda) in eigen.eigenvalues.iter().enumerate() {
-        if lambda > 1e-9 * largest && lambda > 0.0 {
-            stat += eigen.eigenvectors.column(k).dot(&v).powi(2) / lambda;
-            dof += 1.0;
-        }
-    }
-    (stat, dof)
+/// The points solved per pass with their full covariance (3n x 3n, point-major).
+pub struct PerPass {
+    pub pass_points: Vec<PassPoint>,
+    /// (target, plan point, nominal) of each pass point.
+    pub info: Vec<(String, usize, [f64; 3])>,
+    pub solution: MultilaterationSolution,
+    pub cov: DMatrix<f64>,
 }
 
-/// Fit the points solved from `lengths_m` (one per observation of `data`; the recorded lengths,
-/// or lengths with fitted effects removed) against the quasi-rigid 21-error model. Err says
-/// why the points level cannot be computed for this session.
-pub fn points_level(
-    data: &Data,
-    lengths_m: &[f64],
-    alpha: f64,
-) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
-    // One unknown point per (plan point, pass): passes then show as such (reversal, drift).
+/// Solve the lengths `lengths_m` (one per observation of `data`) with one unknown point per
+/// (plan point, pass): passes then show as such (reversal, drift).
+pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String> {
     let mut index: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     let mut pass_points: Vec<PassPoint> = Vec::new();
     let mut observations = Vec::with_capacity(data.obs.len());
@@ -126,10 +116,49 @@ pub fn points_level(
     let cov = dense_point_covariance(&problem, &solution).ok_or_else(|| {
         "the per-pass problem is too large for the dense point covariance".to_string()
     })?;
-    let info: Vec<(String, usize, [f64; 3])> = pass_points
+    let info = pass_points
         .iter()
         .map(|p| data.points[p.point].clone())
         .collect();
+    Ok(PerPass {
+        pass_points,
+        info,
+        solution,
+        cov,
+    })
+}
+
+/// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
+/// is rᵀ C⁺ r over the group (pseudo-inverse: the rows the model fits exactly drop out).
+fn group_chi2(e: &DVector<f64>, c: &DMatrix<f64>, rows: &[usize]) -> (f64, f64) {
+    let sub = DMatrix::from_fn(rows.len(), rows.len(), |a, b| c[(rows[a], rows[b])]);
+    let v = DVector::from_fn(rows.len(), |a, _| e[rows[a]]);
+    let eigen = sub.symmetric_eigen();
+    let largest = eigen.eigenvalues.amax();
+    let (mut stat, mut dof) = (0.0, 0.0);
+    for (k, &lambda) in eigen.eigenvalues.iter().enumerate() {
+        if lambda > 1e-9 * largest && lambda > 0.0 {
+            stat += eigen.eigenvectors.column(k).dot(&v).powi(2) / lambda;
+            dof += 1.0;
+        }
+    }
+    (stat, dof)
+}
+
+/// Fit the points solved from `lengths_m` (one per observation of `data`; the recorded lengths,
+/// or lengths with fitted effects removed) against the quasi-rigid 21-error model. Err says
+/// why the points level cannot be computed for this session.
+pub fn points_level(
+    data: &Data,
+    lengths_m: &[f64],
+    alpha: f64,
+) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
+    let PerPass {
+        pass_points,
+        info,
+        solution,
+        cov,
+    } = per_pass_points(data, lengths_m)?;
     let axes: Vec<Option<[f64; 3]>> = pass_points
         .iter()
         .map(|p| data.point_axes_m[p.point])
@@ -165,7 +194,6 @@ pub fn points_level(
     // Cov(e) = L (I − U Uᵀ) Lᵀ.
     let lu = &wd.l * &basis.u;
     let c = &wd.l * wd.l.transpose() - &lu * lu.transpose();
-    let total_m2 = e.norm_squared().max(f64::MIN_POSITIVE);
     let gap = PointsGap {
         chi2,
         dof,
@@ -177,15 +205,33 @@ pub fn points_level(
         rank: basis.rank(),
     };
 
-    // Groups of rows: region (octant of the nominal point), component, approach, pass, target.
-    let n = pass_points.len();
+    let meta: Vec<PointMeta> = pass_points.iter().zip(&info).collect();
+    let out = test_groups(&e, &c, &meta, alpha, "");
+    let departures = point_departures(&e, &c, &meta, alpha);
+    Ok((PointsLevel { gap, departures }, out))
+}
+
+/// Groups of rows of point residuals `e` (covariance `c`, point-major x, y, z), tested against
+/// the noise model: region (octant of the nominal point), component, approach, pass, target.
+/// `suffix` is appended to each key.
+pub fn test_groups(
+    e: &DVector<f64>,
+    c: &DMatrix<f64>,
+    meta: &[PointMeta],
+    alpha: f64,
+    suffix: &str,
+) -> Vec<WhereEntry> {
+    let total_m2 = e.norm_squared().max(f64::MIN_POSITIVE);
+    let n = meta.len();
+    let pass_points: Vec<&PassPoint> = meta.iter().map(|m| m.0).collect();
+    let info: Vec<&(String, usize, [f64; 3])> = meta.iter().map(|m| m.1).collect();
     let all_rows = |keep: &dyn Fn(usize) -> bool| -> Vec<usize> {
         (0..n)
             .filter(|&k| keep(k))
             .flat_map(|k| 3 * k..3 * k + 3)
             .collect()
     };
-    let nominal = |k: usize| data.points[pass_points[k].point].2;
+    let nominal = |k: usize| info[k].2;
     let centre: [f64; 3] =
         std::array::from_fn(|a| (0..n).map(|k| nominal(k)[a]).sum::<f64>() / n.max(1) as f64);
     let mut groups: Vec<(&str, String, Vec<usize>)> = Vec::new();
@@ -238,14 +284,14 @@ pub fn points_level(
     let tests = groups.len() as f64;
     let mut out = Vec::new();
     for (group, key, members) in &groups {
-        let (stat, gdof) = group_chi2(&e, &c, members);
+        let (stat, gdof) = group_chi2(e, c, members);
         let p = (chi2_sf(stat, gdof) * tests).min(1.0);
         if p < alpha {
             let ss: f64 = members.iter().map(|&r| e[r].powi(2)).sum();
             out.push(WhereEntry {
                 level: "points".into(),
                 group: (*group).into(),
-                key: key.clone(),
+                key: format!("{key}{suffix}"),
                 share: ss / total_m2,
                 rms_m: (ss / members.len() as f64).sqrt(),
                 p_value: p,
@@ -253,15 +299,26 @@ pub fn points_level(
         }
     }
     out.sort_by(|a, b| b.share.total_cmp(&a.share));
+    out
+}
+
+/// Single points whose 3 residual components fail the noise model (Bonferroni over points).
+pub fn point_departures(
+    e: &DVector<f64>,
+    c: &DMatrix<f64>,
+    meta: &[PointMeta],
+    alpha: f64,
+) -> Vec<PointDeparture> {
+    let n = meta.len();
     let mut departures: Vec<PointDeparture> = (0..n)
         .filter_map(|k| {
-            let (stat, gdof) = group_chi2(&e, &c, &[3 * k, 3 * k + 1, 3 * k + 2]);
+            let (stat, gdof) = group_chi2(e, c, &[3 * k, 3 * k + 1, 3 * k + 2]);
             let p = (chi2_sf(stat, gdof) * n as f64).min(1.0);
             (p < alpha).then(|| PointDeparture {
-                target: info[k].0.clone(),
-                point: info[k].1,
-                pass: pass_points[k].pass,
-                nominal_m: info[k].2,
+                target: meta[k].1 .0.clone(),
+                point: meta[k].1 .1,
+                pass: meta[k].0.pass,
+                nominal_m: meta[k].1 .2,
                 residual_m: [e[3 * k], e[3 * k + 1], e[3 * k + 2]],
                 chi2: stat,
                 p_value: p,
@@ -269,5 +326,5 @@ pub fn points_level(
         })
         .collect();
     departures.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
-    Ok((PointsLevel { gap, departures }, out))
+    departures
 }
