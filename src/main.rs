@@ -53,6 +53,13 @@ enum Command {
         /// Print geocal-diagnosis/1 JSON instead of the text report.
         #[arg(long)]
         json: bool,
+        /// Compare with a twin: a second session, or a config (.toml) to simulate the twin of
+        /// this recording from (its stations, the config's machine and noise, effects off).
+        #[arg(long, value_name = "SESSION|CONFIG.toml")]
+        twin: Option<PathBuf>,
+        /// Keep the simulated twin's session in this directory.
+        #[arg(long, value_name = "DIR")]
+        twin_out: Option<PathBuf>,
     },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
@@ -134,8 +141,21 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 print!("{}", geocal::report::text(&results));
             }
         }
-        Command::Diagnose { session, json } => {
-            let diagnosis = geocal::diagnose::diagnose_file(&session, &Default::default())?;
+        Command::Diagnose {
+            session,
+            json,
+            twin,
+            twin_out,
+        } => {
+            let diagnosis = match twin {
+                None => geocal::diagnose::diagnose_file(&session, &Default::default())?,
+                Some(twin) => geocal::diagnose::twin::diagnose_file_with_twin(
+                    &session,
+                    &twin,
+                    twin_out.as_deref(),
+                    &Default::default(),
+                )?,
+            };
             if json {
                 println!("{}", serde_json::to_string_pretty(&diagnosis)?);
             } else {

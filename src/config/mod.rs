@@ -327,6 +327,10 @@ pub struct SimConfig {
     /// Unmodelled effects of the simulated world (the vocabulary of `geocal diagnose`).
     #[serde(default)]
     pub effects: crate::sim::effects::EffectsConfig,
+    /// Seed of the tracer noise alone (default seed + 1): a twin of a recorded run keeps the
+    /// machine and stations of `seed` with noise of its own.
+    #[serde(default)]
+    pub noise_seed: Option<u64>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

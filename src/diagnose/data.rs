@@ -60,6 +60,11 @@ pub struct Data {
     /// Per observation: its raw window (None when the session's events do not locate it).
     pub windows: Vec<Option<RawWindow>>,
     pub dropped_windows: usize,
+    /// Per problem point: (target, plan point index, nominal) and its commanded axes; the
+    /// header's machine (structure, target offsets): the points level needs them.
+    pub points: Vec<(String, usize, [f64; 3])>,
+    pub point_axes_m: Vec<Option<[f64; 3]>>,
+    pub machine: crate::session::messages::MachineInfo,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -235,6 +240,9 @@ impl Data {
         }
         let problem = built.problem;
         Ok(Data {
+            points: built.points,
+            point_axes_m: built.axes_m,
+            machine: session.header.machine.clone(),
             session_id: session.header.session_id.clone(),
             has_env: obs.iter().all(|o| o.dn.is_some()),
             has_material: obs.iter().all(|o| o.material_dt_k.is_some()),

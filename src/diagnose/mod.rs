@@ -4,8 +4,11 @@
 pub mod data;
 pub mod effects;
 pub mod locate;
+pub mod loso;
+pub mod points;
 pub mod settling;
 pub mod stats;
+pub mod twin;
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -20,6 +23,8 @@ use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
+use loso::{leave_one_station_out, HeldOutStation};
+use points::{points_level, PointsLevel};
 use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
@@ -95,6 +100,16 @@ pub struct Diagnosis {
     pub selected: Vec<String>,
     pub gap_after: Gap,
     pub unexplained: bool,
+    /// The points level (solved points against the quasi-rigid 21-error model) of the nominal
+    /// model; absent when the session's points cannot be tested (the reason is in `notes`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub points_level: Option<PointsLevel>,
+    /// Each station's lengths predicted from the points of the others (nominal model).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub leave_one_station_out: Vec<HeldOutStation>,
+    /// The twin comparison, when the diagnosis is of a recording against its twin.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub twin: Option<twin::TwinReport>,
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
@@ -327,6 +342,15 @@ struct Trial {
 /// Diagnose a multilateration session: reads only the session.
 pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
     let data = Data::from_session(session)?;
+    Ok(diagnose_data(&data, options)?.0)
+}
+
+/// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
+/// the twin comparison does); also the selected effects' fitted contribution to each length.
+pub(crate) fn diagnose_data(
+    data: &Data,
+    options: &DiagnoseOptions,
+) -> Result<(Diagnosis, Vec<f64>), DiagnoseError> {
     let solution = solve(&data.problem, &SolveOptions::default())?;
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
@@ -367,7 +391,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         available.retain(|k| *k != EffectKind::ThermalExpansion);
         notes.push("no material temperature in the log: thermal_expansion cannot be tested".into());
     }
-    let nominal_j = geom.jacobian(&data);
+    let nominal_j = geom.jacobian(data);
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
 
@@ -379,7 +403,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     // predicts: it is tested there (its own block of data, in the first round's family), and
     // once accepted its bias is taken off the window means before the selection on the means.
     available.retain(|k| *k != EffectKind::Settling);
-    let settling_fit = settling::evaluate(&data, &geom);
+    let settling_fit = settling::evaluate(data, &geom);
     match &settling_fit {
         Some(fit) => {
             let alpha_each = options.alpha / (available.len() + 1) as f64;
@@ -420,7 +444,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
     for round in 0..=LIBRARY.len() {
         let design = accepted
             .iter()
-            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(&data, &geom)));
+            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
         let (full, fold_fits, base_gap, base_heldout_ms, count) = engine.base(&design, &all_rows);
         if round == 0 {
             let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
@@ -443,7 +467,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         let mut trials = Vec::new();
         for kind in &candidates {
             let (model, searched) = if *kind == EffectKind::LengthStep {
-                match best_step(&data, &full.basis, &full.res_w, None) {
+                match best_step(data, &full.basis, &full.res_w, None) {
                     Some((g, k, _, tried)) => (
                         EffectModel {
                             kind: *kind,
@@ -457,7 +481,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             } else {
                 (EffectModel::plain(*kind), 1)
             };
-            let a = model.columns(&data, &geom);
+            let a = model.columns(data, &geom);
             let eval = engine.evaluate(&design, &full, &fold_fits, &a);
             if eval.df == 0 {
                 if round == 0 {
@@ -546,7 +570,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             };
             records.insert(
                 trial.model.kind,
-                candidate_record(&data, trial, round, status, confounded_with),
+                candidate_record(data, trial, round, status, confounded_with),
             );
         }
         match winner {
@@ -581,7 +605,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             }
             std::borrow::Cow::Owned(d)
         }
-        _ => std::borrow::Cow::Borrowed(&data),
+        _ => std::borrow::Cow::Borrowed(data),
     };
     let final_fit = joint_fit(&fit_data, &geom, &accepted);
     let chi2: f64 = final_fit
@@ -607,7 +631,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         Basis::new(&jw, RANK_TOL, 0.0)
     };
     let where_ = locate(
-        &data,
+        data,
         &geom,
         &solution.residuals_m,
         &nominal_basis,
@@ -620,9 +644,75 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         &final_fit.basis,
         options.alpha,
     );
+    let mut where_ = where_;
+    let (held_out, skipped) = leave_one_station_out(data, &nominal_j, &solution.residuals_m);
+    if !skipped.is_empty() {
+        notes.push(format!(
+            "leave-one-station-out: without {} the other stations do not determine the points; not predicted",
+            skipped.join(", ")
+        ));
+    }
+    let excess = |h: &HeldOutStation| (h.ratio.powi(2) * h.dof as f64 - h.dof as f64).max(0.0);
+    let mut failing: Vec<WhereEntry> = held_out
+        .iter()
+        .filter(|h| h.p_value < options.alpha)
+        .map(|h| WhereEntry {
+            level: "lengths".into(),
+            group: "station".into(),
+            key: format!("{} held out", h.station),
+            // Its share of the stations' excess held-out χ² (χ² − dof): the held-out sums of
+            // squares themselves mostly reflect how well each station's points are determined.
+            share: excess(h)
+                / held_out
+                    .iter()
+                    .map(excess)
+                    .sum::<f64>()
+                    .max(f64::MIN_POSITIVE),
+            rms_m: h.heldout_rms_m,
+            p_value: h.p_value,
+        })
+        .collect();
+    failing.sort_by(|a, b| b.share.total_cmp(&a.share));
+    where_.extend(failing);
+    // The points level, before (recorded lengths) and after (fitted effects removed): a
+    // machine that departs from the quasi-rigid model is structure no candidate explains.
+    let recorded: Vec<f64> = data.obs.iter().map(|o| o.length_m).collect();
+    let points_before = match points_level(data, &recorded, options.alpha) {
+        Ok((level, entries)) => {
+            where_.extend(entries);
+            Some(level)
+        }
+        Err(why) => {
+            notes.push(format!("points level not tested: {why}"));
+            None
+        }
+    };
+    let points_after = if accepted.is_empty() {
+        points_before
+            .as_ref()
+            .filter(|p| p.gap.p_value < options.alpha)
+            .map(|p| (p.gap.chi2_per_dof, p.gap.p_value))
+    } else {
+        let corrected: Vec<f64> = recorded
+            .iter()
+            .zip(&final_fit.effect_m)
+            .map(|(l, e)| l - e)
+            .collect();
+        match points_level(data, &corrected, options.alpha) {
+            Ok((after, _)) => (after.gap.p_value < options.alpha)
+                .then_some((after.gap.chi2_per_dof, after.gap.p_value)),
+            Err(_) => None,
+        }
+    };
+    if let Some((ratio, p)) = points_after {
+        notes.push(format!(
+            "points level after the selected effects: chi2/dof {ratio:.2} (p = {p:.1e}): the measured points depart from the quasi-rigid 21-error model (a local or non-rigid machine error, or an effect no candidate holds)"
+        ));
+    }
     let chi2_p = chi2_sf(chi2, dof as f64);
-    let unexplained = chi2_p < options.alpha || !remaining.is_empty();
-    if unexplained {
+    let lengths_unexplained = chi2_p < options.alpha || !remaining.is_empty();
+    let unexplained = lengths_unexplained || points_after.is_some();
+    if lengths_unexplained {
         notes.push(format!(
             "after the selected effects: chi2/dof {:.2} (p = {:.1e}), {} residual group(s) still fail the noise model{}",
             chi2 / dof as f64,
@@ -651,7 +741,7 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
             .cmp(&rank_of(b))
             .then(a.bic_delta.total_cmp(&b.bic_delta))
     });
-    Ok(Diagnosis {
+    let diagnosis = Diagnosis {
         format: DIAGNOSIS_FORMAT.into(),
         session_id: data.session_id.clone(),
         noise_floor_m,
@@ -661,9 +751,13 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
         selected,
         gap_after,
         unexplained,
+        points_level: points_before,
+        leave_one_station_out: held_out,
         observations: nobs,
         notes,
-    })
+        twin: None,
+    };
+    Ok((diagnosis, final_fit.effect_m))
 }
 
 fn empty_gap(v: f64) -> Gap {
@@ -752,6 +846,8 @@ fn settling_record(fit: &settling::SettlingFit, status: String) -> Candidate {
 struct JointFit {
     geom: Geometry,
     resid_m: Vec<f64>,
+    /// The accepted effects' fitted contribution to each length (m).
+    effect_m: Vec<f64>,
     basis: Basis,
 }
 
@@ -794,7 +890,12 @@ fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -> JointFit 
     let a = design(&geom);
     let r = residual(&geom, &a, &theta);
     let aw = DMatrix::from_fn(nobs, a.ncols(), |i, c| a[(i, c)] * w[i]);
+    let np = geom.len();
+    let effect_m = (0..nobs)
+        .map(|i| (0..theta.len()).map(|c| a[(i, np + c)] * theta[c]).sum())
+        .collect();
     JointFit {
+        effect_m,
         basis: Basis::new(&aw, RANK_TOL, 0.0),
         geom,
         resid_m: r.iter().copied().collect(),
@@ -828,6 +929,93 @@ pub fn text(d: &Diagnosis) -> String {
         );
     };
     gap(&mut s, "gap (nominal model)", &d.gap);
+    if let Some(p) = &d.points_level {
+        let g = &p.gap;
+        let _ = writeln!(
+            s,
+            "  points level ({} points per pass against the 21-error model, rank {}): chi2/dof {:.2} (chi2 {:.1}, dof {}, p {:.1e}), RMS {} (floor {})",
+            g.points,
+            g.rank,
+            g.chi2_per_dof,
+            g.chi2,
+            g.dof,
+            g.p_value,
+            nm(g.rms_m),
+            nm(g.floor_m)
+        );
+        for dep in p.departures.iter().take(5) {
+            let _ = writeln!(
+                s,
+                "    point {} {} pass {} at [{:.3}, {:.3}, {:.3}] m: residual [{}, {}, {}] chi2 {:.1} p {:.1e}",
+                dep.target,
+                dep.point,
+                dep.pass,
+                dep.nominal_m[0],
+                dep.nominal_m[1],
+                dep.nominal_m[2],
+                nm(dep.residual_m[0]),
+                nm(dep.residual_m[1]),
+                nm(dep.residual_m[2]),
+                dep.chi2,
+                dep.p_value
+            );
+        }
+    }
+    if let Some(t) = &d.twin {
+        let _ = writeln!(
+            s,
+            "  twin {} ({}): {} lengths matched, {} not",
+            t.session_id, t.source, t.matched_lengths, t.unmatched_lengths
+        );
+        for (label, g) in [
+            ("before", &t.points_before),
+            ("after the selected effects", &t.points_after),
+        ] {
+            if let Some(g) = g {
+                let _ = writeln!(
+                    s,
+                    "    points minus the twin's, {label}: chi2/dof {:.2} (dof {}, p {:.1e}), RMS {} (floor {})",
+                    g.chi2_per_dof,
+                    g.dof,
+                    g.p_value,
+                    nm(g.rms_m),
+                    nm(g.floor_m)
+                );
+            }
+        }
+        for dep in t.departures.iter().take(5) {
+            let _ = writeln!(
+                s,
+                "    point {} {} pass {}: recording minus twin [{}, {}, {}] chi2 {:.1} p {:.1e}",
+                dep.target,
+                dep.point,
+                dep.pass,
+                nm(dep.residual_m[0]),
+                nm(dep.residual_m[1]),
+                nm(dep.residual_m[2]),
+                dep.chi2,
+                dep.p_value
+            );
+        }
+    }
+    if !d.leave_one_station_out.is_empty() {
+        let _ = writeln!(
+            s,
+            "  leave-one-station-out (lengths predicted from the other stations' points):"
+        );
+        for h in &d.leave_one_station_out {
+            let _ = writeln!(
+                s,
+                "    {:<9} {:>4} lengths  held-out RMS {} (floor {})  standardised {:.2}  p {:.1e}",
+                h.station,
+                h.lengths,
+                nm(h.heldout_rms_m),
+                nm(h.floor_m),
+                h.ratio,
+                h.p_value
+            );
+        }
+    }
     if d.where_.is_empty() {
         let _ = writeln!(s, "  where: no group departs from the noise model");
     } else {
@@ -838,7 +1026,8 @@ pub fn text(d: &Diagnosis) -> String {
         for w in &d.where_ {
             let _ = writeln!(
                 s,
-                "    {:<9} {:<40} share {:5.1} %  RMS {}  p {:.1e}",
+                "    {:<7} {:<9} {:<40} share {:5.1} %  RMS {}  p {:.1e}",
+                w.level,
                 w.group,
                 w.key,
                 100.0 * w.share,

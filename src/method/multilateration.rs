@@ -9,6 +9,7 @@ use serde::{Deserialize, Serialize};
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
+use crate::session::messages::MachineInfo;
 use crate::session::reader::Session;
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
@@ -317,28 +318,7 @@ fn geometric_errors(
 ) -> Result<serde_json::Value, String> {
     let machine = &session.header.machine;
     let structure = Structure::parse(&machine.structure).map_err(|e| e.to_string())?;
-    let mut observations = Vec::with_capacity(problem.points.len());
-    for (i, (target, point, nominal)) in problem.points.iter().enumerate() {
-        let axes_m = problem.axes_m[i].ok_or_else(|| {
-            format!(
-                "point {point} of target {target} has no commanded axes x, y, z in its point_begin"
-            )
-        })?;
-        let offset = machine
-            .targets
-            .iter()
-            .find(|t| &t.id == target)
-            .map(|t| t.offset_m)
-            .ok_or_else(|| {
-                format!("target `{target}` is not in the session header's machine.targets")
-            })?;
-        observations.push(PointObservation {
-            axes_m,
-            target_offset_m: offset,
-            error_m: std::array::from_fn(|k| solution.points[i][k] - nominal[k]),
-            covariance: solution.point_covariance[i],
-        });
-    }
+    let observations = point_observations(machine, &problem.points, &problem.axes_m, solution)?;
     let options = DecompositionOptions::default();
     let grid = grid_from_points(&observations, options.grid_tolerance_m);
     // Error functions are sampled at the grid positions: 6 per axis position, 3 squareness,
@@ -376,6 +356,40 @@ fn geometric_errors(
     let result = decompose_correlated(&structure, &grid, &observations, full.as_ref(), &options)
         .map_err(|e| e.to_string())?;
     serde_json::to_value(&result).map_err(|e| e.to_string())
+}
+
+/// The solved points as observations of the 21-error model: commanded axes, reflector offset
+/// from the header's targets, error = solved − nominal and its 3x3 covariance. `points[i]`
+/// (target, plan point, nominal) and `axes_m[i]` belong to `solution.points[i]`.
+pub fn point_observations(
+    machine: &MachineInfo,
+    points: &[(String, usize, [f64; 3])],
+    axes_m: &[Option<[f64; 3]>],
+    solution: &MultilaterationSolution,
+) -> Result<Vec<PointObservation>, String> {
+    let mut observations = Vec::with_capacity(points.len());
+    for (i, (target, point, nominal)) in points.iter().enumerate() {
+        let axes_m = axes_m[i].ok_or_else(|| {
+            format!(
+                "point {point} of target {target} has no commanded axes x, y, z in its point_begin"
+            )
+        })?;
+        let offset = machine
+            .targets
+            .iter()
+            .find(|t| &t.id == target)
+            .map(|t| t.offset_m)
+            .ok_or_else(|| {
+                format!("target `{target}` is not in the session header's machine.targets")
+            })?;
+        observations.push(PointObservation {
+            axes_m,
+            target_offset_m: offset,
+            error_m: std::array::from_fn(|k| solution.points[i][k] - nominal[k]),
+            covariance: solution.point_covariance[i],
+        });
+    }
+    Ok(observations)
 }
 
 /// The adjustment problem of a session's settled windows, with the bookkeeping that maps it

@@ -116,6 +116,9 @@ pub struct EffectsConfig {
     /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
     /// size·sin(2π·L/period) in the absolute distance.
     pub periodic_nonlinearity: PeriodicSwitch,
+    /// Not in the diagnosis library (a test of the points level): a local bump of the tool
+    /// position that the quasi-rigid 21-error model cannot express (src/sim/bump.rs).
+    pub local_bump: crate::sim::bump::BumpSwitch,
 }
 
 impl EffectsConfig {
@@ -131,6 +134,7 @@ impl EffectsConfig {
             || self.settling.enabled
             || self.target_offset.enabled
             || self.periodic_nonlinearity.enabled
+            || self.local_bump.enabled
     }
 
     /// Ranges serde cannot check; on failure (key, what was expected).
@@ -347,7 +351,7 @@ impl SimEffects {
     /// the reversal offset of the approach direction.
     pub fn actual_axes_m(&self, axes_m: [f64; 3], t_s: f64) -> [f64; 3] {
         let c = &self.config;
-        let mut out = axes_m;
+        let mut out = c.local_bump.displace(axes_m);
         if c.thermal_expansion.enabled && !self.env.material_temp_k.is_empty() {
             let sensors = &self.env.material_temp_k;
             let mean_k = sensors

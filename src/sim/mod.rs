@@ -1,6 +1,7 @@
 //! The simulated world: a seeded truth machine, instruments with their noise models, and
 //! simulated drivers behind the same traits as real ones.
 
+pub mod bump;
 pub mod devices;
 pub mod effects;
 pub mod hil;

@@ -206,7 +206,7 @@ impl SimWorld {
                 noise_m: tracer.noise_m,
                 noise_ppm: tracer.noise_ppm,
             },
-            rng: ChaCha8Rng::seed_from_u64(sim.seed.wrapping_add(1)),
+            rng: ChaCha8Rng::seed_from_u64(sim.noise_seed.unwrap_or(sim.seed.wrapping_add(1))),
             effects: SimEffects::new(
                 &sim.effects,
                 &sim.environment,

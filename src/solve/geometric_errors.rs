@@ -486,6 +486,42 @@ fn build_system(
     })
 }
 
+/// The decomposition's least-squares problem, whitened: design `x` (3n x P: the 21 error
+/// functions at the grid positions, squareness, rigid motion), response `y` and the lower
+/// triangular factor `l` of the covariance used (rows whitened by L⁻¹; block-diagonal when no
+/// full covariance is given). The diagnosis fits it as is: its residuals do not depend on
+/// the datum or on the elastic net, only on the column space of the quasi-rigid model.
+pub struct WhitenedDesign {
+    pub x: DMatrix<f64>,
+    pub y: DVector<f64>,
+    pub l: DMatrix<f64>,
+}
+
+pub fn whitened_design(
+    structure: &Structure,
+    grid_m: &[Vec<f64>; 3],
+    points: &[PointObservation],
+    full_covariance: Option<&DMatrix<f64>>,
+    options: &DecompositionOptions,
+) -> Result<WhitenedDesign, DecompositionError> {
+    let sys = build_system(structure, grid_m, points, full_covariance, options)?;
+    let l = match sys.whitening {
+        Whitening::Full(l) => l,
+        Whitening::Blocks(blocks) => {
+            let mut l = DMatrix::zeros(3 * blocks.len(), 3 * blocks.len());
+            for (i, b) in blocks.iter().enumerate() {
+                l.view_mut((3 * i, 3 * i), (3, 3)).copy_from(b);
+            }
+            l
+        }
+    };
+    Ok(WhitenedDesign {
+        x: sys.x,
+        y: sys.y,
+        l,
+    })
+}
+
 /// Column norms (zero columns get 1 so they stay zero).
 fn column_norms(a: &DMatrix<f64>) -> DVector<f64> {
     DVector::from_fn(a.ncols(), |j, _| {

@@ -1,0 +1,330 @@
+//! The points level of the diagnosis: the solved points (one set per pass, full covariance)
+//! fitted by the machine's quasi-rigid 21-error model; whitened residuals, χ², and where they depart.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+
+use super::data::Data;
+use super::locate::WhereEntry;
+use super::stats::{chi2_sf, Basis};
+use crate::method::multilateration::point_observations;
+use crate::model::kinematics::Structure;
+use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
+use crate::solve::multilateration::{
+    dense_point_covariance, solve, LengthObservation, MultilaterationProblem,
+    MultilaterationSolution, SolveOptions,
+};
+
+/// Relative singular value below which a direction of the (column-normalised) quasi-rigid
+/// design counts as not identifiable, as in the decomposition.
+const RANK_TOL: f64 = 1e-9;
+/// Largest decomposition fitted (unknowns), as `geocal solve` bounds its dense decomposition.
+const MAX_PARAMETERS: usize = 1500;
+
+/// The points level's fit against the noise model.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PointsGap {
+    /// Σ of the whitened residuals squared and its degrees of freedom (3·points − rank).
+    pub chi2: f64,
+    pub dof: usize,
+    pub chi2_per_dof: f64,
+    pub p_value: f64,
+    /// RMS of the residual components (m), and the RMS the noise model expects of them.
+    pub rms_m: f64,
+    pub floor_m: f64,
+    /// Points fitted (per target, plan point and pass) and identifiable model parameters.
+    pub points: usize,
+    pub rank: usize,
+}
+
+/// One point whose residual fails the noise model (Bonferroni over the points).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PointDeparture {
+    pub target: String,
+    pub point: usize,
+    pub pass: usize,
+    pub nominal_m: [f64; 3],
+    pub residual_m: [f64; 3],
+    /// χ² of its 3 residual components under their covariance, and the corrected p-value.
+    pub chi2: f64,
+    pub p_value: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct PointsLevel {
+    pub gap: PointsGap,
+    /// Points failing the noise model, largest χ² first.
+    #[serde(default)]
+    pub departures: Vec<PointDeparture>,
+}
+
+/// A pass point and its (target, plan point, nominal): what the group tests need of a point.
+pub type PointMeta<'a> = (&'a PassPoint, &'a (String, usize, [f64; 3]));
+
+/// One fitted point of the per-pass problem and its bookkeeping.
+pub struct PassPoint {
+    /// Problem point of `data` and pass.
+    pub point: usize,
+    pub pass: usize,
+    pub approach: [f64; 3],
+}
+
+/// The points solved per pass with their full covariance (3n x 3n, point-major).
+pub struct PerPass {
+    pub pass_points: Vec<PassPoint>,
+    /// (target, plan point, nominal) of each pass point.
+    pub info: Vec<(String, usize, [f64; 3])>,
+    pub solution: MultilaterationSolution,
+    pub cov: DMatrix<f64>,
+}
+
+/// Solve the lengths `lengths_m` (one per observation of `data`) with one unknown point per
+/// (plan point, pass): passes then show as such (reversal, drift).
+pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String> {
+    let mut index: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+    let mut pass_points: Vec<PassPoint> = Vec::new();
+    let mut observations = Vec::with_capacity(data.obs.len());
+    for (o, &length_m) in data.obs.iter().zip(lengths_m) {
+        let k = *index.entry((o.point, o.pass)).or_insert_with(|| {
+            pass_points.push(PassPoint {
+                point: o.point,
+                pass: o.pass,
+                approach: o.approach,
+            });
+            pass_points.len() - 1
+        });
+        observations.push(LengthObservation {
+            point: k,
+            segment: o.segment,
+            length_m,
+            sigma_m: o.sigma_m,
+        });
+    }
+    let problem = MultilaterationProblem {
+        nominal_points: pass_points
+            .iter()
+            .map(|p| data.problem.nominal_points[p.point])
+            .collect(),
+        station_hints: data.problem.station_hints.clone(),
+        segments: data.problem.segments.clone(),
+        observations,
+    };
+    let solution = solve(&problem, &SolveOptions::default())
+        .map_err(|e| format!("the per-pass multilateration: {e}"))?;
+    let cov = dense_point_covariance(&problem, &solution).ok_or_else(|| {
+        "the per-pass problem is too large for the dense point covariance".to_string()
+    })?;
+    let info = pass_points
+        .iter()
+        .map(|p| data.points[p.point].clone())
+        .collect();
+    Ok(PerPass {
+        pass_points,
+        info,
+        solution,
+        cov,
+    })
+}
+
+/// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
+/// is rᵀ C⁺ r over the group (pseudo-inverse: the rows the model fits exactly drop out).
+fn group_chi2(e: &DVector<f64>, c: &DMatrix<f64>, rows: &[usize]) -> (f64, f64) {
+    let sub = DMatrix::from_fn(rows.len(), rows.len(), |a, b| c[(rows[a], rows[b])]);
+    let v = DVector::from_fn(rows.len(), |a, _| e[rows[a]]);
+    let eigen = sub.symmetric_eigen();
+    let largest = eigen.eigenvalues.amax();
+    let (mut stat, mut dof) = (0.0, 0.0);
+    for (k, &lambda) in eigen.eigenvalues.iter().enumerate() {
+        if lambda > 1e-9 * largest && lambda > 0.0 {
+            stat += eigen.eigenvectors.column(k).dot(&v).powi(2) / lambda;
+            dof += 1.0;
+        }
+    }
+    (stat, dof)
+}
+
+/// Fit the points solved from `lengths_m` (one per observation of `data`; the recorded lengths,
+/// or lengths with fitted effects removed) against the quasi-rigid 21-error model. Err says
+/// why the points level cannot be computed for this session.
+pub fn points_level(
+    data: &Data,
+    lengths_m: &[f64],
+    alpha: f64,
+) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
+    let PerPass {
+        pass_points,
+        info,
+        solution,
+        cov,
+    } = per_pass_points(data, lengths_m)?;
+    let axes: Vec<Option<[f64; 3]>> = pass_points
+        .iter()
+        .map(|p| data.point_axes_m[p.point])
+        .collect();
+    let obs = point_observations(&data.machine, &info, &axes, &solution)?;
+    let structure = Structure::parse(&data.machine.structure).map_err(|e| e.to_string())?;
+    let options = DecompositionOptions::default();
+    let grid = grid_from_points(&obs, options.grid_tolerance_m);
+    let parameters = 6 * grid.iter().map(Vec::len).sum::<usize>() + 9;
+    let equations = 3 * obs.len();
+    if parameters > MAX_PARAMETERS || 2 * parameters > equations {
+        return Err(format!(
+            "the points are not on an axis grid the 21-error model can test: {parameters} \
+             unknowns for {equations} equations (needs at most {MAX_PARAMETERS} and at most half)"
+        ));
+    }
+    let wd = whitened_design(&structure, &grid, &obs, Some(&cov), &options)
+        .map_err(|e| e.to_string())?;
+    // Column-normalised so that the rank cut treats metres and radians alike.
+    let mut xn = wd.x.clone();
+    for mut col in xn.column_iter_mut() {
+        let n = col.norm();
+        if n > 0.0 {
+            col /= n;
+        }
+    }
+    let basis = Basis::new(&xn, RANK_TOL, 1.0);
+    let r_w = basis.project_off_vec(&wd.y);
+    let chi2 = r_w.norm_squared();
+    let rows = equations;
+    let dof = rows.saturating_sub(basis.rank());
+    let e = &wd.l * &r_w;
+    // Cov(e) = L (I − U Uᵀ) Lᵀ.
+    let lu = &wd.l * &basis.u;
+    let c = &wd.l * wd.l.transpose() - &lu * lu.transpose();
+    let gap = PointsGap {
+        chi2,
+        dof,
+        chi2_per_dof: chi2 / dof.max(1) as f64,
+        p_value: chi2_sf(chi2, dof as f64),
+        rms_m: (e.norm_squared() / rows as f64).sqrt(),
+        floor_m: (c.trace().max(0.0) / rows as f64).sqrt(),
+        points: pass_points.len(),
+        rank: basis.rank(),
+    };
+
+    let meta: Vec<PointMeta> = pass_points.iter().zip(&info).collect();
+    let out = test_groups(&e, &c, &meta, alpha, "");
+    let departures = point_departures(&e, &c, &meta, alpha);
+    Ok((PointsLevel { gap, departures }, out))
+}
+
+/// Groups of rows of point residuals `e` (covariance `c`, point-major x, y, z), tested against
+/// the noise model: region (octant of the nominal point), component, approach, pass, target.
+/// `suffix` is appended to each key.
+pub fn test_groups(
+    e: &DVector<f64>,
+    c: &DMatrix<f64>,
+    meta: &[PointMeta],
+    alpha: f64,
+    suffix: &str,
+) -> Vec<WhereEntry> {
+    let total_m2 = e.norm_squared().max(f64::MIN_POSITIVE);
+    let n = meta.len();
+    let pass_points: Vec<&PassPoint> = meta.iter().map(|m| m.0).collect();
+    let info: Vec<&(String, usize, [f64; 3])> = meta.iter().map(|m| m.1).collect();
+    let all_rows = |keep: &dyn Fn(usize) -> bool| -> Vec<usize> {
+        (0..n)
+            .filter(|&k| keep(k))
+            .flat_map(|k| 3 * k..3 * k + 3)
+            .collect()
+    };
+    let nominal = |k: usize| info[k].2;
+    let centre: [f64; 3] =
+        std::array::from_fn(|a| (0..n).map(|k| nominal(k)[a]).sum::<f64>() / n.max(1) as f64);
+    let mut groups: Vec<(&str, String, Vec<usize>)> = Vec::new();
+    for octant in 0..8 {
+        let key: String = (0..3)
+            .map(|a| {
+                format!(
+                    "{}{}",
+                    ["x", "y", "z"][a],
+                    if octant >> a & 1 == 1 { "+" } else { "-" }
+                )
+            })
+            .collect();
+        let members =
+            all_rows(&|k| (0..3).all(|a| (nominal(k)[a] > centre[a]) == (octant >> a & 1 == 1)));
+        groups.push(("region", key, members));
+    }
+    for (a, axis) in ["x", "y", "z"].iter().enumerate() {
+        groups.push((
+            "axis",
+            format!("{axis} component"),
+            (0..n).map(|k| 3 * k + a).collect(),
+        ));
+    }
+    for (a, axis) in ["x", "y", "z"].iter().enumerate() {
+        for (s, sign) in [(1.0, "+"), (-1.0, "-")] {
+            let members = all_rows(&|k| pass_points[k].approach[a] == s);
+            groups.push(("direction", format!("{axis}{sign}"), members));
+        }
+    }
+    let max_pass = pass_points.iter().map(|p| p.pass).max().unwrap_or(0);
+    if max_pass > 0 {
+        for p in 0..=max_pass {
+            groups.push((
+                "pass",
+                format!("pass {p}"),
+                all_rows(&|k| pass_points[k].pass == p),
+            ));
+        }
+    }
+    let mut targets: Vec<&String> = info.iter().map(|i| &i.0).collect();
+    targets.sort();
+    targets.dedup();
+    if targets.len() > 1 {
+        for t in targets {
+            groups.push(("target", t.clone(), all_rows(&|k| &info[k].0 == t)));
+        }
+    }
+    groups.retain(|g| !g.2.is_empty());
+    let tests = groups.len() as f64;
+    let mut out = Vec::new();
+    for (group, key, members) in &groups {
+        let (stat, gdof) = group_chi2(e, c, members);
+        let p = (chi2_sf(stat, gdof) * tests).min(1.0);
+        if p < alpha {
+            let ss: f64 = members.iter().map(|&r| e[r].powi(2)).sum();
+            out.push(WhereEntry {
+                level: "points".into(),
+                group: (*group).into(),
+                key: format!("{key}{suffix}"),
+                share: ss / total_m2,
+                rms_m: (ss / members.len() as f64).sqrt(),
+                p_value: p,
+            });
+        }
+    }
+    out.sort_by(|a, b| b.share.total_cmp(&a.share));
+    out
+}
+
+/// Single points whose 3 residual components fail the noise model (Bonferroni over points).
+pub fn point_departures(
+    e: &DVector<f64>,
+    c: &DMatrix<f64>,
+    meta: &[PointMeta],
+    alpha: f64,
+) -> Vec<PointDeparture> {
+    let n = meta.len();
+    let mut departures: Vec<PointDeparture> = (0..n)
+        .filter_map(|k| {
+            let (stat, gdof) = group_chi2(e, c, &[3 * k, 3 * k + 1, 3 * k + 2]);
+            let p = (chi2_sf(stat, gdof) * n as f64).min(1.0);
+            (p < alpha).then(|| PointDeparture {
+                target: meta[k].1 .0.clone(),
+                point: meta[k].1 .1,
+                pass: meta[k].0.pass,
+                nominal_m: meta[k].1 .2,
+                residual_m: [e[3 * k], e[3 * k + 1], e[3 * k + 2]],
+                chi2: stat,
+                p_value: p,
+            })
+        })
+        .collect();
+    departures.sort_by(|a, b| b.chi2.total_cmp(&a.chi2));
+    departures
+}
