@@ -693,10 +693,12 @@ pub(crate) fn diagnose_data(
             .filter(|p| p.gap.p_value < options.alpha)
             .map(|p| (p.gap.chi2_per_dof, p.gap.p_value))
     } else {
-        let corrected: Vec<f64> = recorded
+        // From the lengths the final fit saw (the settling bias, if accepted, already off).
+        let corrected: Vec<f64> = fit_data
+            .obs
             .iter()
             .zip(&final_fit.effect_m)
-            .map(|(l, e)| l - e)
+            .map(|(o, e)| o.length_m - e)
             .collect();
         match points_level(data, &corrected, options.alpha) {
             Ok((after, _)) => (after.gap.p_value < options.alpha)
