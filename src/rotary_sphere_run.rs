@@ -44,12 +44,28 @@ struct LoggingArm;
 
 #[async_trait]
 impl ProbeArm for LoggingArm {
-    async fn mount_sphere(&mut self, height_index: usize, nominal_m: [f64; 3]) -> Result<(), DeviceError> {
-        tracing::warn!(height_index, ?nominal_m, "mount the sphere at height {height_index}");
+    async fn mount_sphere(
+        &mut self,
+        height_index: usize,
+        nominal_m: [f64; 3],
+    ) -> Result<(), DeviceError> {
+        tracing::warn!(
+            height_index,
+            ?nominal_m,
+            "mount the sphere at height {height_index}"
+        );
         Ok(())
     }
-    async fn approach(&mut self, start_m: [f64; 3], direction: [f64; 3]) -> Result<(), DeviceError> {
-        tracing::info!(?start_m, ?direction, "bring the probe to the approach start");
+    async fn approach(
+        &mut self,
+        start_m: [f64; 3],
+        direction: [f64; 3],
+    ) -> Result<(), DeviceError> {
+        tracing::info!(
+            ?start_m,
+            ?direction,
+            "bring the probe to the approach start"
+        );
         Ok(())
     }
 }
@@ -60,7 +76,11 @@ fn probe_config(config: &RotarySphereConfig) -> ProbeConfig {
     c
 }
 
-async fn build(config: &RotarySphereConfig, plan: &SpherePlan, epoch_ns: u64) -> anyhow::Result<Built> {
+async fn build(
+    config: &RotarySphereConfig,
+    plan: &SpherePlan,
+    epoch_ns: u64,
+) -> anyhow::Result<Built> {
     let probe_cfg = &config.devices.probe;
     let table_cfg = &config.devices.rotary_table;
     let emulate = config.hil.as_ref().is_some_and(|h| h.emulate);
@@ -159,7 +179,10 @@ fn device(id: &str, kind: &str, driver: &str, noise_m: Option<f64>) -> DeviceInf
 fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
     let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
         .ok()
-        .and_then(|t| t.format(&time::format_description::well_known::Rfc3339).ok())
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
         .unwrap_or_default();
     let seed = config
         .sim
@@ -182,7 +205,12 @@ fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
         },
         devices: vec![
             device(&table.id, "rotary_table", table.driver.as_str(), None),
-            device(&probe.id, "probe", probe.driver.as_str(), Some(probe.noise_m)),
+            device(
+                &probe.id,
+                "probe",
+                probe.driver.as_str(),
+                Some(probe.noise_m),
+            ),
         ],
         plan: serde_json::to_value(&config.plan).unwrap_or_default(),
     }
@@ -234,8 +262,11 @@ pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<
         let world = world
             .lock()
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
-        std::fs::write(path, serde_json::to_string_pretty(&world.export_truth(&plan))?)
-            .with_context(|| format!("writing truth to {}", path.display()))?;
+        std::fs::write(
+            path,
+            serde_json::to_string_pretty(&world.export_truth(&plan))?,
+        )
+        .with_context(|| format!("writing truth to {}", path.display()))?;
     }
     let results = solve_file(&session_path, &options.settings)?;
     let results_path = options.out_dir.join("results.json");

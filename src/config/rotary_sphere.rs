@@ -258,7 +258,10 @@ impl RotarySphereConfig {
             }
         };
         if self.kind != KIND {
-            return Err(("kind", format!("expected \"{KIND}\", found {:?}", self.kind)));
+            return Err((
+                "kind",
+                format!("expected \"{KIND}\", found {:?}", self.kind),
+            ));
         }
         if plan.table != self.devices.rotary_table.id {
             return Err((
@@ -298,7 +301,10 @@ impl RotarySphereConfig {
             ));
         }
         if !plan.start_rad.is_finite() {
-            return Err(("plan.start_rad", "expected a finite angle in radians".into()));
+            return Err((
+                "plan.start_rad",
+                "expected a finite angle in radians".into(),
+            ));
         }
         positive("plan.step_rad", plan.step_rad)?;
         // Distinct angles: the per-angle motion errors and the harmonic fit need them.

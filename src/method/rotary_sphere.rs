@@ -24,7 +24,9 @@ pub const PUBLISHED_TOLERANCE_M: f64 = 10e-6;
 pub enum RotarySphereMethodError {
     #[error("session header: `plan` is not a rotary_sphere plan: {0}")]
     Plan(String),
-    #[error("session header: no device of kind `probe` with `noise_m` > 0 (the probe's repeatability)")]
+    #[error(
+        "session header: no device of kind `probe` with `noise_m` > 0 (the probe's repeatability)"
+    )]
     NoProbeNoise,
     #[error("no readings on /probe/{0}/reading")]
     NoReadings(String),
@@ -203,10 +205,7 @@ fn collect_points(
                 angle_index: a,
                 point,
             } => {
-                let Some(p) = spheres
-                    .get_mut(&(*h, *a))
-                    .and_then(|s| s.1.get_mut(point))
-                else {
+                let Some(p) = spheres.get_mut(&(*h, *a)).and_then(|s| s.1.get_mut(point)) else {
                     return Err(outside("probe_point_end", e.log_time_ns, *h, *a, *point));
                 };
                 p.end_ns = Some(e.log_time_ns);
@@ -439,7 +438,11 @@ const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
 pub fn text(r: &RotarySphereResults) -> String {
     use std::fmt::Write;
     let mut s = String::new();
-    let fit = r.spheres.iter().filter(|s| s.role == HeightRole::Fit).count();
+    let fit = r
+        .spheres
+        .iter()
+        .filter(|s| s.role == HeightRole::Fit)
+        .count();
     let _ = writeln!(
         s,
         "rotary axis {} from a reference sphere (r = {:.4} mm, probe σ {:.1} µm): {} spheres, {} at fit heights",
@@ -452,9 +455,21 @@ pub fn text(r: &RotarySphereResults) -> String {
     let _ = writeln!(s, "  location (position-independent) errors:");
     for v in &r.location {
         if v.name.starts_with("EX") || v.name.starts_with("EY") {
-            let _ = writeln!(s, "    {:5} {:9.2} µm   σ {:.2} µm", v.name, v.value * 1e6, v.sigma * 1e6);
+            let _ = writeln!(
+                s,
+                "    {:5} {:9.2} µm   σ {:.2} µm",
+                v.name,
+                v.value * 1e6,
+                v.sigma * 1e6
+            );
         } else {
-            let _ = writeln!(s, "    {:5} {:9.2} µrad σ {:.2} µrad", v.name, v.value * 1e6, v.sigma * 1e6);
+            let _ = writeln!(
+                s,
+                "    {:5} {:9.2} µrad σ {:.2} µrad",
+                v.name,
+                v.value * 1e6,
+                v.sigma * 1e6
+            );
         }
     }
     let _ = writeln!(
@@ -463,19 +478,38 @@ pub fn text(r: &RotarySphereResults) -> String {
         r.motion.len()
     );
     for (k, name) in r.motion_names.iter().enumerate() {
-        let peak = r.motion.iter().map(|m| m.errors[k].abs()).fold(0.0, f64::max);
+        let peak = r
+            .motion
+            .iter()
+            .map(|m| m.errors[k].abs())
+            .fold(0.0, f64::max);
         let mut sig: Vec<f64> = r.motion.iter().map(|m| m.sigma[k]).collect();
         sig.sort_by(f64::total_cmp);
         let med = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
         let order = r.harmonics.get(k).map_or(0, |h| h.order);
         if k < 3 {
-            let _ = writeln!(s, "    {name:4} peak {:8.2} µm     σ {:6.2} µm     order {order}", peak * 1e6, med * 1e6);
+            let _ = writeln!(
+                s,
+                "    {name:4} peak {:8.2} µm     σ {:6.2} µm     order {order}",
+                peak * 1e6,
+                med * 1e6
+            );
         } else {
-            let _ = writeln!(s, "    {name:4} peak {:8.2} arcsec σ {:6.2} arcsec order {order}", peak * ARCSEC_PER_RAD, med * ARCSEC_PER_RAD);
+            let _ = writeln!(
+                s,
+                "    {name:4} peak {:8.2} arcsec σ {:6.2} arcsec order {order}",
+                peak * ARCSEC_PER_RAD,
+                med * ARCSEC_PER_RAD
+            );
         }
     }
     if r.dof > 0 {
-        let _ = writeln!(s, "  per-angle model χ²/dof {:.2} ({} dof)", r.chi2 / r.dof as f64, r.dof);
+        let _ = writeln!(
+            s,
+            "  per-angle model χ²/dof {:.2} ({} dof)",
+            r.chi2 / r.dof as f64,
+            r.dof
+        );
     }
     for v in &r.validation {
         let _ = writeln!(

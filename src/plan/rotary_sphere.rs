@@ -66,7 +66,11 @@ impl SpherePlan {
     }
 
     /// Where the probe starts its approach to a nominal surface point along −`direction`.
-    pub fn approach_start(&self, nominal_m: &Vector3<f64>, direction: &Vector3<f64>) -> Vector3<f64> {
+    pub fn approach_start(
+        &self,
+        nominal_m: &Vector3<f64>,
+        direction: &Vector3<f64>,
+    ) -> Vector3<f64> {
         nominal_m + direction * self.standoff_m
     }
 

@@ -11,8 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT,
-    TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample,
+    SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.

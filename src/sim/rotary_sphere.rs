@@ -172,7 +172,12 @@ impl SphereWorld {
             centres_m: self
                 .positions_m
                 .iter()
-                .map(|q| angles.iter().map(|&a| self.truth.centre(a, q).into()).collect())
+                .map(|q| {
+                    angles
+                        .iter()
+                        .map(|&a| self.truth.centre(a, q).into())
+                        .collect()
+                })
                 .collect(),
             angles_rad: angles,
             radius_m: self.radius_m,
