@@ -197,6 +197,20 @@ fn replay_gives_identical_results_and_events_are_recorded() {
         .filter(|s| s.msg.in_position)
         .count();
     assert_eq!(in_position, 108);
+    // The independent Python reader (PyPI mcap + jsonschema) accepts every message.
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/check_session.py");
+    let py = std::process::Command::new("python3")
+        .arg(script)
+        .arg(&output.session_path)
+        .args(["--expect-tracer-samples", "0"])
+        .output()
+        .expect("python3 must be installed to run the independent session reader");
+    let stdout = String::from_utf8_lossy(&py.stdout);
+    assert!(
+        py.status.success() && stdout.contains("/probe/arm0/reading\t540"),
+        "independent reader: {stdout}\n{}",
+        String::from_utf8_lossy(&py.stderr)
+    );
     let text = geocal::report::text(&output.results);
     assert!(
         text.contains("EXOC") && text.contains("validation height 2"),

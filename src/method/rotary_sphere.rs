@@ -529,3 +529,54 @@ pub fn text(r: &RotarySphereResults) -> String {
     }
     s
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(begin_ns: u64, end_ns: Option<u64>) -> ProbedPoint {
+        ProbedPoint {
+            nominal_m: Vector3::zeros(),
+            direction: Vector3::z(),
+            begin_ns,
+            end_ns,
+            sum_m: 0.0,
+            readings: 0,
+        }
+    }
+
+    /// A reading belongs to the window (begin, end]: one at the instant a point ends and the
+    /// next begins is the ending point's; readings outside every window count for none.
+    #[test]
+    fn readings_go_to_their_window() {
+        let mut spheres: Spheres = BTreeMap::new();
+        spheres.insert(
+            (0, 0),
+            (
+                0.0,
+                BTreeMap::from([
+                    (0, point(10, Some(20))),
+                    (1, point(20, Some(30))),
+                    (2, point(30, None)),
+                ]),
+            ),
+        );
+        attach_readings(
+            &mut spheres,
+            &[
+                (5, 9.0),
+                (10, 9.0),
+                (15, 1.0),
+                (20, 2.0),
+                (25, 3.0),
+                (26, 5.0),
+                (35, 9.0),
+            ],
+        );
+        let p = &spheres[&(0, 0)].1;
+        assert_eq!((p[&0].readings, p[&0].sum_m), (2, 3.0));
+        assert_eq!((p[&1].readings, p[&1].sum_m), (2, 8.0));
+        // An unfinished point (the run stopped) gets nothing.
+        assert_eq!(p[&2].readings, 0);
+    }
+}
