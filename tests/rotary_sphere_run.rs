@@ -309,3 +309,73 @@ fn hil_ascii_probe_against_its_emulator() {
         .collect();
     assert_eq!(codes, ["timeout", "protocol"]);
 }
+
+/// A probe that only answers garbage: every reading is retried 5 times with `fault` events,
+/// then the run fails with the device's error; the session recorded so far stays readable.
+#[test]
+fn a_probe_that_never_answers_properly_ends_the_run_with_its_session_kept() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let text = CONFIG.replace("driver = \"sim\"                 #", "driver = \"ascii\" #")
+        + "\n[hil]\nemulate = true\nprobe_faults = { garbage_probability = 1.0 }\n";
+    let err = run(
+        &config(&text),
+        &RunOptions {
+            out_dir: dir.path().to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .err()
+    .expect("the run must fail");
+    let chain = format!("{err:#}");
+    assert!(
+        chain.contains("run failed") && chain.contains("protocol error"),
+        "{chain}"
+    );
+    let session = read_session(&dir.path().join("session.mcap")).expect("kept session");
+    let faults: Vec<&str> = session
+        .events
+        .iter()
+        .filter_map(|e| match &e.msg {
+            RunEvent::Fault { message, .. } => Some(message.as_str()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(faults.len(), 6, "{faults:?}");
+    assert!(faults[5].contains("giving up after 5 retries"));
+    assert!(session.probes.is_empty());
+}
+
+/// The command line: a bad configuration fails with file, key and expectation on stderr;
+/// `check` accepts the example.
+#[test]
+fn cli_reports_bad_configs_and_checks_good_ones() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, CONFIG.replacen("points = 5 ", "points = 3 ", 1)).expect("write");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("run")
+        .arg(&bad)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .output()
+        .expect("geocal run");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("bad.toml: key `plan.points`: expected at least 5"),
+        "{stderr}"
+    );
+    let good = concat!(env!("CARGO_MANIFEST_DIR"), "/config/rotary-sphere.toml");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["check", good])
+        .output()
+        .expect("geocal check");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("3 heights x 36 angles x 5 points"));
+}
