@@ -337,7 +337,7 @@ fn main() {
         drop(session);
         let results =
             whole.run(|| geocal::run::solve_file(&path, &Default::default()).expect("solve_file"));
-        let r = results.multilateration();
+        let r = results.multilateration().expect("tracer results");
         whole.note = format!(
             "residual RMS {:.1} nm, {} points",
             r.residual_rms_m * 1e9,

@@ -102,6 +102,31 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             json,
             huber,
         } => {
+            use geocal::config::rotary_sphere as sphere;
+            if sphere::peek_kind(&config)?.as_deref() == Some(sphere::KIND) {
+                let cfg = sphere::RotarySphereConfig::load(&config)?;
+                let output = geocal::rotary_sphere_run::run(
+                    &cfg,
+                    &geocal::run::RunOptions {
+                        out_dir: out,
+                        truth,
+                        progress: std::io::stderr().is_terminal(),
+                        settings: settings(huber),
+                    },
+                )?;
+                if json {
+                    println!("{}", output.results.to_json_pretty());
+                } else {
+                    print!("{}", geocal::report::text(&output.results));
+                    println!(
+                        "\n  {} probe readings recorded to {}\n  results in {}",
+                        output.summary.readings,
+                        output.session_path.display(),
+                        output.results_path.display()
+                    );
+                }
+                return Ok(());
+            }
             let cfg = geocal::config::Config::load(&config)?;
             let output = geocal::run::run(
                 &cfg,
@@ -163,6 +188,19 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
         }
         Command::Check { config, json } => {
+            use geocal::config::rotary_sphere as sphere;
+            if sphere::peek_kind(&config)?.as_deref() == Some(sphere::KIND) {
+                let cfg = sphere::RotarySphereConfig::load(&config)?;
+                let plan = geocal::plan::rotary_sphere::SpherePlan::from_config(&cfg.plan);
+                println!(
+                    "{}: valid ({} heights x {} angles x {} points)",
+                    config.display(),
+                    plan.heights.len(),
+                    plan.angles_rad.len(),
+                    plan.directions.len()
+                );
+                return Ok(());
+            }
             let cfg = geocal::config::Config::load(&config)?;
             let plan = geocal::plan::Plan::from_config(&cfg);
             let check = geocal::method::plan_check::check(&cfg, &plan)

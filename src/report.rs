@@ -12,6 +12,7 @@ pub fn text(results: &Results) -> String {
         Results::RotaryTracer(r) => {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
+        Results::RotarySphere(r) => crate::method::rotary_sphere::text(r),
     }
 }
 

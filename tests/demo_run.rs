@@ -56,7 +56,7 @@ fn grade_geometric_errors(
 fn demo_recovers_truth_and_replays_identically() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run_with_truth(DEMO, dir.path());
-    let results = output.results.multilateration();
+    let results = output.results.multilateration().expect("tracer results");
     assert_eq!(results.points.len(), 100);
     assert_recovers_truth(results, &truth);
     // The fit is consistent with the noise model: chi2/dof near 1 (dof ~ 700: 3 sigma ~ 0.16).
@@ -128,7 +128,7 @@ fn two_targets_each_get_their_own_homing_distance() {
         .replace("targets = [\"t0\"]", "targets = [\"t0\", \"t1\"]");
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run_with_truth(&text, dir.path());
-    let results = output.results.multilateration();
+    let results = output.results.multilateration().expect("tracer results");
     assert_eq!(results.points.len(), 2 * 18);
     for s in &results.stations {
         let targets: Vec<&str> = s.segments.iter().map(|g| g.target.as_str()).collect();

@@ -88,7 +88,7 @@ fn hil_run_recovers_truth() {
     let started = std::time::Instant::now();
     let (output, truth) = run_with_truth(&hil_config(""), dir.path());
     println!("HIL run: {:.1} s", started.elapsed().as_secs_f64());
-    let results = output.results.multilateration();
+    let results = output.results.multilateration().expect("tracer results");
     assert_eq!(results.points.len(), 18);
     println!(
         "chi2/dof {:.2} (dof {}), residual RMS {:.3e} m",
@@ -128,7 +128,7 @@ drop_ok_at_lines = [20]
         "HIL run with faults: {:.1} s",
         started.elapsed().as_secs_f64()
     );
-    let results = output.results.multilateration();
+    let results = output.results.multilateration().expect("tracer results");
     assert_eq!(results.points.len(), 18);
     println!(
         "chi2/dof {:.2} (dof {}), residual RMS {:.3e} m",

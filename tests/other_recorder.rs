@@ -155,7 +155,7 @@ fn a_foreign_recording_of_the_same_data_solves_identically() {
 fn a_slower_recorder_without_a_noise_model_still_solves() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (session_path, results) = small_run(dir.path());
-    let reference = results.multilateration();
+    let reference = results.multilateration().expect("tracer results");
     let session = read_session(&session_path).expect("read");
     let foreign = dir.path().join("slow.mcap");
     // Every third sample: an 8.3 Hz recorder. No noise model: sigmas come from the scatter.
@@ -171,7 +171,7 @@ fn a_slower_recorder_without_a_noise_model_still_solves() {
     )
     .expect("write");
     let slow = solve_file(&foreign, &Default::default()).expect("solve slow session");
-    let slow = slow.multilateration();
+    let slow = slow.multilateration().expect("tracer results");
     assert_eq!(
         slow.extraction.windows_dropped, 0,
         "{:?}",

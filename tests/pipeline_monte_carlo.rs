@@ -40,7 +40,7 @@ fn reported_uncertainty_matches_actual_error_over_seeds() {
         .expect("run");
         let truth: Value =
             serde_json::from_slice(&std::fs::read(truth_path).expect("truth")).expect("json");
-        let r = output.results.multilateration();
+        let r = output.results.multilateration().expect("tracer results");
         let xyz = |v: &Value| [0, 1, 2].map(|k| v[k].as_f64().expect("number"));
         let true_points: Vec<[f64; 3]> = r
             .points

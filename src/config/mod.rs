@@ -2,6 +2,7 @@
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
 mod hil;
+pub mod rotary_sphere;
 mod validate;
 
 use std::collections::BTreeMap;

@@ -3,6 +3,7 @@
 
 pub mod multilateration;
 pub mod plan_check;
+pub mod rotary_sphere;
 pub mod rotary_tracer;
 
 use serde::Serialize;
@@ -11,12 +12,14 @@ use crate::session::reader::Session;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer)")]
+    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer, rotary_sphere)")]
     UnknownKind(String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
     #[error(transparent)]
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
+    #[error(transparent)]
+    RotarySphere(#[from] rotary_sphere::RotarySphereMethodError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -27,6 +30,7 @@ pub enum MethodError {
 pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
+    RotarySphere(Box<rotary_sphere::RotarySphereResults>),
 }
 
 impl Results {
@@ -34,11 +38,12 @@ impl Results {
         serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
     }
 
-    /// The stations and points every tracer method has.
-    pub fn multilateration(&self) -> &multilateration::MultilaterationResults {
+    /// The stations and points every tracer method has (None for methods without a tracer).
+    pub fn multilateration(&self) -> Option<&multilateration::MultilaterationResults> {
         match self {
-            Results::Multilateration(r) => r,
-            Results::RotaryTracer(r) => &r.multilateration,
+            Results::Multilateration(r) => Some(r),
+            Results::RotaryTracer(r) => Some(&r.multilateration),
+            Results::RotarySphere(_) => None,
         }
     }
 }
@@ -58,6 +63,9 @@ pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Resu
         rotary_tracer::KIND => Ok(Results::RotaryTracer(rotary_tracer::solve(
             session, settings,
         )?)),
+        crate::config::rotary_sphere::KIND => Ok(Results::RotarySphere(Box::new(
+            rotary_sphere::solve(session)?,
+        ))),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }

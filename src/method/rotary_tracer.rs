@@ -275,6 +275,7 @@ mod tests {
                     })
                     .collect(),
             )]),
+            probes: BTreeMap::new(),
             events: events.into_iter().enumerate().map(stamp).collect(),
             completeness: Completeness::Complete,
             skipped: 0,

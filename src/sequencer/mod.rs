@@ -8,6 +8,8 @@
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
 //! break touched. Every sample is recorded throughout.
 
+pub mod rotary_sphere;
+
 use std::collections::BTreeMap;
 use std::sync::Arc;
 

@@ -18,12 +18,17 @@ pub fn env_topic(id: &str) -> String {
 pub fn rotary_topic(id: &str) -> String {
     format!("/rotary/{id}/state")
 }
+/// Raw readings of a displacement probe (plan kind `rotary_sphere`).
+pub fn probe_topic(id: &str) -> String {
+    format!("/probe/{id}/reading")
+}
 
 pub const SCHEMA_SESSION: &str = "geocal.Session";
 pub const SCHEMA_TRACER: &str = "geocal.TracerSample";
 pub const SCHEMA_ENV: &str = "geocal.EnvSample";
 pub const SCHEMA_EVENT: &str = "geocal.RunEvent";
 pub const SCHEMA_ROTARY: &str = "geocal.RotaryState";
+pub const SCHEMA_PROBE: &str = "geocal.ProbeReading";
 
 /// `/geocal/session`: exactly one, first in the file.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -124,6 +129,17 @@ pub struct RotaryStateSample {
 }
 
 /// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
+/// One raw reading of a displacement probe, as the driver reported it.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct ProbeSample {
+    /// Readings counted from 1 by the sequencer.
+    pub seq: u64,
+    /// Device (driver) time of the reading, seconds.
+    pub t_s: f64,
+    /// Displacement along the probing direction, metres.
+    pub value_m: f64,
+}
+
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "kind", rename_all = "snake_case", try_from = "WireEvent")]
 pub enum RunEvent {
@@ -166,6 +182,32 @@ pub enum RunEvent {
         code: String,
         message: String,
     },
+    /// Plan kind `rotary_sphere`: the sphere at height `height_index` is probed with the table
+    /// in position at `commanded_rad` (the `angle_index`-th commanded angle).
+    SphereBegin {
+        height_index: usize,
+        angle_index: usize,
+        commanded_rad: f64,
+    },
+    /// One probed point: the probe approaches `nominal_m` (the nominal surface point) along
+    /// −`direction` (the outward nominal normal); the readings until `probe_point_end` belong
+    /// to it (the measured point is nominal_m − value_m · direction).
+    ProbePointBegin {
+        height_index: usize,
+        angle_index: usize,
+        point: usize,
+        nominal_m: [f64; 3],
+        direction: [f64; 3],
+    },
+    ProbePointEnd {
+        height_index: usize,
+        angle_index: usize,
+        point: usize,
+    },
+    SphereEnd {
+        height_index: usize,
+        angle_index: usize,
+    },
     #[serde(other)]
     Other,
 }
@@ -191,6 +233,9 @@ struct WireEvent {
     device: Option<String>,
     code: Option<String>,
     message: Option<String>,
+    height_index: Option<usize>,
+    angle_index: Option<usize>,
+    direction: Option<[f64; 3]>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -234,6 +279,27 @@ impl TryFrom<WireEvent> for RunEvent {
                 device: w.device.ok_or_else(|| need("device"))?,
                 code: w.code.ok_or_else(|| need("code"))?,
                 message: w.message.ok_or_else(|| need("message"))?,
+            },
+            "sphere_begin" => RunEvent::SphereBegin {
+                height_index: w.height_index.ok_or_else(|| need("height_index"))?,
+                angle_index: w.angle_index.ok_or_else(|| need("angle_index"))?,
+                commanded_rad: w.commanded_rad.ok_or_else(|| need("commanded_rad"))?,
+            },
+            "probe_point_begin" => RunEvent::ProbePointBegin {
+                height_index: w.height_index.ok_or_else(|| need("height_index"))?,
+                angle_index: w.angle_index.ok_or_else(|| need("angle_index"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                nominal_m: w.nominal_m.ok_or_else(|| need("nominal_m"))?,
+                direction: w.direction.ok_or_else(|| need("direction"))?,
+            },
+            "probe_point_end" => RunEvent::ProbePointEnd {
+                height_index: w.height_index.ok_or_else(|| need("height_index"))?,
+                angle_index: w.angle_index.ok_or_else(|| need("angle_index"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+            },
+            "sphere_end" => RunEvent::SphereEnd {
+                height_index: w.height_index.ok_or_else(|| need("height_index"))?,
+                angle_index: w.angle_index.ok_or_else(|| need("angle_index"))?,
             },
             _ => RunEvent::Other,
         })
@@ -281,6 +347,27 @@ mod tests {
                 device: "tracer0".into(),
                 code: "timeout".into(),
                 message: "late".into(),
+            },
+            RunEvent::SphereBegin {
+                height_index: 1,
+                angle_index: 4,
+                commanded_rad: 0.7,
+            },
+            RunEvent::ProbePointBegin {
+                height_index: 1,
+                angle_index: 4,
+                point: 2,
+                nominal_m: [0.07, 0.01, 0.18],
+                direction: [0.0, 0.0, 1.0],
+            },
+            RunEvent::ProbePointEnd {
+                height_index: 1,
+                angle_index: 4,
+                point: 2,
+            },
+            RunEvent::SphereEnd {
+                height_index: 1,
+                angle_index: 4,
             },
         ];
         for e in events {
@@ -385,6 +472,18 @@ pub mod schema {
   }
 }"#;
 
+    pub const PROBE: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.ProbeReading",
+  "type": "object",
+  "required": ["seq", "t_s", "value_m"],
+  "properties": {
+    "seq": {"type": "integer", "minimum": 0},
+    "t_s": {"type": "number"},
+    "value_m": {"type": "number"}
+  }
+}"#;
+
     pub const EVENT: &str = r#"{
   "$schema": "https://json-schema.org/draft/2020-12/schema",
   "title": "geocal.RunEvent",
@@ -406,7 +505,10 @@ pub mod schema {
     "commanded_rad": {"type": "number"},
     "device": {"type": "string"},
     "code": {"type": "string"},
-    "message": {"type": "string"}
+    "message": {"type": "string"},
+    "height_index": {"type": "integer", "minimum": 0},
+    "angle_index": {"type": "integer", "minimum": 0},
+    "direction": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
   },
   "allOf": [
     {"if": {"properties": {"kind": {"const": "point_begin"}}},
@@ -418,7 +520,15 @@ pub mod schema {
     {"if": {"properties": {"kind": {"const": "rotation"}}},
      "then": {"required": ["table", "commanded_rad"]}},
     {"if": {"properties": {"kind": {"const": "fault"}}},
-     "then": {"required": ["device", "code", "message"]}}
+     "then": {"required": ["device", "code", "message"]}},
+    {"if": {"properties": {"kind": {"const": "sphere_begin"}}},
+     "then": {"required": ["height_index", "angle_index", "commanded_rad"]}},
+    {"if": {"properties": {"kind": {"const": "probe_point_begin"}}},
+     "then": {"required": ["height_index", "angle_index", "point", "nominal_m", "direction"]}},
+    {"if": {"properties": {"kind": {"const": "probe_point_end"}}},
+     "then": {"required": ["height_index", "angle_index", "point"]}},
+    {"if": {"properties": {"kind": {"const": "sphere_end"}}},
+     "then": {"required": ["height_index", "angle_index"]}}
   ]
 }"#;
 }

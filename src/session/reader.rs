@@ -11,8 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT,
-    TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample,
+    SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.
@@ -52,6 +52,8 @@ pub struct Session {
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
     /// Key: table id from the topic `/rotary/<id>/state`.
     pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
+    /// Key: probe id from the topic `/probe/<id>/reading`.
+    pub probes: BTreeMap<String, Vec<Stamped<ProbeSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
@@ -378,6 +380,7 @@ enum Slot {
     Tracer(usize),
     Env(usize),
     Rotary(usize),
+    Probe(usize),
     Event,
     /// A topic we do not read.
     Other,
@@ -393,6 +396,7 @@ struct Decoder {
     tracers: Streams<TracerSample>,
     env: Streams<EnvSample>,
     rotary: Streams<RotaryStateSample>,
+    probes: Streams<ProbeSample>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
@@ -482,6 +486,7 @@ impl Decoder {
             tracers: Streams::default(),
             env: Streams::default(),
             rotary: Streams::default(),
+            probes: Streams::default(),
             events: Vec::new(),
             header: None,
             lazy_header: false,
@@ -505,6 +510,8 @@ impl Decoder {
             Slot::Env(self.env.index(eid))
         } else if let Some(rid) = rotary_id(topic) {
             Slot::Rotary(self.rotary.index(rid))
+        } else if let Some(pid) = probe_id(topic) {
+            Slot::Probe(self.probes.index(pid))
         } else {
             Slot::Other
         };
@@ -556,6 +563,7 @@ impl Decoder {
         w.tracers = self.tracers.empty_like();
         w.env = self.env.empty_like();
         w.rotary = self.rotary.empty_like();
+        w.probes = self.probes.empty_like();
         w.lazy_header = true;
         w
     }
@@ -568,6 +576,7 @@ impl Decoder {
         self.tracers.absorb(other.tracers);
         self.env.absorb(other.env);
         self.rotary.absorb(other.rotary);
+        self.probes.absorb(other.probes);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -594,6 +603,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => self.tracers.streams[*i].1.reserve(n),
             Some(Slot::Env(i)) => self.env.streams[*i].1.reserve(n),
             Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
+            Some(Slot::Probe(i)) => self.probes.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -665,6 +675,11 @@ impl Decoder {
                     self.rotary.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
+            Slot::Probe(i) => {
+                if let Some(msg) = self.parse::<ProbeSample>(channel_id, log_time_ns, data) {
+                    self.probes.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
             Slot::Event => {
                 if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
                     self.events.push(Stamped {
@@ -730,6 +745,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers.streams[*i].0),
             Some(Slot::Env(i)) => format!("/env/{}", self.env.streams[*i].0),
             Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
+            Some(Slot::Probe(i)) => format!("/probe/{}/reading", self.probes.streams[*i].0),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -776,6 +792,7 @@ impl Decoder {
         let tracers = self.tracers.into_sorted_map();
         let env = self.env.into_sorted_map();
         let rotary = self.rotary.into_sorted_map();
+        let probes = self.probes.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
@@ -783,6 +800,7 @@ impl Decoder {
             tracers,
             env,
             rotary,
+            probes,
             events,
             completeness,
             skipped: self.skipped,
@@ -809,6 +827,11 @@ fn env_id(topic: &str) -> Option<&str> {
 
 fn rotary_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/rotary/")?.strip_suffix("/state")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn probe_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/probe/")?.strip_suffix("/reading")?;
     (!id.is_empty() && !id.contains('/')).then_some(id)
 }
 
@@ -1526,6 +1549,8 @@ mod tests {
         assert_eq!(rotary_id("/rotary/c/state"), Some("c"));
         assert_eq!(rotary_id("/rotary//state"), None);
         assert_eq!(rotary_id("/rotary/c/x/state"), None);
+        assert_eq!(probe_id("/probe/arm0/reading"), Some("arm0"));
+        assert_eq!(probe_id("/probe//reading"), None);
         assert_eq!(messages::tracer_topic("x"), "/tracer/x/range");
     }
 }

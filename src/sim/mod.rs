@@ -6,5 +6,6 @@ pub mod devices;
 pub mod effects;
 pub mod hil;
 pub mod rotary;
+pub mod rotary_sphere;
 pub mod truth;
 pub mod world;

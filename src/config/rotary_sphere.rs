@@ -1,0 +1,430 @@
+//! Configuration of plan kind `rotary_sphere` (a reference sphere on a rotary table, probed at
+//! every commanded angle on several heights): its own strict TOML schema and validation.
+
+use std::path::Path;
+
+use serde::{Deserialize, Serialize};
+
+use super::{ConfigError, DriverKind, RotaryTableConfig};
+
+pub const KIND: &str = "rotary_sphere";
+
+/// The `kind` of a configuration file, read before its schema is chosen (None when absent).
+pub fn peek_kind(path: &Path) -> Result<Option<String>, ConfigError> {
+    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        file: path.to_path_buf(),
+        source,
+    })?;
+    let value: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
+        file: path.to_path_buf(),
+        key: "(document)".into(),
+        message: e.to_string(),
+    })?;
+    Ok(value
+        .get("kind")
+        .and_then(|k| k.as_str())
+        .map(str::to_string))
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct RotarySphereConfig {
+    /// Must be `rotary_sphere`.
+    pub kind: String,
+    #[serde(default)]
+    pub machine: SphereMachineConfig,
+    pub devices: SphereDevicesConfig,
+    pub plan: SpherePlanConfig,
+    /// The simulated world; required when a device uses the `sim` driver.
+    #[serde(default)]
+    pub sim: Option<SphereSimConfig>,
+    /// Hardware-in-the-loop: the probe's ASCII emulator on a pty, backed by `[sim]`.
+    #[serde(default)]
+    pub hil: Option<SphereHilConfig>,
+}
+
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SphereMachineConfig {
+    #[serde(default)]
+    pub name: String,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SphereDevicesConfig {
+    pub rotary_table: RotaryTableConfig,
+    pub probe: ProbeDeviceConfig,
+}
+
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeDriverKind {
+    Sim,
+    /// Line-oriented ASCII request/response readout (drivers/src/probe).
+    Ascii,
+}
+
+impl ProbeDriverKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ProbeDriverKind::Sim => "sim",
+            ProbeDriverKind::Ascii => "ascii",
+        }
+    }
+}
+
+/// The probe: a displacement sensor on a probing arm; one reading per probed point.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeDeviceConfig {
+    /// Id on the `/probe/<id>/reading` topic.
+    pub id: String,
+    pub driver: ProbeDriverKind,
+    /// Repeatability of one reading along the probing direction (1 σ), metres.
+    pub noise_m: f64,
+    /// `[devices.probe.ascii]`: the driver's settings (port, command, value_pattern,
+    /// scale_to_m, ...; driver `ascii`; `id` comes from here).
+    #[serde(default)]
+    pub ascii: Option<geocal_drivers::probe::ProbeConfig>,
+}
+
+/// One height of the sphere on its stand above the table.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SphereHeightConfig {
+    /// Nominal sphere centre at commanded angle 0, metres (frame: nominal axis = z).
+    pub sphere_m: [f64; 3],
+    #[serde(default)]
+    pub role: HeightRole,
+}
+
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum HeightRole {
+    /// Used to identify the axis.
+    #[default]
+    Fit,
+    /// Kept out of the fit; its centres are predicted and compared.
+    Validation,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SpherePlanConfig {
+    /// Id of the table (must equal `devices.rotary_table.id`).
+    pub table: String,
+    /// Calibrated radius of the reference sphere, metres.
+    pub sphere_radius_m: f64,
+    /// Probed points per sphere (≥ 5: the top pole, four equator poles, then rings).
+    pub points: usize,
+    /// Readings averaged per point (the paper repeats each sphere three times).
+    #[serde(default = "default_one")]
+    pub readings_per_point: usize,
+    /// Distance from the nominal surface at which the probe starts its approach, metres.
+    pub standoff_m: f64,
+    /// Commanded angles: first (default 0), step and count, radians.
+    #[serde(default)]
+    pub start_rad: f64,
+    pub step_rad: f64,
+    pub count: usize,
+    /// Heights in measuring order; at least two with role `fit`.
+    pub heights: Vec<SphereHeightConfig>,
+    /// Highest harmonic order the solver may choose per error (by BIC).
+    #[serde(default = "default_max_order")]
+    pub max_harmonic_order: usize,
+    /// Longest wait for the table to report in position, seconds.
+    #[serde(default = "default_in_position_timeout")]
+    pub in_position_timeout_s: f64,
+    /// Pause between table state polls on real devices, seconds.
+    #[serde(default = "default_poll")]
+    pub poll_interval_s: f64,
+}
+
+fn default_one() -> usize {
+    1
+}
+fn default_max_order() -> usize {
+    8
+}
+fn default_in_position_timeout() -> f64 {
+    600.0
+}
+fn default_poll() -> f64 {
+    0.1
+}
+
+impl SpherePlanConfig {
+    pub fn angles_rad(&self) -> Vec<f64> {
+        (0..self.count)
+            .map(|k| self.start_rad + self.step_rad * k as f64)
+            .collect()
+    }
+}
+
+/// Truth of the simulated table and sphere.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SphereSimConfig {
+    pub seed: u64,
+    /// Highest harmonic of the true motion errors (realistic sizes: location tens of µm and
+    /// µrad, radial/axial motion a few µm, tilt a few µrad, positioning some arcseconds).
+    #[serde(default = "default_truth_order")]
+    pub harmonics: usize,
+    /// Standard deviation of the true sphere position from its nominal, per coordinate, m.
+    #[serde(default = "default_placement")]
+    pub sphere_placement_m: f64,
+    /// Table speed, rad/s, and settling time after a rotation, s.
+    #[serde(default = "default_speed")]
+    pub speed_rad_s: f64,
+    #[serde(default = "default_settle")]
+    pub settle_s: f64,
+    /// Time the arm needs to probe one point, s; to remount the sphere at a new height, s.
+    #[serde(default = "default_point_time")]
+    pub point_time_s: f64,
+    #[serde(default = "default_remount")]
+    pub remount_s: f64,
+}
+
+fn default_truth_order() -> usize {
+    4
+}
+fn default_placement() -> f64 {
+    5e-4
+}
+fn default_speed() -> f64 {
+    0.2
+}
+fn default_settle() -> f64 {
+    2.0
+}
+fn default_point_time() -> f64 {
+    3.0
+}
+fn default_remount() -> f64 {
+    600.0
+}
+
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SphereHilConfig {
+    /// Host the probe's ASCII emulator on a pty (backed by `[sim]`) and read it with the real
+    /// driver (`devices.probe.driver = "ascii"`).
+    pub emulate: bool,
+    #[serde(default)]
+    pub probe_faults: geocal_drivers::probe::ProbeFaults,
+}
+
+impl RotarySphereConfig {
+    pub fn load(path: &Path) -> Result<Self, ConfigError> {
+        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+            file: path.to_path_buf(),
+            source,
+        })?;
+        Self::parse(&text, path)
+    }
+
+    /// Parse and validate configuration text; `file` names it in errors.
+    pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {
+        let parse_error = |key: String, message: String| ConfigError::Parse {
+            file: file.to_path_buf(),
+            key,
+            message,
+        };
+        let deserializer = toml::de::Deserializer::parse(text)
+            .map_err(|e| parse_error(String::from("(document)"), e.to_string()))?;
+        let config: Self = serde_path_to_error::deserialize(deserializer).map_err(|e| {
+            let key = e.path().to_string();
+            parse_error(key, e.into_inner().to_string().trim_end().to_string())
+        })?;
+        config
+            .validate()
+            .map_err(|(key, message)| ConfigError::Invalid {
+                file: file.to_path_buf(),
+                key: key.into(),
+                message,
+            })?;
+        Ok(config)
+    }
+
+    /// The keys and what they should be; the first problem found.
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        let plan = &self.plan;
+        let positive = |key: &'static str, v: f64| {
+            if v.is_finite() && v > 0.0 {
+                Ok(())
+            } else {
+                Err((key, format!("expected a positive number, found {v}")))
+            }
+        };
+        if self.kind != KIND {
+            return Err((
+                "kind",
+                format!("expected \"{KIND}\", found {:?}", self.kind),
+            ));
+        }
+        if plan.table != self.devices.rotary_table.id {
+            return Err((
+                "plan.table",
+                format!(
+                    "expected the id of devices.rotary_table ({:?}), found {:?}",
+                    self.devices.rotary_table.id, plan.table
+                ),
+            ));
+        }
+        positive("plan.sphere_radius_m", plan.sphere_radius_m)?;
+        positive("plan.standoff_m", plan.standoff_m)?;
+        positive("plan.in_position_timeout_s", plan.in_position_timeout_s)?;
+        if !(plan.poll_interval_s.is_finite() && plan.poll_interval_s >= 0.0) {
+            return Err((
+                "plan.poll_interval_s",
+                format!("expected seconds ≥ 0, found {}", plan.poll_interval_s),
+            ));
+        }
+        if plan.points < 5 {
+            return Err((
+                "plan.points",
+                format!(
+                    "expected at least 5 points per sphere (the top pole and four equator \
+                     poles), found {}",
+                    plan.points
+                ),
+            ));
+        }
+        if plan.readings_per_point == 0 {
+            return Err(("plan.readings_per_point", "expected at least 1".into()));
+        }
+        if plan.count < 3 {
+            return Err((
+                "plan.count",
+                format!("expected at least 3 commanded angles, found {}", plan.count),
+            ));
+        }
+        if !plan.start_rad.is_finite() {
+            return Err((
+                "plan.start_rad",
+                "expected a finite angle in radians".into(),
+            ));
+        }
+        positive("plan.step_rad", plan.step_rad)?;
+        // Distinct angles: the per-angle motion errors and the harmonic fit need them.
+        if plan.step_rad * (plan.count - 1) as f64 >= std::f64::consts::TAU - 1e-9 {
+            return Err((
+                "plan.step_rad",
+                format!(
+                    "expected {} distinct angles within one turn: step × (count − 1) must be \
+                     below 2π rad",
+                    plan.count
+                ),
+            ));
+        }
+        let fit = plan
+            .heights
+            .iter()
+            .filter(|h| h.role == HeightRole::Fit)
+            .count();
+        if fit < 2 {
+            return Err((
+                "plan.heights",
+                format!(
+                    "expected at least 2 heights with role \"fit\" (tilts need two heights), \
+                     found {fit}"
+                ),
+            ));
+        }
+        for h in &plan.heights {
+            if h.sphere_m.iter().any(|v| !v.is_finite()) {
+                return Err(("plan.heights.sphere_m", "expected finite metres".into()));
+            }
+            if h.sphere_m[0].hypot(h.sphere_m[1]) <= plan.sphere_radius_m {
+                return Err((
+                    "plan.heights.sphere_m",
+                    format!(
+                        "expected the sphere off the axis (radius from the axis > sphere \
+                         radius {} m), found {:?}",
+                        plan.sphere_radius_m, h.sphere_m
+                    ),
+                ));
+            }
+        }
+        if plan.max_harmonic_order > (plan.count - 1) / 2 {
+            return Err((
+                "plan.max_harmonic_order",
+                format!(
+                    "expected at most (count − 1) / 2 = {} for {} angles, found {}",
+                    (plan.count - 1) / 2,
+                    plan.count,
+                    plan.max_harmonic_order
+                ),
+            ));
+        }
+        let probe = &self.devices.probe;
+        positive("devices.probe.noise_m", probe.noise_m)?;
+        let emulate = self.hil.as_ref().is_some_and(|h| h.emulate);
+        match probe.driver {
+            ProbeDriverKind::Ascii if probe.ascii.is_none() && !emulate => {
+                return Err((
+                    "devices.probe.ascii",
+                    "driver \"ascii\" needs [devices.probe.ascii] with at least `port`".into(),
+                ))
+            }
+            ProbeDriverKind::Sim if emulate => {
+                return Err((
+                    "hil.emulate",
+                    "emulation serves the ASCII probe: expected devices.probe.driver = \"ascii\""
+                        .into(),
+                ))
+            }
+            _ => {}
+        }
+        if let Some(ascii) = &probe.ascii {
+            ascii
+                .protocol()
+                .map_err(|e| ("devices.probe.ascii", e.to_string()))?;
+        }
+        let table_sim = self.devices.rotary_table.driver == DriverKind::Sim;
+        if (table_sim || probe.driver == ProbeDriverKind::Sim || emulate) && self.sim.is_none() {
+            return Err((
+                "sim",
+                "a `sim` device or [hil] emulation needs the [sim] section".into(),
+            ));
+        }
+        if let Some(sim) = &self.sim {
+            positive("sim.speed_rad_s", sim.speed_rad_s)?;
+            for (key, v) in [
+                ("sim.sphere_placement_m", sim.sphere_placement_m),
+                ("sim.settle_s", sim.settle_s),
+                ("sim.point_time_s", sim.point_time_s),
+                ("sim.remount_s", sim.remount_s),
+            ] {
+                if !(v.is_finite() && v >= 0.0) {
+                    return Err((key, format!("expected a number ≥ 0, found {v}")));
+                }
+            }
+            // The probe must still meet the sphere when it is misplaced by a few σ.
+            if 5.0 * sim.sphere_placement_m >= plan.standoff_m.min(plan.sphere_radius_m) {
+                return Err((
+                    "sim.sphere_placement_m",
+                    format!(
+                        "expected well below the standoff ({} m): 5 σ must stay inside it",
+                        plan.standoff_m
+                    ),
+                ));
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_example_config_is_valid() {
+        let path = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/rotary-sphere.toml");
+        let c = RotarySphereConfig::load(&path).expect("example config");
+        assert_eq!(c.plan.angles_rad().len(), 36);
+        assert_eq!(peek_kind(&path).expect("kind").as_deref(), Some(KIND));
+    }
+}

@@ -1,0 +1,582 @@
+//! Rotary axis from a reference sphere (plan kind `rotary_sphere`): probed points from the
+//! session's events and raw probe readings -> sphere centres -> axis errors -> results.
+
+use std::collections::BTreeMap;
+
+use nalgebra::Vector3;
+use serde::Serialize;
+
+use crate::config::rotary_sphere::{HeightRole, SpherePlanConfig, KIND};
+use crate::method::multilateration::RESULTS_FORMAT;
+use crate::model::rotary_sphere::{LOCATION_NAMES, MOTION_NAMES};
+use crate::plan::rotary_sphere::SpherePlan;
+use crate::session::messages::RunEvent;
+use crate::session::reader::Session;
+use crate::solve::rotary_sphere::{
+    fit_sphere, identify_rotary_axis, validate, CentreSeries, HarmonicFit, HarmonicOrder,
+    IdentifyOptions, RotarySphereError, SphereFit, TangentialConvention,
+};
+
+/// The tolerance of the published prediction check (~80 % of residuals within 10 µm).
+pub const PUBLISHED_TOLERANCE_M: f64 = 10e-6;
+
+#[derive(Debug, thiserror::Error)]
+pub enum RotarySphereMethodError {
+    #[error("session header: `plan` is not a rotary_sphere plan: {0}")]
+    Plan(String),
+    #[error(
+        "session header: no device of kind `probe` with `noise_m` > 0 (the probe's repeatability)"
+    )]
+    NoProbeNoise,
+    #[error("no readings on /probe/{0}/reading")]
+    NoReadings(String),
+    #[error("`{kind}` event at log_time {log_time_ns} ns names height {height_index}, angle {angle_index} or point {point}, outside the plan")]
+    OutsidePlan {
+        kind: &'static str,
+        log_time_ns: u64,
+        height_index: usize,
+        angle_index: usize,
+        point: usize,
+    },
+    #[error("fit heights share {0} completely probed angles; the identification needs at least 3")]
+    TooFewAngles(usize),
+    #[error("sphere at height {height_index}, angle {angle_index}: {source}")]
+    Sphere {
+        height_index: usize,
+        angle_index: usize,
+        source: RotarySphereError,
+    },
+    #[error("axis identification: {0}")]
+    Identify(RotarySphereError),
+    #[error("validation at height {height_index}: {source}")]
+    Validation {
+        height_index: usize,
+        source: RotarySphereError,
+    },
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct RotarySphereResults {
+    pub format: String,
+    pub kind: String,
+    pub session_id: String,
+    pub table: String,
+    pub sphere_radius_m: f64,
+    /// The probe's repeatability per reading (the noise model of every uncertainty here).
+    pub probe_noise_m: f64,
+    pub spheres: Vec<SphereResult>,
+    /// EXOC, EYOC (m), EAOC, EBOC (rad) with standard uncertainties.
+    pub location: Vec<NamedValue>,
+    pub location_covariance: [[f64; 4]; 4],
+    /// How the tangential combination t + r·ECC is split (one sphere radius cannot split it).
+    pub convention: TangentialConvention,
+    pub reference_radius_m: f64,
+    pub motion_names: [&'static str; 6],
+    pub motion: Vec<MotionAtAngle>,
+    /// Per motion error, its harmonic model value(θ) = c0 + Σ a_k cos kθ + b_k sin kθ.
+    pub harmonics: Vec<HarmonicFit>,
+    /// χ² of the per-angle motion model and its degrees of freedom (> 0 with > 2 fit heights).
+    pub chi2: f64,
+    pub dof: usize,
+    pub validation: Vec<ValidationResult>,
+    pub notes: Vec<String>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct NamedValue {
+    pub name: &'static str,
+    pub value: f64,
+    pub sigma: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct SphereResult {
+    pub height_index: usize,
+    pub role: HeightRole,
+    pub angle_index: usize,
+    pub commanded_rad: f64,
+    pub centre_m: [f64; 3],
+    pub centre_sigma_m: [f64; 3],
+    pub centre_covariance_m2: [[f64; 3]; 3],
+    /// Probed points used and the RMS distance of their points from the fitted sphere.
+    pub points: usize,
+    pub readings: usize,
+    pub residual_rms_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct MotionAtAngle {
+    pub angle_index: usize,
+    pub commanded_rad: f64,
+    /// EXC, EYC, EZC (m), EAC, EBC, ECC (rad) and their standard uncertainties.
+    pub errors: [f64; 6],
+    pub sigma: [f64; 6],
+    /// The convention-free tangential combination t + r·ECC, metres.
+    pub tangential_m: f64,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct ValidationResult {
+    pub height_index: usize,
+    pub sphere_position_m: [f64; 3],
+    pub angles_rad: Vec<f64>,
+    /// measured − predicted centre, and the predicted σ of each coordinate.
+    pub residuals_m: Vec<[f64; 3]>,
+    pub residual_sigma_m: Vec<[f64; 3]>,
+    /// Share of 3-D residual lengths and of single coordinates within 10 µm (the published
+    /// check: ~80 %), and of coordinates within 3 predicted σ.
+    pub share_norm_within_10um: f64,
+    pub share_coordinates_within_10um: f64,
+    pub share_within_3_sigma: f64,
+    pub chi2: f64,
+    pub count: usize,
+}
+
+/// One probed point: its nominal surface point, direction and the mean of its readings.
+#[derive(Debug, Clone)]
+struct ProbedPoint {
+    nominal_m: Vector3<f64>,
+    direction: Vector3<f64>,
+    begin_ns: u64,
+    end_ns: Option<u64>,
+    sum_m: f64,
+    readings: usize,
+}
+
+/// The spheres of the session: (height, angle) -> (commanded angle, points by index).
+type Spheres = BTreeMap<(usize, usize), (f64, BTreeMap<usize, ProbedPoint>)>;
+
+fn collect_points(
+    session: &Session,
+    plan: &SpherePlan,
+) -> Result<Spheres, RotarySphereMethodError> {
+    let mut spheres: Spheres = BTreeMap::new();
+    let outside = |kind, log_time_ns, height_index, angle_index, point| {
+        RotarySphereMethodError::OutsidePlan {
+            kind,
+            log_time_ns,
+            height_index,
+            angle_index,
+            point,
+        }
+    };
+    let (nh, na, np) = (
+        plan.heights.len(),
+        plan.angles_rad.len(),
+        plan.directions.len(),
+    );
+    for e in &session.events {
+        match &e.msg {
+            RunEvent::SphereBegin {
+                height_index: h,
+                angle_index: a,
+                commanded_rad,
+            } => {
+                if *h >= nh || *a >= na {
+                    return Err(outside("sphere_begin", e.log_time_ns, *h, *a, 0));
+                }
+                // A repeated sphere (a resumed run) replaces the earlier one.
+                spheres.insert((*h, *a), (*commanded_rad, BTreeMap::new()));
+            }
+            RunEvent::ProbePointBegin {
+                height_index: h,
+                angle_index: a,
+                point,
+                nominal_m,
+                direction,
+            } => {
+                let Some(sphere) = spheres.get_mut(&(*h, *a)).filter(|_| *point < np) else {
+                    return Err(outside("probe_point_begin", e.log_time_ns, *h, *a, *point));
+                };
+                sphere.1.insert(
+                    *point,
+                    ProbedPoint {
+                        nominal_m: Vector3::from(*nominal_m),
+                        direction: Vector3::from(*direction).normalize(),
+                        begin_ns: e.log_time_ns,
+                        end_ns: None,
+                        sum_m: 0.0,
+                        readings: 0,
+                    },
+                );
+            }
+            RunEvent::ProbePointEnd {
+                height_index: h,
+                angle_index: a,
+                point,
+            } => {
+                let Some(p) = spheres.get_mut(&(*h, *a)).and_then(|s| s.1.get_mut(point)) else {
+                    return Err(outside("probe_point_end", e.log_time_ns, *h, *a, *point));
+                };
+                p.end_ns = Some(e.log_time_ns);
+            }
+            _ => {}
+        }
+    }
+    Ok(spheres)
+}
+
+/// Attribute every reading to the point whose window (begin, end] holds its log time.
+fn attach_readings(spheres: &mut Spheres, readings: &[(u64, f64)]) {
+    let mut windows: Vec<&mut ProbedPoint> = spheres
+        .values_mut()
+        .flat_map(|s| s.1.values_mut())
+        .filter(|p| p.end_ns.is_some())
+        .collect();
+    windows.sort_by_key(|p| p.begin_ns);
+    let mut w = 0;
+    for &(t, v) in readings {
+        while w < windows.len() && windows[w].end_ns.is_some_and(|end| end < t) {
+            w += 1;
+        }
+        if let Some(p) = windows.get_mut(w) {
+            if p.begin_ns < t {
+                p.sum_m += v;
+                p.readings += 1;
+            }
+        }
+    }
+}
+
+fn sqrt_diag(c: &[[f64; 3]; 3]) -> [f64; 3] {
+    std::array::from_fn(|k| c[k][k].max(0.0).sqrt())
+}
+
+/// Solve a rotary_sphere session.
+pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMethodError> {
+    let plan_config: SpherePlanConfig = serde_json::from_value(session.header.plan.clone())
+        .map_err(|e| RotarySphereMethodError::Plan(e.to_string()))?;
+    let plan = SpherePlan::from_config(&plan_config);
+    let probe = session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.kind == "probe")
+        .filter(|d| d.noise_m.is_some_and(|n| n > 0.0))
+        .ok_or(RotarySphereMethodError::NoProbeNoise)?;
+    let noise_m = probe.noise_m.unwrap_or_default();
+    let readings: Vec<(u64, f64)> = session
+        .probes
+        .get(&probe.id)
+        .map(|v| v.iter().map(|s| (s.log_time_ns, s.msg.value_m)).collect())
+        .unwrap_or_default();
+    if readings.is_empty() {
+        return Err(RotarySphereMethodError::NoReadings(probe.id.clone()));
+    }
+    let mut spheres = collect_points(session, &plan)?;
+    attach_readings(&mut spheres, &readings);
+    let mut notes = Vec::new();
+
+    // Sphere centres with the known radius; σ of a point = σ_reading / √(its readings).
+    let mut fits: BTreeMap<(usize, usize), (f64, SphereFit, usize)> = BTreeMap::new();
+    let mut incomplete = 0;
+    for (&(h, a), (commanded_rad, points)) in &spheres {
+        let used: Vec<&ProbedPoint> = points.values().filter(|p| p.readings > 0).collect();
+        if used.len() < plan.directions.len() {
+            incomplete += 1;
+        }
+        if used.len() < 4 {
+            continue;
+        }
+        let fewest = used.iter().map(|p| p.readings).min().unwrap_or(1);
+        let pts: Vec<Vector3<f64>> = used
+            .iter()
+            .map(|p| {
+                SpherePlan::measured_point(&p.nominal_m, &p.direction, p.sum_m / p.readings as f64)
+            })
+            .collect();
+        let fit = fit_sphere(
+            &pts,
+            Some(plan.radius_m),
+            Some(noise_m / (fewest as f64).sqrt()),
+        )
+        .map_err(|source| RotarySphereMethodError::Sphere {
+            height_index: h,
+            angle_index: a,
+            source,
+        })?;
+        let n_readings = used.iter().map(|p| p.readings).sum();
+        fits.insert((h, a), (*commanded_rad, fit, n_readings));
+    }
+    if incomplete > 0 {
+        notes.push(format!(
+            "{incomplete} sphere(s) lack some probed points; spheres with fewer than 4 are left out"
+        ));
+    }
+
+    // Angles probed at every fit height.
+    let fit_heights: Vec<usize> = (0..plan.heights.len())
+        .filter(|&h| plan.heights[h].role == HeightRole::Fit)
+        .collect();
+    let common: Vec<usize> = (0..plan.angles_rad.len())
+        .filter(|&a| fit_heights.iter().all(|&h| fits.contains_key(&(h, a))))
+        .collect();
+    if common.len() < 3 {
+        return Err(RotarySphereMethodError::TooFewAngles(common.len()));
+    }
+    if common.len() < plan.angles_rad.len() {
+        notes.push(format!(
+            "{} of {} commanded angles were probed at every fit height; the others are left out",
+            common.len(),
+            plan.angles_rad.len()
+        ));
+    }
+    let series_of = |h: usize, angles: &[usize]| -> CentreSeries {
+        let list: Vec<(f64, SphereFit)> = angles
+            .iter()
+            .filter_map(|a| fits.get(&(h, *a)).map(|(c, f, _)| (*c, f.clone())))
+            .collect();
+        let (ang, f): (Vec<f64>, Vec<SphereFit>) = list.into_iter().unzip();
+        CentreSeries::from_fits(ang, &f)
+    };
+    let series: Vec<CentreSeries> = fit_heights.iter().map(|&h| series_of(h, &common)).collect();
+    let max_order = plan_config.max_harmonic_order.min((common.len() - 1) / 2);
+    let id = identify_rotary_axis(
+        &series,
+        &IdentifyOptions {
+            convention: TangentialConvention::AngularPositioning,
+            harmonics: HarmonicOrder::Bic { max_order },
+        },
+    )
+    .map_err(RotarySphereMethodError::Identify)?;
+
+    let mut validation = Vec::new();
+    for h in (0..plan.heights.len()).filter(|&h| plan.heights[h].role == HeightRole::Validation) {
+        let angles: Vec<usize> = (0..plan.angles_rad.len())
+            .filter(|a| fits.contains_key(&(h, *a)))
+            .collect();
+        if angles.is_empty() {
+            notes.push(format!("validation height {h} has no probed sphere"));
+            continue;
+        }
+        let s = series_of(h, &angles);
+        let v = validate(&id, &s).map_err(|source| RotarySphereMethodError::Validation {
+            height_index: h,
+            source,
+        })?;
+        validation.push(ValidationResult {
+            height_index: h,
+            sphere_position_m: v.sphere_position_m,
+            angles_rad: s.angles_rad.clone(),
+            share_norm_within_10um: v.share_norm_within(PUBLISHED_TOLERANCE_M),
+            share_coordinates_within_10um: v.share_coordinates_within(PUBLISHED_TOLERANCE_M),
+            share_within_3_sigma: v.share_within_sigmas(3.0),
+            residuals_m: v.residuals_m,
+            residual_sigma_m: v.residual_sigma_m,
+            chi2: v.chi2,
+            count: v.count,
+        });
+    }
+
+    let spheres_out = fits
+        .iter()
+        .map(|(&(h, a), (commanded_rad, fit, readings))| SphereResult {
+            height_index: h,
+            role: plan.heights[h].role,
+            angle_index: a,
+            commanded_rad: *commanded_rad,
+            centre_m: fit.centre_m,
+            centre_sigma_m: sqrt_diag(&fit.centre_covariance_m2),
+            centre_covariance_m2: fit.centre_covariance_m2,
+            points: spheres
+                .get(&(h, a))
+                .map_or(0, |s| s.1.values().filter(|p| p.readings > 0).count()),
+            readings: *readings,
+            residual_rms_m: fit.residual_rms_m,
+        })
+        .collect();
+    let motion = common
+        .iter()
+        .enumerate()
+        .map(|(i, &a)| MotionAtAngle {
+            angle_index: a,
+            commanded_rad: id.angles_rad[i],
+            errors: id.motion[i],
+            sigma: id.motion_sigma[i],
+            tangential_m: id.tangential_m[i],
+        })
+        .collect();
+    notes.push(
+        "location errors: the least-squares axis through every centre at the fit heights \
+         (motion errors zero); motion errors: what is left per angle, so they carry no part a \
+         fixed axis explains; ECC carries the tangential deviation (t + r·ECC cannot be split \
+         with one sphere radius); uncertainties propagated from the probe's repeatability"
+            .into(),
+    );
+    Ok(RotarySphereResults {
+        format: RESULTS_FORMAT.into(),
+        kind: KIND.into(),
+        session_id: session.header.session_id.clone(),
+        table: plan.table.clone(),
+        sphere_radius_m: plan.radius_m,
+        probe_noise_m: noise_m,
+        spheres: spheres_out,
+        location: (0..4)
+            .map(|k| NamedValue {
+                name: LOCATION_NAMES[k],
+                value: id.location[k],
+                sigma: id.location_sigma[k],
+            })
+            .collect(),
+        location_covariance: id.location_covariance,
+        convention: id.convention,
+        reference_radius_m: id.reference_radius_m,
+        motion_names: MOTION_NAMES,
+        motion,
+        harmonics: id.harmonics,
+        chi2: id.chi2,
+        dof: id.dof,
+        validation,
+        notes,
+    })
+}
+
+/// Arcseconds per radian.
+const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
+
+/// The text report section of a rotary_sphere result.
+pub fn text(r: &RotarySphereResults) -> String {
+    use std::fmt::Write;
+    let mut s = String::new();
+    let fit = r
+        .spheres
+        .iter()
+        .filter(|s| s.role == HeightRole::Fit)
+        .count();
+    let _ = writeln!(
+        s,
+        "rotary axis {} from a reference sphere (r = {:.4} mm, probe σ {:.1} µm): {} spheres, {} at fit heights",
+        r.table,
+        r.sphere_radius_m * 1e3,
+        r.probe_noise_m * 1e6,
+        r.spheres.len(),
+        fit
+    );
+    let _ = writeln!(s, "  location (position-independent) errors:");
+    for v in &r.location {
+        if v.name.starts_with("EX") || v.name.starts_with("EY") {
+            let _ = writeln!(
+                s,
+                "    {:5} {:9.2} µm   σ {:.2} µm",
+                v.name,
+                v.value * 1e6,
+                v.sigma * 1e6
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "    {:5} {:9.2} µrad σ {:.2} µrad",
+                v.name,
+                v.value * 1e6,
+                v.sigma * 1e6
+            );
+        }
+    }
+    let _ = writeln!(
+        s,
+        "  motion errors over {} angles (peak |value| and median σ; harmonic order by BIC):",
+        r.motion.len()
+    );
+    for (k, name) in r.motion_names.iter().enumerate() {
+        let peak = r
+            .motion
+            .iter()
+            .map(|m| m.errors[k].abs())
+            .fold(0.0, f64::max);
+        let mut sig: Vec<f64> = r.motion.iter().map(|m| m.sigma[k]).collect();
+        sig.sort_by(f64::total_cmp);
+        let med = sig.get(sig.len() / 2).copied().unwrap_or(0.0);
+        let order = r.harmonics.get(k).map_or(0, |h| h.order);
+        if k < 3 {
+            let _ = writeln!(
+                s,
+                "    {name:4} peak {:8.2} µm     σ {:6.2} µm     order {order}",
+                peak * 1e6,
+                med * 1e6
+            );
+        } else {
+            let _ = writeln!(
+                s,
+                "    {name:4} peak {:8.2} arcsec σ {:6.2} arcsec order {order}",
+                peak * ARCSEC_PER_RAD,
+                med * ARCSEC_PER_RAD
+            );
+        }
+    }
+    if r.dof > 0 {
+        let _ = writeln!(
+            s,
+            "  per-angle model χ²/dof {:.2} ({} dof)",
+            r.chi2 / r.dof as f64,
+            r.dof
+        );
+    }
+    for v in &r.validation {
+        let _ = writeln!(
+            s,
+            "  prediction at validation height {} ({} angles): {:.0} % of residuals within 10 µm \
+             ({:.0} % of coordinates; published ~80 %), {:.0} % of coordinates within 3 predicted σ, χ²/n {:.2}",
+            v.height_index,
+            v.angles_rad.len(),
+            100.0 * v.share_norm_within_10um,
+            100.0 * v.share_coordinates_within_10um,
+            100.0 * v.share_within_3_sigma,
+            v.chi2 / v.count.max(1) as f64
+        );
+    }
+    for n in &r.notes {
+        let _ = writeln!(s, "  note: {n}");
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn point(begin_ns: u64, end_ns: Option<u64>) -> ProbedPoint {
+        ProbedPoint {
+            nominal_m: Vector3::zeros(),
+            direction: Vector3::z(),
+            begin_ns,
+            end_ns,
+            sum_m: 0.0,
+            readings: 0,
+        }
+    }
+
+    /// A reading belongs to the window (begin, end]: one at the instant a point ends and the
+    /// next begins is the ending point's; readings outside every window count for none.
+    #[test]
+    fn readings_go_to_their_window() {
+        let mut spheres: Spheres = BTreeMap::new();
+        spheres.insert(
+            (0, 0),
+            (
+                0.0,
+                BTreeMap::from([
+                    (0, point(10, Some(20))),
+                    (1, point(20, Some(30))),
+                    (2, point(30, None)),
+                ]),
+            ),
+        );
+        attach_readings(
+            &mut spheres,
+            &[
+                (5, 9.0),
+                (10, 9.0),
+                (15, 1.0),
+                (20, 2.0),
+                (25, 3.0),
+                (26, 5.0),
+                (35, 9.0),
+            ],
+        );
+        let p = &spheres[&(0, 0)].1;
+        assert_eq!((p[&0].readings, p[&0].sum_m), (2, 3.0));
+        assert_eq!((p[&1].readings, p[&1].sum_m), (2, 8.0));
+        // An unfinished point (the run stopped) gets nothing.
+        assert_eq!(p[&2].readings, 0);
+    }
+}

@@ -1,0 +1,295 @@
+//! A whole `rotary_sphere` run: config -> plan -> devices (simulated, emulated or real) ->
+//! sequencer -> recorded session -> solve -> results, read back from the file as `solve` does.
+
+use std::collections::BTreeMap;
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex};
+
+use anyhow::Context;
+use async_trait::async_trait;
+use geocal_drivers::probe::{AsciiProbe, ProbeConfig, ProbeEmulator, ProbeEmulatorConfig};
+use geocal_drivers::{DeviceError, Probe, RotaryTable};
+
+use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
+use crate::config::rotary_sphere::{ProbeDriverKind, RotarySphereConfig, KIND};
+use crate::config::DriverKind;
+use crate::method::Results;
+use crate::plan::rotary_sphere::SpherePlan;
+use crate::run::{solve_file, RunOptions};
+use crate::sequencer::rotary_sphere::{ProbeArm, SphereDevices, SphereRunSummary, SphereSequencer};
+use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, SESSION_FORMAT};
+use crate::session::recorder::{Recorder, RecorderOptions};
+use crate::sim::rotary_sphere::{
+    SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
+};
+
+pub struct SphereRunOutput {
+    pub session_path: PathBuf,
+    pub results_path: PathBuf,
+    pub summary: SphereRunSummary,
+    pub results: Results,
+    /// Requests the probe emulator answered (emulated runs).
+    pub emulator_requests: Option<u64>,
+}
+
+struct Built {
+    devices: SphereDevices,
+    clock: Arc<dyn Clock>,
+    world: Option<SharedSphereWorld>,
+    emulator: Option<ProbeEmulator>,
+}
+
+/// An arm without a controller: the operator is told where to bring the probe.
+struct LoggingArm;
+
+#[async_trait]
+impl ProbeArm for LoggingArm {
+    async fn mount_sphere(
+        &mut self,
+        height_index: usize,
+        nominal_m: [f64; 3],
+    ) -> Result<(), DeviceError> {
+        tracing::warn!(
+            height_index,
+            ?nominal_m,
+            "mount the sphere at height {height_index}"
+        );
+        Ok(())
+    }
+    async fn approach(
+        &mut self,
+        start_m: [f64; 3],
+        direction: [f64; 3],
+    ) -> Result<(), DeviceError> {
+        tracing::info!(
+            ?start_m,
+            ?direction,
+            "bring the probe to the approach start"
+        );
+        Ok(())
+    }
+}
+
+fn probe_config(config: &RotarySphereConfig) -> ProbeConfig {
+    let mut c = config.devices.probe.ascii.clone().unwrap_or_default();
+    c.id = config.devices.probe.id.clone();
+    c
+}
+
+async fn build(
+    config: &RotarySphereConfig,
+    plan: &SpherePlan,
+    epoch_ns: u64,
+) -> anyhow::Result<Built> {
+    let probe_cfg = &config.devices.probe;
+    let table_cfg = &config.devices.rotary_table;
+    let emulate = config.hil.as_ref().is_some_and(|h| h.emulate);
+    let virtual_clock = Arc::new(VirtualClock::new(epoch_ns));
+    let world: Option<SharedSphereWorld> = match &config.sim {
+        Some(_) => Some(Arc::new(Mutex::new(
+            SphereWorld::new(config, plan, virtual_clock.clone())
+                .map_err(|e| anyhow::anyhow!("building the simulated world: {e}"))?,
+        ))),
+        None => None,
+    };
+    let all_sim = probe_cfg.driver == ProbeDriverKind::Sim && table_cfg.driver == DriverKind::Sim;
+    let clock: Arc<dyn Clock> = if all_sim {
+        virtual_clock
+    } else {
+        Arc::new(SystemClock)
+    };
+    let table: Box<dyn RotaryTable> = match (table_cfg.driver, &world) {
+        (DriverKind::Sim, Some(w)) => Box::new(SimSphereTable {
+            id: table_cfg.id.clone(),
+            world: w.clone(),
+        }),
+        (kind, _) => anyhow::bail!(
+            "devices.rotary_table.driver = \"{}\": rotary_sphere runs build the \"sim\" table \
+             (other table drivers come with the devices module)",
+            kind.as_str()
+        ),
+    };
+    let mut emulator = None;
+    let probe: Box<dyn Probe> = match (probe_cfg.driver, &world) {
+        (ProbeDriverKind::Sim, Some(w)) => Box::new(SimSphereProbe {
+            id: probe_cfg.id.clone(),
+            world: w.clone(),
+        }),
+        (ProbeDriverKind::Ascii, Some(w)) if emulate => {
+            let mut cfg = probe_config(config);
+            let source_world = w.clone();
+            let source = move |_t_s: f64| source_world.lock().ok()?.read_probe();
+            let mut emu = ProbeEmulator::spawn_pty(
+                ProbeEmulatorConfig {
+                    command: cfg.command.trim().to_string(),
+                    scale_to_m: cfg.scale_to_m,
+                    faults: config
+                        .hil
+                        .as_ref()
+                        .map(|h| h.probe_faults.clone())
+                        .unwrap_or_default(),
+                    ..ProbeEmulatorConfig::default()
+                },
+                Box::new(source),
+            )
+            .context("starting the probe emulator on a pty")?;
+            cfg.port = emu.slave_path().unwrap_or_default().to_string();
+            tracing::info!("probe emulator on {}", cfg.port);
+            let port = emu
+                .take_slave()
+                .context("the probe emulator's pty has no slave end")?;
+            emulator = Some(emu);
+            Box::new(AsciiProbe::from_stream(port, cfg)?)
+        }
+        (ProbeDriverKind::Ascii, _) => {
+            let cfg = probe_config(config);
+            let port = cfg.port.clone();
+            Box::new(AsciiProbe::open(cfg).with_context(|| format!("opening the probe at {port}"))?)
+        }
+        (ProbeDriverKind::Sim, None) => {
+            anyhow::bail!("devices.probe.driver = \"sim\" needs [sim] (validation checks this)")
+        }
+    };
+    let arm: Box<dyn ProbeArm> = match &world {
+        Some(w) => Box::new(SimArm { world: w.clone() }),
+        None => Box::new(LoggingArm),
+    };
+    Ok(Built {
+        devices: SphereDevices { table, probe, arm },
+        clock,
+        world,
+        emulator,
+    })
+}
+
+fn device(id: &str, kind: &str, driver: &str, noise_m: Option<f64>) -> DeviceInfo {
+    DeviceInfo {
+        id: id.into(),
+        kind: kind.into(),
+        driver: driver.into(),
+        noise_m,
+        noise_ppm: None,
+        dead_path_m: None,
+        wavelength_m: None,
+        compensated: None,
+        extra: BTreeMap::new(),
+    }
+}
+
+fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
+    let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
+        .ok()
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
+        .unwrap_or_default();
+    let seed = config
+        .sim
+        .as_ref()
+        .map(|s| format!("-seed{}", s.seed))
+        .unwrap_or_default();
+    let table = &config.devices.rotary_table;
+    let probe = &config.devices.probe;
+    SessionHeader {
+        format: SESSION_FORMAT.into(),
+        session_id: format!("{KIND}-{}{seed}", epoch_ns / 1_000_000),
+        started_at,
+        kind: KIND.into(),
+        machine: MachineInfo {
+            name: config.machine.name.clone(),
+            structure: "C".into(),
+            axes: vec![table.id.clone()],
+            travel_m: BTreeMap::new(),
+            targets: Vec::new(),
+        },
+        devices: vec![
+            device(&table.id, "rotary_table", table.driver.as_str(), None),
+            device(
+                &probe.id,
+                "probe",
+                probe.driver.as_str(),
+                Some(probe.noise_m),
+            ),
+        ],
+        plan: serde_json::to_value(&config.plan).unwrap_or_default(),
+    }
+}
+
+pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<SphereRunOutput> {
+    let mut plan = SpherePlan::from_config(&config.plan);
+    // The simulated table spends virtual time on each state query: no wall-time pause.
+    if config.devices.rotary_table.driver == DriverKind::Sim {
+        plan.poll_interval_s = 0.0;
+    }
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    let session_path = options.out_dir.join("session.mcap");
+    let epoch_ns = system_now_ns();
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let built = runtime.block_on(build(config, &plan, epoch_ns))?;
+    let recorder = Recorder::create(&session_path, RecorderOptions::default())
+        .with_context(|| format!("creating {}", session_path.display()))?;
+    let handle = recorder.handle();
+    handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+    let bar = progress_bar(options.progress);
+    let mut progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+    };
+    let sequencer = SphereSequencer::new(&plan, built.devices, handle, built.clock.clone());
+    let summary = runtime.block_on(sequencer.run(&mut progress));
+    let emulator_requests = built.emulator.as_ref().map(|e| {
+        e.stats()
+            .requests
+            .load(std::sync::atomic::Ordering::Relaxed)
+    });
+    drop(built.emulator);
+    bar.finish_and_clear();
+    // Finish the file even after a failed run: every recorded reading stays readable.
+    let stats = recorder.finish().context("finishing the session file")?;
+    let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    tracing::info!(
+        readings = summary.readings,
+        bytes = stats.bytes,
+        "run recorded to {}",
+        session_path.display()
+    );
+    if let (Some(path), Some(world)) = (&options.truth, &built.world) {
+        let world = world
+            .lock()
+            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
+        std::fs::write(
+            path,
+            serde_json::to_string_pretty(&world.export_truth(&plan))?,
+        )
+        .with_context(|| format!("writing truth to {}", path.display()))?;
+    }
+    let results = solve_file(&session_path, &options.settings)?;
+    let results_path = options.out_dir.join("results.json");
+    std::fs::write(&results_path, results.to_json_pretty())
+        .with_context(|| format!("writing {}", results_path.display()))?;
+    Ok(SphereRunOutput {
+        session_path,
+        results_path,
+        summary,
+        results,
+        emulator_requests,
+    })
+}
+
+fn progress_bar(show: bool) -> indicatif::ProgressBar {
+    if !show {
+        return indicatif::ProgressBar::hidden();
+    }
+    let bar = indicatif::ProgressBar::new(0);
+    if let Ok(style) = indicatif::ProgressStyle::with_template(
+        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} probed points ({eta} left)",
+    ) {
+        bar.set_style(style);
+    }
+    bar
+}

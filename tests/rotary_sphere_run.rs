@@ -1,0 +1,381 @@
+//! Whole simulated runs of plan kind `rotary_sphere` (the published case: sphere 71 mm from the
+//! axis, two heights 100 mm apart, 27 µm probe): the recovered axis errors against the
+//! simulated truth within the reported uncertainties, replay, bad configs, and the same run
+//! through the ASCII probe driver against its pty emulator.
+
+use std::path::Path;
+
+use geocal::config::rotary_sphere::RotarySphereConfig;
+use geocal::method::rotary_sphere::RotarySphereResults;
+use geocal::method::Results;
+use geocal::rotary_sphere_run::{run, SphereRunOutput};
+use geocal::run::{solve_file, RunOptions};
+use geocal::session::messages::RunEvent;
+use geocal::session::reader::read_session;
+use geocal::solve::rotary_sphere::{
+    identify_rotary_axis, CentreSeries, HarmonicOrder, IdentifyOptions, TangentialConvention,
+};
+use nalgebra::{Matrix3, Vector3};
+use serde_json::Value;
+
+const CONFIG: &str = include_str!("../config/rotary-sphere.toml");
+
+fn config(text: &str) -> RotarySphereConfig {
+    RotarySphereConfig::parse(text, Path::new("rotary-sphere.toml")).expect("valid config")
+}
+
+fn run_text(text: &str, dir: &Path) -> (SphereRunOutput, Value) {
+    let truth_path = dir.join("truth.json");
+    let output = run(
+        &config(text),
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run");
+    let truth = serde_json::from_str(&std::fs::read_to_string(truth_path).expect("truth file"))
+        .expect("truth JSON");
+    (output, truth)
+}
+
+fn sphere(results: &Results) -> &RotarySphereResults {
+    match results {
+        Results::RotarySphere(r) => r,
+        _ => panic!("expected rotary_sphere results"),
+    }
+}
+
+fn vec3(v: &Value) -> Vector3<f64> {
+    Vector3::from_fn(|k, _| v[k].as_f64().expect("number"))
+}
+
+/// Normalised errors (value − identifiable truth) / σ of the location and per-angle motion
+/// errors. The identifiable truth is the same identification applied to the true, noise-free
+/// centres with the same weights: the location errors are defined by the least-squares axis
+/// and the motion errors are what is left of the true errors, so the truth's own constant and
+/// once-per-turn parts belong to the axis and the sphere positions (docs/rotary-sphere.md).
+fn normalised_errors(r: &RotarySphereResults, truth: &Value) -> Vec<f64> {
+    let fit_heights: Vec<usize> = {
+        let mut h: Vec<usize> = r
+            .spheres
+            .iter()
+            .filter(|s| s.role == geocal::config::rotary_sphere::HeightRole::Fit)
+            .map(|s| s.height_index)
+            .collect();
+        h.dedup();
+        h
+    };
+    let series: Vec<CentreSeries> = fit_heights
+        .iter()
+        .map(|&h| {
+            let spheres: Vec<_> = r.spheres.iter().filter(|s| s.height_index == h).collect();
+            CentreSeries {
+                angles_rad: spheres.iter().map(|s| s.commanded_rad).collect(),
+                centres_m: spheres
+                    .iter()
+                    .map(|s| vec3(&truth["centres_m"][h][s.angle_index]))
+                    .collect(),
+                covariances_m2: spheres
+                    .iter()
+                    .map(|s| Matrix3::from_fn(|i, j| s.centre_covariance_m2[i][j]))
+                    .collect(),
+            }
+        })
+        .collect();
+    let ideal = identify_rotary_axis(
+        &series,
+        &IdentifyOptions {
+            convention: TangentialConvention::AngularPositioning,
+            harmonics: HarmonicOrder::Fixed(0),
+        },
+    )
+    .expect("noise-free identification");
+    let mut z = Vec::new();
+    for (k, v) in r.location.iter().enumerate() {
+        z.push((v.value - ideal.location[k]) / v.sigma);
+    }
+    for (i, m) in r.motion.iter().enumerate() {
+        for k in 0..6 {
+            // Under this convention EXC, EYC are the radial error's components: σ → 0 where
+            // the radial direction is perpendicular to the axis (value and truth both 0).
+            if m.sigma[k] > 1e-3 * r.probe_noise_m {
+                z.push((m.errors[k] - ideal.motion[i][k]) / m.sigma[k]);
+            }
+        }
+    }
+    z
+}
+
+/// Ten seeds of the published case: the recovered location and motion errors against the
+/// identifiable truth, normalised by the reported σ.
+#[test]
+fn recovers_the_truth_within_the_reported_uncertainty() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let mut all_z = Vec::new();
+    let (mut chi2, mut count, mut in3) = (0.0, 0usize, 0.0);
+    let seeds = 10;
+    for seed in 0..seeds {
+        let text = CONFIG.replace("seed = 20240612", &format!("seed = {}", 1000 + seed));
+        let sub = dir.path().join(format!("s{seed}"));
+        let (output, truth) = run_text(&text, &sub);
+        let r = sphere(&output.results);
+        assert_eq!(output.summary.readings, 3 * 36 * 5);
+        assert_eq!(r.spheres.len(), 3 * 36);
+        assert_eq!(r.motion.len(), 36);
+        all_z.extend(normalised_errors(r, &truth));
+        let v = &r.validation[0];
+        chi2 += v.chi2;
+        count += v.count;
+        in3 += v.share_within_3_sigma * v.count as f64;
+    }
+    let n = all_z.len() as f64;
+    let rms = (all_z.iter().map(|z| z * z).sum::<f64>() / n).sqrt();
+    let max = all_z.iter().fold(0.0f64, |m, z| m.max(z.abs()));
+    println!(
+        "normalised RMS of location + motion errors vs reported σ: {rms:.3} over {} values \
+         ({seeds} seeds), max |z| {max:.2}; validation χ²/n {:.3}, {:.1} % within 3σ",
+        all_z.len(),
+        chi2 / count as f64,
+        100.0 * in3 / count as f64
+    );
+    // Each angle's motion errors come from that angle's own centres (the 4 location errors
+    // couple them only weakly), so the ~2200 values hold at least 36 × 10 = 360 independent
+    // groups: the RMS of honest z has a relative spread ≤ 1/√(2·360) ≈ 3.7 %; ±20 % is > 5 of
+    // those. A wrong noise model (σ off by a factor 1.25 or more) fails.
+    assert!((0.8..=1.2).contains(&rms), "normalised RMS {rms}");
+    // P(|z| > 5.5) ≈ 4e-8 per value: not expected among ~2200.
+    assert!(max < 5.5, "max |z| {max}");
+    // The third height, predicted: 1080 coordinates, χ²/n within ±20 % (its spread ≈ 4.3 %,
+    // residuals of one angle share the model's error) and ≥ 97 % within 3σ (99.7 % expected).
+    let chi2n = chi2 / count as f64;
+    assert!((0.8..=1.2).contains(&chi2n), "validation χ²/n {chi2n}");
+    assert!(in3 / count as f64 >= 0.97);
+}
+
+#[test]
+fn replay_gives_identical_results_and_events_are_recorded() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (output, _) = run_text(CONFIG, dir.path());
+    let replay = solve_file(&output.session_path, &Default::default()).expect("replay");
+    assert_eq!(replay.to_json_pretty(), output.results.to_json_pretty());
+    let written = std::fs::read_to_string(&output.results_path).expect("results.json");
+    assert_eq!(written, output.results.to_json_pretty());
+    // The CLI's solve prints the same JSON.
+    let cli = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["solve", "--json"])
+        .arg(&output.session_path)
+        .output()
+        .expect("geocal solve");
+    assert!(
+        cli.status.success(),
+        "{}",
+        String::from_utf8_lossy(&cli.stderr)
+    );
+    assert_eq!(
+        String::from_utf8_lossy(&cli.stdout).trim_end(),
+        output.results.to_json_pretty().trim_end()
+    );
+
+    let session = read_session(&output.session_path).expect("session");
+    assert_eq!(session.header.kind, "rotary_sphere");
+    assert_eq!(session.probes["arm0"].len(), 540);
+    let count = |f: &dyn Fn(&RunEvent) -> bool| session.events.iter().filter(|e| f(&e.msg)).count();
+    assert_eq!(count(&|e| matches!(e, RunEvent::Rotation { .. })), 108);
+    assert_eq!(count(&|e| matches!(e, RunEvent::SphereBegin { .. })), 108);
+    assert_eq!(
+        count(&|e| matches!(e, RunEvent::ProbePointBegin { .. })),
+        540
+    );
+    assert_eq!(count(&|e| matches!(e, RunEvent::ProbePointEnd { .. })), 540);
+    assert_eq!(count(&|e| matches!(e, RunEvent::Fault { .. })), 0);
+    // The table reported in position before every sphere.
+    let in_position = session.rotary["c"]
+        .iter()
+        .filter(|s| s.msg.in_position)
+        .count();
+    assert_eq!(in_position, 108);
+    // The independent Python reader (PyPI mcap + jsonschema) accepts every message.
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/check_session.py");
+    let py = std::process::Command::new("python3")
+        .arg(script)
+        .arg(&output.session_path)
+        .args(["--expect-tracer-samples", "0"])
+        .output()
+        .expect("python3 must be installed to run the independent session reader");
+    let stdout = String::from_utf8_lossy(&py.stdout);
+    assert!(
+        py.status.success() && stdout.contains("/probe/arm0/reading\t540"),
+        "independent reader: {stdout}\n{}",
+        String::from_utf8_lossy(&py.stderr)
+    );
+    let text = geocal::report::text(&output.results);
+    assert!(
+        text.contains("EXOC") && text.contains("validation height 2"),
+        "{text}"
+    );
+}
+
+#[test]
+fn bad_configs_name_file_key_and_expectation() {
+    let cases = [
+        ("points = 5 ", "points = 4 ", "plan.points", "at least 5"),
+        (
+            "table = \"c\"",
+            "table = \"b\"",
+            "plan.table",
+            "devices.rotary_table",
+        ),
+        (
+            "noise_m = 2.7e-5",
+            "noise_m = -1.0",
+            "devices.probe.noise_m",
+            "positive",
+        ),
+        (
+            "driver = \"sim\"                 #",
+            "driver = \"ascii\" #",
+            "devices.probe.ascii",
+            "port",
+        ),
+        (
+            "role = \"validation\"",
+            "role = \"check\"",
+            "plan.heights[2].role",
+            "unknown variant",
+        ),
+        (
+            "standoff_m = 0.005",
+            "standoff_m = 0.005\nspeed = 1",
+            "plan",
+            "unknown field `speed`",
+        ),
+        (
+            "[[plan.heights]]\nsphere_m = [0.071, 0.0, 0.279]\nrole = \"fit\"",
+            "",
+            "plan.heights",
+            "at least 2",
+        ),
+    ];
+    for (from, to, key, expected) in cases {
+        let text = CONFIG.replacen(from, to, 1);
+        assert_ne!(text, CONFIG, "{from}");
+        let err = RotarySphereConfig::parse(&text, Path::new("bad.toml"))
+            .expect_err(key)
+            .to_string();
+        assert!(
+            err.starts_with("bad.toml: key `") && err.contains(key) && err.contains(expected),
+            "{key}: {err}"
+        );
+    }
+}
+
+/// The same plan through the real ASCII probe driver against its emulator on a pty, backed by
+/// the simulated world, with an unanswered request and a garbage reply injected: both are
+/// retried with `fault` events, and the results equal the simulated run's up to the sensor's
+/// 0.1 µm display resolution.
+#[test]
+fn hil_ascii_probe_against_its_emulator() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let (sim, _) = run_text(CONFIG, &dir.path().join("sim"));
+    let hil_text = CONFIG.replace(
+        "driver = \"sim\"                 #",
+        "driver = \"ascii\" #",
+    ) + "\n[hil]\nemulate = true\nprobe_faults = { no_answer_at_requests = [7], garbage_at_requests = [20] }\n";
+    let (hil, _) = run_text(&hil_text, &dir.path().join("hil"));
+    // 540 readings + 2 retried requests.
+    assert_eq!(hil.summary.readings, 540);
+    assert_eq!(hil.emulator_requests, Some(542));
+    assert_eq!(hil.summary.faults, 2);
+    let (a, b) = (sphere(&sim.results), sphere(&hil.results));
+    let worst = a
+        .spheres
+        .iter()
+        .zip(&b.spheres)
+        .flat_map(|(x, y)| (0..3).map(move |k| (x.centre_m[k] - y.centre_m[k]).abs()))
+        .fold(0.0f64, f64::max);
+    // Each reading is rounded to 0.1 µm (±0.05 µm); a centre moves by at most a few of those.
+    assert!(worst < 2e-7, "centres differ by {worst} m");
+    let session = read_session(&hil.session_path).expect("session");
+    let codes: Vec<&str> = session
+        .events
+        .iter()
+        .filter_map(|e| match &e.msg {
+            RunEvent::Fault { code, .. } => Some(code.as_str()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(codes, ["timeout", "protocol"]);
+}
+
+/// A probe that only answers garbage: every reading is retried 5 times with `fault` events,
+/// then the run fails with the device's error; the session recorded so far stays readable.
+#[test]
+fn a_probe_that_never_answers_properly_ends_the_run_with_its_session_kept() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let text = CONFIG.replace("driver = \"sim\"                 #", "driver = \"ascii\" #")
+        + "\n[hil]\nemulate = true\nprobe_faults = { garbage_probability = 1.0 }\n";
+    let err = run(
+        &config(&text),
+        &RunOptions {
+            out_dir: dir.path().to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .err()
+    .expect("the run must fail");
+    let chain = format!("{err:#}");
+    assert!(
+        chain.contains("run failed") && chain.contains("protocol error"),
+        "{chain}"
+    );
+    let session = read_session(&dir.path().join("session.mcap")).expect("kept session");
+    let faults: Vec<&str> = session
+        .events
+        .iter()
+        .filter_map(|e| match &e.msg {
+            RunEvent::Fault { message, .. } => Some(message.as_str()),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(faults.len(), 6, "{faults:?}");
+    assert!(faults[5].contains("giving up after 5 retries"));
+    assert!(session.probes.is_empty());
+}
+
+/// The command line: a bad configuration fails with file, key and expectation on stderr;
+/// `check` accepts the example.
+#[test]
+fn cli_reports_bad_configs_and_checks_good_ones() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let bad = dir.path().join("bad.toml");
+    std::fs::write(&bad, CONFIG.replacen("points = 5 ", "points = 3 ", 1)).expect("write");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("run")
+        .arg(&bad)
+        .arg("--out")
+        .arg(dir.path().join("out"))
+        .output()
+        .expect("geocal run");
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains("bad.toml: key `plan.points`: expected at least 5"),
+        "{stderr}"
+    );
+    let good = concat!(env!("CARGO_MANIFEST_DIR"), "/config/rotary-sphere.toml");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["check", good])
+        .output()
+        .expect("geocal check");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    assert!(String::from_utf8_lossy(&out.stdout).contains("3 heights x 36 angles x 5 points"));
+}
