@@ -4,8 +4,9 @@
 //!   the clock, so runs take seconds whatever the dwell times);
 //! - protocol drivers (`hpi3d`, `grbl`) without `[hil]`: the real devices at their ports,
 //!   stamped by the system clock;
-//! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys backed by the
-//!   simulated world and connects the real drivers to them; the world follows wall time.
+//! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys (and the
+//!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
+//!   real drivers to them; the world follows wall time.
 
 use std::sync::{Arc, Mutex};
 
@@ -39,13 +40,20 @@ pub struct BuiltDevices {
 pub struct Emulators {
     pub tracer: Option<Hpi3dEmulator>,
     pub machine: Option<GrblEmulator>,
+    /// The Modbus rotary table emulator (`src/rotary_table.rs`).
+    pub table: Option<crate::rotary_table::HostedTable>,
 }
 
 /// Build the devices; must run inside the tokio runtime that will run the sequencer (the
 /// drivers' reader tasks and the emulators are spawned on it).
 pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let all_sim = config.devices.tracer.driver == DriverKind::Sim
-        && config.devices.machine.driver == DriverKind::Sim;
+        && config.devices.machine.driver == DriverKind::Sim
+        && config
+            .devices
+            .rotary_table
+            .as_ref()
+            .is_none_or(|t| t.driver == DriverKind::Sim);
     if config.emulated() {
         build_emulated(config, plan, epoch_ns).await
     } else if all_sim {
@@ -222,6 +230,21 @@ async fn build_emulated(
         }),
     };
     let world_opt = Some(world.clone());
+    // The rotary table: the Modbus table emulator (TCP or RTU), or the simulated table.
+    let (rotary, table_emulator) = match config.devices.rotary_table.as_ref() {
+        Some(table) if table.driver != DriverKind::Sim => {
+            let hosted = crate::rotary_table::host_emulator(
+                table,
+                &hil.table_faults,
+                world.clone(),
+                time.clone(),
+            )
+            .await?;
+            let driver = crate::rotary_table::connect_hosted(table, &hosted).await?;
+            (Some(driver), Some(hosted))
+        }
+        _ => (sim_rotary(config, &world_opt), None),
+    };
     Ok(BuiltDevices {
         devices: Devices {
             tracer,
@@ -231,13 +254,14 @@ async fn build_emulated(
                 world: world.clone(),
                 time: time.clone(),
             }) as Box<dyn Operator>,
-            rotary: sim_rotary(config, &world_opt),
+            rotary,
         },
         clock: time,
         world: world_opt,
         emulators: Emulators {
             tracer: Some(tracer_emulator),
             machine: machine_emulator,
+            table: table_emulator,
         },
     })
 }
@@ -293,13 +317,23 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             kind.as_str()
         ),
     };
+    let rotary = match config.devices.rotary_table.as_ref() {
+        Some(table) if table.driver != DriverKind::Sim => {
+            Some(crate::rotary_table::connect_real(table).await?)
+        }
+        Some(table) => anyhow::bail!(
+            "devices.rotary_table.driver = \"{}\" in a real run: expected \"modbus_tcp\" or \"modbus_rtu\"",
+            table.driver.as_str()
+        ),
+        None => None,
+    };
     Ok(BuiltDevices {
         devices: Devices {
             tracer,
             environment,
             machine,
             operator: Box::new(LoggingOperator),
-            rotary: None,
+            rotary,
         },
         clock: Arc::new(SystemClock),
         world: None,

@@ -2,6 +2,7 @@
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
 mod hil;
+mod rotary_table;
 mod validate;
 
 use std::collections::BTreeMap;
@@ -106,6 +107,10 @@ pub struct RotaryTableConfig {
     /// Axis name, e.g. `c`; the `/rotary/<id>/state` topic and `rotation` events carry it.
     pub id: String,
     pub driver: DriverKind,
+    /// `[devices.rotary_table.modbus]`: the Modbus driver's settings (drivers `modbus_tcp`,
+    /// `modbus_rtu`; `geocal_drivers::modbus_table::ModbusTableConfig`, `id` from here).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub modbus: Option<geocal_drivers::modbus_table::ModbusTableConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -116,6 +121,10 @@ pub enum DriverKind {
     Hpi3d,
     /// GRBL-style G-code streaming (machine).
     Grbl,
+    /// Modbus TCP rotary table (register map in `[devices.rotary_table.modbus]`).
+    ModbusTcp,
+    /// Modbus RTU rotary table on a serial port.
+    ModbusRtu,
 }
 
 impl DriverKind {
@@ -124,6 +133,8 @@ impl DriverKind {
             DriverKind::Sim => "sim",
             DriverKind::Hpi3d => "hpi3d",
             DriverKind::Grbl => "grbl",
+            DriverKind::ModbusTcp => "modbus_tcp",
+            DriverKind::ModbusRtu => "modbus_rtu",
         }
     }
 }

@@ -308,6 +308,31 @@ impl<'a> Sequencer<'a> {
         }
     }
 
+    /// Start a table rotation, retried on timeouts (the angle is absolute: a resend is
+    /// harmless; the Modbus driver reconnects after a timeout).
+    async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), SequencerError> {
+        let mut attempt = 0;
+        while let Some(table) = self.devices.rotary.as_mut() {
+            match table.start_rotation(commanded_rad).await {
+                Ok(()) => break,
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+        Ok(())
+    }
+
+    /// The table's state, retried on timeouts.
+    async fn table_state(&mut self) -> Result<RotaryState, SequencerError> {
+        let mut attempt = 0;
+        while let Some(table) = self.devices.rotary.as_mut() {
+            match table.state().await {
+                Ok(s) => return Ok(s),
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+        Ok(RotaryState::Moving)
+    }
+
     /// Pull one sample from the tracer and record it; poll the environment now and then.
     async fn sample(&mut self) -> Result<TracerReading, SequencerError> {
         let reading = self.next_reading().await?;
@@ -523,15 +548,10 @@ impl<'a> Sequencer<'a> {
             table: table_id.clone(),
             commanded_rad: rotation.commanded_rad,
         });
-        if let Some(table) = self.devices.rotary.as_mut() {
-            table.start_rotation(rotation.commanded_rad).await?;
-        }
+        self.start_rotation(rotation.commanded_rad).await?;
         let started_s = self.sample().await?.t_s;
         loop {
-            let state = match self.devices.rotary.as_mut() {
-                Some(table) => table.state().await?,
-                None => RotaryState::Moving,
-            };
+            let state = self.table_state().await?;
             let encoder_rad = match state {
                 RotaryState::InPosition { encoder_rad } => Some(encoder_rad),
                 RotaryState::Moving => None,

@@ -5,5 +5,6 @@ pub mod devices;
 pub mod effects;
 pub mod hil;
 pub mod rotary;
+pub mod table_source;
 pub mod truth;
 pub mod world;
