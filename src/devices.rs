@@ -11,19 +11,18 @@
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
-use geocal_drivers::grbl::{GrblConfig, GrblEmulator, GrblEmulatorConfig, GrblMachine};
-use geocal_drivers::hpi3d::{EmulatorConfig, Hpi3dConfig, Hpi3dEmulator, Hpi3dTracer};
+use geocal_drivers::grbl::{GrblConfig, GrblMachine};
+use geocal_drivers::hpi3d::{Hpi3dConfig, Hpi3dTracer};
 use geocal_drivers::{Environment, Machine, Operator, RotaryTable, Tracer};
 
 use crate::clock::{Clock, SystemClock, VirtualClock};
 use crate::config::{Config, DriverKind};
-use crate::extract::NoiseModel;
 use crate::plan::Plan;
 use crate::sequencer::Devices;
 use crate::sim::devices::{
     SharedWorld, SimEnvironment, SimMachine, SimOperator, SimRotaryTable, SimTracer,
 };
-use crate::sim::hil::{HilOperator, HilTime, WorldMachineSink, WorldTracerSource};
+use crate::sim::hil::{HilOperator, HilTime};
 use crate::sim::world::SimWorld;
 
 pub struct BuiltDevices {
@@ -35,13 +34,10 @@ pub struct BuiltDevices {
     pub emulators: Emulators,
 }
 
-/// Device emulators hosted by this process (`[hil] emulate = true`).
+/// Device emulators hosted by this process (`[hil] emulate = true`; `src/hosting.rs`).
 #[derive(Default)]
 pub struct Emulators {
-    pub tracer: Option<Hpi3dEmulator>,
-    pub machine: Option<GrblEmulator>,
-    /// The Modbus rotary table emulator (`src/rotary_table.rs`).
-    pub table: Option<crate::rotary_table::HostedTable>,
+    pub hosted: Option<crate::hosting::Hosted>,
 }
 
 /// Build the devices; must run inside the tokio runtime that will run the sequencer (the
@@ -154,36 +150,16 @@ async fn build_emulated(
     let world_clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, world_clock)?));
 
-    // The tracer: the HPI-3D emulator on a pty, the real driver on its other end.
-    let tracer_cfg = &config.devices.tracer;
-    let meteo_period_s = config
-        .devices
-        .environment
-        .as_ref()
-        .map_or(1.0, |e| 1.0 / e.sample_rate_hz);
-    let source = WorldTracerSource::new(
-        world.clone(),
-        time.clone(),
-        NoiseModel {
-            noise_m: tracer_cfg.noise_m,
-            noise_ppm: tracer_cfg.noise_ppm,
-        },
-        sim.seed,
-    );
-    let (tracer_emulator, tracer_port) = Hpi3dEmulator::spawn_pty(
-        EmulatorConfig {
-            rate_hz: tracer_cfg.sample_rate_hz,
-            meteo_period_s,
-            faults: hil.tracer_faults.clone(),
-        },
-        Box::new(source),
-    )
-    .context("starting the HPI-3D emulator on a pty")?;
+    let mut hosted = crate::hosting::host(config, sim, hil, &world, &time).await?;
+
+    // The tracer: the real driver on the other end of the HPI-3D emulator's pty.
     let mut hpi3d = hpi3d_config(config);
-    if let Some(path) = tracer_emulator.slave_path() {
-        hpi3d.port = path.display().to_string();
-    }
+    hpi3d.port = hosted.tracer_path.clone();
     tracing::info!("HPI-3D emulator on {}", hpi3d.port);
+    let tracer_port = hosted
+        .tracer_port
+        .take()
+        .context("the HPI-3D emulator's pty has no host end")?;
     let tracer = Hpi3dTracer::from_io(tracer_port, hpi3d)
         .await
         .context("connecting the HPI-3D driver to its emulator")?;
@@ -193,57 +169,27 @@ async fn build_emulated(
         None => sim_environment(config, &world),
     };
 
-    // The machine: the GRBL emulator on a pty, or the simulated machine.
-    let mut machine_emulator = None;
-    let machine: Box<dyn Machine> = match config.devices.machine.driver {
-        DriverKind::Grbl => {
-            let travel = |k: usize| {
-                config
-                    .machine
-                    .travel_m
-                    .get(crate::plan::AXES[k])
-                    .copied()
-                    .unwrap_or([-1.0, 1.0])
-            };
-            let mut emulator = GrblEmulator::spawn_pty(
-                GrblEmulatorConfig {
-                    travel_min_m: std::array::from_fn(|k| travel(k)[0]),
-                    travel_max_m: std::array::from_fn(|k| travel(k)[1]),
-                    faults: hil.machine_faults.clone(),
-                    ..GrblEmulatorConfig::default()
-                },
-                Box::new(WorldMachineSink::new(world.clone(), time.clone())),
-            )
-            .context("starting the GRBL emulator on a pty")?;
-            let port = emulator
-                .take_slave()
-                .context("the GRBL emulator's pty has no slave end")?;
+    // The machine: the GRBL driver opens the emulator's link path (and reopens it after
+    // an injected disconnect), or the simulated machine.
+    let machine: Box<dyn Machine> = match &hosted.machine_path {
+        Some(path) => {
             let mut grbl = grbl_config(config);
-            grbl.port = emulator.slave_path().unwrap_or_default().to_string();
+            grbl.port = path.clone();
             tracing::info!("GRBL emulator on {}", grbl.port);
-            machine_emulator = Some(emulator);
-            Box::new(GrblMachine::from_stream(port, grbl)?)
+            Box::new(GrblMachine::open(grbl).context("opening the GRBL emulator's pty")?)
         }
-        _ => Box::new(SimMachine {
+        None => Box::new(SimMachine {
             id: config.devices.machine.id.clone(),
             world: world.clone(),
         }),
     };
     let world_opt = Some(world.clone());
-    // The rotary table: the Modbus table emulator (TCP or RTU), or the simulated table.
-    let (rotary, table_emulator) = match config.devices.rotary_table.as_ref() {
-        Some(table) if table.driver != DriverKind::Sim => {
-            let hosted = crate::rotary_table::host_emulator(
-                table,
-                &hil.table_faults,
-                world.clone(),
-                time.clone(),
-            )
-            .await?;
-            let driver = crate::rotary_table::connect_hosted(table, &hosted).await?;
-            (Some(driver), Some(hosted))
+    // The rotary table: the Modbus driver to its emulator, or the simulated table.
+    let rotary = match (config.devices.rotary_table.as_ref(), hosted.table.as_ref()) {
+        (Some(table), Some(emulator)) => {
+            Some(crate::rotary_table::connect_hosted(table, emulator).await?)
         }
-        _ => (sim_rotary(config, &world_opt), None),
+        _ => sim_rotary(config, &world_opt),
     };
     Ok(BuiltDevices {
         devices: Devices {
@@ -259,9 +205,7 @@ async fn build_emulated(
         clock: time,
         world: world_opt,
         emulators: Emulators {
-            tracer: Some(tracer_emulator),
-            machine: machine_emulator,
-            table: table_emulator,
+            hosted: Some(hosted),
         },
     })
 }

@@ -6,6 +6,7 @@ pub mod config;
 pub mod devices;
 pub mod diagnose;
 pub mod extract;
+pub mod hosting;
 pub mod method;
 pub mod model;
 pub mod plan;

@@ -192,6 +192,11 @@ beam_break = { from_s = 5.0, to_s = 5.3 }
 
 [hil.machine_faults]
 drop_ok_at_lines = [25]
+disconnect_at_line = 40
+reconnect_after_s = 0.3
+alarm_at_line = 60
+alarm_after_s = 0.02
+alarm_code = 1
 
 [hil.table_faults]
 drop_at_requests = [12]
@@ -218,6 +223,34 @@ drop_at_requests = [12]
         timeouts.iter().any(|(d, _)| *d == "c"),
         "Modbus table timeout"
     );
+    // Frames that failed their CRC, counted by the driver.
+    assert!(
+        faults(&events, "crc").iter().any(|(d, _)| *d == "tracer0"),
+        "CRC failures"
+    );
+    // The pulled GRBL cable: detected, the port reopened by its path, the move re-sent.
+    assert_eq!(
+        faults(&events, "disconnect"),
+        faults(&events, "disconnect")
+            .into_iter()
+            .filter(|(d, _)| *d == "vmc")
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(faults(&events, "disconnect").len(), 1, "one disconnect");
+    let reconnects = faults(&events, "reconnect");
+    assert!(
+        reconnects.iter().any(|(d, _)| *d == "vmc"),
+        "GRBL reconnect"
+    );
+    // The Modbus timeout: the driver dropped the connection and opened a new one.
+    assert!(
+        reconnects.iter().any(|(d, _)| *d == "c"),
+        "Modbus reconnect"
+    );
+    // The GRBL alarm: recorded, unlocked, the move commanded again.
+    let alarms = faults(&events, "alarm");
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert!(alarms[0].0 == "vmc" && alarms[0].1.contains("ALARM:1"));
     // The beam break: a fault, then a re-homing in a new beam segment.
     let breaks = faults(&events, "beam_break").len();
     let rehomes = events

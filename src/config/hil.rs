@@ -157,5 +157,14 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             format!("expected a number >= 0, found {}", m.silence_s),
         );
     }
+    for (key, value) in [
+        ("hil.machine_faults.reconnect_after_s", m.reconnect_after_s),
+        ("hil.machine_faults.alarm_at_s", m.alarm_at_s),
+        ("hil.machine_faults.alarm_after_s", Some(m.alarm_after_s)),
+    ] {
+        if let Some(v) = value.filter(|v| !(v.is_finite() && *v >= 0.0)) {
+            return fail(key, format!("expected seconds >= 0, found {v}"));
+        }
+    }
     super::rotary_table::validate_faults(&hil.table_faults)
 }
