@@ -210,32 +210,11 @@ async fn build_emulated(
     })
 }
 
-/// An operator who is told where to put the tracer; without a console here, it only logs.
-struct LoggingOperator;
-
-#[async_trait::async_trait]
-impl Operator for LoggingOperator {
-    async fn place_station(
-        &mut self,
-        index: usize,
-        id: &str,
-        hint_m: Option<[f64; 3]>,
-    ) -> Result<(), geocal_drivers::DeviceError> {
-        tracing::warn!(index, id, ?hint_m, "place the tracer on station {id}");
-        Ok(())
-    }
-    async fn mount_target(
-        &mut self,
-        target: &str,
-        offset_m: [f64; 3],
-    ) -> Result<(), geocal_drivers::DeviceError> {
-        tracing::warn!(target, ?offset_m, "mount reflector {target}");
-        Ok(())
-    }
-}
-
 async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let _ = plan;
+    // First, so that a run without a console fails before it touches a device.
+    let operator =
+        crate::operator::ConsoleOperator::stdin(&config.operator.clone().unwrap_or_default())?;
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);
@@ -276,7 +255,7 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             tracer,
             environment,
             machine,
-            operator: Box::new(LoggingOperator),
+            operator: Box::new(operator),
             rotary,
         },
         clock: Arc::new(SystemClock),

@@ -9,6 +9,7 @@ pub mod extract;
 pub mod hosting;
 pub mod method;
 pub mod model;
+pub mod operator;
 pub mod plan;
 pub mod report;
 pub mod rotary_table;

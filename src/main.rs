@@ -33,6 +33,10 @@ enum Command {
         /// Down-weight outlier lengths with a Huber loss beyond this many sigmas (e.g. 3).
         #[arg(long, value_name = "SIGMAS")]
         huber: Option<f64>,
+        /// Real runs: read the operator's acknowledgements as lines from stdin even when it
+        /// is not a terminal (a supervising program's pipe).
+        #[arg(long)]
+        yes: bool,
     },
     /// Re-solve a recorded session (replay): the same results as the live run.
     Solve {
@@ -94,8 +98,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
             huber,
+            yes,
         } => {
-            let cfg = geocal::config::Config::load(&config)?;
+            let mut cfg = geocal::config::Config::load(&config)?;
+            if yes {
+                cfg.operator
+                    .get_or_insert_with(Default::default)
+                    .piped_stdin = true;
+            }
             let output = geocal::run::run(
                 &cfg,
                 &geocal::run::RunOptions {

@@ -49,6 +49,9 @@ pub struct Config {
     /// Hardware-in-the-loop: host device emulators backed by `[sim]` (see `hil.rs`).
     #[serde(default)]
     pub hil: Option<HilConfig>,
+    /// How the operator of a real run acknowledges prompts (`src/operator.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<crate::operator::OperatorConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
