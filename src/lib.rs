@@ -17,4 +17,5 @@ pub mod run;
 pub mod sequencer;
 pub mod session;
 pub mod sim;
+pub mod simulate;
 pub mod solve;

@@ -58,6 +58,18 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Host the configured device emulators (HPI-3D and GRBL on ptys, the Modbus table on
+    /// 127.0.0.1) backed by the simulated world, for a run driven from another process;
+    /// operator commands (`station <id>`, `target <id>`) on stdin. Stop with Ctrl-C/SIGTERM.
+    Simulate {
+        config: PathBuf,
+        /// Write the simulated truth as JSON (at start and at exit).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Print the devices as one JSON object.
+        #[arg(long)]
+        json: bool,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -151,6 +163,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             } else {
                 print!("{}", geocal::diagnose::text(&diagnosis));
             }
+        }
+        Command::Simulate {
+            config,
+            truth,
+            json,
+        } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            geocal::simulate::simulate(&cfg, &geocal::simulate::SimulateOptions { truth, json })?;
         }
         Command::Check { config, json } => {
             let cfg = geocal::config::Config::load(&config)?;

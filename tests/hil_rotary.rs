@@ -5,94 +5,13 @@
 //! the virtual-time run (tests/rotary_run.rs), with and without injected faults.
 
 mod common;
+mod hil_config;
 
 use common::{assert_recovers_truth, run_with_truth};
 use geocal::method::Results;
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
-
-const ROTARY: &str = include_str!("../config/rotary-tracer.toml");
-
-/// The four-axis setup shrunk for real time: 4 table stations 90° apart + 1 off the table,
-/// 3 x 3 x 2 points, a 1000 Hz stream, a 20 m/s machine, 30 ms dwells and a fast table.
-fn hil_rotary_config(extra: &str) -> String {
-    let text = ROTARY
-        .replace(
-            "x = { from = 0.1, to = 0.7, count = 6 }",
-            "x = { from = 0.1, to = 0.7, count = 3 }",
-        )
-        .replace(
-            "y = { from = 0.1, to = 0.7, count = 6 }",
-            "y = { from = 0.1, to = 0.7, count = 3 }",
-        )
-        .replace(
-            "step_rad = 0.5235987755982988",
-            "step_rad = 1.5707963267948966",
-        )
-        .replace("count = 12", "count = 4")
-        .replace(
-            "id = \"tracer0\"\ndriver = \"sim\"",
-            "id = \"tracer0\"\ndriver = \"hpi3d\"",
-        )
-        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 1000.0")
-        .replace(
-            "id = \"env0\"\ndriver = \"sim\"\nsample_rate_hz = 1.0",
-            "id = \"env0\"\ndriver = \"hpi3d\"\nsample_rate_hz = 4.0",
-        )
-        .replace(
-            "driver = \"sim\"\nfeed_m_s = 0.3",
-            "driver = \"grbl\"\nfeed_m_s = 20.0",
-        )
-        .replace(
-            "id = \"c\"\ndriver = \"sim\"",
-            "id = \"c\"\ndriver = \"modbus_tcp\"",
-        )
-        .replace("dwell_s = 2.0", "dwell_s = 0.03")
-        .replace("max_dwell_s = 20.0", "max_dwell_s = 2.0")
-        .replace("window_s = 0.6", "window_s = 0.03")
-        .replace(
-            "axis_tilt_rad = 1e-4 }",
-            "axis_tilt_rad = 1e-4, speed_rad_s = 20.0, settle_s = 0.05 }",
-        );
-    assert!(
-        !text.contains("\ndriver = \"sim\""),
-        "every device replaced:\n{text}"
-    );
-    format!(
-        "{text}
-[devices.tracer.hpi3d]
-ack_timeout_s = 0.05
-retries = 3
-stream_timeout_s = 0.2
-flag_clear_interval_s = 0.05
-
-[devices.machine.grbl]
-port = \"\"
-ack_timeout_s = 0.3
-status_interval_s = 0.005
-
-# A table counting 1e-7 rad, 32-bit big-endian words, go/ack/clear handshake. No retries
-# inside the driver: every timeout reaches the sequencer, which records and retries it.
-[devices.rotary_table.modbus]
-timeout_s = 0.2
-retries = 0
-ack_timeout_s = 1.0
-poll_interval_s = 0.01
-
-[devices.rotary_table.modbus.map]
-unit_id = 1
-target = {{ address = 100, width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }}
-actual = {{ address = 200, kind = \"input\", width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }}
-status = {{ address = 300, kind = \"input\", in_position_bit = 0, moving_bit = 1, fault_bit = 2 }}
-command = {{ address = 110, go_value = 1, clear_value = 0 }}
-ack = {{ bit = 3 }}
-
-[hil]
-emulate = true
-{extra}
-"
-    )
-}
+use hil_config::hil_rotary_config;
 
 fn faults<'a>(events: &'a [RunEvent], code: &str) -> Vec<(&'a str, &'a str)> {
     events
