@@ -4,25 +4,25 @@
 //!   the clock, so runs take seconds whatever the dwell times);
 //! - protocol drivers (`hpi3d`, `grbl`) without `[hil]`: the real devices at their ports,
 //!   stamped by the system clock;
-//! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys backed by the
-//!   simulated world and connects the real drivers to them; the world follows wall time.
+//! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys (and the
+//!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
+//!   real drivers to them; the world follows wall time.
 
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
-use geocal_drivers::grbl::{GrblConfig, GrblEmulator, GrblEmulatorConfig, GrblMachine};
-use geocal_drivers::hpi3d::{EmulatorConfig, Hpi3dConfig, Hpi3dEmulator, Hpi3dTracer};
+use geocal_drivers::grbl::{GrblConfig, GrblMachine};
+use geocal_drivers::hpi3d::{Hpi3dConfig, Hpi3dTracer};
 use geocal_drivers::{Environment, Machine, Operator, RotaryTable, Tracer};
 
 use crate::clock::{Clock, SystemClock, VirtualClock};
 use crate::config::{Config, DriverKind};
-use crate::extract::NoiseModel;
 use crate::plan::Plan;
 use crate::sequencer::Devices;
 use crate::sim::devices::{
     SharedWorld, SimEnvironment, SimMachine, SimOperator, SimRotaryTable, SimTracer,
 };
-use crate::sim::hil::{HilOperator, HilTime, WorldMachineSink, WorldTracerSource};
+use crate::sim::hil::{HilOperator, HilTime};
 use crate::sim::world::SimWorld;
 
 pub struct BuiltDevices {
@@ -34,18 +34,22 @@ pub struct BuiltDevices {
     pub emulators: Emulators,
 }
 
-/// Device emulators hosted by this process (`[hil] emulate = true`).
+/// Device emulators hosted by this process (`[hil] emulate = true`; `src/hosting.rs`).
 #[derive(Default)]
 pub struct Emulators {
-    pub tracer: Option<Hpi3dEmulator>,
-    pub machine: Option<GrblEmulator>,
+    pub hosted: Option<crate::hosting::Hosted>,
 }
 
 /// Build the devices; must run inside the tokio runtime that will run the sequencer (the
 /// drivers' reader tasks and the emulators are spawned on it).
 pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let all_sim = config.devices.tracer.driver == DriverKind::Sim
-        && config.devices.machine.driver == DriverKind::Sim;
+        && config.devices.machine.driver == DriverKind::Sim
+        && config
+            .devices
+            .rotary_table
+            .as_ref()
+            .is_none_or(|t| t.driver == DriverKind::Sim);
     if config.emulated() {
         build_emulated(config, plan, epoch_ns).await
     } else if all_sim {
@@ -146,36 +150,16 @@ async fn build_emulated(
     let world_clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, world_clock)?));
 
-    // The tracer: the HPI-3D emulator on a pty, the real driver on its other end.
-    let tracer_cfg = &config.devices.tracer;
-    let meteo_period_s = config
-        .devices
-        .environment
-        .as_ref()
-        .map_or(1.0, |e| 1.0 / e.sample_rate_hz);
-    let source = WorldTracerSource::new(
-        world.clone(),
-        time.clone(),
-        NoiseModel {
-            noise_m: tracer_cfg.noise_m,
-            noise_ppm: tracer_cfg.noise_ppm,
-        },
-        sim.seed,
-    );
-    let (tracer_emulator, tracer_port) = Hpi3dEmulator::spawn_pty(
-        EmulatorConfig {
-            rate_hz: tracer_cfg.sample_rate_hz,
-            meteo_period_s,
-            faults: hil.tracer_faults.clone(),
-        },
-        Box::new(source),
-    )
-    .context("starting the HPI-3D emulator on a pty")?;
+    let mut hosted = crate::hosting::host(config, sim, hil, &world, &time).await?;
+
+    // The tracer: the real driver on the other end of the HPI-3D emulator's pty.
     let mut hpi3d = hpi3d_config(config);
-    if let Some(path) = tracer_emulator.slave_path() {
-        hpi3d.port = path.display().to_string();
-    }
+    hpi3d.port = hosted.tracer_path.clone();
     tracing::info!("HPI-3D emulator on {}", hpi3d.port);
+    let tracer_port = hosted
+        .tracer_port
+        .take()
+        .context("the HPI-3D emulator's pty has no host end")?;
     let tracer = Hpi3dTracer::from_io(tracer_port, hpi3d)
         .await
         .context("connecting the HPI-3D driver to its emulator")?;
@@ -185,43 +169,28 @@ async fn build_emulated(
         None => sim_environment(config, &world),
     };
 
-    // The machine: the GRBL emulator on a pty, or the simulated machine.
-    let mut machine_emulator = None;
-    let machine: Box<dyn Machine> = match config.devices.machine.driver {
-        DriverKind::Grbl => {
-            let travel = |k: usize| {
-                config
-                    .machine
-                    .travel_m
-                    .get(crate::plan::AXES[k])
-                    .copied()
-                    .unwrap_or([-1.0, 1.0])
-            };
-            let mut emulator = GrblEmulator::spawn_pty(
-                GrblEmulatorConfig {
-                    travel_min_m: std::array::from_fn(|k| travel(k)[0]),
-                    travel_max_m: std::array::from_fn(|k| travel(k)[1]),
-                    faults: hil.machine_faults.clone(),
-                    ..GrblEmulatorConfig::default()
-                },
-                Box::new(WorldMachineSink::new(world.clone(), time.clone())),
-            )
-            .context("starting the GRBL emulator on a pty")?;
-            let port = emulator
-                .take_slave()
-                .context("the GRBL emulator's pty has no slave end")?;
+    // The machine: the GRBL driver opens the emulator's link path (and reopens it after
+    // an injected disconnect), or the simulated machine.
+    let machine: Box<dyn Machine> = match &hosted.machine_path {
+        Some(path) => {
             let mut grbl = grbl_config(config);
-            grbl.port = emulator.slave_path().unwrap_or_default().to_string();
+            grbl.port = path.clone();
             tracing::info!("GRBL emulator on {}", grbl.port);
-            machine_emulator = Some(emulator);
-            Box::new(GrblMachine::from_stream(port, grbl)?)
+            Box::new(GrblMachine::open(grbl).context("opening the GRBL emulator's pty")?)
         }
-        _ => Box::new(SimMachine {
+        None => Box::new(SimMachine {
             id: config.devices.machine.id.clone(),
             world: world.clone(),
         }),
     };
     let world_opt = Some(world.clone());
+    // The rotary table: the Modbus driver to its emulator, or the simulated table.
+    let rotary = match (config.devices.rotary_table.as_ref(), hosted.table.as_ref()) {
+        (Some(table), Some(emulator)) => {
+            Some(crate::rotary_table::connect_hosted(table, emulator).await?)
+        }
+        _ => sim_rotary(config, &world_opt),
+    };
     Ok(BuiltDevices {
         devices: Devices {
             tracer,
@@ -231,43 +200,21 @@ async fn build_emulated(
                 world: world.clone(),
                 time: time.clone(),
             }) as Box<dyn Operator>,
-            rotary: sim_rotary(config, &world_opt),
+            rotary,
         },
         clock: time,
         world: world_opt,
         emulators: Emulators {
-            tracer: Some(tracer_emulator),
-            machine: machine_emulator,
+            hosted: Some(hosted),
         },
     })
 }
 
-/// An operator who is told where to put the tracer; without a console here, it only logs.
-struct LoggingOperator;
-
-#[async_trait::async_trait]
-impl Operator for LoggingOperator {
-    async fn place_station(
-        &mut self,
-        index: usize,
-        id: &str,
-        hint_m: Option<[f64; 3]>,
-    ) -> Result<(), geocal_drivers::DeviceError> {
-        tracing::warn!(index, id, ?hint_m, "place the tracer on station {id}");
-        Ok(())
-    }
-    async fn mount_target(
-        &mut self,
-        target: &str,
-        offset_m: [f64; 3],
-    ) -> Result<(), geocal_drivers::DeviceError> {
-        tracing::warn!(target, ?offset_m, "mount reflector {target}");
-        Ok(())
-    }
-}
-
 async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let _ = plan;
+    // First, so that a run without a console fails before it touches a device.
+    let operator =
+        crate::operator::ConsoleOperator::stdin(&config.operator.clone().unwrap_or_default())?;
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);
@@ -293,13 +240,23 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             kind.as_str()
         ),
     };
+    let rotary = match config.devices.rotary_table.as_ref() {
+        Some(table) if table.driver != DriverKind::Sim => {
+            Some(crate::rotary_table::connect_real(table).await?)
+        }
+        Some(table) => anyhow::bail!(
+            "devices.rotary_table.driver = \"{}\" in a real run: expected \"modbus_tcp\" or \"modbus_rtu\"",
+            table.driver.as_str()
+        ),
+        None => None,
+    };
     Ok(BuiltDevices {
         devices: Devices {
             tracer,
             environment,
             machine,
-            operator: Box::new(LoggingOperator),
-            rotary: None,
+            operator: Box::new(operator),
+            rotary,
         },
         clock: Arc::new(SystemClock),
         world: None,

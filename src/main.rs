@@ -33,6 +33,10 @@ enum Command {
         /// Down-weight outlier lengths with a Huber loss beyond this many sigmas (e.g. 3).
         #[arg(long, value_name = "SIGMAS")]
         huber: Option<f64>,
+        /// Real runs: read the operator's acknowledgements as lines from stdin even when it
+        /// is not a terminal (a supervising program's pipe).
+        #[arg(long)]
+        yes: bool,
     },
     /// Re-solve a recorded session (replay): the same results as the live run.
     Solve {
@@ -60,6 +64,18 @@ enum Command {
         /// Keep the simulated twin's session in this directory.
         #[arg(long, value_name = "DIR")]
         twin_out: Option<PathBuf>,
+    },
+    /// Host the configured device emulators (HPI-3D and GRBL on ptys, the Modbus table on
+    /// 127.0.0.1) backed by the simulated world, for a run driven from another process;
+    /// operator commands (`station <id>`, `target <id>`) on stdin. Stop with Ctrl-C/SIGTERM.
+    Simulate {
+        config: PathBuf,
+        /// Write the simulated truth as JSON (at start and at exit).
+        #[arg(long)]
+        truth: Option<PathBuf>,
+        /// Print the devices as one JSON object.
+        #[arg(long)]
+        json: bool,
     },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
@@ -101,6 +117,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
             huber,
+            yes,
         } => {
             use geocal::config::rotary_sphere as sphere;
             if sphere::peek_kind(&config)?.as_deref() == Some(sphere::KIND) {
@@ -127,7 +144,12 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 }
                 return Ok(());
             }
-            let cfg = geocal::config::Config::load(&config)?;
+            let mut cfg = geocal::config::Config::load(&config)?;
+            if yes {
+                cfg.operator
+                    .get_or_insert_with(Default::default)
+                    .piped_stdin = true;
+            }
             let output = geocal::run::run(
                 &cfg,
                 &geocal::run::RunOptions {
@@ -186,6 +208,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             } else {
                 print!("{}", geocal::diagnose::text(&diagnosis));
             }
+        }
+        Command::Simulate {
+            config,
+            truth,
+            json,
+        } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            geocal::simulate::simulate(&cfg, &geocal::simulate::SimulateOptions { truth, json })?;
         }
         Command::Check { config, json } => {
             use geocal::config::rotary_sphere as sphere;

@@ -103,9 +103,13 @@ async fn build(
             id: table_cfg.id.clone(),
             world: w.clone(),
         }),
+        // A real table (no [sim]): the Modbus driver at its configured address.
+        (DriverKind::ModbusTcp | DriverKind::ModbusRtu, None) => {
+            crate::rotary_table::connect_real(table_cfg).await?
+        }
         (kind, _) => anyhow::bail!(
-            "devices.rotary_table.driver = \"{}\": rotary_sphere runs build the \"sim\" table \
-             (other table drivers come with the devices module)",
+            "devices.rotary_table.driver = \"{}\": a simulated rotary_sphere run needs the \"sim\" \
+             table (the simulated sphere world hosts no Modbus emulator); Modbus tables are for real runs",
             kind.as_str()
         ),
     };

@@ -9,6 +9,6 @@ pub mod serial;
 pub mod traits;
 
 pub use traits::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Probe,
-    ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, LinkFault, Machine, MachineState,
+    Operator, Probe, ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
 };

@@ -1,7 +1,8 @@
 //! Serial plumbing the drivers and emulators share: opening a port (8N1, no flow control) with
 //! a clear error, pseudo-terminal pairs for emulators, and checks of configured durations.
 
-use tokio_serial::{SerialPort, SerialPortBuilderExt, SerialStream};
+pub use tokio_serial::SerialStream;
+use tokio_serial::{SerialPort, SerialPortBuilderExt};
 
 use crate::DeviceError;
 

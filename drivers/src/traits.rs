@@ -25,6 +25,23 @@ pub enum DeviceError {
     Rejected { device: String, message: String },
     #[error("{device}: stream ended")]
     EndOfStream { device: String },
+    /// The machine controller raised an alarm (GRBL `ALARM:N`, state `Alarm`): motion was
+    /// aborted and the controller is locked until `Machine::unlock`.
+    #[error("{device}: ALARM:{code} ({message})")]
+    Alarm {
+        device: String,
+        code: u16,
+        message: String,
+    },
+}
+
+/// Something a driver detected and recovered from by itself (a frame that failed its CRC,
+/// a link it lost and reopened), for the session's `fault` events (`code`: `crc`, `resync`,
+/// `disconnect`, `reconnect`).
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct LinkFault {
+    pub code: String,
+    pub message: String,
 }
 
 /// One raw interferometer sample, as the device (or its driver) reports it.
@@ -62,6 +79,10 @@ pub trait Tracer: Send {
     async fn next_sample(&mut self) -> Result<TracerReading, DeviceError>;
     /// Zero the length counter at the current target position.
     async fn home(&mut self) -> Result<(), DeviceError>;
+    /// Faults recovered inside the driver since the last call (none by default).
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        Vec::new()
+    }
 }
 
 /// Air and material temperature, pressure and humidity sensors.
@@ -89,6 +110,18 @@ pub trait Machine: Send {
     async fn start_move(&mut self, target: &AxisPositions) -> Result<(), DeviceError>;
     /// Current motion state; cheap to call often (drivers rate-limit their own queries).
     async fn state(&mut self) -> Result<MachineState, DeviceError>;
+    /// Leave the alarm state after `DeviceError::Alarm` (GRBL: `$X`, or `$H` where the
+    /// controller requires homing); the interrupted move must be commanded again.
+    async fn unlock(&mut self) -> Result<(), DeviceError> {
+        Err(DeviceError::Rejected {
+            device: self.id().to_string(),
+            message: "this machine driver cannot clear an alarm".into(),
+        })
+    }
+    /// Faults recovered inside the driver since the last call (none by default).
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        Vec::new()
+    }
 }
 
 /// Whoever changes the set-up between measurements: puts the tracer on the next station (an
@@ -142,4 +175,8 @@ pub trait RotaryTable: Send {
     async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), DeviceError>;
     /// Current motion state; cheap to call often (drivers rate-limit their own queries).
     async fn state(&mut self) -> Result<RotaryState, DeviceError>;
+    /// Faults recovered inside the driver since the last call (none by default).
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        Vec::new()
+    }
 }

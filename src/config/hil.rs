@@ -5,6 +5,7 @@ use serde::{Deserialize, Serialize};
 
 use geocal_drivers::grbl::GrblFaults;
 use geocal_drivers::hpi3d::FaultConfig;
+use geocal_drivers::modbus_table::ModbusTableFaults;
 
 use super::{Config, DriverKind};
 
@@ -26,6 +27,10 @@ pub struct HilConfig {
     /// count G-code lines received).
     #[serde(default)]
     pub machine_faults: GrblFaults,
+    /// Faults the Modbus table emulator injects
+    /// (`geocal_drivers::modbus_table::ModbusTableFaults`; requests counted from 1).
+    #[serde(default)]
+    pub table_faults: ModbusTableFaults,
 }
 
 fn yes() -> bool {
@@ -73,7 +78,7 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             )
         }
     };
-    use DriverKind::{Grbl, Hpi3d, Sim};
+    use DriverKind::{Grbl, Hpi3d, ModbusRtu, ModbusTcp, Sim};
     check("devices.tracer.driver", d.tracer.driver, &[Sim, Hpi3d])?;
     check("devices.machine.driver", d.machine.driver, &[Sim, Grbl])?;
     if let Some(env) = &d.environment {
@@ -86,7 +91,12 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
         }
     }
     if let Some(table) = &d.rotary_table {
-        check("devices.rotary_table.driver", table.driver, &[Sim])?;
+        check(
+            "devices.rotary_table.driver",
+            table.driver,
+            &[Sim, ModbusTcp, ModbusRtu],
+        )?;
+        super::rotary_table::validate(table, config.emulated())?;
     }
     if d.tracer.hpi3d.is_some() && d.tracer.driver != Hpi3d {
         return fail(
@@ -147,5 +157,14 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             format!("expected a number >= 0, found {}", m.silence_s),
         );
     }
-    Ok(())
+    for (key, value) in [
+        ("hil.machine_faults.reconnect_after_s", m.reconnect_after_s),
+        ("hil.machine_faults.alarm_at_s", m.alarm_at_s),
+        ("hil.machine_faults.alarm_after_s", Some(m.alarm_after_s)),
+    ] {
+        if let Some(v) = value.filter(|v| !(v.is_finite() && *v >= 0.0)) {
+            return fail(key, format!("expected seconds >= 0, found {v}"));
+        }
+    }
+    super::rotary_table::validate_faults(&hil.table_faults)
 }

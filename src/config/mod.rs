@@ -3,6 +3,7 @@
 
 mod hil;
 pub mod rotary_sphere;
+mod rotary_table;
 mod validate;
 
 use std::collections::BTreeMap;
@@ -49,6 +50,9 @@ pub struct Config {
     /// Hardware-in-the-loop: host device emulators backed by `[sim]` (see `hil.rs`).
     #[serde(default)]
     pub hil: Option<HilConfig>,
+    /// How the operator of a real run acknowledges prompts (`src/operator.rs`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub operator: Option<crate::operator::OperatorConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -107,6 +111,10 @@ pub struct RotaryTableConfig {
     /// Axis name, e.g. `c`; the `/rotary/<id>/state` topic and `rotation` events carry it.
     pub id: String,
     pub driver: DriverKind,
+    /// `[devices.rotary_table.modbus]`: the Modbus driver's settings (drivers `modbus_tcp`,
+    /// `modbus_rtu`; `geocal_drivers::modbus_table::ModbusTableConfig`, `id` from here).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub modbus: Option<geocal_drivers::modbus_table::ModbusTableConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -117,6 +125,10 @@ pub enum DriverKind {
     Hpi3d,
     /// GRBL-style G-code streaming (machine).
     Grbl,
+    /// Modbus TCP rotary table (register map in `[devices.rotary_table.modbus]`).
+    ModbusTcp,
+    /// Modbus RTU rotary table on a serial port.
+    ModbusRtu,
 }
 
 impl DriverKind {
@@ -125,6 +137,8 @@ impl DriverKind {
             DriverKind::Sim => "sim",
             DriverKind::Hpi3d => "hpi3d",
             DriverKind::Grbl => "grbl",
+            DriverKind::ModbusTcp => "modbus_tcp",
+            DriverKind::ModbusRtu => "modbus_rtu",
         }
     }
 }

@@ -85,6 +85,8 @@ const DEVICE_RETRIES: u32 = 5;
 const MAX_BEAM_WAIT_S: f64 = 600.0;
 /// Beam breaks tolerated within one pass before the run fails.
 const MAX_BEAM_BREAKS: u32 = 10;
+/// Machine alarms tolerated during one move before the run fails.
+const MAX_ALARMS: u32 = 3;
 
 /// How a step ended: done, or cut short by a beam break (the pass must be repeated from it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -288,26 +290,125 @@ impl<'a> Sequencer<'a> {
     }
 
     /// Start a machine move, retried on timeouts (the move is absolute: a resend after a
-    /// lost `ok` is harmless).
+    /// lost `ok` is harmless); an alarm is cleared and the move commanded again.
     async fn start_move(&mut self, command: &AxisPositions) -> Result<(), SequencerError> {
-        let mut attempt = 0;
+        let (mut attempt, mut alarms) = (0, 0);
         loop {
             match self.devices.machine.start_move(command).await {
+                Ok(()) => return Ok(()),
+                Err(e @ DeviceError::Alarm { .. }) => self.clear_alarm(e, &mut alarms).await?,
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
+    /// The machine's state during the move to `command`, retried on timeouts; an alarm
+    /// (the move was aborted) is cleared and the move commanded again.
+    async fn machine_state(
+        &mut self,
+        command: &AxisPositions,
+        alarms: &mut u32,
+    ) -> Result<MachineState, SequencerError> {
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.state().await {
+                Ok(s) => return Ok(s),
+                Err(e @ DeviceError::Alarm { .. }) => {
+                    self.clear_alarm(e, alarms).await?;
+                    self.start_move(command).await?;
+                    return Ok(MachineState::Moving);
+                }
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
+    /// A machine alarm: `fault {code: "alarm"}`, then unlock (retried on timeouts). The
+    /// caller commands the interrupted move again; the point is measured after it.
+    async fn clear_alarm(
+        &mut self,
+        error: DeviceError,
+        alarms: &mut u32,
+    ) -> Result<(), SequencerError> {
+        *alarms += 1;
+        let device = self.devices.machine.id().to_string();
+        self.event(RunEvent::Fault {
+            device,
+            code: "alarm".into(),
+            message: format!("{error}: unlocking and commanding the move again"),
+        });
+        if *alarms > MAX_ALARMS {
+            return Err(error.into());
+        }
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.unlock().await {
                 Ok(()) => return Ok(()),
                 Err(e) => self.retry_or_fail(e, &mut attempt)?,
             }
         }
     }
 
-    /// The machine's state, retried on timeouts.
-    async fn machine_state(&mut self) -> Result<MachineState, SequencerError> {
+    /// Record what the drivers detected and recovered from by themselves (frames failed
+    /// their CRC, links lost and reopened) as `fault` events.
+    fn record_link_faults(&mut self) {
+        let d = &mut self.devices;
+        let mut found: Vec<(String, geocal_drivers::LinkFault)> = Vec::new();
+        let id = d.tracer.id().to_string();
+        found.extend(
+            d.tracer
+                .take_link_faults()
+                .into_iter()
+                .map(|f| (id.clone(), f)),
+        );
+        let id = d.machine.id().to_string();
+        found.extend(
+            d.machine
+                .take_link_faults()
+                .into_iter()
+                .map(|f| (id.clone(), f)),
+        );
+        if let Some(table) = d.rotary.as_mut() {
+            let id = table.id().to_string();
+            found.extend(
+                table
+                    .take_link_faults()
+                    .into_iter()
+                    .map(|f| (id.clone(), f)),
+            );
+        }
+        for (device, fault) in found {
+            self.event(RunEvent::Fault {
+                device,
+                code: fault.code,
+                message: fault.message,
+            });
+        }
+    }
+
+    /// Start a table rotation, retried on timeouts (the angle is absolute: a resend is
+    /// harmless; the Modbus driver reconnects after a timeout).
+    async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), SequencerError> {
         let mut attempt = 0;
-        loop {
-            match self.devices.machine.state().await {
+        while let Some(table) = self.devices.rotary.as_mut() {
+            match table.start_rotation(commanded_rad).await {
+                Ok(()) => break,
+                Err(e) => self.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+        Ok(())
+    }
+
+    /// The table's state, retried on timeouts.
+    async fn table_state(&mut self) -> Result<RotaryState, SequencerError> {
+        let mut attempt = 0;
+        while let Some(table) = self.devices.rotary.as_mut() {
+            match table.state().await {
                 Ok(s) => return Ok(s),
                 Err(e) => self.retry_or_fail(e, &mut attempt)?,
             }
         }
+        Ok(RotaryState::Moving)
     }
 
     /// Pull one sample from the tracer and record it; poll the environment now and then.
@@ -324,6 +425,7 @@ impl<'a> Sequencer<'a> {
         self.recorder
             .tracer(self.devices.tracer.id(), &sample, self.clock.now_ns());
         self.summary.samples += 1;
+        self.record_link_faults();
         let before = self.last_sample.replace(reading);
         // A homing after the beam was interrupted starts a new beam segment: say so, at the
         // first sample of the new segment (a driver may still hold samples from before).
@@ -480,8 +582,9 @@ impl<'a> Sequencer<'a> {
         let first = self.sample().await?;
         let started_s = first.t_s;
         let mut tracking = first.tracking;
+        let mut alarms = 0;
         loop {
-            if let MachineState::Idle { .. } = self.machine_state().await? {
+            if let MachineState::Idle { .. } = self.machine_state(&command, &mut alarms).await? {
                 break;
             }
             let sample = self.sample().await?;
@@ -525,15 +628,10 @@ impl<'a> Sequencer<'a> {
             table: table_id.clone(),
             commanded_rad: rotation.commanded_rad,
         });
-        if let Some(table) = self.devices.rotary.as_mut() {
-            table.start_rotation(rotation.commanded_rad).await?;
-        }
+        self.start_rotation(rotation.commanded_rad).await?;
         let started_s = self.sample().await?.t_s;
         loop {
-            let state = match self.devices.rotary.as_mut() {
-                Some(table) => table.state().await?,
-                None => RotaryState::Moving,
-            };
+            let state = self.table_state().await?;
             let encoder_rad = match state {
                 RotaryState::InPosition { encoder_rad } => Some(encoder_rad),
                 RotaryState::Moving => None,

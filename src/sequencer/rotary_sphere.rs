@@ -139,7 +139,9 @@ impl<'a> SphereSequencer<'a> {
         let (device, code) = match &error {
             DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
             DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
-            DeviceError::Rejected { device, .. } | DeviceError::Disconnected { device, .. } => {
+            DeviceError::Rejected { device, .. }
+            | DeviceError::Disconnected { device, .. }
+            | DeviceError::Alarm { device, .. } => {
                 // Not retried, but on the record before the run ends.
                 let (device, message) = (device.clone(), error.to_string());
                 self.event(RunEvent::Fault {

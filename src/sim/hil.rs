@@ -67,7 +67,7 @@ impl HilTime {
     }
 
     /// Lock the world and bring its clock up to now.
-    fn world<'a>(&self, world: &'a SharedWorld) -> std::sync::MutexGuard<'a, SimWorld> {
+    pub(crate) fn world<'a>(&self, world: &'a SharedWorld) -> std::sync::MutexGuard<'a, SimWorld> {
         // A poisoned world only means a panic elsewhere; the emulators keep serving.
         let w = world.lock().unwrap_or_else(|e| e.into_inner());
         w.clock.advance_to(self.elapsed_s());

@@ -7,5 +7,6 @@ pub mod effects;
 pub mod hil;
 pub mod rotary;
 pub mod rotary_sphere;
+pub mod table_source;
 pub mod truth;
 pub mod world;

@@ -174,6 +174,18 @@ impl SimTable {
         };
         (now_s >= self.start_s + self.move_s + settle).then_some(self.commanded_rad)
     }
+
+    /// What the encoder reads at `now_s` and whether the table is in position: the command
+    /// once in position, else the true angle less the positioning error of the target.
+    pub fn encoder_at(&self, now_s: f64) -> (f64, bool) {
+        match self.in_position_at(now_s) {
+            Some(encoder_rad) => (encoder_rad, true),
+            None => (
+                self.angle_at(now_s) - self.error.at(self.commanded_rad),
+                false,
+            ),
+        }
+    }
 }
 
 #[cfg(test)]

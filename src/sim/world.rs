@@ -400,6 +400,11 @@ impl SimWorld {
         (self.motion.at(now), moving)
     }
 
+    /// The table's encoder angle now and whether it is in position (None without a table).
+    pub(crate) fn hil_table_encoder(&self) -> Option<(f64, bool)> {
+        Some(self.table.as_ref()?.encoder_at(self.now_s()))
+    }
+
     // --- truth ---
 
     pub fn truth(&self, config: &Config, plan: &Plan) -> Truth {

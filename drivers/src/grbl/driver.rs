@@ -15,7 +15,7 @@ use super::codec::{
     STATUS_QUERY,
 };
 use crate::serial::check_seconds;
-use crate::traits::{AxisPositions, DeviceError, Machine, MachineState};
+use crate::traits::{AxisPositions, DeviceError, LinkFault, Machine, MachineState};
 
 /// G-code axis letters in the order GRBL reports positions.
 const LETTERS: [char; 3] = ['X', 'Y', 'Z'];
@@ -51,6 +51,14 @@ pub struct GrblConfig {
     /// geocal axis name -> GRBL axis letter (`X`, `Y` or `Z`).
     #[serde(default = "default_axis_letters")]
     pub axis_letters: BTreeMap<String, char>,
+    /// After the port is lost (read/write error, hang-up), keep trying to reopen `port` for
+    /// this long, seconds; 0 = do not reconnect. Only drivers opened by path reconnect.
+    #[serde(default = "default_reconnect_timeout_s")]
+    pub reconnect_timeout_s: f64,
+}
+
+fn default_reconnect_timeout_s() -> f64 {
+    5.0
 }
 
 fn default_id() -> String {
@@ -93,6 +101,7 @@ impl Default for GrblConfig {
             feed_m_s: default_feed_m_s(),
             position_tolerance_m: default_tolerance_m(),
             axis_letters: default_axis_letters(),
+            reconnect_timeout_s: default_reconnect_timeout_s(),
         }
     }
 }
@@ -103,6 +112,7 @@ impl GrblConfig {
         check_seconds(&self.id, "ack_timeout_s", self.ack_timeout_s)?;
         check_seconds(&self.id, "status_timeout_s", self.status_timeout_s)?;
         check_seconds(&self.id, "status_interval_s", self.status_interval_s)?;
+        check_seconds(&self.id, "reconnect_timeout_s", self.reconnect_timeout_s)?;
         let bad = |message: String| DeviceError::Protocol {
             device: self.id.clone(),
             message,
@@ -142,13 +152,25 @@ pub struct GrblMachine<S> {
     garbled_lines: u64,
     /// Heard an `ok`, `error:`, alarm or status since the last banner.
     talked: bool,
+    /// Code of the last `ALARM:N` heard (a status in `Alarm` does not say which).
+    last_alarm: Option<u16>,
+    /// The last move line sent, re-sent after a reconnect (the controller reset).
+    last_move: Option<String>,
+    /// Reopens the port by path (drivers made by `open`).
+    reopen: Option<Reopen<S>>,
+    link_faults: Vec<LinkFault>,
 }
+
+type Reopen<S> = Box<dyn Fn() -> Result<S, DeviceError> + Send + Sync>;
 
 impl GrblMachine<tokio_serial::SerialStream> {
     /// Open the serial port named in the config.
     pub fn open(cfg: GrblConfig) -> Result<Self, DeviceError> {
         let port = crate::serial::open_8n1(&cfg.id, &cfg.port, cfg.baud)?;
-        Self::from_stream(port, cfg)
+        let (id, path, baud) = (cfg.id.clone(), cfg.port.clone(), cfg.baud);
+        let mut machine = Self::from_stream(port, cfg)?;
+        machine.reopen = Some(Box::new(move || crate::serial::open_8n1(&id, &path, baud)));
+        Ok(machine)
     }
 }
 
@@ -189,6 +211,10 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
             status_queries: 0,
             garbled_lines: 0,
             talked: false,
+            last_alarm: None,
+            last_move: None,
+            reopen: None,
+            link_faults: Vec::new(),
         })
     }
 
@@ -324,6 +350,131 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         Ok(())
     }
 
+    /// An alarm: motion aborted, controller locked until `unlock`.
+    fn alarm(&mut self, code: u16, context: &str) -> DeviceError {
+        self.last_alarm = Some(code);
+        DeviceError::Alarm {
+            device: self.cfg.id.clone(),
+            code,
+            message: format!(
+                "{}{context}; unlock with $X and command the move again",
+                alarm_text(code)
+            ),
+        }
+    }
+
+    /// After the port was lost: reopen it by path until `reconnect_timeout_s`, then wait
+    /// briefly for the banner of the controller's reset. Records `disconnect` and
+    /// `reconnect` link faults. Fails with the original error if it cannot reconnect.
+    async fn reconnect(&mut self, lost: DeviceError) -> Result<(), DeviceError> {
+        let (Some(reopen), true) = (&self.reopen, self.cfg.reconnect_timeout_s > 0.0) else {
+            return Err(lost);
+        };
+        self.link_faults.push(LinkFault {
+            code: "disconnect".into(),
+            message: lost.to_string(),
+        });
+        let started = Instant::now();
+        let deadline = started + Duration::from_secs_f64(self.cfg.reconnect_timeout_s);
+        let io = loop {
+            tokio::time::sleep(Duration::from_millis(20)).await;
+            match reopen() {
+                Ok(io) => break io,
+                Err(e) if Instant::now() >= deadline => {
+                    return Err(DeviceError::Disconnected {
+                        device: self.cfg.id.clone(),
+                        message: format!(
+                            "{lost}; could not reopen {} within {} s: {e}",
+                            self.cfg.port, self.cfg.reconnect_timeout_s
+                        ),
+                    })
+                }
+                Err(_) => {}
+            }
+        };
+        self.io = io;
+        self.framer.clear();
+        self.lines.clear();
+        self.last_status = None;
+        self.last_query = None;
+        // GRBL resets when its port is opened: wait for the banner, if it comes.
+        let t = self.cfg.ack_timeout_s;
+        let banner_deadline = Instant::now() + Duration::from_secs_f64(t);
+        loop {
+            match self.next_line(banner_deadline, "banner", t).await {
+                Ok(ControllerLine::Banner { .. }) | Err(DeviceError::Timeout { .. }) => break,
+                Ok(_) => {}
+                Err(e) => return Err(e),
+            }
+        }
+        self.link_faults.push(LinkFault {
+            code: "reconnect".into(),
+            message: format!(
+                "reopened {} after {:.2} s",
+                self.cfg.port,
+                started.elapsed().as_secs_f64()
+            ),
+        });
+        Ok(())
+    }
+
+    /// Send the last move again (after a reconnect the controller has forgotten it).
+    async fn resend_last_move(&mut self) -> Result<(), DeviceError> {
+        match self.last_move.clone() {
+            Some(line) => self.send_line(&line, self.cfg.ack_timeout_s).await,
+            None => Ok(()),
+        }
+    }
+
+    async fn start_move_once(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
+        let mut axes = Vec::new();
+        let mut next = self.commanded_m;
+        for (name, &pos_m) in target {
+            let k = *self
+                .axis_index
+                .get(name)
+                .ok_or_else(|| self.rejected(format!("no GRBL axis mapped to axis {name:?}")))?;
+            if !pos_m.is_finite() {
+                return Err(self.rejected(format!("target of axis {name:?} is not finite")));
+            }
+            axes.push((k, pos_m));
+            next[k] = Some(pos_m);
+        }
+        if axes.is_empty() {
+            return Ok(());
+        }
+        axes.sort_by_key(|&(k, _)| k);
+        let words: Vec<(char, f64)> = axes.iter().map(|&(k, p)| (LETTERS[k], p)).collect();
+        let line = format_move(&words, self.cfg.feed_m_s);
+        let before = self.commanded_m;
+        // Judge arrival against the new target from now on: if the `ok` is lost the line
+        // most likely ran, and an old status must not count as arrival.
+        self.commanded_m = next;
+        self.last_status = None;
+        self.last_move = Some(line.clone());
+        match self.send_line(&line, self.cfg.ack_timeout_s).await {
+            Err(e @ DeviceError::Rejected { .. }) => {
+                self.commanded_m = before;
+                Err(e)
+            }
+            r => r,
+        }
+    }
+
+    async fn state_once(&mut self) -> Result<MachineState, DeviceError> {
+        let interval = Duration::from_secs_f64(self.cfg.status_interval_s.max(0.0));
+        // Inside the interval the last report stands; with none (just after a move was
+        // started) the answer is Moving, which is what the controller would say anyway.
+        let fresh = self.last_query.is_some_and(|t| t.elapsed() < interval);
+        if !fresh {
+            self.query_status().await?;
+        }
+        match self.last_status.clone() {
+            Some(s) => self.evaluate(&s),
+            None => Ok(MachineState::Moving),
+        }
+    }
+
     fn rejected(&self, message: String) -> DeviceError {
         DeviceError::Rejected {
             device: self.cfg.id.clone(),
@@ -349,10 +500,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
                     )
                 }
                 ControllerLine::Alarm(code) => {
-                    return Err(self.rejected(format!(
-                        "ALARM:{code} ({}) after `{shown}`",
-                        alarm_text(code)
-                    )))
+                    return Err(self.alarm(code, &format!(" after `{shown}`")))
                 }
                 ControllerLine::Banner { .. } => {
                     return Err(DeviceError::Protocol {
@@ -401,9 +549,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         loop {
             match self.next_line(deadline, "status report to `?`", t).await? {
                 ControllerLine::Status(_) => return Ok(()),
-                ControllerLine::Alarm(code) => {
-                    return Err(self.rejected(format!("ALARM:{code} ({})", alarm_text(code))))
-                }
+                ControllerLine::Alarm(code) => return Err(self.alarm(code, "")),
                 ControllerLine::Banner { .. } => {
                     return Err(DeviceError::Protocol {
                         device: self.cfg.id.clone(),
@@ -416,12 +562,9 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         }
     }
 
-    fn evaluate(&self, s: &StatusReport) -> Result<MachineState, DeviceError> {
+    fn evaluate(&mut self, s: &StatusReport) -> Result<MachineState, DeviceError> {
         if s.state == GrblState::Alarm {
-            return Err(self.rejected(
-                "controller in Alarm state (unlock with $X or reset, and check the position)"
-                    .into(),
-            ));
+            return Err(self.alarm(self.last_alarm.unwrap_or(0), " (status Alarm)"));
         }
         let work_m: [f64; 3] = match s.frame {
             PosFrame::Work => s.position_m,
@@ -451,52 +594,41 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> Machine for GrblMachine<S> {
         &self.cfg.id
     }
 
+    /// Send the move; after a lost port, reconnect and send it again.
     async fn start_move(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
-        let mut axes = Vec::new();
-        let mut next = self.commanded_m;
-        for (name, &pos_m) in target {
-            let k = *self
-                .axis_index
-                .get(name)
-                .ok_or_else(|| self.rejected(format!("no GRBL axis mapped to axis {name:?}")))?;
-            if !pos_m.is_finite() {
-                return Err(self.rejected(format!("target of axis {name:?} is not finite")));
-            }
-            axes.push((k, pos_m));
-            next[k] = Some(pos_m);
-        }
-        if axes.is_empty() {
-            return Ok(());
-        }
-        axes.sort_by_key(|&(k, _)| k);
-        let words: Vec<(char, f64)> = axes.iter().map(|&(k, p)| (LETTERS[k], p)).collect();
-        let line = format_move(&words, self.cfg.feed_m_s);
-        let before = self.commanded_m;
-        // Judge arrival against the new target from now on: if the `ok` is lost the line
-        // most likely ran, and an old status must not count as arrival.
-        self.commanded_m = next;
-        self.last_status = None;
-        match self.send_line(&line, self.cfg.ack_timeout_s).await {
-            Err(e @ DeviceError::Rejected { .. }) => {
-                self.commanded_m = before;
-                Err(e)
+        match self.start_move_once(target).await {
+            Err(e @ DeviceError::Disconnected { .. }) => {
+                self.reconnect(e).await?;
+                self.start_move_once(target).await
             }
             r => r,
         }
     }
 
+    /// The motion state; after a lost port, reconnect, re-send the last move (the
+    /// controller reset and stopped) and report Moving.
     async fn state(&mut self) -> Result<MachineState, DeviceError> {
-        let interval = Duration::from_secs_f64(self.cfg.status_interval_s.max(0.0));
-        // Inside the interval the last report stands; with none (just after a move was
-        // started) the answer is Moving, which is what the controller would say anyway.
-        let fresh = self.last_query.is_some_and(|t| t.elapsed() < interval);
-        if !fresh {
-            self.query_status().await?;
+        match self.state_once().await {
+            Err(e @ DeviceError::Disconnected { .. }) => {
+                self.reconnect(e).await?;
+                self.resend_last_move().await?;
+                Ok(MachineState::Moving)
+            }
+            r => r,
         }
-        match &self.last_status {
-            Some(s) => self.evaluate(s),
-            None => Ok(MachineState::Moving),
-        }
+    }
+
+    /// `$X`: leave the alarm state (the emulator and GRBL without homing lock accept it).
+    async fn unlock(&mut self) -> Result<(), DeviceError> {
+        self.send_line("$X\n", self.cfg.ack_timeout_s).await?;
+        self.last_alarm = None;
+        self.last_status = None;
+        self.last_query = None;
+        Ok(())
+    }
+
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        std::mem::take(&mut self.link_faults)
     }
 }
 

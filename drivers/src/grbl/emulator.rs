@@ -3,6 +3,7 @@
 
 use std::collections::VecDeque;
 use std::io;
+use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
@@ -105,6 +106,17 @@ pub struct GrblFaults {
     pub silence_s: f64,
     /// At this line the controller closes the port (the pty master), as a pulled cable.
     pub disconnect_at_line: Option<u64>,
+    /// After a disconnect, plug back in after this many seconds: a new pty behind the same
+    /// link path (`GrblEmulator::spawn_pty_linked`), as a USB adapter re-enumerating behind
+    /// its /dev/serial/by-id link; the controller resets (banner) as on a DTR reset.
+    pub reconnect_after_s: Option<f64>,
+    /// The move of this line starts, then `alarm_after_s` later the controller aborts it
+    /// with `ALARM:{alarm_code}` (as a limit switch would) and locks until `$X`.
+    pub alarm_at_line: Option<u64>,
+    /// From this time (seconds since start) on, the next move in progress is aborted the same way.
+    pub alarm_at_s: Option<f64>,
+    pub alarm_after_s: f64,
+    pub alarm_code: u16,
 }
 
 impl Default for GrblFaults {
@@ -119,6 +131,11 @@ impl Default for GrblFaults {
             silence_at_line: None,
             silence_s: 0.0,
             disconnect_at_line: None,
+            reconnect_after_s: None,
+            alarm_at_line: None,
+            alarm_at_s: None,
+            alarm_after_s: 0.02,
+            alarm_code: 1,
         }
     }
 }
@@ -162,6 +179,11 @@ pub struct GrblEmulatorStats {
     pub errors_sent: AtomicU64,
     pub moves: AtomicU64,
     pub resets: AtomicU64,
+    pub alarms: AtomicU64,
+    pub unlocks: AtomicU64,
+    pub disconnects: AtomicU64,
+    /// Connections served (1 + reconnections).
+    pub connections: AtomicU64,
 }
 
 impl GrblEmulatorStats {
@@ -173,6 +195,7 @@ impl GrblEmulatorStats {
 struct Queued {
     line: String,
     drop_ok: bool,
+    line_no: u64,
 }
 
 /// What the controller loop should do after a step.
@@ -193,6 +216,10 @@ struct Controller {
     dwell: Option<(f64, bool)>,
     silent_until_s: Option<f64>,
     line_no: u64,
+    /// When the move under way is aborted by the injected alarm.
+    alarm_pending_s: Option<f64>,
+    /// The time-based alarm already struck.
+    timed_alarm_done: bool,
     rng: ChaCha8Rng,
     stats: Arc<GrblEmulatorStats>,
     out: Vec<u8>,
@@ -215,6 +242,8 @@ impl Controller {
             dwell: None,
             silent_until_s: None,
             line_no: 0,
+            alarm_pending_s: None,
+            timed_alarm_done: false,
             rng,
             stats,
             out: Vec::new(),
@@ -319,7 +348,11 @@ impl Controller {
                         continue;
                     }
                     let drop_ok = forced_drop || self.chance(p_drop);
-                    self.queue.push_back(Queued { line, drop_ok });
+                    self.queue.push_back(Queued {
+                        line,
+                        drop_ok,
+                        line_no: n,
+                    });
                 }
             }
         }
@@ -339,11 +372,48 @@ impl Controller {
         self.say(&banner);
     }
 
+    /// Abort the motion under way with the injected alarm once its time has come.
+    fn injected_alarm(&mut self, t_s: f64) {
+        let (here, moving) = self.sink.position(t_s);
+        if let Some(at) = self.cfg.faults.alarm_at_s {
+            if !self.timed_alarm_done && t_s >= at && moving && self.alarm_pending_s.is_none() {
+                self.timed_alarm_done = true;
+                self.alarm_pending_s = Some(t_s);
+            }
+        }
+        if self.alarm_pending_s.is_none_or(|at| t_s < at) {
+            return;
+        }
+        self.alarm_pending_s = None;
+        // A hard stop where the axes are; queued lines are discarded.
+        self.sink.commanded(here, 0.0, t_s);
+        self.queue.clear();
+        self.dwell = None;
+        let code = self.cfg.faults.alarm_code;
+        self.alarm = Some(code);
+        GrblEmulatorStats::bump(&self.stats.alarms);
+        self.say(&format!("ALARM:{code}\r\n"));
+    }
+
+    /// The port was reopened: the controller resets (as on DTR), motion stops, queue gone.
+    fn reconnected(&mut self, t_s: f64) {
+        let (here, _) = self.sink.position(t_s);
+        self.sink.commanded(here, 0.0, t_s);
+        self.queue.clear();
+        self.dwell = None;
+        self.alarm = None;
+        self.alarm_pending_s = None;
+        self.silent_until_s = None;
+        self.framer.clear();
+        self.out.clear();
+    }
+
     /// Run queued lines as far as motion allows.
     fn step(&mut self, t_s: f64) {
         if self.silent(t_s) {
             return;
         }
+        self.injected_alarm(t_s);
         if let Some((end_s, drop)) = self.dwell {
             if t_s < end_s {
                 return;
@@ -353,12 +423,14 @@ impl Controller {
         }
         while let Some(q) = self.queue.front() {
             let drop_ok = q.drop_ok;
+            let q_line_no = q.line_no;
             let block = parse_block(&q.line);
             let (here, moving) = self.sink.position(t_s);
             match block {
                 Err(code) => self.error(code),
                 Ok(Block::Empty) => self.ok(drop_ok),
                 Ok(Block::Unlock) => {
+                    GrblEmulatorStats::bump(&self.stats.unlocks);
                     self.alarm = None;
                     self.say("[MSG:Caution: Unlocked]\r\n");
                     self.ok(drop_ok);
@@ -403,6 +475,9 @@ impl Controller {
                             GrblEmulatorStats::bump(&self.stats.moves);
                             self.sink.commanded(target, f, t_s);
                             self.ok(drop_ok);
+                            if self.cfg.faults.alarm_at_line == Some(q_line_no) {
+                                self.alarm_pending_s = Some(t_s + self.cfg.faults.alarm_after_s);
+                            }
                         }
                     }
                 }
@@ -412,8 +487,17 @@ impl Controller {
     }
 }
 
-async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut ctl: Controller) -> io::Result<()> {
-    let t0 = Instant::now();
+async fn run<S: AsyncRead + AsyncWrite + Unpin>(io: S, mut ctl: Controller) -> io::Result<()> {
+    serve(io, &mut ctl, Instant::now()).await.map(|_| ())
+}
+
+/// Serve one connection until the peer goes, an I/O error, or an injected disconnect.
+async fn serve<S: AsyncRead + AsyncWrite + Unpin>(
+    mut io: S,
+    ctl: &mut Controller,
+    t0: Instant,
+) -> io::Result<Action> {
+    GrblEmulatorStats::bump(&ctl.stats.connections);
     let banner = format_banner(&ctl.cfg.version);
     io.write_all(banner.as_bytes()).await?;
     io.flush().await?;
@@ -422,10 +506,11 @@ async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut ctl: Controller) 
         let t_s = t0.elapsed().as_secs_f64();
         match tokio::time::timeout(TICK, io.read(&mut buf)).await {
             Err(_) => {}
-            Ok(Ok(0)) => return Ok(()),
+            Ok(Ok(0)) => return Ok(Action::Continue),
             Ok(Ok(n)) => {
                 if let Action::Disconnect = ctl.input(&buf[..n], t_s) {
-                    return Ok(());
+                    GrblEmulatorStats::bump(&ctl.stats.disconnects);
+                    return Ok(Action::Disconnect);
                 }
             }
             // EIO on a pty master: the other side was closed.
@@ -440,11 +525,58 @@ async fn run<S: AsyncRead + AsyncWrite + Unpin>(mut io: S, mut ctl: Controller) 
     }
 }
 
+/// Serve on ptys behind the symlink `link`, starting with `first`: a new pty after every
+/// injected disconnect (after `reconnect_after_s`), or stop if none is configured.
+async fn serve_linked(
+    mut ctl: Controller,
+    link: PathBuf,
+    first: (tokio_serial::SerialStream, crate::serial::PtySlave),
+) -> io::Result<()> {
+    let t0 = Instant::now();
+    let mut next = Some(first);
+    loop {
+        let (master, slave) = match next.take() {
+            Some(pair) => pair,
+            None => linked_pty(&link)?,
+        };
+        // `slave` stays open while this connection is served (see `PtySlave`); dropping it
+        // with the master hangs up the driver's descriptor too.
+        let action = serve(master, &mut ctl, t0).await?;
+        drop(slave);
+        let (Action::Disconnect, Some(after_s)) = (action, ctl.cfg.faults.reconnect_after_s) else {
+            return Ok(());
+        };
+        tokio::time::sleep(Duration::try_from_secs_f64(after_s).unwrap_or_default()).await;
+        ctl.reconnected(t0.elapsed().as_secs_f64());
+    }
+}
+
+/// A new pty with `link` pointing at its slave end.
+fn linked_pty(link: &Path) -> io::Result<(tokio_serial::SerialStream, crate::serial::PtySlave)> {
+    let (master, slave) = crate::serial::pty_pair()?;
+    let target = slave
+        .path()
+        .ok_or_else(|| io::Error::other("pty without a path"))?
+        .to_string();
+    point_link(link, Path::new(&target))?;
+    Ok((master, slave))
+}
+
+/// Make `link` a symlink to `target`, replacing an old one atomically.
+fn point_link(link: &Path, target: &Path) -> io::Result<()> {
+    let tmp = link.with_extension("new");
+    let _ = std::fs::remove_file(&tmp);
+    std::os::unix::fs::symlink(target, &tmp)?;
+    std::fs::rename(&tmp, link)
+}
+
 /// A running emulated controller. Dropping it stops the emulator.
 pub struct GrblEmulator {
     task: JoinHandle<io::Result<()>>,
     stats: Arc<GrblEmulatorStats>,
     pty: crate::serial::PtySlave,
+    /// The stable path of a linked emulator (removed on drop).
+    link: Option<PathBuf>,
 }
 
 impl GrblEmulator {
@@ -459,7 +591,30 @@ impl GrblEmulator {
             task: tokio::spawn(run(io, ctl)),
             stats,
             pty: crate::serial::PtySlave::default(),
+            link: None,
         }
+    }
+
+    /// Serve on a pty reached through the symlink `link` (a stable path, like
+    /// /dev/serial/by-id/...): drivers open `link`. An injected disconnect closes the pty;
+    /// with `reconnect_after_s` a new one appears behind the same link. Must be called
+    /// inside a tokio runtime.
+    pub fn spawn_pty_linked(
+        cfg: GrblEmulatorConfig,
+        sink: Box<dyn MachineSink>,
+        link: PathBuf,
+    ) -> io::Result<Self> {
+        let stats = Arc::new(GrblEmulatorStats::default());
+        let ctl = Controller::new(cfg, sink, stats.clone());
+        // The first pty exists (and the link points at it) before this returns.
+        let first = linked_pty(&link)?;
+        let task = tokio::spawn(serve_linked(ctl, link.clone(), first));
+        Ok(Self {
+            task,
+            stats,
+            pty: crate::serial::PtySlave::default(),
+            link: Some(link),
+        })
     }
 
     /// Serve on a new pseudo-terminal. The emulator keeps the slave end open so that an
@@ -472,9 +627,13 @@ impl GrblEmulator {
         Ok(emu)
     }
 
-    /// Device path of the pty's slave end (`/dev/pts/N`), for a driver in another process.
+    /// Device path of the pty's slave end (`/dev/pts/N`, or the link of a linked
+    /// emulator), for a driver in another process.
     pub fn slave_path(&self) -> Option<&str> {
-        self.pty.path()
+        match &self.link {
+            Some(link) => link.to_str(),
+            None => self.pty.path(),
+        }
     }
 
     /// The pty's slave end, for a driver in this process.
@@ -495,5 +654,8 @@ impl GrblEmulator {
 impl Drop for GrblEmulator {
     fn drop(&mut self) {
         self.task.abort();
+        if let Some(link) = &self.link {
+            let _ = std::fs::remove_file(link);
+        }
     }
 }

@@ -14,7 +14,7 @@ use tokio::time::Instant;
 
 use super::codec::{encode_host, DeviceDecoder};
 use super::frame::{DeviceFrame, HostCommand, HostFrame, Meteo};
-use crate::traits::{DeviceError, EnvReading, Environment, Tracer, TracerReading};
+use crate::traits::{DeviceError, EnvReading, Environment, LinkFault, Tracer, TracerReading};
 
 /// Which device stream feeds the tracer. Only distance: a `Tracer` reports lengths, and
 /// integrating the velocity stream would drift.
@@ -123,6 +123,8 @@ pub struct Hpi3dTracer {
     shared: Arc<Shared>,
     reader: JoinHandle<()>,
     last_flag_clear: Option<Instant>,
+    /// Counters as last reported by `take_link_faults`.
+    reported: Hpi3dCounters,
 }
 
 impl Hpi3dTracer {
@@ -166,6 +168,7 @@ impl Hpi3dTracer {
             shared,
             reader,
             last_flag_clear: None,
+            reported: Hpi3dCounters::default(),
         };
         // Start from a known state whatever the previous session left running.
         tracer.command(HostCommand::StopAll).await?;
@@ -286,6 +289,36 @@ impl Tracer for Hpi3dTracer {
     async fn home(&mut self) -> Result<(), DeviceError> {
         self.command(HostCommand::ClearSmallSignal).await?;
         self.command(HostCommand::Home).await
+    }
+
+    /// Frames dropped for a bad CRC (`crc`) and garbage skipped to resynchronise
+    /// (`resync`) since the last call; a lost distance frame also shows as a `seq` gap.
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        let now = self.counters();
+        let mut faults = Vec::new();
+        let crc = now
+            .frames_corrupted
+            .saturating_sub(self.reported.frames_corrupted);
+        if crc > 0 {
+            faults.push(LinkFault {
+                code: "crc".into(),
+                message: format!(
+                    "{crc} frame(s) failed their CRC and were dropped ({} so far)",
+                    now.frames_corrupted
+                ),
+            });
+        }
+        let skipped = now
+            .bytes_skipped
+            .saturating_sub(self.reported.bytes_skipped);
+        if skipped > 0 {
+            faults.push(LinkFault {
+                code: "resync".into(),
+                message: format!("{skipped} byte(s) of garbage skipped to resynchronise"),
+            });
+        }
+        self.reported = now;
+        faults
     }
 }
 

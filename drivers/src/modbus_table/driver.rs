@@ -13,7 +13,7 @@ use tokio_modbus::{ExceptionCode, Request, Response, Slave};
 
 use super::map::{RegisterKind, RegisterMap};
 use crate::serial::check_seconds;
-use crate::traits::{DeviceError, RotaryState, RotaryTable};
+use crate::traits::{DeviceError, LinkFault, RotaryState, RotaryTable};
 
 /// Where the table is reached.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
@@ -132,6 +132,10 @@ pub struct ModbusTable {
     last_poll: Option<Instant>,
     last_state: Option<RotaryState>,
     stats: ModbusTableStats,
+    /// Reconnects already reported by `take_link_faults`.
+    reported_reconnects: u64,
+    /// Why the last connection was dropped.
+    last_drop: String,
 }
 
 impl ModbusTable {
@@ -177,6 +181,8 @@ impl ModbusTable {
             last_poll: None,
             last_state: None,
             stats: ModbusTableStats::default(),
+            reported_reconnects: 0,
+            last_drop: String::new(),
         };
         let ctx = open_link(
             table.link.clone(),
@@ -248,12 +254,14 @@ impl ModbusTable {
                     // Transport or framing error: the context may be desynchronised.
                     all_timeouts = false;
                     last_err = format!("{e} while {what}");
+                    self.last_drop.clone_from(&last_err);
                     self.ctx = None;
                 }
                 Err(_) => {
                     // A late reply would be taken for the next request's: reconnect.
                     self.stats.timeouts += 1;
                     last_err = format!("no reply while {what}");
+                    self.last_drop.clone_from(&last_err);
                     self.ctx = None;
                 }
             }
@@ -473,6 +481,25 @@ impl RotaryTable for ModbusTable {
         self.last_poll = Some(Instant::now());
         self.last_state = Some(state);
         Ok(state)
+    }
+
+    /// Connections reopened (after a timeout or a transport error) since the last call.
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        let new = self
+            .stats
+            .reconnects
+            .saturating_sub(self.reported_reconnects);
+        self.reported_reconnects = self.stats.reconnects;
+        if new == 0 {
+            return Vec::new();
+        }
+        vec![LinkFault {
+            code: "reconnect".into(),
+            message: format!(
+                "reopened the Modbus connection {new} time(s) (last dropped: {})",
+                self.last_drop
+            ),
+        }]
     }
 }
 

@@ -1,0 +1,149 @@
+//! Hosting the configured device emulators backed by the simulated world: the HPI-3D and
+//! GRBL emulators on ptys, the Modbus table on 127.0.0.1 or a pty. Used by `[hil]` runs
+//! (src/devices.rs) and by `geocal simulate` (src/simulate.rs).
+
+use std::path::PathBuf;
+use std::sync::Arc;
+
+use anyhow::Context;
+use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig};
+use geocal_drivers::hpi3d::{EmulatorConfig, Hpi3dEmulator};
+use geocal_drivers::serial::SerialStream;
+
+use crate::config::{Config, DriverKind, HilConfig, SimConfig};
+use crate::extract::NoiseModel;
+use crate::rotary_table::HostedTable;
+use crate::sim::devices::SharedWorld;
+use crate::sim::hil::{HilTime, WorldMachineSink, WorldTracerSource};
+
+/// The hosted emulators; dropping this stops them and removes the link directory.
+pub struct Hosted {
+    pub tracer: Hpi3dEmulator,
+    /// The host end of the tracer's pty (kept open; a driver here may use it directly).
+    pub tracer_port: Option<SerialStream>,
+    pub tracer_path: String,
+    /// The GRBL emulator (machine driver `grbl`), reached through a stable link path that
+    /// survives an injected disconnect.
+    pub machine: Option<GrblEmulator>,
+    pub machine_path: Option<String>,
+    /// The Modbus table emulator (table driver `modbus_tcp` / `modbus_rtu`).
+    pub table: Option<HostedTable>,
+    /// Holds the links; removed on drop (declared last: dropped after the emulators).
+    pub link_dir: LinkDir,
+}
+
+/// A private directory for the emulators' link paths, removed on drop.
+pub struct LinkDir(pub PathBuf);
+
+impl LinkDir {
+    fn create() -> anyhow::Result<Self> {
+        let nanos = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0, |d| d.subsec_nanos());
+        let dir = std::env::temp_dir().join(format!("geocal-{}-{nanos}", std::process::id()));
+        std::fs::create_dir_all(&dir)
+            .with_context(|| format!("creating the emulators' link directory {}", dir.display()))?;
+        Ok(Self(dir))
+    }
+}
+
+impl Drop for LinkDir {
+    fn drop(&mut self) {
+        let _ = std::fs::remove_dir_all(&self.0);
+    }
+}
+
+/// Host every emulator the configuration asks for. Must run inside the tokio runtime that
+/// will serve them.
+pub async fn host(
+    config: &Config,
+    sim: &SimConfig,
+    hil: &HilConfig,
+    world: &SharedWorld,
+    time: &Arc<HilTime>,
+) -> anyhow::Result<Hosted> {
+    let link_dir = LinkDir::create()?;
+    // The tracer: the HPI-3D emulator on a pty.
+    let tracer_cfg = &config.devices.tracer;
+    let meteo_period_s = config
+        .devices
+        .environment
+        .as_ref()
+        .map_or(1.0, |e| 1.0 / e.sample_rate_hz);
+    let source = WorldTracerSource::new(
+        world.clone(),
+        time.clone(),
+        NoiseModel {
+            noise_m: tracer_cfg.noise_m,
+            noise_ppm: tracer_cfg.noise_ppm,
+        },
+        sim.seed,
+    );
+    let (tracer, tracer_port) = Hpi3dEmulator::spawn_pty(
+        EmulatorConfig {
+            rate_hz: tracer_cfg.sample_rate_hz,
+            meteo_period_s,
+            faults: hil.tracer_faults.clone(),
+        },
+        Box::new(source),
+    )
+    .context("starting the HPI-3D emulator on a pty")?;
+    let tracer_path = tracer
+        .slave_path()
+        .context("the HPI-3D emulator's pty has no path")?
+        .display()
+        .to_string();
+
+    // The machine: the GRBL emulator on a pty behind a link path.
+    let machine = if config.devices.machine.driver == DriverKind::Grbl {
+        let travel = |k: usize| {
+            config
+                .machine
+                .travel_m
+                .get(crate::plan::AXES[k])
+                .copied()
+                .unwrap_or([-1.0, 1.0])
+        };
+        Some(
+            GrblEmulator::spawn_pty_linked(
+                GrblEmulatorConfig {
+                    travel_min_m: std::array::from_fn(|k| travel(k)[0]),
+                    travel_max_m: std::array::from_fn(|k| travel(k)[1]),
+                    faults: hil.machine_faults.clone(),
+                    ..GrblEmulatorConfig::default()
+                },
+                Box::new(WorldMachineSink::new(world.clone(), time.clone())),
+                link_dir.0.join("grbl"),
+            )
+            .context("starting the GRBL emulator on a pty")?,
+        )
+    } else {
+        None
+    };
+    let machine_path = machine
+        .as_ref()
+        .and_then(|m| m.slave_path().map(str::to_string));
+
+    // The rotary table: the Modbus table emulator.
+    let table = match config.devices.rotary_table.as_ref() {
+        Some(table) if table.driver != DriverKind::Sim => Some(
+            crate::rotary_table::host_emulator(
+                table,
+                &hil.table_faults,
+                world.clone(),
+                time.clone(),
+            )
+            .await?,
+        ),
+        _ => None,
+    };
+    Ok(Hosted {
+        tracer,
+        tracer_port: Some(tracer_port),
+        tracer_path,
+        machine,
+        machine_path,
+        table,
+        link_dir,
+    })
+}

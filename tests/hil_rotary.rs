@@ -1,0 +1,181 @@
+//! Hardware-in-the-loop whole runs of the four-axis method: the tracer stands on a Modbus-TCP
+//! rotary table. geocal hosts the HPI-3D and GRBL emulators on ptys and the Modbus table
+//! emulator on 127.0.0.1, all backed by the simulated world in real time, and drives them
+//! with the real drivers. The stations, points and step angles must match the truth as in
+//! the virtual-time run (tests/rotary_run.rs), with and without injected faults.
+
+mod common;
+mod hil_config;
+
+use common::{assert_recovers_truth, run_with_truth};
+use geocal::method::Results;
+use geocal::session::messages::{RunEvent, SessionHeader};
+use geocal::session::reader::read_session;
+use hil_config::hil_rotary_config;
+
+fn faults<'a>(events: &'a [RunEvent], code: &str) -> Vec<(&'a str, &'a str)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            RunEvent::Fault {
+                device,
+                code: c,
+                message,
+            } if c == code => Some((device.as_str(), message.as_str())),
+            _ => None,
+        })
+        .collect()
+}
+
+/// Run, check the truth (points, stations, home distances; step angles within 3 sigma),
+/// return the session's events and header.
+fn run_and_check(extra: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let started = std::time::Instant::now();
+    let (output, truth) = run_with_truth(&hil_rotary_config(extra), dir.path());
+    println!("{label}: {:.1} s", started.elapsed().as_secs_f64());
+    let Results::RotaryTracer(results) = &output.results else {
+        panic!("expected rotary_tracer results");
+    };
+    let ml = &results.multilateration;
+    assert_eq!(ml.points.len(), 18);
+    assert_eq!(ml.stations.len(), 5);
+    println!(
+        "chi2/dof {:.2} (dof {}), residual RMS {:.3e} m",
+        ml.chi2_per_dof, ml.dof, ml.residual_rms_m
+    );
+    assert_recovers_truth(ml, &truth);
+
+    let truth_steps = truth["rotary"]["steps"].as_array().expect("truth steps");
+    assert_eq!(results.rotary.steps.len(), 4);
+    let true_error = |k: usize| truth_steps[k]["error_rad"].as_f64().expect("error_rad");
+    for (k, step) in results.rotary.steps.iter().enumerate().skip(1) {
+        let want = true_error(k) - true_error(0);
+        println!(
+            "{}: error {:.4e} rad, truth {:.4e} rad, sigma {:.2e} rad",
+            step.station, step.error_rad, want, step.sigma_rad
+        );
+        assert!(
+            (step.error_rad - want).abs() <= 3.0 * step.sigma_rad,
+            "{}: error {} rad, truth {} rad, sigma {} rad",
+            step.station,
+            step.error_rad,
+            want,
+            step.sigma_rad
+        );
+        // The encoder angle came over Modbus: the command to the register's count.
+        let encoder = step.encoder_rad.expect("encoder angle");
+        assert!((encoder - step.commanded_rad).abs() <= 0.5e-7 + 1e-12);
+    }
+
+    let session = read_session(&output.session_path).expect("session");
+    let states = &session.rotary["c"];
+    assert!(states.iter().filter(|s| s.msg.in_position).count() >= 4);
+    let events: Vec<RunEvent> = session.events.into_iter().map(|e| e.msg).collect();
+    let rotations = events
+        .iter()
+        .filter(|e| matches!(e, RunEvent::Rotation { .. }))
+        .count();
+    assert_eq!(rotations, 4);
+    (events, session.header)
+}
+
+#[test]
+fn hil_rotary_run_over_modbus_tcp_recovers_truth() {
+    let (events, header) = run_and_check("", "HIL rotary run");
+    let table = header
+        .devices
+        .iter()
+        .find(|d| d.id == "c")
+        .expect("table in the header");
+    assert_eq!(table.driver, "modbus_tcp");
+    let fault_list: Vec<_> = events
+        .iter()
+        .filter(|e| matches!(e, RunEvent::Fault { .. }))
+        .collect();
+    assert!(
+        fault_list.is_empty(),
+        "faults without injection: {fault_list:?}"
+    );
+}
+
+#[test]
+fn hil_rotary_run_with_every_fault_completes_and_recovers_truth() {
+    let faults_toml = "
+[hil.tracer_faults]
+seed = 11
+drop_fraction = 0.002
+corrupt_fraction = 0.002
+silence = { from_s = 2.0, to_s = 2.5 }
+beam_break = { from_s = 5.0, to_s = 5.3 }
+
+[hil.machine_faults]
+drop_ok_at_lines = [25]
+disconnect_at_line = 40
+reconnect_after_s = 0.3
+alarm_at_line = 60
+alarm_after_s = 0.02
+alarm_code = 1
+
+[hil.table_faults]
+drop_at_requests = [12]
+";
+    let (events, _) = run_and_check(faults_toml, "HIL rotary run with faults");
+    for e in &events {
+        if let RunEvent::Fault { .. } | RunEvent::Rehome { .. } = e {
+            println!("{e:?}");
+        }
+    }
+    // Dropped frames and frames that failed their CRC: gaps in the tracer's seq.
+    assert!(!faults(&events, "frames_lost").is_empty(), "lost frames");
+    let timeouts = faults(&events, "timeout");
+    // The silent tracer: stream timeouts, retried.
+    assert!(
+        timeouts.iter().any(|(d, _)| *d == "tracer0"),
+        "tracer timeouts"
+    );
+    // The lost `ok`: a machine timeout, retried.
+    assert!(timeouts.iter().any(|(d, _)| *d == "vmc"), "machine timeout");
+    // The unanswered Modbus request: a table timeout; the driver reconnected and the
+    // sequencer retried.
+    assert!(
+        timeouts.iter().any(|(d, _)| *d == "c"),
+        "Modbus table timeout"
+    );
+    // Frames that failed their CRC, counted by the driver.
+    assert!(
+        faults(&events, "crc").iter().any(|(d, _)| *d == "tracer0"),
+        "CRC failures"
+    );
+    // The pulled GRBL cable: detected, the port reopened by its path, the move re-sent.
+    assert_eq!(
+        faults(&events, "disconnect"),
+        faults(&events, "disconnect")
+            .into_iter()
+            .filter(|(d, _)| *d == "vmc")
+            .collect::<Vec<_>>()
+    );
+    assert_eq!(faults(&events, "disconnect").len(), 1, "one disconnect");
+    let reconnects = faults(&events, "reconnect");
+    assert!(
+        reconnects.iter().any(|(d, _)| *d == "vmc"),
+        "GRBL reconnect"
+    );
+    // The Modbus timeout: the driver dropped the connection and opened a new one.
+    assert!(
+        reconnects.iter().any(|(d, _)| *d == "c"),
+        "Modbus reconnect"
+    );
+    // The GRBL alarm: recorded, unlocked, the move commanded again.
+    let alarms = faults(&events, "alarm");
+    assert_eq!(alarms.len(), 1, "{alarms:?}");
+    assert!(alarms[0].0 == "vmc" && alarms[0].1.contains("ALARM:1"));
+    // The beam break: a fault, then a re-homing in a new beam segment.
+    let breaks = faults(&events, "beam_break").len();
+    let rehomes = events
+        .iter()
+        .filter(|e| matches!(e, RunEvent::Rehome { .. }))
+        .count();
+    assert!(breaks >= 1, "beam break recorded");
+    assert_eq!(rehomes, breaks, "one rehome per beam break");
+}
