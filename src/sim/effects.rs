@@ -435,3 +435,53 @@ impl SimEffects {
         d + err
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn validate_names_the_key() {
+        let mut c = EffectsConfig::default();
+        assert!(c.validate().is_ok());
+        c.dead_path.size = -1.0;
+        let (key, why) = c.validate().err().unwrap_or_default();
+        assert_eq!(key, "sim.effects.dead_path.size");
+        assert!(why.contains(">= 0"), "{why}");
+        c.dead_path.size = 1.0;
+        c.settling = SettlingSwitch {
+            enabled: true,
+            size_m: 1e-6,
+            tau_s: 0.0,
+        };
+        let (key, _) = c.validate().err().unwrap_or_default();
+        assert_eq!(key, "sim.effects.settling.tau_s");
+    }
+
+    #[test]
+    fn unknown_effect_keys_are_refused() {
+        let text = "settling = { enabled = true, size_m = 1e-6, tau = 0.5 }";
+        assert!(toml::from_str::<EffectsConfig>(text).is_err());
+        let text = "thermal_expansion = { enabled = true, size = 2e-6 }";
+        let c: EffectsConfig = toml::from_str(text).unwrap_or_default();
+        assert!(c.thermal_expansion.enabled && c.any());
+    }
+
+    #[test]
+    fn target_offset_is_fixed_per_configured_offset() {
+        let config = EffectsConfig {
+            target_offset: TargetOffsetSwitch {
+                enabled: true,
+                size_m: 1e-3,
+            },
+            ..Default::default()
+        };
+        let e = SimEffects::new(&config, &SimEnvironmentConfig::default(), 7, 3, 10);
+        let o = [0.0, 0.0, -0.12];
+        let a = e.actual_offset_m(o);
+        assert_eq!(a, e.actual_offset_m(o));
+        let d = Vector3::from(a) - Vector3::from(o);
+        assert!((d.norm() - 1e-3).abs() < 1e-12);
+        assert_ne!(a, e.actual_offset_m([0.0, 0.05, -0.12]));
+    }
+}
