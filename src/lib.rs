@@ -9,6 +9,7 @@ pub mod extract;
 pub mod method;
 pub mod model;
 pub mod plan;
+pub mod replay;
 pub mod report;
 pub mod run;
 pub mod sequencer;

@@ -54,6 +54,21 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Re-run the sequencer and stillstand detection against a recorded session (replay
+    /// drivers), record the replay, solve it and compare it with the recording.
+    Replay {
+        session: PathBuf,
+        /// Deliver the samples at the recorded pace (wall clock) instead of at full speed.
+        #[arg(long)]
+        realtime: bool,
+        /// Output directory for the replayed session.mcap, results.json and comparison.json
+        /// (default: `replay` beside SESSION).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the comparison (geocal-replay/1 JSON) instead of the text.
+        #[arg(long)]
+        json: bool,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -140,6 +155,36 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&diagnosis)?);
             } else {
                 print!("{}", geocal::diagnose::text(&diagnosis));
+            }
+        }
+        Command::Replay {
+            session,
+            realtime,
+            out,
+            json,
+        } => {
+            let out_dir = out.unwrap_or_else(|| {
+                session
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join("replay")
+            });
+            let output = geocal::replay::replay(
+                &session,
+                &geocal::replay::ReplayOptions {
+                    out_dir,
+                    realtime,
+                    settings: settings(None),
+                    progress: std::io::stderr().is_terminal(),
+                },
+            )?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&output.comparison)?);
+            } else {
+                print!("{}", geocal::replay::text(&output.comparison));
+            }
+            if output.comparison.outcome == geocal::replay::Outcome::Diverged {
+                anyhow::bail!("{}", output.comparison.message);
             }
         }
         Command::Check { config, json } => {
