@@ -8,6 +8,7 @@ pub mod diagnose;
 pub mod extract;
 pub mod method;
 pub mod model;
+pub mod monitor;
 pub mod plan;
 pub mod replay;
 pub mod report;

@@ -69,6 +69,23 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Connect to one device with its real driver, print its live readings and optionally
+    /// record them as a session (kind `monitor`).
+    Monitor {
+        /// hpi3d:PORT, grbl:PORT, probe:PORT, modbus-rtu:PORT or modbus-tcp:HOST:PORT.
+        #[arg(long, value_name = "SPEC")]
+        device: String,
+        /// Stop after this many seconds (default: run until Ctrl-C).
+        #[arg(long, value_name = "N")]
+        seconds: Option<f64>,
+        /// Record the readings to this session file (MCAP).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+        /// Driver settings: a TOML file with [hpi3d], [grbl], [rotary] or [probe] (or a run
+        /// config's [devices.tracer.hpi3d] / [devices.machine.grbl]).
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -186,6 +203,33 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             if output.comparison.outcome == geocal::replay::Outcome::Diverged {
                 anyhow::bail!("{}", output.comparison.message);
             }
+        }
+        Command::Monitor {
+            device,
+            seconds,
+            out,
+            config,
+        } => {
+            let summary = geocal::monitor::monitor(&geocal::monitor::MonitorOptions {
+                device: device.parse()?,
+                seconds,
+                out: out.clone(),
+                config,
+                print_interval_s: 0.2,
+            })?;
+            let counts: Vec<String> = summary
+                .readings
+                .iter()
+                .map(|(k, n)| format!("{n} {k}"))
+                .collect();
+            println!(
+                "{} readings ({}), {} device errors{}",
+                summary.readings.values().sum::<u64>(),
+                counts.join(", "),
+                summary.errors,
+                out.map(|p| format!(", recorded to {}", p.display()))
+                    .unwrap_or_default()
+            );
         }
         Command::Check { config, json } => {
             let cfg = geocal::config::Config::load(&config)?;

@@ -429,6 +429,8 @@ mod tests {
             tracers: BTreeMap::from([("tracer0".to_string(), samples)]),
             env: BTreeMap::new(),
             rotary: BTreeMap::new(),
+            machines: BTreeMap::new(),
+            probes: BTreeMap::new(),
             events: Vec::new(),
             completeness: Completeness::Complete,
             skipped: 0,

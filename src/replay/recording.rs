@@ -438,6 +438,8 @@ mod tests {
             tracers: BTreeMap::from([("tracer0".to_string(), samples)]),
             env: BTreeMap::new(),
             rotary: BTreeMap::new(),
+            machines: BTreeMap::new(),
+            probes: BTreeMap::new(),
             events: vec![begin(0, 62), begin(1, 150)],
             completeness: Completeness::Complete,
             skipped: 0,

@@ -18,12 +18,20 @@ pub fn env_topic(id: &str) -> String {
 pub fn rotary_topic(id: &str) -> String {
     format!("/rotary/{id}/state")
 }
+pub fn machine_state_topic(id: &str) -> String {
+    format!("/machine/{id}/state")
+}
+pub fn probe_topic(id: &str) -> String {
+    format!("/probe/{id}/reading")
+}
 
 pub const SCHEMA_SESSION: &str = "geocal.Session";
 pub const SCHEMA_TRACER: &str = "geocal.TracerSample";
 pub const SCHEMA_ENV: &str = "geocal.EnvSample";
 pub const SCHEMA_EVENT: &str = "geocal.RunEvent";
 pub const SCHEMA_ROTARY: &str = "geocal.RotaryState";
+pub const SCHEMA_MACHINE: &str = "geocal.MachineState";
+pub const SCHEMA_PROBE: &str = "geocal.ProbeReading";
 
 /// `/geocal/session`: exactly one, first in the file.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -121,6 +129,30 @@ pub struct RotaryStateSample {
     #[serde(default)]
     pub encoder_rad: Option<f64>,
     pub in_position: bool,
+}
+
+/// `/machine/<id>/state`: a machine controller's status as polled (GRBL `?`; `geocal monitor`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MachineStateSample {
+    /// Host time of the report, seconds since recording started.
+    pub t_s: f64,
+    /// The controller's state as it names it (`Idle`, `Run`, `Hold`, `Alarm`, ...).
+    pub state: String,
+    /// Reported X, Y, Z position, metres.
+    pub position_m: [f64; 3],
+    /// `machine` (GRBL `MPos`) or `work` (`WPos`) coordinates.
+    pub frame: String,
+    /// Current feed if reported, m/s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub feed_m_s: Option<f64>,
+}
+
+/// `/probe/<id>/reading`: one displacement probe reading.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
+pub struct ProbeReadingSample {
+    /// Host time of the reading, seconds since recording started.
+    pub t_s: f64,
+    pub value_m: f64,
 }
 
 /// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
@@ -382,6 +414,31 @@ pub mod schema {
     "commanded_rad": {"type": "number"},
     "encoder_rad": {"type": ["number", "null"]},
     "in_position": {"type": "boolean"}
+  }
+}"#;
+
+    pub const MACHINE: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.MachineState",
+  "type": "object",
+  "required": ["t_s", "state", "position_m", "frame"],
+  "properties": {
+    "t_s": {"type": "number"},
+    "state": {"type": "string"},
+    "position_m": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "frame": {"enum": ["machine", "work"]},
+    "feed_m_s": {"type": "number"}
+  }
+}"#;
+
+    pub const PROBE: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.ProbeReading",
+  "type": "object",
+  "required": ["t_s", "value_m"],
+  "properties": {
+    "t_s": {"type": "number"},
+    "value_m": {"type": "number"}
   }
 }"#;
 

@@ -11,8 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample, SESSION_FORMAT,
-    TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, MachineStateSample, ProbeReadingSample, RotaryStateSample, RunEvent, SessionHeader,
+    TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.
@@ -52,6 +52,10 @@ pub struct Session {
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
     /// Key: table id from the topic `/rotary/<id>/state`.
     pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
+    /// Key: machine id from the topic `/machine/<id>/state`.
+    pub machines: BTreeMap<String, Vec<Stamped<MachineStateSample>>>,
+    /// Key: probe id from the topic `/probe/<id>/reading`.
+    pub probes: BTreeMap<String, Vec<Stamped<ProbeReadingSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
@@ -378,6 +382,8 @@ enum Slot {
     Tracer(usize),
     Env(usize),
     Rotary(usize),
+    Machine(usize),
+    Probe(usize),
     Event,
     /// A topic we do not read.
     Other,
@@ -393,6 +399,8 @@ struct Decoder {
     tracers: Streams<TracerSample>,
     env: Streams<EnvSample>,
     rotary: Streams<RotaryStateSample>,
+    machines: Streams<MachineStateSample>,
+    probes: Streams<ProbeReadingSample>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
@@ -482,6 +490,8 @@ impl Decoder {
             tracers: Streams::default(),
             env: Streams::default(),
             rotary: Streams::default(),
+            machines: Streams::default(),
+            probes: Streams::default(),
             events: Vec::new(),
             header: None,
             lazy_header: false,
@@ -505,6 +515,10 @@ impl Decoder {
             Slot::Env(self.env.index(eid))
         } else if let Some(rid) = rotary_id(topic) {
             Slot::Rotary(self.rotary.index(rid))
+        } else if let Some(mid) = machine_id(topic) {
+            Slot::Machine(self.machines.index(mid))
+        } else if let Some(pid) = probe_id(topic) {
+            Slot::Probe(self.probes.index(pid))
         } else {
             Slot::Other
         };
@@ -556,6 +570,8 @@ impl Decoder {
         w.tracers = self.tracers.empty_like();
         w.env = self.env.empty_like();
         w.rotary = self.rotary.empty_like();
+        w.machines = self.machines.empty_like();
+        w.probes = self.probes.empty_like();
         w.lazy_header = true;
         w
     }
@@ -568,6 +584,8 @@ impl Decoder {
         self.tracers.absorb(other.tracers);
         self.env.absorb(other.env);
         self.rotary.absorb(other.rotary);
+        self.machines.absorb(other.machines);
+        self.probes.absorb(other.probes);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -594,6 +612,8 @@ impl Decoder {
             Some(Slot::Tracer(i)) => self.tracers.streams[*i].1.reserve(n),
             Some(Slot::Env(i)) => self.env.streams[*i].1.reserve(n),
             Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
+            Some(Slot::Machine(i)) => self.machines.streams[*i].1.reserve(n),
+            Some(Slot::Probe(i)) => self.probes.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -665,6 +685,16 @@ impl Decoder {
                     self.rotary.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
+            Slot::Machine(i) => {
+                if let Some(msg) = self.parse::<MachineStateSample>(channel_id, log_time_ns, data) {
+                    self.machines.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
+            Slot::Probe(i) => {
+                if let Some(msg) = self.parse::<ProbeReadingSample>(channel_id, log_time_ns, data) {
+                    self.probes.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
             Slot::Event => {
                 if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
                     self.events.push(Stamped {
@@ -730,6 +760,8 @@ impl Decoder {
             Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers.streams[*i].0),
             Some(Slot::Env(i)) => format!("/env/{}", self.env.streams[*i].0),
             Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
+            Some(Slot::Machine(i)) => format!("/machine/{}/state", self.machines.streams[*i].0),
+            Some(Slot::Probe(i)) => format!("/probe/{}/reading", self.probes.streams[*i].0),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -776,6 +808,8 @@ impl Decoder {
         let tracers = self.tracers.into_sorted_map();
         let env = self.env.into_sorted_map();
         let rotary = self.rotary.into_sorted_map();
+        let machines = self.machines.into_sorted_map();
+        let probes = self.probes.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
@@ -783,6 +817,8 @@ impl Decoder {
             tracers,
             env,
             rotary,
+            machines,
+            probes,
             events,
             completeness,
             skipped: self.skipped,
@@ -809,6 +845,16 @@ fn env_id(topic: &str) -> Option<&str> {
 
 fn rotary_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/rotary/")?.strip_suffix("/state")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn machine_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/machine/")?.strip_suffix("/state")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn probe_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/probe/")?.strip_suffix("/reading")?;
     (!id.is_empty() && !id.contains('/')).then_some(id)
 }
 
