@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
 use geocal_drivers::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator,
-    RotaryState, RotaryTable, Tracer, TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Probe,
+    ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
 };
 
 use super::recording::{Arrival, Recording};
@@ -398,6 +398,45 @@ impl RotaryTable for ReplayRotaryTable {
     }
 }
 
+/// A probe replayed from a session's `/probe/<id>/reading` stream: the recorded readings in
+/// order, then `EndOfStream` (no plan kind drives a probe yet, so it needs no shared cursor).
+pub struct ReplayProbe {
+    id: String,
+    readings: VecDeque<ProbeReading>,
+}
+
+impl ReplayProbe {
+    /// The probe `id` of `session`; None if the session has no such stream.
+    pub fn from_session(session: &crate::session::reader::Session, id: &str) -> Option<Self> {
+        let readings = session.probes.get(id)?;
+        Some(ReplayProbe {
+            id: id.to_string(),
+            readings: readings
+                .iter()
+                .map(|r| ProbeReading {
+                    t_s: r.msg.t_s,
+                    value_m: r.msg.value_m,
+                })
+                .collect(),
+        })
+    }
+}
+
+#[async_trait]
+impl Probe for ReplayProbe {
+    fn id(&self) -> &str {
+        &self.id
+    }
+
+    async fn read(&mut self) -> Result<ProbeReading, DeviceError> {
+        self.readings
+            .pop_front()
+            .ok_or_else(|| DeviceError::EndOfStream {
+                device: self.id.clone(),
+            })
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::collections::BTreeMap;
@@ -482,6 +521,35 @@ mod tests {
         assert!(elapsed.as_secs_f64() >= 0.3, "{elapsed:?}");
         let (seqs, _) = drain(false, &times).await;
         assert_eq!(seqs, vec![0, 1, 2, 3]);
+    }
+
+    #[tokio::test]
+    async fn the_probe_replays_its_readings_in_order() {
+        use crate::session::messages::ProbeReadingSample;
+        let mut s = session(&[]);
+        s.probes.insert(
+            "p".into(),
+            (0..3u64)
+                .map(|i| Stamped {
+                    log_time_ns: i,
+                    publish_time_ns: i,
+                    msg: ProbeReadingSample {
+                        t_s: i as f64,
+                        value_m: 1e-4 * i as f64,
+                    },
+                })
+                .collect(),
+        );
+        assert!(ReplayProbe::from_session(&s, "q").is_none());
+        let mut probe = ReplayProbe::from_session(&s, "p").expect("probe");
+        for i in 0..3 {
+            let r = probe.read().await.expect("reading");
+            assert_eq!((r.t_s, r.value_m), (i as f64, 1e-4 * i as f64));
+        }
+        assert!(matches!(
+            probe.read().await,
+            Err(DeviceError::EndOfStream { .. })
+        ));
     }
 
     /// Virtual-clock recordings keep their stamps; after a sample the clock never runs past
