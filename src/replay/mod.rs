@@ -91,6 +91,9 @@ pub struct ReplayOutput {
 /// The plan the session header records (`plan`, with the machine's targets), expanded as
 /// the live run expanded it.
 pub fn plan_from_header(header: &SessionHeader) -> anyhow::Result<Plan> {
+    if header.kind == crate::monitor::KIND {
+        anyhow::bail!("a `monitor` session records one device and no plan: nothing to replay");
+    }
     let value = serde_json::json!({
         "kind": header.kind,
         "machine": {
