@@ -77,6 +77,38 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Re-run the sequencer and stillstand detection against a recorded session (replay
+    /// drivers), record the replay, solve it and compare it with the recording.
+    Replay {
+        session: PathBuf,
+        /// Deliver the samples at the recorded pace (wall clock) instead of at full speed.
+        #[arg(long)]
+        realtime: bool,
+        /// Output directory for the replayed session.mcap, results.json and comparison.json
+        /// (default: `replay` beside SESSION).
+        #[arg(long)]
+        out: Option<PathBuf>,
+        /// Print the comparison (geocal-replay/1 JSON) instead of the text.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Connect to one device with its real driver, print its live readings and optionally
+    /// record them as a session (kind `monitor`).
+    Monitor {
+        /// hpi3d:PORT, grbl:PORT, probe:PORT, modbus-rtu:PORT or modbus-tcp:HOST:PORT.
+        #[arg(long, value_name = "SPEC")]
+        device: String,
+        /// Stop after this many seconds (default: run until Ctrl-C).
+        #[arg(long, value_name = "N")]
+        seconds: Option<f64>,
+        /// Record the readings to this session file (MCAP).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+        /// Driver settings: a TOML file with [hpi3d], [grbl], [rotary] or [probe] (or a run
+        /// config's [devices.tracer.hpi3d] / [devices.machine.grbl]).
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -216,6 +248,63 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         } => {
             let cfg = geocal::config::Config::load(&config)?;
             geocal::simulate::simulate(&cfg, &geocal::simulate::SimulateOptions { truth, json })?;
+        }
+        Command::Replay {
+            session,
+            realtime,
+            out,
+            json,
+        } => {
+            let out_dir = out.unwrap_or_else(|| {
+                session
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join("replay")
+            });
+            let output = geocal::replay::replay(
+                &session,
+                &geocal::replay::ReplayOptions {
+                    out_dir,
+                    realtime,
+                    settings: settings(None),
+                    progress: std::io::stderr().is_terminal(),
+                },
+            )?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&output.comparison)?);
+            } else {
+                print!("{}", geocal::replay::text(&output.comparison));
+            }
+            if output.comparison.outcome == geocal::replay::Outcome::Diverged {
+                anyhow::bail!("{}", output.comparison.message);
+            }
+        }
+        Command::Monitor {
+            device,
+            seconds,
+            out,
+            config,
+        } => {
+            let summary = geocal::monitor::monitor(&geocal::monitor::MonitorOptions {
+                device: device.parse()?,
+                seconds,
+                out: out.clone(),
+                config,
+                print_interval_s: 0.2,
+            })?;
+            let counts: Vec<String> = summary
+                .readings
+                .iter()
+                .map(|(k, n)| format!("{n} {k}"))
+                .collect();
+            println!(
+                "{} readings ({}), {} device errors{}",
+                summary.readings.values().sum::<u64>(),
+                counts.join(", "),
+                summary.errors,
+                out.map(|p| format!(", recorded to {}", p.display()))
+                    .unwrap_or_default()
+            );
         }
         Command::Check { config, json } => {
             use geocal::config::rotary_sphere as sphere;

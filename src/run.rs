@@ -97,7 +97,7 @@ pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Resul
     solve_session(&session, settings).with_context(|| format!("solving {}", path.display()))
 }
 
-fn progress_bar(show: bool) -> indicatif::ProgressBar {
+pub(crate) fn progress_bar(show: bool) -> indicatif::ProgressBar {
     if !show {
         return indicatif::ProgressBar::hidden();
     }

@@ -5,59 +5,9 @@
 
 mod common;
 
-use common::{assert_recovers_truth, run_with_truth, small_demo};
+use common::{assert_recovers_truth, hil_config, run_with_truth, HIL_FAULTS};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
-
-/// The small demo (4 stations x 3x3x2 points, one pass) over the emulators: a 1000 Hz
-/// stream, a fast machine and short dwells so the run takes seconds of real time. The
-/// stillstand window holds 30 samples; its tolerance stays the demo's.
-fn hil_config(extra: &str) -> String {
-    let base = small_demo();
-    let text = base
-        .replace(
-            "id = \"tracer0\"\ndriver = \"sim\"",
-            "id = \"tracer0\"\ndriver = \"hpi3d\"",
-        )
-        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 1000.0")
-        .replace(
-            "id = \"env0\"\ndriver = \"sim\"\nsample_rate_hz = 1.0",
-            "id = \"env0\"\ndriver = \"hpi3d\"\nsample_rate_hz = 4.0",
-        )
-        .replace(
-            "driver = \"sim\"\nfeed_m_s = 0.3",
-            "driver = \"grbl\"\nfeed_m_s = 20.0",
-        )
-        .replace(
-            "passes = [\"forward\", \"backward\"]",
-            "passes = [\"forward\"]",
-        )
-        .replace("dwell_s = 2.0", "dwell_s = 0.03")
-        .replace("max_dwell_s = 20.0", "max_dwell_s = 2.0")
-        .replace("window_s = 0.6", "window_s = 0.03");
-    assert!(
-        !text.contains("\ndriver = \"sim\""),
-        "every device replaced:\n{text}"
-    );
-    format!(
-        "{text}
-[devices.tracer.hpi3d]
-ack_timeout_s = 0.05
-retries = 3
-stream_timeout_s = 0.2
-flag_clear_interval_s = 0.05
-
-[devices.machine.grbl]
-port = \"\"
-ack_timeout_s = 0.3
-status_interval_s = 0.005
-
-[hil]
-emulate = true
-{extra}
-"
-    )
-}
 
 fn events(session: &std::path::Path) -> Vec<RunEvent> {
     read_session(session)
@@ -109,21 +59,9 @@ fn hil_run_recovers_truth() {
 
 #[test]
 fn hil_run_with_faults_completes_and_recovers_truth() {
-    let faults_toml = "
-[hil.tracer_faults]
-seed = 7
-drop_fraction = 0.002
-corrupt_fraction = 0.002
-garbage_fraction = 0.002
-silence = { from_s = 3.0, to_s = 3.5 }
-beam_break = { from_s = 6.0, to_s = 6.3 }
-
-[hil.machine_faults]
-drop_ok_at_lines = [20]
-";
     let dir = tempfile::tempdir().expect("tempdir");
     let started = std::time::Instant::now();
-    let (output, truth) = run_with_truth(&hil_config(faults_toml), dir.path());
+    let (output, truth) = run_with_truth(&hil_config(HIL_FAULTS), dir.path());
     println!(
         "HIL run with faults: {:.1} s",
         started.elapsed().as_secs_f64()

@@ -275,6 +275,7 @@ mod tests {
                     })
                     .collect(),
             )]),
+            machines: BTreeMap::new(),
             probes: BTreeMap::new(),
             events: events.into_iter().enumerate().map(stamp).collect(),
             completeness: Completeness::Complete,

@@ -19,6 +19,9 @@ pub fn rotary_topic(id: &str) -> String {
     format!("/rotary/{id}/state")
 }
 /// Raw readings of a displacement probe (plan kind `rotary_sphere`).
+pub fn machine_state_topic(id: &str) -> String {
+    format!("/machine/{id}/state")
+}
 pub fn probe_topic(id: &str) -> String {
     format!("/probe/{id}/reading")
 }
@@ -28,6 +31,7 @@ pub const SCHEMA_TRACER: &str = "geocal.TracerSample";
 pub const SCHEMA_ENV: &str = "geocal.EnvSample";
 pub const SCHEMA_EVENT: &str = "geocal.RunEvent";
 pub const SCHEMA_ROTARY: &str = "geocal.RotaryState";
+pub const SCHEMA_MACHINE: &str = "geocal.MachineState";
 pub const SCHEMA_PROBE: &str = "geocal.ProbeReading";
 
 /// `/geocal/session`: exactly one, first in the file.
@@ -128,8 +132,23 @@ pub struct RotaryStateSample {
     pub in_position: bool,
 }
 
-/// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
-/// One raw reading of a displacement probe, as the driver reported it.
+/// `/machine/<id>/state`: a machine controller's status as polled (GRBL `?`; `geocal monitor`).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct MachineStateSample {
+    /// Host time of the report, seconds since recording started.
+    pub t_s: f64,
+    /// The controller's state as it names it (`Idle`, `Run`, `Hold`, `Alarm`, ...).
+    pub state: String,
+    /// Reported X, Y, Z position, metres.
+    pub position_m: [f64; 3],
+    /// `machine` (GRBL `MPos`) or `work` (`WPos`) coordinates.
+    pub frame: String,
+    /// Current feed if reported, m/s.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub feed_m_s: Option<f64>,
+}
+
+/// `/probe/<id>/reading`: one raw reading of a displacement probe, as the driver reported it.
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
 pub struct ProbeSample {
     /// Readings counted from 1 by the sequencer.
@@ -140,6 +159,7 @@ pub struct ProbeSample {
     pub value_m: f64,
 }
 
+/// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(tag = "kind", rename_all = "snake_case", try_from = "WireEvent")]
 pub enum RunEvent {
@@ -469,6 +489,20 @@ pub mod schema {
     "commanded_rad": {"type": "number"},
     "encoder_rad": {"type": ["number", "null"]},
     "in_position": {"type": "boolean"}
+  }
+}"#;
+
+    pub const MACHINE: &str = r#"{
+  "$schema": "https://json-schema.org/draft/2020-12/schema",
+  "title": "geocal.MachineState",
+  "type": "object",
+  "required": ["t_s", "state", "position_m", "frame"],
+  "properties": {
+    "t_s": {"type": "number"},
+    "state": {"type": "string"},
+    "position_m": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "frame": {"enum": ["machine", "work"]},
+    "feed_m_s": {"type": "number"}
   }
 }"#;
 

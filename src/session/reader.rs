@@ -11,8 +11,8 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use super::messages::{
-    EnvSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample,
-    SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
+    EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
+    TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// A message with its MCAP times.
@@ -52,6 +52,8 @@ pub struct Session {
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
     /// Key: table id from the topic `/rotary/<id>/state`.
     pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
+    /// Key: machine id from the topic `/machine/<id>/state`.
+    pub machines: BTreeMap<String, Vec<Stamped<MachineStateSample>>>,
     /// Key: probe id from the topic `/probe/<id>/reading`.
     pub probes: BTreeMap<String, Vec<Stamped<ProbeSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
@@ -380,6 +382,7 @@ enum Slot {
     Tracer(usize),
     Env(usize),
     Rotary(usize),
+    Machine(usize),
     Probe(usize),
     Event,
     /// A topic we do not read.
@@ -396,6 +399,7 @@ struct Decoder {
     tracers: Streams<TracerSample>,
     env: Streams<EnvSample>,
     rotary: Streams<RotaryStateSample>,
+    machines: Streams<MachineStateSample>,
     probes: Streams<ProbeSample>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
@@ -486,6 +490,7 @@ impl Decoder {
             tracers: Streams::default(),
             env: Streams::default(),
             rotary: Streams::default(),
+            machines: Streams::default(),
             probes: Streams::default(),
             events: Vec::new(),
             header: None,
@@ -510,6 +515,8 @@ impl Decoder {
             Slot::Env(self.env.index(eid))
         } else if let Some(rid) = rotary_id(topic) {
             Slot::Rotary(self.rotary.index(rid))
+        } else if let Some(mid) = machine_id(topic) {
+            Slot::Machine(self.machines.index(mid))
         } else if let Some(pid) = probe_id(topic) {
             Slot::Probe(self.probes.index(pid))
         } else {
@@ -563,6 +570,7 @@ impl Decoder {
         w.tracers = self.tracers.empty_like();
         w.env = self.env.empty_like();
         w.rotary = self.rotary.empty_like();
+        w.machines = self.machines.empty_like();
         w.probes = self.probes.empty_like();
         w.lazy_header = true;
         w
@@ -576,6 +584,7 @@ impl Decoder {
         self.tracers.absorb(other.tracers);
         self.env.absorb(other.env);
         self.rotary.absorb(other.rotary);
+        self.machines.absorb(other.machines);
         self.probes.absorb(other.probes);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
@@ -603,6 +612,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => self.tracers.streams[*i].1.reserve(n),
             Some(Slot::Env(i)) => self.env.streams[*i].1.reserve(n),
             Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
+            Some(Slot::Machine(i)) => self.machines.streams[*i].1.reserve(n),
             Some(Slot::Probe(i)) => self.probes.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
@@ -675,6 +685,11 @@ impl Decoder {
                     self.rotary.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
+            Slot::Machine(i) => {
+                if let Some(msg) = self.parse::<MachineStateSample>(channel_id, log_time_ns, data) {
+                    self.machines.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
             Slot::Probe(i) => {
                 if let Some(msg) = self.parse::<ProbeSample>(channel_id, log_time_ns, data) {
                     self.probes.push(i, log_time_ns, publish_time_ns, msg);
@@ -745,6 +760,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers.streams[*i].0),
             Some(Slot::Env(i)) => format!("/env/{}", self.env.streams[*i].0),
             Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
+            Some(Slot::Machine(i)) => format!("/machine/{}/state", self.machines.streams[*i].0),
             Some(Slot::Probe(i)) => format!("/probe/{}/reading", self.probes.streams[*i].0),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
@@ -792,6 +808,7 @@ impl Decoder {
         let tracers = self.tracers.into_sorted_map();
         let env = self.env.into_sorted_map();
         let rotary = self.rotary.into_sorted_map();
+        let machines = self.machines.into_sorted_map();
         let probes = self.probes.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
@@ -800,6 +817,7 @@ impl Decoder {
             tracers,
             env,
             rotary,
+            machines,
             probes,
             events,
             completeness,
@@ -827,6 +845,11 @@ fn env_id(topic: &str) -> Option<&str> {
 
 fn rotary_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/rotary/")?.strip_suffix("/state")?;
+    (!id.is_empty() && !id.contains('/')).then_some(id)
+}
+
+fn machine_id(topic: &str) -> Option<&str> {
+    let id = topic.strip_prefix("/machine/")?.strip_suffix("/state")?;
     (!id.is_empty() && !id.contains('/')).then_some(id)
 }
 

@@ -16,9 +16,9 @@ use serde::Serialize;
 use thiserror::Error;
 
 use super::messages::{
-    self, EnvSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader, TracerSample,
-    SCHEMA_ENV, SCHEMA_EVENT, SCHEMA_PROBE, SCHEMA_ROTARY, SCHEMA_SESSION, SCHEMA_TRACER,
-    TOPIC_EVENT, TOPIC_SESSION,
+    self, EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent,
+    SessionHeader, TracerSample, SCHEMA_ENV, SCHEMA_EVENT, SCHEMA_MACHINE, SCHEMA_PROBE,
+    SCHEMA_ROTARY, SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
 };
 
 /// Chunk compression of the recorded file.
@@ -106,8 +106,9 @@ enum Payload {
     Tracer(String, TracerSample),
     Env(String, Box<EnvSample>),
     Rotary(String, RotaryStateSample),
-    Event(Box<RunEvent>),
+    Machine(String, Box<MachineStateSample>),
     Probe(String, ProbeSample),
+    Event(Box<RunEvent>),
 }
 
 enum Command {
@@ -159,7 +160,15 @@ impl RecorderHandle {
         self.send(Payload::Rotary(table_id.to_owned(), *sample), log_time_ns);
     }
 
-    /// One `/probe/<id>/reading` sample.
+    /// One `/machine/<id>/state` report.
+    pub fn machine_state(&self, machine_id: &str, sample: &MachineStateSample, log_time_ns: u64) {
+        self.send(
+            Payload::Machine(machine_id.to_owned(), Box::new(sample.clone())),
+            log_time_ns,
+        );
+    }
+
+    /// One `/probe/<id>/reading`.
     pub fn probe(&self, probe_id: &str, sample: &ProbeSample, log_time_ns: u64) {
         self.send(Payload::Probe(probe_id.to_owned(), *sample), log_time_ns);
     }
@@ -210,12 +219,13 @@ impl Recorder {
             writer: Some(writer),
             sync_file,
             flush_interval: options.flush_interval,
-            schemas: [0; 6],
+            schemas: [0; 7],
             session_channel: None,
             event_channel: None,
             tracer_channels: HashMap::new(),
             env_channels: HashMap::new(),
             rotary_channels: HashMap::new(),
+            machine_channels: HashMap::new(),
             probe_channels: HashMap::new(),
             sequences: HashMap::new(),
             buf: Vec::with_capacity(512),
@@ -302,6 +312,7 @@ enum SchemaKind {
     Event = 3,
     Rotary = 4,
     Probe = 5,
+    Machine = 6,
 }
 
 impl SchemaKind {
@@ -312,6 +323,7 @@ impl SchemaKind {
             SchemaKind::Env => (SCHEMA_ENV, messages::schema::ENV),
             SchemaKind::Event => (SCHEMA_EVENT, messages::schema::EVENT),
             SchemaKind::Rotary => (SCHEMA_ROTARY, messages::schema::ROTARY),
+            SchemaKind::Machine => (SCHEMA_MACHINE, messages::schema::MACHINE),
             SchemaKind::Probe => (SCHEMA_PROBE, messages::schema::PROBE),
         }
     }
@@ -324,12 +336,13 @@ struct WriterThread {
     sync_file: File,
     flush_interval: Duration,
     /// Schema ids by SchemaKind; 0 = not added yet.
-    schemas: [u16; 6],
+    schemas: [u16; 7],
     session_channel: Option<u16>,
     event_channel: Option<u16>,
     tracer_channels: HashMap<String, u16>,
     env_channels: HashMap<String, u16>,
     rotary_channels: HashMap<String, u16>,
+    machine_channels: HashMap<String, u16>,
     probe_channels: HashMap<String, u16>,
     sequences: HashMap<u16, u32>,
     buf: Vec<u8>,
@@ -422,6 +435,7 @@ impl WriterThread {
         self.stats.channels = (self.tracer_channels.len()
             + self.env_channels.len()
             + self.rotary_channels.len()
+            + self.machine_channels.len()
             + self.probe_channels.len()
             + usize::from(self.session_channel.is_some())
             + usize::from(self.event_channel.is_some())) as u32;
@@ -546,6 +560,21 @@ impl WriterThread {
                     id
                 }
             },
+            Payload::Machine(machine_id, s) => {
+                match self.machine_channels.get(machine_id.as_str()) {
+                    Some(&id) => {
+                        encode(&mut self.buf, "/machine/*/state", s.as_ref())?;
+                        id
+                    }
+                    None => {
+                        let topic = messages::machine_state_topic(machine_id);
+                        encode(&mut self.buf, &topic, s.as_ref())?;
+                        let id = self.add_channel(SchemaKind::Machine, &topic)?;
+                        self.machine_channels.insert(machine_id.clone(), id);
+                        id
+                    }
+                }
+            }
             Payload::Probe(probe_id, s) => match self.probe_channels.get(probe_id.as_str()) {
                 Some(&id) => {
                     encode(&mut self.buf, "/probe/*/reading", s)?;

@@ -236,3 +236,68 @@ pub fn assert_diagnosis_format(d: &Value) {
         assert!(d.get(key).is_some(), "missing `{key}` in {d}");
     }
 }
+
+/// The small demo (4 stations x 3x3x2 points, one pass) over the emulators: a 1000 Hz
+/// stream, a fast machine and short dwells so the run takes seconds of real time. The
+/// stillstand window holds 30 samples; its tolerance stays the demo's.
+pub fn hil_config(extra: &str) -> String {
+    let base = small_demo();
+    let text = base
+        .replace(
+            "id = \"tracer0\"\ndriver = \"sim\"",
+            "id = \"tracer0\"\ndriver = \"hpi3d\"",
+        )
+        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 1000.0")
+        .replace(
+            "id = \"env0\"\ndriver = \"sim\"\nsample_rate_hz = 1.0",
+            "id = \"env0\"\ndriver = \"hpi3d\"\nsample_rate_hz = 4.0",
+        )
+        .replace(
+            "driver = \"sim\"\nfeed_m_s = 0.3",
+            "driver = \"grbl\"\nfeed_m_s = 20.0",
+        )
+        .replace(
+            "passes = [\"forward\", \"backward\"]",
+            "passes = [\"forward\"]",
+        )
+        .replace("dwell_s = 2.0", "dwell_s = 0.03")
+        .replace("max_dwell_s = 20.0", "max_dwell_s = 2.0")
+        .replace("window_s = 0.6", "window_s = 0.03");
+    assert!(
+        !text.contains("\ndriver = \"sim\""),
+        "every device replaced:\n{text}"
+    );
+    format!(
+        "{text}
+[devices.tracer.hpi3d]
+ack_timeout_s = 0.05
+retries = 3
+stream_timeout_s = 0.2
+flag_clear_interval_s = 0.05
+
+[devices.machine.grbl]
+port = \"\"
+ack_timeout_s = 0.3
+status_interval_s = 0.005
+
+[hil]
+emulate = true
+{extra}
+"
+    )
+}
+
+/// Every fault the HIL emulators inject (`[hil.tracer_faults]`, `[hil.machine_faults]`), for
+/// `hil_config`: dropped, corrupted and garbage frames, a silent tracer, a beam break, a lost `ok`.
+pub const HIL_FAULTS: &str = "
+[hil.tracer_faults]
+seed = 7
+drop_fraction = 0.002
+corrupt_fraction = 0.002
+garbage_fraction = 0.002
+silence = { from_s = 3.0, to_s = 3.5 }
+beam_break = { from_s = 6.0, to_s = 6.3 }
+
+[hil.machine_faults]
+drop_ok_at_lines = [20]
+";

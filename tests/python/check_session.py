@@ -23,6 +23,7 @@ SCHEMA_BY_TOPIC = [
     (re.compile(r"^/tracer/[^/]+/range$"), "geocal.TracerSample"),
     (re.compile(r"^/env/[^/]+$"), "geocal.EnvSample"),
     (re.compile(r"^/rotary/[^/]+/state$"), "geocal.RotaryState"),
+    (re.compile(r"^/machine/[^/]+/state$"), "geocal.MachineState"),
     (re.compile(r"^/probe/[^/]+/reading$"), "geocal.ProbeReading"),
 ]
 

@@ -371,6 +371,16 @@ impl ModbusTable {
             .ok_or_else(|| self.protocol(format!("cannot decode actual angle from {words:?}")))
     }
 
+    /// Read the commanded (target) angle back from the table, radians.
+    pub async fn read_target_rad(&mut self) -> Result<f64, DeviceError> {
+        let a = self.cfg.map.target.clone();
+        let words = self
+            .read(a.kind, a.address, a.words(), "target angle")
+            .await?;
+        a.decode_rad(&words)
+            .ok_or_else(|| self.protocol(format!("cannot decode target angle from {words:?}")))
+    }
+
     async fn wait_ack(&mut self) -> Result<(), DeviceError> {
         let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.ack_timeout_s);
         let ack = self.cfg.map.ack_register();

@@ -1,0 +1,407 @@
+//! `geocal replay`: re-runs the real sequencer and stillstand detection against a recorded
+//! session through replay drivers, records a new session, and compares it with the recording.
+//!
+//! The plan comes from the session header. The tracer replays every recorded sample in order;
+//! the machine arrives where the recording shows (`recording::Recording::arrival`); recorded
+//! device faults (timeouts, protocol errors) are raised again at the same place, so the
+//! sequencer retries and records them as it did. Time follows the recorded log times, at full
+//! speed or paced by the wall clock (`realtime`).
+
+pub mod compare;
+pub mod devices;
+pub mod recording;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use geocal_drivers::DeviceError;
+use serde::Serialize;
+
+use crate::config::Config;
+use crate::method::{solve_session, SolveSettings};
+use crate::plan::Plan;
+use crate::sequencer::{Devices, Sequencer, SequencerError};
+use crate::session::messages::SessionHeader;
+use crate::session::reader::{read_session, Completeness, Session};
+use crate::session::recorder::{Recorder, RecorderOptions};
+use compare::{
+    compare_windows, event_counts, results_difference, ResultsDifference, WindowComparison,
+};
+use devices::{
+    ReplayEnvironment, ReplayMachine, ReplayOperator, ReplayRotaryTable, ReplayState, ReplayTracer,
+};
+use recording::Recording;
+
+pub const COMPARISON_FORMAT: &str = "geocal-replay/1";
+
+pub struct ReplayOptions {
+    /// Where the replayed session.mcap, results.json and comparison.json go.
+    pub out_dir: PathBuf,
+    /// Deliver samples at the recorded pace (wall clock) instead of at full speed.
+    pub realtime: bool,
+    pub settings: SolveSettings,
+    pub progress: bool,
+}
+
+/// How the replayed run ended.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Outcome {
+    /// The sequencer finished the whole plan.
+    Completed,
+    /// The recording ran out before the plan was done (a cut-short or interrupted run).
+    RecordingEnded,
+    /// The sequencer asked for something the recording does not contain, or failed otherwise.
+    Diverged,
+}
+
+/// The comparison printed by `geocal replay` and written to comparison.json.
+#[derive(Debug, Clone, Serialize)]
+pub struct Comparison {
+    pub format: &'static str,
+    pub recording: String,
+    pub replay: String,
+    pub outcome: Outcome,
+    /// What ended the replay, in words.
+    pub message: String,
+    /// Set when the recorded file is cut short: what the reader says was lost.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub truncation: Option<String>,
+    pub samples_recorded: usize,
+    pub samples_replayed: usize,
+    pub windows: WindowComparison,
+    /// `fault:<code>` and `rehome` event counts.
+    pub events_recorded: BTreeMap<String, usize>,
+    pub events_replayed: BTreeMap<String, usize>,
+    /// Both sessions solved with the same settings; None when either cannot be solved.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub results: Option<ResultsDifference>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub results_error: Option<String>,
+}
+
+pub struct ReplayOutput {
+    pub session_path: PathBuf,
+    pub results_path: Option<PathBuf>,
+    pub comparison_path: PathBuf,
+    pub comparison: Comparison,
+}
+
+/// The plan the session header records (`plan`, with the machine's targets), expanded as
+/// the live run expanded it.
+pub fn plan_from_header(header: &SessionHeader) -> anyhow::Result<Plan> {
+    if header.kind == crate::monitor::KIND {
+        anyhow::bail!("a `monitor` session records one device and no plan: nothing to replay");
+    }
+    let value = serde_json::json!({
+        "kind": header.kind,
+        "machine": {
+            "name": header.machine.name,
+            "structure": header.machine.structure,
+            "travel_m": header.machine.travel_m,
+            "targets": header.machine.targets,
+        },
+        // Placeholders: expanding the plan does not look at the devices.
+        "devices": {
+            "tracer": {"id": "tracer", "driver": "sim", "noise_m": 0.0, "noise_ppm": 0.0,
+                       "sample_rate_hz": 1.0},
+            "machine": {"id": "machine", "driver": "sim", "feed_m_s": 1.0},
+        },
+        "plan": header.plan,
+    });
+    let config: Config = serde_path_to_error::deserialize(value).map_err(|e| {
+        anyhow::anyhow!(
+            "the session header cannot be replayed: key `{}`: {}",
+            e.path(),
+            e.inner()
+        )
+    })?;
+    Ok(Plan::from_config(&config))
+}
+
+pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<ReplayOutput> {
+    let session = read_session(session_path)
+        .with_context(|| format!("reading {}", session_path.display()))?;
+    let plan = plan_from_header(&session.header)
+        .with_context(|| format!("rebuilding the plan of {}", session_path.display()))?;
+    let recording = Recording::new(&session)?;
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    let out_path = options.out_dir.join("session.mcap");
+    if same_file(session_path, &out_path) {
+        anyhow::bail!(
+            "the replay would overwrite its recording {}: choose another --out",
+            session_path.display()
+        );
+    }
+
+    let (ended, samples_replayed) = run_sequencer(&session, recording, plan, &out_path, options)?;
+    let replayed =
+        read_session(&out_path).with_context(|| format!("reading back {}", out_path.display()))?;
+    let (outcome, mut message) = match &ended {
+        Ok(()) => (
+            Outcome::Completed,
+            "the sequencer completed the plan".to_string(),
+        ),
+        Err(SequencerError::Device(DeviceError::EndOfStream { .. })) => (
+            Outcome::RecordingEnded,
+            format!(
+                "the recording ends after {} tracer samples (t = {:.3} s), before the plan is \
+                 done: replayed up to there",
+                samples_replayed,
+                last_t_s(&session)
+            ),
+        ),
+        Err(e) => (Outcome::Diverged, format!("the replay stopped: {e}")),
+    };
+    let truncation = match &session.completeness {
+        Completeness::Complete => None,
+        Completeness::Truncated {
+            bytes_read,
+            file_bytes,
+            reason,
+            ..
+        } => {
+            message.push_str(&format!(
+                "; the recorded file is cut short (read {bytes_read} of {file_bytes} bytes: {reason})"
+            ));
+            Some(reason.clone())
+        }
+    };
+
+    let tracer_id = devices_tracer_id(&session);
+    let windows = compare_windows(
+        &compare::windows(&session, &tracer_id),
+        &compare::windows(&replayed, &tracer_id),
+    );
+    let (results, results_error, results_path) = compare_results(&session, &replayed, options)?;
+    let comparison = Comparison {
+        format: COMPARISON_FORMAT,
+        recording: session_path.display().to_string(),
+        replay: out_path.display().to_string(),
+        outcome,
+        message,
+        truncation,
+        samples_recorded: session.tracers.get(&tracer_id).map_or(0, Vec::len),
+        samples_replayed: replayed.tracers.get(&tracer_id).map_or(0, Vec::len),
+        windows,
+        events_recorded: event_counts(&session),
+        events_replayed: event_counts(&replayed),
+        results,
+        results_error,
+    };
+    let comparison_path = options.out_dir.join("comparison.json");
+    std::fs::write(
+        &comparison_path,
+        serde_json::to_string_pretty(&comparison)? + "\n",
+    )
+    .with_context(|| format!("writing {}", comparison_path.display()))?;
+    Ok(ReplayOutput {
+        session_path: out_path,
+        results_path,
+        comparison_path,
+        comparison,
+    })
+}
+
+fn same_file(a: &Path, b: &Path) -> bool {
+    match (a.canonicalize(), b.canonicalize()) {
+        (Ok(x), Ok(y)) => x == y,
+        _ => false,
+    }
+}
+
+fn devices_tracer_id(session: &Session) -> String {
+    Recording::new(session)
+        .map(|r| r.tracer_id)
+        .unwrap_or_default()
+}
+
+fn last_t_s(session: &Session) -> f64 {
+    let id = devices_tracer_id(session);
+    session
+        .tracers
+        .get(&id)
+        .and_then(|v| v.last())
+        .map_or(0.0, |s| s.msg.t_s)
+}
+
+/// Runs the sequencer on the replay drivers into `out_path`; the sequencer's result and the
+/// number of samples it was given.
+fn run_sequencer(
+    session: &Session,
+    recording: Recording,
+    plan: Plan,
+    out_path: &Path,
+    options: &ReplayOptions,
+) -> anyhow::Result<(Result<(), SequencerError>, usize)> {
+    let tracer_id = recording.tracer_id.clone();
+    let machine_id = recording.machine_id.clone();
+    let env_id = recording.env_id.clone();
+    let table_id = recording.table_id.clone();
+    let start_ns = recording.start_ns;
+    let header_ns = start_ns.min(recording.earliest_ns);
+    let (shared, clock) = ReplayState::new(recording, plan.clone(), options.realtime);
+    let devices = Devices {
+        tracer: Box::new(ReplayTracer {
+            id: tracer_id,
+            shared: shared.clone(),
+        }),
+        environment: env_id.map(|id| {
+            Box::new(ReplayEnvironment {
+                id,
+                shared: shared.clone(),
+            }) as Box<dyn geocal_drivers::Environment>
+        }),
+        machine: Box::new(ReplayMachine {
+            id: machine_id,
+            shared: shared.clone(),
+        }),
+        operator: Box::new(ReplayOperator {
+            shared: shared.clone(),
+        }),
+        rotary: table_id.map(|id| {
+            Box::new(ReplayRotaryTable {
+                id,
+                shared: shared.clone(),
+            }) as Box<dyn geocal_drivers::RotaryTable>
+        }),
+    };
+    let recorder = Recorder::create(out_path, RecorderOptions::default())
+        .with_context(|| format!("creating {}", out_path.display()))?;
+    let handle = recorder.handle();
+    handle.session(&replay_header(&session.header), header_ns);
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    let bar = crate::run::progress_bar(options.progress);
+    let mut progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+    };
+    // The sequencer takes its start time from the clock when created (rotary state times
+    // count from it): give it the recorded run's start, then the first recorded stamp.
+    clock.set_fixed(start_ns);
+    let sequencer = Sequencer::new(&plan, devices, handle, clock.clone());
+    if let Ok(s) = shared.lock() {
+        clock.at_cursor(s.recording(), 0);
+    }
+    let ended = runtime.block_on(sequencer.run(&mut progress)).map(|_| ());
+    bar.finish_and_clear();
+    recorder
+        .finish()
+        .context("finishing the replayed session file")?;
+    let delivered = shared.lock().map_or(0, |s| s.cursor());
+    Ok((ended, delivered))
+}
+
+/// The recording's header, marked as a replay: `<id>-replay`, every driver `replay` (the
+/// recorded one kept as `replayed_driver`).
+fn replay_header(original: &SessionHeader) -> SessionHeader {
+    let mut header = original.clone();
+    header.session_id = format!("{}-replay", original.session_id);
+    header.started_at = time::OffsetDateTime::now_utc()
+        .format(&time::format_description::well_known::Rfc3339)
+        .unwrap_or_default();
+    for device in &mut header.devices {
+        device
+            .extra
+            .insert("replayed_driver".into(), device.driver.clone().into());
+        device.driver = "replay".into();
+    }
+    header
+}
+
+type ResultsComparison = (Option<ResultsDifference>, Option<String>, Option<PathBuf>);
+
+/// Solve both sessions; write the replay's results; their difference, or why there is none.
+fn compare_results(
+    recorded: &Session,
+    replayed: &Session,
+    options: &ReplayOptions,
+) -> anyhow::Result<ResultsComparison> {
+    let replayed_results = solve_session(replayed, &options.settings);
+    let mut results_path = None;
+    if let Ok(results) = &replayed_results {
+        let path = options.out_dir.join("results.json");
+        std::fs::write(&path, results.to_json_pretty())
+            .with_context(|| format!("writing {}", path.display()))?;
+        results_path = Some(path);
+    }
+    let recorded_results = solve_session(recorded, &options.settings);
+    Ok(match (recorded_results, replayed_results) {
+        (Ok(a), Ok(b)) => (
+            Some(results_difference(
+                &serde_json::to_value(&a)?,
+                &serde_json::to_value(&b)?,
+            )),
+            None,
+            results_path,
+        ),
+        (a, b) => {
+            let why = |r: &Result<_, crate::method::MethodError>, which: &str| {
+                r.as_ref()
+                    .err()
+                    .map(|e| format!("the {which} session does not solve: {e}"))
+            };
+            let parts: Vec<String> = [why(&a, "recorded"), why(&b, "replayed")]
+                .into_iter()
+                .flatten()
+                .collect();
+            (None, Some(parts.join("; ")), results_path)
+        }
+    })
+}
+
+/// The comparison in words, for the terminal.
+pub fn text(c: &Comparison) -> String {
+    let mut s = String::new();
+    s.push_str(&format!("replay of {}\n", c.recording));
+    s.push_str(&format!("  outcome: {:?}: {}\n", c.outcome, c.message));
+    s.push_str(&format!(
+        "  samples: {} recorded, {} replayed\n",
+        c.samples_recorded, c.samples_replayed
+    ));
+    let w = &c.windows;
+    s.push_str(&format!(
+        "  windows: {} recorded, {} replayed, {} identical\n",
+        w.recorded, w.replayed, w.identical
+    ));
+    if let Some(d) = &w.first_difference {
+        s.push_str(&format!("  first difference: {d}\n"));
+    }
+    let show = |m: &BTreeMap<String, usize>| {
+        if m.is_empty() {
+            "none".to_string()
+        } else {
+            m.iter()
+                .map(|(k, v)| format!("{k} {v}"))
+                .collect::<Vec<_>>()
+                .join(", ")
+        }
+    };
+    s.push_str(&format!(
+        "  events: recorded {}; replayed {}\n",
+        show(&c.events_recorded),
+        show(&c.events_replayed)
+    ));
+    match (&c.results, &c.results_error) {
+        (Some(r), _) if r.identical => s.push_str(&format!(
+            "  results: identical ({} values compared)\n",
+            r.values_compared
+        )),
+        (Some(r), _) => s.push_str(&format!(
+            "  results: {} of {} values differ; largest length difference {:.3e} m at {}\n",
+            r.values_differing,
+            r.values_compared,
+            r.max_abs_difference_m,
+            r.max_at.as_deref().unwrap_or("-")
+        )),
+        (None, Some(e)) => s.push_str(&format!("  results: not compared: {e}\n")),
+        (None, None) => {}
+    }
+    s.push_str(&format!("  replayed session: {}\n", c.replay));
+    s
+}

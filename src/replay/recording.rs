@@ -1,0 +1,508 @@
+//! A recorded session laid out for replay: the tracer samples in order, every other message
+//! placed between them (`after`), and the machine arrivals and device faults the recording implies.
+//!
+//! Placement: a message recorded at log time T comes after every tracer sample logged at or
+//! before T. The recorder stamps samples and events with one clock in call order, so this is
+//! the order in which the sequencer saw them (a simulated run stamps events with the time of
+//! the sample before them; a live run with a later time).
+
+use geocal_drivers::{AxisPositions, DeviceError};
+
+use crate::extract::{Stillstand, StillstandDetector};
+use crate::plan::Plan;
+use crate::session::messages::{EnvSample, RotaryStateSample, RunEvent, TracerSample};
+use crate::session::reader::{Completeness, Session, Stamped};
+
+/// A recorded message and its place among the tracer samples.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Placed<T> {
+    /// Number of tracer samples recorded before it.
+    pub after: usize,
+    pub log_time_ns: u64,
+    pub msg: T,
+}
+
+/// Where the recording shows a machine move ending.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Arrival {
+    /// The machine reports arrival once this many samples have been delivered.
+    At(usize),
+    /// The recording ends before the move does.
+    Never,
+}
+
+#[derive(Debug, thiserror::Error, PartialEq)]
+pub enum RecordingError {
+    #[error("the session has no tracer stream (/tracer/<id>/range) to replay")]
+    NoTracer,
+    #[error("the session has {0} tracer streams and its header names none of them as a tracer")]
+    AmbiguousTracer(usize),
+}
+
+#[derive(Debug, Clone)]
+pub struct Recording {
+    pub tracer_id: String,
+    pub machine_id: String,
+    pub env_id: Option<String>,
+    pub table_id: Option<String>,
+    pub samples: Vec<Stamped<TracerSample>>,
+    pub events: Vec<Placed<RunEvent>>,
+    pub env: Vec<Placed<EnvSample>>,
+    pub rotary: Vec<Placed<RotaryStateSample>>,
+    /// Per cursor k (0..=n): whether the messages recorded after sample k-1 carry later log
+    /// times than it (a wall-clock recording) rather than the same one (a virtual clock).
+    pub later_at: Vec<bool>,
+    /// The earliest log time in the recording.
+    pub earliest_ns: u64,
+    /// The clock reading at which the recorded run started (rotary state times count from it).
+    pub start_ns: u64,
+    pub completeness: Completeness,
+}
+
+fn device_id(session: &Session, kind: &str) -> Option<String> {
+    session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.kind == kind)
+        .map(|d| d.id.clone())
+}
+
+impl Recording {
+    pub fn new(session: &Session) -> Result<Recording, RecordingError> {
+        let tracer_id = match device_id(session, "tracer") {
+            Some(id) if session.tracers.contains_key(&id) => id,
+            _ => match session.tracers.len() {
+                0 => return Err(RecordingError::NoTracer),
+                1 => session.tracers.keys().next().cloned().unwrap_or_default(),
+                n => return Err(RecordingError::AmbiguousTracer(n)),
+            },
+        };
+        let samples = session.tracers.get(&tracer_id).cloned().unwrap_or_default();
+        let place = |log_time_ns: u64| samples.partition_point(|s| s.log_time_ns <= log_time_ns);
+        let events: Vec<_> = session
+            .events
+            .iter()
+            .map(|e| Placed {
+                after: place(e.log_time_ns),
+                log_time_ns: e.log_time_ns,
+                msg: e.msg.clone(),
+            })
+            .collect();
+        let env_id = device_id(session, "environment")
+            .filter(|id| session.env.contains_key(id))
+            .or_else(|| session.env.keys().next().cloned());
+        let env: Vec<_> = env_id
+            .as_ref()
+            .and_then(|id| session.env.get(id))
+            .map(|v| {
+                v.iter()
+                    .map(|e| Placed {
+                        after: place(e.log_time_ns),
+                        log_time_ns: e.log_time_ns,
+                        msg: e.msg.clone(),
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+        let table_id =
+            device_id(session, "rotary_table").or_else(|| session.rotary.keys().next().cloned());
+        let rotary: Vec<_> = table_id
+            .as_ref()
+            .and_then(|id| session.rotary.get(id))
+            .map(|v| {
+                v.iter()
+                    .map(|e| Placed {
+                        after: place(e.log_time_ns),
+                        log_time_ns: e.log_time_ns,
+                        msg: e.msg,
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+
+        let n = samples.len();
+        let mut later_at = vec![false; n + 1];
+        let mut earliest = samples.first().map_or(0, |s| s.log_time_ns);
+        for (after, t) in events
+            .iter()
+            .map(|e| (e.after, e.log_time_ns))
+            .chain(env.iter().map(|e| (e.after, e.log_time_ns)))
+            .chain(rotary.iter().map(|e| (e.after, e.log_time_ns)))
+        {
+            let before = after.checked_sub(1).map(|i| samples[i].log_time_ns);
+            if before.is_none_or(|b| t > b) {
+                later_at[after] = true;
+            }
+            earliest = earliest.min(t);
+        }
+        // Rotary state times count from the run's start: recover it from the first one.
+        let start_ns = rotary
+            .first()
+            .map(|r| {
+                r.log_time_ns
+                    .saturating_sub((r.msg.t_s.max(0.0) * 1e9).round() as u64)
+            })
+            .unwrap_or(earliest);
+        Ok(Recording {
+            tracer_id,
+            machine_id: device_id(session, "machine").unwrap_or_else(|| "machine".into()),
+            env_id,
+            table_id,
+            samples,
+            events,
+            env,
+            rotary,
+            later_at,
+            earliest_ns: earliest,
+            start_ns,
+            completeness: session.completeness.clone(),
+        })
+    }
+
+    /// Where the recording shows the move the sequencer starts with `start_cursor` samples
+    /// delivered, to `target`, ending: at the next `point_begin` (which must be at the target),
+    /// at a `beam_break` fault (the move ended with the beam broken), or, for a move to the
+    /// homing point, where the sequencer's homing dwell must begin to end where the recording
+    /// homed. An error when the recording's next point lies elsewhere.
+    pub fn arrival(
+        &self,
+        plan: &Plan,
+        machine_id: &str,
+        start_cursor: usize,
+        target: &AxisPositions,
+    ) -> Result<Arrival, DeviceError> {
+        let home = plan.points.first().map(|p| p.axes_m);
+        let to_home = home.is_some_and(|h| same_axes(target, &h));
+        for event in self.events.iter().filter(|e| e.after > start_cursor) {
+            match &event.msg {
+                RunEvent::PointBegin {
+                    point,
+                    axes,
+                    pass,
+                    station,
+                    ..
+                } => {
+                    if !axes_match(target, axes) {
+                        return Err(DeviceError::Rejected {
+                            device: machine_id.to_string(),
+                            message: format!(
+                                "replay: the sequencer commanded a move to {} after sample {}, \
+                                 but the recording's next point is point {point} (pass {pass}, \
+                                 station {station}) at {} (log time {} ns)",
+                                show_axes(target),
+                                start_cursor,
+                                show_axes(axes),
+                                event.log_time_ns
+                            ),
+                        });
+                    }
+                    return Ok(if to_home && *point == 0 {
+                        self.homing_arrival(plan, start_cursor + 1, event.after)
+                    } else {
+                        Arrival::At(event.after)
+                    });
+                }
+                RunEvent::Fault { code, .. } if code == "beam_break" => {
+                    return Ok(Arrival::At(event.after))
+                }
+                RunEvent::Rehome { .. } if to_home => {
+                    return Ok(self.homing_arrival(plan, start_cursor + 1, event.after))
+                }
+                RunEvent::StationBegin { station, .. } | RunEvent::StationEnd { station } => {
+                    return Err(DeviceError::Rejected {
+                        device: machine_id.to_string(),
+                        message: format!(
+                            "replay: the sequencer commanded a move to {} after sample {}, but \
+                             the recording goes on to station {station}'s begin or end first \
+                             (log time {} ns)",
+                            show_axes(target),
+                            start_cursor,
+                            event.log_time_ns
+                        ),
+                    });
+                }
+                _ => {}
+            }
+        }
+        Ok(Arrival::Never)
+    }
+
+    /// The arrival for a homing whose first sample after zeroing was sample `marked - 1`:
+    /// the latest arrival (not before `lo`) from which the sequencer's homing dwell (stillstand
+    /// with no minimum dwell, or `max_dwell_s`) ends exactly at the sample before that.
+    fn homing_arrival(&self, plan: &Plan, lo: usize, marked: usize) -> Arrival {
+        let Some(end) = marked.checked_sub(2) else {
+            return Arrival::At(lo);
+        };
+        let ends_at = |a: usize| -> Option<usize> {
+            let begin_s = self.samples.get(a.checked_sub(1)?)?.msg.t_s;
+            let mut detector =
+                StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
+            for (j, s) in self.samples.iter().enumerate().take(end + 1).skip(a) {
+                if !s.msg.tracking {
+                    return None;
+                }
+                let settled = matches!(
+                    detector.push(s.msg.t_s, s.msg.length_m),
+                    Stillstand::Settled { .. }
+                );
+                if settled || s.msg.t_s - begin_s >= plan.max_dwell_s {
+                    return Some(j);
+                }
+            }
+            None
+        };
+        let end_s = self.samples.get(end).map_or(0.0, |s| s.msg.t_s);
+        let mut a = end;
+        while a >= lo.max(1) {
+            if ends_at(a) == Some(end) {
+                return Arrival::At(a);
+            }
+            // A dwell ends by max_dwell_s: earlier arrivals cannot end this late.
+            let begin_s = self.samples[a - 1].msg.t_s;
+            if end_s - begin_s > plan.max_dwell_s + plan.stillstand_window_s {
+                break;
+            }
+            a -= 1;
+        }
+        tracing::warn!(
+            "replay: no arrival reproduces the recorded homing before sample {marked}; \
+             reporting arrival at once"
+        );
+        Arrival::At(lo)
+    }
+
+    /// Index of the first tracer sample with a log time after `log_time_ns`.
+    pub fn samples_before(&self, log_time_ns: u64) -> usize {
+        self.samples
+            .partition_point(|s| s.log_time_ns <= log_time_ns)
+    }
+
+    /// Recorded device faults of `device` that the replayed device raises again (the
+    /// sequencer retries them and records each as it did): timeouts and protocol errors.
+    pub fn device_faults(&self, device: &str) -> Vec<(usize, DeviceError)> {
+        self.events
+            .iter()
+            .filter_map(|e| match &e.msg {
+                RunEvent::Fault {
+                    device: d,
+                    code,
+                    message,
+                } if d == device => replayed_error(device, code, message).map(|err| (e.after, err)),
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+/// The device error behind a recorded `fault` event, rebuilt so that the sequencer records
+/// the same message again; None for faults the sequencer itself derives (beam breaks, ...).
+fn replayed_error(device: &str, code: &str, message: &str) -> Option<DeviceError> {
+    // The sequencer appends " (retry n of N)" or " (giving up after N retries)".
+    let text = message
+        .rfind(" (retry ")
+        .or_else(|| message.rfind(" (giving up"))
+        .map_or(message, |i| &message[..i]);
+    let body = text
+        .strip_prefix(device)
+        .and_then(|t| t.strip_prefix(": "))
+        .unwrap_or(text);
+    match code {
+        "timeout" => {
+            let parsed = body.strip_prefix("timed out after ").and_then(|rest| {
+                let (after, what) = rest.split_once(" s waiting for ")?;
+                Some((after.parse::<f64>().ok()?, what.to_string()))
+            });
+            let (after_s, what) = parsed.unwrap_or((0.0, format!("(replayed) {body}")));
+            Some(DeviceError::Timeout {
+                device: device.to_string(),
+                what,
+                after_s,
+            })
+        }
+        "protocol" => Some(DeviceError::Protocol {
+            device: device.to_string(),
+            message: body
+                .strip_prefix("protocol error: ")
+                .unwrap_or(body)
+                .to_string(),
+        }),
+        // A failed environment poll is recorded with the error's own text.
+        "poll" => Some(DeviceError::Rejected {
+            device: device.to_string(),
+            message: body.to_string(),
+        }),
+        _ => None,
+    }
+}
+
+/// Commanded and recorded axis positions agree (1 nm: the plan is rebuilt from its JSON).
+const AXIS_MATCH_M: f64 = 1e-9;
+
+fn axes_match(a: &AxisPositions, b: &std::collections::BTreeMap<String, f64>) -> bool {
+    a.len() == b.len()
+        && a.iter()
+            .all(|(k, v)| b.get(k).is_some_and(|w| (v - w).abs() <= AXIS_MATCH_M))
+}
+
+fn same_axes(a: &AxisPositions, h: &[f64; 3]) -> bool {
+    crate::plan::AXES
+        .iter()
+        .zip(h)
+        .all(|(name, v)| a.get(*name).is_some_and(|w| (v - w).abs() <= AXIS_MATCH_M))
+}
+
+fn show_axes(a: &std::collections::BTreeMap<String, f64>) -> String {
+    let parts: Vec<String> = a.iter().map(|(k, v)| format!("{k}={v} m")).collect();
+    format!("({})", parts.join(", "))
+}
+
+#[cfg(test)]
+mod tests {
+    use std::collections::BTreeMap;
+
+    use super::*;
+    use crate::plan::{PlanPoint, AXES};
+    use crate::session::reader::testutil::header;
+
+    fn plan() -> Plan {
+        Plan {
+            targets: Vec::new(),
+            points: vec![
+                PlanPoint {
+                    index: 0,
+                    axes_m: [0.0, 0.0, 0.0],
+                },
+                PlanPoint {
+                    index: 1,
+                    axes_m: [0.1, 0.0, 0.0],
+                },
+            ],
+            stations: Vec::new(),
+            passes: Vec::new(),
+            dwell_s: 0.5,
+            max_dwell_s: 10.0,
+            stillstand_window_s: 0.2,
+            stillstand_tolerance_m: 1e-6,
+        }
+    }
+
+    fn axes(p: [f64; 3]) -> AxisPositions {
+        AXES.iter().map(|a| a.to_string()).zip(p).collect()
+    }
+
+    fn stamped<T>(t_ns: u64, msg: T) -> Stamped<T> {
+        Stamped {
+            log_time_ns: t_ns,
+            publish_time_ns: t_ns,
+            msg,
+        }
+    }
+
+    /// 100 Hz: a move until sample 30, still from then on; the recording homed after sample
+    /// 60 (point_begin of point 0 after the next sample), then went to point 1.
+    fn session() -> Session {
+        let samples = (0..200u64)
+            .map(|i| {
+                let length_m = if i < 30 { 1e-3 * i as f64 } else { 0.03 };
+                stamped(
+                    i * 10_000_000,
+                    TracerSample {
+                        seq: i,
+                        t_s: i as f64 * 0.01,
+                        length_m,
+                        signal: 1.0,
+                        tracking: true,
+                        beam_segment: 0,
+                    },
+                )
+            })
+            .collect();
+        let begin = |point: usize, at: u64| {
+            stamped(
+                at * 10_000_000 - 10_000_000,
+                RunEvent::PointBegin {
+                    station: "s1".into(),
+                    point,
+                    pass: 0,
+                    target: "t0".into(),
+                    nominal_m: [0.0; 3],
+                    axes: axes(plan().points[point].axes_m),
+                    approach: BTreeMap::new(),
+                },
+            )
+        };
+        Session {
+            header: header(),
+            tracers: BTreeMap::from([("tracer0".to_string(), samples)]),
+            env: BTreeMap::new(),
+            rotary: BTreeMap::new(),
+            machines: BTreeMap::new(),
+            probes: BTreeMap::new(),
+            events: vec![begin(0, 62), begin(1, 150)],
+            completeness: Completeness::Complete,
+            skipped: 0,
+            ignored: 0,
+        }
+    }
+
+    /// The homing dwell from the found arrival ends exactly where the recording homed.
+    #[test]
+    fn the_homing_arrival_reproduces_the_recorded_homing() {
+        let recording = Recording::new(&session()).expect("recording");
+        assert_eq!(recording.events[0].after, 62);
+        let arrival = recording
+            .arrival(&plan(), "cmm", 0, &axes([0.0; 3]))
+            .expect("arrival");
+        // A window counts as full once it spans 0.2 s less one sample period (stillstand.rs):
+        // 20 samples at 100 Hz, so the dwell that ends at sample 60 begins at sample 41.
+        assert_eq!(arrival, Arrival::At(41));
+        let next = recording
+            .arrival(&plan(), "cmm", 70, &axes([0.1, 0.0, 0.0]))
+            .expect("arrival");
+        assert_eq!(next, Arrival::At(150));
+    }
+
+    #[test]
+    fn a_move_the_recording_does_not_hold_is_an_error() {
+        let recording = Recording::new(&session()).expect("recording");
+        let err = recording
+            .arrival(&plan(), "cmm", 70, &axes([0.2, 0.0, 0.0]))
+            .expect_err("no such move");
+        let text = err.to_string();
+        assert!(
+            text.contains("commanded a move to (x=0.2 m, y=0 m, z=0 m) after sample 70")
+                && text.contains("next point is point 1"),
+            "{text}"
+        );
+        // Past the last point the recording holds no arrival: the stream ends first.
+        let end = recording
+            .arrival(&plan(), "cmm", 160, &axes([0.1, 0.0, 0.0]))
+            .expect("no error");
+        assert_eq!(end, Arrival::Never);
+    }
+
+    #[test]
+    fn recorded_faults_come_back_with_their_messages() {
+        let e = replayed_error(
+            "tracer0",
+            "timeout",
+            "tracer0: timed out after 0.2 s waiting for a sample (retry 1 of 5)",
+        )
+        .expect("timeout");
+        assert_eq!(
+            e.to_string(),
+            "tracer0: timed out after 0.2 s waiting for a sample"
+        );
+        let e = replayed_error(
+            "cmm",
+            "protocol",
+            "cmm: protocol error: error:20 (giving up after 5 retries)",
+        )
+        .expect("protocol");
+        assert_eq!(e.to_string(), "cmm: protocol error: error:20");
+        assert!(replayed_error("tracer0", "beam_break", "beam broken").is_none());
+        assert!(replayed_error("tracer0", "frames_lost", "3 frames").is_none());
+    }
+}

@@ -1,0 +1,204 @@
+//! `geocal replay`: the real sequencer and stillstand detection re-run against recorded
+//! sessions through the replay drivers. A replay of a complete recording must find the same
+//! dwell windows (the same samples in each) and so give identical results: the replay sees
+//! exactly the recorded samples, so no noise enters and the bound is zero, not a tolerance.
+
+mod common;
+
+use std::path::Path;
+
+use common::{hil_config, small_demo, HIL_FAULTS};
+use geocal::config::Config;
+use geocal::replay::{replay, Outcome, ReplayOptions, ReplayOutput};
+use geocal::run::{run, RunOptions, RunOutput};
+use geocal::session::reader::read_session;
+
+fn record(config_text: &str, dir: &Path) -> RunOutput {
+    let config = Config::parse(config_text, Path::new("replay-test.toml")).expect("config");
+    run(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("recorded run")
+}
+
+fn replay_into(session: &Path, out: &Path) -> ReplayOutput {
+    replay(
+        session,
+        &ReplayOptions {
+            out_dir: out.to_path_buf(),
+            realtime: false,
+            settings: Default::default(),
+            progress: false,
+        },
+    )
+    .expect("replay")
+}
+
+/// Same windows with the same samples, every sample replayed, the same faults and re-homings,
+/// and results equal to the last bit.
+fn assert_identical_replay(recorded: &RunOutput, out: &ReplayOutput) {
+    let c = &out.comparison;
+    print!("{}", geocal::replay::text(c));
+    assert_eq!(c.outcome, Outcome::Completed, "{}", c.message);
+    assert_eq!(c.samples_replayed, c.samples_recorded);
+    assert_eq!(c.samples_recorded as u64, recorded.summary.samples);
+    assert!(c.windows.recorded > 0);
+    assert_eq!(
+        c.windows.recorded,
+        recorded.summary.points_measured as usize
+    );
+    assert_eq!(c.windows.replayed, c.windows.recorded);
+    assert_eq!(
+        c.windows.identical, c.windows.recorded,
+        "{:?}",
+        c.windows.first_difference
+    );
+    assert_eq!(c.events_replayed, c.events_recorded);
+    let results = c.results.as_ref().expect("both sessions solve");
+    assert!(results.identical, "{results:?}");
+    assert_eq!(results.values_differing, 0);
+    // The replay's results.json is the recording's, bar the session id.
+    let replayed = std::fs::read_to_string(out.results_path.as_ref().expect("results.json"))
+        .expect("replayed results");
+    let original = std::fs::read_to_string(&recorded.results_path).expect("recorded results");
+    let strip = |s: &str| {
+        let mut v: serde_json::Value = serde_json::from_str(s).expect("json");
+        v.as_object_mut().expect("object").remove("session_id");
+        v
+    };
+    assert_eq!(strip(&replayed), strip(&original));
+}
+
+#[test]
+fn simulated_session_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&small_demo(), &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert_identical_replay(&recorded, &out);
+    // The replayed session is a session like any other, marked as a replay.
+    let session = read_session(&out.session_path).expect("replayed session");
+    assert!(session.header.session_id.ends_with("-replay"));
+    assert!(session.header.devices.iter().all(|d| d.driver == "replay"));
+    assert!(out.comparison_path.exists());
+}
+
+/// The tracer on a rotary table: the table reports in position where the recording shows it,
+/// at the recorded encoder angle (4 table stations 90° apart and one off the table, 10 Hz).
+#[test]
+fn rotary_tracer_session_replays_identically() {
+    let config = include_str!("../config/rotary-tracer.toml")
+        .replace("count = 6 }", "count = 3 }")
+        .replace(
+            "step_rad = 0.5235987755982988",
+            "step_rad = 1.5707963267948966",
+        )
+        .replace("count = 12", "count = 4")
+        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
+        .replace("dwell_s = 2.0", "dwell_s = 1.0")
+        .replace("window_s = 0.6", "window_s = 0.4");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&config, &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert_identical_replay(&recorded, &out);
+    let rotary = |path: &Path| {
+        let session = read_session(path).expect("session");
+        session.rotary.into_values().next().expect("rotary stream")
+    };
+    let (a, b) = (rotary(&recorded.session_path), rotary(&out.session_path));
+    assert!(a.iter().any(|r| r.msg.in_position));
+    assert_eq!(
+        a.iter().map(|r| r.msg).collect::<Vec<_>>(),
+        b.iter().map(|r| r.msg).collect::<Vec<_>>()
+    );
+}
+
+/// Dropped and corrupted frames, a silent tracer (timeouts), a lost GRBL `ok` and a beam
+/// break with its re-homing and repeated windows: all replay as recorded.
+#[test]
+fn hil_session_with_faults_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&hil_config(HIL_FAULTS), &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    let events = &out.comparison.events_recorded;
+    for kind in [
+        "fault:frames_lost",
+        "fault:timeout",
+        "fault:beam_break",
+        "rehome",
+    ] {
+        assert!(events.contains_key(kind), "no {kind} in {events:?}");
+    }
+    assert_identical_replay(&recorded, &out);
+}
+
+/// A recording cut in the middle (a crash): the replay runs up to its last sample, says so,
+/// and every window the cut file still holds is found again.
+#[test]
+fn truncated_session_replays_up_to_its_end() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&small_demo(), &dir.path().join("run"));
+    let bytes = std::fs::read(&recorded.session_path).expect("session bytes");
+    let cut = dir.path().join("cut.mcap");
+    std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write cut file");
+    let out = replay_into(&cut, &dir.path().join("replay"));
+    let c = &out.comparison;
+    print!("{}", geocal::replay::text(c));
+    assert_eq!(c.outcome, Outcome::RecordingEnded, "{}", c.message);
+    assert!(
+        c.message.contains("the recording ends after"),
+        "{}",
+        c.message
+    );
+    assert!(c.message.contains("cut short"), "{}", c.message);
+    assert!(c.truncation.is_some());
+    assert!(c.samples_recorded > 0 && (c.samples_recorded as u64) < recorded.summary.samples);
+    assert_eq!(c.samples_replayed, c.samples_recorded);
+    assert!(
+        c.windows.recorded > 0 && c.windows.recorded < recorded.summary.points_measured as usize
+    );
+    assert_eq!(c.windows.replayed, c.windows.recorded);
+    assert_eq!(c.windows.identical, c.windows.recorded);
+}
+
+/// The CLI: text by default, geocal-replay/1 JSON with --json; a file that is not a session
+/// gives an error naming it.
+#[test]
+fn replay_command_prints_the_comparison() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&small_demo(), &dir.path().join("run"));
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("replay")
+        .arg(&recorded.session_path)
+        .arg("--out")
+        .arg(dir.path().join("replay"))
+        .arg("--json")
+        .output()
+        .expect("geocal replay");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let c: serde_json::Value = serde_json::from_slice(&out.stdout).expect("json");
+    assert_eq!(c["format"], "geocal-replay/1");
+    assert_eq!(c["outcome"], "completed");
+    assert_eq!(c["windows"]["identical"], c["windows"]["recorded"]);
+    assert_eq!(c["results"]["identical"], true);
+
+    let bogus = dir.path().join("bogus.mcap");
+    std::fs::write(&bogus, b"not a session").expect("write");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("replay")
+        .arg(&bogus)
+        .output()
+        .expect("geocal replay");
+    assert!(!out.status.success());
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(err.contains("bogus.mcap") && err.contains("MCAP"), "{err}");
+}
