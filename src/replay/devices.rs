@@ -7,8 +7,8 @@ use std::time::{Duration, Instant};
 
 use async_trait::async_trait;
 use geocal_drivers::{
-    AxisPositions, DeviceError, EnvReading, Environment, Machine, MachineState, Operator, Probe,
-    ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
+    AxisPositions, DeviceError, EnvReading, Environment, LinkFault, Machine, MachineState,
+    Operator, Probe, ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
 };
 
 use super::recording::{Arrival, Recording};
@@ -29,6 +29,11 @@ pub struct ReplayState {
     tracer_faults: VecDeque<(usize, DeviceError)>,
     machine_faults: VecDeque<(usize, DeviceError)>,
     env_faults: VecDeque<(usize, DeviceError)>,
+    table_faults: VecDeque<(usize, DeviceError)>,
+    /// Recorded link faults (recovered inside the drivers) still to report, per device.
+    tracer_links: VecDeque<(usize, LinkFault)>,
+    machine_links: VecDeque<(usize, LinkFault)>,
+    table_links: VecDeque<(usize, LinkFault)>,
     /// Recorded environment samples handed out so far.
     env_next: usize,
     /// Where the current move or rotation ends (cursor), and the encoder angle in position.
@@ -124,6 +129,11 @@ impl ReplayState {
         let tracer_faults = queue(&recording.tracer_id);
         let machine_faults = queue(&recording.machine_id);
         let env_faults = recording.env_id.as_deref().map(queue).unwrap_or_default();
+        let table_faults = recording.table_id.as_deref().map(queue).unwrap_or_default();
+        let links = |id: &str| recording.link_faults(id).into_iter().collect();
+        let tracer_links = links(&recording.tracer_id);
+        let machine_links = links(&recording.machine_id);
+        let table_links = recording.table_id.as_deref().map(links).unwrap_or_default();
         let first_ns = recording.samples.first().map_or(0, |s| s.log_time_ns);
         let state = ReplayState {
             realtime: realtime.then(|| (Instant::now(), first_ns)),
@@ -134,6 +144,10 @@ impl ReplayState {
             tracer_faults,
             machine_faults,
             env_faults,
+            table_faults,
+            tracer_links,
+            machine_links,
+            table_links,
             env_next: 0,
             machine_arrival: None,
             table_arrival: None,
@@ -157,6 +171,12 @@ impl ReplayState {
         } else {
             None
         }
+    }
+
+    /// The recorded link faults of a device the replay has reached.
+    fn due_links(queue: &mut VecDeque<(usize, LinkFault)>, cursor: usize) -> Vec<LinkFault> {
+        let n = queue.partition_point(|(after, _)| *after <= cursor);
+        queue.drain(..n).map(|(_, f)| f).collect()
     }
 
     fn end_of_stream(&self) -> DeviceError {
@@ -220,6 +240,20 @@ impl Tracer for ReplayTracer {
         s.homings.push(cursor);
         Ok(())
     }
+
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        take_links(&self.shared, |s| &mut s.tracer_links)
+    }
+}
+
+/// The due link faults from one of the state's queues (none if the state is poisoned).
+fn take_links(
+    shared: &SharedReplay,
+    queue: impl FnOnce(&mut ReplayState) -> &mut VecDeque<(usize, LinkFault)>,
+) -> Vec<LinkFault> {
+    let mut s = shared.lock().unwrap_or_else(|e| e.into_inner());
+    let cursor = s.cursor;
+    ReplayState::due_links(queue(&mut s), cursor)
 }
 
 pub struct ReplayEnvironment {
@@ -294,6 +328,10 @@ impl Machine for ReplayMachine {
             _ => MachineState::Moving,
         })
     }
+
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        take_links(&self.shared, |s| &mut s.machine_links)
+    }
 }
 
 /// Places stations as the recording did: the sequencer's next station must be the recording's.
@@ -353,6 +391,9 @@ impl RotaryTable for ReplayRotaryTable {
     async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), DeviceError> {
         let mut s = lock(&self.shared, &self.id)?;
         let cursor = s.cursor;
+        if let Some(e) = ReplayState::due(&mut s.table_faults, cursor) {
+            return Err(e);
+        }
         let rotation = s.recording.events.iter().find_map(|e| match &e.msg {
             RunEvent::Rotation {
                 table,
@@ -388,13 +429,20 @@ impl RotaryTable for ReplayRotaryTable {
     }
 
     async fn state(&mut self) -> Result<RotaryState, DeviceError> {
-        let s = lock(&self.shared, &self.id)?;
+        let mut s = lock(&self.shared, &self.id)?;
+        let cursor = s.cursor;
+        if let Some(e) = ReplayState::due(&mut s.table_faults, cursor) {
+            return Err(e);
+        }
         Ok(match s.table_arrival {
             Some((Arrival::At(at), encoder_rad)) if s.cursor >= at => {
                 RotaryState::InPosition { encoder_rad }
             }
             _ => RotaryState::Moving,
         })
+    }
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        take_links(&self.shared, |s| &mut s.table_links)
     }
 }
 

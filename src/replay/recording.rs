@@ -6,7 +6,7 @@
 //! the order in which the sequencer saw them (a simulated run stamps events with the time of
 //! the sample before them; a live run with a later time).
 
-use geocal_drivers::{AxisPositions, DeviceError};
+use geocal_drivers::{AxisPositions, DeviceError, LinkFault};
 
 use crate::extract::{Stillstand, StillstandDetector};
 use crate::plan::Plan;
@@ -290,6 +290,33 @@ impl Recording {
                     code,
                     message,
                 } if d == device => replayed_error(device, code, message).map(|err| (e.after, err)),
+                _ => None,
+            })
+            .collect()
+    }
+}
+
+/// Fault codes a driver detects and recovers from by itself (`LinkFault`): replayed through
+/// `take_link_faults`, so the sequencer records them again where it did.
+const LINK_FAULT_CODES: [&str; 4] = ["crc", "resync", "disconnect", "reconnect"];
+
+impl Recording {
+    /// Recorded link faults of `device`, each with the cursor after which it was recorded.
+    pub fn link_faults(&self, device: &str) -> Vec<(usize, LinkFault)> {
+        self.events
+            .iter()
+            .filter_map(|e| match &e.msg {
+                RunEvent::Fault {
+                    device: d,
+                    code,
+                    message,
+                } if d == device && LINK_FAULT_CODES.contains(&code.as_str()) => Some((
+                    e.after,
+                    LinkFault {
+                        code: code.clone(),
+                        message: message.clone(),
+                    },
+                )),
                 _ => None,
             })
             .collect()
