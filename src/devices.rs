@@ -99,10 +99,13 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
     let world_opt = Some(world.clone());
     Ok(BuiltDevices {
         devices: Devices {
-            tracer: Box::new(SimTracer {
-                id: config.devices.tracer.id.clone(),
-                world: world.clone(),
-            }),
+            tracer: paced(
+                config,
+                Box::new(SimTracer {
+                    id: config.devices.tracer.id.clone(),
+                    world: world.clone(),
+                }),
+            ),
             environment: sim_environment(config, &world),
             machine: Box::new(SimMachine {
                 id: config.devices.machine.id.clone(),
@@ -117,6 +120,14 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
         world: world_opt,
         emulators: Emulators::default(),
     })
+}
+
+/// The simulated tracer held back to `[sim] pace` times wall time, if set.
+fn paced(config: &Config, tracer: Box<dyn Tracer>) -> Box<dyn Tracer> {
+    match config.sim.as_ref().and_then(|s| s.pace) {
+        Some(pace) => Box::new(crate::sim::pace::PacedTracer::new(tracer, pace)),
+        None => tracer,
+    }
 }
 
 /// The HPI-3D tracer and, if configured, its meteo stream as the environment.

@@ -10,6 +10,7 @@ pub mod method;
 pub mod model;
 pub mod plan;
 pub mod report;
+pub mod resume;
 pub mod run;
 pub mod sequencer;
 pub mod session;

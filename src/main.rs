@@ -20,10 +20,16 @@ struct Cli {
 enum Command {
     /// Run a calibration (live or simulated), record the session, then solve it.
     Run {
-        config: PathBuf,
+        /// The run's configuration (optional with --resume: the run stored it in DIR).
+        #[arg(required_unless_present = "resume")]
+        config: Option<PathBuf>,
         /// Output directory for session.mcap and results.json.
         #[arg(long, default_value = "geocal-out")]
         out: PathBuf,
+        /// Continue the interrupted run recorded in DIR at its first unfinished point
+        /// (docs/resume.md); its output goes to DIR.
+        #[arg(long, value_name = "DIR", conflicts_with = "out")]
+        resume: Option<PathBuf>,
         /// Write the simulated truth (stations, actual points, error functions) as JSON.
         #[arg(long)]
         truth: Option<PathBuf>,
@@ -94,17 +100,21 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
             huber,
+            resume,
         } => {
-            let cfg = geocal::config::Config::load(&config)?;
-            let output = geocal::run::run(
-                &cfg,
-                &geocal::run::RunOptions {
-                    out_dir: out,
-                    truth,
-                    progress: std::io::stderr().is_terminal(),
-                    settings: settings(huber),
-                },
-            )?;
+            let options = geocal::run::RunOptions {
+                out_dir: resume.clone().unwrap_or(out),
+                truth,
+                progress: std::io::stderr().is_terminal(),
+                settings: settings(huber),
+            };
+            let output = match (resume, config) {
+                (Some(dir), config) => geocal::resume::resume(&dir, config.as_deref(), &options)?,
+                (None, Some(config)) => {
+                    geocal::run::run(&geocal::config::Config::load(&config)?, &options)?
+                }
+                (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
+            };
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {

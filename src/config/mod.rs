@@ -327,6 +327,10 @@ pub struct SimConfig {
     /// Unmodelled effects of the simulated world (the vocabulary of `geocal diagnose`).
     #[serde(default)]
     pub effects: crate::sim::effects::EffectsConfig,
+    /// Run the virtual clock at most this many times faster than wall time (e.g. 20.0);
+    /// unset: as fast as possible. For watching a run, or killing it mid-run in a test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pace: Option<f64>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

@@ -187,6 +187,12 @@ pub fn extract_points(
                         .push(dropped(&w, "beam broken: repeated after re-homing"));
                 }
             }
+            RunEvent::Resume { .. } => {
+                if let Some(w) = open.take() {
+                    out.repeated
+                        .push(dropped(&w, "run interrupted: repeated after resume"));
+                }
+            }
             RunEvent::PointEnd {
                 station,
                 point,

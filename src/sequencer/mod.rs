@@ -60,6 +60,28 @@ pub enum SequencerError {
     },
 }
 
+/// Where a resumed run continues (`geocal run --resume`, src/resume.rs): the first
+/// unfinished point in plan order, and what the interrupted run left behind.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ResumeAt {
+    /// Plan indices of the station and target, the pass, and the position in the pass order
+    /// of the first unfinished point. A station index past the last means nothing is left.
+    pub station: usize,
+    pub target: usize,
+    pub pass: usize,
+    pub order_index: usize,
+    /// The interrupted run recorded this station's `station_begin` already.
+    pub station_begun: bool,
+    /// Points the interrupted run finished (for the progress count).
+    pub done: u64,
+    /// Added to every recorded `beam_segment`, so the continuation's segments follow the
+    /// interrupted run's: its lengths are relative to a new homing.
+    pub segment_offset: u32,
+    /// Where the machine was last commanded, and the approach signs then.
+    pub commanded: Option<[f64; 3]>,
+    pub approach: BTreeMap<String, i8>,
+}
+
 /// Called after each finished point with (done, total).
 pub type Progress<'a> = &'a mut dyn FnMut(u64, u64);
 
@@ -117,6 +139,9 @@ pub struct Sequencer<'a> {
     /// Clock reading at the start of the run: `/rotary/<id>/state` times count from here.
     start_ns: u64,
     summary: RunSummary,
+    resume: Option<ResumeAt>,
+    /// Added to recorded beam segments (see `ResumeAt::segment_offset`).
+    segment_offset: u32,
 }
 
 impl<'a> Sequencer<'a> {
@@ -141,7 +166,20 @@ impl<'a> Sequencer<'a> {
             on_table: false,
             start_ns,
             summary: RunSummary::default(),
+            resume: None,
+            segment_offset: 0,
         }
+    }
+
+    /// Continue an interrupted run at `at` instead of starting from the beginning.
+    pub fn resume_at(mut self, at: ResumeAt) -> Self {
+        self.segment_offset = at.segment_offset;
+        self.commanded = at.commanded;
+        for (axis, sign) in &at.approach {
+            self.approach.insert(axis.clone(), *sign);
+        }
+        self.resume = Some(at);
+        self
     }
 
     /// Run the whole plan: every station, every pass, every point.
@@ -151,14 +189,23 @@ impl<'a> Sequencer<'a> {
             (plan.stations.len() * plan.targets.len() * plan.passes.len() * plan.points.len())
                 as u64;
         let mut mounted: Option<&PlanTarget> = None;
-        let mut done = 0;
+        let resume = self.resume.take();
+        let mut done = resume.as_ref().map_or(0, |r| r.done);
         for (station_index, station) in plan.stations.iter().enumerate() {
+            if resume.as_ref().is_some_and(|r| station_index < r.station) {
+                continue;
+            }
+            // The station the interrupted run stopped in (targets and passes before the
+            // resume point are skipped).
+            let resumed = resume.as_ref().filter(|r| r.station == station_index);
             self.station = station.id.clone();
-            self.event(RunEvent::StationBegin {
-                station: station.id.clone(),
-                station_index,
-                hint_m: station.hint_m,
-            });
+            if !resumed.is_some_and(|r| r.station_begun) {
+                self.event(RunEvent::StationBegin {
+                    station: station.id.clone(),
+                    station_index,
+                    hint_m: station.hint_m,
+                });
+            }
             // The operator places the tracer, once onto the table for all its table stations;
             // from then on the table turns it from station to station.
             if !(station.rotation.is_some() && self.on_table) {
@@ -171,7 +218,10 @@ impl<'a> Sequencer<'a> {
             if let Some(rotation) = &station.rotation {
                 self.rotate(&station.id, rotation).await?;
             }
-            for target in &plan.targets {
+            for (target_index, target) in plan.targets.iter().enumerate() {
+                if resumed.is_some_and(|r| target_index < r.target) {
+                    continue;
+                }
                 if mounted != Some(target) {
                     self.devices
                         .operator
@@ -180,8 +230,18 @@ impl<'a> Sequencer<'a> {
                     mounted = Some(target);
                 }
                 for (pass, &direction) in plan.passes.iter().enumerate() {
+                    let resumed = resumed.filter(|r| r.target == target_index);
+                    if resumed.is_some_and(|r| pass < r.pass) {
+                        continue;
+                    }
                     let order = plan.pass_order(direction);
                     let mut next = 0;
+                    if let Some(r) = resumed.filter(|r| r.pass == pass) {
+                        // Home at point 0 again (a new beam segment), then go on.
+                        next = r.order_index;
+                        let point = order.get(next).copied().unwrap_or(0);
+                        self.rehome_after_resume(&station.id, point, pass).await?;
+                    }
                     let mut breaks = 0;
                     while let Some(&point) = order.get(next) {
                         match self.visit(&station.id, target, point, pass).await? {
@@ -317,7 +377,7 @@ impl<'a> Sequencer<'a> {
             length_m: reading.length_m,
             signal: reading.signal,
             tracking: reading.tracking,
-            beam_segment: reading.beam_segment,
+            beam_segment: reading.beam_segment + self.segment_offset,
         };
         self.recorder
             .tracer(self.devices.tracer.id(), &sample, self.clock.now_ns());
@@ -328,7 +388,7 @@ impl<'a> Sequencer<'a> {
         if before.is_some_and(|b| b.beam_segment != reading.beam_segment) {
             self.event(RunEvent::Rehome {
                 station: self.station.clone(),
-                beam_segment: reading.beam_segment,
+                beam_segment: reading.beam_segment + self.segment_offset,
             });
         }
         if reading.t_s >= self.next_env_poll_s {
@@ -417,6 +477,29 @@ impl<'a> Sequencer<'a> {
             station: station.to_string(),
             breaks: MAX_BEAM_BREAKS,
         })
+    }
+
+    /// A resumed run continues mid-pass: go to point 0 and home there, so the lengths of the
+    /// rest of the pass are relative to point 0 again (a `rehome` event with the new segment).
+    async fn rehome_after_resume(
+        &mut self,
+        station: &str,
+        point: usize,
+        pass: usize,
+    ) -> Result<(), SequencerError> {
+        let mut step = self.move_to(0).await?;
+        if step == Step::Done {
+            step = self.home().await?;
+        }
+        if step == Step::BeamBroken {
+            self.recover_beam(station, point, pass).await?;
+        }
+        let segment = self.last_sample.map_or(0, |s| s.beam_segment) + self.segment_offset;
+        self.event(RunEvent::Rehome {
+            station: station.to_string(),
+            beam_segment: segment,
+        });
+        Ok(())
     }
 
     /// After a re-homing, keep recording until the samples show the new beam segment (the
@@ -633,6 +716,8 @@ impl<'a> Sequencer<'a> {
             point,
             pass,
         });
+        // Checkpoint: the finished point is on disk before the next one starts.
+        self.recorder.checkpoint();
         self.summary.points_measured += 1;
         Ok(Step::Done)
     }

@@ -166,6 +166,22 @@ pub enum RunEvent {
         code: String,
         message: String,
     },
+    /// `geocal run --resume`: the run was interrupted and continues here (src/resume.rs).
+    /// Everything before this event was copied from the interrupted file; a window left open
+    /// by the interruption is not used. `point` is where the run continues (None: nothing
+    /// was left to measure).
+    Resume {
+        resume_index: u32,
+        messages_kept: u64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        station: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        target: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pass: Option<usize>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        point: Option<usize>,
+    },
     #[serde(other)]
     Other,
 }
@@ -191,6 +207,8 @@ struct WireEvent {
     device: Option<String>,
     code: Option<String>,
     message: Option<String>,
+    resume_index: Option<u32>,
+    messages_kept: Option<u64>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -234,6 +252,14 @@ impl TryFrom<WireEvent> for RunEvent {
                 device: w.device.ok_or_else(|| need("device"))?,
                 code: w.code.ok_or_else(|| need("code"))?,
                 message: w.message.ok_or_else(|| need("message"))?,
+            },
+            "resume" => RunEvent::Resume {
+                resume_index: w.resume_index.ok_or_else(|| need("resume_index"))?,
+                messages_kept: w.messages_kept.ok_or_else(|| need("messages_kept"))?,
+                station: w.station,
+                target: w.target,
+                pass: w.pass,
+                point: w.point,
             },
             _ => RunEvent::Other,
         })
@@ -281,6 +307,22 @@ mod tests {
                 device: "tracer0".into(),
                 code: "timeout".into(),
                 message: "late".into(),
+            },
+            RunEvent::Resume {
+                resume_index: 1,
+                messages_kept: 1234,
+                station: Some("s2".into()),
+                target: Some("t0".into()),
+                pass: Some(1),
+                point: Some(7),
+            },
+            RunEvent::Resume {
+                resume_index: 2,
+                messages_kept: 99,
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
             },
         ];
         for e in events {
@@ -406,7 +448,9 @@ pub mod schema {
     "commanded_rad": {"type": "number"},
     "device": {"type": "string"},
     "code": {"type": "string"},
-    "message": {"type": "string"}
+    "message": {"type": "string"},
+    "resume_index": {"type": "integer", "minimum": 1},
+    "messages_kept": {"type": "integer", "minimum": 0}
   },
   "allOf": [
     {"if": {"properties": {"kind": {"const": "point_begin"}}},
@@ -418,7 +462,9 @@ pub mod schema {
     {"if": {"properties": {"kind": {"const": "rotation"}}},
      "then": {"required": ["table", "commanded_rad"]}},
     {"if": {"properties": {"kind": {"const": "fault"}}},
-     "then": {"required": ["device", "code", "message"]}}
+     "then": {"required": ["device", "code", "message"]}},
+    {"if": {"properties": {"kind": {"const": "resume"}}},
+     "then": {"required": ["resume_index", "messages_kept"]}}
   ]
 }"#;
 }

@@ -4,6 +4,7 @@
 pub mod devices;
 pub mod effects;
 pub mod hil;
+pub mod pace;
 pub mod rotary;
 pub mod truth;
 pub mod world;
