@@ -45,7 +45,10 @@ pub struct Emulators {
 /// drivers' reader tasks and the emulators are spawned on it).
 pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let all_sim = config.devices.tracer.driver == DriverKind::Sim
-        && config.devices.machine.driver == DriverKind::Sim;
+        && matches!(
+            config.devices.machine.driver,
+            DriverKind::Sim | DriverKind::Passive
+        );
     if config.emulated() {
         build_emulated(config, plan, epoch_ns).await
     } else if all_sim {
@@ -76,7 +79,10 @@ fn grbl_config(config: &Config) -> GrblConfig {
     c
 }
 
-fn sim_environment(config: &Config, world: &SharedWorld) -> Option<Box<dyn Environment>> {
+pub(crate) fn sim_environment(
+    config: &Config,
+    world: &SharedWorld,
+) -> Option<Box<dyn Environment>> {
     let env = config.devices.environment.as_ref()?;
     Some(Box::new(SimEnvironment {
         id: env.id.clone(),
@@ -97,6 +103,11 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
     let clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, clock.clone())?));
     let world_opt = Some(world.clone());
+    if config.devices.machine.driver == DriverKind::Passive {
+        return Ok(crate::sim::passive_machine::build(
+            config, plan, world, clock,
+        ));
+    }
     Ok(BuiltDevices {
         devices: Devices {
             tracer: paced(
@@ -123,7 +134,7 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
 }
 
 /// The simulated tracer held back to `[sim] pace` times wall time, if set.
-fn paced(config: &Config, tracer: Box<dyn Tracer>) -> Box<dyn Tracer> {
+pub(crate) fn paced(config: &Config, tracer: Box<dyn Tracer>) -> Box<dyn Tracer> {
     match config.sim.as_ref().and_then(|s| s.pace) {
         Some(pace) => Box::new(crate::sim::pace::PacedTracer::new(tracer, pace)),
         None => tracer,
@@ -299,6 +310,9 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             let port = cfg.port.clone();
             Box::new(GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))?)
         }
+        DriverKind::Passive => Box::new(crate::sequencer::passive::PassiveMachine {
+            id: config.devices.machine.id.clone(),
+        }),
         kind => anyhow::bail!(
             "devices.machine.driver = \"{}\" in a real run: expected \"grbl\"",
             kind.as_str()

@@ -8,6 +8,7 @@ pub mod diagnose;
 pub mod extract;
 pub mod method;
 pub mod model;
+pub mod nc;
 pub mod plan;
 pub mod report;
 pub mod resume;

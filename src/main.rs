@@ -60,6 +60,13 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// Write the NC program of a passive run (moves, dwells, operator stops) as ISO G-code.
+    ExportNc {
+        config: PathBuf,
+        /// Write the program here instead of printing it.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -150,6 +157,24 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 println!("{}", serde_json::to_string_pretty(&diagnosis)?);
             } else {
                 print!("{}", geocal::diagnose::text(&diagnosis));
+            }
+        }
+        Command::ExportNc { config, out } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            let plan = geocal::plan::Plan::from_config(&cfg);
+            let title = format!(
+                "geocal {} plan from {}: {} stations, {} points, {} passes",
+                cfg.kind.as_str(),
+                config.display(),
+                plan.stations.len(),
+                plan.points.len(),
+                plan.passes.len()
+            );
+            let text = geocal::nc::to_gcode(&geocal::nc::program(&cfg, &plan), &title);
+            match out {
+                Some(path) => std::fs::write(&path, text)
+                    .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,
+                None => print!("{text}"),
             }
         }
         Command::Check { config, json } => {

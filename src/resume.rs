@@ -346,6 +346,9 @@ pub fn resume(
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
     let config = load_config(dir, config)?;
+    if config.devices.machine.driver == crate::config::DriverKind::Passive {
+        bail!("a passive run cannot be resumed: its machine restarts its NC program");
+    }
     let plan = Plan::from_config(&config);
     let (source, resume_index) = find_source(dir)?;
     let (session, messages) =

@@ -82,6 +82,10 @@ pub(crate) fn execute(
     if let Some(at) = resume_at {
         sequencer = sequencer.resume_at(at);
     }
+    if config.devices.machine.driver == crate::config::DriverKind::Passive {
+        let passive = config.devices.machine.passive.clone().unwrap_or_default();
+        sequencer = sequencer.passive(passive.hint_tolerance_m);
+    }
     let summary = runtime.block_on(sequencer.run(&mut progress));
     // Stop the emulators of an emulated run.
     drop(built.emulators);

@@ -73,9 +73,19 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             )
         }
     };
-    use DriverKind::{Grbl, Hpi3d, Sim};
+    use DriverKind::{Grbl, Hpi3d, Passive, Sim};
     check("devices.tracer.driver", d.tracer.driver, &[Sim, Hpi3d])?;
-    check("devices.machine.driver", d.machine.driver, &[Sim, Grbl])?;
+    check(
+        "devices.machine.driver",
+        d.machine.driver,
+        &[Sim, Grbl, Passive],
+    )?;
+    if d.machine.driver == Passive && config.emulated() {
+        return fail(
+            "devices.machine.driver",
+            "\"passive\" is not emulated: use it without [hil] emulate = true",
+        );
+    }
     if let Some(env) = &d.environment {
         check("devices.environment.driver", env.driver, &[Sim, Hpi3d])?;
         if env.driver == Hpi3d && d.tracer.driver != Hpi3d {

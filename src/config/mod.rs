@@ -116,6 +116,9 @@ pub enum DriverKind {
     Hpi3d,
     /// GRBL-style G-code streaming (machine).
     Grbl,
+    /// Machine only: an industrial control runs the program of `geocal export-nc` by itself;
+    /// the sequencer detects each stop from the tracer stream (src/sequencer/passive.rs).
+    Passive,
 }
 
 impl DriverKind {
@@ -124,6 +127,7 @@ impl DriverKind {
             DriverKind::Sim => "sim",
             DriverKind::Hpi3d => "hpi3d",
             DriverKind::Grbl => "grbl",
+            DriverKind::Passive => "passive",
         }
     }
 }
@@ -181,6 +185,9 @@ pub struct MachineDeviceConfig {
     /// come from here).
     #[serde(default)]
     pub grbl: Option<geocal_drivers::grbl::GrblConfig>,
+    /// `[devices.machine.passive]`: NC program and stop matching settings (driver `passive`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub passive: Option<crate::nc::PassiveConfig>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -331,6 +338,9 @@ pub struct SimConfig {
     /// unset: as fast as possible. For watching a run, or killing it mid-run in a test.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub pace: Option<f64>,
+    /// The simulated machine of a passive run: unplanned stops and dwell jitter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub passive: Option<crate::sim::passive_machine::SimPassiveConfig>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

@@ -8,6 +8,8 @@
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
 //! break touched. Every sample is recorded throughout.
 
+pub mod passive;
+
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
@@ -140,6 +142,8 @@ pub struct Sequencer<'a> {
     start_ns: u64,
     summary: RunSummary,
     resume: Option<ResumeAt>,
+    /// Passive mode (src/sequencer/passive.rs): the hint tolerance for matching stops.
+    passive: Option<f64>,
     /// Added to recorded beam segments (see `ResumeAt::segment_offset`).
     segment_offset: u32,
 }
@@ -167,8 +171,16 @@ impl<'a> Sequencer<'a> {
             start_ns,
             summary: RunSummary::default(),
             resume: None,
+            passive: None,
             segment_offset: 0,
         }
+    }
+
+    /// Passive mode: the machine runs its NC program; stops are matched to the plan's points
+    /// with a station-hint tolerance of `hint_tolerance_m`.
+    pub fn passive(mut self, hint_tolerance_m: f64) -> Self {
+        self.passive = Some(hint_tolerance_m);
+        self
     }
 
     /// Continue an interrupted run at `at` instead of starting from the beginning.
@@ -184,6 +196,9 @@ impl<'a> Sequencer<'a> {
 
     /// Run the whole plan: every station, every pass, every point.
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
+        if let Some(hint_tolerance_m) = self.passive.take() {
+            return self.run_passive(hint_tolerance_m, progress).await;
+        }
         let plan = self.plan;
         let total =
             (plan.stations.len() * plan.targets.len() * plan.passes.len() * plan.points.len())
@@ -546,18 +561,10 @@ impl<'a> Sequencer<'a> {
         if self.position == Some(target) {
             return Ok(Step::Done);
         }
-        if let Some(from) = self.commanded {
-            for (k, axis) in AXES.iter().enumerate() {
-                let delta = target[k] - from[k];
-                if delta != 0.0 {
-                    self.approach.insert(axis.to_string(), delta.signum() as i8);
-                }
-            }
-        }
         let command: AxisPositions = AXES.iter().map(|a| a.to_string()).zip(target).collect();
         self.position = None;
         self.start_move(&command).await?;
-        self.commanded = Some(target);
+        self.note_command(target);
         let first = self.sample().await?;
         let started_s = first.t_s;
         let mut tracking = first.tracking;
@@ -580,6 +587,42 @@ impl<'a> Sequencer<'a> {
         } else {
             Step::BeamBroken
         })
+    }
+
+    /// The machine was sent to `target`: update the approach signs of the axes that move.
+    fn note_command(&mut self, target: [f64; 3]) {
+        if let Some(from) = self.commanded {
+            for (k, axis) in AXES.iter().enumerate() {
+                let delta = target[k] - from[k];
+                if delta != 0.0 {
+                    self.approach.insert(axis.to_string(), delta.signum() as i8);
+                }
+            }
+        }
+        self.commanded = Some(target);
+    }
+
+    /// The `point_begin` event of a plan point.
+    fn point_begin_event(
+        &self,
+        station: &str,
+        target: &PlanTarget,
+        point: usize,
+        pass: usize,
+    ) -> RunEvent {
+        RunEvent::PointBegin {
+            station: station.to_string(),
+            point,
+            pass,
+            target: target.id.clone(),
+            nominal_m: self.plan.nominal_m(point, target),
+            axes: AXES
+                .iter()
+                .map(|a| a.to_string())
+                .zip(self.plan.points[point].axes_m)
+                .collect(),
+            approach: self.approach.clone(),
+        }
     }
 
     /// Command the table to a station's angle (a `rotation` event), then keep recording the
@@ -697,16 +740,8 @@ impl<'a> Sequencer<'a> {
         point: usize,
         pass: usize,
     ) -> Result<Step, SequencerError> {
-        let p = &self.plan.points[point];
-        self.event(RunEvent::PointBegin {
-            station: station.to_string(),
-            point,
-            pass,
-            target: target.id.clone(),
-            nominal_m: self.plan.nominal_m(point, target),
-            axes: AXES.iter().map(|a| a.to_string()).zip(p.axes_m).collect(),
-            approach: self.approach.clone(),
-        });
+        let event = self.point_begin_event(station, target, point, pass);
+        self.event(event);
         if let DwellEnd::BeamBroken = self.dwell(point, self.plan.dwell_s).await? {
             // No point_end: the window is abandoned, and repeated after the re-homing.
             return Ok(Step::BeamBroken);

@@ -182,6 +182,16 @@ pub enum RunEvent {
         #[serde(default, skip_serializing_if = "Option::is_none")]
         point: Option<usize>,
     },
+    /// Passive mode: the machine stopped where no point was expected, or left before its
+    /// dwell was complete (src/sequencer/passive.rs). `point`/`pass` name the stop that was
+    /// expected; a window open at this event is not used.
+    UnplannedStop {
+        station: String,
+        target: String,
+        pass: usize,
+        point: usize,
+        message: String,
+    },
     #[serde(other)]
     Other,
 }
@@ -260,6 +270,13 @@ impl TryFrom<WireEvent> for RunEvent {
                 target: w.target,
                 pass: w.pass,
                 point: w.point,
+            },
+            "unplanned_stop" => RunEvent::UnplannedStop {
+                station: w.station.ok_or_else(|| need("station"))?,
+                target: w.target.unwrap_or_default(),
+                pass: w.pass.ok_or_else(|| need("pass"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                message: w.message.unwrap_or_default(),
             },
             _ => RunEvent::Other,
         })
@@ -463,6 +480,8 @@ pub mod schema {
      "then": {"required": ["table", "commanded_rad"]}},
     {"if": {"properties": {"kind": {"const": "fault"}}},
      "then": {"required": ["device", "code", "message"]}},
+    {"if": {"properties": {"kind": {"const": "unplanned_stop"}}},
+     "then": {"required": ["station", "pass", "point"]}},
     {"if": {"properties": {"kind": {"const": "resume"}}},
      "then": {"required": ["resume_index", "messages_kept"]}}
   ]

@@ -5,6 +5,7 @@ pub mod devices;
 pub mod effects;
 pub mod hil;
 pub mod pace;
+pub mod passive_machine;
 pub mod rotary;
 pub mod truth;
 pub mod world;
