@@ -253,13 +253,17 @@ mod tests {
 
     #[test]
     fn passive_settings_are_checked() {
-        let text = include_str!("../config/demo-multilateration.toml")
-            .replace("driver = \"sim\"\nfeed_m_s", "driver = \"passive\"\nfeed_m_s");
+        let text = include_str!("../config/demo-multilateration.toml").replace(
+            "driver = \"sim\"\nfeed_m_s",
+            "driver = \"passive\"\nfeed_m_s",
+        );
         let bad = format!("{text}\n[devices.machine.passive]\nhint_tolerance_m = -1.0\n");
         let e = Config::parse(&bad, std::path::Path::new("p.toml")).unwrap_err();
         assert!(e.to_string().contains("hint_tolerance_m"), "{e}");
-        let rotary = include_str!("../config/rotary-tracer.toml")
-            .replace("driver = \"sim\"\nfeed_m_s", "driver = \"passive\"\nfeed_m_s");
+        let rotary = include_str!("../config/rotary-tracer.toml").replace(
+            "driver = \"sim\"\nfeed_m_s",
+            "driver = \"passive\"\nfeed_m_s",
+        );
         assert!(rotary.contains("\"passive\""));
         let e = Config::parse(&rotary, std::path::Path::new("r.toml")).unwrap_err();
         assert!(e.to_string().contains("rotary"), "{e}");
