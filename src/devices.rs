@@ -44,7 +44,10 @@ pub struct Emulators {
 /// drivers' reader tasks and the emulators are spawned on it).
 pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let all_sim = config.devices.tracer.driver == DriverKind::Sim
-        && config.devices.machine.driver == DriverKind::Sim
+        && matches!(
+            config.devices.machine.driver,
+            DriverKind::Sim | DriverKind::Passive
+        )
         && config
             .devices
             .rotary_table
@@ -80,7 +83,10 @@ fn grbl_config(config: &Config) -> GrblConfig {
     c
 }
 
-fn sim_environment(config: &Config, world: &SharedWorld) -> Option<Box<dyn Environment>> {
+pub(crate) fn sim_environment(
+    config: &Config,
+    world: &SharedWorld,
+) -> Option<Box<dyn Environment>> {
     let env = config.devices.environment.as_ref()?;
     Some(Box::new(SimEnvironment {
         id: env.id.clone(),
@@ -101,12 +107,20 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
     let clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, clock.clone())?));
     let world_opt = Some(world.clone());
+    if config.devices.machine.driver == DriverKind::Passive {
+        return Ok(crate::sim::passive_machine::build(
+            config, plan, world, clock,
+        ));
+    }
     Ok(BuiltDevices {
         devices: Devices {
-            tracer: Box::new(SimTracer {
-                id: config.devices.tracer.id.clone(),
-                world: world.clone(),
-            }),
+            tracer: paced(
+                config,
+                Box::new(SimTracer {
+                    id: config.devices.tracer.id.clone(),
+                    world: world.clone(),
+                }),
+            ),
             environment: sim_environment(config, &world),
             machine: Box::new(SimMachine {
                 id: config.devices.machine.id.clone(),
@@ -121,6 +135,14 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
         world: world_opt,
         emulators: Emulators::default(),
     })
+}
+
+/// The simulated tracer held back to `[sim] pace` times wall time, if set.
+pub(crate) fn paced(config: &Config, tracer: Box<dyn Tracer>) -> Box<dyn Tracer> {
+    match config.sim.as_ref().and_then(|s| s.pace) {
+        Some(pace) => Box::new(crate::sim::pace::PacedTracer::new(tracer, pace)),
+        None => tracer,
+    }
 }
 
 /// The HPI-3D tracer and, if configured, its meteo stream as the environment.
@@ -235,6 +257,9 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             let port = cfg.port.clone();
             Box::new(GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))?)
         }
+        DriverKind::Passive => Box::new(crate::sequencer::passive::PassiveMachine {
+            id: config.devices.machine.id.clone(),
+        }),
         kind => anyhow::bail!(
             "devices.machine.driver = \"{}\" in a real run: expected \"grbl\"",
             kind.as_str()

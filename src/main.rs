@@ -20,10 +20,16 @@ struct Cli {
 enum Command {
     /// Run a calibration (live or simulated), record the session, then solve it.
     Run {
-        config: PathBuf,
+        /// The run's configuration (optional with --resume: the run stored it in DIR).
+        #[arg(required_unless_present = "resume")]
+        config: Option<PathBuf>,
         /// Output directory for session.mcap and results.json.
         #[arg(long, default_value = "geocal-out")]
         out: PathBuf,
+        /// Continue the interrupted run recorded in DIR at its first unfinished point
+        /// (docs/resume.md); its output goes to DIR.
+        #[arg(long, value_name = "DIR", conflicts_with = "out")]
+        resume: Option<PathBuf>,
         /// Write the simulated truth (stations, actual points, error functions) as JSON.
         #[arg(long)]
         truth: Option<PathBuf>,
@@ -109,6 +115,13 @@ enum Command {
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
     },
+    /// Write the NC program of a passive run (moves, dwells, operator stops) as ISO G-code.
+    ExportNc {
+        config: PathBuf,
+        /// Write the program here instead of printing it.
+        #[arg(long)]
+        out: Option<PathBuf>,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -150,47 +163,55 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             json,
             huber,
             yes,
+            resume,
         } => {
             use geocal::config::rotary_sphere as sphere;
-            if sphere::peek_kind(&config)?.as_deref() == Some(sphere::KIND) {
-                let cfg = sphere::RotarySphereConfig::load(&config)?;
-                let output = geocal::rotary_sphere_run::run(
-                    &cfg,
-                    &geocal::run::RunOptions {
-                        out_dir: out,
-                        truth,
-                        progress: std::io::stderr().is_terminal(),
-                        settings: settings(huber),
-                    },
-                )?;
-                if json {
-                    println!("{}", output.results.to_json_pretty());
-                } else {
-                    print!("{}", geocal::report::text(&output.results));
-                    println!(
-                        "\n  {} probe readings recorded to {}\n  results in {}",
-                        output.summary.readings,
-                        output.session_path.display(),
-                        output.results_path.display()
-                    );
+            if let (None, Some(config)) = (&resume, &config) {
+                if sphere::peek_kind(config)?.as_deref() == Some(sphere::KIND) {
+                    let cfg = sphere::RotarySphereConfig::load(config)?;
+                    let output = geocal::rotary_sphere_run::run(
+                        &cfg,
+                        &geocal::run::RunOptions {
+                            out_dir: out,
+                            truth,
+                            progress: std::io::stderr().is_terminal(),
+                            settings: settings(huber),
+                        },
+                    )?;
+                    if json {
+                        println!("{}", output.results.to_json_pretty());
+                    } else {
+                        print!("{}", geocal::report::text(&output.results));
+                        println!(
+                            "\n  {} probe readings recorded to {}\n  results in {}",
+                            output.summary.readings,
+                            output.session_path.display(),
+                            output.results_path.display()
+                        );
+                    }
+                    return Ok(());
                 }
-                return Ok(());
             }
-            let mut cfg = geocal::config::Config::load(&config)?;
-            if yes {
-                cfg.operator
-                    .get_or_insert_with(Default::default)
-                    .piped_stdin = true;
-            }
-            let output = geocal::run::run(
-                &cfg,
-                &geocal::run::RunOptions {
-                    out_dir: out,
-                    truth,
-                    progress: std::io::stderr().is_terminal(),
-                    settings: settings(huber),
-                },
-            )?;
+            let options = geocal::run::RunOptions {
+                out_dir: resume.clone().unwrap_or(out),
+                truth,
+                progress: std::io::stderr().is_terminal(),
+                settings: settings(huber),
+            };
+            let load = |path: &std::path::Path| -> anyhow::Result<geocal::config::Config> {
+                let mut cfg = geocal::config::Config::load(path)?;
+                if yes {
+                    cfg.operator
+                        .get_or_insert_with(Default::default)
+                        .piped_stdin = true;
+                }
+                Ok(cfg)
+            };
+            let output = match (resume, config) {
+                (Some(dir), config) => geocal::resume::resume(&dir, config.as_deref(), &options)?,
+                (None, Some(config)) => geocal::run::run(&load(&config)?, &options)?,
+                (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
+            };
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {
@@ -305,6 +326,24 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 out.map(|p| format!(", recorded to {}", p.display()))
                     .unwrap_or_default()
             );
+        }
+        Command::ExportNc { config, out } => {
+            let cfg = geocal::config::Config::load(&config)?;
+            let plan = geocal::plan::Plan::from_config(&cfg);
+            let title = format!(
+                "geocal {} plan from {}: {} stations, {} points, {} passes",
+                cfg.kind.as_str(),
+                config.display(),
+                plan.stations.len(),
+                plan.points.len(),
+                plan.passes.len()
+            );
+            let text = geocal::nc::to_gcode(&geocal::nc::program(&cfg, &plan), &title);
+            match out {
+                Some(path) => std::fs::write(&path, text)
+                    .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,
+                None => print!("{text}"),
+            }
         }
         Command::Check { config, json } => {
             use geocal::config::rotary_sphere as sphere;

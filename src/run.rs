@@ -10,6 +10,7 @@ use crate::clock::system_now_ns;
 use crate::config::Config;
 use crate::method::{solve_session, Results, SolveSettings};
 use crate::plan::{Plan, AXES};
+use crate::resume::Continuation;
 use crate::sequencer::{RunSummary, Sequencer};
 use crate::session::messages::{
     DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT,
@@ -34,27 +35,57 @@ pub struct RunOutput {
 }
 
 pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    crate::resume::store_config(config, &options.out_dir)?;
+    execute(config, options, None)
+}
+
+/// A run from the start, or the continuation of an interrupted one (src/resume.rs).
+pub(crate) fn execute(
+    config: &Config,
+    options: &RunOptions,
+    mut continuation: Option<&mut Continuation>,
+) -> anyhow::Result<RunOutput> {
     let plan = Plan::from_config(config);
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    let session_path = options.out_dir.join("session.mcap");
-    let epoch_ns = system_now_ns();
+    let session_path = options.out_dir.join(crate::resume::SESSION_FILE);
+    let epoch_ns = continuation
+        .as_ref()
+        .map_or_else(system_now_ns, |c| c.epoch_ns(config));
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
         .context("starting the async runtime")?;
     let built = runtime.block_on(crate::devices::build(config, &plan, epoch_ns))?;
+    if let Some(c) = continuation.as_deref() {
+        c.prepare_world(config, &built)?;
+    }
     let recorder = Recorder::create(&session_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", session_path.display()))?;
     let handle = recorder.handle();
-    handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+    let resume_at = match continuation.as_deref_mut() {
+        Some(c) => Some(c.record_start(&handle, built.clock.as_ref())),
+        None => {
+            handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+            None
+        }
+    };
 
     let bar = progress_bar(options.progress);
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
     };
-    let sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
+    let mut sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
+    if let Some(at) = resume_at {
+        sequencer = sequencer.resume_at(at);
+    }
+    if config.devices.machine.driver == crate::config::DriverKind::Passive {
+        let passive = config.devices.machine.passive.clone().unwrap_or_default();
+        sequencer = sequencer.passive(passive.hint_tolerance_m);
+    }
     let summary = runtime.block_on(sequencer.run(&mut progress));
     // Stop the emulators of an emulated run.
     drop(built.emulators);
@@ -62,6 +93,9 @@ pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
     // Finish the file even after a failed run: every recorded sample stays readable.
     let stats = recorder.finish().context("finishing the session file")?;
     let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    if let Some(c) = continuation.as_deref() {
+        c.finished(&session_path)?;
+    }
     tracing::info!(
         samples = summary.samples,
         points = summary.points_measured,

@@ -78,9 +78,45 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             )
         }
     };
-    use DriverKind::{Grbl, Hpi3d, ModbusRtu, ModbusTcp, Sim};
+    use DriverKind::{Grbl, Hpi3d, ModbusRtu, ModbusTcp, Passive, Sim};
     check("devices.tracer.driver", d.tracer.driver, &[Sim, Hpi3d])?;
-    check("devices.machine.driver", d.machine.driver, &[Sim, Grbl])?;
+    check(
+        "devices.machine.driver",
+        d.machine.driver,
+        &[Sim, Grbl, Passive],
+    )?;
+    if d.machine.driver == Passive && config.plan.rotary.is_some() {
+        return fail(
+            "devices.machine.driver",
+            "\"passive\" does not turn a rotary table: plan.rotary needs an active machine",
+        );
+    }
+    if let Some(p) = &d.machine.passive {
+        if d.machine.driver != Passive {
+            return fail(
+                "devices.machine.passive",
+                "settings for \"passive\", but devices.machine.driver is not \"passive\"",
+            );
+        }
+        if !(p.dwell_margin_s.is_finite() && p.dwell_margin_s >= 0.0) {
+            return fail(
+                "devices.machine.passive.dwell_margin_s",
+                format!("expected a number >= 0, found {}", p.dwell_margin_s),
+            );
+        }
+        if !(p.hint_tolerance_m.is_finite() && p.hint_tolerance_m > 0.0) {
+            return fail(
+                "devices.machine.passive.hint_tolerance_m",
+                format!("expected a positive number, found {}", p.hint_tolerance_m),
+            );
+        }
+    }
+    if d.machine.driver == Passive && config.emulated() {
+        return fail(
+            "devices.machine.driver",
+            "\"passive\" is not emulated: use it without [hil] emulate = true",
+        );
+    }
     if let Some(env) = &d.environment {
         check("devices.environment.driver", env.driver, &[Sim, Hpi3d])?;
         if env.driver == Hpi3d && d.tracer.driver != Hpi3d {

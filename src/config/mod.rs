@@ -129,6 +129,9 @@ pub enum DriverKind {
     ModbusTcp,
     /// Modbus RTU rotary table on a serial port.
     ModbusRtu,
+    /// Machine only: an industrial control runs the program of `geocal export-nc` by itself;
+    /// the sequencer detects each stop from the tracer stream (src/sequencer/passive.rs).
+    Passive,
 }
 
 impl DriverKind {
@@ -139,6 +142,7 @@ impl DriverKind {
             DriverKind::Grbl => "grbl",
             DriverKind::ModbusTcp => "modbus_tcp",
             DriverKind::ModbusRtu => "modbus_rtu",
+            DriverKind::Passive => "passive",
         }
     }
 }
@@ -196,6 +200,9 @@ pub struct MachineDeviceConfig {
     /// come from here).
     #[serde(default)]
     pub grbl: Option<geocal_drivers::grbl::GrblConfig>,
+    /// `[devices.machine.passive]`: NC program and stop matching settings (driver `passive`).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub passive: Option<crate::nc::PassiveConfig>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -346,6 +353,13 @@ pub struct SimConfig {
     /// machine and stations of `seed` with noise of its own.
     #[serde(default)]
     pub noise_seed: Option<u64>,
+    /// Run the virtual clock at most this many times faster than wall time (e.g. 20.0);
+    /// unset: as fast as possible. For watching a run, or killing it mid-run in a test.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub pace: Option<f64>,
+    /// The simulated machine of a passive run: unplanned stops and dwell jitter.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub passive: Option<crate::sim::passive_machine::SimPassiveConfig>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

@@ -441,6 +441,9 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     };
     non_negative("sim.station_hint_error_m", sim.station_hint_error_m)?;
     non_negative("sim.relocation_s", sim.relocation_s)?;
+    if let Some(pace) = sim.pace {
+        positive("sim.pace", pace)?;
+    }
     positive("sim.environment.air_temp_k", sim.environment.air_temp_k)?;
     positive("sim.environment.pressure_pa", sim.environment.pressure_pa)?;
     positive(

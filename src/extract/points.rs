@@ -187,6 +187,18 @@ pub fn extract_points(
                         .push(dropped(&w, "beam broken: repeated after re-homing"));
                 }
             }
+            RunEvent::Resume { .. } => {
+                if let Some(w) = open.take() {
+                    out.repeated
+                        .push(dropped(&w, "run interrupted: repeated after resume"));
+                }
+            }
+            RunEvent::UnplannedStop { .. } => {
+                if let Some(w) = open.take() {
+                    out.repeated
+                        .push(dropped(&w, "not the planned stop (unplanned_stop)"));
+                }
+            }
             RunEvent::PointEnd {
                 station,
                 point,

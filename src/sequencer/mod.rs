@@ -8,6 +8,7 @@
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
 //! break touched. Every sample is recorded throughout.
 
+pub mod passive;
 pub mod rotary_sphere;
 
 use std::collections::BTreeMap;
@@ -60,6 +61,28 @@ pub enum SequencerError {
         commanded_rad: f64,
         waited_s: f64,
     },
+}
+
+/// Where a resumed run continues (`geocal run --resume`, src/resume.rs): the first
+/// unfinished point in plan order, and what the interrupted run left behind.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct ResumeAt {
+    /// Plan indices of the station and target, the pass, and the position in the pass order
+    /// of the first unfinished point. A station index past the last means nothing is left.
+    pub station: usize,
+    pub target: usize,
+    pub pass: usize,
+    pub order_index: usize,
+    /// The interrupted run recorded this station's `station_begin` already.
+    pub station_begun: bool,
+    /// Points the interrupted run finished (for the progress count).
+    pub done: u64,
+    /// Added to every recorded `beam_segment`, so the continuation's segments follow the
+    /// interrupted run's: its lengths are relative to a new homing.
+    pub segment_offset: u32,
+    /// Where the machine was last commanded, and the approach signs then.
+    pub commanded: Option<[f64; 3]>,
+    pub approach: BTreeMap<String, i8>,
 }
 
 /// Called after each finished point with (done, total).
@@ -121,6 +144,11 @@ pub struct Sequencer<'a> {
     /// Clock reading at the start of the run: `/rotary/<id>/state` times count from here.
     start_ns: u64,
     summary: RunSummary,
+    resume: Option<ResumeAt>,
+    /// Passive mode (src/sequencer/passive.rs): the hint tolerance for matching stops.
+    passive: Option<f64>,
+    /// Added to recorded beam segments (see `ResumeAt::segment_offset`).
+    segment_offset: u32,
 }
 
 impl<'a> Sequencer<'a> {
@@ -145,24 +173,57 @@ impl<'a> Sequencer<'a> {
             on_table: false,
             start_ns,
             summary: RunSummary::default(),
+            resume: None,
+            passive: None,
+            segment_offset: 0,
         }
+    }
+
+    /// Passive mode: the machine runs its NC program; stops are matched to the plan's points
+    /// with a station-hint tolerance of `hint_tolerance_m`.
+    pub fn passive(mut self, hint_tolerance_m: f64) -> Self {
+        self.passive = Some(hint_tolerance_m);
+        self
+    }
+
+    /// Continue an interrupted run at `at` instead of starting from the beginning.
+    pub fn resume_at(mut self, at: ResumeAt) -> Self {
+        self.segment_offset = at.segment_offset;
+        self.commanded = at.commanded;
+        for (axis, sign) in &at.approach {
+            self.approach.insert(axis.clone(), *sign);
+        }
+        self.resume = Some(at);
+        self
     }
 
     /// Run the whole plan: every station, every pass, every point.
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
+        if let Some(hint_tolerance_m) = self.passive.take() {
+            return self.run_passive(hint_tolerance_m, progress).await;
+        }
         let plan = self.plan;
         let total =
             (plan.stations.len() * plan.targets.len() * plan.passes.len() * plan.points.len())
                 as u64;
         let mut mounted: Option<&PlanTarget> = None;
-        let mut done = 0;
+        let resume = self.resume.take();
+        let mut done = resume.as_ref().map_or(0, |r| r.done);
         for (station_index, station) in plan.stations.iter().enumerate() {
+            if resume.as_ref().is_some_and(|r| station_index < r.station) {
+                continue;
+            }
+            // The station the interrupted run stopped in (targets and passes before the
+            // resume point are skipped).
+            let resumed = resume.as_ref().filter(|r| r.station == station_index);
             self.station = station.id.clone();
-            self.event(RunEvent::StationBegin {
-                station: station.id.clone(),
-                station_index,
-                hint_m: station.hint_m,
-            });
+            if !resumed.is_some_and(|r| r.station_begun) {
+                self.event(RunEvent::StationBegin {
+                    station: station.id.clone(),
+                    station_index,
+                    hint_m: station.hint_m,
+                });
+            }
             // The operator places the tracer, once onto the table for all its table stations;
             // from then on the table turns it from station to station.
             if !(station.rotation.is_some() && self.on_table) {
@@ -175,7 +236,10 @@ impl<'a> Sequencer<'a> {
             if let Some(rotation) = &station.rotation {
                 self.rotate(&station.id, rotation).await?;
             }
-            for target in &plan.targets {
+            for (target_index, target) in plan.targets.iter().enumerate() {
+                if resumed.is_some_and(|r| target_index < r.target) {
+                    continue;
+                }
                 if mounted != Some(target) {
                     self.devices
                         .operator
@@ -184,8 +248,18 @@ impl<'a> Sequencer<'a> {
                     mounted = Some(target);
                 }
                 for (pass, &direction) in plan.passes.iter().enumerate() {
+                    let resumed = resumed.filter(|r| r.target == target_index);
+                    if resumed.is_some_and(|r| pass < r.pass) {
+                        continue;
+                    }
                     let order = plan.pass_order(direction);
                     let mut next = 0;
+                    if let Some(r) = resumed.filter(|r| r.pass == pass) {
+                        // Home at point 0 again (a new beam segment), then go on.
+                        next = r.order_index;
+                        let point = order.get(next).copied().unwrap_or(0);
+                        self.rehome_after_resume(&station.id, point, pass).await?;
+                    }
                     let mut breaks = 0;
                     while let Some(&point) = order.get(next) {
                         match self.visit(&station.id, target, point, pass).await? {
@@ -420,7 +494,7 @@ impl<'a> Sequencer<'a> {
             length_m: reading.length_m,
             signal: reading.signal,
             tracking: reading.tracking,
-            beam_segment: reading.beam_segment,
+            beam_segment: reading.beam_segment + self.segment_offset,
         };
         self.recorder
             .tracer(self.devices.tracer.id(), &sample, self.clock.now_ns());
@@ -432,7 +506,7 @@ impl<'a> Sequencer<'a> {
         if before.is_some_and(|b| b.beam_segment != reading.beam_segment) {
             self.event(RunEvent::Rehome {
                 station: self.station.clone(),
-                beam_segment: reading.beam_segment,
+                beam_segment: reading.beam_segment + self.segment_offset,
             });
         }
         if reading.t_s >= self.next_env_poll_s {
@@ -523,6 +597,29 @@ impl<'a> Sequencer<'a> {
         })
     }
 
+    /// A resumed run continues mid-pass: go to point 0 and home there, so the lengths of the
+    /// rest of the pass are relative to point 0 again (a `rehome` event with the new segment).
+    async fn rehome_after_resume(
+        &mut self,
+        station: &str,
+        point: usize,
+        pass: usize,
+    ) -> Result<(), SequencerError> {
+        let mut step = self.move_to(0).await?;
+        if step == Step::Done {
+            step = self.home().await?;
+        }
+        if step == Step::BeamBroken {
+            self.recover_beam(station, point, pass).await?;
+        }
+        let segment = self.last_sample.map_or(0, |s| s.beam_segment) + self.segment_offset;
+        self.event(RunEvent::Rehome {
+            station: station.to_string(),
+            beam_segment: segment,
+        });
+        Ok(())
+    }
+
     /// After a re-homing, keep recording until the samples show the new beam segment (the
     /// `rehome` event then precedes the repeated windows). False if the beam broke again.
     async fn wait_for_segment(&mut self, station: &str, old: u32) -> Result<bool, SequencerError> {
@@ -567,18 +664,10 @@ impl<'a> Sequencer<'a> {
         if self.position == Some(target) {
             return Ok(Step::Done);
         }
-        if let Some(from) = self.commanded {
-            for (k, axis) in AXES.iter().enumerate() {
-                let delta = target[k] - from[k];
-                if delta != 0.0 {
-                    self.approach.insert(axis.to_string(), delta.signum() as i8);
-                }
-            }
-        }
         let command: AxisPositions = AXES.iter().map(|a| a.to_string()).zip(target).collect();
         self.position = None;
         self.start_move(&command).await?;
-        self.commanded = Some(target);
+        self.note_command(target);
         let first = self.sample().await?;
         let started_s = first.t_s;
         let mut tracking = first.tracking;
@@ -602,6 +691,42 @@ impl<'a> Sequencer<'a> {
         } else {
             Step::BeamBroken
         })
+    }
+
+    /// The machine was sent to `target`: update the approach signs of the axes that move.
+    fn note_command(&mut self, target: [f64; 3]) {
+        if let Some(from) = self.commanded {
+            for (k, axis) in AXES.iter().enumerate() {
+                let delta = target[k] - from[k];
+                if delta != 0.0 {
+                    self.approach.insert(axis.to_string(), delta.signum() as i8);
+                }
+            }
+        }
+        self.commanded = Some(target);
+    }
+
+    /// The `point_begin` event of a plan point.
+    fn point_begin_event(
+        &self,
+        station: &str,
+        target: &PlanTarget,
+        point: usize,
+        pass: usize,
+    ) -> RunEvent {
+        RunEvent::PointBegin {
+            station: station.to_string(),
+            point,
+            pass,
+            target: target.id.clone(),
+            nominal_m: self.plan.nominal_m(point, target),
+            axes: AXES
+                .iter()
+                .map(|a| a.to_string())
+                .zip(self.plan.points[point].axes_m)
+                .collect(),
+            approach: self.approach.clone(),
+        }
     }
 
     /// Command the table to a station's angle (a `rotation` event), then keep recording the
@@ -714,16 +839,8 @@ impl<'a> Sequencer<'a> {
         point: usize,
         pass: usize,
     ) -> Result<Step, SequencerError> {
-        let p = &self.plan.points[point];
-        self.event(RunEvent::PointBegin {
-            station: station.to_string(),
-            point,
-            pass,
-            target: target.id.clone(),
-            nominal_m: self.plan.nominal_m(point, target),
-            axes: AXES.iter().map(|a| a.to_string()).zip(p.axes_m).collect(),
-            approach: self.approach.clone(),
-        });
+        let event = self.point_begin_event(station, target, point, pass);
+        self.event(event);
         if let DwellEnd::BeamBroken = self.dwell(point, self.plan.dwell_s).await? {
             // No point_end: the window is abandoned, and repeated after the re-homing.
             return Ok(Step::BeamBroken);
@@ -733,6 +850,8 @@ impl<'a> Sequencer<'a> {
             point,
             pass,
         });
+        // Checkpoint: the finished point is on disk before the next one starts.
+        self.recorder.checkpoint();
         self.summary.points_measured += 1;
         Ok(Step::Done)
     }

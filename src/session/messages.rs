@@ -228,6 +228,32 @@ pub enum RunEvent {
         height_index: usize,
         angle_index: usize,
     },
+    /// `geocal run --resume`: the run was interrupted and continues here (src/resume.rs).
+    /// Everything before this event was copied from the interrupted file; a window left open
+    /// by the interruption is not used. `point` is where the run continues (None: nothing
+    /// was left to measure).
+    Resume {
+        resume_index: u32,
+        messages_kept: u64,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        station: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        target: Option<String>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pass: Option<usize>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        point: Option<usize>,
+    },
+    /// Passive mode: the machine stopped where no point was expected, or left before its
+    /// dwell was complete (src/sequencer/passive.rs). `point`/`pass` name the stop that was
+    /// expected; a window open at this event is not used.
+    UnplannedStop {
+        station: String,
+        target: String,
+        pass: usize,
+        point: usize,
+        message: String,
+    },
     #[serde(other)]
     Other,
 }
@@ -256,6 +282,8 @@ struct WireEvent {
     height_index: Option<usize>,
     angle_index: Option<usize>,
     direction: Option<[f64; 3]>,
+    resume_index: Option<u32>,
+    messages_kept: Option<u64>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -320,6 +348,21 @@ impl TryFrom<WireEvent> for RunEvent {
             "sphere_end" => RunEvent::SphereEnd {
                 height_index: w.height_index.ok_or_else(|| need("height_index"))?,
                 angle_index: w.angle_index.ok_or_else(|| need("angle_index"))?,
+            },
+            "resume" => RunEvent::Resume {
+                resume_index: w.resume_index.ok_or_else(|| need("resume_index"))?,
+                messages_kept: w.messages_kept.ok_or_else(|| need("messages_kept"))?,
+                station: w.station,
+                target: w.target,
+                pass: w.pass,
+                point: w.point,
+            },
+            "unplanned_stop" => RunEvent::UnplannedStop {
+                station: w.station.ok_or_else(|| need("station"))?,
+                target: w.target.unwrap_or_default(),
+                pass: w.pass.ok_or_else(|| need("pass"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                message: w.message.unwrap_or_default(),
             },
             _ => RunEvent::Other,
         })
@@ -388,6 +431,22 @@ mod tests {
             RunEvent::SphereEnd {
                 height_index: 1,
                 angle_index: 4,
+            },
+            RunEvent::Resume {
+                resume_index: 1,
+                messages_kept: 1234,
+                station: Some("s2".into()),
+                target: Some("t0".into()),
+                pass: Some(1),
+                point: Some(7),
+            },
+            RunEvent::Resume {
+                resume_index: 2,
+                messages_kept: 99,
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
             },
         ];
         for e in events {
@@ -542,7 +601,9 @@ pub mod schema {
     "message": {"type": "string"},
     "height_index": {"type": "integer", "minimum": 0},
     "angle_index": {"type": "integer", "minimum": 0},
-    "direction": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}
+    "direction": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
+    "resume_index": {"type": "integer", "minimum": 1},
+    "messages_kept": {"type": "integer", "minimum": 0}
   },
   "allOf": [
     {"if": {"properties": {"kind": {"const": "point_begin"}}},
@@ -562,7 +623,11 @@ pub mod schema {
     {"if": {"properties": {"kind": {"const": "probe_point_end"}}},
      "then": {"required": ["height_index", "angle_index", "point"]}},
     {"if": {"properties": {"kind": {"const": "sphere_end"}}},
-     "then": {"required": ["height_index", "angle_index"]}}
+     "then": {"required": ["height_index", "angle_index"]}},
+    {"if": {"properties": {"kind": {"const": "unplanned_stop"}}},
+     "then": {"required": ["station", "pass", "point"]}},
+    {"if": {"properties": {"kind": {"const": "resume"}}},
+     "then": {"required": ["resume_index", "messages_kept"]}}
   ]
 }"#;
 }

@@ -100,12 +100,48 @@ pub fn read_session(path: &Path) -> Result<Session, ReadError> {
     read_impl(&bytes, &path.display().to_string())
 }
 
+/// One channel of a session file as recorded (topic, encodings, schema), for copying.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawChannel {
+    pub topic: String,
+    pub message_encoding: String,
+    pub metadata: BTreeMap<String, String>,
+    /// Schema name, encoding and text; None for a schemaless channel.
+    pub schema: Option<(String, String, Vec<u8>)>,
+}
+
+/// One message of a session file exactly as recorded: channel, times and payload bytes.
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawMessage {
+    pub channel: std::sync::Arc<RawChannel>,
+    pub log_time_ns: u64,
+    pub publish_time_ns: u64,
+    pub data: Vec<u8>,
+}
+
+/// Reads a session file linearly (up to its last complete chunk, as for a truncated file),
+/// returning the decoded session and every message in file order as raw records: what
+/// `geocal run --resume` (src/resume.rs) copies into the continued file.
+pub fn read_session_raw(path: &Path) -> Result<(Session, Vec<RawMessage>), ReadError> {
+    let file = path.display().to_string();
+    let buf = std::fs::read(path).map_err(|source| ReadError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    check_magic(&buf, &file)?;
+    let mut dec = Decoder::new(&file);
+    dec.raw = Some(RawLog::default());
+    let mut dec = read_linear_into(&buf, dec)?;
+    let raw = dec.raw.take().map(|r| r.messages).unwrap_or_default();
+    Ok((dec.into_session(&file, buf.len() as u64)?, raw))
+}
+
 /// Reads a session held in memory (tests, data received over the network).
 pub fn read_session_bytes(bytes: &[u8]) -> Result<Session, ReadError> {
     read_impl(bytes, "<in-memory session>")
 }
 
-fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
+fn check_magic(buf: &[u8], file: &str) -> Result<(), ReadError> {
     if buf.len() < mcap::MAGIC.len() || &buf[..mcap::MAGIC.len()] != mcap::MAGIC {
         let reason = if mcap::MAGIC.starts_with(buf) {
             format!("only {} bytes, less than the MCAP magic", buf.len())
@@ -117,6 +153,11 @@ fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
             reason,
         });
     }
+    Ok(())
+}
+
+fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
+    check_magic(buf, file)?;
     let decoded = match mcap::Summary::read(buf) {
         Ok(Some(summary)) => match read_indexed(buf, file, &summary)? {
             Some(d) => d,
@@ -294,7 +335,10 @@ const RECORD_PREFIX: usize = 9; // opcode u8 + length u64
 /// Walks the top-level records itself, so that a cut anywhere stops cleanly at the last
 /// complete record (and so that the amount read is exact).
 fn read_linear(buf: &[u8], file: &str) -> Result<Decoder, ReadError> {
-    let mut dec = Decoder::new(file);
+    read_linear_into(buf, Decoder::new(file))
+}
+
+fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> {
     let mut sans = chunk_reader();
     let mut pos = mcap::MAGIC.len();
     let mut in_data_section = true;
@@ -342,7 +386,7 @@ fn read_linear(buf: &[u8], file: &str) -> Result<Decoder, ReadError> {
             }
             _ if !in_data_section => Ok(()),
             op::CHUNK => dec.feed_chunk(&mut sans, record),
-            op::CHANNEL | op::MESSAGE => dec.on_record(opcode, body),
+            op::SCHEMA | op::CHANNEL | op::MESSAGE => dec.on_record(opcode, body),
             _ => Ok(()),
         };
         match result {
@@ -412,6 +456,16 @@ struct Decoder {
     skipped: u64,
     ignored: u64,
     truncation: Option<(u64, String)>,
+    /// Keep every message raw as well (`read_session_raw`).
+    raw: Option<RawLog>,
+}
+
+/// Schemas, channels and messages as recorded, for `read_session_raw`.
+#[derive(Default)]
+struct RawLog {
+    schemas: HashMap<u16, (String, String, Vec<u8>)>,
+    channels: HashMap<u16, std::sync::Arc<RawChannel>>,
+    messages: Vec<RawMessage>,
 }
 
 const MAX_SKIP_WARNINGS: u64 = 20;
@@ -501,6 +555,7 @@ impl Decoder {
             skipped: 0,
             ignored: 0,
             truncation: None,
+            raw: None,
         }
     }
 
@@ -635,9 +690,29 @@ impl Decoder {
 
     fn on_record(&mut self, opcode: u8, body: &[u8]) -> Result<(), Failure> {
         match opcode {
+            op::SCHEMA => {
+                if let Some(raw) = self.raw.as_mut() {
+                    if let mcap::records::Record::Schema { header, data } =
+                        mcap::parse_record(opcode, body)?
+                    {
+                        let schema = (header.name, header.encoding, data.into_owned());
+                        raw.schemas.insert(header.id, schema);
+                    }
+                }
+                Ok(())
+            }
             op::CHANNEL => {
                 if let mcap::records::Record::Channel(ch) = mcap::parse_record(opcode, body)? {
                     self.define_channel(ch.id, &ch.topic, &ch.message_encoding);
+                    if let Some(raw) = self.raw.as_mut() {
+                        let channel = RawChannel {
+                            schema: raw.schemas.get(&ch.schema_id).cloned(),
+                            topic: ch.topic,
+                            message_encoding: ch.message_encoding,
+                            metadata: ch.metadata,
+                        };
+                        raw.channels.insert(ch.id, std::sync::Arc::new(channel));
+                    }
                 }
                 Ok(())
             }
@@ -650,6 +725,16 @@ impl Decoder {
                 let channel_id = u16::from_le_bytes([body[0], body[1]]);
                 let log_time = le_u64(&body[6..14]);
                 let publish_time = le_u64(&body[14..22]);
+                if let Some(raw) = self.raw.as_mut() {
+                    if let Some(channel) = raw.channels.get(&channel_id) {
+                        raw.messages.push(RawMessage {
+                            channel: channel.clone(),
+                            log_time_ns: log_time,
+                            publish_time_ns: publish_time,
+                            data: body[22..].to_vec(),
+                        });
+                    }
+                }
                 self.on_message(channel_id, log_time, publish_time, &body[22..])
             }
             _ => Ok(()),

@@ -20,6 +20,7 @@ use super::messages::{
     SessionHeader, TracerSample, SCHEMA_ENV, SCHEMA_EVENT, SCHEMA_MACHINE, SCHEMA_PROBE,
     SCHEMA_ROTARY, SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
 };
+use super::reader::RawMessage;
 
 /// Chunk compression of the recorded file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -109,10 +110,17 @@ enum Payload {
     Machine(String, Box<MachineStateSample>),
     Probe(String, ProbeSample),
     Event(Box<RunEvent>),
+    /// A message copied as recorded (same channel topic, payload and times).
+    Raw(Box<RawMessage>),
 }
 
 enum Command {
-    Write { payload: Payload, log_time_ns: u64 },
+    Write {
+        payload: Payload,
+        log_time_ns: u64,
+    },
+    /// Close the chunk and sync the file now (after everything sent before).
+    Checkpoint,
     Finish,
 }
 
@@ -176,6 +184,23 @@ impl RecorderHandle {
     pub fn event(&self, event: &RunEvent, log_time_ns: u64) {
         self.send(Payload::Event(Box::new(event.clone())), log_time_ns);
     }
+
+    /// A message copied from another session file with its topic, payload and both times
+    /// (`geocal run --resume`). Its channel is shared with later messages on the same topic.
+    pub fn raw(&self, message: RawMessage) {
+        let log_time_ns = message.log_time_ns;
+        self.send(Payload::Raw(Box::new(message)), log_time_ns);
+    }
+
+    /// Close the current chunk and sync the file once everything sent so far is written:
+    /// a kill after this loses none of it.
+    pub fn checkpoint(&self) {
+        if self.tx.send(Command::Checkpoint).is_err()
+            && self.lost_after_close.fetch_add(1, Ordering::Relaxed) == 0
+        {
+            tracing::warn!("session recorder already finished: checkpoint dropped");
+        }
+    }
 }
 
 /// Owns the writer thread. Call [`Recorder::finish`]; dropping it finishes too but hides errors.
@@ -227,11 +252,13 @@ impl Recorder {
             rotary_channels: HashMap::new(),
             machine_channels: HashMap::new(),
             probe_channels: HashMap::new(),
+            by_topic: HashMap::new(),
             sequences: HashMap::new(),
             buf: Vec::with_capacity(512),
             stats: RecordStats::default(),
             error: None,
             dirty: false,
+            last_sync: Instant::now(),
         };
         let thread = std::thread::Builder::new()
             .name("geocal-recorder".into())
@@ -344,6 +371,8 @@ struct WriterThread {
     rotary_channels: HashMap<String, u16>,
     machine_channels: HashMap<String, u16>,
     probe_channels: HashMap<String, u16>,
+    /// Every channel by topic: one channel per topic, whoever writes to it first.
+    by_topic: HashMap<String, u16>,
     sequences: HashMap<u16, u32>,
     buf: Vec<u8>,
     stats: RecordStats,
@@ -351,7 +380,12 @@ struct WriterThread {
     error: Option<RecorderError>,
     /// Messages written since the last flush.
     dirty: bool,
+    last_sync: Instant,
 }
+
+/// Checkpoints (`RecorderHandle::checkpoint`) closer together than this are merged: a real
+/// run's points take seconds, so each gets its own; a simulated run is not slowed by fsyncs.
+const MIN_CHECKPOINT_INTERVAL: Duration = Duration::from_millis(100);
 
 impl WriterThread {
     fn run(&mut self, rx: Receiver<Command>) -> Result<RecordStats, RecorderError> {
@@ -370,6 +404,12 @@ impl WriterThread {
                         self.flush_and_sync();
                         next_flush = Instant::now() + self.flush_interval;
                     }
+                }
+                Ok(Command::Checkpoint) => {
+                    // At most one checkpoint per MIN_CHECKPOINT_INTERVAL: a later one is
+                    // deferred to then (fast simulated runs finish points in microseconds).
+                    let due = self.last_sync + MIN_CHECKPOINT_INTERVAL;
+                    next_flush = next_flush.min(due);
                 }
                 Ok(Command::Finish) | Err(RecvTimeoutError::Disconnected) => break,
                 Err(RecvTimeoutError::Timeout) => {}
@@ -432,13 +472,7 @@ impl WriterThread {
                 source,
             })?
             .len();
-        self.stats.channels = (self.tracer_channels.len()
-            + self.env_channels.len()
-            + self.rotary_channels.len()
-            + self.machine_channels.len()
-            + self.probe_channels.len()
-            + usize::from(self.session_channel.is_some())
-            + usize::from(self.event_channel.is_some())) as u32;
+        self.stats.channels = self.by_topic.len() as u32;
         Ok(self.stats.clone())
     }
 
@@ -461,6 +495,7 @@ impl WriterThread {
             return;
         }
         self.dirty = false;
+        self.last_sync = Instant::now();
     }
 
     fn fail(&mut self, source: mcap::McapError) {
@@ -498,7 +533,14 @@ impl WriterThread {
     }
 
     fn try_write(&mut self, payload: &Payload, log_time_ns: u64) -> Result<(), WriteFailure> {
+        let mut publish_time = log_time_ns;
         let channel_id = match payload {
+            Payload::Raw(m) => {
+                self.buf.clear();
+                self.buf.extend_from_slice(&m.data);
+                publish_time = m.publish_time_ns;
+                self.raw_channel(m)?
+            }
             Payload::Session(h) => {
                 encode(&mut self.buf, TOPIC_SESSION, h.as_ref())?;
                 match self.session_channel {
@@ -603,14 +645,66 @@ impl WriterThread {
                     channel_id,
                     sequence,
                     log_time: log_time_ns,
-                    publish_time: log_time_ns,
+                    publish_time,
                 },
                 &self.buf,
             )
             .map_err(WriteFailure::Mcap)
     }
 
+    /// The channel of a copied message: geocal's own schema for its own topics (so that
+    /// later typed messages share the channel), else the message's schema as recorded.
+    fn raw_channel(&mut self, m: &RawMessage) -> Result<u16, WriteFailure> {
+        if let Some(&id) = self.by_topic.get(&m.channel.topic) {
+            return Ok(id);
+        }
+        let own = [
+            SchemaKind::Session,
+            SchemaKind::Tracer,
+            SchemaKind::Env,
+            SchemaKind::Event,
+            SchemaKind::Rotary,
+            SchemaKind::Probe,
+            SchemaKind::Machine,
+        ]
+        .into_iter()
+        .find(|k| {
+            m.channel.message_encoding == "json"
+                && m.channel
+                    .schema
+                    .as_ref()
+                    .is_some_and(|(name, _, _)| name == k.name_and_text().0)
+        });
+        if let Some(kind) = own {
+            return self.add_channel(kind, &m.channel.topic);
+        }
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(WriteFailure::Mcap(
+                mcap::McapError::AttemptedWriteAfterFailure,
+            ));
+        };
+        let schema_id = match &m.channel.schema {
+            Some((name, encoding, data)) => writer
+                .add_schema(name, encoding, data)
+                .map_err(WriteFailure::Mcap)?,
+            None => 0,
+        };
+        let id = writer
+            .add_channel(
+                schema_id,
+                &m.channel.topic,
+                &m.channel.message_encoding,
+                &m.channel.metadata,
+            )
+            .map_err(WriteFailure::Mcap)?;
+        self.by_topic.insert(m.channel.topic.clone(), id);
+        Ok(id)
+    }
+
     fn add_channel(&mut self, kind: SchemaKind, topic: &str) -> Result<u16, WriteFailure> {
+        if let Some(&id) = self.by_topic.get(topic) {
+            return Ok(id);
+        }
         let Some(writer) = self.writer.as_mut() else {
             return Err(WriteFailure::Mcap(
                 mcap::McapError::AttemptedWriteAfterFailure,
@@ -623,9 +717,11 @@ impl WriterThread {
                 .add_schema(name, "jsonschema", text.as_bytes())
                 .map_err(WriteFailure::Mcap)?;
         }
-        writer
+        let id = writer
             .add_channel(self.schemas[slot], topic, "json", &Default::default())
-            .map_err(WriteFailure::Mcap)
+            .map_err(WriteFailure::Mcap)?;
+        self.by_topic.insert(topic.to_owned(), id);
+        Ok(id)
     }
 }
 
@@ -803,6 +899,66 @@ mod tests {
         let s = read_session(&path).unwrap();
         assert!(s.completeness.is_complete());
         assert_eq!(s.tracers["tracer0"].len(), 600);
+    }
+
+    #[test]
+    fn a_checkpoint_puts_everything_sent_before_it_on_disk() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("cp.mcap");
+        // The periodic flush would come only after 60 s.
+        let rec =
+            Recorder::create(&path, opts(Compression::Zstd, Duration::from_secs(60))).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        for i in 0..300 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        h.checkpoint();
+        let s = poll(Duration::from_secs(5), || {
+            let s = read_session_bytes(&std::fs::read(&path).unwrap()).ok()?;
+            (s.tracers.get("tracer0").map_or(0, Vec::len) == 300).then_some(s)
+        });
+        assert!(!s.completeness.is_complete());
+        rec.finish().unwrap();
+    }
+
+    #[test]
+    fn copied_messages_keep_topic_payload_and_times_and_share_channels() {
+        let dir = tempfile::tempdir().unwrap();
+        let first = dir.path().join("first.mcap");
+        let rec =
+            Recorder::create(&first, opts(Compression::Zstd, Duration::from_secs(1))).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        for i in 0..100 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        for (i, e) in events().iter().enumerate() {
+            h.event(e, 200 + i as u64);
+        }
+        rec.finish().unwrap();
+        let (_, raw) = crate::session::reader::read_session_raw(&first).unwrap();
+        assert_eq!(raw.len(), 1 + 100 + events().len());
+
+        let second = dir.path().join("second.mcap");
+        let rec =
+            Recorder::create(&second, opts(Compression::Lz4, Duration::from_secs(1))).unwrap();
+        let h = rec.handle();
+        for m in raw.clone() {
+            h.raw(m);
+        }
+        h.tracer("tracer0", &tracer_sample(100), 1000);
+        h.event(&events()[0], 1001);
+        let stats = rec.finish().unwrap();
+        assert_eq!(
+            stats.channels, 3,
+            "copied and new messages share their topics' channels"
+        );
+        let (s, again) = crate::session::reader::read_session_raw(&second).unwrap();
+        assert_eq!(&again[..raw.len()], &raw[..]);
+        assert_eq!(s.header, header());
+        assert_eq!(s.tracers["tracer0"].len(), 101);
+        assert_eq!(s.events.len(), events().len() + 1);
     }
 
     #[test]

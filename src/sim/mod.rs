@@ -5,6 +5,8 @@ pub mod bump;
 pub mod devices;
 pub mod effects;
 pub mod hil;
+pub mod pace;
+pub mod passive_machine;
 pub mod rotary;
 pub mod rotary_sphere;
 pub mod table_source;

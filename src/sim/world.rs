@@ -385,6 +385,17 @@ impl SimWorld {
         }
     }
 
+    /// Continue an interrupted run (`geocal run --resume`): the world, rebuilt from the same
+    /// seed, resumes at `t_s` (after the last recorded log time), its environment log follows
+    /// from there, and the tracer noise draws from a fresh stream (`noise_seed`) so that the
+    /// repeated points' noise is independent of the first attempt's.
+    pub fn resume_at(&mut self, t_s: f64, noise_seed: u64) {
+        self.clock.advance_to(t_s);
+        self.last_sample_s = self.now_s();
+        self.next_env_s = self.now_s();
+        self.rng = ChaCha8Rng::seed_from_u64(noise_seed);
+    }
+
     // --- hardware-in-the-loop (src/sim/hil.rs): the emulators read the world directly ---
 
     /// True tracer-to-target distance now, and the distance at the last homing.
