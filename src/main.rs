@@ -95,16 +95,20 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             json,
             huber,
         } => {
-            let cfg = geocal::config::Config::load(&config)?;
-            let output = geocal::run::run(
-                &cfg,
-                &geocal::run::RunOptions {
-                    out_dir: out,
-                    truth,
-                    progress: std::io::stderr().is_terminal(),
-                    settings: settings(huber),
-                },
-            )?;
+            let options = geocal::run::RunOptions {
+                out_dir: out,
+                truth,
+                progress: std::io::stderr().is_terminal(),
+                settings: settings(huber),
+            };
+            // Kinds with their own configuration layout (probe_install, hexapod) first.
+            let output = match geocal::kinds::run_file(&config, &options)? {
+                Some(output) => output,
+                None => {
+                    let cfg = geocal::config::Config::load(&config)?;
+                    geocal::run::run(&cfg, &options)?
+                }
+            };
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {
@@ -143,6 +147,10 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
         }
         Command::Check { config, json } => {
+            if let Some(text) = geocal::kinds::check_file(&config)? {
+                print!("{text}");
+                return Ok(());
+            }
             let cfg = geocal::config::Config::load(&config)?;
             let plan = geocal::plan::Plan::from_config(&cfg);
             let check = geocal::method::plan_check::check(&cfg, &plan)

@@ -12,6 +12,7 @@ pub fn text(results: &Results) -> String {
         Results::RotaryTracer(r) => {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
+        Results::ProbeInstall(r) => crate::report_kinds::probe_install_text(r),
     }
 }
 

@@ -2,6 +2,9 @@
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
 mod hil;
+pub mod hexapod;
+pub mod kind_config;
+pub mod probe_install;
 mod validate;
 
 use std::collections::BTreeMap;

@@ -3,6 +3,7 @@
 
 pub mod multilateration;
 pub mod plan_check;
+pub mod probe_install;
 pub mod rotary_tracer;
 
 use serde::Serialize;
@@ -17,6 +18,8 @@ pub enum MethodError {
     Multilateration(#[from] multilateration::MultilaterationError),
     #[error(transparent)]
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
+    #[error(transparent)]
+    ProbeInstall(#[from] probe_install::ProbeInstallMethodError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -27,6 +30,7 @@ pub enum MethodError {
 pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
+    ProbeInstall(Box<probe_install::ProbeInstallResults>),
 }
 
 impl Results {
@@ -35,10 +39,22 @@ impl Results {
     }
 
     /// The stations and points every tracer method has.
+    ///
+    /// # Panics
+    /// For results of a kind without a tracer (a caller's bug: see `as_multilateration`).
     pub fn multilateration(&self) -> &multilateration::MultilaterationResults {
+        match self.as_multilateration() {
+            Some(r) => r,
+            None => panic!("results of a kind without a tracer have no multilateration"),
+        }
+    }
+
+    /// The stations and points of a tracer method; None for other kinds.
+    pub fn as_multilateration(&self) -> Option<&multilateration::MultilaterationResults> {
         match self {
-            Results::Multilateration(r) => r,
-            Results::RotaryTracer(r) => &r.multilateration,
+            Results::Multilateration(r) => Some(r),
+            Results::RotaryTracer(r) => Some(&r.multilateration),
+            _ => None,
         }
     }
 }
@@ -58,6 +74,9 @@ pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Resu
         rotary_tracer::KIND => Ok(Results::RotaryTracer(rotary_tracer::solve(
             session, settings,
         )?)),
+        crate::config::probe_install::KIND => Ok(Results::ProbeInstall(Box::new(
+            probe_install::solve(session)?,
+        ))),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }

@@ -276,6 +276,7 @@ mod tests {
                     .collect(),
             )]),
             events: events.into_iter().enumerate().map(stamp).collect(),
+            topics: BTreeMap::new(),
             completeness: Completeness::Complete,
             skipped: 0,
             ignored: 0,

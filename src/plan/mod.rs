@@ -2,6 +2,9 @@
 //! stations (placed by the operator or turned by a rotary table) and the visiting order of
 //! each pass. Pure data; the sequencer executes it.
 
+pub mod hexapod;
+pub mod probe_install;
+
 use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 

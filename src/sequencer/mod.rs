@@ -8,6 +8,10 @@
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
 //! break touched. Every sample is recorded throughout.
 
+pub mod hexapod;
+mod kind_faults;
+pub mod probe_install;
+
 use std::collections::BTreeMap;
 use std::sync::Arc;
 

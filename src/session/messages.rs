@@ -166,6 +166,36 @@ pub enum RunEvent {
         code: String,
         message: String,
     },
+    /// Plan kind `probe_install`: the machine takes rotary posture `posture` (A, B).
+    PostureBegin {
+        posture: usize,
+        a_rad: f64,
+        b_rad: f64,
+    },
+    PostureEnd {
+        posture: usize,
+    },
+    /// Plan kind `probe_install`: the machine is at sphere point `point` of `posture`
+    /// (commanded `axes`); the probe readings until `probe_end` belong to it.
+    ProbeBegin {
+        posture: usize,
+        point: usize,
+        axes: BTreeMap<String, f64>,
+    },
+    ProbeEnd {
+        posture: usize,
+        point: usize,
+    },
+    /// Plan kind `hexapod`: the platform is commanded to pose `pose` (`axes`: x, y, z in
+    /// metres and rx, ry, rz, the rotation vector in radians); its leg readings and measured
+    /// pose until `pose_end` belong to it.
+    PoseBegin {
+        pose: usize,
+        axes: BTreeMap<String, f64>,
+    },
+    PoseEnd {
+        pose: usize,
+    },
     #[serde(other)]
     Other,
 }
@@ -191,6 +221,10 @@ struct WireEvent {
     device: Option<String>,
     code: Option<String>,
     message: Option<String>,
+    posture: Option<usize>,
+    a_rad: Option<f64>,
+    b_rad: Option<f64>,
+    pose: Option<usize>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -234,6 +268,30 @@ impl TryFrom<WireEvent> for RunEvent {
                 device: w.device.ok_or_else(|| need("device"))?,
                 code: w.code.ok_or_else(|| need("code"))?,
                 message: w.message.ok_or_else(|| need("message"))?,
+            },
+            "posture_begin" => RunEvent::PostureBegin {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                a_rad: w.a_rad.ok_or_else(|| need("a_rad"))?,
+                b_rad: w.b_rad.ok_or_else(|| need("b_rad"))?,
+            },
+            "posture_end" => RunEvent::PostureEnd {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+            },
+            "probe_begin" => RunEvent::ProbeBegin {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                axes: w.axes.unwrap_or_default(),
+            },
+            "probe_end" => RunEvent::ProbeEnd {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+            },
+            "pose_begin" => RunEvent::PoseBegin {
+                pose: w.pose.ok_or_else(|| need("pose"))?,
+                axes: w.axes.unwrap_or_default(),
+            },
+            "pose_end" => RunEvent::PoseEnd {
+                pose: w.pose.ok_or_else(|| need("pose"))?,
             },
             _ => RunEvent::Other,
         })
@@ -282,6 +340,26 @@ mod tests {
                 code: "timeout".into(),
                 message: "late".into(),
             },
+            RunEvent::PostureBegin {
+                posture: 1,
+                a_rad: 1.5,
+                b_rad: 0.0,
+            },
+            RunEvent::PostureEnd { posture: 1 },
+            RunEvent::ProbeBegin {
+                posture: 1,
+                point: 4,
+                axes: BTreeMap::from([("a".into(), 1.5)]),
+            },
+            RunEvent::ProbeEnd {
+                posture: 1,
+                point: 4,
+            },
+            RunEvent::PoseBegin {
+                pose: 2,
+                axes: BTreeMap::from([("rz".into(), 0.1)]),
+            },
+            RunEvent::PoseEnd { pose: 2 },
         ];
         for e in events {
             let json = serde_json::to_string(&e).expect("serialise");
@@ -406,7 +484,11 @@ pub mod schema {
     "commanded_rad": {"type": "number"},
     "device": {"type": "string"},
     "code": {"type": "string"},
-    "message": {"type": "string"}
+    "message": {"type": "string"},
+    "posture": {"type": "integer", "minimum": 0},
+    "a_rad": {"type": "number"},
+    "b_rad": {"type": "number"},
+    "pose": {"type": "integer", "minimum": 0}
   },
   "allOf": [
     {"if": {"properties": {"kind": {"const": "point_begin"}}},
@@ -418,7 +500,15 @@ pub mod schema {
     {"if": {"properties": {"kind": {"const": "rotation"}}},
      "then": {"required": ["table", "commanded_rad"]}},
     {"if": {"properties": {"kind": {"const": "fault"}}},
-     "then": {"required": ["device", "code", "message"]}}
+     "then": {"required": ["device", "code", "message"]}},
+    {"if": {"properties": {"kind": {"const": "posture_begin"}}},
+     "then": {"required": ["posture", "a_rad", "b_rad"]}},
+    {"if": {"properties": {"kind": {"const": "posture_end"}}},
+     "then": {"required": ["posture"]}},
+    {"if": {"properties": {"kind": {"enum": ["probe_begin", "probe_end"]}}},
+     "then": {"required": ["posture", "point"]}},
+    {"if": {"properties": {"kind": {"enum": ["pose_begin", "pose_end"]}}},
+     "then": {"required": ["pose"]}}
   ]
 }"#;
 }

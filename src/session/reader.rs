@@ -53,6 +53,9 @@ pub struct Session {
     /// Key: table id from the topic `/rotary/<id>/state`.
     pub rotary: BTreeMap<String, Vec<Stamped<RotaryStateSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
+    /// Plan kinds' own topics (`/probe/…`, `/machine/…`, `/hexapod/…`), by topic, as JSON
+    /// (each kind's method parses them: `session::kind_messages`). Sorted by log time.
+    pub topics: BTreeMap<String, Vec<Stamped<serde_json::Value>>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
     pub skipped: u64,
@@ -379,6 +382,8 @@ enum Slot {
     Env(usize),
     Rotary(usize),
     Event,
+    /// A plan kind's own topic, kept as JSON (`KIND_TOPIC_PREFIXES`).
+    Json(usize),
     /// A topic we do not read.
     Other,
     /// A known topic with a message encoding other than json: its messages are skipped.
@@ -393,6 +398,7 @@ struct Decoder {
     tracers: Streams<TracerSample>,
     env: Streams<EnvSample>,
     rotary: Streams<RotaryStateSample>,
+    json: Streams<serde_json::Value>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
@@ -482,6 +488,7 @@ impl Decoder {
             tracers: Streams::default(),
             env: Streams::default(),
             rotary: Streams::default(),
+            json: Streams::default(),
             events: Vec::new(),
             header: None,
             lazy_header: false,
@@ -505,6 +512,8 @@ impl Decoder {
             Slot::Env(self.env.index(eid))
         } else if let Some(rid) = rotary_id(topic) {
             Slot::Rotary(self.rotary.index(rid))
+        } else if KIND_TOPIC_PREFIXES.iter().any(|p| topic.starts_with(p)) {
+            Slot::Json(self.json.index(topic))
         } else {
             Slot::Other
         };
@@ -556,6 +565,7 @@ impl Decoder {
         w.tracers = self.tracers.empty_like();
         w.env = self.env.empty_like();
         w.rotary = self.rotary.empty_like();
+        w.json = self.json.empty_like();
         w.lazy_header = true;
         w
     }
@@ -568,6 +578,7 @@ impl Decoder {
         self.tracers.absorb(other.tracers);
         self.env.absorb(other.env);
         self.rotary.absorb(other.rotary);
+        self.json.absorb(other.json);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -594,6 +605,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => self.tracers.streams[*i].1.reserve(n),
             Some(Slot::Env(i)) => self.env.streams[*i].1.reserve(n),
             Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
+            Some(Slot::Json(i)) => self.json.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -665,6 +677,11 @@ impl Decoder {
                     self.rotary.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
+            Slot::Json(i) => {
+                if let Some(msg) = self.parse::<serde_json::Value>(channel_id, log_time_ns, data) {
+                    self.json.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
             Slot::Event => {
                 if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
                     self.events.push(Stamped {
@@ -730,6 +747,7 @@ impl Decoder {
             Some(Slot::Tracer(i)) => format!("/tracer/{}/range", self.tracers.streams[*i].0),
             Some(Slot::Env(i)) => format!("/env/{}", self.env.streams[*i].0),
             Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
+            Some(Slot::Json(i)) => self.json.streams[*i].0.clone(),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -776,6 +794,7 @@ impl Decoder {
         let tracers = self.tracers.into_sorted_map();
         let env = self.env.into_sorted_map();
         let rotary = self.rotary.into_sorted_map();
+        let topics = self.json.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
@@ -784,12 +803,16 @@ impl Decoder {
             env,
             rotary,
             events,
+            topics,
             completeness,
             skipped: self.skipped,
             ignored: self.ignored,
         })
     }
 }
+
+/// Topics of plan kinds that the reader keeps as JSON for the kind's method.
+const KIND_TOPIC_PREFIXES: [&str; 3] = ["/probe/", "/machine/", "/hexapod/"];
 
 fn le_u64(b: &[u8]) -> u64 {
     let mut a = [0u8; 8];

@@ -106,6 +106,15 @@ enum Payload {
     Env(String, Box<EnvSample>),
     Rotary(String, RotaryStateSample),
     Event(Box<RunEvent>),
+    /// A plan kind's own topic (`kind_messages`), already as JSON.
+    Json(String, TopicSchema, Box<serde_json::Value>),
+}
+
+/// Name and JSON Schema text of a topic written with [`RecorderHandle::json`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TopicSchema {
+    pub name: &'static str,
+    pub text: &'static str,
 }
 
 enum Command {
@@ -160,6 +169,20 @@ impl RecorderHandle {
     pub fn event(&self, event: &RunEvent, log_time_ns: u64) {
         self.send(Payload::Event(Box::new(event.clone())), log_time_ns);
     }
+
+    /// One message on a plan kind's own topic (e.g. `/probe/<id>/reading`), with its schema.
+    pub fn json(
+        &self,
+        topic: &str,
+        schema: TopicSchema,
+        message: serde_json::Value,
+        log_time_ns: u64,
+    ) {
+        self.send(
+            Payload::Json(topic.to_owned(), schema, Box::new(message)),
+            log_time_ns,
+        );
+    }
 }
 
 /// Owns the writer thread. Call [`Recorder::finish`]; dropping it finishes too but hides errors.
@@ -209,6 +232,8 @@ impl Recorder {
             tracer_channels: HashMap::new(),
             env_channels: HashMap::new(),
             rotary_channels: HashMap::new(),
+            json_channels: HashMap::new(),
+            json_schemas: HashMap::new(),
             sequences: HashMap::new(),
             buf: Vec::with_capacity(512),
             stats: RecordStats::default(),
@@ -320,6 +345,9 @@ struct WriterThread {
     tracer_channels: HashMap<String, u16>,
     env_channels: HashMap<String, u16>,
     rotary_channels: HashMap<String, u16>,
+    /// Plan kinds' own topics by topic, and their schema ids by schema name.
+    json_channels: HashMap<String, u16>,
+    json_schemas: HashMap<&'static str, u16>,
     sequences: HashMap<u16, u32>,
     buf: Vec<u8>,
     stats: RecordStats,
@@ -411,6 +439,7 @@ impl WriterThread {
         self.stats.channels = (self.tracer_channels.len()
             + self.env_channels.len()
             + self.rotary_channels.len()
+            + self.json_channels.len()
             + usize::from(self.session_channel.is_some())
             + usize::from(self.event_channel.is_some())) as u32;
         Ok(self.stats.clone())
@@ -534,6 +563,17 @@ impl WriterThread {
                     id
                 }
             },
+            Payload::Json(topic, schema, value) => {
+                encode(&mut self.buf, topic, value.as_ref())?;
+                match self.json_channels.get(topic.as_str()) {
+                    Some(&id) => id,
+                    None => {
+                        let id = self.add_json_channel(*schema, topic)?;
+                        self.json_channels.insert(topic.clone(), id);
+                        id
+                    }
+                }
+            }
         };
         let seq = self.sequences.entry(channel_id).or_insert(0);
         let sequence = *seq;
@@ -571,6 +611,29 @@ impl WriterThread {
         }
         writer
             .add_channel(self.schemas[slot], topic, "json", &Default::default())
+            .map_err(WriteFailure::Mcap)
+    }
+}
+
+impl WriterThread {
+    fn add_json_channel(&mut self, schema: TopicSchema, topic: &str) -> Result<u16, WriteFailure> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(WriteFailure::Mcap(
+                mcap::McapError::AttemptedWriteAfterFailure,
+            ));
+        };
+        let schema_id = match self.json_schemas.get(schema.name) {
+            Some(&id) => id,
+            None => {
+                let id = writer
+                    .add_schema(schema.name, "jsonschema", schema.text.as_bytes())
+                    .map_err(WriteFailure::Mcap)?;
+                self.json_schemas.insert(schema.name, id);
+                id
+            }
+        };
+        writer
+            .add_channel(schema_id, topic, "json", &Default::default())
             .map_err(WriteFailure::Mcap)
     }
 }

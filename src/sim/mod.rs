@@ -3,7 +3,9 @@
 
 pub mod devices;
 pub mod effects;
+pub mod hexapod;
 pub mod hil;
+pub mod probe_install;
 pub mod rotary;
 pub mod truth;
 pub mod world;

@@ -1,0 +1,1 @@
+//! Configuration of plan kind `hexapod` (placeholder until its commit).

@@ -1,0 +1,1 @@
+//! Plan of kind `hexapod` (placeholder until its commit).

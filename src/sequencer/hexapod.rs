@@ -1,0 +1,1 @@
+//! Sequencer of plan kind hexapod (placeholder until its commit).

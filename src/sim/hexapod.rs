@@ -1,0 +1,1 @@
+//! Simulated hexapod (placeholder until its commit).
