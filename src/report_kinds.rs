@@ -29,7 +29,11 @@ pub fn probe_install_text(r: &ProbeInstallResults) -> String {
         r.chi2_per_dof,
         r.dof,
         r.lm.iterations,
-        if r.lm.converged { "" } else { " (NOT converged)" }
+        if r.lm.converged {
+            ""
+        } else {
+            " (NOT converged)"
+        }
     );
     let _ = writeln!(
         s,

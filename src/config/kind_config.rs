@@ -67,7 +67,11 @@ pub fn non_negative(file: &Path, key: &str, value: f64) -> Result<(), ConfigErro
 pub fn finite(file: &Path, key: &str, values: &[f64]) -> Result<(), ConfigError> {
     match values.iter().find(|v| !v.is_finite()) {
         None => Ok(()),
-        Some(v) => Err(invalid(file, key, format!("expected finite numbers, got {v}"))),
+        Some(v) => Err(invalid(
+            file,
+            key,
+            format!("expected finite numbers, got {v}"),
+        )),
     }
 }
 

@@ -1,8 +1,8 @@
 //! Configuration files (TOML): machine, devices, plan and simulated world, parsed strictly
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
-mod hil;
 pub mod hexapod;
+mod hil;
 pub mod kind_config;
 pub mod probe_install;
 mod validate;

@@ -198,7 +198,10 @@ impl ProbeInstallConfig {
         }
         let m = &self.devices.machine;
         let p = &self.devices.probe;
-        for (key, d) in [("devices.machine.driver", m.driver), ("devices.probe.driver", p.driver)] {
+        for (key, d) in [
+            ("devices.machine.driver", m.driver),
+            ("devices.probe.driver", p.driver),
+        ] {
             if d != DriverKind::Sim {
                 return Err(invalid(
                     f,
@@ -214,15 +217,21 @@ impl ProbeInstallConfig {
             return Err(invalid(f, "sim", "the `sim` drivers need a [sim] table"));
         }
         positive(f, "devices.machine.feed_m_s", m.feed_m_s)?;
-        positive(f, "devices.machine.rotary_speed_rad_s", m.rotary_speed_rad_s)?;
+        positive(
+            f,
+            "devices.machine.rotary_speed_rad_s",
+            m.rotary_speed_rad_s,
+        )?;
         positive(f, "devices.probe.noise_m", p.noise_m)?;
         positive(f, "devices.probe.reading_period_s", p.reading_period_s)?;
-        if !(p.range_m[0].is_finite() && p.range_m[1].is_finite() && p.range_m[0] < p.range_m[1])
-        {
+        if !(p.range_m[0].is_finite() && p.range_m[1].is_finite() && p.range_m[0] < p.range_m[1]) {
             return Err(invalid(
                 f,
                 "devices.probe.range_m",
-                format!("expected finite [low, high] with low < high, got {:?}", p.range_m),
+                format!(
+                    "expected finite [low, high] with low < high, got {:?}",
+                    p.range_m
+                ),
             ));
         }
         let plan = &self.plan;
@@ -308,7 +317,11 @@ impl ProbeInstallConfig {
             ("plan.solver.ga_mutation", s.ga_mutation),
         ] {
             if !(0.0..=1.0).contains(&v) {
-                return Err(invalid(f, key, format!("expected a probability in [0, 1], got {v}")));
+                return Err(invalid(
+                    f,
+                    key,
+                    format!("expected a probability in [0, 1], got {v}"),
+                ));
             }
         }
         positive(f, "plan.solver.penalty", s.penalty)?;
@@ -332,8 +345,11 @@ mod tests {
     use super::*;
 
     fn example() -> String {
-        std::fs::read_to_string(concat!(env!("CARGO_MANIFEST_DIR"), "/config/probe-install.toml"))
-            .expect("config/probe-install.toml")
+        std::fs::read_to_string(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/config/probe-install.toml"
+        ))
+        .expect("config/probe-install.toml")
     }
 
     #[test]
@@ -346,11 +362,31 @@ mod tests {
     #[test]
     fn errors_name_file_key_and_expectation() {
         let cases = [
-            ("sphere_radius_m = 6.0e-3", "sphere_radius_m = -1.0", "plan.sphere_radius_m"),
-            ("noise_m = 1.0e-6", "noise_m = \"x\"", "devices.probe.noise_m"),
-            ("points_per_posture = 25", "points_per_posture = 2", "plan.points_per_posture"),
-            ("beam_dir = [0.0, 0.0, -1.0]", "beam_dir = [0.0, 0.0, -2.0]", "plan.nominal.beam_dir"),
-            ("[plan.nominal]", "[plan.nominal]\nbogus = 1", "plan.nominal"),
+            (
+                "sphere_radius_m = 6.0e-3",
+                "sphere_radius_m = -1.0",
+                "plan.sphere_radius_m",
+            ),
+            (
+                "noise_m = 1.0e-6",
+                "noise_m = \"x\"",
+                "devices.probe.noise_m",
+            ),
+            (
+                "points_per_posture = 25",
+                "points_per_posture = 2",
+                "plan.points_per_posture",
+            ),
+            (
+                "beam_dir = [0.0, 0.0, -1.0]",
+                "beam_dir = [0.0, 0.0, -2.0]",
+                "plan.nominal.beam_dir",
+            ),
+            (
+                "[plan.nominal]",
+                "[plan.nominal]\nbogus = 1",
+                "plan.nominal",
+            ),
         ];
         for (from, to, key) in cases {
             let text = example();

@@ -81,11 +81,8 @@ impl<'a> ProbeInstallSequencer<'a> {
                 });
                 current = Some(p.posture);
             }
-            let commanded: AxisPositions = CMM_AXES
-                .iter()
-                .map(|a| a.to_string())
-                .zip(p.axes)
-                .collect();
+            let commanded: AxisPositions =
+                CMM_AXES.iter().map(|a| a.to_string()).zip(p.axes).collect();
             self.move_to(&commanded).await?;
             self.log.event(RunEvent::ProbeBegin {
                 posture: p.posture,

@@ -4,9 +4,7 @@
 use std::sync::{Arc, Mutex, MutexGuard};
 
 use async_trait::async_trait;
-use geocal_drivers::{
-    AxisPositions, DeviceError, Machine, MachineState, Probe, ProbeReading,
-};
+use geocal_drivers::{AxisPositions, DeviceError, Machine, MachineState, Probe, ProbeReading};
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -83,7 +81,14 @@ impl ProbeInstallWorld {
         let seed = config.sim.as_ref().map_or(0, |s| s.seed);
         let mut rng = ChaCha8Rng::seed_from_u64(seed);
         let truth = true_installation(config, &mut rng);
-        let travel = |a: &str| config.machine.travel_m.get(a).copied().unwrap_or([-1.0, 1.0]);
+        let travel = |a: &str| {
+            config
+                .machine
+                .travel_m
+                .get(a)
+                .copied()
+                .unwrap_or([-1.0, 1.0])
+        };
         let probe = &config.devices.probe;
         let machine = &config.devices.machine;
         Self {
@@ -98,13 +103,7 @@ impl ProbeInstallWorld {
             rotary_speed_rad_s: machine.rotary_speed_rad_s,
             travel_m: [travel("x"), travel("y"), travel("z")],
             rng,
-            position: [
-                travel("x")[0],
-                travel("y")[0],
-                travel("z")[1],
-                0.0,
-                0.0,
-            ],
+            position: [travel("x")[0], travel("y")[0], travel("z")[1], 0.0, 0.0],
             move_end_s: 0.0,
         }
     }
@@ -117,10 +116,7 @@ impl ProbeInstallWorld {
             parameters: crate::model::probe_install::PARAM_NAMES
                 .iter()
                 .enumerate()
-                .map(|(k, name)| TruthParameter {
-                    name,
-                    value: v[k],
-                })
+                .map(|(k, name)| TruthParameter { name, value: v[k] })
                 .collect(),
             sphere_radius_m: self.radius_m,
             probe_noise_m: self.noise_m,
