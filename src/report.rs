@@ -13,6 +13,7 @@ pub fn text(results: &Results) -> String {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
         Results::ProbeInstall(r) => crate::report_kinds::probe_install_text(r),
+        Results::Hexapod(r) => crate::report_kinds::hexapod_text(r),
     }
 }
 

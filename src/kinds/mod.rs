@@ -2,6 +2,7 @@
 //! which kind a configuration file declares, and the whole run of each (config -> plan ->
 //! simulated devices -> kind sequencer -> recorded session -> solve).
 
+pub mod hexapod;
 pub mod probe_install;
 
 use std::collections::BTreeMap;
@@ -17,6 +18,7 @@ pub fn own_kind(path: &Path) -> anyhow::Result<Option<&'static str>> {
     Ok(
         match crate::config::kind_config::declared_kind(&text).as_deref() {
             Some(crate::config::probe_install::KIND) => Some(crate::config::probe_install::KIND),
+            Some(crate::config::hexapod::KIND) => Some(crate::config::hexapod::KIND),
             _ => None,
         },
     )
@@ -28,6 +30,10 @@ pub fn run_file(path: &Path, options: &RunOptions) -> anyhow::Result<Option<RunO
         Some(crate::config::probe_install::KIND) => {
             let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
             probe_install::run(&config, options).map(Some)
+        }
+        Some(crate::config::hexapod::KIND) => {
+            let config = crate::config::hexapod::HexapodConfig::load(path)?;
+            hexapod::run(&config, options).map(Some)
         }
         _ => Ok(None),
     }
@@ -45,6 +51,17 @@ pub fn check_file(path: &Path) -> anyhow::Result<Option<String>> {
                 plan.postures_rad.len(),
                 plan.points.len(),
                 plan.readings_per_point
+            )))
+        }
+        Some(crate::config::hexapod::KIND) => {
+            let config = crate::config::hexapod::HexapodConfig::load(path)?;
+            let plan = crate::plan::hexapod::HexapodPlan::from_config(&config);
+            Ok(Some(format!(
+                "{}: valid ({} poses with home, {} leg readings per pose, {} at home)\n",
+                path.display(),
+                plan.poses.len(),
+                plan.readings_per_pose,
+                plan.reference_readings
             )))
         }
         _ => Ok(None),

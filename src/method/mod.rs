@@ -1,6 +1,7 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind. `solve_session` picks the method from the session's kind.
 
+pub mod hexapod;
 pub mod multilateration;
 pub mod plan_check;
 pub mod probe_install;
@@ -12,7 +13,7 @@ use crate::session::reader::Session;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer)")]
+    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer, probe_install, hexapod)")]
     UnknownKind(String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
@@ -20,6 +21,8 @@ pub enum MethodError {
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
     #[error(transparent)]
     ProbeInstall(#[from] probe_install::ProbeInstallMethodError),
+    #[error(transparent)]
+    Hexapod(#[from] hexapod::HexapodMethodError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -31,6 +34,7 @@ pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
     ProbeInstall(Box<probe_install::ProbeInstallResults>),
+    Hexapod(Box<hexapod::HexapodResults>),
 }
 
 impl Results {
@@ -77,6 +81,7 @@ pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Resu
         crate::config::probe_install::KIND => Ok(Results::ProbeInstall(Box::new(
             probe_install::solve(session)?,
         ))),
+        crate::config::hexapod::KIND => Ok(Results::Hexapod(Box::new(hexapod::solve(session)?))),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }
