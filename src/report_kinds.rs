@@ -78,7 +78,11 @@ pub fn hexapod_text(r: &HexapodResults) -> String {
         r.session_id,
         r.poses,
         r.pose_source,
-        if r.pose_source == "measured" { "by the sensor" } else { "as commanded" },
+        if r.pose_source == "measured" {
+            "by the sensor"
+        } else {
+            "as commanded"
+        },
         r.readings,
         um(r.sigma_change_m)
     );

@@ -172,7 +172,10 @@ impl HexapodConfig {
                 return Err(invalid(
                     f,
                     key,
-                    format!("expected {LEGS} hinges [x, y, z] in metres, got {}", hinges.len()),
+                    format!(
+                        "expected {LEGS} hinges [x, y, z] in metres, got {}",
+                        hinges.len()
+                    ),
                 ));
             }
             for (i, h) in hinges.iter().enumerate() {
@@ -203,7 +206,11 @@ impl HexapodConfig {
         }
         positive(f, "devices.hexapod.encoder_noise_m", h.encoder_noise_m)?;
         positive(f, "devices.hexapod.speed_m_s", h.speed_m_s)?;
-        positive(f, "devices.hexapod.angular_speed_rad_s", h.angular_speed_rad_s)?;
+        positive(
+            f,
+            "devices.hexapod.angular_speed_rad_s",
+            h.angular_speed_rad_s,
+        )?;
         positive(f, "devices.hexapod.reading_period_s", h.reading_period_s)?;
         let p = &self.plan;
         finite(f, "plan.home_translation_m", &p.home_translation_m)?;
@@ -216,7 +223,11 @@ impl HexapodConfig {
         }
         let random = p.poses.as_ref().map_or(0, |r| r.count);
         if let Some(r) = &p.poses {
-            finite(f, "plan.poses.translation_half_range_m", &r.translation_half_range_m)?;
+            finite(
+                f,
+                "plan.poses.translation_half_range_m",
+                &r.translation_half_range_m,
+            )?;
             non_negative(f, "plan.poses.tilt_half_range_rad", r.tilt_half_range_rad)?;
             if r.translation_half_range_m.iter().any(|v| *v < 0.0) {
                 return Err(invalid(
@@ -227,7 +238,11 @@ impl HexapodConfig {
             }
         }
         for (i, q) in p.pose_list.iter().enumerate() {
-            finite(f, &format!("plan.pose_list[{i}].translation_m"), &q.translation_m)?;
+            finite(
+                f,
+                &format!("plan.pose_list[{i}].translation_m"),
+                &q.translation_m,
+            )?;
             finite(
                 f,
                 &format!("plan.pose_list[{i}].rotation_vector_rad"),
@@ -279,10 +294,18 @@ mod tests {
     #[test]
     fn errors_name_file_key_and_expectation() {
         let cases = [
-            ("    [0.133826, 0.148629, 0.000000],\n]", "]", "machine.platform_hinges_m"),
+            (
+                "    [0.133826, 0.148629, 0.000000],\n]",
+                "]",
+                "machine.platform_hinges_m",
+            ),
             ("shrink = 0.5", "shrink = 1.5", "plan.solver.shrink"),
             ("count = 29", "count = 3", "plan.poses"),
-            ("encoder_noise_m = 1.0e-6", "encoder_noise_m = 0.0", "devices.hexapod.encoder_noise_m"),
+            (
+                "encoder_noise_m = 1.0e-6",
+                "encoder_noise_m = 0.0",
+                "devices.hexapod.encoder_noise_m",
+            ),
         ];
         for (from, to, key) in cases {
             let text = example();
@@ -290,7 +313,10 @@ mod tests {
             let err = HexapodConfig::parse(&text.replacen(from, to, 1), Path::new("h.toml"))
                 .expect_err(to)
                 .to_string();
-            assert!(err.starts_with(&format!("h.toml: key `{key}")), "{to}: {err}");
+            assert!(
+                err.starts_with(&format!("h.toml: key `{key}")),
+                "{to}: {err}"
+            );
         }
     }
 }

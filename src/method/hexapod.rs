@@ -127,10 +127,7 @@ struct PoseData {
     n: usize,
 }
 
-fn pose_data(
-    session: &Session,
-    id: &str,
-) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
+fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
     let legs_topic = hexapod_legs_topic(id);
     let pose_topic = hexapod_pose_topic(id);
     let empty = Vec::new();
@@ -280,7 +277,12 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         session_id: session.header.session_id.clone(),
         poses: data.len(),
         readings: data.iter().map(|d| d.n).sum(),
-        pose_source: if any_measured { "measured" } else { "commanded" }.into(),
+        pose_source: if any_measured {
+            "measured"
+        } else {
+            "commanded"
+        }
+        .into(),
         sigma_change_m,
         hinges,
         objective_m2: two.objective_m2,

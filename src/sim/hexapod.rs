@@ -119,8 +119,8 @@ impl HexapodWorld {
     }
 
     fn start_move(&mut self, target: PlatformPose) {
-        let dist = (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m))
-            .norm();
+        let dist =
+            (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m)).norm();
         let turn = (Rotation3::new(Vector3::from(target.rotation_vector_rad))
             * to_pose(&self.pose).rotation.inverse())
         .angle();
