@@ -998,7 +998,7 @@ mod tests {
         let tracer = w
             .add_channel(ts, "/tracer/laser-b/range", "json", &no_meta)
             .unwrap();
-        let other = w.add_channel(0, "/machine/pose", "json", &no_meta).unwrap();
+        let other = w.add_channel(0, "/vendor/pose", "json", &no_meta).unwrap();
         let es = w
             .add_schema("geocal.RunEvent", "jsonschema", schema::EVENT.as_bytes())
             .unwrap();
