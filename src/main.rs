@@ -209,7 +209,11 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             };
             let output = match (resume, config) {
                 (Some(dir), config) => geocal::resume::resume(&dir, config.as_deref(), &options)?,
-                (None, Some(config)) => geocal::run::run(&load(&config)?, &options)?,
+                // Kinds with their own configuration layout (probe_install, hexapod) first.
+                (None, Some(config)) => match geocal::kinds::run_file(&config, &options)? {
+                    Some(output) => output,
+                    None => geocal::run::run(&load(&config)?, &options)?,
+                },
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
             if json {
@@ -357,6 +361,10 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                     plan.angles_rad.len(),
                     plan.directions.len()
                 );
+                return Ok(());
+            }
+            if let Some(text) = geocal::kinds::check_file(&config)? {
+                print!("{text}");
                 return Ok(());
             }
             let cfg = geocal::config::Config::load(&config)?;

@@ -529,7 +529,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                         let sample = ProbeSample {
                             seq: readings,
                             t_s: p.t_s,
-                            value_m: p.value_m,
+                            value_m: Some(p.value_m),
                         };
                         if let Some(r) = &sink.recorder {
                             r.probe(&id, &sample, system_now_ns());

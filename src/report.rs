@@ -13,6 +13,8 @@ pub fn text(results: &Results) -> String {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
         Results::RotarySphere(r) => crate::method::rotary_sphere::text(r),
+        Results::ProbeInstall(r) => crate::report_kinds::probe_install_text(r),
+        Results::Hexapod(r) => crate::report_kinds::hexapod_text(r),
     }
 }
 

@@ -489,6 +489,7 @@ mod tests {
             rotary: Default::default(),
             machines: Default::default(),
             probes: Default::default(),
+            topics: Default::default(),
             events,
             completeness: crate::session::reader::Completeness::Complete,
             skipped: 0,

@@ -12,3 +12,4 @@ pub use traits::{
     AxisPositions, DeviceError, EnvReading, Environment, LinkFault, Machine, MachineState,
     Operator, Probe, ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,
 };
+pub use traits::{Hexapod, HexapodState, LegReading, PlatformPose, PoseReading, PoseSensor};

@@ -180,3 +180,55 @@ pub trait RotaryTable: Send {
         Vec::new()
     }
 }
+
+/// A platform pose: x_fixed = R(rotation_vector_rad) · x_platform + translation_m.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PlatformPose {
+    /// Rotation vector (axis × angle), radians.
+    pub rotation_vector_rad: [f64; 3],
+    pub translation_m: [f64; 3],
+}
+
+/// One reading of the six leg encoders of a hexapod.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LegReading {
+    /// Device (or host) time, seconds since the driver was opened.
+    pub t_s: f64,
+    /// Leg lengths as the incremental encoders count them (an unknown constant per leg), metres.
+    pub lengths_m: [f64; 6],
+}
+
+/// Motion state of a hexapod.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum HexapodState {
+    Moving,
+    /// At rest at the commanded pose (as its controller believes).
+    Idle,
+}
+
+/// A six-leg parallel machine: commanded in platform poses, read through its leg encoders.
+#[async_trait]
+pub trait Hexapod: Send {
+    fn id(&self) -> &str;
+    /// Start a move to a platform pose (returns once the command is accepted).
+    async fn start_move(&mut self, pose: &PlatformPose) -> Result<(), DeviceError>;
+    /// Current motion state; cheap to call often.
+    async fn state(&mut self) -> Result<HexapodState, DeviceError>;
+    /// Read the six leg encoders.
+    async fn read_legs(&mut self) -> Result<LegReading, DeviceError>;
+}
+
+/// One measured platform pose (a tracer or tracker measuring the platform, or given values).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct PoseReading {
+    pub t_s: f64,
+    pub pose: PlatformPose,
+}
+
+/// An instrument that measures the platform pose of a hexapod.
+#[async_trait]
+pub trait PoseSensor: Send {
+    fn id(&self) -> &str;
+    /// Measure the platform pose now (the platform at rest).
+    async fn measure(&mut self) -> Result<PoseReading, DeviceError>;
+}

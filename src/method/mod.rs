@@ -1,8 +1,10 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind. `solve_session` picks the method from the session's kind.
 
+pub mod hexapod;
 pub mod multilateration;
 pub mod plan_check;
+pub mod probe_install;
 pub mod rotary_sphere;
 pub mod rotary_tracer;
 
@@ -12,7 +14,7 @@ use crate::session::reader::Session;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer, rotary_sphere)")]
+    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer, rotary_sphere, probe_install, hexapod)")]
     UnknownKind(String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
@@ -20,6 +22,10 @@ pub enum MethodError {
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
     #[error(transparent)]
     RotarySphere(#[from] rotary_sphere::RotarySphereMethodError),
+    #[error(transparent)]
+    ProbeInstall(#[from] probe_install::ProbeInstallMethodError),
+    #[error(transparent)]
+    Hexapod(#[from] hexapod::HexapodMethodError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -31,6 +37,8 @@ pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
     RotarySphere(Box<rotary_sphere::RotarySphereResults>),
+    ProbeInstall(Box<probe_install::ProbeInstallResults>),
+    Hexapod(Box<hexapod::HexapodResults>),
 }
 
 impl Results {
@@ -43,7 +51,7 @@ impl Results {
         match self {
             Results::Multilateration(r) => Some(r),
             Results::RotaryTracer(r) => Some(&r.multilateration),
-            Results::RotarySphere(_) => None,
+            Results::RotarySphere(_) | Results::ProbeInstall(_) | Results::Hexapod(_) => None,
         }
     }
 }
@@ -66,6 +74,10 @@ pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Resu
         crate::config::rotary_sphere::KIND => Ok(Results::RotarySphere(Box::new(
             rotary_sphere::solve(session)?,
         ))),
+        crate::config::probe_install::KIND => Ok(Results::ProbeInstall(Box::new(
+            probe_install::solve(session)?,
+        ))),
+        crate::config::hexapod::KIND => Ok(Results::Hexapod(Box::new(hexapod::solve(session)?))),
         other => Err(MethodError::UnknownKind(other.to_string())),
     }
 }

@@ -258,7 +258,11 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
     let readings: Vec<(u64, f64)> = session
         .probes
         .get(&probe.id)
-        .map(|v| v.iter().map(|s| (s.log_time_ns, s.msg.value_m)).collect())
+        .map(|v| {
+            v.iter()
+                .filter_map(|s| Some((s.log_time_ns, s.msg.value_m?)))
+                .collect()
+        })
         .unwrap_or_default();
     if readings.is_empty() {
         return Err(RotarySphereMethodError::NoReadings(probe.id.clone()));

@@ -278,6 +278,7 @@ mod tests {
             machines: BTreeMap::new(),
             probes: BTreeMap::new(),
             events: events.into_iter().enumerate().map(stamp).collect(),
+            topics: BTreeMap::new(),
             completeness: Completeness::Complete,
             skipped: 0,
             ignored: 0,

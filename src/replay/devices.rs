@@ -459,11 +459,14 @@ impl ReplayProbe {
         let readings = session.probes.get(id)?;
         Some(ReplayProbe {
             id: id.to_string(),
+            // Out-of-range readings (null) carry no value to hand out again.
             readings: readings
                 .iter()
-                .map(|r| ProbeReading {
-                    t_s: r.msg.t_s,
-                    value_m: r.msg.value_m,
+                .filter_map(|r| {
+                    Some(ProbeReading {
+                        t_s: r.msg.t_s,
+                        value_m: r.msg.value_m?,
+                    })
                 })
                 .collect(),
         })
@@ -518,6 +521,7 @@ mod tests {
             rotary: BTreeMap::new(),
             machines: BTreeMap::new(),
             probes: BTreeMap::new(),
+            topics: BTreeMap::new(),
             events: Vec::new(),
             completeness: Completeness::Complete,
             skipped: 0,
@@ -584,7 +588,7 @@ mod tests {
                     msg: ProbeSample {
                         seq: i + 1,
                         t_s: i as f64,
-                        value_m: 1e-4 * i as f64,
+                        value_m: Some(1e-4 * i as f64),
                     },
                 })
                 .collect(),

@@ -467,6 +467,7 @@ mod tests {
             rotary: BTreeMap::new(),
             machines: BTreeMap::new(),
             probes: BTreeMap::new(),
+            topics: BTreeMap::new(),
             events: vec![begin(0, 62), begin(1, 150)],
             completeness: Completeness::Complete,
             skipped: 0,

@@ -8,7 +8,10 @@
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
 //! break touched. Every sample is recorded throughout.
 
+pub mod hexapod;
+mod kind_faults;
 pub mod passive;
+pub mod probe_install;
 pub mod rotary_sphere;
 
 use std::collections::BTreeMap;

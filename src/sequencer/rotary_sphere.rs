@@ -254,7 +254,7 @@ impl<'a> SphereSequencer<'a> {
             let sample = ProbeSample {
                 seq: self.summary.readings,
                 t_s: reading.t_s,
-                value_m: reading.value_m,
+                value_m: Some(reading.value_m),
             };
             self.recorder
                 .probe(self.devices.probe.id(), &sample, self.clock.now_ns());

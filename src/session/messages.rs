@@ -155,8 +155,9 @@ pub struct ProbeSample {
     pub seq: u64,
     /// Device (driver) time of the reading, seconds.
     pub t_s: f64,
-    /// Displacement along the probing direction, metres.
-    pub value_m: f64,
+    /// Displacement along the probing direction, metres; null when the probe reported out of
+    /// range (the reading is kept so the count shows it; a `fault` event says so too).
+    pub value_m: Option<f64>,
 }
 
 /// `/run/event`: what the sequencer did, in order. Unknown kinds are kept as `Other`.
@@ -254,6 +255,36 @@ pub enum RunEvent {
         point: usize,
         message: String,
     },
+    /// Plan kind `probe_install`: the machine takes rotary posture `posture` (A, B).
+    PostureBegin {
+        posture: usize,
+        a_rad: f64,
+        b_rad: f64,
+    },
+    PostureEnd {
+        posture: usize,
+    },
+    /// Plan kind `probe_install`: the machine is at sphere point `point` of `posture`
+    /// (commanded `axes`); the probe readings until `probe_end` belong to it.
+    ProbeBegin {
+        posture: usize,
+        point: usize,
+        axes: BTreeMap<String, f64>,
+    },
+    ProbeEnd {
+        posture: usize,
+        point: usize,
+    },
+    /// Plan kind `hexapod`: the platform is commanded to pose `pose` (`axes`: x, y, z in
+    /// metres and rx, ry, rz, the rotation vector in radians); its leg readings and measured
+    /// pose until `pose_end` belong to it.
+    PoseBegin {
+        pose: usize,
+        axes: BTreeMap<String, f64>,
+    },
+    PoseEnd {
+        pose: usize,
+    },
     #[serde(other)]
     Other,
 }
@@ -284,6 +315,10 @@ struct WireEvent {
     direction: Option<[f64; 3]>,
     resume_index: Option<u32>,
     messages_kept: Option<u64>,
+    posture: Option<usize>,
+    a_rad: Option<f64>,
+    b_rad: Option<f64>,
+    pose: Option<usize>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -363,6 +398,30 @@ impl TryFrom<WireEvent> for RunEvent {
                 pass: w.pass.ok_or_else(|| need("pass"))?,
                 point: w.point.ok_or_else(|| need("point"))?,
                 message: w.message.unwrap_or_default(),
+            },
+            "posture_begin" => RunEvent::PostureBegin {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                a_rad: w.a_rad.ok_or_else(|| need("a_rad"))?,
+                b_rad: w.b_rad.ok_or_else(|| need("b_rad"))?,
+            },
+            "posture_end" => RunEvent::PostureEnd {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+            },
+            "probe_begin" => RunEvent::ProbeBegin {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                axes: w.axes.unwrap_or_default(),
+            },
+            "probe_end" => RunEvent::ProbeEnd {
+                posture: w.posture.ok_or_else(|| need("posture"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+            },
+            "pose_begin" => RunEvent::PoseBegin {
+                pose: w.pose.ok_or_else(|| need("pose"))?,
+                axes: w.axes.unwrap_or_default(),
+            },
+            "pose_end" => RunEvent::PoseEnd {
+                pose: w.pose.ok_or_else(|| need("pose"))?,
             },
             _ => RunEvent::Other,
         })
@@ -448,6 +507,26 @@ mod tests {
                 pass: None,
                 point: None,
             },
+            RunEvent::PostureBegin {
+                posture: 1,
+                a_rad: 1.5,
+                b_rad: 0.0,
+            },
+            RunEvent::PostureEnd { posture: 1 },
+            RunEvent::ProbeBegin {
+                posture: 1,
+                point: 4,
+                axes: BTreeMap::from([("a".into(), 1.5)]),
+            },
+            RunEvent::ProbeEnd {
+                posture: 1,
+                point: 4,
+            },
+            RunEvent::PoseBegin {
+                pose: 2,
+                axes: BTreeMap::from([("rz".into(), 0.1)]),
+            },
+            RunEvent::PoseEnd { pose: 2 },
         ];
         for e in events {
             let json = serde_json::to_string(&e).expect("serialise");
@@ -573,7 +652,7 @@ pub mod schema {
   "properties": {
     "seq": {"type": "integer", "minimum": 0},
     "t_s": {"type": "number"},
-    "value_m": {"type": "number"}
+    "value_m": {"type": ["number", "null"]}
   }
 }"#;
 
@@ -603,7 +682,11 @@ pub mod schema {
     "angle_index": {"type": "integer", "minimum": 0},
     "direction": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3},
     "resume_index": {"type": "integer", "minimum": 1},
-    "messages_kept": {"type": "integer", "minimum": 0}
+    "messages_kept": {"type": "integer", "minimum": 0},
+    "posture": {"type": "integer", "minimum": 0},
+    "a_rad": {"type": "number"},
+    "b_rad": {"type": "number"},
+    "pose": {"type": "integer", "minimum": 0}
   },
   "allOf": [
     {"if": {"properties": {"kind": {"const": "point_begin"}}},
@@ -627,7 +710,15 @@ pub mod schema {
     {"if": {"properties": {"kind": {"const": "unplanned_stop"}}},
      "then": {"required": ["station", "pass", "point"]}},
     {"if": {"properties": {"kind": {"const": "resume"}}},
-     "then": {"required": ["resume_index", "messages_kept"]}}
+     "then": {"required": ["resume_index", "messages_kept"]}},
+    {"if": {"properties": {"kind": {"const": "posture_begin"}}},
+     "then": {"required": ["posture", "a_rad", "b_rad"]}},
+    {"if": {"properties": {"kind": {"const": "posture_end"}}},
+     "then": {"required": ["posture"]}},
+    {"if": {"properties": {"kind": {"enum": ["probe_begin", "probe_end"]}}},
+     "then": {"required": ["posture", "point"]}},
+    {"if": {"properties": {"kind": {"enum": ["pose_begin", "pose_end"]}}},
+     "then": {"required": ["pose"]}}
   ]
 }"#;
 }

@@ -57,6 +57,9 @@ pub struct Session {
     /// Key: probe id from the topic `/probe/<id>/reading`.
     pub probes: BTreeMap<String, Vec<Stamped<ProbeSample>>>,
     pub events: Vec<Stamped<RunEvent>>,
+    /// Plan kinds' own topics (`/probe/…`, `/machine/…`, `/hexapod/…`), by topic, as JSON
+    /// (each kind's method parses them: `session::kind_messages`). Sorted by log time.
+    pub topics: BTreeMap<String, Vec<Stamped<serde_json::Value>>>,
     pub completeness: Completeness,
     /// Messages on known topics that did not parse (each one is warned about).
     pub skipped: u64,
@@ -429,6 +432,8 @@ enum Slot {
     Machine(usize),
     Probe(usize),
     Event,
+    /// A plan kind's own topic, kept as JSON (`KIND_TOPIC_PREFIXES`).
+    Json(usize),
     /// A topic we do not read.
     Other,
     /// A known topic with a message encoding other than json: its messages are skipped.
@@ -445,6 +450,7 @@ struct Decoder {
     rotary: Streams<RotaryStateSample>,
     machines: Streams<MachineStateSample>,
     probes: Streams<ProbeSample>,
+    json: Streams<serde_json::Value>,
     events: Vec<Stamped<RunEvent>>,
     header: Option<Stamped<SessionHeader>>,
     /// Worker decoders (parallel indexed read) keep `/geocal/session` messages raw, in order.
@@ -546,6 +552,7 @@ impl Decoder {
             rotary: Streams::default(),
             machines: Streams::default(),
             probes: Streams::default(),
+            json: Streams::default(),
             events: Vec::new(),
             header: None,
             lazy_header: false,
@@ -574,6 +581,8 @@ impl Decoder {
             Slot::Machine(self.machines.index(mid))
         } else if let Some(pid) = probe_id(topic) {
             Slot::Probe(self.probes.index(pid))
+        } else if KIND_TOPIC_PREFIXES.iter().any(|p| topic.starts_with(p)) {
+            Slot::Json(self.json.index(topic))
         } else {
             Slot::Other
         };
@@ -627,6 +636,7 @@ impl Decoder {
         w.rotary = self.rotary.empty_like();
         w.machines = self.machines.empty_like();
         w.probes = self.probes.empty_like();
+        w.json = self.json.empty_like();
         w.lazy_header = true;
         w
     }
@@ -641,6 +651,7 @@ impl Decoder {
         self.rotary.absorb(other.rotary);
         self.machines.absorb(other.machines);
         self.probes.absorb(other.probes);
+        self.json.absorb(other.json);
         self.events.extend(other.events);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -669,6 +680,7 @@ impl Decoder {
             Some(Slot::Rotary(i)) => self.rotary.streams[*i].1.reserve(n),
             Some(Slot::Machine(i)) => self.machines.streams[*i].1.reserve(n),
             Some(Slot::Probe(i)) => self.probes.streams[*i].1.reserve(n),
+            Some(Slot::Json(i)) => self.json.streams[*i].1.reserve(n),
             Some(Slot::Event) => self.events.reserve(n),
             _ => {}
         }
@@ -780,6 +792,11 @@ impl Decoder {
                     self.probes.push(i, log_time_ns, publish_time_ns, msg);
                 }
             }
+            Slot::Json(i) => {
+                if let Some(msg) = self.parse::<serde_json::Value>(channel_id, log_time_ns, data) {
+                    self.json.push(i, log_time_ns, publish_time_ns, msg);
+                }
+            }
             Slot::Event => {
                 if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
                     self.events.push(Stamped {
@@ -847,6 +864,7 @@ impl Decoder {
             Some(Slot::Rotary(i)) => format!("/rotary/{}/state", self.rotary.streams[*i].0),
             Some(Slot::Machine(i)) => format!("/machine/{}/state", self.machines.streams[*i].0),
             Some(Slot::Probe(i)) => format!("/probe/{}/reading", self.probes.streams[*i].0),
+            Some(Slot::Json(i)) => self.json.streams[*i].0.clone(),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
             _ => format!("channel {channel_id}"),
@@ -895,6 +913,7 @@ impl Decoder {
         let rotary = self.rotary.into_sorted_map();
         let machines = self.machines.into_sorted_map();
         let probes = self.probes.into_sorted_map();
+        let topics = self.json.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
         Ok(Session {
@@ -905,12 +924,16 @@ impl Decoder {
             machines,
             probes,
             events,
+            topics,
             completeness,
             skipped: self.skipped,
             ignored: self.ignored,
         })
     }
 }
+
+/// Topics of plan kinds that the reader keeps as JSON for the kind's method.
+const KIND_TOPIC_PREFIXES: [&str; 3] = ["/probe/", "/machine/", "/hexapod/"];
 
 fn le_u64(b: &[u8]) -> u64 {
     let mut a = [0u8; 8];
@@ -1106,7 +1129,7 @@ mod tests {
         let tracer = w
             .add_channel(ts, "/tracer/laser-b/range", "json", &no_meta)
             .unwrap();
-        let other = w.add_channel(0, "/machine/pose", "json", &no_meta).unwrap();
+        let other = w.add_channel(0, "/vendor/pose", "json", &no_meta).unwrap();
         let es = w
             .add_schema("geocal.RunEvent", "jsonschema", schema::EVENT.as_bytes())
             .unwrap();

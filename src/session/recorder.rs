@@ -112,6 +112,15 @@ enum Payload {
     Event(Box<RunEvent>),
     /// A message copied as recorded (same channel topic, payload and times).
     Raw(Box<RawMessage>),
+    /// A plan kind's own topic (`kind_messages`), already as JSON.
+    Json(String, TopicSchema, Box<serde_json::Value>),
+}
+
+/// Name and JSON Schema text of a topic written with [`RecorderHandle::json`].
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct TopicSchema {
+    pub name: &'static str,
+    pub text: &'static str,
 }
 
 enum Command {
@@ -201,6 +210,20 @@ impl RecorderHandle {
             tracing::warn!("session recorder already finished: checkpoint dropped");
         }
     }
+
+    /// One message on a plan kind's own topic (e.g. `/probe/<id>/reading`), with its schema.
+    pub fn json(
+        &self,
+        topic: &str,
+        schema: TopicSchema,
+        message: serde_json::Value,
+        log_time_ns: u64,
+    ) {
+        self.send(
+            Payload::Json(topic.to_owned(), schema, Box::new(message)),
+            log_time_ns,
+        );
+    }
 }
 
 /// Owns the writer thread. Call [`Recorder::finish`]; dropping it finishes too but hides errors.
@@ -253,6 +276,7 @@ impl Recorder {
             machine_channels: HashMap::new(),
             probe_channels: HashMap::new(),
             by_topic: HashMap::new(),
+            json_schemas: HashMap::new(),
             sequences: HashMap::new(),
             buf: Vec::with_capacity(512),
             stats: RecordStats::default(),
@@ -373,6 +397,8 @@ struct WriterThread {
     probe_channels: HashMap<String, u16>,
     /// Every channel by topic: one channel per topic, whoever writes to it first.
     by_topic: HashMap<String, u16>,
+    /// Plan kinds' own topics' schema ids by schema name.
+    json_schemas: HashMap<&'static str, u16>,
     sequences: HashMap<u16, u32>,
     buf: Vec<u8>,
     stats: RecordStats,
@@ -617,6 +643,17 @@ impl WriterThread {
                     }
                 }
             }
+            Payload::Json(topic, schema, value) => {
+                encode(&mut self.buf, topic, value.as_ref())?;
+                match self.by_topic.get(topic.as_str()) {
+                    Some(&id) => id,
+                    None => {
+                        let id = self.add_json_channel(*schema, topic)?;
+                        self.by_topic.insert(topic.clone(), id);
+                        id
+                    }
+                }
+            }
             Payload::Probe(probe_id, s) => match self.probe_channels.get(probe_id.as_str()) {
                 Some(&id) => {
                     encode(&mut self.buf, "/probe/*/reading", s)?;
@@ -722,6 +759,29 @@ impl WriterThread {
             .map_err(WriteFailure::Mcap)?;
         self.by_topic.insert(topic.to_owned(), id);
         Ok(id)
+    }
+}
+
+impl WriterThread {
+    fn add_json_channel(&mut self, schema: TopicSchema, topic: &str) -> Result<u16, WriteFailure> {
+        let Some(writer) = self.writer.as_mut() else {
+            return Err(WriteFailure::Mcap(
+                mcap::McapError::AttemptedWriteAfterFailure,
+            ));
+        };
+        let schema_id = match self.json_schemas.get(schema.name) {
+            Some(&id) => id,
+            None => {
+                let id = writer
+                    .add_schema(schema.name, "jsonschema", schema.text.as_bytes())
+                    .map_err(WriteFailure::Mcap)?;
+                self.json_schemas.insert(schema.name, id);
+                id
+            }
+        };
+        writer
+            .add_channel(schema_id, topic, "json", &Default::default())
+            .map_err(WriteFailure::Mcap)
     }
 }
 

@@ -4,9 +4,11 @@
 pub mod bump;
 pub mod devices;
 pub mod effects;
+pub mod hexapod;
 pub mod hil;
 pub mod pace;
 pub mod passive_machine;
+pub mod probe_install;
 pub mod rotary;
 pub mod rotary_sphere;
 pub mod table_source;

@@ -135,7 +135,7 @@ pub struct ProbeInstallSolution {
 }
 
 /// Orthonormal (e1, e2) completing `e3` to a right-handed basis.
-fn tangent_basis(e3: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+pub fn tangent_basis(e3: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
     let helper = if e3.x.abs() < 0.9 {
         Vector3::x()
     } else {

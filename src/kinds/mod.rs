@@ -1,0 +1,129 @@
+//! Runs of the plan kinds with their own configuration layout (`probe_install`, `hexapod`):
+//! which kind a configuration file declares, and the whole run of each (config -> plan ->
+//! simulated devices -> kind sequencer -> recorded session -> solve).
+
+pub mod hexapod;
+pub mod probe_install;
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use crate::run::{RunOptions, RunOutput};
+use crate::session::messages::DeviceInfo;
+
+/// The kind a configuration file declares when it is one of the kinds run here.
+pub fn own_kind(path: &Path) -> anyhow::Result<Option<&'static str>> {
+    let text = std::fs::read_to_string(path)
+        .map_err(|e| anyhow::anyhow!("{}: cannot read: {e}", path.display()))?;
+    Ok(
+        match crate::config::kind_config::declared_kind(&text).as_deref() {
+            Some(crate::config::probe_install::KIND) => Some(crate::config::probe_install::KIND),
+            Some(crate::config::hexapod::KIND) => Some(crate::config::hexapod::KIND),
+            _ => None,
+        },
+    )
+}
+
+/// Run the configuration at `path` if its kind is one of the kinds run here; None otherwise.
+pub fn run_file(path: &Path, options: &RunOptions) -> anyhow::Result<Option<RunOutput>> {
+    match own_kind(path)? {
+        Some(crate::config::probe_install::KIND) => {
+            let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
+            probe_install::run(&config, options).map(Some)
+        }
+        Some(crate::config::hexapod::KIND) => {
+            let config = crate::config::hexapod::HexapodConfig::load(path)?;
+            hexapod::run(&config, options).map(Some)
+        }
+        _ => Ok(None),
+    }
+}
+
+/// Validate the configuration at `path` if its kind is one of the kinds run here.
+pub fn check_file(path: &Path) -> anyhow::Result<Option<String>> {
+    match own_kind(path)? {
+        Some(crate::config::probe_install::KIND) => {
+            let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
+            let plan = crate::plan::probe_install::ProbeInstallPlan::from_config(&config);
+            Ok(Some(format!(
+                "{}: valid ({} postures, {} points, {} readings per point)\n",
+                path.display(),
+                plan.postures_rad.len(),
+                plan.points.len(),
+                plan.readings_per_point
+            )))
+        }
+        Some(crate::config::hexapod::KIND) => {
+            let config = crate::config::hexapod::HexapodConfig::load(path)?;
+            let plan = crate::plan::hexapod::HexapodPlan::from_config(&config);
+            Ok(Some(format!(
+                "{}: valid ({} poses with home, {} leg readings per pose, {} at home)\n",
+                path.display(),
+                plan.poses.len(),
+                plan.readings_per_pose,
+                plan.reference_readings
+            )))
+        }
+        _ => Ok(None),
+    }
+}
+
+pub(crate) fn started_at(epoch_ns: u64) -> String {
+    time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
+        .ok()
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
+        .unwrap_or_default()
+}
+
+pub(crate) fn device(
+    id: &str,
+    kind: &str,
+    driver: &str,
+    noise_m: Option<f64>,
+    extra: BTreeMap<String, serde_json::Value>,
+) -> DeviceInfo {
+    DeviceInfo {
+        id: id.into(),
+        kind: kind.into(),
+        driver: driver.into(),
+        noise_m,
+        noise_ppm: None,
+        dead_path_m: None,
+        wavelength_m: None,
+        compensated: None,
+        extra,
+    }
+}
+
+/// Finish the recording, keep the run's error if it failed, then solve the file as `geocal
+/// solve` does and write results.json.
+pub(crate) fn finish_and_solve(
+    recorder: crate::session::recorder::Recorder,
+    summary: Result<crate::sequencer::RunSummary, crate::sequencer::SequencerError>,
+    session_path: std::path::PathBuf,
+    options: &RunOptions,
+) -> anyhow::Result<RunOutput> {
+    use anyhow::Context;
+    let stats = recorder.finish().context("finishing the session file")?;
+    let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    tracing::info!(
+        samples = summary.samples,
+        points = summary.points_measured,
+        bytes = stats.bytes,
+        "run recorded to {}",
+        session_path.display()
+    );
+    let results = crate::run::solve_file(&session_path, &options.settings)?;
+    let results_path = options.out_dir.join("results.json");
+    std::fs::write(&results_path, results.to_json_pretty())
+        .with_context(|| format!("writing {}", results_path.display()))?;
+    Ok(RunOutput {
+        session_path,
+        results_path,
+        summary,
+        results,
+    })
+}

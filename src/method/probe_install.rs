@@ -1,0 +1,292 @@
+//! Method of plan kind `probe_install`: sphere readings per posture from the session, then the
+//! 11 installation parameters by LM (with covariance) and by the improved GA, and the radius check.
+//!
+//! Each point's observation is the mean of its valid raw readings (σ = probe noise / √n) at the
+//! machine position reported on arrival (`/machine/pose`, the commanded one if none reported).
+
+use serde::{Deserialize, Serialize};
+
+use crate::config::probe_install::{ProbeInstallPlan, KIND};
+use crate::model::probe_install::{ProbeObservation, N_PARAMS, PARAM_NAMES};
+use crate::session::kind_messages::{MachinePoseSample, TOPIC_MACHINE_POSE};
+use crate::session::messages::RunEvent;
+use crate::session::reader::Session;
+use crate::solve::genetic::GeneticOptions;
+use crate::solve::probe_install::{
+    measured_radius_m, solve_ga, solve_lm, LmOptions, ProbeInstallError, ProbeInstallProblem,
+    SearchBox,
+};
+
+#[derive(Debug, thiserror::Error)]
+pub enum ProbeInstallMethodError {
+    #[error("session header: `plan` is not a probe_install plan: {0}")]
+    Plan(String),
+    #[error("session header: no device of kind `probe` with `noise_m`")]
+    NoProbe,
+    #[error("message on {topic} at log_time {log_time_ns} ns: {message}")]
+    Message {
+        topic: String,
+        log_time_ns: u64,
+        message: String,
+    },
+    #[error("`probe_begin` of posture {posture} point {point} outside a posture")]
+    OutsidePosture { posture: usize, point: usize },
+    #[error("point {point} of posture {posture}: no machine position recorded before it")]
+    NoPosition { posture: usize, point: usize },
+    #[error("point {point} of posture {posture}: machine position lacks axis `{axis}`")]
+    MissingAxis {
+        posture: usize,
+        point: usize,
+        axis: String,
+    },
+    #[error(transparent)]
+    Solve(#[from] ProbeInstallError),
+}
+
+/// geocal-results/1 of kind `probe_install`.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ProbeInstallResults {
+    pub format: String,
+    pub kind: String,
+    pub session_id: String,
+    pub sphere_radius_m: f64,
+    /// Points used (with at least one valid reading), and raw readings in them.
+    pub points: usize,
+    pub readings: usize,
+    /// Raw readings recorded without a value (out of range).
+    pub readings_out_of_range: usize,
+    pub postures_rad: Vec<[f64; 2]>,
+    /// The LM estimate with its standard uncertainties (Cramér–Rao at the solution).
+    pub parameters: Vec<ParameterResult>,
+    /// The exterior-penalty objective of the reported (LM) parameters (M = penalty).
+    pub objective: f64,
+    pub residual_rms_m: f64,
+    pub chi2_per_dof: f64,
+    pub dof: usize,
+    pub lm: LmSummary,
+    pub ga: GaSummary,
+    /// Sphere radius measured from all points with the nominal installation (before) and with
+    /// the calibrated one (after LM, after GA).
+    pub radius_before_m: f64,
+    pub radius_after_m: f64,
+    pub radius_after_ga_m: f64,
+    pub note: String,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ParameterResult {
+    pub name: String,
+    pub value: f64,
+    pub sigma: f64,
+    pub nominal: f64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct LmSummary {
+    pub objective: f64,
+    pub unit_norm_violation: f64,
+    pub iterations: usize,
+    pub converged: bool,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct GaSummary {
+    pub objective: f64,
+    pub unit_norm_violation: f64,
+    pub population: usize,
+    pub generations: usize,
+    pub seed: u64,
+    pub evaluations: usize,
+    /// Individuals replaced for lying within the diversity threshold of the best.
+    pub replaced: usize,
+    /// The GA's parameters, in the order of `parameters`.
+    pub values: Vec<f64>,
+}
+
+fn parse<T: serde::de::DeserializeOwned>(
+    topic: &str,
+    log_time_ns: u64,
+    v: &serde_json::Value,
+) -> Result<T, ProbeInstallMethodError> {
+    T::deserialize(v).map_err(|e| ProbeInstallMethodError::Message {
+        topic: topic.to_string(),
+        log_time_ns,
+        message: e.to_string(),
+    })
+}
+
+/// The observations (one per point) and the out-of-range count.
+pub fn observations(
+    session: &Session,
+    noise_m: f64,
+    probe_id: &str,
+) -> Result<(Vec<ProbeObservation>, usize, usize), ProbeInstallMethodError> {
+    let empty = Vec::new();
+    let no_readings = Vec::new();
+    let readings = session.probes.get(probe_id).unwrap_or(&no_readings);
+    let poses = session.topics.get(TOPIC_MACHINE_POSE).unwrap_or(&empty);
+    let mut posture: Option<(usize, f64, f64)> = None;
+    let mut open: Option<(usize, usize, u64)> = None;
+    let mut out = Vec::new();
+    let (mut raw, mut out_of_range) = (0, 0);
+    for e in &session.events {
+        match &e.msg {
+            RunEvent::PostureBegin {
+                posture: p,
+                a_rad,
+                b_rad,
+            } => posture = Some((*p, *a_rad, *b_rad)),
+            RunEvent::PostureEnd { .. } => posture = None,
+            RunEvent::ProbeBegin {
+                posture: p, point, ..
+            } => {
+                if posture.is_none_or(|(q, _, _)| q != *p) {
+                    return Err(ProbeInstallMethodError::OutsidePosture {
+                        posture: *p,
+                        point: *point,
+                    });
+                }
+                open = Some((*p, *point, e.log_time_ns));
+            }
+            RunEvent::ProbeEnd { posture: p, point } => {
+                let Some((op, opoint, begin_ns)) = open.take() else {
+                    continue;
+                };
+                if (op, opoint) != (*p, *point) {
+                    continue;
+                }
+                let end_ns = e.log_time_ns;
+                let mut values = Vec::new();
+                for r in readings
+                    .iter()
+                    .filter(|r| r.log_time_ns >= begin_ns && r.log_time_ns <= end_ns)
+                {
+                    match r.msg.value_m {
+                        Some(v) => values.push(v),
+                        None => out_of_range += 1,
+                    }
+                }
+                if values.is_empty() {
+                    continue;
+                }
+                raw += values.len();
+                let stamped = poses
+                    .iter()
+                    .rev()
+                    .find(|m| m.log_time_ns <= begin_ns)
+                    .ok_or(ProbeInstallMethodError::NoPosition {
+                        posture: *p,
+                        point: *point,
+                    })?;
+                let pose: MachinePoseSample =
+                    parse(TOPIC_MACHINE_POSE, stamped.log_time_ns, &stamped.msg)?;
+                let axis = |name: &str| {
+                    pose.reported
+                        .get(name)
+                        .or_else(|| pose.commanded.get(name))
+                        .copied()
+                        .ok_or_else(|| ProbeInstallMethodError::MissingAxis {
+                            posture: *p,
+                            point: *point,
+                            axis: name.to_string(),
+                        })
+                };
+                let n = values.len() as f64;
+                out.push(ProbeObservation {
+                    a_rad: axis("a")?,
+                    b_rad: axis("b")?,
+                    machine_m: [axis("x")?, axis("y")?, axis("z")?],
+                    reading_m: values.iter().sum::<f64>() / n,
+                    sigma_m: noise_m / n.sqrt(),
+                });
+            }
+            _ => {}
+        }
+    }
+    Ok((out, raw, out_of_range))
+}
+
+pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMethodError> {
+    let plan: ProbeInstallPlan = serde_json::from_value(session.header.plan.clone())
+        .map_err(|e| ProbeInstallMethodError::Plan(e.to_string()))?;
+    let probe = session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.kind == "probe" && d.noise_m.is_some())
+        .ok_or(ProbeInstallMethodError::NoProbe)?;
+    let noise_m = probe.noise_m.ok_or(ProbeInstallMethodError::NoProbe)?;
+    let (obs, readings, out_of_range) = observations(session, noise_m, &probe.id)?;
+    let nominal = plan.nominal.params();
+    let problem = ProbeInstallProblem {
+        nominal,
+        sphere_radius_m: plan.sphere_radius_m,
+        observations: obs,
+    };
+    let lm = solve_lm(&problem, &nominal, &LmOptions::default())?;
+    let s = &plan.solver;
+    let ga = solve_ga(
+        &problem,
+        &SearchBox::default(),
+        s.penalty,
+        &GeneticOptions {
+            population: s.ga_population,
+            generations: s.ga_generations,
+            crossover_probability: s.ga_crossover,
+            mutation_probability: s.ga_mutation,
+            seed: s.ga_seed,
+            ..GeneticOptions::default()
+        },
+    )?;
+    let lm_objective =
+        crate::solve::probe_install::penalty_objective(&problem, &lm.params, s.penalty);
+    let values = lm.params.to_vector();
+    let nominal_values = nominal.to_vector();
+    let parameters = (0..N_PARAMS)
+        .map(|k| ParameterResult {
+            name: PARAM_NAMES[k].to_string(),
+            value: values[k],
+            sigma: lm.sigma[k],
+            nominal: nominal_values[k],
+        })
+        .collect();
+    Ok(ProbeInstallResults {
+        format: "geocal-results/1".into(),
+        kind: KIND.into(),
+        session_id: session.header.session_id.clone(),
+        sphere_radius_m: plan.sphere_radius_m,
+        points: problem.observations.len(),
+        readings,
+        readings_out_of_range: out_of_range,
+        postures_rad: plan.postures_rad.clone(),
+        parameters,
+        objective: lm_objective,
+        residual_rms_m: lm.residual_rms_m,
+        chi2_per_dof: lm.chi2 / lm.dof.max(1) as f64,
+        dof: lm.dof,
+        lm: LmSummary {
+            objective: lm_objective,
+            unit_norm_violation: lm.unit_norm_violation,
+            iterations: lm.iterations,
+            converged: lm.converged,
+        },
+        ga: GaSummary {
+            objective: ga.objective,
+            unit_norm_violation: ga.unit_norm_violation,
+            population: s.ga_population,
+            generations: s.ga_generations,
+            seed: s.ga_seed,
+            evaluations: ga.evaluations,
+            replaced: ga.replaced,
+            values: ga.params.to_vector().iter().copied().collect(),
+        },
+        radius_before_m: measured_radius_m(&nominal, &problem.observations)?,
+        radius_after_m: measured_radius_m(&lm.params, &problem.observations)?,
+        radius_after_ga_m: measured_radius_m(&ga.params, &problem.observations)?,
+        note: "parameters from LM on the constrained problem (beam as two angles, |(l,m,n)| = 1 \
+               exactly), sigmas from the Cramér-Rao covariance at the solution (the beam's is \
+               rank 2 on the unit sphere); the GA minimises the exterior-penalty objective over \
+               nominal ± SearchBox; radii from one sphere fitted through all points"
+            .into(),
+    })
+}

@@ -1,0 +1,131 @@
+//! Sequencer of plan kind `hexapod`: command the platform to each pose, measure the pose, read
+//! the six leg encoders; every reading recorded.
+//!
+//! Events: `pose_begin` / `pose_end` around the measurements at one pose (after arrival);
+//! `/hexapod/<id>/pose` for each measured pose and `/hexapod/<id>/legs` for each encoder
+//! reading. Timeouts and protocol errors are retried with `fault` events.
+
+use std::sync::Arc;
+
+use geocal_drivers::{Hexapod, HexapodState, PlatformPose, PoseSensor};
+
+use super::kind_faults::{retried, EventLog};
+use super::{Progress, RunSummary, SequencerError};
+use crate::clock::Clock;
+use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
+use crate::session::kind_messages::{
+    hexapod_legs_topic, hexapod_pose_topic, to_value, LegSample, PlatformPoseSample, SCHEMA_LEGS,
+    SCHEMA_PLATFORM_POSE,
+};
+use crate::session::messages::RunEvent;
+use crate::session::recorder::RecorderHandle;
+
+const MAX_STATE_QUERIES: u64 = 1_000_000;
+
+pub struct HexapodDevices {
+    pub hexapod: Box<dyn Hexapod>,
+    pub pose_sensor: Option<Box<dyn PoseSensor>>,
+}
+
+pub struct HexapodSequencer<'a> {
+    plan: &'a HexapodPlan,
+    devices: HexapodDevices,
+    log: EventLog,
+    start_ns: u64,
+    summary: RunSummary,
+}
+
+impl<'a> HexapodSequencer<'a> {
+    pub fn new(
+        plan: &'a HexapodPlan,
+        devices: HexapodDevices,
+        recorder: RecorderHandle,
+        clock: Arc<dyn Clock>,
+    ) -> Self {
+        let start_ns = clock.now_ns();
+        Self {
+            plan,
+            devices,
+            log: EventLog {
+                recorder,
+                clock,
+                faults: 0,
+            },
+            start_ns,
+            summary: RunSummary::default(),
+        }
+    }
+
+    fn t_s(&self) -> f64 {
+        self.log.clock.now_ns().saturating_sub(self.start_ns) as f64 * 1e-9
+    }
+
+    pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
+        let plan = self.plan;
+        let total = plan.poses.len() as u64;
+        let id = self.devices.hexapod.id().to_string();
+        for (pose, p) in plan.poses.iter().enumerate() {
+            let command = PlatformPose {
+                translation_m: p.translation_m,
+                rotation_vector_rad: p.rotation_vector_rad,
+            };
+            retried!(self.log, self.devices.hexapod.start_move(&command));
+            let mut queries = 0;
+            while retried!(self.log, self.devices.hexapod.state()) != HexapodState::Idle {
+                queries += 1;
+                if queries > MAX_STATE_QUERIES {
+                    return Err(SequencerError::NoArrival {
+                        point: pose,
+                        waited_s: self.t_s(),
+                    });
+                }
+            }
+            self.log.event(RunEvent::PoseBegin {
+                pose,
+                axes: POSE_AXES
+                    .iter()
+                    .map(|a| a.to_string())
+                    .zip(p.axes())
+                    .collect(),
+            });
+            if let Some(sensor) = self.devices.pose_sensor.as_mut() {
+                let reading = retried!(self.log, sensor.measure());
+                let sample = PlatformPoseSample {
+                    t_s: reading.t_s,
+                    rotation_vector_rad: reading.pose.rotation_vector_rad,
+                    translation_m: reading.pose.translation_m,
+                };
+                self.log.recorder.json(
+                    &hexapod_pose_topic(&id),
+                    SCHEMA_PLATFORM_POSE,
+                    to_value(&sample),
+                    self.log.clock.now_ns(),
+                );
+            }
+            let readings = if pose == 0 {
+                plan.reference_readings
+            } else {
+                plan.readings_per_pose
+            };
+            for _ in 0..readings {
+                let r = retried!(self.log, self.devices.hexapod.read_legs());
+                let sample = LegSample {
+                    t_s: r.t_s,
+                    lengths_m: r.lengths_m,
+                };
+                self.log.recorder.json(
+                    &hexapod_legs_topic(&id),
+                    SCHEMA_LEGS,
+                    to_value(&sample),
+                    self.log.clock.now_ns(),
+                );
+                self.summary.samples += 1;
+            }
+            self.log.event(RunEvent::PoseEnd { pose });
+            self.summary.points_measured += 1;
+            progress(pose as u64 + 1, total);
+        }
+        self.summary.faults = self.log.faults;
+        Ok(self.summary)
+    }
+}

@@ -1,0 +1,79 @@
+//! Fault handling shared by the sequencers of the probe_install and hexapod kinds: a timeout
+//! or protocol error is recorded as a `fault` event and retried `DEVICE_RETRIES` times.
+
+use std::sync::Arc;
+
+use geocal_drivers::DeviceError;
+
+use super::{SequencerError, DEVICE_RETRIES};
+use crate::clock::Clock;
+use crate::session::messages::RunEvent;
+use crate::session::recorder::RecorderHandle;
+
+/// Records events (counting faults) for a kind's sequencer.
+pub struct EventLog {
+    pub recorder: RecorderHandle,
+    pub clock: Arc<dyn Clock>,
+    pub faults: u64,
+}
+
+impl EventLog {
+    pub fn event(&mut self, event: RunEvent) {
+        if matches!(event, RunEvent::Fault { .. }) {
+            self.faults += 1;
+        }
+        self.recorder.event(&event, self.clock.now_ns());
+    }
+
+    pub fn fault(&mut self, device: &str, code: &str, message: String) {
+        self.event(RunEvent::Fault {
+            device: device.to_string(),
+            code: code.to_string(),
+            message,
+        });
+    }
+
+    /// Record a failed device call as a `fault` event; Ok if it may be retried (a timeout or a
+    /// protocol error, at most `DEVICE_RETRIES` times), else the error.
+    pub fn retry_or_fail(
+        &mut self,
+        error: DeviceError,
+        attempt: &mut u32,
+    ) -> Result<(), SequencerError> {
+        let (device, code) = match &error {
+            DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
+            DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
+            _ => return Err(error.into()),
+        };
+        *attempt += 1;
+        let retry = *attempt <= DEVICE_RETRIES;
+        self.fault(
+            &device,
+            code,
+            if retry {
+                format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
+            } else {
+                format!("{error} (giving up after {DEVICE_RETRIES} retries)")
+            },
+        );
+        if retry {
+            Ok(())
+        } else {
+            Err(error.into())
+        }
+    }
+}
+
+/// Call a device method, retrying timeouts and protocol errors with `fault` events.
+macro_rules! retried {
+    ($log:expr, $call:expr) => {{
+        let mut attempt = 0;
+        loop {
+            match $call.await {
+                Ok(v) => break v,
+                Err(e) => $log.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }};
+}
+pub(crate) use retried;

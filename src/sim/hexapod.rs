@@ -1,0 +1,233 @@
+//! Simulated world of plan kind `hexapod`: a 6-leg machine with seeded true hinge coordinates,
+//! incremental leg encoders with noise and a pose sensor, in virtual time.
+//!
+//! The platform reaches every commanded pose exactly (the true pose); the encoders count the
+//! true leg lengths' change since power-on (at home) from an arbitrary start count.
+
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use async_trait::async_trait;
+use geocal_drivers::{
+    DeviceError, Hexapod, HexapodState, LegReading, PlatformPose, PoseReading, PoseSensor,
+};
+use nalgebra::{Rotation3, Vector3};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use rand_distr::{Distribution, StandardNormal};
+use serde::Serialize;
+
+use crate::clock::VirtualClock;
+use crate::config::hexapod::HexapodConfig;
+use crate::model::hexapod::{leg_length, HexapodGeometry, Pose, LEGS};
+
+const POLL_S: f64 = 0.02;
+
+/// What `geocal run --truth` writes for a `hexapod` run.
+#[derive(Debug, Clone, Serialize)]
+pub struct HexapodTruth {
+    pub kind: &'static str,
+    pub seed: u64,
+    pub base_m: Vec<[f64; 3]>,
+    pub platform_m: Vec<[f64; 3]>,
+    pub encoder_noise_m: f64,
+}
+
+pub struct HexapodWorld {
+    clock: Arc<VirtualClock>,
+    seed: u64,
+    truth: HexapodGeometry,
+    rng: ChaCha8Rng,
+    encoder_noise_m: f64,
+    pose_noise: (f64, f64),
+    speed_m_s: f64,
+    angular_speed_rad_s: f64,
+    reading_period_s: f64,
+    /// The encoders' counts at power-on (home): arbitrary, unknown to the method.
+    start_count_m: [f64; LEGS],
+    home_lengths_m: [f64; LEGS],
+    pose: PlatformPose,
+    move_end_s: f64,
+}
+
+pub type SharedHexapodWorld = Arc<Mutex<HexapodWorld>>;
+
+pub fn to_pose(p: &PlatformPose) -> Pose {
+    Pose {
+        rotation: Rotation3::new(Vector3::from(p.rotation_vector_rad)),
+        translation_m: Vector3::from(p.translation_m),
+    }
+}
+
+impl HexapodWorld {
+    pub fn new(config: &HexapodConfig, clock: Arc<VirtualClock>) -> Self {
+        let seed = config.sim.as_ref().map_or(0, |s| s.seed);
+        let amplitude = config.sim.as_ref().map_or(0.0, |s| s.hinge_error_m);
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let nominal = config.machine.nominal();
+        let v: Vec<f64> = nominal
+            .to_vec()
+            .iter()
+            .map(|x| x + amplitude * (2.0 * rng.random::<f64>() - 1.0))
+            .collect();
+        let truth = HexapodGeometry::from_slice(&v);
+        let home = PlatformPose {
+            translation_m: config.plan.home_translation_m,
+            rotation_vector_rad: [0.0; 3],
+        };
+        let home_pose = to_pose(&home);
+        let home_lengths_m = std::array::from_fn(|i| leg_length(&truth.leg(i), &home_pose).0);
+        let start_count_m = std::array::from_fn(|_| rng.random_range(-0.01..0.01));
+        let h = &config.devices.hexapod;
+        let pose_noise = config
+            .devices
+            .pose_sensor
+            .as_ref()
+            .map_or((0.0, 0.0), |s| (s.noise_m, s.noise_rad));
+        Self {
+            clock,
+            seed,
+            truth,
+            rng,
+            encoder_noise_m: h.encoder_noise_m,
+            pose_noise,
+            speed_m_s: h.speed_m_s,
+            angular_speed_rad_s: h.angular_speed_rad_s,
+            reading_period_s: h.reading_period_s,
+            start_count_m,
+            home_lengths_m,
+            pose: home,
+            move_end_s: 0.0,
+        }
+    }
+
+    pub fn truth(&self) -> HexapodTruth {
+        HexapodTruth {
+            kind: crate::config::hexapod::KIND,
+            seed: self.seed,
+            base_m: self.truth.base_m.iter().map(|v| (*v).into()).collect(),
+            platform_m: self.truth.platform_m.iter().map(|v| (*v).into()).collect(),
+            encoder_noise_m: self.encoder_noise_m,
+        }
+    }
+
+    pub fn true_geometry(&self) -> &HexapodGeometry {
+        &self.truth
+    }
+
+    fn now_s(&self) -> f64 {
+        self.clock.elapsed_s()
+    }
+
+    fn start_move(&mut self, target: PlatformPose) {
+        let dist =
+            (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m)).norm();
+        let turn = (Rotation3::new(Vector3::from(target.rotation_vector_rad))
+            * to_pose(&self.pose).rotation.inverse())
+        .angle();
+        self.move_end_s =
+            self.now_s() + (dist / self.speed_m_s).max(turn / self.angular_speed_rad_s);
+        self.pose = target;
+    }
+
+    fn idle(&mut self) -> bool {
+        let now = self.now_s();
+        if now >= self.move_end_s - 1e-9 {
+            return true;
+        }
+        self.clock.advance_to((now + POLL_S).min(self.move_end_s));
+        false
+    }
+
+    fn read_legs(&mut self) -> LegReading {
+        let t_s = self.now_s() + self.reading_period_s;
+        self.clock.advance_to(t_s);
+        let pose = to_pose(&self.pose);
+        let lengths_m = std::array::from_fn(|i| {
+            let z: f64 = StandardNormal.sample(&mut self.rng);
+            leg_length(&self.truth.leg(i), &pose).0 - self.home_lengths_m[i]
+                + self.start_count_m[i]
+                + self.encoder_noise_m * z
+        });
+        LegReading { t_s, lengths_m }
+    }
+
+    fn measure_pose(&mut self) -> PoseReading {
+        let t_s = self.now_s() + self.reading_period_s;
+        self.clock.advance_to(t_s);
+        let (sm, sr) = self.pose_noise;
+        let mut n = |s: f64| {
+            let z: f64 = StandardNormal.sample(&mut self.rng);
+            s * z
+        };
+        let p = self.pose;
+        PoseReading {
+            t_s,
+            pose: PlatformPose {
+                translation_m: p.translation_m.map(|v| v + n(sm)),
+                rotation_vector_rad: p.rotation_vector_rad.map(|v| v + n(sr)),
+            },
+        }
+    }
+}
+
+fn lock<'a>(
+    world: &'a SharedHexapodWorld,
+    device: &str,
+) -> Result<MutexGuard<'a, HexapodWorld>, DeviceError> {
+    world.lock().map_err(|_| DeviceError::Disconnected {
+        device: device.to_string(),
+        message: "simulated world poisoned by an earlier panic".into(),
+    })
+}
+
+pub struct SimHexapod {
+    pub id: String,
+    pub world: SharedHexapodWorld,
+}
+
+#[async_trait]
+impl Hexapod for SimHexapod {
+    fn id(&self) -> &str {
+        &self.id
+    }
+    async fn start_move(&mut self, pose: &PlatformPose) -> Result<(), DeviceError> {
+        let finite = pose
+            .translation_m
+            .iter()
+            .chain(&pose.rotation_vector_rad)
+            .all(|v| v.is_finite());
+        if !finite {
+            return Err(DeviceError::Rejected {
+                device: self.id.clone(),
+                message: format!("pose {pose:?} is not finite"),
+            });
+        }
+        lock(&self.world, &self.id)?.start_move(*pose);
+        Ok(())
+    }
+    async fn state(&mut self) -> Result<HexapodState, DeviceError> {
+        Ok(if lock(&self.world, &self.id)?.idle() {
+            HexapodState::Idle
+        } else {
+            HexapodState::Moving
+        })
+    }
+    async fn read_legs(&mut self) -> Result<LegReading, DeviceError> {
+        Ok(lock(&self.world, &self.id)?.read_legs())
+    }
+}
+
+pub struct SimPoseSensor {
+    pub id: String,
+    pub world: SharedHexapodWorld,
+}
+
+#[async_trait]
+impl PoseSensor for SimPoseSensor {
+    fn id(&self) -> &str {
+        &self.id
+    }
+    async fn measure(&mut self) -> Result<PoseReading, DeviceError> {
+        Ok(lock(&self.world, &self.id)?.measure_pose())
+    }
+}

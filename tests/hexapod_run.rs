@@ -1,0 +1,181 @@
+//! Whole simulated runs of the hexapod hinge calibration (plan kind `hexapod`): the 36 hinge
+//! coordinates must match the simulated truth within what the reported uncertainties allow,
+//! the two-stage result must never be worse than its start or plain LM, the replay of the
+//! recorded session must give identical results, and bad configurations clear errors.
+
+use std::path::Path;
+
+use geocal::method::Results;
+use geocal::run::{solve_file, RunOptions, RunOutput};
+use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
+use geocal::session::messages::RunEvent;
+use geocal::session::reader::read_session;
+use serde_json::Value;
+
+const EXAMPLE: &str = include_str!("../config/hexapod.toml");
+
+fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
+    let config = dir.join("hexapod.toml");
+    std::fs::write(&config, config_text).expect("write config");
+    let truth_path = dir.join("truth.json");
+    let output = geocal::kinds::run_file(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run")
+    .expect("a hexapod config is run by geocal::kinds");
+    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
+    (output, truth)
+}
+
+fn xyz(v: &Value) -> [f64; 3] {
+    std::array::from_fn(|k| v[k].as_f64().expect("number"))
+}
+
+/// Every coordinate within 4 of its reported sigmas: for a correct covariance each normalised
+/// error is N(0, 1), P(|z| > 4) = 6e-5, so 36 coordinates fail by chance with probability
+/// 0.2 %. Returns the RMS normalised error.
+fn assert_hinges_recovered(output: &RunOutput, truth: &Value) -> f64 {
+    let Results::Hexapod(r) = &output.results else {
+        panic!("expected hexapod results");
+    };
+    let mut sum_z2 = 0.0;
+    for h in &r.hinges {
+        let tb = xyz(&truth["base_m"][h.leg]);
+        let tp = xyz(&truth["platform_m"][h.leg]);
+        for k in 0..3 {
+            for (what, est, sigma, t) in [
+                ("B", h.base_m[k], h.base_sigma_m[k], tb[k]),
+                ("P", h.platform_m[k], h.platform_sigma_m[k], tp[k]),
+            ] {
+                let z = (est - t) / sigma;
+                assert!(z.abs() <= 4.0, "leg {} {what}{k}: {z:.2} sigma", h.leg);
+                sum_z2 += z * z;
+            }
+        }
+    }
+    (sum_z2 / 36.0).sqrt()
+}
+
+#[test]
+fn recovers_the_true_hinges_and_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (output, truth) = run(EXAMPLE, dir.path());
+    let Results::Hexapod(r) = &output.results else {
+        panic!("expected hexapod results");
+    };
+    assert_eq!((r.poses, r.readings), (30, 129));
+    assert_eq!(r.pose_source, "measured");
+    let rms_z = assert_hinges_recovered(&output, &truth);
+    // chi²/dof of 138 degrees of freedom has a standard deviation of sqrt(2/138) = 0.12;
+    // [0.65, 1.35] is about ±3 of them.
+    println!(
+        "rms normalised error {rms_z:.2}, chi2/dof {:.3}, objective start {:.3e} -> LM {:.3e}, two-stage {:.3e} m²",
+        r.chi2_per_dof, r.two_stage.objective_initial_m2, r.lm.objective_m2, r.objective_m2
+    );
+    assert!(
+        (0.65..=1.35).contains(&r.chi2_per_dof),
+        "{}",
+        r.chi2_per_dof
+    );
+    assert!(r.objective_m2 <= r.two_stage.objective_initial_m2);
+    assert!(r.objective_m2 <= r.lm.objective_m2 * (1.0 + 1e-12));
+
+    // Replay: the recorded session alone gives byte-identical results.
+    let replay = solve_file(&output.session_path, &Default::default()).expect("solve");
+    assert_eq!(replay.to_json_pretty(), output.results.to_json_pretty());
+    let written = std::fs::read_to_string(&output.results_path).expect("results.json");
+    assert_eq!(written, output.results.to_json_pretty());
+
+    // The session holds every reading and the documented events.
+    let session = read_session(&output.session_path).expect("read session");
+    assert_eq!(session.header.kind, "hexapod");
+    assert_eq!(session.topics[&hexapod_legs_topic("hex0")].len(), 129);
+    assert_eq!(session.topics[&hexapod_pose_topic("hex0")].len(), 30);
+    let begins = session
+        .events
+        .iter()
+        .filter(|e| matches!(e.msg, RunEvent::PoseBegin { .. }))
+        .count();
+    let ends = session
+        .events
+        .iter()
+        .filter(|e| matches!(e.msg, RunEvent::PoseEnd { .. }))
+        .count();
+    assert_eq!((begins, ends), (30, 30));
+    assert_eq!(session.ignored, 0);
+}
+
+/// Given poses (no pose sensor: the commanded poses are used) and a hinge error of ±5 mm: the
+/// truth is still recovered and the two-stage result is not worse than its start.
+#[test]
+fn commanded_poses_and_larger_errors() {
+    let cut = EXAMPLE
+        .find("[devices.pose_sensor]")
+        .expect("pose sensor table");
+    let end = EXAMPLE[cut..].find("\n[plan]").expect("[plan]") + cut;
+    let text = format!("{}{}", &EXAMPLE[..cut], &EXAMPLE[end..])
+        .replace("hinge_error_m = 2.0e-3", "hinge_error_m = 5.0e-3")
+        .replace("seed = 424242", "seed = 7");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (output, truth) = run(&text, dir.path());
+    let Results::Hexapod(r) = &output.results else {
+        panic!("expected hexapod results");
+    };
+    assert_eq!(r.pose_source, "commanded");
+    let rms_z = assert_hinges_recovered(&output, &truth);
+    println!(
+        "±5 mm: rms normalised error {rms_z:.2}, chi2/dof {:.3}",
+        r.chi2_per_dof
+    );
+    assert!(r.objective_m2 <= r.two_stage.objective_initial_m2);
+}
+
+#[test]
+fn bad_configs_give_file_key_and_expectation() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cases = [
+        (
+            "shrink = 0.5",
+            "shrink = 2.0",
+            "key `plan.solver.shrink`: expected a factor in (0, 1), got 2",
+        ),
+        (
+            "count = 29",
+            "count = 4",
+            "key `plan.poses`: expected at least 6 poses besides home",
+        ),
+        (
+            "    [0.133826, 0.148629, 0.000000],\n]",
+            "]",
+            "key `machine.platform_hinges_m`: expected 6 hinges",
+        ),
+        (
+            "encoder_noise_m = 1.0e-6",
+            "encoder_noise = 1.0e-6",
+            "key `devices.hexapod.encoder_noise`",
+        ),
+    ];
+    for (from, to, want) in cases {
+        assert!(EXAMPLE.contains(from), "{from}");
+        let path = dir.path().join("bad.toml");
+        std::fs::write(&path, EXAMPLE.replacen(from, to, 1)).expect("write");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+            .args(["run", path.to_str().expect("utf-8 path"), "--out"])
+            .arg(dir.path().join("out"))
+            .output()
+            .expect("geocal runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(
+            stderr.contains(&format!("{}: {want}", path.display())),
+            "{to}: {stderr}"
+        );
+    }
+}

@@ -1,0 +1,191 @@
+//! Whole simulated runs of the laser-probe installation method (plan kind `probe_install`):
+//! the recovered installation must match the simulated truth within what the reported
+//! uncertainties allow, the replay of the recorded session must give identical results, every
+//! raw reading must be in the session, and bad configurations must give clear errors.
+
+use std::path::Path;
+
+use geocal::method::Results;
+use geocal::run::{solve_file, RunOptions, RunOutput};
+use geocal::session::kind_messages::TOPIC_MACHINE_POSE;
+use geocal::session::messages::RunEvent;
+use geocal::session::reader::read_session;
+use serde_json::Value;
+
+const EXAMPLE: &str = include_str!("../config/probe-install.toml");
+
+fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
+    let config = dir.join("probe-install.toml");
+    std::fs::write(&config, config_text).expect("write config");
+    let truth_path = dir.join("truth.json");
+    let output = geocal::kinds::run_file(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run")
+    .expect("a probe_install config is run by geocal::kinds");
+    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
+    (output, truth)
+}
+
+#[test]
+fn recovers_the_true_installation_and_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (output, truth) = run(EXAMPLE, dir.path());
+    let Results::ProbeInstall(r) = &output.results else {
+        panic!("expected probe_install results");
+    };
+    assert_eq!(r.kind, "probe_install");
+    assert_eq!(
+        (r.points, r.readings, r.readings_out_of_range),
+        (100, 500, 0)
+    );
+
+    // Every parameter within 4 of its reported sigmas of the truth: for a correct covariance
+    // each normalised error is N(0, 1), P(|z| > 4) = 6e-5, so 11 parameters fail by chance
+    // with probability < 1e-3. The beam components are judged together with the others
+    // (their covariance is rank 2 on the unit sphere, their sigmas are still marginal ones).
+    let truth_params = truth["parameters"].as_array().expect("truth parameters");
+    let mut sum_z2 = 0.0;
+    for (p, t) in r.parameters.iter().zip(truth_params) {
+        assert_eq!(t["name"], p.name.as_str());
+        let err = p.value - t["value"].as_f64().expect("truth value");
+        let z = err / p.sigma;
+        println!(
+            "{:<18} error {err:+.3e}  sigma {:.3e}  z {z:+.2}  (nominal off by {:+.3e})",
+            p.name,
+            p.sigma,
+            p.nominal - t["value"].as_f64().unwrap_or(0.0)
+        );
+        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma", p.name);
+        sum_z2 += z * z;
+    }
+    // The noise model holds: chi²/dof of 90 degrees of freedom has a standard deviation of
+    // sqrt(2/90) = 0.15; [0.6, 1.5] is about ±3 of them.
+    println!(
+        "chi2/dof {:.3}, rms normalised error {:.2}",
+        r.chi2_per_dof,
+        (sum_z2 / 11.0).sqrt()
+    );
+    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+
+    // The radius: before calibration the mis-installation distorts the measured sphere; after,
+    // the fitted radius carries only noise: σ_r ≈ 3·σ_point/√N = 3·0.45 µm/10 ≈ 0.13 µm (cap
+    // geometry factor ~3), so 1 µm is about 7 σ_r.
+    println!(
+        "radius before {:.4} mm, after LM {:.4} mm, after GA {:.4} mm; objective LM {:.3e}, GA {:.3e}",
+        r.radius_before_m * 1e3,
+        r.radius_after_m * 1e3,
+        r.radius_after_ga_m * 1e3,
+        r.lm.objective,
+        r.ga.objective
+    );
+    assert!((r.radius_after_m - 6e-3).abs() < 1e-6);
+    assert!(
+        (r.radius_before_m - 6e-3).abs() > 10e-6,
+        "the mis-installation shows"
+    );
+    // LM reaches the optimum of the same objective: the GA cannot end below it.
+    assert!(r.lm.unit_norm_violation.abs() < 1e-12);
+    assert!(r.ga.objective >= r.lm.objective * (1.0 - 1e-9));
+    assert!(r.ga.unit_norm_violation.abs() < 1e-3);
+    assert!(r.lm.converged);
+
+    // Replay: the recorded session alone gives byte-identical results.
+    let replay = solve_file(&output.session_path, &Default::default()).expect("solve");
+    assert_eq!(replay.to_json_pretty(), output.results.to_json_pretty());
+    let written = std::fs::read_to_string(&output.results_path).expect("results.json");
+    assert_eq!(written, output.results.to_json_pretty());
+
+    // The session holds every raw reading and the events in their documented order.
+    let session = read_session(&output.session_path).expect("read session");
+    assert_eq!(session.header.kind, "probe_install");
+    assert_eq!(session.probes["laser0"].len(), 500);
+    assert_eq!(session.topics[TOPIC_MACHINE_POSE].len(), 100);
+    let count = |f: &dyn Fn(&RunEvent) -> bool| session.events.iter().filter(|e| f(&e.msg)).count();
+    assert_eq!(count(&|e| matches!(e, RunEvent::PostureBegin { .. })), 4);
+    assert_eq!(count(&|e| matches!(e, RunEvent::PostureEnd { .. })), 4);
+    assert_eq!(count(&|e| matches!(e, RunEvent::ProbeBegin { .. })), 100);
+    assert_eq!(count(&|e| matches!(e, RunEvent::ProbeEnd { .. })), 100);
+    assert_eq!(output.summary.samples, 500);
+    assert_eq!(session.ignored, 0);
+}
+
+/// A probe with a short range: readings beyond it are recorded as nulls with a `fault` event
+/// each, nothing is lost, and the points that kept a valid reading still calibrate.
+#[test]
+fn out_of_range_readings_are_recorded_as_faults() {
+    let text = EXAMPLE
+        .replace("range_m = [-8.0e-3, 8.0e-3]", "range_m = [-2.5e-3, 2.5e-3]")
+        .replace("ga_generations = 2000", "ga_generations = 200");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (output, _) = run(&text, dir.path());
+    let Results::ProbeInstall(r) = &output.results else {
+        panic!("expected probe_install results");
+    };
+    let session = read_session(&output.session_path).expect("read session");
+    let faults = session
+        .events
+        .iter()
+        .filter(|e| matches!(&e.msg, RunEvent::Fault { code, .. } if code == "out_of_range"))
+        .count();
+    println!(
+        "{} of 500 readings out of range, {} points kept",
+        r.readings_out_of_range, r.points
+    );
+    assert!(r.readings_out_of_range > 0);
+    assert_eq!(faults, r.readings_out_of_range);
+    assert_eq!(output.summary.faults as usize, faults);
+    assert_eq!(r.readings + r.readings_out_of_range, 500);
+    assert_eq!(session.probes["laser0"].len(), 500);
+    assert!(r.points < 100 && r.points > 20);
+}
+
+#[test]
+fn bad_configs_give_file_key_and_expectation() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cases = [
+        (
+            "cap_half_angle_rad = 0.6981317007977318",
+            "cap_half_angle_rad = 2.0",
+            "key `plan.cap_half_angle_rad`: expected an angle in (0, π/2) radians, got 2",
+        ),
+        (
+            "reading_half_range_m = 2.0e-3",
+            "reading_half_range_m = 9.0e-3",
+            "key `plan.reading_half_range_m`: expected less than the probe's range",
+        ),
+        (
+            "feed_m_s = 0.02",
+            "feed_ms = 0.02",
+            "key `devices.machine.feed_ms`: TOML parse error",
+        ),
+        (
+            "driver = \"sim\"\nfeed_m_s",
+            "driver = \"grbl\"\nfeed_m_s",
+            "key `devices.machine.driver`: driver \"grbl\" is not available for plan kind probe_install yet",
+        ),
+    ];
+    for (from, to, want) in cases {
+        assert!(EXAMPLE.contains(from), "{from}");
+        let path = dir.path().join("bad.toml");
+        std::fs::write(&path, EXAMPLE.replacen(from, to, 1)).expect("write");
+        let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+            .args(["run", path.to_str().expect("utf-8 path"), "--out"])
+            .arg(dir.path().join("out"))
+            .output()
+            .expect("geocal runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(
+            stderr.contains(&format!("{}: {want}", path.display())),
+            "{to}: {stderr}"
+        );
+    }
+}
