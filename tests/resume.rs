@@ -120,7 +120,11 @@ fn killed_runs_resume_and_match_an_unbroken_run() {
     let unbroken_dir = tempfile::tempdir().expect("tempdir");
     // Pacing changes nothing but wall time: the unbroken reference runs unpaced, in-process.
     let (unbroken, truth) = run_with_truth(&small_demo(), unbroken_dir.path());
-    let unbroken = unbroken.results.multilateration().expect("tracer results").clone();
+    let unbroken = unbroken
+        .results
+        .multilateration()
+        .expect("tracer results")
+        .clone();
     assert_recovers_truth(&unbroken, &truth);
 
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);

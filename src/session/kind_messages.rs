@@ -107,11 +107,7 @@ mod tests {
 
     #[test]
     fn schemas_are_json_and_messages_round_trip() {
-        for s in [
-            SCHEMA_MACHINE_POSE,
-            SCHEMA_LEGS,
-            SCHEMA_PLATFORM_POSE,
-        ] {
+        for s in [SCHEMA_MACHINE_POSE, SCHEMA_LEGS, SCHEMA_PLATFORM_POSE] {
             let v: serde_json::Value = serde_json::from_str(s.text).expect(s.name);
             assert_eq!(v["title"], s.name);
         }

@@ -16,9 +16,9 @@ use serde::Serialize;
 use thiserror::Error;
 
 use super::messages::{
-    self, EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent,
-    SessionHeader, TracerSample, SCHEMA_ENV, SCHEMA_EVENT, SCHEMA_MACHINE, SCHEMA_PROBE,
-    SCHEMA_ROTARY, SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
+    self, EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
+    TracerSample, SCHEMA_ENV, SCHEMA_EVENT, SCHEMA_MACHINE, SCHEMA_PROBE, SCHEMA_ROTARY,
+    SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
 };
 use super::reader::RawMessage;
 
