@@ -188,6 +188,18 @@ fn malformed_table_settings_name_the_key() {
             vec!["hil.table_faults", "count from 1"],
         ),
         (
+            with_table(
+                "modbus_tcp",
+                "",
+                "[hil]\nemulate = true\n[hil.machine_faults]\nreconnect_after_s = -1.0\n",
+            )
+            .replace(
+                "id = \"tracer0\"\ndriver = \"sim\"",
+                "id = \"tracer0\"\ndriver = \"hpi3d\"",
+            ),
+            vec!["hil.machine_faults.reconnect_after_s", "seconds >= 0"],
+        ),
+        (
             ROTARY.replace(
                 "id = \"c\"\ndriver = \"sim\"",
                 "id = \"c\"\ndriver = \"modbus\"",

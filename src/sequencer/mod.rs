@@ -6,7 +6,9 @@
 //! and recorded as a `fault` event; lost frames (gaps in the tracer's `seq`) are recorded as
 //! `fault` events; a beam break stops the pass, waits for the beam, re-homes at point 0 (a new
 //! beam segment: `rehome` event) and repeats the pass from the first point whose window the
-//! break touched. Every sample is recorded throughout.
+//! break touched. Every sample is recorded throughout. A machine alarm is recorded, unlocked
+//! and the move commanded again; faults the drivers recovered from by themselves (CRC
+//! failures, reconnects) are recorded as `fault` events too.
 
 pub mod hexapod;
 mod kind_faults;
