@@ -5,13 +5,12 @@
 //! the virtual-time run (tests/rotary_run.rs), with and without injected faults.
 
 mod common;
-mod hil_config;
 
+use common::hil_rotary_config;
 use common::{assert_recovers_truth, run_with_truth};
 use geocal::method::Results;
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
-use hil_config::hil_rotary_config;
 
 fn faults<'a>(events: &'a [RunEvent], code: &str) -> Vec<(&'a str, &'a str)> {
     events

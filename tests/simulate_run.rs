@@ -5,14 +5,13 @@
 //! match the truth simulate writes, within what the noise model predicts.
 
 mod common;
-mod hil_config;
 
 use std::io::{BufRead, BufReader, Write};
 use std::process::{Command, Stdio};
 
 use common::assert_recovers_truth;
+use common::{driver_tables, hil_rotary_config, rotary_base};
 use geocal::method::Results;
-use hil_config::{driver_tables, hil_rotary_config, rotary_base};
 
 const GEOCAL: &str = env!("CARGO_BIN_EXE_geocal");
 

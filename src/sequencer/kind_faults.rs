@@ -1,5 +1,5 @@
-//! Fault handling shared by the sequencers of the probe_install and hexapod kinds: a timeout
-//! or protocol error is recorded as a `fault` event and retried `DEVICE_RETRIES` times.
+//! Fault handling shared by every sequencer: a timeout or protocol error is recorded as a
+//! `fault` event and retried `DEVICE_RETRIES` times (`retry_decision`); `EventLog` for kinds.
 
 use std::sync::Arc;
 
@@ -40,28 +40,43 @@ impl EventLog {
         error: DeviceError,
         attempt: &mut u32,
     ) -> Result<(), SequencerError> {
-        let (device, code) = match &error {
-            DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
-            DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
-            _ => return Err(error.into()),
-        };
-        *attempt += 1;
-        let retry = *attempt <= DEVICE_RETRIES;
-        self.fault(
-            &device,
-            code,
-            if retry {
-                format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
-            } else {
-                format!("{error} (giving up after {DEVICE_RETRIES} retries)")
-            },
-        );
-        if retry {
-            Ok(())
-        } else {
-            Err(error.into())
+        match retry_decision(&error, attempt) {
+            Some((event, true)) => {
+                self.event(event);
+                Ok(())
+            }
+            Some((event, false)) => {
+                self.event(event);
+                Err(error.into())
+            }
+            None => Err(error.into()),
         }
     }
+}
+
+/// The `fault` event of a failed device call that may be retried (a timeout or a protocol
+/// error) and whether to retry it (at most `DEVICE_RETRIES` times); None for other errors.
+pub(crate) fn retry_decision(error: &DeviceError, attempt: &mut u32) -> Option<(RunEvent, bool)> {
+    let (device, code) = match error {
+        DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
+        DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
+        _ => return None,
+    };
+    *attempt += 1;
+    let retry = *attempt <= DEVICE_RETRIES;
+    let message = if retry {
+        format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
+    } else {
+        format!("{error} (giving up after {DEVICE_RETRIES} retries)")
+    };
+    Some((
+        RunEvent::Fault {
+            device,
+            code: code.into(),
+            message,
+        },
+        retry,
+    ))
 }
 
 /// Call a device method, retrying timeouts and protocol errors with `fault` events.

@@ -309,26 +309,16 @@ impl<'a> Sequencer<'a> {
         error: DeviceError,
         attempt: &mut u32,
     ) -> Result<(), SequencerError> {
-        let (device, code) = match &error {
-            DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
-            DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
-            _ => return Err(error.into()),
-        };
-        *attempt += 1;
-        let retry = *attempt <= DEVICE_RETRIES;
-        self.event(RunEvent::Fault {
-            device,
-            code: code.into(),
-            message: if retry {
-                format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
-            } else {
-                format!("{error} (giving up after {DEVICE_RETRIES} retries)")
-            },
-        });
-        if retry {
-            Ok(())
-        } else {
-            Err(error.into())
+        match kind_faults::retry_decision(&error, attempt) {
+            Some((event, retry)) => {
+                self.event(event);
+                if retry {
+                    Ok(())
+                } else {
+                    Err(error.into())
+                }
+            }
+            None => Err(error.into()),
         }
     }
 

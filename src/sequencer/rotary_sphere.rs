@@ -58,9 +58,6 @@ pub struct SphereRunSummary {
     pub faults: u64,
 }
 
-/// Retries of a device call that timed out or hit a protocol error, before the run fails.
-const DEVICE_RETRIES: u32 = 5;
-
 pub struct SphereSequencer<'a> {
     plan: &'a SpherePlan,
     devices: SphereDevices,
@@ -136,9 +133,11 @@ impl<'a> SphereSequencer<'a> {
         error: DeviceError,
         attempt: &mut u32,
     ) -> Result<(), SphereRunError> {
-        let (device, code) = match &error {
-            DeviceError::Timeout { device, .. } => (device.clone(), "timeout"),
-            DeviceError::Protocol { device, .. } => (device.clone(), "protocol"),
+        if let Some((event, retry)) = super::kind_faults::retry_decision(&error, attempt) {
+            self.event(event);
+            return if retry { Ok(()) } else { Err(error.into()) };
+        }
+        match &error {
             DeviceError::Rejected { device, .. }
             | DeviceError::Disconnected { device, .. }
             | DeviceError::Alarm { device, .. } => {
@@ -149,26 +148,10 @@ impl<'a> SphereSequencer<'a> {
                     code: "failed".into(),
                     message,
                 });
-                return Err(error.into());
             }
-            DeviceError::EndOfStream { .. } => return Err(error.into()),
-        };
-        *attempt += 1;
-        let retry = *attempt <= DEVICE_RETRIES;
-        self.event(RunEvent::Fault {
-            device,
-            code: code.into(),
-            message: if retry {
-                format!("{error} (retry {attempt} of {DEVICE_RETRIES})")
-            } else {
-                format!("{error} (giving up after {DEVICE_RETRIES} retries)")
-            },
-        });
-        if retry {
-            Ok(())
-        } else {
-            Err(error.into())
+            _ => {}
         }
+        Err(error.into())
     }
 
     /// Turn the table to `commanded_rad` (a `rotation` event) and record its state until it
