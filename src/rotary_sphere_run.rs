@@ -15,10 +15,9 @@ use crate::config::rotary_sphere::{ProbeDriverKind, RotarySphereConfig, KIND};
 use crate::config::DriverKind;
 use crate::method::Results;
 use crate::plan::rotary_sphere::SpherePlan;
-use crate::run::{solve_file, RunOptions};
+use crate::run::RunOptions;
 use crate::sequencer::rotary_sphere::{ProbeArm, SphereDevices, SphereRunSummary, SphereSequencer};
 use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, SESSION_FORMAT};
-use crate::session::recorder::{Recorder, RecorderOptions};
 use crate::sim::rotary_sphere::{
     SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
 };
@@ -226,17 +225,10 @@ pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<
     if config.devices.rotary_table.driver == DriverKind::Sim {
         plan.poll_interval_s = 0.0;
     }
-    std::fs::create_dir_all(&options.out_dir)
-        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    let session_path = options.out_dir.join("session.mcap");
     let epoch_ns = system_now_ns();
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
+    let runtime = crate::run::run_runtime()?;
     let built = runtime.block_on(build(config, &plan, epoch_ns))?;
-    let recorder = Recorder::create(&session_path, RecorderOptions::default())
-        .with_context(|| format!("creating {}", session_path.display()))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
     let handle = recorder.handle();
     handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
     let bar = progress_bar(options.progress);
@@ -266,16 +258,9 @@ pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<
         let world = world
             .lock()
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
-        std::fs::write(
-            path,
-            serde_json::to_string_pretty(&world.export_truth(&plan))?,
-        )
-        .with_context(|| format!("writing truth to {}", path.display()))?;
+        crate::run::write_truth(path, &world.export_truth(&plan))?;
     }
-    let results = solve_file(&session_path, &options.settings)?;
-    let results_path = options.out_dir.join("results.json");
-    std::fs::write(&results_path, results.to_json_pretty())
-        .with_context(|| format!("writing {}", results_path.display()))?;
+    let (results, results_path) = crate::run::solve_and_write(&session_path, options)?;
     Ok(SphereRunOutput {
         session_path,
         results_path,

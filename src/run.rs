@@ -48,22 +48,15 @@ pub(crate) fn execute(
     mut continuation: Option<&mut Continuation>,
 ) -> anyhow::Result<RunOutput> {
     let plan = Plan::from_config(config);
-    std::fs::create_dir_all(&options.out_dir)
-        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    let session_path = options.out_dir.join(crate::resume::SESSION_FILE);
     let epoch_ns = continuation
         .as_ref()
         .map_or_else(system_now_ns, |c| c.epoch_ns(config));
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
+    let runtime = run_runtime()?;
     let built = runtime.block_on(crate::devices::build(config, &plan, epoch_ns))?;
     if let Some(c) = continuation.as_deref() {
         c.prepare_world(config, &built)?;
     }
-    let recorder = Recorder::create(&session_path, RecorderOptions::default())
-        .with_context(|| format!("creating {}", session_path.display()))?;
+    let (session_path, recorder) = create_session(&options.out_dir)?;
     let handle = recorder.handle();
     let resume_at = match continuation.as_deref_mut() {
         Some(c) => Some(c.record_start(&handle, built.clock.as_ref())),
@@ -108,21 +101,52 @@ pub(crate) fn execute(
         let world = world
             .lock()
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
-        let truth = world.truth(config, &plan);
-        std::fs::write(path, serde_json::to_string_pretty(&truth)?)
-            .with_context(|| format!("writing truth to {}", path.display()))?;
+        write_truth(path, &world.truth(config, &plan))?;
     }
 
-    let results = solve_file(&session_path, &options.settings)?;
-    let results_path = options.out_dir.join("results.json");
-    std::fs::write(&results_path, results.to_json_pretty())
-        .with_context(|| format!("writing {}", results_path.display()))?;
+    let (results, results_path) = solve_and_write(&session_path, options)?;
     Ok(RunOutput {
         session_path,
         results_path,
         summary,
         results,
     })
+}
+
+/// The single-threaded runtime a run's drivers, emulators and sequencer live on.
+pub(crate) fn run_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .context("starting the async runtime")
+}
+
+/// Create the output directory and the session file in it: (its path, its recorder).
+pub(crate) fn create_session(out_dir: &Path) -> anyhow::Result<(PathBuf, Recorder)> {
+    std::fs::create_dir_all(out_dir)
+        .with_context(|| format!("creating output directory {}", out_dir.display()))?;
+    let session_path = out_dir.join(crate::resume::SESSION_FILE);
+    let recorder = Recorder::create(&session_path, RecorderOptions::default())
+        .with_context(|| format!("creating {}", session_path.display()))?;
+    Ok((session_path, recorder))
+}
+
+/// Write a simulated world's truth as pretty JSON (`--truth`).
+pub(crate) fn write_truth<T: serde::Serialize>(path: &Path, truth: &T) -> anyhow::Result<()> {
+    std::fs::write(path, serde_json::to_string_pretty(truth)?)
+        .with_context(|| format!("writing truth to {}", path.display()))
+}
+
+/// Solve the finished session file exactly as `geocal solve` does; write results.json.
+pub(crate) fn solve_and_write(
+    session_path: &Path,
+    options: &RunOptions,
+) -> anyhow::Result<(Results, PathBuf)> {
+    let results = solve_file(session_path, &options.settings)?;
+    let results_path = options.out_dir.join("results.json");
+    std::fs::write(&results_path, results.to_json_pretty())
+        .with_context(|| format!("writing {}", results_path.display()))?;
+    Ok((results, results_path))
 }
 
 /// Read a session file and solve it with the method of its kind.

@@ -4,15 +4,12 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
-use anyhow::Context;
-
 use crate::clock::{system_now_ns, Clock, VirtualClock};
 use crate::config::hexapod::{HexapodConfig, KIND};
 use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
 use crate::run::{RunOptions, RunOutput};
 use crate::sequencer::hexapod::{HexapodDevices, HexapodSequencer};
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
-use crate::session::recorder::{Recorder, RecorderOptions};
 use crate::sim::hexapod::{HexapodWorld, SimHexapod, SimPoseSensor};
 
 /// The header: the hexapod device carries the design hinges (`design`), the solver's start.
@@ -66,9 +63,6 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
 
 pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
     let plan = HexapodPlan::from_config(config);
-    std::fs::create_dir_all(&options.out_dir)
-        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    let session_path = options.out_dir.join("session.mcap");
     let epoch_ns = system_now_ns();
     let clock = Arc::new(VirtualClock::new(epoch_ns));
     let world = Arc::new(Mutex::new(HexapodWorld::new(config, clock.clone())));
@@ -84,14 +78,10 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
             }) as Box<dyn geocal_drivers::PoseSensor>
         }),
     };
-    let recorder = Recorder::create(&session_path, RecorderOptions::default())
-        .with_context(|| format!("creating {}", session_path.display()))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
     let handle = recorder.handle();
     handle.session(&session_header(config, epoch_ns), clock.now_ns());
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
+    let runtime = crate::run::run_runtime()?;
     let mut progress = |_: u64, _: u64| {};
     let sequencer = HexapodSequencer::new(&plan, devices, handle, clock.clone());
     let summary = runtime.block_on(sequencer.run(&mut progress));
@@ -100,8 +90,7 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
             .lock()
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
             .truth();
-        std::fs::write(path, serde_json::to_string_pretty(&truth)?)
-            .with_context(|| format!("writing truth to {}", path.display()))?;
+        crate::run::write_truth(path, &truth)?;
     }
     super::finish_and_solve(recorder, summary, session_path, options)
 }

@@ -116,10 +116,7 @@ pub(crate) fn finish_and_solve(
         "run recorded to {}",
         session_path.display()
     );
-    let results = crate::run::solve_file(&session_path, &options.settings)?;
-    let results_path = options.out_dir.join("results.json");
-    std::fs::write(&results_path, results.to_json_pretty())
-        .with_context(|| format!("writing {}", results_path.display()))?;
+    let (results, results_path) = crate::run::solve_and_write(&session_path, options)?;
     Ok(RunOutput {
         session_path,
         results_path,

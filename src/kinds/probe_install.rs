@@ -4,15 +4,12 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
-use anyhow::Context;
-
 use crate::clock::{system_now_ns, Clock, VirtualClock};
 use crate::config::probe_install::{ProbeInstallConfig, KIND};
 use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
 use crate::run::{RunOptions, RunOutput};
 use crate::sequencer::probe_install::{ProbeInstallDevices, ProbeInstallSequencer};
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
-use crate::session::recorder::{Recorder, RecorderOptions};
 use crate::sim::probe_install::{ProbeInstallWorld, SimCmm, SimLaserProbe};
 
 pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHeader {
@@ -63,9 +60,6 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
 
 pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
     let plan = ProbeInstallPlan::from_config(config);
-    std::fs::create_dir_all(&options.out_dir)
-        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    let session_path = options.out_dir.join("session.mcap");
     let epoch_ns = system_now_ns();
     let clock = Arc::new(VirtualClock::new(epoch_ns));
     let world = Arc::new(Mutex::new(ProbeInstallWorld::new(config, clock.clone())));
@@ -79,14 +73,10 @@ pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<
             world: world.clone(),
         }),
     };
-    let recorder = Recorder::create(&session_path, RecorderOptions::default())
-        .with_context(|| format!("creating {}", session_path.display()))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
     let handle = recorder.handle();
     handle.session(&session_header(config, epoch_ns), clock.now_ns());
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .context("starting the async runtime")?;
+    let runtime = crate::run::run_runtime()?;
     let mut progress = |_: u64, _: u64| {};
     let sequencer = ProbeInstallSequencer::new(&plan, devices, handle, clock.clone());
     let summary = runtime.block_on(sequencer.run(&mut progress));
@@ -95,8 +85,7 @@ pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<
             .lock()
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
             .truth();
-        std::fs::write(path, serde_json::to_string_pretty(&truth)?)
-            .with_context(|| format!("writing truth to {}", path.display()))?;
+        crate::run::write_truth(path, &truth)?;
     }
     super::finish_and_solve(recorder, summary, session_path, options)
 }
