@@ -4,7 +4,7 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
-use crate::clock::{system_now_ns, Clock, VirtualClock};
+use crate::clock::{system_now_ns, VirtualClock};
 use crate::config::hexapod::{HexapodConfig, KIND};
 use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
 use crate::run::{RunOptions, RunOutput};
@@ -78,19 +78,19 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
             }) as Box<dyn geocal_drivers::PoseSensor>
         }),
     };
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
-    let handle = recorder.handle();
-    handle.session(&session_header(config, epoch_ns), clock.now_ns());
-    let runtime = crate::run::run_runtime()?;
-    let mut progress = |_: u64, _: u64| {};
-    let sequencer = HexapodSequencer::new(&plan, devices, handle, clock.clone());
-    let summary = runtime.block_on(sequencer.run(&mut progress));
-    if let Some(path) = &options.truth {
-        let truth = world
-            .lock()
-            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-            .truth();
-        crate::run::write_truth(path, &truth)?;
-    }
-    super::finish_and_solve(recorder, summary, session_path, options)
+    super::record_and_solve(
+        &session_header(config, epoch_ns),
+        clock.as_ref(),
+        options,
+        |handle| async {
+            let sequencer = HexapodSequencer::new(&plan, devices, handle, clock.clone());
+            sequencer.run(&mut |_: u64, _: u64| {}).await
+        },
+        || {
+            Ok(world
+                .lock()
+                .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+                .truth())
+        },
+    )
 }

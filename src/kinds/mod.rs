@@ -8,8 +8,11 @@ pub mod probe_install;
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use crate::clock::Clock;
 use crate::run::{RunOptions, RunOutput};
-use crate::session::messages::DeviceInfo;
+use crate::sequencer::{RunSummary, SequencerError};
+use crate::session::messages::{DeviceInfo, SessionHeader};
+use crate::session::recorder::RecorderHandle;
 
 /// The kind a configuration file declares when it is one of the kinds run here.
 pub fn own_kind(path: &Path) -> anyhow::Result<Option<&'static str>> {
@@ -96,6 +99,30 @@ pub(crate) fn device(
         compensated: None,
         extra,
     }
+}
+
+/// Record a simulated run of a kind and solve it: the session header, the sequencer's run
+/// (`run` is given the recorder) on a fresh runtime, the truth (`--truth`), then the file is
+/// finished and solved as `geocal solve` does.
+pub(crate) fn record_and_solve<Fut, T>(
+    header: &SessionHeader,
+    clock: &dyn Clock,
+    options: &RunOptions,
+    run: impl FnOnce(RecorderHandle) -> Fut,
+    truth: impl FnOnce() -> anyhow::Result<T>,
+) -> anyhow::Result<RunOutput>
+where
+    Fut: std::future::Future<Output = Result<RunSummary, SequencerError>>,
+    T: serde::Serialize,
+{
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let handle = recorder.handle();
+    handle.session(header, clock.now_ns());
+    let summary = crate::run::run_runtime()?.block_on(run(handle));
+    if let Some(path) = &options.truth {
+        crate::run::write_truth(path, &truth()?)?;
+    }
+    finish_and_solve(recorder, summary, session_path, options)
 }
 
 /// Finish the recording, keep the run's error if it failed, then solve the file as `geocal

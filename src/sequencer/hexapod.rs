@@ -31,7 +31,6 @@ pub struct HexapodSequencer<'a> {
     plan: &'a HexapodPlan,
     devices: HexapodDevices,
     log: EventLog,
-    start_ns: u64,
     summary: RunSummary,
 }
 
@@ -42,22 +41,12 @@ impl<'a> HexapodSequencer<'a> {
         recorder: RecorderHandle,
         clock: Arc<dyn Clock>,
     ) -> Self {
-        let start_ns = clock.now_ns();
         Self {
             plan,
             devices,
-            log: EventLog {
-                recorder,
-                clock,
-                faults: 0,
-            },
-            start_ns,
+            log: EventLog::new(recorder, clock),
             summary: RunSummary::default(),
         }
-    }
-
-    fn t_s(&self) -> f64 {
-        self.log.clock.now_ns().saturating_sub(self.start_ns) as f64 * 1e-9
     }
 
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
@@ -76,7 +65,7 @@ impl<'a> HexapodSequencer<'a> {
                 if queries > MAX_STATE_QUERIES {
                     return Err(SequencerError::NoArrival {
                         point: pose,
-                        waited_s: self.t_s(),
+                        waited_s: self.log.elapsed_s(),
                     });
                 }
             }

@@ -15,9 +15,26 @@ pub struct EventLog {
     pub recorder: RecorderHandle,
     pub clock: Arc<dyn Clock>,
     pub faults: u64,
+    /// Clock reading at the start of the run: the kind's topics count `t_s` from here.
+    pub start_ns: u64,
 }
 
 impl EventLog {
+    pub fn new(recorder: RecorderHandle, clock: Arc<dyn Clock>) -> Self {
+        let start_ns = clock.now_ns();
+        Self {
+            recorder,
+            clock,
+            faults: 0,
+            start_ns,
+        }
+    }
+
+    /// Seconds since the run started.
+    pub fn elapsed_s(&self) -> f64 {
+        self.clock.now_ns().saturating_sub(self.start_ns) as f64 * 1e-9
+    }
+
     pub fn event(&mut self, event: RunEvent) {
         if matches!(event, RunEvent::Fault { .. }) {
             self.faults += 1;

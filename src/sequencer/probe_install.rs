@@ -32,7 +32,6 @@ pub struct ProbeInstallSequencer<'a> {
     plan: &'a ProbeInstallPlan,
     devices: ProbeInstallDevices,
     log: EventLog,
-    start_ns: u64,
     seq: u64,
     summary: RunSummary,
 }
@@ -44,23 +43,13 @@ impl<'a> ProbeInstallSequencer<'a> {
         recorder: RecorderHandle,
         clock: Arc<dyn Clock>,
     ) -> Self {
-        let start_ns = clock.now_ns();
         Self {
             plan,
             devices,
-            log: EventLog {
-                recorder,
-                clock,
-                faults: 0,
-            },
-            start_ns,
+            log: EventLog::new(recorder, clock),
             seq: 0,
             summary: RunSummary::default(),
         }
-    }
-
-    fn t_s(&self) -> f64 {
-        self.log.clock.now_ns().saturating_sub(self.start_ns) as f64 * 1e-9
     }
 
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
@@ -119,12 +108,12 @@ impl<'a> ProbeInstallSequencer<'a> {
             if queries > MAX_STATE_QUERIES {
                 return Err(SequencerError::NoArrival {
                     point: self.summary.points_measured as usize,
-                    waited_s: self.t_s(),
+                    waited_s: self.log.elapsed_s(),
                 });
             }
         };
         let sample = MachinePoseSample {
-            t_s: self.t_s(),
+            t_s: self.log.elapsed_s(),
             commanded: commanded.clone(),
             reported,
         };
@@ -153,7 +142,7 @@ impl<'a> ProbeInstallSequencer<'a> {
         };
         let sample = ProbeSample {
             seq: self.seq,
-            t_s: self.t_s(),
+            t_s: self.log.elapsed_s(),
             value_m,
         };
         self.seq += 1;
