@@ -687,11 +687,8 @@ pub(crate) fn diagnose_data(
             None
         }
     };
-    let points_after = if accepted.is_empty() {
-        points_before
-            .as_ref()
-            .filter(|p| p.gap.p_value < options.alpha)
-            .map(|p| (p.gap.chi2_per_dof, p.gap.p_value))
+    let after_level = if accepted.is_empty() {
+        points_before.clone()
     } else {
         // From the lengths the final fit saw (the settling bias, if accepted, already off).
         let corrected: Vec<f64> = fit_data
@@ -700,12 +697,25 @@ pub(crate) fn diagnose_data(
             .zip(&final_fit.effect_m)
             .map(|(o, e)| o.length_m - e)
             .collect();
-        match points_level(data, &corrected, options.alpha) {
-            Ok((after, _)) => (after.gap.p_value < options.alpha)
-                .then_some((after.gap.chi2_per_dof, after.gap.p_value)),
-            Err(_) => None,
-        }
+        points_level(data, &corrected, options.alpha)
+            .ok()
+            .map(|(after, _)| after)
     };
+    // target_offset is tested at the points level (the lengths level cannot see it), after
+    // the lengths-level effects, with the same Bonferroni share as a lengths candidate.
+    let offset_test = after_level.as_ref().and_then(|p| p.target_offset.clone());
+    let offset_threshold = options.alpha / LIBRARY.len() as f64;
+    let offset_accepted = offset_test
+        .as_ref()
+        .is_some_and(|t| t.p_value < offset_threshold && t.bic_delta < 0.0);
+    let points_after = after_level.as_ref().and_then(|p| {
+        let (chi2, dof) = match (&offset_test, offset_accepted) {
+            (Some(t), true) => (t.chi2_after, t.dof_after),
+            _ => (p.gap.chi2, p.gap.dof),
+        };
+        let p_value = chi2_sf(chi2, dof as f64);
+        (p_value < options.alpha).then_some((chi2 / dof.max(1) as f64, p_value))
+    });
     if let Some((ratio, p)) = points_after {
         notes.push(format!(
             "points level after the selected effects: chi2/dof {ratio:.2} (p = {p:.1e}): the measured points depart from the quasi-rigid 21-error model (a local or non-rigid machine error, or an effect no candidate holds)"
@@ -730,8 +740,37 @@ pub(crate) fn diagnose_data(
         * solution.dof as f64
         / nobs as f64)
         .sqrt();
-    let selected: Vec<String> = accepted.iter().map(|m| m.kind.name().to_string()).collect();
+    let mut selected: Vec<String> = accepted.iter().map(|m| m.kind.name().to_string()).collect();
     let mut candidates: Vec<Candidate> = records.into_values().collect();
+    if let Some(t) = &offset_test {
+        if offset_accepted {
+            selected.push(EffectKind::TargetOffset.name().to_string());
+        }
+        candidates.push(Candidate {
+            effect: EffectKind::TargetOffset.name().to_string(),
+            params: t
+                .offsets_m
+                .iter()
+                .map(|(target, o)| (format!("{target}_offset_error_m"), serde_json::json!(o)))
+                .collect(),
+            rms_after_m: gap_after.rms_m,
+            heldout_rms_after_m: gap_after.heldout_rms_m,
+            bic_delta: t.bic_delta,
+            p_value: t.p_value,
+            round: accepted.len(),
+            df: t.df,
+            chi2_drop: t.chi2_drop,
+            status: if offset_accepted {
+                "selected (points level)".into()
+            } else {
+                format!(
+                    "rejected (points level): p {:.2e} against {offset_threshold:.2e}, BIC {:+.1}",
+                    t.p_value, t.bic_delta
+                )
+            },
+            confounded_with: Vec::new(),
+        });
+    }
     let rank_of = |c: &Candidate| {
         selected
             .iter()

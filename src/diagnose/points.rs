@@ -58,6 +58,91 @@ pub struct PointsLevel {
     /// Points failing the noise model, largest χ² first.
     #[serde(default)]
     pub departures: Vec<PointDeparture>,
+    /// The `target_offset` candidate at this level (plans with two or more targets).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_offset: Option<TargetOffsetTest>,
+}
+
+/// The `target_offset` candidate at the points level: a constant error in the offset of each
+/// reflector after the first shifts that target's points by a constant, which the quasi-rigid
+/// model cannot express (the lengths level cannot see it: every point is free there, and with
+/// one target the shift is the gauge's). Score test of the shifts projected off the model.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct TargetOffsetTest {
+    /// Identifiable shift parameters (projected rank) and the χ² drop when they are added.
+    pub df: usize,
+    pub chi2_drop: f64,
+    pub p_value: f64,
+    /// BIC change when added (negative: better).
+    pub bic_delta: f64,
+    /// χ² of the points level and its degrees of freedom with the shifts fitted.
+    pub chi2_after: f64,
+    pub dof_after: usize,
+    /// The fitted offset error of each target relative to the first (m).
+    pub offsets_m: BTreeMap<String, [f64; 3]>,
+}
+
+/// Score test of per-target constant shifts (targets after the first) against the points
+/// level's model `basis`, on the whitened residuals `r_w` (whitening factor `l`).
+fn target_offset_test(
+    info: &[(String, usize, [f64; 3])],
+    l: &DMatrix<f64>,
+    basis: &Basis,
+    r_w: &DVector<f64>,
+    chi2: f64,
+    dof: usize,
+) -> Option<TargetOffsetTest> {
+    let mut targets: Vec<&str> = info.iter().map(|i| i.0.as_str()).collect();
+    targets.sort_unstable();
+    targets.dedup();
+    let shifted = &targets[1..];
+    if shifted.is_empty() {
+        return None;
+    }
+    let rows = 3 * info.len();
+    let a = DMatrix::from_fn(rows, 3 * shifted.len(), |row, col| {
+        let same_target = shifted[col / 3] == info[row / 3].0;
+        if same_target && row % 3 == col % 3 {
+            1.0
+        } else {
+            0.0
+        }
+    });
+    let a_w = l.solve_lower_triangular(&a)?;
+    let q = basis.project_off(&a_w);
+    let mut qn = q.clone();
+    for mut col in qn.column_iter_mut() {
+        let n = col.norm();
+        if n > 0.0 {
+            col /= n;
+        }
+    }
+    let q_basis = Basis::new(&qn, RANK_TOL, 1.0);
+    let df = q_basis.rank();
+    if df == 0 {
+        return None;
+    }
+    let chi2_drop = (q_basis.u.transpose() * r_w).norm_squared();
+    let beta = q.clone().svd(true, true).solve(r_w, 1e-12).ok()?;
+    let offsets_m = shifted
+        .iter()
+        .enumerate()
+        .map(|(k, t)| {
+            (
+                t.to_string(),
+                [beta[3 * k], beta[3 * k + 1], beta[3 * k + 2]],
+            )
+        })
+        .collect();
+    Some(TargetOffsetTest {
+        df,
+        chi2_drop,
+        p_value: chi2_sf(chi2_drop, df as f64),
+        bic_delta: -chi2_drop + df as f64 * (rows as f64).ln(),
+        chi2_after: chi2 - chi2_drop,
+        dof_after: dof.saturating_sub(df),
+        offsets_m,
+    })
 }
 
 /// A pass point and its (target, plan point, nominal): what the group tests need of a point.
@@ -208,7 +293,15 @@ pub fn points_level(
     let meta: Vec<PointMeta> = pass_points.iter().zip(&info).collect();
     let out = test_groups(&e, &c, &meta, alpha, "");
     let departures = point_departures(&e, &c, &meta, alpha);
-    Ok((PointsLevel { gap, departures }, out))
+    let target_offset = target_offset_test(&info, &wd.l, &basis, &r_w, chi2, dof);
+    Ok((
+        PointsLevel {
+            gap,
+            departures,
+            target_offset,
+        },
+        out,
+    ))
 }
 
 /// Groups of rows of point residuals `e` (covariance `c`, point-major x, y, z), tested against
