@@ -47,17 +47,27 @@ const CASES: [(&str, &str); 12] = [
     ),
 ];
 
+/// Cases on the two-target plan (the points-level `target_offset` test needs two reflectors).
+const TWO_TARGET_CASES: [(&str, &str); 2] = [
+    ("none", ""),
+    (
+        "target_offset",
+        "target_offset = { enabled = true, size_m = 2e-5 }",
+    ),
+];
+
 fn main() {
     let seeds: u64 = std::env::args()
         .nth(1)
         .and_then(|s| s.parse().ok())
         .unwrap_or(10);
-    let base = common::diagnose_demo();
+    let one_target = common::diagnose_demo();
+    let two_targets = common::two_target_diagnose_demo();
     let names: Vec<&str> = std::iter::once("none")
         .chain(geocal::diagnose::effects::LIBRARY.iter().map(|k| k.name()))
         .collect();
     println!("rows: true effect; columns: first selected effect; {seeds} seeds each; 5 stations, 27 points, 2 passes");
-    print!("{:<22}", "");
+    print!("{:<26}", "");
     for n in &names {
         print!("{:>8}", &n[..n.len().min(7)]);
     }
@@ -66,7 +76,15 @@ fn main() {
         "top-1", "unexpl", "confd", "false", "z before", "z after"
     );
     let only = std::env::var("ONLY").ok();
-    for (truth, line) in CASES {
+    let cases = CASES
+        .iter()
+        .map(|&(truth, line)| (truth, line, &one_target, ""))
+        .chain(
+            TWO_TARGET_CASES
+                .iter()
+                .map(|&(truth, line)| (truth, line, &two_targets, " (2 targets)")),
+        );
+    for (truth, line, base, label) in cases {
         if only.as_deref().is_some_and(|o| o != truth) {
             continue;
         }
@@ -74,7 +92,7 @@ fn main() {
         let (mut top1, mut unexplained, mut confounded, mut false_sel) = (0, 0, 0, 0);
         let (mut before, mut after) = (0.0, 0.0);
         for seed in 0..seeds {
-            let d = common::run_and_diagnose(&common::with_effects(&base, 5000 + seed, line));
+            let d = common::run_and_diagnose(&common::with_effects(base, 5000 + seed, line));
             let first = d.selected.first().map_or("none", |s| s.as_str());
             if let Some(k) = names.iter().position(|n| *n == first) {
                 counts[k] += 1;
@@ -90,7 +108,7 @@ fn main() {
                 println!("{}", geocal::diagnose::text(&d));
             }
         }
-        print!("{truth:<22}");
+        print!("{:<26}", format!("{truth}{label}"));
         for c in counts {
             print!("{c:>8}");
         }

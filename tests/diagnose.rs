@@ -3,7 +3,7 @@
 
 mod common;
 
-use common::{diagnose_demo, run_and_diagnose, with_effects};
+use common::{diagnose_demo, run_and_diagnose, two_target_diagnose_demo, with_effects};
 
 /// Held-out gap after the selected effects, each held-out residual in units of its predicted
 /// standard deviation (noise floor plus prediction uncertainty), RMS over ~270 lengths: 1 when
@@ -144,13 +144,7 @@ fn target_offset_is_not_identifiable_from_lengths() {
 /// nothing named.
 #[test]
 fn target_offset_is_named_at_the_points_level_with_two_targets() {
-    let two_targets = diagnose_demo()
-        .replace(
-            "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }]",
-            "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }, { id = \"t1\", offset_m = [0.1, 0.05, -0.12] }]",
-        )
-        .replace("targets = [\"t0\"]", "targets = [\"t0\", \"t1\"]");
-    assert!(two_targets.contains("\"t1\"]"), "two targets configured");
+    let two_targets = two_target_diagnose_demo();
     let d = run_and_diagnose(&with_effects(
         &two_targets,
         22,

@@ -30,6 +30,19 @@ pub fn diagnose_demo() -> String {
         .replace("count = 4 }", "count = 3 }")
 }
 
+/// The diagnosis demo with a second reflector `t1` (0.1 m, 0.05 m beside `t0`), measured at
+/// every station after `t0`: the plan the points-level `target_offset` test needs.
+pub fn two_target_diagnose_demo() -> String {
+    let text = diagnose_demo()
+        .replace(
+            "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }]",
+            "targets = [{ id = \"t0\", offset_m = [0.0, 0.0, -0.12] }, { id = \"t1\", offset_m = [0.1, 0.05, -0.12] }]",
+        )
+        .replace("targets = [\"t0\"]", "targets = [\"t0\", \"t1\"]");
+    assert!(text.contains("[\"t0\", \"t1\"]"), "two targets configured");
+    text
+}
+
 /// Rigid motion (R, t) minimising sum |R a_i + t - b_i|^2 (Kabsch), written independently of
 /// the solver's own datum code so that the tests do not grade the solver with itself.
 pub fn rigid_fit(a: &[[f64; 3]], b: &[[f64; 3]]) -> (Rotation3<f64>, Vector3<f64>) {
