@@ -2,7 +2,6 @@
 //! GRBL emulators on ptys, the Modbus table on 127.0.0.1 or a pty. Used by `[hil]` runs
 //! (src/devices.rs) and by `geocal simulate` (src/simulate.rs).
 
-use std::path::PathBuf;
 use std::sync::Arc;
 
 use anyhow::Context;
@@ -32,24 +31,21 @@ pub struct Hosted {
     pub link_dir: LinkDir,
 }
 
-/// A private directory for the emulators' link paths, removed on drop.
-pub struct LinkDir(pub PathBuf);
+/// A private directory for the emulators' link paths, removed on drop (a unique name per
+/// run, so that runs in one process never share it).
+pub struct LinkDir(pub tempfile::TempDir);
 
 impl LinkDir {
     fn create() -> anyhow::Result<Self> {
-        let nanos = std::time::SystemTime::now()
-            .duration_since(std::time::UNIX_EPOCH)
-            .map_or(0, |d| d.subsec_nanos());
-        let dir = std::env::temp_dir().join(format!("geocal-{}-{nanos}", std::process::id()));
-        std::fs::create_dir_all(&dir)
-            .with_context(|| format!("creating the emulators' link directory {}", dir.display()))?;
-        Ok(Self(dir))
+        tempfile::Builder::new()
+            .prefix("geocal-emulators-")
+            .tempdir()
+            .map(Self)
+            .context("creating the emulators' link directory")
     }
-}
 
-impl Drop for LinkDir {
-    fn drop(&mut self) {
-        let _ = std::fs::remove_dir_all(&self.0);
+    pub fn path(&self) -> &std::path::Path {
+        self.0.path()
     }
 }
 
@@ -113,7 +109,7 @@ pub async fn host(
                     ..GrblEmulatorConfig::default()
                 },
                 Box::new(WorldMachineSink::new(world.clone(), time.clone())),
-                link_dir.0.join("grbl"),
+                link_dir.path().join("grbl"),
             )
             .context("starting the GRBL emulator on a pty")?,
         )

@@ -291,21 +291,22 @@ pub fn diagnose_file_with_twin(
     let recording = read_session(path).with_context(|| format!("reading {}", path.display()))?;
     let is_config = twin.extension().is_some_and(|e| e == "toml");
     let (twin_session, source) = if is_config {
-        // Without a directory given, a scratch one of this process, removed after reading.
-        let (dir, scratch) = match twin_dir {
-            Some(d) => (d.to_path_buf(), false),
-            None => (
-                std::env::temp_dir().join(format!("geocal-twin-{}", std::process::id())),
-                true,
-            ),
+        // Without a directory given, a scratch one, removed when `scratch` drops (after the read).
+        let scratch;
+        let dir: &Path = match twin_dir {
+            Some(d) => d,
+            None => {
+                scratch = tempfile::Builder::new()
+                    .prefix("geocal-twin-")
+                    .tempdir()
+                    .context("creating a scratch directory for the twin")?;
+                scratch.path()
+            }
         };
-        let twin_path = simulate_twin(&recording, twin, &dir);
+        let twin_path = simulate_twin(&recording, twin, dir);
         let session = twin_path.and_then(|p| {
             read_session(&p).with_context(|| format!("reading the twin {}", p.display()))
         });
-        if scratch {
-            let _ = std::fs::remove_dir_all(&dir);
-        }
         (session?, "config")
     } else {
         let session =
