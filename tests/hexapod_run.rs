@@ -3,6 +3,8 @@
 //! the two-stage result must never be worse than its start or plain LM, the replay of the
 //! recorded session must give identical results, and bad configurations clear errors.
 
+mod common;
+
 use std::path::Path;
 
 use geocal::method::Results;
@@ -139,7 +141,6 @@ fn commanded_poses_and_larger_errors() {
 
 #[test]
 fn bad_configs_give_file_key_and_expectation() {
-    let dir = tempfile::tempdir().expect("tempdir");
     let cases = [
         (
             "shrink = 0.5",
@@ -162,20 +163,5 @@ fn bad_configs_give_file_key_and_expectation() {
             "key `devices.hexapod.encoder_noise`",
         ),
     ];
-    for (from, to, want) in cases {
-        assert!(EXAMPLE.contains(from), "{from}");
-        let path = dir.path().join("bad.toml");
-        std::fs::write(&path, EXAMPLE.replacen(from, to, 1)).expect("write");
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
-            .args(["run", path.to_str().expect("utf-8 path"), "--out"])
-            .arg(dir.path().join("out"))
-            .output()
-            .expect("geocal runs");
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success());
-        assert!(
-            stderr.contains(&format!("{}: {want}", path.display())),
-            "{to}: {stderr}"
-        );
-    }
+    common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
 }

@@ -7,24 +7,10 @@
 mod common;
 
 use common::hil_rotary_config;
-use common::{assert_recovers_truth, run_with_truth};
+use common::{assert_recovers_truth, faults, run_with_truth};
 use geocal::method::Results;
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
-
-fn faults<'a>(events: &'a [RunEvent], code: &str) -> Vec<(&'a str, &'a str)> {
-    events
-        .iter()
-        .filter_map(|e| match e {
-            RunEvent::Fault {
-                device,
-                code: c,
-                message,
-            } if c == code => Some((device.as_str(), message.as_str())),
-            _ => None,
-        })
-        .collect()
-}
 
 /// Run, check the truth (points, stations, home distances; step angles within 3 sigma),
 /// return the session's events and header.

@@ -5,7 +5,7 @@
 
 mod common;
 
-use common::{assert_recovers_truth, hil_config, run_with_truth, HIL_FAULTS};
+use common::{assert_recovers_truth, faults, hil_config, run_with_truth, HIL_FAULTS};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 
@@ -15,20 +15,6 @@ fn events(session: &std::path::Path) -> Vec<RunEvent> {
         .events
         .into_iter()
         .map(|e| e.msg)
-        .collect()
-}
-
-fn faults<'a>(events: &'a [RunEvent], code: &str) -> Vec<(&'a str, &'a str)> {
-    events
-        .iter()
-        .filter_map(|e| match e {
-            RunEvent::Fault {
-                device,
-                code: c,
-                message,
-            } if c == code => Some((device.as_str(), message.as_str())),
-            _ => None,
-        })
         .collect()
 }
 

@@ -3,6 +3,8 @@
 //! uncertainties allow, the replay of the recorded session must give identical results, every
 //! raw reading must be in the session, and bad configurations must give clear errors.
 
+mod common;
+
 use std::path::Path;
 
 use geocal::method::Results;
@@ -149,7 +151,6 @@ fn out_of_range_readings_are_recorded_as_faults() {
 
 #[test]
 fn bad_configs_give_file_key_and_expectation() {
-    let dir = tempfile::tempdir().expect("tempdir");
     let cases = [
         (
             "cap_half_angle_rad = 0.6981317007977318",
@@ -172,20 +173,5 @@ fn bad_configs_give_file_key_and_expectation() {
             "key `devices.machine.driver`: driver \"grbl\" is not available for plan kind probe_install yet",
         ),
     ];
-    for (from, to, want) in cases {
-        assert!(EXAMPLE.contains(from), "{from}");
-        let path = dir.path().join("bad.toml");
-        std::fs::write(&path, EXAMPLE.replacen(from, to, 1)).expect("write");
-        let out = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
-            .args(["run", path.to_str().expect("utf-8 path"), "--out"])
-            .arg(dir.path().join("out"))
-            .output()
-            .expect("geocal runs");
-        let stderr = String::from_utf8_lossy(&out.stderr);
-        assert!(!out.status.success());
-        assert!(
-            stderr.contains(&format!("{}: {want}", path.display())),
-            "{to}: {stderr}"
-        );
-    }
+    common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
 }

@@ -143,11 +143,7 @@ pub struct HexapodSim {
 
 impl HexapodConfig {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        })?;
-        Self::parse(&text, path)
+        Self::parse(&super::kind_config::read(path)?, path)
     }
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {

@@ -1,5 +1,6 @@
-//! Strict parsing shared by the plan kinds with their own configuration layout
-//! (`probe_install`, `hexapod`): which kind a file declares, and serde errors as file/key/message.
+//! Strict parsing shared by every configuration layout (the core `Config` and the kinds with
+//! their own: `rotary_sphere`, `probe_install`, `hexapod`): which kind a file declares, and
+//! serde errors as file/key/message.
 
 use std::path::Path;
 
@@ -11,6 +12,14 @@ use super::ConfigError;
 pub fn declared_kind(text: &str) -> Option<String> {
     let value: toml::Table = text.parse().ok()?;
     value.get("kind")?.as_str().map(str::to_owned)
+}
+
+/// The text of a configuration file, or a `Read` error naming it.
+pub fn read(path: &Path) -> Result<String, ConfigError> {
+    std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
+        file: path.to_path_buf(),
+        source,
+    })
 }
 
 /// Parse `text` into `T`, rejecting unknown keys; errors name `file`, the key path and why.

@@ -431,26 +431,12 @@ impl Default for SimEnvironmentConfig {
 impl Config {
     /// Read, parse and validate a configuration file.
     pub fn load(path: &Path) -> Result<Config, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        })?;
-        Self::parse(&text, path)
+        Self::parse(&kind_config::read(path)?, path)
     }
 
     /// Parse and validate configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &Path) -> Result<Config, ConfigError> {
-        let parse_error = |key: String, message: String| ConfigError::Parse {
-            file: file.to_path_buf(),
-            key,
-            message,
-        };
-        let deserializer = toml::de::Deserializer::parse(text)
-            .map_err(|e| parse_error(String::from("(document)"), e.to_string()))?;
-        let config: Config = serde_path_to_error::deserialize(deserializer).map_err(|e| {
-            let key = e.path().to_string();
-            parse_error(key, e.into_inner().to_string().trim_end().to_string())
-        })?;
+        let config: Config = kind_config::parse_strict(text, file)?;
         validate(&config).map_err(|(key, message)| ConfigError::Invalid {
             file: file.to_path_buf(),
             key,

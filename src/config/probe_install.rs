@@ -159,11 +159,7 @@ pub struct ProbeInstallSim {
 
 impl ProbeInstallConfig {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        })?;
-        Self::parse(&text, path)
+        Self::parse(&super::kind_config::read(path)?, path)
     }
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {

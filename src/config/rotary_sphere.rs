@@ -11,10 +11,7 @@ pub const KIND: &str = "rotary_sphere";
 
 /// The `kind` of a configuration file, read before its schema is chosen (None when absent).
 pub fn peek_kind(path: &Path) -> Result<Option<String>, ConfigError> {
-    let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-        file: path.to_path_buf(),
-        source,
-    })?;
+    let text = super::kind_config::read(path)?;
     let value: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: path.to_path_buf(),
         key: "(document)".into(),
@@ -217,26 +214,12 @@ pub struct SphereHilConfig {
 
 impl RotarySphereConfig {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        let text = std::fs::read_to_string(path).map_err(|source| ConfigError::Read {
-            file: path.to_path_buf(),
-            source,
-        })?;
-        Self::parse(&text, path)
+        Self::parse(&super::kind_config::read(path)?, path)
     }
 
     /// Parse and validate configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {
-        let parse_error = |key: String, message: String| ConfigError::Parse {
-            file: file.to_path_buf(),
-            key,
-            message,
-        };
-        let deserializer = toml::de::Deserializer::parse(text)
-            .map_err(|e| parse_error(String::from("(document)"), e.to_string()))?;
-        let config: Self = serde_path_to_error::deserialize(deserializer).map_err(|e| {
-            let key = e.path().to_string();
-            parse_error(key, e.into_inner().to_string().trim_end().to_string())
-        })?;
+        let config: Self = super::kind_config::parse_strict(text, file)?;
         config
             .validate()
             .map_err(|(key, message)| ConfigError::Invalid {

@@ -404,3 +404,43 @@ pub fn hil_rotary_config(extra: &str) -> String {
         driver_tables("", "", "")
     )
 }
+
+/// `geocal run` (the binary `geocal`) on `example` with each (from, to) edit must fail, and
+/// its error must name the file and contain `want` (the key and what was expected).
+pub fn assert_run_rejects(geocal: &str, example: &str, cases: &[(&str, &str, &str)]) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    for &(from, to, want) in cases {
+        assert!(example.contains(from), "{from}");
+        let path = dir.path().join("bad.toml");
+        std::fs::write(&path, example.replacen(from, to, 1)).expect("write");
+        let out = std::process::Command::new(geocal)
+            .args(["run", path.to_str().expect("utf-8 path"), "--out"])
+            .arg(dir.path().join("out"))
+            .output()
+            .expect("geocal runs");
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(!out.status.success());
+        assert!(
+            stderr.contains(&format!("{}: {want}", path.display())),
+            "{to}: {stderr}"
+        );
+    }
+}
+
+/// The (device, message) of every `fault` event with `code`.
+pub fn faults<'a>(
+    events: &'a [geocal::session::messages::RunEvent],
+    code: &str,
+) -> Vec<(&'a str, &'a str)> {
+    events
+        .iter()
+        .filter_map(|e| match e {
+            geocal::session::messages::RunEvent::Fault {
+                device,
+                code: c,
+                message,
+            } if c == code => Some((device.as_str(), message.as_str())),
+            _ => None,
+        })
+        .collect()
+}
