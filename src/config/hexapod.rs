@@ -5,7 +5,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+use super::kind_config::{finite, invalid, non_negative, parse_strict, positive, sim_drivers_only};
 use super::{ConfigError, DriverKind};
 use crate::model::hexapod::{HexapodGeometry, LEGS};
 
@@ -185,21 +185,7 @@ impl HexapodConfig {
             non_negative(f, "devices.pose_sensor.noise_m", s.noise_m)?;
             non_negative(f, "devices.pose_sensor.noise_rad", s.noise_rad)?;
         }
-        for (key, d) in drivers {
-            if d != DriverKind::Sim {
-                return Err(invalid(
-                    f,
-                    key,
-                    format!(
-                        "driver \"{}\" is not available for plan kind {KIND} yet: expected \"sim\"",
-                        d.as_str()
-                    ),
-                ));
-            }
-        }
-        if self.sim.is_none() {
-            return Err(invalid(f, "sim", "the `sim` drivers need a [sim] table"));
-        }
+        sim_drivers_only(f, KIND, &drivers, self.sim.is_some())?;
         positive(f, "devices.hexapod.encoder_noise_m", h.encoder_noise_m)?;
         positive(f, "devices.hexapod.speed_m_s", h.speed_m_s)?;
         positive(

@@ -46,6 +46,32 @@ pub fn invalid(file: &Path, key: &str, message: impl Into<String>) -> ConfigErro
     }
 }
 
+/// The kinds whose devices are simulated only (so far): every driver must be `sim`, and the
+/// `[sim]` table must be there.
+pub fn sim_drivers_only(
+    file: &Path,
+    kind: &str,
+    drivers: &[(&str, super::DriverKind)],
+    has_sim: bool,
+) -> Result<(), ConfigError> {
+    for &(key, driver) in drivers {
+        if driver != super::DriverKind::Sim {
+            return Err(invalid(
+                file,
+                key,
+                format!(
+                    "driver \"{}\" is not available for plan kind {kind} yet: expected \"sim\"",
+                    driver.as_str()
+                ),
+            ));
+        }
+    }
+    if !has_sim {
+        return Err(invalid(file, "sim", "the `sim` drivers need a [sim] table"));
+    }
+    Ok(())
+}
+
 /// Checks that `value` is finite and positive, else an `Invalid` error.
 pub fn positive(file: &Path, key: &str, value: f64) -> Result<(), ConfigError> {
     if value.is_finite() && value > 0.0 {

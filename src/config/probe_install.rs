@@ -6,7 +6,7 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+use super::kind_config::{finite, invalid, non_negative, parse_strict, positive, sim_drivers_only};
 use super::{ConfigError, DriverKind};
 use crate::model::probe_install::InstallParams;
 
@@ -194,24 +194,15 @@ impl ProbeInstallConfig {
         }
         let m = &self.devices.machine;
         let p = &self.devices.probe;
-        for (key, d) in [
-            ("devices.machine.driver", m.driver),
-            ("devices.probe.driver", p.driver),
-        ] {
-            if d != DriverKind::Sim {
-                return Err(invalid(
-                    f,
-                    key,
-                    format!(
-                        "driver \"{}\" is not available for plan kind {KIND} yet: expected \"sim\"",
-                        d.as_str()
-                    ),
-                ));
-            }
-        }
-        if self.sim.is_none() {
-            return Err(invalid(f, "sim", "the `sim` drivers need a [sim] table"));
-        }
+        sim_drivers_only(
+            f,
+            KIND,
+            &[
+                ("devices.machine.driver", m.driver),
+                ("devices.probe.driver", p.driver),
+            ],
+            self.sim.is_some(),
+        )?;
         positive(f, "devices.machine.feed_m_s", m.feed_m_s)?;
         positive(
             f,
