@@ -57,6 +57,61 @@ async fn wait_idle(m: &mut impl Machine, within: Duration) -> (AxisPositions, bo
     }
 }
 
+/// A 5-axis controller (X, Y, Z, A, B): rotary targets in radians go out in degrees, come
+/// back in the status report and count for arrival; a 3-axis controller refuses A words.
+#[tokio::test]
+async fn rotary_axes_a_and_b() {
+    let sink = KinematicSink::with_rotary([0.0; 3], vec![0.0, 0.0]);
+    let mut emu =
+        GrblEmulator::spawn_pty(GrblEmulatorConfig::default(), Box::new(sink)).expect("pty");
+    let five = GrblConfig {
+        axis_letters: [("x", 'X'), ("y", 'Y'), ("z", 'Z'), ("a", 'A'), ("b", 'B')]
+            .into_iter()
+            .map(|(n, l)| (n.to_string(), l))
+            .collect(),
+        feed_m_s: 1.0,
+        ..cfg()
+    };
+    let mut m = GrblMachine::from_stream(emu.take_slave().expect("slave"), five).expect("driver");
+    let goal: AxisPositions = [
+        ("x", 0.01),
+        ("y", 0.0),
+        ("z", -0.02),
+        ("a", std::f64::consts::FRAC_PI_2),
+        ("b", -0.3),
+    ]
+    .into_iter()
+    .map(|(n, v)| (n.to_string(), v))
+    .collect();
+    m.start_move(&goal).await.expect("move accepted");
+    let (pos, saw_moving) = wait_idle(&mut m, Duration::from_secs(3)).await;
+    // 90° and 17° at 60000 mm/min (a degree counts as a mm): about 0.1 s.
+    assert!(saw_moving);
+    assert!(
+        (pos["a"] - std::f64::consts::FRAC_PI_2).abs() < 2e-7,
+        "{pos:?}"
+    );
+    assert!((pos["b"] + 0.3).abs() < 2e-7, "{pos:?}");
+    assert!((pos["z"] + 0.02).abs() < 1e-7, "{pos:?}");
+    let status = m.last_status().expect("status");
+    assert_eq!(status.rotary_rad.len(), 2);
+
+    // The 3-axis emulator answers error:20 to an A word; the driver rejects the move.
+    let (_emu3, mut m3) = rig(
+        GrblEmulatorConfig::default(),
+        GrblConfig {
+            axis_letters: [("x", 'X'), ("a", 'A')]
+                .into_iter()
+                .map(|(n, l)| (n.to_string(), l))
+                .collect(),
+            ..cfg()
+        },
+    );
+    let a_only: AxisPositions = [("a".to_string(), 0.1)].into_iter().collect();
+    let err = m3.start_move(&a_only).await.expect_err("no A axis");
+    assert!(err.to_string().contains("error:20"), "{err}");
+}
+
 #[tokio::test]
 async fn move_and_arrival() {
     let (_emu, mut m) = rig(GrblEmulatorConfig::default(), cfg());

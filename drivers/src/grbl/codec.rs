@@ -1,5 +1,6 @@
 //! GRBL wire codec, sans-I/O: line framing of a byte stream, parsing of controller and host
-//! lines, and formatting of host lines. Millimetres exist only here; everything outside is SI.
+//! lines, and formatting of host lines. Millimetres and degrees exist only here; everything
+//! outside is SI (linear axes X, Y, Z in metres, rotary axes A, B, C in radians).
 
 use std::fmt::Write as _;
 
@@ -7,6 +8,27 @@ use std::fmt::Write as _;
 const MM_PER_M: f64 = 1000.0;
 /// Seconds per minute: feeds are mm/min on the wire.
 const S_PER_MIN: f64 = 60.0;
+/// Degrees per radian: rotary axes (A, B, C) are in degrees on the wire.
+const DEG_PER_RAD: f64 = 180.0 / std::f64::consts::PI;
+
+/// Linear axis letters, in the order of a position report.
+pub const LINEAR_LETTERS: [char; 3] = ['X', 'Y', 'Z'];
+/// Rotary axis letters (GRBL derivatives with more axes, e.g. grblHAL), reported after X, Y, Z.
+pub const ROTARY_LETTERS: [char; 3] = ['A', 'B', 'C'];
+
+/// True for a rotary axis letter (A, B, C; either case).
+pub fn is_rotary(letter: char) -> bool {
+    ROTARY_LETTERS.contains(&letter.to_ascii_uppercase())
+}
+
+/// Wire units of a value in SI: mm for a linear axis, degrees for a rotary one.
+fn to_wire(letter: char, si: f64) -> f64 {
+    if is_rotary(letter) {
+        si * DEG_PER_RAD
+    } else {
+        si * MM_PER_M
+    }
+}
 
 /// Real-time status query: answered at once, never followed by a newline.
 pub const STATUS_QUERY: u8 = b'?';
@@ -178,9 +200,13 @@ pub struct StatusReport {
     pub substate: Option<u8>,
     /// X, Y, Z position, metres.
     pub position_m: [f64; 3],
+    /// Rotary axes reported after X, Y, Z (A, then B, then C), radians; empty on 3 axes.
+    pub rotary_rad: Vec<f64>,
     pub frame: PosFrame,
     /// Work coordinate offset if this report carried one (`WCO:`), metres.
     pub wco_m: Option<[f64; 3]>,
+    /// Rotary part of that offset (A, B, C), radians; empty when absent.
+    pub wco_rotary_rad: Vec<f64>,
     /// Current feed if reported (`FS:` or `F:`), m/s.
     pub feed_m_s: Option<f64>,
 }
@@ -248,12 +274,15 @@ pub fn parse_controller_line(line: &str) -> Result<ControllerLine, ParseError> {
     Ok(ControllerLine::Other(t.to_string()))
 }
 
-fn parse_xyz_mm(line: &str, s: &str) -> Result<[f64; 3], ParseError> {
-    let mut out = [0.0; 3];
+/// A position list `x,y,z[,a[,b[,c]]]`: X, Y, Z in mm to metres, rotary axes in degrees to
+/// radians.
+fn parse_axes(line: &str, s: &str) -> Result<([f64; 3], Vec<f64>), ParseError> {
+    let mut linear = [0.0; 3];
+    let mut rotary = Vec::new();
     let mut n = 0;
     for part in s.split(',') {
-        if n >= 3 {
-            return Err(perr(line, "more than 3 axes in a position"));
+        if n >= LINEAR_LETTERS.len() + ROTARY_LETTERS.len() {
+            return Err(perr(line, "more than 6 axes in a position"));
         }
         let v: f64 = part
             .trim()
@@ -262,13 +291,20 @@ fn parse_xyz_mm(line: &str, s: &str) -> Result<[f64; 3], ParseError> {
         if !v.is_finite() {
             return Err(perr(line, "non-finite position"));
         }
-        out[n] = v / MM_PER_M;
+        if n < 3 {
+            linear[n] = v / MM_PER_M;
+        } else {
+            rotary.push(v / DEG_PER_RAD);
+        }
         n += 1;
     }
-    if n != 3 {
-        return Err(perr(line, "expected 3 axes in a position"));
+    if n < 3 {
+        return Err(perr(
+            line,
+            "expected at least 3 axes (X, Y, Z) in a position",
+        ));
     }
-    Ok(out)
+    Ok((linear, rotary))
 }
 
 fn parse_status(line: &str) -> Result<StatusReport, ParseError> {
@@ -288,15 +324,15 @@ fn parse_status(line: &str) -> Result<StatusReport, ParseError> {
     let state = GrblState::parse(state_name)
         .ok_or_else(|| perr(line, format!("unknown state {state_name:?}")))?;
     let mut pos = None;
-    let mut wco_m = None;
+    let mut wco = None;
     let mut feed_m_s = None;
     for f in fields {
         if let Some(v) = f.strip_prefix("MPos:") {
-            pos = Some((parse_xyz_mm(line, v)?, PosFrame::Machine));
+            pos = Some((parse_axes(line, v)?, PosFrame::Machine));
         } else if let Some(v) = f.strip_prefix("WPos:") {
-            pos = Some((parse_xyz_mm(line, v)?, PosFrame::Work));
+            pos = Some((parse_axes(line, v)?, PosFrame::Work));
         } else if let Some(v) = f.strip_prefix("WCO:") {
-            wco_m = Some(parse_xyz_mm(line, v)?);
+            wco = Some(parse_axes(line, v)?);
         } else if let Some(v) = f.strip_prefix("FS:").or_else(|| f.strip_prefix("F:")) {
             let feed_mm_min: f64 = v
                 .split(',')
@@ -308,13 +344,19 @@ fn parse_status(line: &str) -> Result<StatusReport, ParseError> {
         }
         // Other fields (Bf, Ln, Pn, Ov, A) carry nothing geocal uses.
     }
-    let (position_m, frame) = pos.ok_or_else(|| perr(line, "no MPos or WPos"))?;
+    let ((position_m, rotary_rad), frame) = pos.ok_or_else(|| perr(line, "no MPos or WPos"))?;
+    let (wco_m, wco_rotary_rad) = match wco {
+        Some((w, r)) => (Some(w), r),
+        None => (None, Vec::new()),
+    };
     Ok(StatusReport {
         state,
         substate,
         position_m,
+        rotary_rad,
         frame,
         wco_m,
+        wco_rotary_rad,
         feed_m_s,
     })
 }
@@ -330,28 +372,25 @@ pub fn format_status(report: &StatusReport) -> String {
         PosFrame::Machine => "MPos",
         PosFrame::Work => "WPos",
     };
-    let p = report.position_m;
-    let _ = write!(
-        s,
-        "|{tag}:{:.4},{:.4},{:.4}",
-        p[0] * MM_PER_M,
-        p[1] * MM_PER_M,
-        p[2] * MM_PER_M
-    );
+    let _ = write!(s, "|{tag}:");
+    write_axes(&mut s, &report.position_m, &report.rotary_rad);
     if let Some(feed) = report.feed_m_s {
         let _ = write!(s, "|FS:{:.0},0", feed * MM_PER_M * S_PER_MIN);
     }
     if let Some(w) = report.wco_m {
-        let _ = write!(
-            s,
-            "|WCO:{:.4},{:.4},{:.4}",
-            w[0] * MM_PER_M,
-            w[1] * MM_PER_M,
-            w[2] * MM_PER_M
-        );
+        s.push_str("|WCO:");
+        write_axes(&mut s, &w, &report.wco_rotary_rad);
     }
     s.push_str(">\r\n");
     s
+}
+
+/// `x,y,z[,a,...]`: mm with 4 decimals (0.1 µm), degrees with 5 (0.17 µrad).
+fn write_axes(s: &mut String, linear_m: &[f64; 3], rotary_rad: &[f64]) {
+    let linear = linear_m.iter().map(|v| format!("{:.4}", v * MM_PER_M));
+    let rotary = rotary_rad.iter().map(|v| format!("{:.5}", v * DEG_PER_RAD));
+    let all: Vec<String> = linear.chain(rotary).collect();
+    s.push_str(&all.join(","));
 }
 
 /// The power-up / reset banner, with CRLF.
@@ -405,13 +444,21 @@ pub fn alarm_text(code: u16) -> &'static str {
     }
 }
 
-/// Format an absolute linear move `G90 G1 X.. Y.. F..`, LF-terminated as GRBL senders do. Positions in metres become mm with 4 decimals (0.1 µm); feed m/s becomes mm/min.
+/// Format an absolute linear move `G90 G1 X.. Y.. A.. F..`, LF-terminated as GRBL senders do.
+/// Positions in metres become mm with 4 decimals (0.1 µm); rotary targets (A, B, C) in radians
+/// become degrees with 5 decimals (0.17 µrad); feed m/s becomes mm/min.
 ///
-/// `axes` pairs a G-code axis letter with its target in metres.
+/// `axes` pairs a G-code axis letter with its target in SI (metres, or radians for A, B, C).
 pub fn format_move(axes: &[(char, f64)], feed_m_s: f64) -> String {
     let mut s = String::from("G90 G1");
-    for &(letter, pos_m) in axes {
-        let _ = write!(s, " {}{:.4}", letter.to_ascii_uppercase(), pos_m * MM_PER_M);
+    for &(letter, pos) in axes {
+        let decimals = if is_rotary(letter) { 5 } else { 4 };
+        let _ = write!(
+            s,
+            " {}{:.decimals$}",
+            letter.to_ascii_uppercase(),
+            to_wire(letter, pos)
+        );
     }
     let _ = writeln!(s, " F{:.3}", feed_m_s * MM_PER_M * S_PER_MIN);
     s
@@ -432,6 +479,8 @@ pub enum Block {
     Move {
         rapid: bool,
         target_m: [Option<f64>; 3],
+        /// Targets of the rotary axes A, B, C named (radians, absolute).
+        target_rad: [Option<f64>; 3],
         feed_m_s: Option<f64>,
     },
     Dwell {
@@ -443,7 +492,8 @@ pub enum Block {
     System(String),
 }
 
-/// Parse one host line of the G-code subset geocal emits (G0, G1, G4, G90, G21, F, XYZ, P).
+/// Parse one host line of the G-code subset geocal emits (G0, G1, G4, G90, G21, F, XYZ, ABC,
+/// P).
 /// Errors carry the GRBL error code a controller would answer with.
 pub fn parse_block(line: &str) -> Result<Block, u16> {
     let t = line.trim();
@@ -470,6 +520,7 @@ pub fn parse_block(line: &str) -> Result<Block, u16> {
     let mut i = 0;
     let mut motion: Option<u8> = None; // 0, 1 or 4
     let mut target_m = [None; 3];
+    let mut target_rad = [None; 3];
     let mut feed_m_s = None;
     let mut p_value = None;
     while i < bytes.len() {
@@ -512,6 +563,13 @@ pub fn parse_block(line: &str) -> Result<Block, u16> {
                 }
                 target_m[k] = Some(value / MM_PER_M);
             }
+            b'A' | b'B' | b'C' => {
+                let k = (letter - b'A') as usize;
+                if target_rad[k].is_some() {
+                    return Err(25);
+                }
+                target_rad[k] = Some(value / DEG_PER_RAD);
+            }
             b'F' => {
                 if feed_m_s.is_some() {
                     return Err(25);
@@ -531,7 +589,7 @@ pub fn parse_block(line: &str) -> Result<Block, u16> {
             _ => return Err(20),
         }
     }
-    let has_axes = target_m.iter().any(Option::is_some);
+    let has_axes = target_m.iter().chain(&target_rad).any(Option::is_some);
     match motion {
         None if has_axes => Err(33), // geocal always names the motion mode
         None => Ok(Block::Empty),
@@ -555,6 +613,7 @@ pub fn parse_block(line: &str) -> Result<Block, u16> {
             Ok(Block::Move {
                 rapid: m == 0,
                 target_m,
+                target_rad,
                 feed_m_s,
             })
         }
@@ -648,6 +707,49 @@ mod tests {
     }
 
     #[test]
+    fn rotary_axes_are_degrees_on_the_wire_and_radians_inside() {
+        let half_pi = std::f64::consts::FRAC_PI_2;
+        let line = format_move(&[('X', 0.1), ('A', half_pi), ('b', -0.25 * half_pi)], 0.01);
+        assert_eq!(line, "G90 G1 X100.0000 A90.00000 B-22.50000 F600.000\n");
+        let Ok(Block::Move {
+            target_m,
+            target_rad,
+            ..
+        }) = parse_block(line.trim_end())
+        else {
+            panic!("did not parse back: {line}");
+        };
+        assert_eq!(target_m, [Some(0.1), None, None]);
+        assert!((target_rad[0].unwrap_or(0.0) - half_pi).abs() < 1e-12);
+        assert!((target_rad[1].unwrap_or(0.0) + 0.25 * half_pi).abs() < 1e-12);
+        assert_eq!(target_rad[2], None);
+        assert_eq!(parse_block("G1 A1 A2"), Err(25));
+        assert!(matches!(parse_block("G1 C-3.5"), Ok(Block::Move { .. })));
+
+        let Ok(ControllerLine::Status(s)) = parse_controller_line(
+            "<Idle|MPos:1.0000,2.0000,-3.0000,90.00000,-45.00000|FS:0,0|WCO:0,0,0,1.0,0>",
+        ) else {
+            panic!("not a status");
+        };
+        assert_eq!(s.position_m, [0.001, 0.002, -0.003]);
+        assert_eq!(s.rotary_rad.len(), 2);
+        assert!((s.rotary_rad[0] - half_pi).abs() < 1e-12);
+        assert!((s.rotary_rad[1] + 0.5 * half_pi).abs() < 1e-12);
+        assert_eq!(s.wco_m, Some([0.0; 3]));
+        assert!((s.wco_rotary_rad[0] - 1f64.to_radians()).abs() < 1e-15);
+        // Format and parse back: the 5 decimals of a degree keep 0.2 µrad.
+        let again = format_status(&s);
+        let Ok(ControllerLine::Status(t)) = parse_controller_line(again.trim_end()) else {
+            panic!("{again}");
+        };
+        for (a, b) in s.rotary_rad.iter().zip(&t.rotary_rad) {
+            assert!((a - b).abs() < 2e-7);
+        }
+        assert!(parse_controller_line("<Idle|MPos:1,2>").is_err());
+        assert!(parse_controller_line("<Idle|MPos:1,2,3,4,5,6,7>").is_err());
+    }
+
+    #[test]
     fn parses_blocks_with_grbl_codes() {
         assert_eq!(parse_block("G4 P0.25"), Ok(Block::Dwell { dwell_s: 0.25 }));
         assert_eq!(parse_block("G1 X1 F"), Err(2));
@@ -679,6 +781,8 @@ mod tests {
                 state,
                 substate,
                 position_m,
+                rotary_rad: Vec::new(),
+                wco_rotary_rad: Vec::new(),
                 frame: if work {
                     PosFrame::Work
                 } else {
@@ -750,7 +854,7 @@ mod tests {
             let framed = f.push(line.as_bytes());
             prop_assert_eq!(framed.len(), 1);
             let Framed::Line(l) = &framed[0] else { panic!("not a line") };
-            let Ok(Block::Move { rapid, target_m, feed_m_s }) = parse_block(l) else {
+            let Ok(Block::Move { rapid, target_m, feed_m_s, .. }) = parse_block(l) else {
                 panic!("did not parse back: {l}")
             };
             prop_assert!(!rapid);

@@ -17,8 +17,11 @@ use super::codec::{
 use crate::serial::check_seconds;
 use crate::traits::{AxisPositions, DeviceError, LinkFault, Machine, MachineState};
 
-/// G-code axis letters in the order GRBL reports positions.
-const LETTERS: [char; 3] = ['X', 'Y', 'Z'];
+/// G-code axis letters in the order GRBL reports positions: X, Y, Z (metres), then the rotary
+/// axes A, B, C (radians inside, degrees on the wire) of controllers with more axes.
+const LETTERS: [char; 6] = ['X', 'Y', 'Z', 'A', 'B', 'C'];
+/// Axes a driver tracks (linear then rotary).
+const N_AXES: usize = LETTERS.len();
 
 /// How a GRBL controller is reached and judged. Lives in the machine's TOML config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -48,7 +51,10 @@ pub struct GrblConfig {
     /// commanded axis, metres.
     #[serde(default = "default_tolerance_m")]
     pub position_tolerance_m: f64,
-    /// geocal axis name -> GRBL axis letter (`X`, `Y` or `Z`).
+    /// The same for rotary axes (A, B, C), radians (default 2e-5 rad, about GRBL's 0.001°).
+    #[serde(default = "default_tolerance_rad")]
+    pub position_tolerance_rad: f64,
+    /// geocal axis name -> GRBL axis letter (`X`, `Y`, `Z`, or the rotary `A`, `B`, `C`).
     #[serde(default = "default_axis_letters")]
     pub axis_letters: BTreeMap<String, char>,
     /// After the port is lost (read/write error, hang-up), keep trying to reopen `port` for
@@ -82,6 +88,9 @@ fn default_feed_m_s() -> f64 {
 fn default_tolerance_m() -> f64 {
     1e-6
 }
+fn default_tolerance_rad() -> f64 {
+    2e-5
+}
 fn default_axis_letters() -> BTreeMap<String, char> {
     [("x", 'X'), ("y", 'Y'), ("z", 'Z')]
         .into_iter()
@@ -100,6 +109,7 @@ impl Default for GrblConfig {
             status_interval_s: default_status_interval_s(),
             feed_m_s: default_feed_m_s(),
             position_tolerance_m: default_tolerance_m(),
+            position_tolerance_rad: default_tolerance_rad(),
             axis_letters: default_axis_letters(),
             reconnect_timeout_s: default_reconnect_timeout_s(),
         }
@@ -129,6 +139,12 @@ impl GrblConfig {
                 self.position_tolerance_m
             )));
         }
+        if !(self.position_tolerance_rad.is_finite() && self.position_tolerance_rad >= 0.0) {
+            return Err(bad(format!(
+                "position_tolerance_rad must be >= 0, got {}",
+                self.position_tolerance_rad
+            )));
+        }
         Ok(())
     }
 }
@@ -139,12 +155,15 @@ pub struct GrblMachine<S> {
     io: S,
     framer: LineFramer,
     lines: VecDeque<String>,
-    /// geocal axis name -> index into X, Y, Z.
+    /// geocal axis name -> index into `LETTERS`.
     axis_index: BTreeMap<String, usize>,
-    /// Last commanded absolute target per GRBL axis, metres (work coordinates).
-    commanded_m: [Option<f64>; 3],
+    /// Last commanded absolute target per GRBL axis in `LETTERS` order, metres or radians
+    /// (work coordinates).
+    commanded: [Option<f64>; N_AXES],
     /// Work coordinate offset, metres; GRBL sends it only now and then.
     wco_m: [f64; 3],
+    /// Its rotary part (A, B, C), radians.
+    wco_rotary_rad: Vec<f64>,
     last_status: Option<StatusReport>,
     last_query: Option<Instant>,
     version: Option<String>,
@@ -179,14 +198,14 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
     pub fn from_stream(io: S, cfg: GrblConfig) -> Result<Self, DeviceError> {
         cfg.validate()?;
         let mut axis_index = BTreeMap::new();
-        let mut used = [false; 3];
+        let mut used = [false; N_AXES];
         for (name, letter) in &cfg.axis_letters {
             let k = LETTERS
                 .iter()
                 .position(|l| l.eq_ignore_ascii_case(letter))
                 .ok_or_else(|| DeviceError::Protocol {
                     device: cfg.id.clone(),
-                    message: format!("axis {name:?}: letter {letter:?} is not X, Y or Z"),
+                    message: format!("axis {name:?}: letter {letter:?} is not X, Y, Z, A, B or C"),
                 })?;
             if used[k] {
                 return Err(DeviceError::Protocol {
@@ -203,8 +222,9 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
             framer: LineFramer::new(MAX_LINE_BYTES),
             lines: VecDeque::new(),
             axis_index,
-            commanded_m: [None; 3],
+            commanded: [None; N_AXES],
             wco_m: [0.0; 3],
+            wco_rotary_rad: Vec::new(),
             last_status: None,
             last_query: None,
             version: None,
@@ -277,6 +297,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
                     ControllerLine::Status(s) => {
                         if let Some(w) = s.wco_m {
                             self.wco_m = w;
+                            self.wco_rotary_rad = s.wco_rotary_rad.clone();
                         }
                         self.last_status = Some(s.clone());
                     }
@@ -428,7 +449,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
 
     async fn start_move_once(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
         let mut axes = Vec::new();
-        let mut next = self.commanded_m;
+        let mut next = self.commanded;
         for (name, &pos_m) in target {
             let k = *self
                 .axis_index
@@ -446,15 +467,15 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         axes.sort_by_key(|&(k, _)| k);
         let words: Vec<(char, f64)> = axes.iter().map(|&(k, p)| (LETTERS[k], p)).collect();
         let line = format_move(&words, self.cfg.feed_m_s);
-        let before = self.commanded_m;
+        let before = self.commanded;
         // Judge arrival against the new target from now on: if the `ok` is lost the line
         // most likely ran, and an old status must not count as arrival.
-        self.commanded_m = next;
+        self.commanded = next;
         self.last_status = None;
         self.last_move = Some(line.clone());
         match self.send_line(&line, self.cfg.ack_timeout_s).await {
             Err(e @ DeviceError::Rejected { .. }) => {
-                self.commanded_m = before;
+                self.commanded = before;
                 Err(e)
             }
             r => r,
@@ -525,7 +546,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
     /// target, since the controller forgets what it was doing.
     pub async fn soft_reset(&mut self) -> Result<(), DeviceError> {
         self.write_all(&[SOFT_RESET]).await?;
-        self.commanded_m = [None; 3];
+        self.commanded = [None; N_AXES];
         self.last_status = None;
         self.framer.clear();
         self.lines.clear();
@@ -566,20 +587,46 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         if s.state == GrblState::Alarm {
             return Err(self.alarm(self.last_alarm.unwrap_or(0), " (status Alarm)"));
         }
-        let work_m: [f64; 3] = match s.frame {
-            PosFrame::Work => s.position_m,
-            PosFrame::Machine => std::array::from_fn(|k| s.position_m[k] - self.wco_m[k]),
+        // Work position per axis in `LETTERS` order; None for a rotary axis not reported.
+        let machine_offset = |k: usize| match s.frame {
+            PosFrame::Work => 0.0,
+            PosFrame::Machine if k < 3 => self.wco_m[k],
+            PosFrame::Machine => self.wco_rotary_rad.get(k - 3).copied().unwrap_or(0.0),
         };
-        let arrived = self
-            .commanded_m
-            .iter()
-            .zip(work_m)
-            .all(|(c, p)| c.is_none_or(|c| (c - p).abs() <= self.cfg.position_tolerance_m));
+        let work: [Option<f64>; N_AXES] = std::array::from_fn(|k| {
+            let reported = if k < 3 {
+                Some(s.position_m[k])
+            } else {
+                s.rotary_rad.get(k - 3).copied()
+            };
+            reported.map(|v| v - machine_offset(k))
+        });
+        if let Some((name, &k)) = self.axis_index.iter().find(|(_, &k)| work[k].is_none()) {
+            return Err(DeviceError::Protocol {
+                device: self.cfg.id.clone(),
+                message: format!(
+                    "the status report has no axis {} (axis {name:?}): the controller reports {} axes",
+                    LETTERS[k],
+                    3 + s.rotary_rad.len()
+                ),
+            });
+        }
+        let tolerance = |k: usize| {
+            if k < 3 {
+                self.cfg.position_tolerance_m
+            } else {
+                self.cfg.position_tolerance_rad
+            }
+        };
+        let arrived =
+            self.commanded.iter().enumerate().all(|(k, c)| {
+                c.is_none_or(|c| work[k].is_some_and(|p| (c - p).abs() <= tolerance(k)))
+            });
         if s.state == GrblState::Idle && arrived {
             let position = self
                 .axis_index
                 .iter()
-                .map(|(name, &k)| (name.clone(), work_m[k]))
+                .filter_map(|(name, &k)| work[k].map(|v| (name.clone(), v)))
                 .collect();
             Ok(MachineState::Idle { position })
         } else {

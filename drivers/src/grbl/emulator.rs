@@ -27,61 +27,123 @@ const TICK: Duration = Duration::from_millis(2);
 /// The machine behind the emulated controller: it is told what was commanded and asked
 /// where the axes are. The core's simulated world implements it; `KinematicSink` is a
 /// simple stand-in. Times are seconds since the emulator started; positions are X, Y, Z in
-/// metres (machine coordinates).
+/// metres (machine coordinates). A machine with rotary axes (A, then B, then C) says how many
+/// (`rotary_axes`) and takes and reports them in radians through the `_rotary` methods; the
+/// defaults describe a 3-axis machine.
 pub trait MachineSink: Send {
     /// A move to `axes_m` at `feed_m_s` was accepted at `t_s`.
     fn commanded(&mut self, axes_m: [f64; 3], feed_m_s: f64, t_s: f64);
     /// Axis positions at `t_s`, and whether the axes are still moving.
     fn position(&mut self, t_s: f64) -> ([f64; 3], bool);
+    /// Rotary axes this machine has (0 to 3: A, B, C); the controller reports them after
+    /// X, Y, Z and answers `error:20` to words of axes it does not have.
+    fn rotary_axes(&self) -> usize {
+        0
+    }
+    /// A move that may turn the rotary axes: `rotary_rad` has `rotary_axes()` targets.
+    fn commanded_rotary(&mut self, axes_m: [f64; 3], rotary_rad: &[f64], feed_m_s: f64, t_s: f64) {
+        let _ = rotary_rad;
+        self.commanded(axes_m, feed_m_s, t_s);
+    }
+    /// Rotary axis positions at `t_s`, radians (`rotary_axes()` of them).
+    fn rotary_position(&mut self, t_s: f64) -> Vec<f64> {
+        let _ = t_s;
+        Vec::new()
+    }
 }
 
-/// Straight-line moves at constant speed (no acceleration), arriving exactly on target.
+/// Straight-line moves at constant speed (no acceleration), arriving exactly on target. With
+/// rotary axes the feed applies to the combined move as in GRBL, a degree counting as a mm.
 #[derive(Debug, Clone)]
 pub struct KinematicSink {
     from_m: [f64; 3],
     to_m: [f64; 3],
+    from_rad: Vec<f64>,
+    to_rad: Vec<f64>,
     t0_s: f64,
     duration_s: f64,
 }
 
 impl KinematicSink {
     pub fn new(start_m: [f64; 3]) -> Self {
+        Self::with_rotary(start_m, Vec::new())
+    }
+
+    /// A machine with rotary axes (A, B, C in order) starting at `start_rad`.
+    pub fn with_rotary(start_m: [f64; 3], start_rad: Vec<f64>) -> Self {
         Self {
             from_m: start_m,
             to_m: start_m,
+            from_rad: start_rad.clone(),
+            to_rad: start_rad,
             t0_s: 0.0,
             duration_s: 0.0,
         }
+    }
+
+    fn fraction(&self, t_s: f64) -> Option<f64> {
+        let dt = t_s - self.t0_s;
+        (dt < self.duration_s).then(|| (dt / self.duration_s).max(0.0))
     }
 }
 
 impl MachineSink for KinematicSink {
     fn commanded(&mut self, axes_m: [f64; 3], feed_m_s: f64, t_s: f64) {
+        let rotary = self.rotary_position(t_s);
+        self.commanded_rotary(axes_m, &rotary, feed_m_s, t_s);
+    }
+
+    fn position(&mut self, t_s: f64) -> ([f64; 3], bool) {
+        match self.fraction(t_s) {
+            None => (self.to_m, false),
+            Some(f) => (
+                std::array::from_fn(|k| self.from_m[k] + f * (self.to_m[k] - self.from_m[k])),
+                true,
+            ),
+        }
+    }
+
+    fn rotary_axes(&self) -> usize {
+        self.to_rad.len()
+    }
+
+    fn commanded_rotary(&mut self, axes_m: [f64; 3], rotary_rad: &[f64], feed_m_s: f64, t_s: f64) {
         let (here, _) = self.position(t_s);
-        let dist_m = (0..3)
-            .map(|k| (axes_m[k] - here[k]).powi(2))
-            .sum::<f64>()
-            .sqrt();
+        let here_rad = self.rotary_position(t_s);
+        // GRBL's feed is along the vector of all axes in wire units: mm and degrees.
+        let linear_mm2: f64 = (0..3).map(|k| ((axes_m[k] - here[k]) * 1e3).powi(2)).sum();
+        let rotary_deg2: f64 = here_rad
+            .iter()
+            .zip(rotary_rad)
+            .map(|(a, b)| (b - a).to_degrees().powi(2))
+            .sum();
+        let dist_mm = (linear_mm2 + rotary_deg2).sqrt();
         self.from_m = here;
         self.to_m = axes_m;
+        self.to_rad = here_rad
+            .iter()
+            .enumerate()
+            .map(|(k, &r)| rotary_rad.get(k).copied().unwrap_or(r))
+            .collect();
+        self.from_rad = here_rad;
         self.t0_s = t_s;
         self.duration_s = if feed_m_s > 0.0 {
-            dist_m / feed_m_s
+            dist_mm * 1e-3 / feed_m_s
         } else {
             0.0
         };
     }
 
-    fn position(&mut self, t_s: f64) -> ([f64; 3], bool) {
-        let dt = t_s - self.t0_s;
-        if dt >= self.duration_s {
-            return (self.to_m, false);
+    fn rotary_position(&mut self, t_s: f64) -> Vec<f64> {
+        match self.fraction(t_s) {
+            None => self.to_rad.clone(),
+            Some(f) => self
+                .from_rad
+                .iter()
+                .zip(&self.to_rad)
+                .map(|(a, b)| a + f * (b - a))
+                .collect(),
         }
-        let f = (dt / self.duration_s).max(0.0);
-        (
-            std::array::from_fn(|k| self.from_m[k] + f * (self.to_m[k] - self.from_m[k])),
-            true,
-        )
     }
 }
 
@@ -290,12 +352,15 @@ impl Controller {
         } else {
             GrblState::Idle
         };
+        let rotary_rad = self.sink.rotary_position(t_s);
         let report = StatusReport {
             state,
             substate: None,
             position_m: pos,
+            rotary_rad,
             frame: PosFrame::Machine,
             wco_m: None,
+            wco_rotary_rad: Vec::new(),
             feed_m_s: Some(if moving {
                 self.feed_m_s.unwrap_or(0.0)
             } else {
@@ -359,11 +424,16 @@ impl Controller {
         Action::Continue
     }
 
+    /// Stop the axes where they are (commanding the current position).
+    fn stop(&mut self, t_s: f64) {
+        let (here, _) = self.sink.position(t_s);
+        let rotary = self.sink.rotary_position(t_s);
+        self.sink.commanded_rotary(here, &rotary, 0.0, t_s);
+    }
+
     fn reset(&mut self, t_s: f64) {
         GrblEmulatorStats::bump(&self.stats.resets);
-        let (here, _) = self.sink.position(t_s);
-        // Commanding the current position stops the axes where they are.
-        self.sink.commanded(here, 0.0, t_s);
+        self.stop(t_s);
         self.queue.clear();
         self.dwell = None;
         self.alarm = None;
@@ -374,7 +444,7 @@ impl Controller {
 
     /// Abort the motion under way with the injected alarm once its time has come.
     fn injected_alarm(&mut self, t_s: f64) {
-        let (here, moving) = self.sink.position(t_s);
+        let (_, moving) = self.sink.position(t_s);
         if let Some(at) = self.cfg.faults.alarm_at_s {
             if !self.timed_alarm_done && t_s >= at && moving && self.alarm_pending_s.is_none() {
                 self.timed_alarm_done = true;
@@ -386,7 +456,7 @@ impl Controller {
         }
         self.alarm_pending_s = None;
         // A hard stop where the axes are; queued lines are discarded.
-        self.sink.commanded(here, 0.0, t_s);
+        self.stop(t_s);
         self.queue.clear();
         self.dwell = None;
         let code = self.cfg.faults.alarm_code;
@@ -397,8 +467,7 @@ impl Controller {
 
     /// The port was reopened: the controller resets (as on DTR), motion stops, queue gone.
     fn reconnected(&mut self, t_s: f64) {
-        let (here, _) = self.sink.position(t_s);
-        self.sink.commanded(here, 0.0, t_s);
+        self.stop(t_s);
         self.queue.clear();
         self.dwell = None;
         self.alarm = None;
@@ -446,15 +515,30 @@ impl Controller {
                     self.dwell = Some((t_s + dwell_s, drop_ok));
                     return;
                 }
+                Ok(Block::Move { target_rad, .. })
+                    if target_rad[self.sink.rotary_axes().min(3)..]
+                        .iter()
+                        .any(Option::is_some) =>
+                {
+                    // A word of an axis this controller does not have.
+                    self.error(20)
+                }
                 Ok(Block::Move {
                     rapid,
                     target_m,
+                    target_rad,
                     feed_m_s,
                 }) => {
                     if let Some(f) = feed_m_s {
                         self.feed_m_s = Some(f);
                     }
                     let target: [f64; 3] = std::array::from_fn(|k| target_m[k].unwrap_or(here[k]));
+                    let rotary_here = self.sink.rotary_position(t_s);
+                    let rotary: Vec<f64> = rotary_here
+                        .iter()
+                        .enumerate()
+                        .map(|(k, &r)| target_rad.get(k).copied().flatten().unwrap_or(r))
+                        .collect();
                     let within = (0..3).all(|k| {
                         target[k] >= self.cfg.travel_min_m[k]
                             && target[k] <= self.cfg.travel_max_m[k]
@@ -473,7 +557,11 @@ impl Controller {
                         Some(_) if !within => self.error(15),
                         Some(f) => {
                             GrblEmulatorStats::bump(&self.stats.moves);
-                            self.sink.commanded(target, f, t_s);
+                            if rotary.is_empty() {
+                                self.sink.commanded(target, f, t_s);
+                            } else {
+                                self.sink.commanded_rotary(target, &rotary, f, t_s);
+                            }
                             self.ok(drop_ok);
                             if self.cfg.faults.alarm_at_line == Some(q_line_no) {
                                 self.alarm_pending_s = Some(t_s + self.cfg.faults.alarm_after_s);
