@@ -1,6 +1,7 @@
 //! Hosting the configured device emulators backed by the simulated world: the HPI-3D and
 //! GRBL emulators on ptys, the Modbus table on 127.0.0.1 or a pty. Used by `[hil]` runs
-//! (src/devices.rs) and by `geocal simulate` (src/simulate.rs).
+//! (src/devices.rs) and by `geocal simulate` (src/simulate.rs); the ASCII probe emulator with
+//! its driver for the kinds that read a probe (`host_ascii_probe`).
 
 use std::sync::Arc;
 
@@ -36,7 +37,7 @@ pub struct Hosted {
 pub struct LinkDir(pub tempfile::TempDir);
 
 impl LinkDir {
-    fn create() -> anyhow::Result<Self> {
+    pub(crate) fn create() -> anyhow::Result<Self> {
         tempfile::Builder::new()
             .prefix("geocal-emulators-")
             .tempdir()
@@ -142,4 +143,36 @@ pub async fn host(
         table,
         link_dir,
     })
+}
+
+/// The ASCII probe emulator on a pty, answering `cfg`'s command in its default reply format
+/// with values from `source` and injecting `faults`, and the real driver (`cfg`, port taken
+/// from the pty) connected to it. Must run inside the tokio runtime that will serve them.
+pub fn host_ascii_probe(
+    cfg: &geocal_drivers::probe::ProbeConfig,
+    faults: &geocal_drivers::probe::ProbeFaults,
+    source: Box<dyn geocal_drivers::probe::ProbeSource>,
+) -> anyhow::Result<(
+    geocal_drivers::probe::ProbeEmulator,
+    geocal_drivers::probe::AsciiProbe<SerialStream>,
+)> {
+    use geocal_drivers::probe::{AsciiProbe, ProbeEmulator, ProbeEmulatorConfig};
+    let mut cfg = cfg.clone();
+    let mut emu = ProbeEmulator::spawn_pty(
+        ProbeEmulatorConfig {
+            command: cfg.command.trim().to_string(),
+            scale_to_m: cfg.scale_to_m,
+            faults: faults.clone(),
+            ..ProbeEmulatorConfig::default()
+        },
+        source,
+    )
+    .context("starting the probe emulator on a pty")?;
+    cfg.port = emu.slave_path().unwrap_or_default().to_string();
+    tracing::info!("probe emulator on {}", cfg.port);
+    let port = emu
+        .take_slave()
+        .context("the probe emulator's pty has no slave end")?;
+    let driver = AsciiProbe::from_stream(port, cfg)?;
+    Ok((emu, driver))
 }

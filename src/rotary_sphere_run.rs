@@ -7,7 +7,7 @@ use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
 use async_trait::async_trait;
-use geocal_drivers::probe::{AsciiProbe, ProbeConfig, ProbeEmulator, ProbeEmulatorConfig};
+use geocal_drivers::probe::{AsciiProbe, ProbeConfig, ProbeEmulator};
 use geocal_drivers::{DeviceError, Probe, RotaryTable};
 
 use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
@@ -119,30 +119,17 @@ async fn build(
             world: w.clone(),
         }),
         (ProbeDriverKind::Ascii, Some(w)) if emulate => {
-            let mut cfg = probe_config(config);
             let source_world = w.clone();
             let source = move |_t_s: f64| source_world.lock().ok()?.read_probe();
-            let mut emu = ProbeEmulator::spawn_pty(
-                ProbeEmulatorConfig {
-                    command: cfg.command.trim().to_string(),
-                    scale_to_m: cfg.scale_to_m,
-                    faults: config
-                        .hil
-                        .as_ref()
-                        .map(|h| h.probe_faults.clone())
-                        .unwrap_or_default(),
-                    ..ProbeEmulatorConfig::default()
-                },
-                Box::new(source),
-            )
-            .context("starting the probe emulator on a pty")?;
-            cfg.port = emu.slave_path().unwrap_or_default().to_string();
-            tracing::info!("probe emulator on {}", cfg.port);
-            let port = emu
-                .take_slave()
-                .context("the probe emulator's pty has no slave end")?;
+            let faults = config
+                .hil
+                .as_ref()
+                .map(|h| h.probe_faults.clone())
+                .unwrap_or_default();
+            let (emu, driver) =
+                crate::hosting::host_ascii_probe(&probe_config(config), &faults, Box::new(source))?;
             emulator = Some(emu);
-            Box::new(AsciiProbe::from_stream(port, cfg)?)
+            Box::new(driver)
         }
         (ProbeDriverKind::Ascii, _) => {
             let cfg = probe_config(config);

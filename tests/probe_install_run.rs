@@ -168,10 +168,70 @@ fn bad_configs_give_file_key_and_expectation() {
             "key `devices.machine.feed_ms`: TOML parse error",
         ),
         (
-            "driver = \"sim\"\nfeed_m_s",
-            "driver = \"grbl\"\nfeed_m_s",
-            "key `devices.machine.driver`: driver \"grbl\" is not available for plan kind probe_install yet",
+            "driver = \"sim\"                 # or \"grbl\"",
+            "driver = \"hpi3d\" #",
+            "key `devices.machine.driver`: expected \"sim\" or \"grbl\"",
+        ),
+        (
+            "driver = \"sim\"                 # or \"ascii\"",
+            "driver = \"laser\" #",
+            "key `devices.probe.driver`: unknown variant `laser`, expected `sim` or `ascii`",
+        ),
+        (
+            "driver = \"sim\"                 # or \"grbl\"",
+            "driver = \"grbl\" #",
+            "key `devices.probe.driver`: expected \"ascii\" like devices.machine.driver = \"grbl\"",
+        ),
+        (
+            "kind = \"probe_install\"",
+            "kind = \"probe_install\"\n[hil]\nemulate = true",
+            "key `hil.emulate`: emulation serves the GRBL controller and the ASCII probe",
         ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
+    // Real drivers: each needs its port table (unless emulated), and the tables are strict.
+    let real = EXAMPLE
+        .replace(
+            "driver = \"sim\"                 # or \"grbl\"",
+            "driver = \"grbl\" #",
+        )
+        .replace(
+            "driver = \"sim\"                 # or \"ascii\"",
+            "driver = \"ascii\" #",
+        );
+    let cases = [
+        (
+            "[devices.probe]",
+            "[devices.probe]",
+            "key `devices.machine.grbl`: driver \"grbl\" needs [devices.machine.grbl] with at least `port`",
+        ),
+        (
+            "[devices.probe]",
+            "[devices.machine.grbl]\nbaud = 115200\n[devices.probe]",
+            "key `devices.machine.grbl`: missing field `port`",
+        ),
+        (
+            "[devices.probe]",
+            "[devices.machine.grbl]\nport = \"/dev/null\"\naxis_letters = { x = \"X\", y = \"Y\", z = \"Z\", a = \"Q\" }\n[devices.probe]",
+            "key `devices.machine.grbl.axis_letters.a`: expected a distinct axis letter X, Y, Z, A, B or C",
+        ),
+    ];
+    common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), &real, &cases);
+    let real = real.replace(
+        "[devices.probe]",
+        "[devices.machine.grbl]\nport = \"/dev/null\"\n[devices.probe]",
+    );
+    let cases = [
+        (
+            "[plan]",
+            "[plan]",
+            "key `devices.probe.ascii`: driver \"ascii\" needs [devices.probe.ascii] with at least `port`",
+        ),
+        (
+            "[plan]",
+            "[devices.probe.ascii]\nport = \"/dev/null\"\nscale_to_m = 0.0\n[plan]",
+            "key `devices.probe.ascii`: scale to metres must be finite and non-zero",
+        ),
+    ];
+    common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), &real, &cases);
 }

@@ -146,3 +146,38 @@ async fn no_reconnect_without_a_path_or_when_disabled() {
     assert!(matches!(err, DeviceError::Disconnected { .. }), "{err}");
     assert!(err.to_string().contains("could not reopen"), "{err}");
 }
+
+/// An alarm that strikes after the move already ended (between commands) is not lost in the
+/// driver's drain: the next move reports it as `DeviceError::Alarm` instead of being sent into
+/// the locked controller (which would answer `error:9`); after `$X` the move runs.
+#[tokio::test]
+async fn alarm_between_commands_is_reported_by_the_next_move() {
+    let mut emu = GrblEmulator::spawn_pty(
+        GrblEmulatorConfig {
+            faults: GrblFaults {
+                alarm_at_line: Some(1),
+                alarm_after_s: 0.1,
+                alarm_code: 1,
+                ..GrblFaults::default()
+            },
+            ..GrblEmulatorConfig::default()
+        },
+        Box::new(KinematicSink::new([0.0; 3])),
+    )
+    .expect("pty");
+    let mut m = GrblMachine::from_stream(emu.take_slave().expect("slave"), cfg()).expect("driver");
+    // 0.1 mm at 50 mm/s: arrived after 2 ms, long before the alarm.
+    m.start_move(&target(0.0001)).await.expect("move 1");
+    settle(&mut m).await.expect("arrives");
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let err = m
+        .start_move(&target(0.0002))
+        .await
+        .expect_err("the alarm comes first");
+    assert!(matches!(err, DeviceError::Alarm { code: 1, .. }), "{err}");
+    assert_eq!(emu.stats().errors_sent.load(Ordering::Relaxed), 0);
+    m.unlock().await.expect("unlock");
+    m.start_move(&target(0.0002)).await.expect("move 2");
+    let at = settle(&mut m).await.expect("arrives");
+    assert!((at["x"] - 0.0002).abs() < 1e-7);
+}

@@ -6,9 +6,14 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive, sim_drivers_only};
+use geocal_drivers::grbl::{GrblConfig, GrblFaults};
+use geocal_drivers::probe::{ProbeConfig, ProbeFaults};
+
+use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+pub use super::rotary_sphere::ProbeDriverKind;
 use super::{ConfigError, DriverKind};
 use crate::model::probe_install::InstallParams;
+use crate::plan::probe_install::CMM_AXES;
 
 pub const KIND: &str = "probe_install";
 
@@ -20,9 +25,34 @@ pub struct ProbeInstallConfig {
     pub machine: CmmConfig,
     pub devices: ProbeInstallDevices,
     pub plan: ProbeInstallPlan,
-    /// The simulated world; required when a device uses the `sim` driver.
+    /// The simulated world; required when a device uses the `sim` driver or under `[hil]`.
     #[serde(default)]
     pub sim: Option<ProbeInstallSim>,
+    /// Hardware-in-the-loop: the GRBL and ASCII probe emulators on ptys, backed by `[sim]`.
+    #[serde(default)]
+    pub hil: Option<ProbeInstallHil>,
+}
+
+/// `[hil]` of a `probe_install` run: geocal hosts the GRBL controller emulator (5 axes) and the
+/// ASCII probe emulator on pseudo-terminals, backed by the simulated world, and the real
+/// drivers (`grbl`, `ascii`) talk to them in real time.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeInstallHil {
+    /// Host the emulators (true) or talk to the real devices at their ports (false, the same
+    /// as leaving `[hil]` out).
+    #[serde(default = "yes")]
+    pub emulate: bool,
+    /// Faults the GRBL emulator injects (`geocal_drivers::grbl::GrblFaults`).
+    #[serde(default)]
+    pub machine_faults: GrblFaults,
+    /// Faults the probe emulator injects (`geocal_drivers::probe::ProbeFaults`).
+    #[serde(default)]
+    pub probe_faults: ProbeFaults,
+}
+
+fn yes() -> bool {
+    true
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -48,21 +78,39 @@ pub struct CmmDeviceConfig {
     pub driver: DriverKind,
     /// Path feed of the linear axes, m/s.
     pub feed_m_s: f64,
-    /// Speed of the rotary axes A and B, rad/s.
+    /// Speed of the rotary axes A and B, rad/s (of the simulated CMM).
     pub rotary_speed_rad_s: f64,
+    /// `[devices.machine.grbl]`: the GRBL driver's settings (`geocal_drivers::grbl::GrblConfig`:
+    /// `port`, `ack_timeout_s`, `status_interval_s`, `axis_letters`, ...; driver `grbl`). `id` and
+    /// `feed_m_s` come from `[devices.machine]`; axes `a` and `b` map to `A` and `B` unless set.
+    #[serde(default)]
+    pub grbl: Option<GrblConfig>,
+    /// Pause between two state polls of a real (or emulated) machine, seconds.
+    #[serde(default = "default_poll_interval")]
+    pub poll_interval_s: f64,
+}
+
+fn default_poll_interval() -> f64 {
+    0.01
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct LaserProbeConfig {
     pub id: String,
-    pub driver: DriverKind,
+    /// `sim` or `ascii` (a line-oriented request/response displacement sensor).
+    pub driver: ProbeDriverKind,
     /// Standard deviation of one reading, metres.
     pub noise_m: f64,
     /// Measuring range of the probe [low, high], metres from its zero point.
     pub range_m: [f64; 2],
     /// Time between readings, seconds.
     pub reading_period_s: f64,
+    /// `[devices.probe.ascii]`: the ASCII driver's settings (`geocal_drivers::probe::ProbeConfig`:
+    /// `port`, `command`, `value_pattern`, `error_pattern`, `scale_to_m`, `timeout_s`, ...;
+    /// driver `ascii`). `id` comes from `[devices.probe]`.
+    #[serde(default)]
+    pub ascii: Option<ProbeConfig>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -157,7 +205,193 @@ pub struct ProbeInstallSim {
     pub sphere_centre_m: f64,
 }
 
+/// What a driver's settings check says, without the device id it prefixes.
+fn driver_message(e: geocal_drivers::DeviceError) -> String {
+    use geocal_drivers::DeviceError::{Protocol, Rejected};
+    match e {
+        Protocol { message, .. } | Rejected { message, .. } => message,
+        other => other.to_string(),
+    }
+}
+
 impl ProbeInstallConfig {
+    /// True when the run hosts its own emulators (`[hil] emulate = true`).
+    pub fn emulated(&self) -> bool {
+        self.hil.as_ref().is_some_and(|h| h.emulate)
+    }
+
+    /// True when both devices are the simulated ones (a run in virtual time).
+    pub fn all_sim(&self) -> bool {
+        self.devices.machine.driver == DriverKind::Sim
+            && self.devices.probe.driver == ProbeDriverKind::Sim
+    }
+
+    /// The GRBL driver's settings: `[devices.machine.grbl]` (defaults when emulated and left
+    /// out) with `id` and `feed_m_s` from `[devices.machine]`, and axes `a`, `b` mapped to the
+    /// letters `A`, `B` unless the table maps them.
+    pub fn grbl_config(&self) -> GrblConfig {
+        let m = &self.devices.machine;
+        let mut c = m.grbl.clone().unwrap_or_default();
+        c.id = m.id.clone();
+        c.feed_m_s = m.feed_m_s;
+        for (axis, letter) in [("a", 'A'), ("b", 'B')] {
+            c.axis_letters.entry(axis.to_string()).or_insert(letter);
+        }
+        c
+    }
+
+    /// The ASCII probe driver's settings, `id` from `[devices.probe]`.
+    pub fn probe_config(&self) -> ProbeConfig {
+        let p = &self.devices.probe;
+        let mut c = p.ascii.clone().unwrap_or_default();
+        c.id = p.id.clone();
+        c
+    }
+
+    /// Driver kinds, their settings, `[hil]` and `[sim]`: the first problem found.
+    fn validate_drivers(&self, f: &Path) -> Result<(), ConfigError> {
+        let m = &self.devices.machine;
+        let p = &self.devices.probe;
+        let emulate = self.emulated();
+        if !matches!(m.driver, DriverKind::Sim | DriverKind::Grbl) {
+            return Err(invalid(
+                f,
+                "devices.machine.driver",
+                format!(
+                    "expected \"sim\" or \"grbl\" (a 5-axis controller streamed as G-code), found \"{}\"",
+                    m.driver.as_str()
+                ),
+            ));
+        }
+        let machine_sim = m.driver == DriverKind::Sim;
+        let probe_sim = p.driver == ProbeDriverKind::Sim;
+        if machine_sim != probe_sim {
+            return Err(invalid(
+                f,
+                "devices.probe.driver",
+                format!(
+                    "expected {} like devices.machine.driver = \"{}\": a run is either simulated in \
+                     virtual time (both \"sim\") or on real or emulated devices (\"grbl\" and \"ascii\")",
+                    if machine_sim { "\"sim\"" } else { "\"ascii\"" },
+                    m.driver.as_str()
+                ),
+            ));
+        }
+        if emulate && machine_sim {
+            return Err(invalid(
+                f,
+                "hil.emulate",
+                "emulation serves the GRBL controller and the ASCII probe: expected \
+                 devices.machine.driver = \"grbl\" and devices.probe.driver = \"ascii\"",
+            ));
+        }
+        if m.grbl.is_some() && m.driver != DriverKind::Grbl {
+            return Err(invalid(
+                f,
+                "devices.machine.grbl",
+                format!(
+                    "settings for driver \"grbl\", but devices.machine.driver is \"{}\"",
+                    m.driver.as_str()
+                ),
+            ));
+        }
+        if p.ascii.is_some() && p.driver != ProbeDriverKind::Ascii {
+            return Err(invalid(
+                f,
+                "devices.probe.ascii",
+                "settings for driver \"ascii\", but devices.probe.driver is \"sim\"",
+            ));
+        }
+        if m.driver == DriverKind::Grbl {
+            if m.grbl.is_none() && !emulate {
+                return Err(invalid(
+                    f,
+                    "devices.machine.grbl",
+                    "driver \"grbl\" needs [devices.machine.grbl] with at least `port` (the \
+                     controller's serial device), or [hil] emulate = true",
+                ));
+            }
+            let c = self.grbl_config();
+            c.validate()
+                .map_err(|e| invalid(f, "devices.machine.grbl", driver_message(e)))?;
+            let mut used = Vec::new();
+            for (axis, letter) in &c.axis_letters {
+                let l = letter.to_ascii_uppercase();
+                if !"XYZABC".contains(l) || used.contains(&l) {
+                    return Err(invalid(
+                        f,
+                        &format!("devices.machine.grbl.axis_letters.{axis}"),
+                        format!(
+                            "expected a distinct axis letter X, Y, Z, A, B or C, found {letter:?}"
+                        ),
+                    ));
+                }
+                used.push(l);
+            }
+            if let Some(axis) = CMM_AXES.iter().find(|a| !c.axis_letters.contains_key(**a)) {
+                return Err(invalid(
+                    f,
+                    "devices.machine.grbl.axis_letters",
+                    format!(
+                        "expected a letter for every CMM axis (x, y, z, a, b); `{axis}` has none"
+                    ),
+                ));
+            }
+            positive(f, "devices.machine.poll_interval_s", m.poll_interval_s)?;
+        }
+        if p.driver == ProbeDriverKind::Ascii {
+            if p.ascii.is_none() && !emulate {
+                return Err(invalid(
+                    f,
+                    "devices.probe.ascii",
+                    "driver \"ascii\" needs [devices.probe.ascii] with at least `port` (the \
+                     sensor's serial device), or [hil] emulate = true",
+                ));
+            }
+            self.probe_config()
+                .protocol()
+                .map_err(|e| invalid(f, "devices.probe.ascii", driver_message(e)))?;
+            let t = self.probe_config().timeout_s;
+            positive(f, "devices.probe.ascii.timeout_s", t)?;
+        }
+        if let Some(h) = &self.hil {
+            for (key, v) in [
+                (
+                    "hil.machine_faults.drop_ok_probability",
+                    h.machine_faults.drop_ok_probability,
+                ),
+                (
+                    "hil.machine_faults.error_probability",
+                    h.machine_faults.error_probability,
+                ),
+                (
+                    "hil.probe_faults.garbage_probability",
+                    h.probe_faults.garbage_probability,
+                ),
+                (
+                    "hil.probe_faults.no_answer_probability",
+                    h.probe_faults.no_answer_probability,
+                ),
+            ] {
+                if !(0.0..=1.0).contains(&v) {
+                    return Err(invalid(
+                        f,
+                        key,
+                        format!("expected a probability in [0, 1], found {v}"),
+                    ));
+                }
+            }
+        }
+        if (machine_sim || emulate) && self.sim.is_none() {
+            return Err(invalid(
+                f,
+                "sim",
+                "the `sim` drivers and [hil] emulation need a [sim] table (the simulated world)",
+            ));
+        }
+        Ok(())
+    }
+
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
         Self::parse(&super::kind_config::read(path)?, path)
     }
@@ -194,15 +428,7 @@ impl ProbeInstallConfig {
         }
         let m = &self.devices.machine;
         let p = &self.devices.probe;
-        sim_drivers_only(
-            f,
-            KIND,
-            &[
-                ("devices.machine.driver", m.driver),
-                ("devices.probe.driver", p.driver),
-            ],
-            self.sim.is_some(),
-        )?;
+        self.validate_drivers(f)?;
         positive(f, "devices.machine.feed_m_s", m.feed_m_s)?;
         positive(
             f,

@@ -1,16 +1,24 @@
-//! A whole simulated `probe_install` run: the CMM and the laser probe of the simulated world,
-//! the kind's sequencer, the recording, the truth export and the solve of the recorded file.
+//! A whole `probe_install` run: the devices (the simulated CMM and laser probe in virtual time,
+//! the GRBL and ASCII drivers on real ports, or those drivers against their emulators on ptys
+//! backed by the simulated world under `[hil]`), the kind's sequencer, the recording, the truth
+//! export and the solve of the recorded file.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};
 
-use crate::clock::{system_now_ns, VirtualClock};
-use crate::config::probe_install::{ProbeInstallConfig, KIND};
+use anyhow::Context;
+use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig, GrblMachine};
+use geocal_drivers::probe::{AsciiProbe, ProbeEmulator};
+
+use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
+use crate::config::probe_install::{ProbeInstallConfig, ProbeInstallHil, KIND};
 use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
 use crate::run::{RunOptions, RunOutput};
 use crate::sequencer::probe_install::{ProbeInstallDevices, ProbeInstallSequencer};
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
-use crate::sim::probe_install::{ProbeInstallWorld, SimCmm, SimLaserProbe};
+use crate::sim::hil::HilTime;
+use crate::sim::probe_install::{ProbeInstallWorld, SharedProbeWorld, SimCmm, SimLaserProbe};
+use crate::sim::probe_install_source::{WorldCmmSink, WorldLaserSource};
 
 pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHeader {
     let m = &config.devices.machine;
@@ -59,6 +67,9 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
 }
 
 pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
+    if !config.all_sim() {
+        return run_on_drivers(config, options);
+    }
     let plan = ProbeInstallPlan::from_config(config);
     let epoch_ns = system_now_ns();
     let clock = Arc::new(VirtualClock::new(epoch_ns));
@@ -88,4 +99,117 @@ pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<
                 .truth())
         },
     )
+}
+
+/// The emulators of an emulated run (dropping them stops them) and their link directory.
+struct Emulated {
+    _machine: GrblEmulator,
+    _probe: ProbeEmulator,
+    _links: crate::hosting::LinkDir,
+}
+
+/// The GRBL and ASCII drivers: at their configured ports, or under `[hil]` against the
+/// emulators hosted here. Must run inside the runtime that runs the sequencer.
+async fn connect(
+    config: &ProbeInstallConfig,
+    hil: Option<(&SharedProbeWorld, &Arc<HilTime>)>,
+) -> anyhow::Result<(ProbeInstallDevices, Option<Emulated>)> {
+    let mut grbl = config.grbl_config();
+    let probe_cfg = config.probe_config();
+    let Some((world, time)) = hil else {
+        let machine = GrblMachine::open(grbl.clone())
+            .with_context(|| format!("opening the GRBL controller at {}", grbl.port))?;
+        let probe = AsciiProbe::open(probe_cfg.clone())
+            .with_context(|| format!("opening the probe at {}", probe_cfg.port))?;
+        let devices = ProbeInstallDevices {
+            machine: Box::new(machine),
+            probe: Box::new(probe),
+        };
+        return Ok((devices, None));
+    };
+    let faults = config.hil.clone().unwrap_or_else(|| ProbeInstallHil {
+        emulate: true,
+        machine_faults: Default::default(),
+        probe_faults: Default::default(),
+    });
+    // The controller behind a stable link path, so that a pulled cable can be re-plugged.
+    let links = crate::hosting::LinkDir::create()?;
+    let travel = |axis: &str| {
+        config
+            .machine
+            .travel_m
+            .get(axis)
+            .copied()
+            .unwrap_or([-1.0, 1.0])
+    };
+    let machine_emu = GrblEmulator::spawn_pty_linked(
+        GrblEmulatorConfig {
+            travel_min_m: ["x", "y", "z"].map(|a| travel(a)[0]),
+            travel_max_m: ["x", "y", "z"].map(|a| travel(a)[1]),
+            faults: faults.machine_faults.clone(),
+            ..GrblEmulatorConfig::default()
+        },
+        Box::new(WorldCmmSink::new(world.clone(), time.clone())),
+        links.path().join("grbl"),
+    )
+    .context("starting the GRBL emulator on a pty")?;
+    grbl.port = machine_emu
+        .slave_path()
+        .context("the GRBL emulator has no link path")?
+        .to_string();
+    tracing::info!("GRBL emulator on {}", grbl.port);
+    let machine = GrblMachine::open(grbl)?;
+    let (probe_emu, probe) = crate::hosting::host_ascii_probe(
+        &probe_cfg,
+        &faults.probe_faults,
+        Box::new(WorldLaserSource::new(world.clone(), time.clone())),
+    )?;
+    let devices = ProbeInstallDevices {
+        machine: Box::new(machine),
+        probe: Box::new(probe),
+    };
+    let emulated = Emulated {
+        _machine: machine_emu,
+        _probe: probe_emu,
+        _links: links,
+    };
+    Ok((devices, Some(emulated)))
+}
+
+/// A run on the GRBL and ASCII drivers, real or emulated (in real time).
+fn run_on_drivers(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
+    let plan = ProbeInstallPlan::from_config(config);
+    let epoch_ns = system_now_ns();
+    let emulate = config.emulated();
+    // An emulated run's world follows wall time (its own clock is advanced to `HilTime` at
+    // every emulator call); the session is stamped by the same `HilTime`.
+    let time = Arc::new(HilTime::new(epoch_ns));
+    let world: Option<SharedProbeWorld> = emulate.then(|| {
+        Arc::new(Mutex::new(ProbeInstallWorld::new(
+            config,
+            Arc::new(VirtualClock::new(epoch_ns)),
+        )))
+    });
+    let clock: Arc<dyn Clock> = if emulate {
+        time.clone()
+    } else {
+        Arc::new(SystemClock)
+    };
+    let runtime = crate::run::run_runtime()?;
+    let (devices, emulators) =
+        runtime.block_on(connect(config, world.as_ref().map(|w| (w, &time))))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let handle = recorder.handle();
+    handle.session(&session_header(config, epoch_ns), clock.now_ns());
+    let sequencer = ProbeInstallSequencer::new(&plan, devices, handle, clock.clone());
+    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
+    drop(emulators);
+    if let (Some(path), Some(world)) = (&options.truth, &world) {
+        let truth = world
+            .lock()
+            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+            .truth();
+        crate::run::write_truth(path, &truth)?;
+    }
+    super::finish_and_solve(recorder, summary, session_path, options)
 }

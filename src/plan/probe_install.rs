@@ -31,6 +31,9 @@ pub struct ProbeInstallPlan {
     /// Every point, posture by posture.
     pub points: Vec<ProbePoint>,
     pub readings_per_point: usize,
+    /// Pause between two machine state polls, seconds: 0 for the simulated CMM (its queries
+    /// advance virtual time), `devices.machine.poll_interval_s` for real and emulated ones.
+    pub poll_interval_s: f64,
 }
 
 impl ProbeInstallPlan {
@@ -65,6 +68,11 @@ impl ProbeInstallPlan {
             postures_rad: plan.postures_rad.clone(),
             points,
             readings_per_point: plan.readings_per_point,
+            poll_interval_s: if config.all_sim() {
+                0.0
+            } else {
+                config.devices.machine.poll_interval_s
+            },
         }
     }
 }

@@ -3,14 +3,14 @@
 //!
 //! Events: `posture_begin` / `posture_end` around a posture, `probe_begin` / `probe_end` around
 //! the readings of one point; `/machine/pose` at every arrival; `/probe/<id>/reading` for every
-//! reading (null when out of range, with a `fault` event). Timeouts and protocol errors are
-//! retried with `fault` events; a gap in the probe's counter would show as `frames_lost`.
+//! reading (null when out of range or refused by the sensor, with a `fault` event). Timeouts and
+//! protocol errors are retried, alarms cleared, and link faults drained, all as `fault` events.
 
 use std::sync::Arc;
 
 use geocal_drivers::{AxisPositions, DeviceError, Machine, MachineState, Probe};
 
-use super::kind_faults::{retried, EventLog};
+use super::kind_faults::EventLog;
 use super::{Progress, RunSummary, SequencerError};
 use crate::clock::Clock;
 use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
@@ -94,15 +94,33 @@ impl<'a> ProbeInstallSequencer<'a> {
         Ok(self.summary)
     }
 
-    /// Command a move, wait for Idle, record the commanded and reported positions.
+    /// Command a move, wait for Idle, record the commanded and reported positions. Timeouts
+    /// and protocol errors are retried (the move is absolute: a resend after a lost `ok` is
+    /// harmless); an alarm is recorded, cleared (`unlock`) and the move commanded again.
     async fn move_to(&mut self, commanded: &AxisPositions) -> Result<(), SequencerError> {
-        retried!(self.log, self.devices.machine.start_move(commanded));
+        let mut alarms = 0;
+        self.start_move(commanded, &mut alarms).await?;
+        let pause = std::time::Duration::from_secs_f64(self.plan.poll_interval_s.max(0.0));
         let mut queries = 0;
         let reported = loop {
-            if let MachineState::Idle { position } =
-                retried!(self.log, self.devices.machine.state())
-            {
+            let mut attempt = 0;
+            let state = loop {
+                match self.devices.machine.state().await {
+                    Ok(s) => break s,
+                    Err(e @ DeviceError::Alarm { .. }) => {
+                        self.clear_alarm(e, &mut alarms).await?;
+                        self.start_move(commanded, &mut alarms).await?;
+                        break MachineState::Moving;
+                    }
+                    Err(e) => self.log.retry_or_fail(e, &mut attempt)?,
+                }
+            };
+            self.drain_link_faults();
+            if let MachineState::Idle { position } = state {
                 break position;
+            }
+            if !pause.is_zero() {
+                tokio::time::sleep(pause).await;
             }
             queries += 1;
             if queries > MAX_STATE_QUERIES {
@@ -126,6 +144,58 @@ impl<'a> ProbeInstallSequencer<'a> {
         Ok(())
     }
 
+    async fn start_move(
+        &mut self,
+        commanded: &AxisPositions,
+        alarms: &mut u32,
+    ) -> Result<(), SequencerError> {
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.start_move(commanded).await {
+                Ok(()) => break,
+                Err(e @ DeviceError::Alarm { .. }) => self.clear_alarm(e, alarms).await?,
+                Err(e) => self.log.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+        self.drain_link_faults();
+        Ok(())
+    }
+
+    /// A machine alarm: `fault {code: "alarm"}`, then unlock (retried); at most
+    /// `MAX_ALARMS` per move.
+    async fn clear_alarm(
+        &mut self,
+        error: DeviceError,
+        alarms: &mut u32,
+    ) -> Result<(), SequencerError> {
+        *alarms += 1;
+        let id = self.devices.machine.id().to_string();
+        self.log.fault(
+            &id,
+            "alarm",
+            format!("{error}: unlocking and commanding the move again"),
+        );
+        if *alarms > super::MAX_ALARMS {
+            return Err(error.into());
+        }
+        let mut attempt = 0;
+        loop {
+            match self.devices.machine.unlock().await {
+                Ok(()) => return Ok(()),
+                Err(e) => self.log.retry_or_fail(e, &mut attempt)?,
+            }
+        }
+    }
+
+    /// Faults the machine driver recovered from by itself (lost port and reconnect), as
+    /// `fault` events.
+    fn drain_link_faults(&mut self) {
+        let id = self.devices.machine.id().to_string();
+        for f in self.devices.machine.take_link_faults() {
+            self.log.fault(&id, &f.code, f.message);
+        }
+    }
+
     /// One raw reading, recorded whatever it is; out of range is a null value and a fault.
     async fn read_probe(&mut self) -> Result<(), SequencerError> {
         let id = self.devices.probe.id().to_string();
@@ -133,7 +203,9 @@ impl<'a> ProbeInstallSequencer<'a> {
         let value_m = loop {
             match self.devices.probe.read().await {
                 Ok(r) => break Some(r.value_m),
-                Err(DeviceError::Rejected { message, .. }) if message.contains("out of range") => {
+                // The sensor answered that it has no valid reading: the simulated probe says
+                // "out of range", a real one sends its error reply (`ER,M0,01`).
+                Err(DeviceError::Rejected { message, .. }) => {
                     self.log.fault(&id, "out_of_range", message);
                     break None;
                 }

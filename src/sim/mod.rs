@@ -9,6 +9,7 @@ pub mod hil;
 pub mod pace;
 pub mod passive_machine;
 pub mod probe_install;
+pub mod probe_install_source;
 pub mod rotary;
 pub mod rotary_sphere;
 pub mod table_source;

@@ -50,6 +50,9 @@ pub struct ProbeInstallWorld {
     rng: ChaCha8Rng,
     /// Axis positions x, y, z, a, b now (at rest) or after the current move.
     position: [f64; 5],
+    /// Where the current move started, and when (for the emulated controller's reports).
+    move_from: [f64; 5],
+    move_start_s: f64,
     move_end_s: f64,
 }
 
@@ -104,6 +107,8 @@ impl ProbeInstallWorld {
             travel_m: [travel("x"), travel("y"), travel("z")],
             rng,
             position: [travel("x")[0], travel("y")[0], travel("z")[1], 0.0, 0.0],
+            move_from: [travel("x")[0], travel("y")[0], travel("z")[1], 0.0, 0.0],
+            move_start_s: 0.0,
             move_end_s: 0.0,
         }
     }
@@ -131,8 +136,27 @@ impl ProbeInstallWorld {
         self.clock.elapsed_s()
     }
 
+    /// Bring the world's clock up to `t_s` (an emulated run: the world follows wall time).
+    pub(crate) fn advance_to(&self, t_s: f64) {
+        self.clock.advance_to(t_s);
+    }
+
+    /// Axis positions now, moving linearly from the start of the move to its end, and whether
+    /// the axes still move (what the emulated controller reports; no clock advance).
+    pub(crate) fn axes_now(&self) -> ([f64; 5], bool) {
+        let now = self.now_s();
+        if now >= self.move_end_s - 1e-9 {
+            return (self.position, false);
+        }
+        let f = ((now - self.move_start_s) / (self.move_end_s - self.move_start_s)).clamp(0.0, 1.0);
+        (
+            std::array::from_fn(|k| self.move_from[k] + f * (self.position[k] - self.move_from[k])),
+            true,
+        )
+    }
+
     /// Start a move; it ends after the slower of the linear path and the rotary axes.
-    fn start_move(&mut self, target: [f64; 5]) -> Result<(), String> {
+    pub(crate) fn start_move(&mut self, target: [f64; 5]) -> Result<(), String> {
         for k in 0..3 {
             let [lo, hi] = self.travel_m[k];
             if !(lo..=hi).contains(&target[k]) {
@@ -151,6 +175,9 @@ impl ProbeInstallWorld {
             .map(|k| (target[k] - self.position[k]).abs())
             .fold(0.0, f64::max)
             / self.rotary_speed_rad_s;
+        let (here, _) = self.axes_now();
+        self.move_from = here;
+        self.move_start_s = self.now_s();
         self.move_end_s = self.now_s() + linear.max(rotary);
         self.position = target;
         Ok(())
@@ -172,7 +199,13 @@ impl ProbeInstallWorld {
     fn read(&mut self) -> (f64, Option<f64>) {
         let t_s = self.now_s() + self.reading_period_s;
         self.clock.advance_to(t_s);
-        let [x, y, z, a, b] = self.position;
+        (t_s, self.reading_now())
+    }
+
+    /// A reading at the axes' position now (no clock advance): where the true beam first meets
+    /// the true sphere, plus noise; None when it misses or is out of range.
+    pub(crate) fn reading_now(&mut self) -> Option<f64> {
+        let [x, y, z, a, b] = self.axes_now().0;
         let w = beam_in_base(&self.truth, a, b).normalize();
         let scale = self.truth.beam().norm();
         // q(t) = origin + t·|beam|·w, origin the point at reading 0.
@@ -181,14 +214,14 @@ impl ProbeInstallWorld {
         let half_b = w.dot(&d);
         let disc = half_b * half_b - (d.norm_squared() - self.radius_m * self.radius_m);
         if disc < 0.0 {
-            return (t_s, None);
+            return None;
         }
         // The entry point: the smaller root along the beam.
         let reading = (-half_b - disc.sqrt()) / scale;
         let noise: f64 = StandardNormal.sample(&mut self.rng);
         let value = reading + self.noise_m * noise;
         let inside = value >= self.range_m[0] && value <= self.range_m[1];
-        (t_s, inside.then_some(value))
+        inside.then_some(value)
     }
 }
 

@@ -173,6 +173,9 @@ pub struct GrblMachine<S> {
     talked: bool,
     /// Code of the last `ALARM:N` heard (a status in `Alarm` does not say which).
     last_alarm: Option<u16>,
+    /// An `ALARM:N` that arrived between commands (e.g. just after a move ended): the next
+    /// move reports it instead of being sent into a locked controller.
+    alarm_pending: Option<u16>,
     /// The last move line sent, re-sent after a reconnect (the controller reset).
     last_move: Option<String>,
     /// Reopens the port by path (drivers made by `open`).
@@ -232,6 +235,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
             garbled_lines: 0,
             talked: false,
             last_alarm: None,
+            alarm_pending: None,
             last_move: None,
             reopen: None,
             link_faults: Vec::new(),
@@ -366,7 +370,10 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
             }
         }
         while let Some(l) = self.lines.pop_front() {
-            self.observe(&l);
+            if let Some(ControllerLine::Alarm(code)) = self.observe(&l) {
+                self.last_alarm = Some(code);
+                self.alarm_pending = Some(code);
+            }
         }
         Ok(())
     }
@@ -416,6 +423,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         self.io = io;
         self.framer.clear();
         self.lines.clear();
+        self.alarm_pending = None;
         self.last_status = None;
         self.last_query = None;
         // GRBL resets when its port is opened: wait for the banner, if it comes.
@@ -448,6 +456,10 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
     }
 
     async fn start_move_once(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
+        self.drain().await?;
+        if let Some(code) = self.alarm_pending.take() {
+            return Err(self.alarm(code, " (raised after the last command)"));
+        }
         let mut axes = Vec::new();
         let mut next = self.commanded;
         for (name, &pos_m) in target {
@@ -547,6 +559,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
     pub async fn soft_reset(&mut self) -> Result<(), DeviceError> {
         self.write_all(&[SOFT_RESET]).await?;
         self.commanded = [None; N_AXES];
+        self.alarm_pending = None;
         self.last_status = None;
         self.framer.clear();
         self.lines.clear();
@@ -669,6 +682,7 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> Machine for GrblMachine<S> {
     async fn unlock(&mut self) -> Result<(), DeviceError> {
         self.send_line("$X\n", self.cfg.ack_timeout_s).await?;
         self.last_alarm = None;
+        self.alarm_pending = None;
         self.last_status = None;
         self.last_query = None;
         Ok(())

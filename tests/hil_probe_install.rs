@@ -1,0 +1,148 @@
+//! Hardware-in-the-loop run of the laser-probe installation method: the real GRBL driver (a
+//! 5-axis controller, X Y Z in mm and A B in degrees on the wire) and the real ASCII probe
+//! driver talk over pseudo-terminals to their emulators, backed by the simulated world. The
+//! run must recover the 11 installation parameters within the reported uncertainties, match
+//! the virtual-time simulated run of the same seed up to the wire's resolution, and record
+//! every injected fault the drivers or the sequencer recover from as its `fault` event.
+
+mod common;
+
+use std::path::Path;
+
+use geocal::method::Results;
+use geocal::run::{RunOptions, RunOutput};
+use geocal::session::reader::read_session;
+use serde_json::Value;
+
+const EXAMPLE: &str = include_str!("../config/probe-install.toml");
+
+/// The example with a fast machine (the emulators run in real time) and a short GA (the GA
+/// is not what this test is about).
+fn fast_example() -> String {
+    EXAMPLE
+        .replace("feed_m_s = 0.02", "feed_m_s = 1.0")
+        .replace("rotary_speed_rad_s = 0.5", "rotary_speed_rad_s = 20.0")
+        .replace("ga_generations = 2000", "ga_generations = 100")
+}
+
+/// The same plan on the GRBL and ASCII drivers against their emulators, with faults.
+fn hil_config(faults: &str) -> String {
+    fast_example()
+        .replace(
+            "driver = \"sim\"                 # or \"grbl\"",
+            "driver = \"grbl\" #",
+        )
+        .replace(
+            "driver = \"sim\"                 # or \"ascii\"",
+            "driver = \"ascii\" #",
+        )
+        .replace(
+            "[devices.probe]",
+            "poll_interval_s = 0.002\n\
+             [devices.machine.grbl]\n\
+             port = \"(emulated)\"\n\
+             ack_timeout_s = 0.3\n\
+             status_interval_s = 0.002\n\
+             [devices.probe]",
+        )
+        .replace(
+            "[plan]",
+            "[devices.probe.ascii]\nport = \"(emulated)\"\ntimeout_s = 0.2\n[plan]",
+        )
+        + "\n[hil]\nemulate = true\n"
+        + faults
+}
+
+fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
+    std::fs::create_dir_all(dir).expect("dir");
+    let config = dir.join("probe-install.toml");
+    std::fs::write(&config, config_text).expect("write config");
+    let truth_path = dir.join("truth.json");
+    let output = geocal::kinds::run_file(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run")
+    .expect("a probe_install config is run by geocal::kinds");
+    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
+    (output, truth)
+}
+
+#[test]
+fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (sim, _) = run(&fast_example(), &dir.path().join("sim"));
+    // GRBL lines count from 1 (moves and `$X`): a lost `ok` on line 7, a pulled cable on line
+    // 30 (plugged back after 0.2 s), a limit alarm on line 60; the probe ignores request 10
+    // and answers request 40 with garbage.
+    let faults = "machine_faults = { drop_ok_at_lines = [7], disconnect_at_line = 30, \
+                  reconnect_after_s = 0.2, alarm_at_line = 60 }\n\
+                  probe_faults = { no_answer_at_requests = [10], garbage_at_requests = [40] }\n";
+    let (hil, truth) = run(&hil_config(faults), &dir.path().join("hil"));
+    let (Results::ProbeInstall(s), Results::ProbeInstall(r)) = (&sim.results, &hil.results) else {
+        panic!("expected probe_install results");
+    };
+    assert_eq!(
+        (r.points, r.readings, r.readings_out_of_range),
+        (100, 500, 0)
+    );
+
+    // Each parameter within 4 of its reported sigmas of the truth (11 normalised errors,
+    // each N(0, 1) for a correct covariance: P(any |z| > 4) < 1e-3); and the HIL estimate
+    // equals the virtual-time run's up to the wire's rounding (readings to 0.1 µm, positions
+    // to 0.1 µm and 1e-5°, about a tenth of the 0.45 µm noise of a point): within 0.2 σ.
+    let truth_params = truth["parameters"].as_array().expect("truth parameters");
+    let mut sum_z2 = 0.0;
+    for ((p, q), t) in r.parameters.iter().zip(&s.parameters).zip(truth_params) {
+        assert_eq!(t["name"], p.name.as_str());
+        let z = (p.value - t["value"].as_f64().expect("truth value")) / p.sigma;
+        let d = (p.value - q.value) / p.sigma;
+        println!("{:<18} z {z:+.2}  HIL - sim {d:+.3} sigma", p.name);
+        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
+        assert!(d.abs() <= 0.2, "{}: {d:.3} sigma from the sim run", p.name);
+        sum_z2 += z * z;
+    }
+    // chi²/dof of 90 degrees of freedom: standard deviation 0.15; [0.6, 1.5] is about ±3.
+    println!(
+        "chi2/dof {:.3} (sim {:.3}), rms normalised error {:.2}, radius after {:.4} mm",
+        r.chi2_per_dof,
+        s.chi2_per_dof,
+        (sum_z2 / 11.0).sqrt(),
+        r.radius_after_m * 1e3
+    );
+    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    assert!((r.radius_after_m - 6e-3).abs() < 1e-6);
+
+    // Every fault as its event, in the order the run met them.
+    let session = read_session(&hil.session_path).expect("read session");
+    assert_eq!(session.header.devices[0].driver, "grbl");
+    assert_eq!(session.header.devices[1].driver, "ascii");
+    assert_eq!(session.probes["laser0"].len(), 500);
+    let events: Vec<_> = session.events.iter().map(|e| e.msg.clone()).collect();
+    let cmm = common::faults(&events, "timeout")
+        .into_iter()
+        .filter(|(d, _)| *d == "cmm")
+        .count();
+    let probe_timeouts = common::faults(&events, "timeout")
+        .into_iter()
+        .filter(|(d, _)| *d == "laser0")
+        .count();
+    println!("faults: {:?}", common::faults(&events, "protocol"));
+    assert_eq!(cmm, 1, "the lost `ok`");
+    assert_eq!(probe_timeouts, 1, "the unanswered request");
+    assert_eq!(
+        common::faults(&events, "protocol").len(),
+        1,
+        "the garbage reply"
+    );
+    assert_eq!(common::faults(&events, "disconnect").len(), 1);
+    assert_eq!(common::faults(&events, "reconnect").len(), 1);
+    assert_eq!(common::faults(&events, "alarm").len(), 1);
+    assert_eq!(hil.summary.faults, 6);
+}
