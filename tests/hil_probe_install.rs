@@ -145,4 +145,8 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
     assert_eq!(common::faults(&events, "reconnect").len(), 1);
     assert_eq!(common::faults(&events, "alarm").len(), 1);
     assert_eq!(hil.summary.faults, 6);
+
+    // The recording alone gives the same results (`geocal solve`).
+    let replay = geocal::run::solve_file(&hil.session_path, &Default::default()).expect("solve");
+    assert_eq!(replay.to_json_pretty(), hil.results.to_json_pretty());
 }

@@ -611,4 +611,118 @@ mod tests {
             assert!(err.contains(key), "{to}: {err}");
         }
     }
+
+    /// The example with the real drivers instead of the simulated ones.
+    fn real() -> String {
+        example()
+            .replace(
+                "driver = \"sim\"                 # or \"grbl\"",
+                "driver = \"grbl\" #",
+            )
+            .replace(
+                "driver = \"sim\"                 # or \"ascii\"",
+                "driver = \"ascii\" #",
+            )
+    }
+
+    #[test]
+    fn real_drivers_need_their_ports_unless_emulated() {
+        let parse = |text: &str| ProbeInstallConfig::parse(text, Path::new("p.toml"));
+        let err = parse(&real()).expect_err("no ports").to_string();
+        assert!(
+            err.contains("key `devices.machine.grbl`: driver \"grbl\" needs"),
+            "{err}"
+        );
+        let with_ports = real()
+            .replace(
+                "[devices.probe]",
+                "[devices.machine.grbl]\nport = \"/dev/ttyUSB0\"\n[devices.probe]",
+            )
+            .replace(
+                "[plan]",
+                "[devices.probe.ascii]\nport = \"/dev/ttyUSB1\"\ncommand = \"MEAS?\\n\"\n\
+                 value_pattern = '^MEASURE=(-?[0-9.]+)$'\nscale_to_m = 1e-6\n[plan]",
+            );
+        let c = parse(&with_ports).expect("real devices");
+        assert!(!c.all_sim() && !c.emulated());
+        let grbl = c.grbl_config();
+        assert_eq!((grbl.id.as_str(), grbl.feed_m_s), ("cmm", 0.02));
+        assert_eq!((grbl.axis_letters["a"], grbl.axis_letters["b"]), ('A', 'B'));
+        let probe = c.probe_config();
+        assert_eq!(
+            (probe.id.as_str(), probe.port.as_str()),
+            ("laser0", "/dev/ttyUSB1")
+        );
+        assert_eq!(probe.scale_to_m, 1e-6);
+        // A real run needs no [sim]; emulated ones do, and leave the ports out.
+        let no_sim = &with_ports[..with_ports.find("\n[sim]").expect("[sim]")];
+        parse(no_sim).expect("real devices without [sim]");
+        let emulated = real() + "\n[hil]\nmachine_faults = { drop_ok_at_lines = [3] }\n";
+        let c = parse(&emulated).expect("emulated");
+        assert!(c.emulated());
+
+        let cases = [
+            (
+                "[devices.probe]",
+                "[devices.machine.grbl]\nbaud = 9600\n[devices.probe]",
+                "missing field `port`",
+            ),
+            (
+                "[devices.probe]",
+                "[devices.machine.grbl]\nport = \"p\"\nack_timeout_s = -1.0\n[devices.probe]",
+                "key `devices.machine.grbl`: ack_timeout_s must be between 0 and 1e6 s",
+            ),
+            (
+                "[plan]",
+                "[devices.probe.ascii]\nport = \"p\"\nvalue_pattern = \"no group\"\n[plan]",
+                "key `devices.probe.ascii`: value pattern must have a capture group",
+            ),
+            (
+                "[plan]",
+                "[devices.probe.ascii]\nport = \"p\"\nbogus = 1\n[plan]",
+                "unknown field `bogus`",
+            ),
+            (
+                "[plan]",
+                "[plan]",
+                "key `devices.probe.ascii`: driver \"ascii\" needs [devices.probe.ascii]",
+            ),
+        ];
+        let grbl_ok = real().replace(
+            "[devices.probe]",
+            "[devices.machine.grbl]\nport = \"p\"\n[devices.probe]",
+        );
+        for (from, to, want) in cases {
+            let base = if to.contains("[devices.machine.grbl]") {
+                real()
+            } else {
+                grbl_ok.clone()
+            };
+            let err = parse(&base.replacen(from, to, 1))
+                .expect_err(to)
+                .to_string();
+            assert!(err.starts_with("p.toml: key `"), "{err}");
+            assert!(err.contains(want), "{to}: {err}");
+        }
+    }
+
+    #[test]
+    fn emulation_needs_the_real_drivers_and_the_sim_world() {
+        let parse = |text: &str| ProbeInstallConfig::parse(text, Path::new("p.toml"));
+        let err = parse(&(example() + "\n[hil]\n"))
+            .expect_err("sim + hil")
+            .to_string();
+        assert!(err.contains("key `hil.emulate`"), "{err}");
+        let text = real();
+        let without_sim = format!("{}\n[hil]\n", &text[..text.find("\n[sim]").expect("[sim]")]);
+        let err = parse(&without_sim).expect_err("no [sim]").to_string();
+        assert!(err.contains("key `sim`"), "{err}");
+        let err = parse(&(real() + "\n[hil]\nprobe_faults = { garbage_probability = 2.0 }\n"))
+            .expect_err("probability")
+            .to_string();
+        assert!(
+            err.contains("key `hil.probe_faults.garbage_probability`"),
+            "{err}"
+        );
+    }
 }
