@@ -11,7 +11,7 @@ use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig, GrblMachine};
 use geocal_drivers::probe::{AsciiProbe, ProbeEmulator};
 
 use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
-use crate::config::probe_install::{ProbeInstallConfig, ProbeInstallHil, KIND};
+use crate::config::probe_install::{ProbeInstallConfig, KIND};
 use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
 use crate::run::{RunOptions, RunOutput};
 use crate::sequencer::probe_install::{ProbeInstallDevices, ProbeInstallSequencer};
@@ -127,11 +127,11 @@ async fn connect(
         };
         return Ok((devices, None));
     };
-    let faults = config.hil.clone().unwrap_or_else(|| ProbeInstallHil {
-        emulate: true,
-        machine_faults: Default::default(),
-        probe_faults: Default::default(),
-    });
+    let (machine_faults, probe_faults) = config
+        .hil
+        .as_ref()
+        .map(|h| (h.machine_faults.clone(), h.probe_faults.clone()))
+        .unwrap_or_default();
     // The controller behind a stable link path, so that a pulled cable can be re-plugged.
     let links = crate::hosting::LinkDir::create()?;
     let travel = |axis: &str| {
@@ -146,7 +146,7 @@ async fn connect(
         GrblEmulatorConfig {
             travel_min_m: ["x", "y", "z"].map(|a| travel(a)[0]),
             travel_max_m: ["x", "y", "z"].map(|a| travel(a)[1]),
-            faults: faults.machine_faults.clone(),
+            faults: machine_faults,
             ..GrblEmulatorConfig::default()
         },
         Box::new(WorldCmmSink::new(world.clone(), time.clone())),
@@ -161,7 +161,7 @@ async fn connect(
     let machine = GrblMachine::open(grbl)?;
     let (probe_emu, probe) = crate::hosting::host_ascii_probe(
         &probe_cfg,
-        &faults.probe_faults,
+        &probe_faults,
         Box::new(WorldLaserSource::new(world.clone(), time.clone())),
     )?;
     let devices = ProbeInstallDevices {
