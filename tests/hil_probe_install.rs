@@ -150,3 +150,96 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
     let replay = geocal::run::solve_file(&hil.session_path, &Default::default()).expect("solve");
     assert_eq!(replay.to_json_pretty(), hil.results.to_json_pretty());
 }
+
+/// Real devices at their ports (no `[hil]`): the drivers open the serial paths named in the
+/// configuration and the run is stamped by the system clock. Here the "devices" are the same
+/// emulators, hosted by the test on its own runtime as another process would host them, with
+/// the simulated world behind them; its truth grades the result.
+#[test]
+fn real_ports_without_hil_are_opened_by_path() {
+    use std::sync::{Arc, Mutex};
+
+    use geocal::config::probe_install::ProbeInstallConfig;
+    use geocal::sim::hil::HilTime;
+    use geocal::sim::probe_install::ProbeInstallWorld;
+    use geocal::sim::probe_install_source::{WorldCmmSink, WorldLaserSource};
+    use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig};
+    use geocal_drivers::probe::{ProbeEmulator, ProbeEmulatorConfig};
+
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sim_config = ProbeInstallConfig::parse(&fast_example(), Path::new("probe-install.toml"))
+        .expect("config");
+    let world = Arc::new(Mutex::new(ProbeInstallWorld::new(
+        &sim_config,
+        Arc::new(geocal::clock::VirtualClock::new(0)),
+    )));
+    let time = Arc::new(HilTime::new(0));
+    let devices = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .expect("runtime");
+    let (grbl, probe) = devices.block_on(async {
+        let grbl = GrblEmulator::spawn_pty(
+            GrblEmulatorConfig {
+                travel_min_m: [0.0, 0.0, -0.3],
+                travel_max_m: [0.3, 0.3, 0.0],
+                ..GrblEmulatorConfig::default()
+            },
+            Box::new(WorldCmmSink::new(world.clone(), time.clone())),
+        )
+        .expect("GRBL emulator");
+        let probe = ProbeEmulator::spawn_pty(
+            ProbeEmulatorConfig::default(),
+            Box::new(WorldLaserSource::new(world.clone(), time.clone())),
+        )
+        .expect("probe emulator");
+        (grbl, probe)
+    });
+    let grbl_port = grbl.slave_path().expect("GRBL pty path").to_string();
+    let probe_port = probe.slave_path().expect("probe pty path").to_string();
+    // The real configuration: the two drivers at those ports, no [sim], no [hil].
+    let text = hil_config("");
+    let text = text[..text.find("\n[sim]").expect("[sim]")]
+        .replace(
+            "port = \"(emulated)\"\nack_timeout_s",
+            &format!("port = \"{grbl_port}\"\nack_timeout_s"),
+        )
+        .replace(
+            "port = \"(emulated)\"\ntimeout_s",
+            &format!("port = \"{probe_port}\"\ntimeout_s"),
+        );
+    assert!(!text.contains("(emulated)") && !text.contains("\n[hil]"));
+    let path = dir.path().join("real.toml");
+    std::fs::write(&path, &text).expect("write config");
+    let output = geocal::kinds::run_file(
+        &path,
+        &RunOptions {
+            out_dir: dir.path().to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run")
+    .expect("probe_install");
+    let Results::ProbeInstall(r) = &output.results else {
+        panic!("expected probe_install results");
+    };
+    assert_eq!((r.points, r.readings), (100, 500));
+    let truth = world.lock().expect("world").truth();
+    for (p, t) in r.parameters.iter().zip(&truth.parameters) {
+        let z = (p.value - t.value) / p.sigma;
+        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
+    }
+    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    let session = read_session(&output.session_path).expect("session");
+    assert_eq!(session.header.devices[0].driver, "grbl");
+    let faults = session
+        .events
+        .iter()
+        .filter(|e| matches!(e.msg, geocal::session::messages::RunEvent::Fault { .. }))
+        .count();
+    assert_eq!(faults, 0);
+    drop((grbl, probe));
+}
