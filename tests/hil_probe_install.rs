@@ -41,13 +41,13 @@ fn hil_config(faults: &str) -> String {
             "poll_interval_s = 0.002\n\
              [devices.machine.grbl]\n\
              port = \"(emulated)\"\n\
-             ack_timeout_s = 0.3\n\
+             ack_timeout_s = 0.5\n\
              status_interval_s = 0.002\n\
              [devices.probe]",
         )
         .replace(
             "[plan]",
-            "[devices.probe.ascii]\nport = \"(emulated)\"\ntimeout_s = 0.2\n[plan]",
+            "[devices.probe.ascii]\nport = \"(emulated)\"\ntimeout_s = 0.5\n[plan]",
         )
         + "\n[hil]\nemulate = true\n"
         + faults
