@@ -1,7 +1,5 @@
-//! A whole `probe_install` run: the devices (the simulated CMM and laser probe in virtual time,
-//! the GRBL and ASCII drivers on real ports, or those drivers against their emulators on ptys
-//! backed by the simulated world under `[hil]`), the kind's sequencer, the recording, the truth
-//! export and the solve of the recorded file.
+//! A whole `probe_install` run: devices (simulated in virtual time, GRBL + ASCII drivers on real
+//! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file.
 
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex};

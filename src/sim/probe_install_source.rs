@@ -1,6 +1,5 @@
-//! The `probe_install` simulated world behind the device emulators of an emulated run: the
-//! 5-axis CMM as the GRBL emulator drives it (`MachineSink`), the laser probe as the ASCII
-//! probe emulator reads it (`ProbeSource`). The world follows wall time (`HilTime`).
+//! The `probe_install` world behind the emulators of a `[hil]` run, in wall time (`HilTime`):
+//! the 5-axis CMM for the GRBL emulator (`MachineSink`), the laser for the probe's (`ProbeSource`).
 
 use std::sync::{Arc, MutexGuard};
 
