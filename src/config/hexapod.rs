@@ -73,9 +73,9 @@ pub struct HexapodDeviceConfig {
 pub struct PoseSensorConfig {
     pub id: String,
     pub driver: DriverKind,
-    /// Standard deviation per translation coordinate, metres (not in the solver's model).
+    /// Standard deviation per translation coordinate, metres (in the solver's weights).
     pub noise_m: f64,
-    /// Standard deviation per rotation-vector component, radians (not in the solver's model).
+    /// Standard deviation per rotation-vector component, radians (in the solver's weights).
     pub noise_rad: f64,
 }
 
