@@ -11,10 +11,10 @@
 //! Gauss–Newton on the whitened system (Cholesky of the covariance), started from the per-leg
 //! two-stage solution; the reported covariance is (Jᵀ C⁻¹ J)⁻¹ at the solution.
 
-use nalgebra::{DMatrix, DVector, Rotation3, SMatrix, Vector3};
+use nalgebra::{DMatrix, DVector, SMatrix};
 use serde::Serialize;
 
-use crate::model::hexapod::{leg_length, relative_length, HexapodGeometry, Pose, LEGS};
+use crate::model::hexapod::{pose_jacobian, relative_length, HexapodGeometry, LEGS};
 use crate::solve::hexapod::{HexapodError, HexapodObservations};
 
 const PARAMS: usize = 6 * LEGS;
@@ -64,36 +64,6 @@ fn column(leg: usize, c: usize) -> usize {
     } else {
         3 * (LEGS + leg) + c - 3
     }
-}
-
-/// ∂L_i/∂[t, w] (6 legs × 6): t the translation, w the rotation vector (the quantities the
-/// pose sensor reports and its noise perturbs). Rotation part by central differences.
-pub fn pose_jacobian(geometry: &HexapodGeometry, pose: &Pose) -> SMatrix<f64, LEGS, 6> {
-    let w = pose.rotation.scaled_axis();
-    let h = 1e-6;
-    let mut a = SMatrix::<f64, LEGS, 6>::zeros();
-    for i in 0..LEGS {
-        let x = geometry.leg(i);
-        let d = pose.rotation * geometry.platform_m[i] + pose.translation_m - geometry.base_m[i];
-        let u = d / d.norm();
-        for c in 0..3 {
-            a[(i, c)] = u[c];
-            let mut e = Vector3::zeros();
-            e[c] = h;
-            let at = |w: Vector3<f64>| {
-                leg_length(
-                    &x,
-                    &Pose {
-                        rotation: Rotation3::new(w),
-                        translation_m: pose.translation_m,
-                    },
-                )
-                .0
-            };
-            a[(i, 3 + c)] = (at(w + e) - at(w - e)) / (2.0 * h);
-        }
-    }
-    a
 }
 
 /// The poses fitted: the observations' search poses, else all but the reference.
@@ -270,8 +240,10 @@ pub fn refine_weighted(
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::model::hexapod::leg_length;
     use crate::solve::hexapod::simulation::*;
     use crate::solve::hexapod::{solve_two_stage, TwoStageOptions};
+    use nalgebra::Rotation3;
     use rand::SeedableRng;
     use rand_chacha::ChaCha8Rng;
     use rand_distr::{Distribution, StandardNormal};
