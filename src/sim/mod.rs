@@ -11,6 +11,7 @@ pub mod passive_machine;
 pub mod probe_install;
 pub mod rotary;
 pub mod rotary_sphere;
+pub mod sphere_table_source;
 pub mod table_source;
 pub mod truth;
 pub mod world;
