@@ -89,7 +89,7 @@ pub fn hexapod_text(r: &HexapodResults) -> String {
     let _ = writeln!(
         s,
         "  two-stage: objective {:.4e} m² (start {:.4e}, stage 1 {:.4e}), residual rms {:.3} µm, \
-         chi²/dof {:.3} ({} dof), {} grid rounds, {} leg solves",
+         weighted chi²/dof {:.3} ({} dof), {} grid rounds, {} leg solves",
         r.two_stage.objective_m2,
         r.two_stage.objective_initial_m2,
         r.two_stage.objective_stage1_m2,

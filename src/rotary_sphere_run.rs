@@ -21,6 +21,7 @@ use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, SESSION_F
 use crate::sim::rotary_sphere::{
     SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
 };
+use crate::sim::sphere_table_source::SphereTableSource;
 
 pub struct SphereRunOutput {
     pub session_path: PathBuf,
@@ -36,6 +37,8 @@ struct Built {
     clock: Arc<dyn Clock>,
     world: Option<SharedSphereWorld>,
     emulator: Option<ProbeEmulator>,
+    /// The Modbus table emulator of an emulated (`[hil]`) run with a Modbus table.
+    table_emulator: Option<crate::rotary_table::HostedTable>,
 }
 
 /// An arm without a controller: the operator is told where to bring the probe.
@@ -97,18 +100,35 @@ async fn build(
     } else {
         Arc::new(SystemClock)
     };
-    let table: Box<dyn RotaryTable> = match (table_cfg.driver, &world) {
-        (DriverKind::Sim, Some(w)) => Box::new(SimSphereTable {
+    let mut table_emulator = None;
+    let table: Box<dyn RotaryTable> = match (table_cfg.driver, &world, &config.sim) {
+        (DriverKind::Sim, Some(w), _) => Box::new(SimSphereTable {
             id: table_cfg.id.clone(),
             world: w.clone(),
         }),
+        // Emulated: the Modbus table emulator backed by the sphere world, the real driver.
+        (DriverKind::ModbusTcp | DriverKind::ModbusRtu, Some(w), Some(sim)) if emulate => {
+            let faults = config
+                .hil
+                .as_ref()
+                .map(|h| h.table_faults.clone())
+                .unwrap_or_default();
+            let source = SphereTableSource::new(w.clone(), sim.speed_rad_s, sim.settle_s);
+            let hosted =
+                crate::rotary_table::host_emulator_with(table_cfg, &faults, Box::new(source))
+                    .await?;
+            let driver = crate::rotary_table::connect_hosted(table_cfg, &hosted).await?;
+            table_emulator = Some(hosted);
+            driver
+        }
         // A real table (no [sim]): the Modbus driver at its configured address.
-        (DriverKind::ModbusTcp | DriverKind::ModbusRtu, None) => {
+        (DriverKind::ModbusTcp | DriverKind::ModbusRtu, None, _) => {
             crate::rotary_table::connect_real(table_cfg).await?
         }
-        (kind, _) => anyhow::bail!(
+        (kind, _, _) => anyhow::bail!(
             "devices.rotary_table.driver = \"{}\": a simulated rotary_sphere run needs the \"sim\" \
-             table (the simulated sphere world hosts no Modbus emulator); Modbus tables are for real runs",
+             table, or [hil] emulate = true to host the Modbus table emulator; Modbus tables \
+             without [sim] are real",
             kind.as_str()
         ),
     };
@@ -149,6 +169,7 @@ async fn build(
         clock,
         world,
         emulator,
+        table_emulator,
     })
 }
 
@@ -231,6 +252,7 @@ pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<
             .load(std::sync::atomic::Ordering::Relaxed)
     });
     drop(built.emulator);
+    drop(built.table_emulator);
     bar.finish_and_clear();
     // Finish the file even after a failed run: every recorded reading stays readable.
     let stats = recorder.finish().context("finishing the session file")?;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 use anyhow::Context;
 use geocal_drivers::modbus_table::{
     ModbusTable, ModbusTableConfig, ModbusTableEmulator, ModbusTableEmulatorConfig,
-    ModbusTableFaults, ModbusTransport,
+    ModbusTableFaults, ModbusTransport, TableSource,
 };
 use geocal_drivers::serial::PtySlave;
 use geocal_drivers::RotaryTable;
@@ -61,12 +61,21 @@ pub async fn host_emulator(
     world: SharedWorld,
     time: Arc<HilTime>,
 ) -> anyhow::Result<HostedTable> {
+    host_emulator_with(table, faults, Box::new(WorldTableSource::new(world, time))).await
+}
+
+/// Host the Modbus table emulator of `table` backed by any `source` (e.g. the `rotary_sphere`
+/// world's table).
+pub async fn host_emulator_with(
+    table: &RotaryTableConfig,
+    faults: &ModbusTableFaults,
+    source: Box<dyn TableSource>,
+) -> anyhow::Result<HostedTable> {
     let cfg = modbus_config(table)?;
     let emu_cfg = ModbusTableEmulatorConfig {
         map: cfg.map.clone(),
         faults: faults.clone(),
     };
-    let source = Box::new(WorldTableSource::new(world, time));
     match table.driver {
         DriverKind::ModbusTcp => {
             let emulator = ModbusTableEmulator::start_tcp(emu_cfg, source)

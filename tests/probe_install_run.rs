@@ -149,6 +149,45 @@ fn out_of_range_readings_are_recorded_as_faults() {
     assert!(r.points < 100 && r.points > 20);
 }
 
+/// `[sim.effects] probe_direction` (a reading scale error the 11-parameter model cannot hold:
+/// its beam direction is a unit vector): off, the LM chi²/dof of 90 dof stays within 4σ of 1
+/// (σ = √(2/90) = 0.15); on at 3e-3 (±6 µm over the ±2 mm of nominal readings, against
+/// 0.45 µm per point), it rises far above 1 (more than 1 + 10σ).
+#[test]
+fn probe_direction_effect_shows_in_chi2() {
+    let base = EXAMPLE.replace("ga_generations = 2000", "ga_generations = 200");
+    let sd = (2.0f64 / 90.0).sqrt();
+    let mut chi2 = Vec::new();
+    for on in [false, true] {
+        let text = if on {
+            format!(
+                "{base}\n[sim.effects]\nprobe_direction = {{ enabled = true, size = 3.0e-3 }}\n"
+            )
+        } else {
+            base.clone()
+        };
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (output, truth) = run(&text, dir.path());
+        let Results::ProbeInstall(r) = &output.results else {
+            panic!("expected probe_install results");
+        };
+        assert_eq!(r.dof, 90);
+        assert_eq!(
+            truth["probe_scale_error"].as_f64(),
+            Some(if on { 3e-3 } else { 0.0 })
+        );
+        println!(
+            "probe_direction {}: chi2/dof {:.2}, residual rms {:.3} µm",
+            if on { "on (3e-3)" } else { "off" },
+            r.chi2_per_dof,
+            r.residual_rms_m * 1e6
+        );
+        chi2.push(r.chi2_per_dof);
+    }
+    assert!((chi2[0] - 1.0).abs() <= 4.0 * sd, "off: {}", chi2[0]);
+    assert!(chi2[1] > 1.0 + 10.0 * sd, "on: {}", chi2[1]);
+}
+
 #[test]
 fn bad_configs_give_file_key_and_expectation() {
     let cases = [
@@ -186,6 +225,11 @@ fn bad_configs_give_file_key_and_expectation() {
             "kind = \"probe_install\"",
             "kind = \"probe_install\"\n[hil]\nemulate = true",
             "key `hil.emulate`: emulation serves the GRBL controller and the ASCII probe",
+        ),
+        (
+            "sphere_centre_m = 1.0e-3",
+            "sphere_centre_m = 1.0e-3\neffects = { probe_direction = { enabled = true, size = 0.5 } }",
+            "key `sim.effects.probe_direction.size`: expected a non-zero relative scale error within ±0.1 when enabled, got 0.5",
         ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);

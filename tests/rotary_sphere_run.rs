@@ -310,6 +310,100 @@ fn hil_ascii_probe_against_its_emulator() {
     assert_eq!(codes, ["timeout", "protocol"]);
 }
 
+/// The whole HIL set-up: the real ASCII probe driver against its pty emulator and the real
+/// Modbus-TCP table driver against the Modbus table emulator on 127.0.0.1, both backed by the
+/// simulated sphere world (fast table: 50 rad/s, 10 ms settling), with one unanswered Modbus
+/// request. The timeout and the driver's reconnect are `fault` events of the table; the
+/// centres equal the simulated run's up to the probe's 0.1 µm display resolution (the noise
+/// stream is the same), and the location and motion errors match the identifiable truth: the
+/// ~216 normalised errors of one run hold ≥ 36 independent groups (one per angle), so their RMS
+/// has a relative spread ≤ 1/√72 ≈ 12 %; ±40 % is more than 3 of those.
+#[test]
+fn hil_ascii_probe_and_modbus_tcp_table_recover_the_truth() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let fast = CONFIG
+        .replace("speed_rad_s = 0.2", "speed_rad_s = 50.0")
+        .replace("settle_s = 2.0", "settle_s = 0.01")
+        .replace(
+            "max_harmonic_order = 8 ",
+            "poll_interval_s = 0.005\nmax_harmonic_order = 8 ",
+        );
+    let (sim, _) = run_text(&fast, &dir.path().join("sim"));
+    let hil_text = fast
+        .replace("driver = \"sim\"                 #", "driver = \"ascii\" #")
+        .replacen(
+            "id = \"c\"\ndriver = \"sim\"",
+            "id = \"c\"\ndriver = \"modbus_tcp\"",
+            1,
+        )
+        + "
+[devices.rotary_table.modbus]
+timeout_s = 0.2
+retries = 0
+ack_timeout_s = 1.0
+poll_interval_s = 0.002
+
+[devices.rotary_table.modbus.map]
+unit_id = 1
+target = { address = 100, width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }
+actual = { address = 200, kind = \"input\", width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }
+status = { address = 300, kind = \"input\", in_position_bit = 0, moving_bit = 1, fault_bit = 2 }
+command = { address = 110, go_value = 1, clear_value = 0 }
+ack = { bit = 3 }
+
+[hil]
+emulate = true
+table_faults = { drop_at_requests = [40] }
+";
+    let started = std::time::Instant::now();
+    let (hil, truth) = run_text(&hil_text, &dir.path().join("hil"));
+    println!("HIL run: {:.1} s", started.elapsed().as_secs_f64());
+    assert_eq!(hil.summary.readings, 540);
+    let session = read_session(&hil.session_path).expect("session");
+    let table = session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.id == "c")
+        .expect("table in the header");
+    assert_eq!(table.driver, "modbus_tcp");
+    let faults: Vec<(&str, &str)> = session
+        .events
+        .iter()
+        .filter_map(|e| match &e.msg {
+            RunEvent::Fault { device, code, .. } => Some((device.as_str(), code.as_str())),
+            _ => None,
+        })
+        .collect();
+    println!("faults: {faults:?}");
+    assert!(faults.contains(&("c", "timeout")), "{faults:?}");
+    assert!(faults.contains(&("c", "reconnect")), "{faults:?}");
+    assert!(faults.iter().all(|(d, _)| *d == "c"), "{faults:?}");
+    let in_position = session.rotary["c"]
+        .iter()
+        .filter(|s| s.msg.in_position)
+        .count();
+    assert_eq!(in_position, 108);
+
+    let (a, b) = (sphere(&sim.results), sphere(&hil.results));
+    let worst = a
+        .spheres
+        .iter()
+        .zip(&b.spheres)
+        .flat_map(|(x, y)| (0..3).map(move |k| (x.centre_m[k] - y.centre_m[k]).abs()))
+        .fold(0.0f64, f64::max);
+    assert!(worst < 2e-7, "centres differ by {worst} m");
+    let z = normalised_errors(b, &truth);
+    let rms = (z.iter().map(|z| z * z).sum::<f64>() / z.len() as f64).sqrt();
+    let max = z.iter().fold(0.0f64, |m, z| m.max(z.abs()));
+    println!(
+        "HIL: normalised RMS {rms:.3} over {} values, max |z| {max:.2}",
+        z.len()
+    );
+    assert!((0.6..=1.4).contains(&rms), "normalised RMS {rms}");
+    assert!(max < 5.5, "max |z| {max}");
+}
+
 /// A probe that only answers garbage: every reading is retried 5 times with `fault` events,
 /// then the run fails with the device's error; the session recorded so far stays readable.
 #[test]

@@ -73,9 +73,9 @@ pub struct HexapodDeviceConfig {
 pub struct PoseSensorConfig {
     pub id: String,
     pub driver: DriverKind,
-    /// Standard deviation per translation coordinate, metres (not in the solver's model).
+    /// Standard deviation per translation coordinate, metres (in the solver's weights).
     pub noise_m: f64,
-    /// Standard deviation per rotation-vector component, radians (not in the solver's model).
+    /// Standard deviation per rotation-vector component, radians (in the solver's weights).
     pub noise_rad: f64,
 }
 
@@ -139,6 +139,11 @@ pub struct HexapodSim {
     pub seed: u64,
     /// Each true hinge coordinate is off its design value by up to ± this, metres.
     pub hinge_error_m: f64,
+    /// The platform reaches every commanded pose exactly (idealised "given" poses); default:
+    /// the controller's legs follow the design hinges and the true pose is the forward
+    /// kinematics of their lengths with the true hinges.
+    #[serde(default)]
+    pub exact_poses: bool,
 }
 
 impl HexapodConfig {

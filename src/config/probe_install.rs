@@ -203,6 +203,41 @@ pub struct ProbeInstallSim {
     pub zero_point_m: f64,
     /// Sphere placement error per coordinate, metres.
     pub sphere_centre_m: f64,
+    /// Unmodelled effects (outside the 11-parameter model), all off by default.
+    #[serde(default)]
+    pub effects: ProbeInstallEffects,
+}
+
+/// `[sim.effects]` of a `probe_install` world.
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProbeInstallEffects {
+    /// `probe_direction` (DESIGN.md vocabulary), here as a scale error of the probe readings:
+    /// the probe reports (1 + size) × the true distance from its zero point along the beam.
+    /// The model's beam direction is a unit vector, so it cannot take the scale up.
+    pub probe_direction: ProbeDirectionEffect,
+}
+
+#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct ProbeDirectionEffect {
+    #[serde(default)]
+    pub enabled: bool,
+    /// Relative scale error of the readings (dimensionless, e.g. 3e-3).
+    #[serde(default)]
+    pub size: f64,
+}
+
+impl ProbeInstallEffects {
+    /// The reading scale error in force: 0 when the switch is off.
+    pub fn reading_scale_error(&self) -> f64 {
+        let e = &self.probe_direction;
+        if e.enabled {
+            e.size
+        } else {
+            0.0
+        }
+    }
 }
 
 /// What a driver's settings check says, without the device id it prefixes.
@@ -547,6 +582,17 @@ impl ProbeInstallConfig {
                 ("sim.sphere_centre_m", sim.sphere_centre_m),
             ] {
                 non_negative(f, key, v)?;
+            }
+            let e = &sim.effects.probe_direction;
+            if e.enabled && !(e.size.is_finite() && e.size != 0.0 && e.size.abs() < 0.1) {
+                return Err(invalid(
+                    f,
+                    "sim.effects.probe_direction.size",
+                    format!(
+                        "expected a non-zero relative scale error within ±0.1 when enabled, got {}",
+                        e.size
+                    ),
+                ));
             }
         }
         Ok(())

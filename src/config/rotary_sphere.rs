@@ -206,10 +206,14 @@ fn default_remount() -> f64 {
 #[serde(deny_unknown_fields)]
 pub struct SphereHilConfig {
     /// Host the probe's ASCII emulator on a pty (backed by `[sim]`) and read it with the real
-    /// driver (`devices.probe.driver = "ascii"`).
+    /// driver (`devices.probe.driver = "ascii"`); a `modbus_tcp` / `modbus_rtu` table gets the
+    /// Modbus table emulator (127.0.0.1 / a pty) backed by the same world.
     pub emulate: bool,
     #[serde(default)]
     pub probe_faults: geocal_drivers::probe::ProbeFaults,
+    /// Faults of the Modbus table emulator hosted for a `modbus_tcp` / `modbus_rtu` table.
+    #[serde(default)]
+    pub table_faults: geocal_drivers::modbus_table::ModbusTableFaults,
 }
 
 impl RotarySphereConfig {
@@ -366,6 +370,38 @@ impl RotarySphereConfig {
                 .map_err(|e| ("devices.probe.ascii", e.to_string()))?;
         }
         let table_sim = self.devices.rotary_table.driver == DriverKind::Sim;
+        let table = &self.devices.rotary_table;
+        match table.driver {
+            DriverKind::Sim => {}
+            DriverKind::ModbusTcp | DriverKind::ModbusRtu => {
+                if table.modbus.is_none() {
+                    return Err((
+                        "devices.rotary_table.modbus",
+                        format!(
+                            "driver \"{}\" needs [devices.rotary_table.modbus] (register map)",
+                            table.driver.as_str()
+                        ),
+                    ));
+                }
+                if self.sim.is_some() && !emulate {
+                    return Err((
+                        "devices.rotary_table.driver",
+                        "a Modbus table with [sim] needs [hil] emulate = true (the emulator \
+                         backed by the simulated world); without [sim] the table is real"
+                            .into(),
+                    ));
+                }
+            }
+            other => {
+                return Err((
+                    "devices.rotary_table.driver",
+                    format!(
+                        "expected \"sim\", \"modbus_tcp\" or \"modbus_rtu\", found \"{}\"",
+                        other.as_str()
+                    ),
+                ))
+            }
+        }
         if (table_sim || probe.driver == ProbeDriverKind::Sim || emulate) && self.sim.is_none() {
             return Err((
                 "sim",
@@ -409,5 +445,37 @@ mod tests {
         let c = RotarySphereConfig::load(&path).expect("example config");
         assert_eq!(c.plan.angles_rad().len(), 36);
         assert_eq!(peek_kind(&path).expect("kind").as_deref(), Some(KIND));
+    }
+
+    #[test]
+    fn a_modbus_table_needs_its_map_and_with_sim_the_emulator() {
+        let text = include_str!("../../config/rotary-sphere.toml").replacen(
+            "id = \"c\"\ndriver = \"sim\"",
+            "id = \"c\"\ndriver = \"modbus_tcp\"",
+            1,
+        );
+        let err = |t: &str| {
+            RotarySphereConfig::parse(t, Path::new("s.toml"))
+                .expect_err("invalid")
+                .to_string()
+        };
+        let e = err(&text);
+        assert!(
+            e.contains("key `devices.rotary_table.modbus`") && e.contains("register map"),
+            "{e}"
+        );
+        let with_map = text.replace(
+            "[plan]",
+            "[devices.rotary_table.modbus]\n[devices.rotary_table.modbus.map]\nunit_id = 1\n\
+             target = { address = 100, width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }\n\
+             actual = { address = 200, kind = \"input\", width_bits = 32, word_order = \"big\", counts_per_rad = 1e7 }\n\
+             status = { address = 300, kind = \"input\", in_position_bit = 0, moving_bit = 1, fault_bit = 2 }\n\
+             command = { address = 110, go_value = 1, clear_value = 0 }\nack = { bit = 3 }\n\n[plan]",
+        );
+        let e = err(&with_map);
+        assert!(
+            e.contains("key `devices.rotary_table.driver`") && e.contains("[hil] emulate = true"),
+            "{e}"
+        );
     }
 }

@@ -2,9 +2,9 @@
 //! session, then the 36 hinge coordinates by plain damped least squares and by the two-stage
 //! method (LM, then the grid multi-start on the vertical base coordinates).
 //!
-//! Each pose's readings are averaged; pose 0 (home) is the reference of every change. The
-//! per-change σ is σ_enc·√(1/n + 1/n₀) (n readings at the pose, n₀ at home), the changes being
-//! treated as independent (their shared home term is small when n₀ ≫ n).
+//! Each pose's readings are averaged; pose 0 (home) is the reference of every change. The final
+//! fit weights the changes with their full covariance (solve::hexapod_weighted): the shared
+//! home reading, and the pose sensor's declared noise on every measured pose.
 
 use serde::{Deserialize, Serialize};
 
@@ -20,6 +20,7 @@ use crate::solve::hexapod::{
     solve_lm, solve_two_stage, GridRound, HexapodError, HexapodObservations, LmOptions,
     TwoStageOptions,
 };
+use crate::solve::hexapod_weighted::{refine_weighted, HexapodNoise, PoseNoise};
 
 #[derive(Debug, thiserror::Error)]
 pub enum HexapodMethodError {
@@ -58,9 +59,24 @@ pub struct HexapodResults {
     pub pose_source: String,
     /// σ of one relative leg-length change used by the solvers, metres.
     pub sigma_change_m: f64,
-    /// The two-stage result with its standard uncertainties (Cramér–Rao at the solution).
+    /// σ of the measured poses per translation coordinate (m) and rotation-vector component
+    /// (rad), from the pose sensor's declared noise; 0 when the poses are commanded.
+    #[serde(default)]
+    pub pose_sigma_m: f64,
+    #[serde(default)]
+    pub pose_sigma_rad: f64,
+    /// The weighted (generalised least-squares) refinement of the two-stage result, with its
+    /// standard uncertainties: encoder and pose noise in the weights and the covariance.
     pub hinges: Vec<HingeResult>,
-    /// Σ of squared residuals over every pose change and leg, two-stage result (m²).
+    /// Covariance of the 36 hinge coordinates (B_0..B_5 then P_0..P_5, x y z each), m²: the
+    /// shared pose errors correlate the legs.
+    #[serde(default)]
+    pub covariance_m2: Vec<Vec<f64>>,
+    /// Gauss–Newton iterations of the weighted refinement.
+    #[serde(default)]
+    pub weighted_iterations: usize,
+    /// Σ of squared residuals over every pose change and leg, two-stage result (m²); the
+    /// chi²/dof below is the weighted one of `hinges` (rᵀC⁻¹r over `dof`).
     pub objective_m2: f64,
     pub residual_rms_m: f64,
     pub chi2_per_dof: f64,
@@ -120,11 +136,13 @@ fn parse<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// One pose's data: the pose, the mean leg reading and how many readings made it.
+/// One pose's data: the pose, the mean leg reading, how many readings made it and whether the
+/// pose is measured (else commanded, taken as exact).
 struct PoseData {
     pose: Pose,
     mean_m: [f64; LEGS],
     n: usize,
+    measured: bool,
 }
 
 fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
@@ -177,21 +195,23 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                 if n == 0 {
                     return Err(HexapodMethodError::NoReadings { pose: p });
                 }
-                let pose = match measured.iter().rfind(|m| within(m.log_time_ns)) {
+                let (pose, is_measured) = match measured.iter().rfind(|m| within(m.log_time_ns)) {
                     Some(m) => {
                         let s: PlatformPoseSample = parse(&pose_topic, m.log_time_ns, &m.msg)?;
                         any_measured = true;
-                        to_pose(&geocal_drivers::PlatformPose {
+                        let p = to_pose(&geocal_drivers::PlatformPose {
                             translation_m: s.translation_m,
                             rotation_vector_rad: s.rotation_vector_rad,
-                        })
+                        });
+                        (p, true)
                     }
-                    None => commanded,
+                    None => (commanded, false),
                 };
                 out.push(PoseData {
                     pose,
                     mean_m: sum.map(|s| s / n as f64),
                     n,
+                    measured: is_measured,
                 });
             }
             _ => {}
@@ -251,8 +271,33 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
             ..TwoStageOptions::default()
         },
     )?;
-    let changes = (data.len() - 1) * LEGS;
-    let dof = changes.saturating_sub(6 * LEGS);
+    // The pose sensor's declared noise applies to the measured poses only.
+    let sensor = session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.kind == "pose_sensor");
+    let pose_sigma_m = sensor.and_then(|d| d.noise_m).unwrap_or(0.0);
+    let pose_sigma_rad = sensor
+        .and_then(|d| d.extra.get("noise_rad"))
+        .and_then(|v| v.as_f64())
+        .unwrap_or(0.0);
+    let noise = HexapodNoise {
+        encoder_sigma_m: noise_m,
+        poses: data
+            .iter()
+            .map(|d| PoseNoise {
+                readings: d.n,
+                translation_sigma_m: if d.measured { pose_sigma_m } else { 0.0 },
+                rotation_sigma_rad: if d.measured { pose_sigma_rad } else { 0.0 },
+            })
+            .collect(),
+    };
+    let fit = refine_weighted(&obs, &noise, &two.geometry)?;
+    let sigmas = fit.sigmas_m();
+    let coord = |v: &[f64], o: usize| -> [f64; 3] { std::array::from_fn(|k| v[o + k]) };
+    let estimate = fit.geometry.to_vec();
+    let dof = fit.dof;
     let max_difference_m = lm
         .geometry
         .to_vec()
@@ -263,10 +308,10 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
     let hinges = (0..LEGS)
         .map(|i| HingeResult {
             leg: i,
-            base_m: two.base_m[i],
-            base_sigma_m: two.base_sigma_m[i],
-            platform_m: two.platform_m[i],
-            platform_sigma_m: two.platform_sigma_m[i],
+            base_m: coord(&estimate, 3 * i),
+            base_sigma_m: coord(&sigmas, 3 * i),
+            platform_m: coord(&estimate, 3 * (LEGS + i)),
+            platform_sigma_m: coord(&sigmas, 3 * (LEGS + i)),
             nominal_base_m: nominal.base_m[i].into(),
             nominal_platform_m: nominal.platform_m[i].into(),
         })
@@ -284,10 +329,18 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         }
         .into(),
         sigma_change_m,
+        pose_sigma_m: if any_measured { pose_sigma_m } else { 0.0 },
+        pose_sigma_rad: if any_measured { pose_sigma_rad } else { 0.0 },
         hinges,
+        covariance_m2: fit
+            .covariance_m2
+            .row_iter()
+            .map(|r| r.iter().copied().collect())
+            .collect(),
+        weighted_iterations: fit.iterations,
         objective_m2: two.objective_m2,
         residual_rms_m: two.residual_rms_m,
-        chi2_per_dof: two.objective_m2 / (sigma_change_m * sigma_change_m) / dof.max(1) as f64,
+        chi2_per_dof: fit.chi2 / dof.max(1) as f64,
         dof,
         two_stage: TwoStageSummary {
             objective_initial_m2: two.objective_initial_m2,
@@ -311,10 +364,13 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
             platform_m: lm.geometry.platform_m.iter().map(|v| (*v).into()).collect(),
             max_difference_m,
         },
-        note: "hinges from the two-stage method (damped least squares from the design geometry, \
+        note: "hinges: the two-stage method (damped least squares from the design geometry, \
                then the grid multi-start on the vertical base coordinates, never above its \
-               start's objective); sigmas from σ²(JᵀJ)⁻¹ per leg at the solution, poses taken \
-               as exact; `lm` is plain damped least squares from the design geometry"
+               start's objective), refined by generalised least squares with the full residual \
+               covariance (encoder noise of both readings, pose-sensor noise of the pose and of \
+               the reference pose); sigmas and covariance_m2 = (JᵀC⁻¹J)⁻¹ at the solution, \
+               chi2_per_dof = rᵀC⁻¹r/dof; `lm` is plain damped least squares from the design \
+               geometry"
             .into(),
     })
 }

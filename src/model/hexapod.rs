@@ -1,5 +1,6 @@
 //! Six-leg parallel machine with universal joints: leg lengths and relative leg-length changes
-//! predicted from the hinge coordinates at measured platform poses, with Jacobians.
+//! predicted from the hinge coordinates at measured platform poses, with Jacobians, and the
+//! forward kinematics (the pose that given leg lengths reach).
 
 use nalgebra::{Rotation3, SMatrix, Vector3};
 
@@ -80,9 +81,100 @@ pub fn relative_length(
     (l - l0, g - g0)
 }
 
+/// ∂L_i/∂[t, w] (6 legs × 6): t the translation, w the rotation vector (the quantities the
+/// pose sensor reports and its noise perturbs). Rotation part by central differences.
+pub fn pose_jacobian(geometry: &HexapodGeometry, pose: &Pose) -> SMatrix<f64, LEGS, 6> {
+    let w = pose.rotation.scaled_axis();
+    let h = 1e-6;
+    let mut a = SMatrix::<f64, LEGS, 6>::zeros();
+    for i in 0..LEGS {
+        let x = geometry.leg(i);
+        let d = pose.rotation * geometry.platform_m[i] + pose.translation_m - geometry.base_m[i];
+        let u = d / d.norm();
+        for c in 0..3 {
+            a[(i, c)] = u[c];
+            let mut e = Vector3::zeros();
+            e[c] = h;
+            let at = |w: Vector3<f64>| {
+                leg_length(
+                    &x,
+                    &Pose {
+                        rotation: Rotation3::new(w),
+                        translation_m: pose.translation_m,
+                    },
+                )
+                .0
+            };
+            a[(i, 3 + c)] = (at(w + e) - at(w - e)) / (2.0 * h);
+        }
+    }
+    a
+}
+
+/// Forward kinematics: the pose at which the legs of `geometry` have `lengths_m`, by Newton on
+/// the 6 leg-length equations in [t, w] from `start` (a nearby pose, e.g. the commanded one).
+/// None if it does not converge to 1 pm within 50 iterations.
+pub fn forward_kinematics(
+    geometry: &HexapodGeometry,
+    lengths_m: &[f64; LEGS],
+    start: &Pose,
+) -> Option<Pose> {
+    let mut t = start.translation_m;
+    let mut w = start.rotation.scaled_axis();
+    for _ in 0..50 {
+        let pose = Pose {
+            rotation: Rotation3::new(w),
+            translation_m: t,
+        };
+        let f = SMatrix::<f64, LEGS, 1>::from_fn(|i, _| {
+            leg_length(&geometry.leg(i), &pose).0 - lengths_m[i]
+        });
+        if f.amax() < 1e-12 {
+            return Some(pose);
+        }
+        let step = pose_jacobian(geometry, &pose).lu().solve(&f)?;
+        t -= step.fixed_rows::<3>(0);
+        w -= step.fixed_rows::<3>(3);
+    }
+    None
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// Legs set to the design lengths at a commanded pose, a geometry off the design by
+    /// millimetres: the pose found reproduces the lengths and differs from the commanded one.
+    #[test]
+    fn forward_kinematics_closes_the_leg_lengths() {
+        let design = HexapodGeometry {
+            base_m: std::array::from_fn(|i| {
+                let a = (i as f64 * 60.0 + 10.0).to_radians();
+                Vector3::new(0.45 * a.cos(), 0.45 * a.sin(), 0.0)
+            }),
+            platform_m: std::array::from_fn(|i| {
+                let a = (i as f64 * 60.0 + 40.0).to_radians();
+                Vector3::new(0.2 * a.cos(), 0.2 * a.sin(), 0.0)
+            }),
+        };
+        let mut v = design.to_vec();
+        for (k, x) in v.iter_mut().enumerate() {
+            *x += 2e-3 * ((k as f64 * 1.7).sin());
+        }
+        let truth = HexapodGeometry::from_slice(&v);
+        let commanded = Pose {
+            rotation: Rotation3::new(Vector3::new(0.1, -0.05, 0.15)),
+            translation_m: Vector3::new(0.03, -0.02, -0.68),
+        };
+        let lengths: [f64; LEGS] =
+            std::array::from_fn(|i| leg_length(&design.leg(i), &commanded).0);
+        let reached = forward_kinematics(&truth, &lengths, &commanded).expect("converges");
+        for (i, l) in lengths.iter().enumerate() {
+            assert!((leg_length(&truth.leg(i), &reached).0 - l).abs() < 1e-11);
+        }
+        let moved = (reached.translation_m - commanded.translation_m).norm();
+        assert!(moved > 1e-4 && moved < 0.1, "{moved}");
+    }
 
     #[test]
     fn gradient_matches_finite_differences() {

@@ -154,6 +154,19 @@ impl<'a> SphereSequencer<'a> {
         Err(error.into())
     }
 
+    /// Faults the table's driver recovered from by itself (e.g. a Modbus reconnect after a
+    /// timeout), as `fault` events.
+    fn record_table_link_faults(&mut self) {
+        let device = self.devices.table.id().to_string();
+        for fault in self.devices.table.take_link_faults() {
+            self.event(RunEvent::Fault {
+                device: device.clone(),
+                code: fault.code,
+                message: fault.message,
+            });
+        }
+    }
+
     /// Turn the table to `commanded_rad` (a `rotation` event) and record its state until it
     /// reports in position.
     async fn rotate(&mut self, commanded_rad: f64) -> Result<(), SphereRunError> {
@@ -164,8 +177,10 @@ impl<'a> SphereSequencer<'a> {
         });
         let mut attempt = 0;
         while let Err(e) = self.devices.table.start_rotation(commanded_rad).await {
+            self.record_table_link_faults();
             self.retry_or_fail(e, &mut attempt)?;
         }
+        self.record_table_link_faults();
         let started_ns = self.clock.now_ns();
         let pause = std::time::Duration::from_secs_f64(self.plan.poll_interval_s);
         loop {
@@ -173,9 +188,13 @@ impl<'a> SphereSequencer<'a> {
             let state = loop {
                 match self.devices.table.state().await {
                     Ok(s) => break s,
-                    Err(e) => self.retry_or_fail(e, &mut attempt)?,
+                    Err(e) => {
+                        self.record_table_link_faults();
+                        self.retry_or_fail(e, &mut attempt)?
+                    }
                 }
             };
+            self.record_table_link_faults();
             let encoder_rad = match state {
                 RotaryState::InPosition { encoder_rad } => Some(encoder_rad),
                 RotaryState::Moving => None,

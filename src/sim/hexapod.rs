@@ -1,8 +1,9 @@
 //! Simulated world of plan kind `hexapod`: a 6-leg machine with seeded true hinge coordinates,
 //! incremental leg encoders with noise and a pose sensor, in virtual time.
 //!
-//! The platform reaches every commanded pose exactly (the true pose); the encoders count the
-//! true leg lengths' change since power-on (at home) from an arbitrary start count.
+//! The controller turns a commanded pose into leg lengths with the design hinges; the legs
+//! reach them and the true pose is the forward kinematics of those lengths with the true hinges
+//! (unless `[sim] exact_poses`). The encoders count the legs' change since power-on (at home).
 
 use std::sync::{Arc, Mutex, MutexGuard};
 
@@ -18,7 +19,7 @@ use serde::Serialize;
 
 use crate::clock::VirtualClock;
 use crate::config::hexapod::HexapodConfig;
-use crate::model::hexapod::{leg_length, HexapodGeometry, Pose, LEGS};
+use crate::model::hexapod::{forward_kinematics, leg_length, HexapodGeometry, Pose, LEGS};
 
 const POLL_S: f64 = 0.02;
 
@@ -30,12 +31,41 @@ pub struct HexapodTruth {
     pub base_m: Vec<[f64; 3]>,
     pub platform_m: Vec<[f64; 3]>,
     pub encoder_noise_m: f64,
+    /// The power-on home, then every commanded pose in order, with the pose truly reached.
+    pub poses: Vec<CommandedAndTrue>,
+}
+
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct CommandedAndTrue {
+    pub commanded: PoseValues,
+    pub reached: PoseValues,
+}
+
+/// A platform pose as the truth file writes it.
+#[derive(Debug, Clone, Copy, Serialize)]
+pub struct PoseValues {
+    pub translation_m: [f64; 3],
+    pub rotation_vector_rad: [f64; 3],
+}
+
+impl From<PlatformPose> for PoseValues {
+    fn from(p: PlatformPose) -> Self {
+        PoseValues {
+            translation_m: p.translation_m,
+            rotation_vector_rad: p.rotation_vector_rad,
+        }
+    }
 }
 
 pub struct HexapodWorld {
     clock: Arc<VirtualClock>,
     seed: u64,
     truth: HexapodGeometry,
+    /// The design hinges the controller's inverse kinematics uses.
+    nominal: HexapodGeometry,
+    exact_poses: bool,
+    /// Commanded and reached poses, power-on home first.
+    poses: Vec<(PlatformPose, PlatformPose)>,
     rng: ChaCha8Rng,
     encoder_noise_m: f64,
     pose_noise: (f64, f64),
@@ -58,6 +88,27 @@ pub fn to_pose(p: &PlatformPose) -> Pose {
     }
 }
 
+/// The pose the platform reaches when commanded to `commanded`: the controller sets the legs to
+/// the design geometry's lengths there; the true hinges turn those into a slightly different
+/// pose (forward kinematics from the commanded one). `exact`: the commanded pose itself.
+fn reached_pose(
+    nominal: &HexapodGeometry,
+    truth: &HexapodGeometry,
+    exact: bool,
+    commanded: &PlatformPose,
+) -> Option<PlatformPose> {
+    if exact {
+        return Some(*commanded);
+    }
+    let c = to_pose(commanded);
+    let lengths: [f64; LEGS] = std::array::from_fn(|i| leg_length(&nominal.leg(i), &c).0);
+    let p = forward_kinematics(truth, &lengths, &c)?;
+    Some(PlatformPose {
+        translation_m: p.translation_m.into(),
+        rotation_vector_rad: p.rotation.scaled_axis().into(),
+    })
+}
+
 impl HexapodWorld {
     pub fn new(config: &HexapodConfig, clock: Arc<VirtualClock>) -> Self {
         let seed = config.sim.as_ref().map_or(0, |s| s.seed);
@@ -74,7 +125,10 @@ impl HexapodWorld {
             translation_m: config.plan.home_translation_m,
             rotation_vector_rad: [0.0; 3],
         };
-        let home_pose = to_pose(&home);
+        let exact_poses = config.sim.as_ref().is_some_and(|s| s.exact_poses);
+        // A home the true machine cannot reach from the design lengths stays as commanded.
+        let reached = reached_pose(&nominal, &truth, exact_poses, &home).unwrap_or(home);
+        let home_pose = to_pose(&reached);
         let home_lengths_m = std::array::from_fn(|i| leg_length(&truth.leg(i), &home_pose).0);
         let start_count_m = std::array::from_fn(|_| rng.random_range(-0.01..0.01));
         let h = &config.devices.hexapod;
@@ -87,6 +141,9 @@ impl HexapodWorld {
             clock,
             seed,
             truth,
+            nominal,
+            exact_poses,
+            poses: vec![(home, reached)],
             rng,
             encoder_noise_m: h.encoder_noise_m,
             pose_noise,
@@ -95,7 +152,7 @@ impl HexapodWorld {
             reading_period_s: h.reading_period_s,
             start_count_m,
             home_lengths_m,
-            pose: home,
+            pose: reached,
             move_end_s: 0.0,
         }
     }
@@ -107,6 +164,14 @@ impl HexapodWorld {
             base_m: self.truth.base_m.iter().map(|v| (*v).into()).collect(),
             platform_m: self.truth.platform_m.iter().map(|v| (*v).into()).collect(),
             encoder_noise_m: self.encoder_noise_m,
+            poses: self
+                .poses
+                .iter()
+                .map(|(c, r)| CommandedAndTrue {
+                    commanded: (*c).into(),
+                    reached: (*r).into(),
+                })
+                .collect(),
         }
     }
 
@@ -118,7 +183,12 @@ impl HexapodWorld {
         self.clock.elapsed_s()
     }
 
-    fn start_move(&mut self, target: PlatformPose) {
+    fn start_move(&mut self, commanded: PlatformPose) -> Result<(), String> {
+        let target = reached_pose(&self.nominal, &self.truth, self.exact_poses, &commanded)
+            .ok_or_else(|| {
+                format!("the legs' lengths for pose {commanded:?} have no nearby true pose")
+            })?;
+        self.poses.push((commanded, target));
         let dist =
             (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m)).norm();
         let turn = (Rotation3::new(Vector3::from(target.rotation_vector_rad))
@@ -127,6 +197,7 @@ impl HexapodWorld {
         self.move_end_s =
             self.now_s() + (dist / self.speed_m_s).max(turn / self.angular_speed_rad_s);
         self.pose = target;
+        Ok(())
     }
 
     fn idle(&mut self) -> bool {
@@ -202,8 +273,12 @@ impl Hexapod for SimHexapod {
                 message: format!("pose {pose:?} is not finite"),
             });
         }
-        lock(&self.world, &self.id)?.start_move(*pose);
-        Ok(())
+        lock(&self.world, &self.id)?
+            .start_move(*pose)
+            .map_err(|message| DeviceError::Rejected {
+                device: self.id.clone(),
+                message,
+            })
     }
     async fn state(&mut self) -> Result<HexapodState, DeviceError> {
         Ok(if lock(&self.world, &self.id)?.idle() {

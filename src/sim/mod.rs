@@ -12,6 +12,7 @@ pub mod probe_install;
 pub mod probe_install_source;
 pub mod rotary;
 pub mod rotary_sphere;
+pub mod sphere_table_source;
 pub mod table_source;
 pub mod truth;
 pub mod world;

@@ -28,6 +28,8 @@ pub struct ProbeInstallTruth {
     pub parameters: Vec<TruthParameter>,
     pub sphere_radius_m: f64,
     pub probe_noise_m: f64,
+    /// `[sim.effects] probe_direction`: the readings' relative scale error (0 when off).
+    pub probe_scale_error: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -42,6 +44,8 @@ pub struct ProbeInstallWorld {
     seed: u64,
     radius_m: f64,
     noise_m: f64,
+    /// Relative scale error of the readings (`probe_direction` effect), 0 when off.
+    scale_error: f64,
     range_m: [f64; 2],
     reading_period_s: f64,
     feed_m_s: f64,
@@ -100,6 +104,10 @@ impl ProbeInstallWorld {
             seed,
             radius_m: config.plan.sphere_radius_m,
             noise_m: probe.noise_m,
+            scale_error: config
+                .sim
+                .as_ref()
+                .map_or(0.0, |s| s.effects.reading_scale_error()),
             range_m: probe.range_m,
             reading_period_s: probe.reading_period_s,
             feed_m_s: machine.feed_m_s,
@@ -125,6 +133,7 @@ impl ProbeInstallWorld {
                 .collect(),
             sphere_radius_m: self.radius_m,
             probe_noise_m: self.noise_m,
+            probe_scale_error: self.scale_error,
         }
     }
 
@@ -194,7 +203,8 @@ impl ProbeInstallWorld {
         None
     }
 
-    /// One reading: where the true beam first meets the true sphere, plus noise; None when the
+    /// One reading: where the true beam first meets the true sphere (scaled by the
+    /// `probe_direction` effect's error when on), plus noise; None when the
     /// beam misses the sphere or the distance is outside the probe's range.
     fn read(&mut self) -> (f64, Option<f64>) {
         let t_s = self.now_s() + self.reading_period_s;
@@ -217,7 +227,7 @@ impl ProbeInstallWorld {
             return None;
         }
         // The entry point: the smaller root along the beam.
-        let reading = (-half_b - disc.sqrt()) / scale;
+        let reading = (1.0 + self.scale_error) * (-half_b - disc.sqrt()) / scale;
         let noise: f64 = StandardNormal.sample(&mut self.rng);
         let value = reading + self.noise_m * noise;
         let inside = value >= self.range_m[0] && value <= self.range_m[1];

@@ -18,6 +18,8 @@ pub enum HexapodError {
     BadSearchPose(usize),
     #[error("leg {0}: the poses do not determine its hinges (singular normal equations)")]
     Singular(usize),
+    #[error("the residual covariance is not positive definite (zero encoder noise?)")]
+    SingularNoise,
 }
 
 /// Relative leg-length readings. Pose 0 is the reference: `delta_lengths_m[k][i]` is leg i's

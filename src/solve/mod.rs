@@ -5,6 +5,7 @@ pub mod elastic_net;
 pub mod genetic;
 pub mod geometric_errors;
 pub mod hexapod;
+pub mod hexapod_weighted;
 pub mod multilateration;
 pub mod probe_install;
 pub mod robust;
