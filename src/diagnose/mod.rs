@@ -395,7 +395,10 @@ pub(crate) fn diagnose_data(
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
 
+    // Effects in the model: the named ones and the members of confounded groups (in the model
+    // so that later rounds see the residual without their shared signal, never named).
     let mut accepted: Vec<EffectModel> = Vec::new();
+    let mut confounded_kinds: Vec<EffectKind> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
     let mut gap_before: Option<Gap> = None;
 
@@ -441,7 +444,9 @@ pub(crate) fn diagnose_data(
         ),
     }
     let mut last_base = None;
+    let mut final_round = 0;
     for round in 0..=LIBRARY.len() {
+        final_round = round;
         let design = accepted
             .iter()
             .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
@@ -576,16 +581,20 @@ pub(crate) fn diagnose_data(
         match winner {
             Some(best) if confounded.is_empty() => accepted.push(trials[best].model.clone()),
             Some(best) => {
-                // Neither is named: drop the confounded group from further rounds.
-                let out: Vec<EffectKind> = std::iter::once(best)
+                // None of the group is named, but the signal they share is in the data: the
+                // whole group joins the model (unnamed), so that the next rounds do not hand
+                // the same signal to a less likely neighbour (e.g. station_drift, which nests
+                // thermal_drift) and the gap after counts it as explained by the group.
+                let group: Vec<EffectModel> = std::iter::once(best)
                     .chain(confounded.iter().copied())
-                    .map(|t| trials[t].model.kind)
+                    .map(|t| trials[t].model.clone())
                     .collect();
                 notes.push(format!(
-                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}",
-                    out.iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
+                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
+                    group.iter().map(|m| m.kind.name()).collect::<Vec<_>>().join(", ")
                 ));
-                available.retain(|k| !out.contains(k));
+                confounded_kinds.extend(group.iter().map(|m| m.kind));
+                accepted.extend(group);
             }
             None => {
                 last_base = Some(base_gap);
@@ -740,7 +749,11 @@ pub(crate) fn diagnose_data(
         * solution.dof as f64
         / nobs as f64)
         .sqrt();
-    let mut selected: Vec<String> = accepted.iter().map(|m| m.kind.name().to_string()).collect();
+    let mut selected: Vec<String> = accepted
+        .iter()
+        .filter(|m| !confounded_kinds.contains(&m.kind))
+        .map(|m| m.kind.name().to_string())
+        .collect();
     let mut candidates: Vec<Candidate> = records.into_values().collect();
     if let Some(t) = &offset_test {
         if offset_accepted {
@@ -757,7 +770,7 @@ pub(crate) fn diagnose_data(
             heldout_rms_after_m: gap_after.heldout_rms_m,
             bic_delta: t.bic_delta,
             p_value: t.p_value,
-            round: accepted.len(),
+            round: final_round,
             df: t.df,
             chi2_drop: t.chi2_drop,
             status: if offset_accepted {
@@ -1102,6 +1115,19 @@ pub fn text(d: &Diagnosis) -> String {
             d.selected.join(", ")
         }
     );
+    let confounded: Vec<&str> = d
+        .candidates
+        .iter()
+        .filter(|c| c.status == "confounded")
+        .map(|c| c.effect.as_str())
+        .collect();
+    if !confounded.is_empty() {
+        let _ = writeln!(
+            s,
+            "  confounded (the data cannot tell them apart; none named): {}",
+            confounded.join(", ")
+        );
+    }
     gap(&mut s, "gap after", &d.gap_after);
     let _ = writeln!(
         s,
