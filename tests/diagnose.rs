@@ -27,6 +27,16 @@ fn check_named(effect: &str, line: &str, seed: u64) {
     // The gap was there before, several times the floor.
     assert!(d.gap.heldout_ratio > 2.0, "{}", geocal::diagnose::text(&d));
     assert!(!d.unexplained, "{}", geocal::diagnose::text(&d));
+    // The points level departs before (the effect moves the solved points) and fits the
+    // noise model after the effect's contribution is taken off the lengths.
+    let before = &d.points_level.as_ref().expect("points level").gap;
+    let after = d.points_level_after.as_ref().expect("points level after");
+    assert!(after.p_value >= 0.01, "{}", geocal::diagnose::text(&d));
+    assert!(
+        after.chi2_per_dof < before.chi2_per_dof,
+        "{}",
+        geocal::diagnose::text(&d)
+    );
 }
 
 #[test]
