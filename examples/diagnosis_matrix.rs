@@ -1,5 +1,10 @@
 //! Validation of `geocal diagnose`: simulated sessions with one effect (or none) switched on,
-//! diagnosed; prints the confusion matrix (true effect x first selected) and the gap ratios.
+//! diagnosed; prints the confusion matrix (true effect x first selected), the gap ratios, the
+//! points level before/after, and with `--twin` the diagnosis against the effect-free twin.
+//!
+//! `cargo run --example diagnosis_matrix -- N [--twin] [--twin-seeds M]`: N seeds per row
+//! (default 10); `--twin` also diagnoses each recording against its twin simulated from its
+//! config (`geocal diagnose REC --twin CONFIG.toml`) on the first M seeds (default N).
 
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -56,25 +61,104 @@ const TWO_TARGET_CASES: [(&str, &str); 2] = [
     ),
 ];
 
+use geocal::diagnose::{twin::diagnose_file_with_twin, Diagnosis};
+
+/// Family-wise level of the diagnosis' tests (its default), for "points level clean after".
+const ALPHA: f64 = 0.01;
+
+/// A figure in a fixed-width column: plain below 1000, else in exponent form.
+fn fig(v: f64) -> String {
+    if v.abs() < 1000.0 {
+        format!("{v:.2}")
+    } else {
+        format!("{v:.1e}")
+    }
+}
+
+/// Scores of one row over its seeds (`names`: the confusion matrix's columns).
+#[derive(Default)]
+struct Scores {
+    seeds: usize,
+    counts: Vec<usize>,
+    top1: usize,
+    unexplained: usize,
+    confounded: usize,
+    false_sel: usize,
+    z_before: f64,
+    z_after: f64,
+    /// Points level χ²/dof before and after the selected effects (sums), seeds tested and
+    /// seeds whose points level fits the noise model afterwards.
+    pts_before: f64,
+    pts_after: f64,
+    pts_seeds: usize,
+    pts_clean: usize,
+    /// Against the twin: the recording's points minus the twin's, χ²/dof before and after.
+    twin_pts_before: f64,
+    twin_pts_after: f64,
+    twin_pts_seeds: usize,
+}
+
+impl Scores {
+    fn add(&mut self, d: &Diagnosis, truth: &str, names: &[&str]) {
+        if self.counts.is_empty() {
+            self.counts = vec![0; names.len()];
+        }
+        self.seeds += 1;
+        let first = d.selected.first().map_or("none", |s| s.as_str());
+        if let Some(k) = names.iter().position(|n| *n == first) {
+            self.counts[k] += 1;
+        }
+        self.top1 += usize::from(first == truth);
+        // Every selected effect that is not the one switched on is a false selection.
+        self.false_sel += d.selected.iter().filter(|s| *s != truth).count();
+        self.confounded += usize::from(d.candidates.iter().any(|c| c.status == "confounded"));
+        self.unexplained += usize::from(d.unexplained);
+        self.z_before += d.gap.heldout_ratio;
+        self.z_after += d.gap_after.heldout_ratio;
+        if let (Some(before), Some(after)) = (&d.points_level, &d.points_level_after) {
+            self.pts_seeds += 1;
+            self.pts_before += before.gap.chi2_per_dof;
+            self.pts_after += after.chi2_per_dof;
+            self.pts_clean += usize::from(after.p_value >= ALPHA);
+        }
+        if let Some(t) = &d.twin {
+            if let (Some(b), Some(a)) = (&t.points_before, &t.points_after) {
+                self.twin_pts_seeds += 1;
+                self.twin_pts_before += b.chi2_per_dof;
+                self.twin_pts_after += a.chi2_per_dof;
+            }
+        }
+    }
+
+    fn mean(sum: f64, n: usize) -> String {
+        if n == 0 {
+            "-".into()
+        } else {
+            fig(sum / n as f64)
+        }
+    }
+}
+
 fn main() {
-    let seeds: u64 = std::env::args()
-        .nth(1)
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let seeds: u64 = args
+        .iter()
+        .find(|a| !a.starts_with("--") && a.parse::<u64>().is_ok())
         .and_then(|s| s.parse().ok())
         .unwrap_or(10);
+    let twin = args.iter().any(|a| a == "--twin" || a == "--twin-seeds");
+    let twin_seeds: u64 = args
+        .iter()
+        .position(|a| a == "--twin-seeds")
+        .and_then(|k| args.get(k + 1))
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(seeds)
+        .min(seeds);
     let one_target = common::diagnose_demo();
     let two_targets = common::two_target_diagnose_demo();
     let names: Vec<&str> = std::iter::once("none")
         .chain(geocal::diagnose::effects::LIBRARY.iter().map(|k| k.name()))
         .collect();
-    println!("rows: true effect; columns: first selected effect; {seeds} seeds each; 5 stations, 27 points, 2 passes");
-    print!("{:<26}", "");
-    for n in &names {
-        print!("{:>8}", &n[..n.len().min(7)]);
-    }
-    println!(
-        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}",
-        "top-1", "unexpl", "confd", "false", "z before", "z after"
-    );
     let only = std::env::var("ONLY").ok();
     let cases = CASES
         .iter()
@@ -84,38 +168,99 @@ fn main() {
                 .iter()
                 .map(|&(truth, line)| (truth, line, &two_targets, " (2 targets)")),
         );
+    let mut rows: Vec<(String, Scores, Scores)> = Vec::new();
     for (truth, line, base, label) in cases {
         if only.as_deref().is_some_and(|o| o != truth) {
             continue;
         }
-        let mut counts = vec![0usize; names.len()];
-        let (mut top1, mut unexplained, mut confounded, mut false_sel) = (0, 0, 0, 0);
-        let (mut before, mut after) = (0.0, 0.0);
+        let (mut alone, mut against) = (Scores::default(), Scores::default());
         for seed in 0..seeds {
-            let d = common::run_and_diagnose(&common::with_effects(base, 5000 + seed, line));
-            let first = d.selected.first().map_or("none", |s| s.as_str());
-            if let Some(k) = names.iter().position(|n| *n == first) {
-                counts[k] += 1;
-            }
-            top1 += usize::from(first == truth);
-            // Every selected effect that is not the one switched on is a false selection.
-            false_sel += d.selected.iter().filter(|s| *s != truth).count();
-            confounded += usize::from(d.candidates.iter().any(|c| c.status == "confounded"));
-            unexplained += usize::from(d.unexplained);
-            before += d.gap.heldout_ratio;
-            after += d.gap_after.heldout_ratio;
+            let text = common::with_effects(base, 5000 + seed, line);
+            let dir = tempfile::tempdir().expect("tempdir");
+            let session = common::record_session(&text, &dir.path().join("rec"));
+            let d =
+                geocal::diagnose::diagnose_file(&session, &Default::default()).expect("diagnose");
+            alone.add(&d, truth, &names);
             if std::env::var("VERBOSE").is_ok() {
                 println!("{}", geocal::diagnose::text(&d));
             }
+            if twin && seed < twin_seeds {
+                // `geocal diagnose REC --twin CONFIG.toml`: the config the recording was made
+                // with, its effects switched off by the twin.
+                let config = dir.path().join("config.toml");
+                std::fs::write(&config, &text).expect("write config");
+                let t = diagnose_file_with_twin(
+                    &session,
+                    &config,
+                    Some(&dir.path().join("twin")),
+                    &Default::default(),
+                )
+                .expect("diagnose against the twin");
+                against.add(&t, truth, &names);
+                if std::env::var("VERBOSE").is_ok() {
+                    println!("{}", geocal::diagnose::text(&t));
+                }
+            }
         }
-        print!("{:<26}", format!("{truth}{label}"));
-        for c in counts {
+        rows.push((format!("{truth}{label}"), alone, against));
+    }
+
+    println!("rows: true effect; columns: first selected effect; {seeds} seeds each; 5 stations, 27 points, 2 passes");
+    print!("{:<26}", "");
+    for n in &names {
+        print!("{:>8}", &n[..n.len().min(7)]);
+    }
+    println!(
+        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}",
+        "top-1", "unexpl", "confd", "false", "z before", "z after", "pts bef", "pts aft", "pts ok"
+    );
+    for (label, r, _) in &rows {
+        print!("{label:<26}");
+        for c in &r.counts {
             print!("{c:>8}");
         }
         println!(
-            "{top1:>7}{unexplained:>7}{confounded:>7}{false_sel:>7}{:>9.2}{:>9.2}",
-            before / seeds as f64,
-            after / seeds as f64
+            "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}",
+            r.top1,
+            r.unexplained,
+            r.confounded,
+            r.false_sel,
+            Scores::mean(r.z_before, r.seeds),
+            Scores::mean(r.z_after, r.seeds),
+            Scores::mean(r.pts_before, r.pts_seeds),
+            Scores::mean(r.pts_after, r.pts_seeds),
+            format!("{}/{}", r.pts_clean, r.pts_seeds),
         );
+    }
+    if twin {
+        println!();
+        println!("against the effect-free twin (`geocal diagnose REC --twin CONFIG.toml`), first {twin_seeds} seeds of each row");
+        println!(
+            "{:<26}{:>7}{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>10}{:>10}",
+            "",
+            "seeds",
+            "top-1",
+            "unexpl",
+            "confd",
+            "false",
+            "z before",
+            "z after",
+            "twin bef",
+            "twin aft"
+        );
+        for (label, _, t) in &rows {
+            println!(
+                "{label:<26}{:>7}{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>10}{:>10}",
+                t.seeds,
+                t.top1,
+                t.unexplained,
+                t.confounded,
+                t.false_sel,
+                Scores::mean(t.z_before, t.seeds),
+                Scores::mean(t.z_after, t.seeds),
+                Scores::mean(t.twin_pts_before, t.twin_pts_seeds),
+                Scores::mean(t.twin_pts_after, t.twin_pts_seeds),
+            );
+        }
     }
 }

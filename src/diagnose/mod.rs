@@ -24,7 +24,7 @@ use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
 use loso::{leave_one_station_out, HeldOutStation};
-use points::{points_level, PointsLevel};
+use points::{points_level, PointsGap, PointsLevel};
 use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
@@ -104,6 +104,11 @@ pub struct Diagnosis {
     /// model; absent when the session's points cannot be tested (the reason is in `notes`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub points_level: Option<PointsLevel>,
+    /// The points level after the selected effects: the lengths minus their fitted
+    /// contribution re-solved and fitted again (with `target_offset` selected, χ², dof, rank
+    /// and p with its shifts fitted; `rms_m` and `floor_m` without them).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub points_level_after: Option<PointsGap>,
     /// Each station's lengths predicted from the points of the others (nominal model).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub leave_one_station_out: Vec<HeldOutStation>,
@@ -346,7 +351,8 @@ pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosi
 }
 
 /// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
-/// the twin comparison does); also the selected effects' fitted contribution to each length.
+/// the twin comparison does); also the fitted contribution of the effects in the final model
+/// to each recorded length (settling's window bias included, when accepted).
 pub(crate) fn diagnose_data(
     data: &Data,
     options: &DiagnoseOptions,
@@ -395,7 +401,10 @@ pub(crate) fn diagnose_data(
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
 
+    // Effects in the model: the named ones and the members of confounded groups (in the model
+    // so that later rounds see the residual without their shared signal, never named).
     let mut accepted: Vec<EffectModel> = Vec::new();
+    let mut confounded_kinds: Vec<EffectKind> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
     let mut gap_before: Option<Gap> = None;
 
@@ -441,7 +450,9 @@ pub(crate) fn diagnose_data(
         ),
     }
     let mut last_base = None;
+    let mut final_round = 0;
     for round in 0..=LIBRARY.len() {
+        final_round = round;
         let design = accepted
             .iter()
             .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
@@ -576,16 +587,20 @@ pub(crate) fn diagnose_data(
         match winner {
             Some(best) if confounded.is_empty() => accepted.push(trials[best].model.clone()),
             Some(best) => {
-                // Neither is named: drop the confounded group from further rounds.
-                let out: Vec<EffectKind> = std::iter::once(best)
+                // None of the group is named, but the signal they share is in the data: the
+                // whole group joins the model (unnamed), so that the next rounds do not hand
+                // the same signal to a less likely neighbour (e.g. station_drift, which nests
+                // thermal_drift) and the gap after counts it as explained by the group.
+                let group: Vec<EffectModel> = std::iter::once(best)
                     .chain(confounded.iter().copied())
-                    .map(|t| trials[t].model.kind)
+                    .map(|t| trials[t].model.clone())
                     .collect();
                 notes.push(format!(
-                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}",
-                    out.iter().map(|k| k.name()).collect::<Vec<_>>().join(", ")
+                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
+                    group.iter().map(|m| m.kind.name()).collect::<Vec<_>>().join(", ")
                 ));
-                available.retain(|k| !out.contains(k));
+                confounded_kinds.extend(group.iter().map(|m| m.kind));
+                accepted.extend(group);
             }
             None => {
                 last_base = Some(base_gap);
@@ -708,14 +723,24 @@ pub(crate) fn diagnose_data(
     let offset_accepted = offset_test
         .as_ref()
         .is_some_and(|t| t.p_value < offset_threshold && t.bic_delta < 0.0);
-    let points_after = after_level.as_ref().and_then(|p| {
-        let (chi2, dof) = match (&offset_test, offset_accepted) {
-            (Some(t), true) => (t.chi2_after, t.dof_after),
-            _ => (p.gap.chi2, p.gap.dof),
-        };
-        let p_value = chi2_sf(chi2, dof as f64);
-        (p_value < options.alpha).then_some((chi2 / dof.max(1) as f64, p_value))
-    });
+    // The points level's gap after the selected effects (and the target shifts, if named).
+    let points_level_after = after_level
+        .as_ref()
+        .map(|p| match (&offset_test, offset_accepted) {
+            (Some(t), true) => PointsGap {
+                chi2: t.chi2_after,
+                dof: t.dof_after,
+                chi2_per_dof: t.chi2_after / t.dof_after.max(1) as f64,
+                p_value: chi2_sf(t.chi2_after, t.dof_after as f64),
+                rank: p.gap.rank + t.df,
+                ..p.gap.clone()
+            },
+            _ => p.gap.clone(),
+        });
+    let points_after = points_level_after
+        .as_ref()
+        .filter(|g| g.p_value < options.alpha)
+        .map(|g| (g.chi2_per_dof, g.p_value));
     if let Some((ratio, p)) = points_after {
         notes.push(format!(
             "points level after the selected effects: chi2/dof {ratio:.2} (p = {p:.1e}): the measured points depart from the quasi-rigid 21-error model (a local or non-rigid machine error, or an effect no candidate holds)"
@@ -740,7 +765,11 @@ pub(crate) fn diagnose_data(
         * solution.dof as f64
         / nobs as f64)
         .sqrt();
-    let mut selected: Vec<String> = accepted.iter().map(|m| m.kind.name().to_string()).collect();
+    let mut selected: Vec<String> = accepted
+        .iter()
+        .filter(|m| !confounded_kinds.contains(&m.kind))
+        .map(|m| m.kind.name().to_string())
+        .collect();
     let mut candidates: Vec<Candidate> = records.into_values().collect();
     if let Some(t) = &offset_test {
         if offset_accepted {
@@ -757,7 +786,7 @@ pub(crate) fn diagnose_data(
             heldout_rms_after_m: gap_after.heldout_rms_m,
             bic_delta: t.bic_delta,
             p_value: t.p_value,
-            round: accepted.len(),
+            round: final_round,
             df: t.df,
             chi2_drop: t.chi2_drop,
             status: if offset_accepted {
@@ -793,12 +822,21 @@ pub(crate) fn diagnose_data(
         gap_after,
         unexplained,
         points_level: points_before,
+        points_level_after,
         leave_one_station_out: held_out,
         observations: nobs,
         notes,
         twin: None,
     };
-    Ok((diagnosis, final_fit.effect_m))
+    // The twin comparison takes this off the recorded lengths: settling's bias was taken off
+    // before the final fit, so it is added here.
+    let mut effect_m = final_fit.effect_m;
+    if let (Some(fit), true) = (&settling_fit, settled) {
+        for (e, b) in effect_m.iter_mut().zip(&fit.bias_m) {
+            *e += b;
+        }
+    }
+    Ok((diagnosis, effect_m))
 }
 
 fn empty_gap(v: f64) -> Gap {
@@ -1002,6 +1040,14 @@ pub fn text(d: &Diagnosis) -> String {
             );
         }
     }
+    let before = d.points_level.as_ref().map(|p| &p.gap);
+    if let Some(g) = d.points_level_after.as_ref().filter(|g| Some(*g) != before) {
+        let _ = writeln!(
+            s,
+            "  points level after the selected effects: chi2/dof {:.2} (chi2 {:.1}, dof {}, p {:.1e})",
+            g.chi2_per_dof, g.chi2, g.dof, g.p_value
+        );
+    }
     if let Some(t) = &d.twin {
         let _ = writeln!(
             s,
@@ -1102,6 +1148,19 @@ pub fn text(d: &Diagnosis) -> String {
             d.selected.join(", ")
         }
     );
+    let confounded: Vec<&str> = d
+        .candidates
+        .iter()
+        .filter(|c| c.status == "confounded")
+        .map(|c| c.effect.as_str())
+        .collect();
+    if !confounded.is_empty() {
+        let _ = writeln!(
+            s,
+            "  confounded (the data cannot tell them apart; none named): {}",
+            confounded.join(", ")
+        );
+    }
     gap(&mut s, "gap after", &d.gap_after);
     let _ = writeln!(
         s,

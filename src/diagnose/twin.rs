@@ -140,6 +140,41 @@ fn points_gap(d: &DVector<f64>, c: &DMatrix<f64>) -> TwinPointsGap {
     }
 }
 
+/// Fit a constant shift of each target's points after the first (`targets`: the target of each
+/// point of `d`, 3 rows per point) to `d` under covariance `c` (its null directions dropped)
+/// and remove it; returns the number of shift parameters fitted.
+fn remove_target_shifts(d: &mut DVector<f64>, c: &DMatrix<f64>, targets: &[&str]) -> usize {
+    let mut names: Vec<&str> = targets.to_vec();
+    names.sort_unstable();
+    names.dedup();
+    let shifted = names.get(1..).unwrap_or_default();
+    if shifted.is_empty() {
+        return 0;
+    }
+    let a = DMatrix::from_fn(d.len(), 3 * shifted.len(), |row, col| {
+        f64::from(u8::from(
+            shifted[col / 3] == targets[row / 3] && row % 3 == col % 3,
+        ))
+    });
+    let eigen = c.clone().symmetric_eigen();
+    let largest = eigen.eigenvalues.amax();
+    let kept: Vec<usize> = (0..eigen.eigenvalues.len())
+        .filter(|&k| eigen.eigenvalues[k] > 1e-9 * largest && eigen.eigenvalues[k] > 0.0)
+        .collect();
+    // Whitening W = Λ^-1/2 Vᵀ on the kept directions.
+    let w = DMatrix::from_fn(kept.len(), d.len(), |r, col| {
+        let k = kept[r];
+        eigen.eigenvectors[(col, k)] / eigen.eigenvalues[k].sqrt()
+    });
+    let svd = (&w * &a).svd(true, true);
+    let rank = svd.rank(1e-9 * svd.singular_values.max());
+    let Ok(beta) = svd.solve(&(&w * &*d), 1e-9 * svd.singular_values.max()) else {
+        return 0;
+    };
+    *d -= &a * beta;
+    rank
+}
+
 /// Diagnose `recording` against `twin`: every matched recorded length has the twin's residual
 /// (its departure from the nominal model: whatever the simulation puts there beyond the
 /// geometry) removed and both noise models in its sigma; then the usual where/which/how far.
@@ -202,8 +237,26 @@ pub fn diagnose_against_twin(
             report.points_before = Some(points_gap(&d, &c));
             let corrected: Vec<f64> = recorded.iter().zip(&effect_m).map(|(l, e)| l - e).collect();
             if let Ok(after) = keyed_points(&rec, &corrected) {
-                let (d, c, _) = compare_points(&after, &tp);
-                let gap = points_gap(&d, &c);
+                let (mut d, c, pairs) = compare_points(&after, &tp);
+                // target_offset is a points-level effect, not in the lengths' contribution:
+                // when it is named, each target's (after the first) constant shift is fitted
+                // to the difference here.
+                let shifted = diagnosis.selected.iter().any(|s| s == "target_offset");
+                let targets: Vec<&str> = pairs
+                    .iter()
+                    .map(|&(a, _)| after.per_pass.info[a].0.as_str())
+                    .collect();
+                let df = if shifted {
+                    remove_target_shifts(&mut d, &c, &targets)
+                } else {
+                    0
+                };
+                let mut gap = points_gap(&d, &c);
+                if df > 0 {
+                    gap.dof = gap.dof.saturating_sub(df);
+                    gap.chi2_per_dof = gap.chi2 / gap.dof.max(1) as f64;
+                    gap.p_value = chi2_sf(gap.chi2, gap.dof as f64);
+                }
                 if gap.p_value < options.alpha {
                     diagnosis.unexplained = true;
                     diagnosis.notes.push(format!(

@@ -216,22 +216,28 @@ pub fn with_effects(base: &str, seed: u64, effects: &str) -> String {
     )
 }
 
-/// Run a simulated session for `config_text` and diagnose the recorded file.
-pub fn run_and_diagnose(config_text: &str) -> geocal::diagnose::Diagnosis {
+/// Run a simulated session for `config_text` into `dir`; the recorded file's path.
+pub fn record_session(config_text: &str, dir: &Path) -> std::path::PathBuf {
     let config = geocal::config::Config::parse(config_text, std::path::Path::new("effects.toml"))
         .expect("config");
-    let dir = tempfile::tempdir().expect("tempdir");
     let output = geocal::run::run(
         &config,
         &geocal::run::RunOptions {
-            out_dir: dir.path().to_path_buf(),
+            out_dir: dir.to_path_buf(),
             truth: None,
             progress: false,
             settings: Default::default(),
         },
     )
     .expect("run");
-    geocal::diagnose::diagnose_file(&output.session_path, &Default::default()).expect("diagnose")
+    output.session_path
+}
+
+/// Run a simulated session for `config_text` and diagnose the recorded file.
+pub fn run_and_diagnose(config_text: &str) -> geocal::diagnose::Diagnosis {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let session = record_session(config_text, dir.path());
+    geocal::diagnose::diagnose_file(&session, &Default::default()).expect("diagnose")
 }
 
 /// A geocal-diagnosis/1 object with every field SESSION_FORMAT.md requires.
