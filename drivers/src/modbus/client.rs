@@ -138,14 +138,17 @@ impl ModbusClient {
 
     /// One request with timeout, reconnect and retry. Exceptions are not retried (except
     /// "server device busy"); they come back as `Rejected` naming the exception and `what`.
-    pub async fn call(&mut self, what: &str, req: Request<'static>) -> Result<Response, DeviceError> {
+    pub async fn call(
+        &mut self,
+        what: &str,
+        req: Request<'static>,
+    ) -> Result<Response, DeviceError> {
         let mut last_err = String::new();
         let mut all_timeouts = true;
         for _attempt in 0..=self.timing.retries {
             if self.ctx.is_none() {
                 self.stats.reconnects += 1;
-                match open_link(self.transport.clone(), self.unit_id, self.timing.timeout_s).await
-                {
+                match open_link(self.transport.clone(), self.unit_id, self.timing.timeout_s).await {
                     Ok(c) => self.ctx = Some(c),
                     Err(e) => {
                         all_timeouts = false;
@@ -314,8 +317,10 @@ impl ModbusClient {
                     after_s: self.timing.ack_timeout_s,
                 });
             }
-            tokio::time::sleep(Duration::from_secs_f64(self.timing.poll_interval_s.max(0.002)))
-                .await;
+            tokio::time::sleep(Duration::from_secs_f64(
+                self.timing.poll_interval_s.max(0.002),
+            ))
+            .await;
         }
     }
 
@@ -341,7 +346,11 @@ impl ModbusClient {
 
 /// Open a fresh client context on `transport` (no `&self` across the await: `Context` is
 /// not `Sync`).
-async fn open_link(transport: ModbusTransport, unit_id: u8, timeout_s: f64) -> Result<Context, String> {
+async fn open_link(
+    transport: ModbusTransport,
+    unit_id: u8,
+    timeout_s: f64,
+) -> Result<Context, String> {
     let slave = Slave(unit_id);
     match &transport {
         ModbusTransport::Tcp { address } => {

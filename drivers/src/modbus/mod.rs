@@ -7,7 +7,7 @@ pub mod server;
 
 pub use client::{ModbusClient, ModbusStats, ModbusTiming, ModbusTransport};
 pub use registers::{
-    Acknowledge, CommandRegister, Handshake, RegisterKind, RegisterRef, StatusRegister,
-    WordLayout, WordOrder,
+    Acknowledge, CommandRegister, Handshake, RegisterKind, RegisterRef, StatusRegister, WordLayout,
+    WordOrder,
 };
 pub use server::{ModbusFaults, RegisterBank, RegisterDevice, RegisterServer, ServerStats};

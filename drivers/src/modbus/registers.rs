@@ -114,7 +114,12 @@ pub trait WordLayout {
 
     /// Encode `value` (SI units) at `counts_per_unit`, rounding to the nearest count; a value
     /// outside the register's range is an error naming `unit`.
-    fn encode_scaled(&self, value: f64, counts_per_unit: f64, unit: &str) -> Result<Vec<u16>, String> {
+    fn encode_scaled(
+        &self,
+        value: f64,
+        counts_per_unit: f64,
+        unit: &str,
+    ) -> Result<Vec<u16>, String> {
         let counts_f = (value * counts_per_unit).round();
         let (lo, hi) = self.count_range();
         if !counts_f.is_finite() || counts_f < lo as f64 || counts_f > hi as f64 {
@@ -129,7 +134,8 @@ pub trait WordLayout {
 
     /// `value` in SI units from register words at `counts_per_unit`.
     fn decode_scaled(&self, words: &[u16], counts_per_unit: f64) -> Option<f64> {
-        self.decode_counts(words).map(|c| c as f64 / counts_per_unit)
+        self.decode_counts(words)
+            .map(|c| c as f64 / counts_per_unit)
     }
 
     /// Width 16 or 32, and `values` consecutive values from `address` inside the address space.

@@ -147,9 +147,13 @@ impl ModbusTable {
         .await
     }
 
-    async fn start(transport: ModbusTransport, cfg: ModbusTableConfig) -> Result<Self, DeviceError> {
+    async fn start(
+        transport: ModbusTransport,
+        cfg: ModbusTableConfig,
+    ) -> Result<Self, DeviceError> {
         cfg.validate()?;
-        let client = ModbusClient::connect(&cfg.id, transport, cfg.map.unit_id, cfg.timing()).await?;
+        let client =
+            ModbusClient::connect(&cfg.id, transport, cfg.map.unit_id, cfg.timing()).await?;
         Ok(Self {
             cfg,
             client,
@@ -173,8 +177,10 @@ impl ModbusTable {
             (self.cfg.map.target.clone(), "target angle")
         };
         let words = self.client.read(a.kind, a.address, a.words(), name).await?;
-        a.decode_rad(&words)
-            .ok_or_else(|| self.client.protocol(format!("cannot decode {name} from {words:?}")))
+        a.decode_rad(&words).ok_or_else(|| {
+            self.client
+                .protocol(format!("cannot decode {name} from {words:?}"))
+        })
     }
 
     /// Read the encoder angle, radians.

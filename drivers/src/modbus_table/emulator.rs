@@ -8,8 +8,8 @@ use serde::{Deserialize, Serialize};
 use tokio_modbus::ExceptionCode;
 
 use super::map::{RegisterKind, RegisterMap};
-use crate::modbus::server::{RegisterBank, RegisterDevice, RegisterServer};
 pub use crate::modbus::server::ModbusFaults as ModbusTableFaults;
+use crate::modbus::server::{RegisterBank, RegisterDevice, RegisterServer};
 
 /// The table behind the emulated controller: told the commanded angle, asked the encoder
 /// angle. Times are seconds since the emulator started; angles are radians.

@@ -7,8 +7,8 @@ use crate::modbus::registers::{
     default_holding, default_true, default_unit_id, default_width, scale_of,
 };
 pub use crate::modbus::registers::{
-    Acknowledge, CommandRegister, Handshake, RegisterKind, RegisterRef, StatusRegister,
-    WordLayout, WordOrder,
+    Acknowledge, CommandRegister, Handshake, RegisterKind, RegisterRef, StatusRegister, WordLayout,
+    WordOrder,
 };
 
 /// A register holding an angle, in counts, at one address (16 bit) or two (32 bit).
