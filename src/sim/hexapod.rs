@@ -118,7 +118,7 @@ impl HexapodWorld {
         self.clock.elapsed_s()
     }
 
-    fn start_move(&mut self, target: PlatformPose) {
+    pub fn start_move(&mut self, target: PlatformPose) {
         let dist =
             (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m)).norm();
         let turn = (Rotation3::new(Vector3::from(target.rotation_vector_rad))
@@ -129,7 +129,7 @@ impl HexapodWorld {
         self.pose = target;
     }
 
-    fn idle(&mut self) -> bool {
+    pub fn idle(&mut self) -> bool {
         let now = self.now_s();
         if now >= self.move_end_s - 1e-9 {
             return true;
@@ -138,7 +138,7 @@ impl HexapodWorld {
         false
     }
 
-    fn read_legs(&mut self) -> LegReading {
+    pub fn read_legs(&mut self) -> LegReading {
         let t_s = self.now_s() + self.reading_period_s;
         self.clock.advance_to(t_s);
         let pose = to_pose(&self.pose);

@@ -127,6 +127,17 @@ pub trait RegisterDevice: Send + 'static {
     fn refresh(&mut self, bank: &mut RegisterBank, t_s: f64) -> bool;
     /// A go command was written: read the target from `bank` and start the move.
     fn go(&mut self, bank: &mut RegisterBank, t_s: f64) -> Result<(), ExceptionCode>;
+    /// A read of `count` words of `kind` from `address` is about to be served: latch values
+    /// that are sampled only when read (encoder counts), none by default.
+    fn before_read(
+        &mut self,
+        _bank: &mut RegisterBank,
+        _kind: RegisterKind,
+        _address: u16,
+        _count: u16,
+        _t_s: f64,
+    ) {
+    }
 }
 
 struct Inner<D> {
@@ -244,14 +255,20 @@ impl<D: RegisterDevice> Inner<D> {
         }
         self.refresh(t_s);
         let result = match req.request {
-            Request::ReadHoldingRegisters(a, c) => self
-                .bank
-                .read(RegisterKind::Holding, a, c)
-                .map(Response::ReadHoldingRegisters),
-            Request::ReadInputRegisters(a, c) => self
-                .bank
-                .read(RegisterKind::Input, a, c)
-                .map(Response::ReadInputRegisters),
+            Request::ReadHoldingRegisters(a, c) => {
+                self.device
+                    .before_read(&mut self.bank, RegisterKind::Holding, a, c, t_s);
+                self.bank
+                    .read(RegisterKind::Holding, a, c)
+                    .map(Response::ReadHoldingRegisters)
+            }
+            Request::ReadInputRegisters(a, c) => {
+                self.device
+                    .before_read(&mut self.bank, RegisterKind::Input, a, c, t_s);
+                self.bank
+                    .read(RegisterKind::Input, a, c)
+                    .map(Response::ReadInputRegisters)
+            }
             Request::WriteSingleRegister(a, w) => self
                 .write(a, &[w], t_s)
                 .map(|()| Response::WriteSingleRegister(a, w)),

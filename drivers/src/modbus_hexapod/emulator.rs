@@ -20,7 +20,8 @@ pub trait HexapodSource: Send {
     fn command(&mut self, pose: PlatformPose, t_s: f64);
     /// Whether the platform is at rest at the commanded pose at `t_s`.
     fn in_position(&mut self, t_s: f64) -> bool;
-    /// The six leg encoders at `t_s` (one sample each), metres.
+    /// The six leg encoders at `t_s` (one sample each, taken when the registers are read),
+    /// metres.
     fn legs(&mut self, t_s: f64) -> [f64; 6];
 }
 
@@ -49,14 +50,33 @@ impl RegisterDevice for HexapodDevice {
             .contains(&u32::from(a))
     }
 
-    fn refresh(&mut self, bank: &mut RegisterBank, t_s: f64) -> bool {
+    fn refresh(&mut self, _bank: &mut RegisterBank, t_s: f64) -> bool {
+        self.source.in_position(t_s)
+    }
+
+    /// The encoders are sampled when their registers are read (one sample per read).
+    fn before_read(
+        &mut self,
+        bank: &mut RegisterBank,
+        kind: RegisterKind,
+        address: u16,
+        count: u16,
+        t_s: f64,
+    ) {
         let l = &self.map.legs;
-        // Out of the register's range: the counter shows 0, as a wrapped counter would not.
+        let (a, b) = (u32::from(address), u32::from(address) + u32::from(count));
+        let (la, lb) = (
+            u32::from(l.address),
+            u32::from(l.address) + u32::from(l.block_words()),
+        );
+        if kind != l.kind || b <= la || lb <= a {
+            return;
+        }
+        // Out of the register's range: the counter shows 0.
         let words = l
             .encode(&self.source.legs(t_s))
             .unwrap_or_else(|_| vec![0; usize::from(l.block_words())]);
         bank.put(l.kind, l.address, &words);
-        self.source.in_position(t_s)
     }
 
     fn go(&mut self, bank: &mut RegisterBank, t_s: f64) -> Result<(), ExceptionCode> {
