@@ -28,7 +28,7 @@ fn hil_config(faults: &str) -> String {
         &EXAMPLE[end..]
     );
     let text = devices
-        .replacen("driver = \"sim\"", "driver = \"modbus_tcp\"", 1)
+        .replacen("\ndriver = \"sim\"", "\ndriver = \"modbus_tcp\"", 1)
         .replace("speed_m_s = 0.01", "speed_m_s = 2.0")
         .replace("angular_speed_rad_s = 0.05", "angular_speed_rad_s = 20.0");
     assert!(text.contains("driver = \"modbus_tcp\"") && text.contains("speed_m_s = 2.0"));
@@ -179,23 +179,23 @@ fn bad_modbus_configs_give_file_key_and_expectation() {
     let example = hil_config("");
     let cases = [
         (
-            "ack = { bit = 3 }",
-            "ack = { bit = 0 }",
+            "\nack = { bit = 3 }",
+            "\nack = { bit = 0 }",
             "key `devices.hexapod.modbus`: register map: ack.bit 0 in the status register collides",
         ),
         (
-            "legs = { address = 200, kind = \"input\", m_per_count = 1e-7 }",
-            "legs = { address = 200, kind = \"input\" }",
+            "\nlegs = { address = 200, kind = \"input\", m_per_count = 1e-7 }",
+            "\nlegs = { address = 200, kind = \"input\" }",
             "key `devices.hexapod.modbus`: register map: legs: give exactly one of counts_per_m and m_per_count",
         ),
         (
-            "emulate = true",
-            "emulate = false",
+            "\nemulate = true",
+            "\nemulate = false",
             "key `devices.hexapod.modbus.transport`: missing: a real hexapod needs",
         ),
         (
-            "timeout_s = 0.2",
-            "timeout = 0.2",
+            "\ntimeout_s = 0.2",
+            "\ntimeout = 0.2",
             "key `devices.hexapod.modbus.timeout`",
         ),
     ];

@@ -201,3 +201,47 @@ impl Hexapod for ModbusHexapod {
         self.client.take_link_faults()
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::modbus::RegisterKind;
+
+    /// The `[devices.hexapod.modbus]` block of docs/hexapod.md.
+    fn documented() -> String {
+        let doc = include_str!("../../../docs/hexapod.md");
+        let start = doc
+            .find("```toml\n[devices.hexapod.modbus]")
+            .expect("toml block")
+            + 8;
+        let len = doc[start..].find("```").expect("block end");
+        doc[start..start + len].to_string()
+    }
+
+    fn parse(text: &str) -> Result<ModbusHexapodConfig, String> {
+        let table: toml::Table = text.parse().map_err(|e| format!("{e}"))?;
+        table["devices"]["hexapod"]["modbus"]
+            .clone()
+            .try_into()
+            .map_err(|e: toml::de::Error| e.to_string())
+    }
+
+    #[test]
+    fn documented_config_parses_and_validates() {
+        let cfg = parse(&documented()).expect("documented config parses");
+        cfg.validate().expect("documented config validates");
+        assert_eq!(
+            cfg.transport,
+            Some(ModbusTransport::Tcp {
+                address: "192.168.0.30:502".parse().expect("addr")
+            })
+        );
+        assert_eq!(cfg.map.legs.kind, RegisterKind::Input);
+        assert_eq!(cfg.map.pose_target.block_words(), 12);
+        let bad = documented().replace("retries = 2", "retries = 2\nretry = 1");
+        assert!(parse(&bad).is_err());
+        let mut c = cfg.clone();
+        c.poll_interval_s = -1.0;
+        assert!(c.validate().is_err());
+    }
+}
