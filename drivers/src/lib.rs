@@ -3,6 +3,8 @@
 
 pub mod grbl;
 pub mod hpi3d;
+pub mod modbus;
+pub mod modbus_hexapod;
 pub mod modbus_table;
 pub mod probe;
 pub mod serial;

@@ -216,6 +216,10 @@ pub trait Hexapod: Send {
     async fn state(&mut self) -> Result<HexapodState, DeviceError>;
     /// Read the six leg encoders.
     async fn read_legs(&mut self) -> Result<LegReading, DeviceError>;
+    /// Faults recovered inside the driver since the last call (none by default).
+    fn take_link_faults(&mut self) -> Vec<LinkFault> {
+        Vec::new()
+    }
 }
 
 /// One measured platform pose (a tracer or tracker measuring the platform, or given values).

@@ -5,8 +5,11 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive, sim_drivers_only};
-use super::{ConfigError, DriverKind};
+use geocal_drivers::modbus::ModbusFaults;
+use geocal_drivers::modbus_hexapod::ModbusHexapodConfig;
+
+use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+use super::ConfigError;
 use crate::model::hexapod::{HexapodGeometry, LEGS};
 
 pub const KIND: &str = "hexapod";
@@ -21,6 +24,68 @@ pub struct HexapodConfig {
     pub plan: HexapodPlanConfig,
     #[serde(default)]
     pub sim: Option<HexapodSim>,
+    /// Host the hexapod's Modbus emulator backed by `[sim]` and run the real driver on it.
+    #[serde(default)]
+    pub hil: Option<HexapodHil>,
+}
+
+/// `[hil]` of a hexapod run: the Modbus hexapod emulator on 127.0.0.1 (TCP) or a pty (RTU),
+/// backed by the simulated hexapod; the driver of `devices.hexapod.driver` talks to it.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct HexapodHil {
+    /// Host the emulator (true) or talk to the real controller at its transport (false, the
+    /// same as leaving `[hil]` out).
+    #[serde(default = "yes")]
+    pub emulate: bool,
+    /// Faults the emulator injects (`geocal_drivers::modbus::ModbusFaults`, requests from 1).
+    #[serde(default)]
+    pub hexapod_faults: ModbusFaults,
+}
+
+fn yes() -> bool {
+    true
+}
+
+/// The hexapod's driver.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum HexapodDriver {
+    /// The simulated hexapod in virtual time (needs `[sim]`).
+    Sim,
+    /// A controller over Modbus TCP (`[devices.hexapod.modbus]`).
+    ModbusTcp,
+    /// A controller over Modbus RTU on a serial port.
+    ModbusRtu,
+}
+
+impl HexapodDriver {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            HexapodDriver::Sim => "sim",
+            HexapodDriver::ModbusTcp => "modbus_tcp",
+            HexapodDriver::ModbusRtu => "modbus_rtu",
+        }
+    }
+}
+
+/// Where the measured platform poses come from.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseSensorDriver {
+    /// The simulated instrument (needs `[sim]`), with `noise_m` / `noise_rad`.
+    Sim,
+    /// The commanded poses, recorded as measured and taken as exact (no instrument).
+    Given,
+}
+
+impl PoseSensorDriver {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            PoseSensorDriver::Sim => "sim",
+            PoseSensorDriver::Given => "given",
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -60,22 +125,42 @@ pub struct HexapodDevices {
 #[serde(deny_unknown_fields)]
 pub struct HexapodDeviceConfig {
     pub id: String,
-    pub driver: DriverKind,
-    /// Standard deviation of one leg encoder reading, metres.
+    pub driver: HexapodDriver,
+    /// Standard deviation of one leg encoder reading, metres (the solver's noise model).
     pub encoder_noise_m: f64,
+    /// The simulated hexapod's motion and reading period (ignored by a real controller).
+    #[serde(default = "default_speed")]
     pub speed_m_s: f64,
+    #[serde(default = "default_angular_speed")]
     pub angular_speed_rad_s: f64,
+    #[serde(default = "default_reading_period")]
     pub reading_period_s: f64,
+    /// Driver settings of `modbus_tcp` / `modbus_rtu`
+    /// (`geocal_drivers::modbus_hexapod::ModbusHexapodConfig`; `id` comes from here).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub modbus: Option<ModbusHexapodConfig>,
+}
+
+fn default_speed() -> f64 {
+    0.01
+}
+fn default_angular_speed() -> f64 {
+    0.05
+}
+fn default_reading_period() -> f64 {
+    0.01
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct PoseSensorConfig {
     pub id: String,
-    pub driver: DriverKind,
-    /// Standard deviation per translation coordinate, metres (in the solver's weights).
+    pub driver: PoseSensorDriver,
+    /// Standard deviation per translation coordinate, metres (`sim`, in the solver's weights; 0 for `given`).
+    #[serde(default)]
     pub noise_m: f64,
-    /// Standard deviation per rotation-vector component, radians (in the solver's weights).
+    /// Standard deviation per rotation-vector component, radians (`sim`, in the solver's weights; 0 for `given`).
+    #[serde(default)]
     pub noise_rad: f64,
 }
 
@@ -184,13 +269,11 @@ impl HexapodConfig {
             }
         }
         let h = &self.devices.hexapod;
-        let mut drivers = vec![("devices.hexapod.driver", h.driver)];
         if let Some(s) = &self.devices.pose_sensor {
-            drivers.push(("devices.pose_sensor.driver", s.driver));
             non_negative(f, "devices.pose_sensor.noise_m", s.noise_m)?;
             non_negative(f, "devices.pose_sensor.noise_rad", s.noise_rad)?;
         }
-        sim_drivers_only(f, KIND, &drivers, self.sim.is_some())?;
+        self.validate_devices(f)?;
         positive(f, "devices.hexapod.encoder_noise_m", h.encoder_noise_m)?;
         positive(f, "devices.hexapod.speed_m_s", h.speed_m_s)?;
         positive(
@@ -263,6 +346,175 @@ impl HexapodConfig {
     }
 }
 
+impl HexapodConfig {
+    /// True when the run hosts the hexapod's Modbus emulator (`[hil] emulate = true`).
+    pub fn emulated(&self) -> bool {
+        self.hil.as_ref().is_some_and(|h| h.emulate)
+    }
+
+    /// Driver kinds against driver settings, `[sim]` and `[hil]`.
+    fn validate_devices(&self, f: &Path) -> Result<(), ConfigError> {
+        const KEY: &str = "devices.hexapod.modbus";
+        let h = &self.devices.hexapod;
+        let emulated = self.emulated();
+        let has_sim = self.sim.is_some();
+        let modbus_kind = h.driver != HexapodDriver::Sim;
+        match (&h.modbus, modbus_kind) {
+            (Some(_), false) => {
+                return Err(invalid(
+                    f,
+                    KEY,
+                    "driver settings for \"modbus_tcp\" / \"modbus_rtu\", but devices.hexapod.driver is \"sim\"",
+                ))
+            }
+            (None, true) => {
+                return Err(invalid(
+                    f,
+                    KEY,
+                    format!(
+                        "missing: driver \"{}\" needs a [devices.hexapod.modbus] table with the register map (`map`) and, for a real controller, the `transport`",
+                        h.driver.as_str()
+                    ),
+                ))
+            }
+            _ => {}
+        }
+        if !modbus_kind {
+            if emulated {
+                return Err(invalid(
+                    f,
+                    "hil.emulate",
+                    "nothing to emulate: devices.hexapod.driver is \"sim\"; expected \"modbus_tcp\" or \"modbus_rtu\" with [hil] emulate = true",
+                ));
+            }
+            if !has_sim {
+                return Err(invalid(f, "sim", "the `sim` hexapod needs a [sim] table"));
+            }
+        }
+        if let Some(modbus) = &h.modbus {
+            self.validate_modbus(f, modbus, emulated)?;
+            if emulated && !has_sim {
+                return Err(invalid(
+                    f,
+                    "hil.emulate",
+                    "the emulator is backed by the simulated hexapod, so a [sim] table is expected",
+                ));
+            }
+            if !emulated && has_sim {
+                return Err(invalid(
+                    f,
+                    "sim",
+                    "a real hexapod (no [hil] emulate = true) does not use [sim]: remove it, or set [hil] emulate = true to run against the emulator",
+                ));
+            }
+        }
+        if let Some(s) = &self.devices.pose_sensor {
+            match s.driver {
+                PoseSensorDriver::Sim if !(h.driver == HexapodDriver::Sim || emulated) => {
+                    return Err(invalid(
+                        f,
+                        "devices.pose_sensor.driver",
+                        "\"sim\" measures the simulated platform, but the hexapod is real: expected \"given\"",
+                    ))
+                }
+                PoseSensorDriver::Given if s.noise_m != 0.0 || s.noise_rad != 0.0 => {
+                    return Err(invalid(
+                        f,
+                        "devices.pose_sensor.noise_m",
+                        "expected no noise_m / noise_rad (or 0) for \"given\": the commanded poses are taken as exact",
+                    ))
+                }
+                _ => {}
+            }
+        }
+        if let Some(hil) = &self.hil {
+            super::rotary_table::validate_faults(&hil.hexapod_faults).map_err(|(key, m)| {
+                invalid(
+                    f,
+                    &key.replacen("hil.table_faults", "hil.hexapod_faults", 1),
+                    m,
+                )
+            })?;
+        }
+        Ok(())
+    }
+
+    fn validate_modbus(
+        &self,
+        f: &Path,
+        modbus: &ModbusHexapodConfig,
+        emulated: bool,
+    ) -> Result<(), ConfigError> {
+        use geocal_drivers::modbus::ModbusTransport;
+        const KEY: &str = "devices.hexapod.modbus";
+        let h = &self.devices.hexapod;
+        if modbus.id != "hexapod" && modbus.id != h.id {
+            return Err(invalid(
+                f,
+                &format!("{KEY}.id"),
+                format!(
+                    "the hexapod's id comes from devices.hexapod.id (\"{}\"): leave `id` out here, found \"{}\"",
+                    h.id, modbus.id
+                ),
+            ));
+        }
+        let mut checked = modbus.clone();
+        checked.id = h.id.clone();
+        if let Err(e) = checked.validate() {
+            // The driver's own check names the setting ("timeout_s ...", "register map: ...").
+            let message = e.to_string();
+            let message = message
+                .split_once(": protocol error: ")
+                .map_or(message.as_str(), |(_, m)| m);
+            return Err(invalid(f, KEY, message));
+        }
+        let tcp = h.driver == HexapodDriver::ModbusTcp;
+        match &modbus.transport {
+            None if emulated => Ok(()),
+            None => Err(invalid(
+                f,
+                &format!("{KEY}.transport"),
+                format!(
+                    "missing: a real hexapod needs `transport = {{ kind = \"{}\", {} }}` (or set [hil] emulate = true)",
+                    if tcp { "tcp" } else { "rtu" },
+                    if tcp { "address = \"192.168.0.30:502\"" } else { "port = \"/dev/ttyUSB2\"" }
+                ),
+            )),
+            Some(ModbusTransport::Tcp { .. }) if tcp => Ok(()),
+            Some(ModbusTransport::Rtu { port, baud }) if !tcp => {
+                if port.is_empty() && !emulated {
+                    return Err(invalid(
+                        f,
+                        &format!("{KEY}.transport.port"),
+                        "expected the serial port of the controller, e.g. \"/dev/ttyUSB2\"",
+                    ));
+                }
+                if *baud == 0 {
+                    return Err(invalid(
+                        f,
+                        &format!("{KEY}.transport.baud"),
+                        "expected a baud rate > 0",
+                    ));
+                }
+                Ok(())
+            }
+            Some(t) => Err(invalid(
+                f,
+                &format!("{KEY}.transport.kind"),
+                format!(
+                    "expected \"{}\" for driver \"{}\", found \"{}\"",
+                    if tcp { "tcp" } else { "rtu" },
+                    h.driver.as_str(),
+                    match t {
+                        ModbusTransport::Tcp { .. } => "tcp",
+                        ModbusTransport::Rtu { .. } => "rtu",
+                    }
+                ),
+            )),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -304,6 +556,130 @@ mod tests {
                 err.starts_with(&format!("h.toml: key `{key}")),
                 "{to}: {err}"
             );
+        }
+    }
+
+    /// The example on a Modbus hexapod: `driver`, the map, and `tail`: driver settings
+    /// (`transport`, `id`) or a table after the map (`[hil]`).
+    fn modbus(driver: &str, tail: &str) -> String {
+        let (settings, tail) = if tail.starts_with('[') {
+            ("", tail)
+        } else {
+            (tail, "")
+        };
+        let text = example().replacen("driver = \"sim\"", &format!("driver = \"{driver}\""), 1);
+        format!(
+            "{text}
+[devices.hexapod.modbus]
+timeout_s = 0.2
+{settings}
+[devices.hexapod.modbus.map]
+pose_target = {{ address = 100, counts_per_m = 1e7, counts_per_rad = 1e7 }}
+legs = {{ address = 200, kind = \"input\", m_per_count = 1e-7 }}
+status = {{ address = 300, kind = \"input\", in_position_bit = 0, fault_bit = 2 }}
+command = {{ address = 120, go_value = 1 }}
+ack = {{ bit = 3 }}
+{tail}
+"
+        )
+    }
+
+    /// A real controller: no [sim], the pose sensor `given`, the transport set.
+    fn real(tail: &str) -> String {
+        modbus("modbus_tcp", tail)
+            .replace("[sim]\nseed = 424242\nhinge_error_m = 2.0e-3\n", "")
+            .replace(
+                "driver = \"sim\"\nnoise_m = 0.0\nnoise_rad = 0.0",
+                "driver = \"given\"",
+            )
+    }
+
+    fn error_of(text: &str) -> String {
+        HexapodConfig::parse(text, Path::new("h.toml"))
+            .expect_err("rejected")
+            .to_string()
+    }
+
+    #[test]
+    fn modbus_drivers_parse_real_and_emulated() {
+        let c = HexapodConfig::parse(
+            &real("transport = { kind = \"tcp\", address = \"192.168.0.30:502\" }"),
+            Path::new("real.toml"),
+        )
+        .expect("real controller");
+        assert_eq!(c.devices.hexapod.driver, HexapodDriver::ModbusTcp);
+        assert!(c.sim.is_none() && !c.emulated());
+        let sensor = c.devices.pose_sensor.as_ref().expect("sensor");
+        assert_eq!(sensor.driver, PoseSensorDriver::Given);
+        let c = HexapodConfig::parse(&modbus("modbus_rtu", "[hil]\n"), Path::new("hil.toml"))
+            .expect("emulated RTU");
+        assert!(c.emulated());
+    }
+
+    #[test]
+    fn bad_driver_settings_name_the_key() {
+        let tcp = "transport = { kind = \"tcp\", address = \"192.168.0.30:502\" }";
+        let cases = [
+            (
+                example().replacen("driver = \"sim\"", "driver = \"modbus_tcp\"", 1),
+                "devices.hexapod.modbus`: missing: driver \"modbus_tcp\" needs",
+            ),
+            (
+                modbus("sim", ""),
+                "devices.hexapod.modbus`: driver settings for \"modbus_tcp\"",
+            ),
+            (
+                example().replacen("driver = \"sim\"", "driver = \"modbus\"", 1),
+                "devices.hexapod.driver",
+            ),
+            (
+                format!("{}\n[hil]\n", example()),
+                "hil.emulate`: nothing to emulate",
+            ),
+            (
+                real(""),
+                "devices.hexapod.modbus.transport`: missing: a real hexapod needs",
+            ),
+            (
+                real("transport = { kind = \"rtu\", port = \"/dev/ttyUSB2\" }"),
+                "devices.hexapod.modbus.transport.kind`: expected \"tcp\"",
+            ),
+            (
+                modbus("modbus_tcp", tcp),
+                "key `sim`: a real hexapod (no [hil] emulate = true) does not use [sim]",
+            ),
+            (
+                real(tcp).replace("driver = \"given\"", "driver = \"sim\""),
+                "devices.pose_sensor.driver`: \"sim\" measures the simulated platform",
+            ),
+            (
+                real(tcp).replace("driver = \"given\"", "driver = \"given\"\nnoise_m = 1e-6"),
+                "devices.pose_sensor.noise_m`: expected no noise_m",
+            ),
+            (
+                real(&format!("id = \"other\"\n{tcp}")),
+                "devices.hexapod.modbus.id`: the hexapod's id comes from devices.hexapod.id",
+            ),
+            (
+                real(tcp).replace("timeout_s = 0.2", "timeout_s = 0.0"),
+                "devices.hexapod.modbus`: timeout_s must be positive",
+            ),
+            (
+                modbus(
+                    "modbus_tcp",
+                    "[hil]\nhexapod_faults = { drop_probability = 2.0 }",
+                ),
+                "hil.hexapod_faults.drop_probability`: expected a fraction in [0, 1]",
+            ),
+            (
+                modbus("modbus_tcp", "[hil]\nhexapod_faults = { drop_at = [3] }"),
+                "hil.hexapod_faults.drop_at",
+            ),
+        ];
+        for (text, want) in cases {
+            let err = error_of(&text);
+            assert!(err.starts_with("h.toml: key `"), "{err}");
+            assert!(err.contains(want), "{want}\n{err}");
         }
     }
 }

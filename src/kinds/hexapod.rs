@@ -1,16 +1,14 @@
-//! A whole simulated `hexapod` run: the hexapod and pose sensor of the simulated world, the
-//! kind's sequencer, the recording, the truth export and the solve of the recorded file.
+//! A whole `hexapod` run: the devices (simulated, Modbus emulated under `[hil]`, or real),
+//! the kind's sequencer, the recording, the truth export and the solve of the recorded file.
 
 use std::collections::BTreeMap;
-use std::sync::{Arc, Mutex};
 
-use crate::clock::{system_now_ns, VirtualClock};
+use crate::clock::system_now_ns;
 use crate::config::hexapod::{HexapodConfig, KIND};
 use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
 use crate::run::{RunOptions, RunOutput};
-use crate::sequencer::hexapod::{HexapodDevices, HexapodSequencer};
+use crate::sequencer::hexapod::HexapodSequencer;
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
-use crate::sim::hexapod::{HexapodWorld, SimHexapod, SimPoseSensor};
 
 /// The header: the hexapod device carries the design hinges (`design`), the solver's start.
 pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
@@ -35,6 +33,15 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
             ("reading_period_s".into(), h.reading_period_s.into()),
         ]),
     )];
+    if let Some(modbus) = &h.modbus {
+        // The register map and timing the run used (the transport, unless emulated).
+        let mut m = serde_json::to_value(modbus).unwrap_or_default();
+        if let Some(o) = m.as_object_mut() {
+            o.remove("id");
+            o.insert("emulated".into(), config.emulated().into());
+        }
+        devices[0].extra.insert("modbus".into(), m);
+    }
     if let Some(s) = &config.devices.pose_sensor {
         devices.push(super::device(
             &s.id,
@@ -64,33 +71,37 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
 pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
     let plan = HexapodPlan::from_config(config);
     let epoch_ns = system_now_ns();
-    let clock = Arc::new(VirtualClock::new(epoch_ns));
-    let world = Arc::new(Mutex::new(HexapodWorld::new(config, clock.clone())));
-    let devices = HexapodDevices {
-        hexapod: Box::new(SimHexapod {
-            id: config.devices.hexapod.id.clone(),
-            world: world.clone(),
-        }),
-        pose_sensor: config.devices.pose_sensor.as_ref().map(|s| {
-            Box::new(SimPoseSensor {
-                id: s.id.clone(),
-                world: world.clone(),
-            }) as Box<dyn geocal_drivers::PoseSensor>
-        }),
-    };
-    super::record_and_solve(
-        &session_header(config, epoch_ns),
-        clock.as_ref(),
-        options,
-        |handle| async {
-            let sequencer = HexapodSequencer::new(&plan, devices, handle, clock.clone());
-            sequencer.run(&mut |_: u64, _: u64| {}).await
-        },
-        || {
-            Ok(world
+    let runtime = crate::run::run_runtime()?;
+    let built = runtime.block_on(super::hexapod_devices::build(config, epoch_ns))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let handle = recorder.handle();
+    handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+    let poll_s = config
+        .devices
+        .hexapod
+        .modbus
+        .as_ref()
+        .map_or(0.0, |m| m.poll_interval_s);
+    let sequencer = HexapodSequencer::new(&plan, built.devices, handle, built.clock.clone())
+        .with_poll_interval(poll_s);
+    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
+    if let Some(hosted) = &built.hosted {
+        tracing::info!(stats = ?hosted.emulator.stats(), "Modbus hexapod emulator");
+    }
+    drop(built.hosted);
+    match (&options.truth, &built.world) {
+        (Some(path), Some(world)) => {
+            let truth = world
                 .lock()
                 .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-                .truth())
-        },
-    )
+                .truth();
+            crate::run::write_truth(path, &truth)?;
+        }
+        (Some(path), None) => tracing::warn!(
+            "no truth to write to {}: a real hexapod run has no simulated world",
+            path.display()
+        ),
+        _ => {}
+    }
+    super::finish_and_solve(recorder, summary, session_path, options)
 }

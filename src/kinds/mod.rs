@@ -3,6 +3,7 @@
 //! simulated devices -> kind sequencer -> recorded session -> solve).
 
 pub mod hexapod;
+pub mod hexapod_devices;
 pub mod probe_install;
 
 use std::collections::BTreeMap;

@@ -3,7 +3,8 @@
 //!
 //! Events: `pose_begin` / `pose_end` around the measurements at one pose (after arrival);
 //! `/hexapod/<id>/pose` for each measured pose and `/hexapod/<id>/legs` for each encoder
-//! reading. Timeouts and protocol errors are retried with `fault` events.
+//! reading. Timeouts and protocol errors are retried with `fault` events; faults the driver
+//! recovered from itself (`reconnect`) are `fault` events too.
 
 use std::sync::Arc;
 
@@ -32,6 +33,9 @@ pub struct HexapodSequencer<'a> {
     devices: HexapodDevices,
     log: EventLog,
     summary: RunSummary,
+    /// Wall-time pause between two state queries of a moving hexapod (0 for the simulated
+    /// one, whose queries cost virtual time).
+    poll_interval_s: f64,
 }
 
 impl<'a> HexapodSequencer<'a> {
@@ -46,7 +50,14 @@ impl<'a> HexapodSequencer<'a> {
             devices,
             log: EventLog::new(recorder, clock),
             summary: RunSummary::default(),
+            poll_interval_s: 0.0,
         }
+    }
+
+    /// Pause `s` seconds of wall time between state queries (a real controller's driver).
+    pub fn with_poll_interval(mut self, s: f64) -> Self {
+        self.poll_interval_s = if s.is_finite() { s.max(0.0) } else { 0.0 };
+        self
     }
 
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
@@ -59,8 +70,10 @@ impl<'a> HexapodSequencer<'a> {
                 rotation_vector_rad: p.rotation_vector_rad,
             };
             retried!(self.log, self.devices.hexapod.start_move(&command));
+            self.link_faults();
             let mut queries = 0;
             while retried!(self.log, self.devices.hexapod.state()) != HexapodState::Idle {
+                self.link_faults();
                 queries += 1;
                 if queries > MAX_STATE_QUERIES {
                     return Err(SequencerError::NoArrival {
@@ -68,7 +81,12 @@ impl<'a> HexapodSequencer<'a> {
                         waited_s: self.log.elapsed_s(),
                     });
                 }
+                if self.poll_interval_s > 0.0 {
+                    tokio::time::sleep(std::time::Duration::from_secs_f64(self.poll_interval_s))
+                        .await;
+                }
             }
+            self.link_faults();
             self.log.event(RunEvent::PoseBegin {
                 pose,
                 axes: POSE_AXES
@@ -98,6 +116,7 @@ impl<'a> HexapodSequencer<'a> {
             };
             for _ in 0..readings {
                 let r = retried!(self.log, self.devices.hexapod.read_legs());
+                self.link_faults();
                 let sample = LegSample {
                     t_s: r.t_s,
                     lengths_m: r.lengths_m,
@@ -116,5 +135,13 @@ impl<'a> HexapodSequencer<'a> {
         }
         self.summary.faults = self.log.faults;
         Ok(self.summary)
+    }
+
+    /// Record what the hexapod's driver recovered from by itself (Modbus reconnects).
+    fn link_faults(&mut self) {
+        let id = self.devices.hexapod.id().to_string();
+        for f in self.devices.hexapod.take_link_faults() {
+            self.log.fault(&id, &f.code, f.message);
+        }
     }
 }

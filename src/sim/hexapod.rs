@@ -183,7 +183,7 @@ impl HexapodWorld {
         self.clock.elapsed_s()
     }
 
-    fn start_move(&mut self, commanded: PlatformPose) -> Result<(), String> {
+    pub fn start_move(&mut self, commanded: PlatformPose) -> Result<(), String> {
         let target = reached_pose(&self.nominal, &self.truth, self.exact_poses, &commanded)
             .ok_or_else(|| {
                 format!("the legs' lengths for pose {commanded:?} have no nearby true pose")
@@ -200,7 +200,7 @@ impl HexapodWorld {
         Ok(())
     }
 
-    fn idle(&mut self) -> bool {
+    pub fn idle(&mut self) -> bool {
         let now = self.now_s();
         if now >= self.move_end_s - 1e-9 {
             return true;
@@ -209,7 +209,7 @@ impl HexapodWorld {
         false
     }
 
-    fn read_legs(&mut self) -> LegReading {
+    pub fn read_legs(&mut self) -> LegReading {
         let t_s = self.now_s() + self.reading_period_s;
         self.clock.advance_to(t_s);
         let pose = to_pose(&self.pose);

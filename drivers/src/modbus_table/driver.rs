@@ -1,37 +1,17 @@
-//! Modbus rotary-table driver (TCP or RTU via tokio-modbus): owns the connection and the
-//! timing (per-call timeouts, reconnect and retry, ack handshake, rate-limited polling).
+//! Modbus rotary-table driver (TCP or RTU via tokio-modbus): the table's config, and the
+//! `RotaryTable` over the shared Modbus client (timeouts, reconnect, ack handshake).
 
-use std::borrow::Cow;
 use std::net::SocketAddr;
-use std::time::Duration;
 
 use async_trait::async_trait;
 use serde::{Deserialize, Serialize};
 use tokio::time::Instant;
-use tokio_modbus::client::{Client as _, Context};
-use tokio_modbus::{ExceptionCode, Request, Response, Slave};
 
-use super::map::{RegisterKind, RegisterMap};
+use super::map::RegisterMap;
+use crate::modbus::client::{ModbusClient, ModbusTiming};
+pub use crate::modbus::client::{ModbusStats as ModbusTableStats, ModbusTransport};
 use crate::serial::check_seconds;
 use crate::traits::{DeviceError, LinkFault, RotaryState, RotaryTable};
-
-/// Where the table is reached.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(tag = "kind", rename_all = "snake_case", deny_unknown_fields)]
-pub enum ModbusTransport {
-    /// Modbus TCP, e.g. `address = "192.168.0.20:502"`.
-    Tcp { address: SocketAddr },
-    /// Modbus RTU on a serial port (8N1).
-    Rtu {
-        port: String,
-        #[serde(default = "default_baud")]
-        baud: u32,
-    },
-}
-
-fn default_baud() -> u32 {
-    19_200
-}
 
 /// A Modbus rotary table's config: transport, timing and register map.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -60,17 +40,31 @@ pub struct ModbusTableConfig {
 fn default_id() -> String {
     "rotary".into()
 }
-fn default_timeout_s() -> f64 {
+pub(crate) fn default_timeout_s() -> f64 {
     0.5
 }
-fn default_retries() -> u32 {
+pub(crate) fn default_retries() -> u32 {
     2
 }
-fn default_ack_timeout_s() -> f64 {
+pub(crate) fn default_ack_timeout_s() -> f64 {
     2.0
 }
-fn default_poll_interval_s() -> f64 {
+pub(crate) fn default_poll_interval_s() -> f64 {
     0.05
+}
+
+/// Timing settings every Modbus driver config has; checked the same way.
+pub(crate) fn check_timing(id: &str, t: &ModbusTiming) -> Result<(), DeviceError> {
+    check_seconds(id, "timeout_s", t.timeout_s)?;
+    check_seconds(id, "ack_timeout_s", t.ack_timeout_s)?;
+    check_seconds(id, "poll_interval_s", t.poll_interval_s)?;
+    if t.timeout_s <= 0.0 {
+        return Err(DeviceError::Protocol {
+            device: id.to_string(),
+            message: "timeout_s must be positive".into(),
+        });
+    }
+    Ok(())
 }
 
 impl ModbusTableConfig {
@@ -87,14 +81,18 @@ impl ModbusTableConfig {
         }
     }
 
+    pub fn timing(&self) -> ModbusTiming {
+        ModbusTiming {
+            timeout_s: self.timeout_s,
+            retries: self.retries,
+            ack_timeout_s: self.ack_timeout_s,
+            poll_interval_s: self.poll_interval_s,
+        }
+    }
+
     /// Reject values the driver cannot work with.
     pub fn validate(&self) -> Result<(), DeviceError> {
-        check_seconds(&self.id, "timeout_s", self.timeout_s)?;
-        check_seconds(&self.id, "ack_timeout_s", self.ack_timeout_s)?;
-        check_seconds(&self.id, "poll_interval_s", self.poll_interval_s)?;
-        if self.timeout_s <= 0.0 {
-            return Err(self.bad("timeout_s must be positive".into()));
-        }
+        check_timing(&self.id, &self.timing())?;
         self.map
             .validate()
             .map_err(|m| self.bad(format!("register map: {m}")))
@@ -108,42 +106,19 @@ impl ModbusTableConfig {
     }
 }
 
-/// Counters of what happened on the link, for diagnosis and tests.
-#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
-pub struct ModbusTableStats {
-    pub requests: u64,
-    pub timeouts: u64,
-    pub reconnects: u64,
-    pub exceptions: u64,
-    pub status_polls: u64,
-}
-
-#[derive(Debug, Clone)]
-enum Link {
-    Tcp(SocketAddr),
-    Rtu { port: String, baud: u32 },
-}
-
 /// A rotary table driven over Modbus with a configured register map.
 pub struct ModbusTable {
     cfg: ModbusTableConfig,
-    link: Link,
-    ctx: Option<Context>,
+    client: ModbusClient,
     last_poll: Option<Instant>,
     last_state: Option<RotaryState>,
-    stats: ModbusTableStats,
-    /// Reconnects already reported by `take_link_faults`.
-    reported_reconnects: u64,
-    /// Why the last connection was dropped.
-    last_drop: String,
 }
 
 impl ModbusTable {
     /// Connect as the config's `transport` says.
     pub async fn connect(cfg: ModbusTableConfig) -> Result<Self, DeviceError> {
         match cfg.transport.clone() {
-            Some(ModbusTransport::Tcp { address }) => Self::connect_tcp(address, cfg).await,
-            Some(ModbusTransport::Rtu { port, baud }) => Self::open_rtu(&port, baud, cfg).await,
+            Some(transport) => Self::start(transport, cfg).await,
             None => Err(cfg.bad("no transport configured".into())),
         }
     }
@@ -153,7 +128,7 @@ impl ModbusTable {
         address: SocketAddr,
         cfg: ModbusTableConfig,
     ) -> Result<Self, DeviceError> {
-        Self::start(Link::Tcp(address), cfg).await
+        Self::start(ModbusTransport::Tcp { address }, cfg).await
     }
 
     /// Modbus RTU on the serial port `port` at `baud` (8N1).
@@ -163,7 +138,7 @@ impl ModbusTable {
         cfg: ModbusTableConfig,
     ) -> Result<Self, DeviceError> {
         Self::start(
-            Link::Rtu {
+            ModbusTransport::Rtu {
                 port: port.to_string(),
                 baud,
             },
@@ -172,30 +147,19 @@ impl ModbusTable {
         .await
     }
 
-    async fn start(link: Link, cfg: ModbusTableConfig) -> Result<Self, DeviceError> {
+    async fn start(
+        transport: ModbusTransport,
+        cfg: ModbusTableConfig,
+    ) -> Result<Self, DeviceError> {
         cfg.validate()?;
-        let mut table = Self {
+        let client =
+            ModbusClient::connect(&cfg.id, transport, cfg.map.unit_id, cfg.timing()).await?;
+        Ok(Self {
             cfg,
-            link,
-            ctx: None,
+            client,
             last_poll: None,
             last_state: None,
-            stats: ModbusTableStats::default(),
-            reported_reconnects: 0,
-            last_drop: String::new(),
-        };
-        let ctx = open_link(
-            table.link.clone(),
-            table.cfg.map.unit_id,
-            table.cfg.timeout_s,
-        )
-        .await
-        .map_err(|message| DeviceError::Disconnected {
-            device: table.cfg.id.clone(),
-            message,
-        })?;
-        table.ctx = Some(ctx);
-        Ok(table)
+        })
     }
 
     pub fn config(&self) -> &ModbusTableConfig {
@@ -203,240 +167,30 @@ impl ModbusTable {
     }
 
     pub fn stats(&self) -> ModbusTableStats {
-        self.stats
+        self.client.stats()
     }
 
-    fn timeout(&self) -> Duration {
-        Duration::from_secs_f64(self.cfg.timeout_s)
-    }
-
-    /// One request with timeout, reconnect and retry. Exceptions are not retried (except
-    /// "server device busy"); they come back as `Rejected` naming the exception and `what`.
-    async fn call(&mut self, what: &str, req: Request<'static>) -> Result<Response, DeviceError> {
-        let mut last_err = String::new();
-        let mut all_timeouts = true;
-        for _attempt in 0..=self.cfg.retries {
-            if self.ctx.is_none() {
-                self.stats.reconnects += 1;
-                match open_link(self.link.clone(), self.cfg.map.unit_id, self.cfg.timeout_s).await {
-                    Ok(c) => self.ctx = Some(c),
-                    Err(e) => {
-                        all_timeouts = false;
-                        last_err = e;
-                        continue;
-                    }
-                }
-            }
-            let timeout = self.timeout();
-            let Some(ctx) = self.ctx.as_mut() else {
-                continue;
-            };
-            self.stats.requests += 1;
-            match tokio::time::timeout(timeout, ctx.call(req.clone())).await {
-                Ok(Ok(Ok(resp))) => return Ok(resp),
-                Ok(Ok(Err(exc))) => {
-                    self.stats.exceptions += 1;
-                    if exc == ExceptionCode::ServerDeviceBusy {
-                        all_timeouts = false;
-                        last_err = format!("device busy while {what}");
-                        tokio::time::sleep(Duration::from_secs_f64(self.cfg.poll_interval_s)).await;
-                        continue;
-                    }
-                    return Err(DeviceError::Rejected {
-                        device: self.cfg.id.clone(),
-                        message: format!(
-                            "Modbus exception {exc:?} (code {}, {exc}) while {what}",
-                            u8::from(exc)
-                        ),
-                    });
-                }
-                Ok(Err(e)) => {
-                    // Transport or framing error: the context may be desynchronised.
-                    all_timeouts = false;
-                    last_err = format!("{e} while {what}");
-                    self.last_drop.clone_from(&last_err);
-                    self.ctx = None;
-                }
-                Err(_) => {
-                    // A late reply would be taken for the next request's: reconnect.
-                    self.stats.timeouts += 1;
-                    last_err = format!("no reply while {what}");
-                    self.last_drop.clone_from(&last_err);
-                    self.ctx = None;
-                }
-            }
-        }
-        if all_timeouts {
-            Err(DeviceError::Timeout {
-                device: self.cfg.id.clone(),
-                what: format!("{what} ({} attempts)", self.cfg.retries + 1),
-                after_s: self.cfg.timeout_s,
-            })
+    async fn read_angle(&mut self, actual: bool) -> Result<f64, DeviceError> {
+        let (a, name) = if actual {
+            (self.cfg.map.actual.clone(), "actual angle")
         } else {
-            Err(DeviceError::Disconnected {
-                device: self.cfg.id.clone(),
-                message: last_err,
-            })
-        }
-    }
-
-    fn protocol(&self, message: String) -> DeviceError {
-        DeviceError::Protocol {
-            device: self.cfg.id.clone(),
-            message,
-        }
-    }
-
-    /// Read `count` words of `kind` at `address`.
-    async fn read(
-        &mut self,
-        kind: RegisterKind,
-        address: u16,
-        count: u16,
-        name: &str,
-    ) -> Result<Vec<u16>, DeviceError> {
-        let what = format!(
-            "reading {} register {address} ({name}, {count} word{})",
-            kind.name(),
-            if count == 1 { "" } else { "s" }
-        );
-        let req = match kind {
-            RegisterKind::Holding => Request::ReadHoldingRegisters(address, count),
-            RegisterKind::Input => Request::ReadInputRegisters(address, count),
+            (self.cfg.map.target.clone(), "target angle")
         };
-        let words = match self.call(&what, req).await? {
-            Response::ReadHoldingRegisters(w) | Response::ReadInputRegisters(w) => w,
-            other => return Err(self.protocol(format!("unexpected reply {other:?} while {what}"))),
-        };
-        if words.len() < usize::from(count) {
-            return Err(self.protocol(format!(
-                "{} words instead of {count} while {what}",
-                words.len()
-            )));
-        }
-        Ok(words[..usize::from(count)].to_vec())
-    }
-
-    /// Write holding registers (function 0x06 for one word, 0x10 for more).
-    async fn write(
-        &mut self,
-        address: u16,
-        words: Vec<u16>,
-        name: &str,
-    ) -> Result<(), DeviceError> {
-        let what = format!("writing holding register {address} ({name}, {words:?})");
-        let req = if let [w] = words[..] {
-            Request::WriteSingleRegister(address, w)
-        } else {
-            Request::WriteMultipleRegisters(address, Cow::Owned(words))
-        };
-        match self.call(&what, req).await? {
-            Response::WriteSingleRegister(..) | Response::WriteMultipleRegisters(..) => Ok(()),
-            other => Err(self.protocol(format!("unexpected reply {other:?} while {what}"))),
-        }
-    }
-
-    async fn read_status(&mut self) -> Result<u16, DeviceError> {
-        let s = self.cfg.map.status.clone();
-        self.stats.status_polls += 1;
-        let w = self.read(s.kind, s.address, 1, "status").await?;
-        let word = w.first().copied().unwrap_or(0);
-        if s.fault(word) {
-            return Err(self.fault_error(word).await);
-        }
-        Ok(word)
-    }
-
-    async fn fault_error(&mut self, status: u16) -> DeviceError {
-        let code = match self.cfg.map.fault_code {
-            Some(r) => match self.read(r.kind, r.address, 1, "fault code").await {
-                Ok(w) => format!(", fault code {}", w.first().copied().unwrap_or(0)),
-                Err(e) => format!(", fault code unreadable: {e}"),
-            },
-            None => String::new(),
-        };
-        DeviceError::Rejected {
-            device: self.cfg.id.clone(),
-            message: format!("table reports a fault (status word {status:#06x}){code}"),
-        }
+        let words = self.client.read(a.kind, a.address, a.words(), name).await?;
+        a.decode_rad(&words).ok_or_else(|| {
+            self.client
+                .protocol(format!("cannot decode {name} from {words:?}"))
+        })
     }
 
     /// Read the encoder angle, radians.
     pub async fn read_encoder_rad(&mut self) -> Result<f64, DeviceError> {
-        let a = self.cfg.map.actual.clone();
-        let words = self
-            .read(a.kind, a.address, a.words(), "actual angle")
-            .await?;
-        a.decode_rad(&words)
-            .ok_or_else(|| self.protocol(format!("cannot decode actual angle from {words:?}")))
+        self.read_angle(true).await
     }
 
     /// Read the commanded (target) angle back from the table, radians.
     pub async fn read_target_rad(&mut self) -> Result<f64, DeviceError> {
-        let a = self.cfg.map.target.clone();
-        let words = self
-            .read(a.kind, a.address, a.words(), "target angle")
-            .await?;
-        a.decode_rad(&words)
-            .ok_or_else(|| self.protocol(format!("cannot decode target angle from {words:?}")))
-    }
-
-    async fn wait_ack(&mut self) -> Result<(), DeviceError> {
-        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.ack_timeout_s);
-        let ack = self.cfg.map.ack_register();
-        let in_status = self.cfg.map.ack.register.is_none();
-        loop {
-            let status = self.read_status().await?;
-            let word = if in_status {
-                status
-            } else {
-                let w = self.read(ack.kind, ack.address, 1, "acknowledge").await?;
-                w.first().copied().unwrap_or(0)
-            };
-            if self.cfg.map.acknowledged(word) {
-                return Ok(());
-            }
-            if Instant::now() >= deadline {
-                return Err(DeviceError::Timeout {
-                    device: self.cfg.id.clone(),
-                    what: format!(
-                        "acknowledge of the go command ({} register {})",
-                        ack.kind.name(),
-                        ack.address
-                    ),
-                    after_s: self.cfg.ack_timeout_s,
-                });
-            }
-            tokio::time::sleep(Duration::from_secs_f64(self.cfg.poll_interval_s.max(0.002))).await;
-        }
-    }
-}
-
-/// Open a fresh client context on `link` (no `&self` across the await: `Context` is not
-/// `Sync`).
-async fn open_link(link: Link, unit_id: u8, timeout_s: f64) -> Result<Context, String> {
-    let slave = Slave(unit_id);
-    match &link {
-        Link::Tcp(addr) => {
-            match tokio::time::timeout(
-                Duration::from_secs_f64(timeout_s),
-                tokio_modbus::client::tcp::connect_slave(*addr, slave),
-            )
-            .await
-            {
-                Ok(Ok(ctx)) => Ok(ctx),
-                Ok(Err(e)) => Err(format!("cannot connect to {addr}: {e}")),
-                Err(_) => Err(format!(
-                    "connecting to {addr} timed out after {} s",
-                    timeout_s
-                )),
-            }
-        }
-        Link::Rtu { port, baud } => {
-            let serial =
-                crate::serial::open_8n1("modbus", port, *baud).map_err(|e| e.to_string())?;
-            Ok(tokio_modbus::client::rtu::attach_slave(serial, slave))
-        }
+        self.read_angle(false).await
     }
 }
 
@@ -451,26 +205,13 @@ impl RotaryTable for ModbusTable {
         let words = map
             .target
             .encode_rad(commanded_rad)
-            .map_err(|m| DeviceError::Rejected {
-                device: self.cfg.id.clone(),
-                message: format!("target: {m}"),
-            })?;
+            .map_err(|m| self.client.rejected(format!("target: {m}")))?;
         self.last_state = None;
         self.last_poll = None;
-        self.write(map.target.address, words, "target angle")
+        self.client
+            .write(map.target.address, words, "target angle")
             .await?;
-        self.write(
-            map.command.address,
-            vec![map.command.go_value],
-            "go command",
-        )
-        .await?;
-        self.wait_ack().await?;
-        if let Some(clear) = map.command.clear_value {
-            self.write(map.command.address, vec![clear], "clear command")
-                .await?;
-        }
-        Ok(())
+        self.client.go(&map.handshake()).await
     }
 
     async fn state(&mut self) -> Result<RotaryState, DeviceError> {
@@ -479,9 +220,9 @@ impl RotaryTable for ModbusTable {
                 return Ok(s);
             }
         }
-        let status = self.read_status().await?;
-        let st = &self.cfg.map.status;
-        let state = if st.in_position(status) && !st.moving(status) {
+        let hs = self.cfg.map.handshake();
+        let status = self.client.read_status(&hs).await?;
+        let state = if hs.status.in_position(status) && !hs.status.moving(status) {
             RotaryState::InPosition {
                 encoder_rad: self.read_encoder_rad().await?,
             }
@@ -495,21 +236,7 @@ impl RotaryTable for ModbusTable {
 
     /// Connections reopened (after a timeout or a transport error) since the last call.
     fn take_link_faults(&mut self) -> Vec<LinkFault> {
-        let new = self
-            .stats
-            .reconnects
-            .saturating_sub(self.reported_reconnects);
-        self.reported_reconnects = self.stats.reconnects;
-        if new == 0 {
-            return Vec::new();
-        }
-        vec![LinkFault {
-            code: "reconnect".into(),
-            message: format!(
-                "reopened the Modbus connection {new} time(s) (last dropped: {})",
-                self.last_drop
-            ),
-        }]
+        self.client.take_link_faults()
     }
 }
 

@@ -3,35 +3,13 @@
 
 use serde::{Deserialize, Serialize};
 
-/// Which Modbus table a register lives in.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum RegisterKind {
-    /// Read with function 0x03, written with 0x06 / 0x10.
-    Holding,
-    /// Read-only, read with function 0x04.
-    Input,
-}
-
-impl RegisterKind {
-    pub fn name(self) -> &'static str {
-        match self {
-            RegisterKind::Holding => "holding",
-            RegisterKind::Input => "input",
-        }
-    }
-}
-
-/// Order of the two 16-bit words of a 32-bit value.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum WordOrder {
-    /// High word at the lower address (Modicon convention, "ABCD").
-    #[default]
-    Big,
-    /// Low word at the lower address ("CDAB").
-    Little,
-}
+use crate::modbus::registers::{
+    default_holding, default_true, default_unit_id, default_width, scale_of,
+};
+pub use crate::modbus::registers::{
+    Acknowledge, CommandRegister, Handshake, RegisterKind, RegisterRef, StatusRegister, WordLayout,
+    WordOrder,
+};
 
 /// A register holding an angle, in counts, at one address (16 bit) or two (32 bit).
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -57,54 +35,6 @@ pub struct AngleRegister {
     pub rad_per_count: Option<f64>,
 }
 
-/// A plain register reference (one word).
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct RegisterRef {
-    pub address: u16,
-    #[serde(default = "default_holding")]
-    pub kind: RegisterKind,
-}
-
-/// The status word and the meaning of its bits (bit 0 = least significant).
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct StatusRegister {
-    pub address: u16,
-    #[serde(default = "default_holding")]
-    pub kind: RegisterKind,
-    pub in_position_bit: u8,
-    /// If given, the table counts as moving while this bit is set, even with in_position.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub moving_bit: Option<u8>,
-    pub fault_bit: u8,
-}
-
-/// The command register: the driver writes `go_value` after the target to start a move,
-/// and `clear_value` (if given) once the device acknowledged.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct CommandRegister {
-    /// A holding register.
-    pub address: u16,
-    pub go_value: u16,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub clear_value: Option<u16>,
-}
-
-/// How the device acknowledges a go command: a bit set (`bit`) or a value shown (`value`)
-/// in `register`, or in the status register if no register is given. Give one of the two.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Acknowledge {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub register: Option<RegisterRef>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub bit: Option<u8>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub value: Option<u16>,
-}
-
 /// The whole register map of one table; lives in the table's TOML config.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -124,27 +54,22 @@ pub struct RegisterMap {
     pub fault_code: Option<RegisterRef>,
 }
 
-fn default_holding() -> RegisterKind {
-    RegisterKind::Holding
-}
-fn default_width() -> u8 {
-    32
-}
-fn default_true() -> bool {
-    true
-}
-fn default_unit_id() -> u8 {
-    1
+impl WordLayout for AngleRegister {
+    fn width_bits(&self) -> u8 {
+        self.width_bits
+    }
+    fn word_order(&self) -> WordOrder {
+        self.word_order
+    }
+    fn signed(&self) -> bool {
+        self.signed
+    }
 }
 
 impl AngleRegister {
     /// Words the value occupies.
     pub fn words(&self) -> u16 {
-        if self.width_bits == 32 {
-            2
-        } else {
-            1
-        }
+        WordLayout::words(self)
     }
 
     /// Counts per radian, from whichever scale was given (validated first).
@@ -157,142 +82,53 @@ impl AngleRegister {
     }
 
     fn validate(&self, name: &str) -> Result<(), String> {
-        if self.width_bits != 16 && self.width_bits != 32 {
-            return Err(format!(
-                "{name}: width_bits must be 16 or 32, got {}",
-                self.width_bits
-            ));
-        }
-        if u32::from(self.address) + u32::from(self.words()) > 0x1_0000 {
-            return Err(format!(
-                "{name}: address {} + {} words runs past 65535",
-                self.address,
-                self.words()
-            ));
-        }
-        let scale = match (self.counts_per_rad, self.rad_per_count) {
-            (Some(c), None) => c,
-            (None, Some(r)) => 1.0 / r,
-            _ => {
-                return Err(format!(
-                    "{name}: give exactly one of counts_per_rad and rad_per_count"
-                ))
-            }
-        };
-        if !(scale.is_finite() && scale != 0.0) {
-            return Err(format!("{name}: scale must be finite and non-zero"));
-        }
-        Ok(())
-    }
-
-    fn count_range(&self) -> (i64, i64) {
-        match (self.width_bits, self.signed) {
-            (16, true) => (i64::from(i16::MIN), i64::from(i16::MAX)),
-            (16, false) => (0, i64::from(u16::MAX)),
-            (_, true) => (i64::from(i32::MIN), i64::from(i32::MAX)),
-            (_, false) => (0, i64::from(u32::MAX)),
-        }
+        self.check_layout(name, self.address, 1)?;
+        scale_of(name, self.counts_per_rad, self.rad_per_count, "rad").map(|_| ())
     }
 
     /// Encode an angle into the register words (address order). Rounds to the nearest
     /// count; an angle outside the representable range is an error.
     pub fn encode_rad(&self, angle_rad: f64) -> Result<Vec<u16>, String> {
-        let counts_f = (angle_rad * self.scale_counts_per_rad()).round();
-        let (lo, hi) = self.count_range();
-        if !counts_f.is_finite() || counts_f < lo as f64 || counts_f > hi as f64 {
-            return Err(format!(
-                "angle {angle_rad} rad is {counts_f} counts, outside {lo}..={hi} of a {}-bit {} register",
-                self.width_bits,
-                if self.signed { "signed" } else { "unsigned" }
-            ));
-        }
-        let counts = counts_f as i64;
-        Ok(self.encode_counts(counts))
+        self.encode_scaled(angle_rad, self.scale_counts_per_rad(), "rad")
+            .map_err(|m| format!("angle {m}"))
     }
 
     /// Register words for `counts` (already inside the range), in address order.
     pub fn encode_counts(&self, counts: i64) -> Vec<u16> {
-        if self.width_bits == 16 {
-            vec![(counts as u64 & 0xFFFF) as u16]
-        } else {
-            let raw = counts as u64 & 0xFFFF_FFFF;
-            let high = (raw >> 16) as u16;
-            let low = (raw & 0xFFFF) as u16;
-            match self.word_order {
-                WordOrder::Big => vec![high, low],
-                WordOrder::Little => vec![low, high],
-            }
-        }
+        WordLayout::encode_counts(self, counts)
     }
 
     /// Counts from register words in address order; `None` if the count of words is wrong.
     pub fn decode_counts(&self, words: &[u16]) -> Option<i64> {
-        if words.len() != usize::from(self.words()) {
-            return None;
-        }
-        if self.width_bits == 16 {
-            let w = words[0];
-            return Some(if self.signed {
-                i64::from(w as i16)
-            } else {
-                i64::from(w)
-            });
-        }
-        let (high, low) = match self.word_order {
-            WordOrder::Big => (words[0], words[1]),
-            WordOrder::Little => (words[1], words[0]),
-        };
-        let raw = (u32::from(high) << 16) | u32::from(low);
-        Some(if self.signed {
-            i64::from(raw as i32)
-        } else {
-            i64::from(raw)
-        })
+        WordLayout::decode_counts(self, words)
     }
 
     /// Angle from register words in address order.
     pub fn decode_rad(&self, words: &[u16]) -> Option<f64> {
-        self.decode_counts(words)
-            .map(|c| c as f64 / self.scale_counts_per_rad())
-    }
-}
-
-fn check_bit(name: &str, bit: u8) -> Result<(), String> {
-    if bit < 16 {
-        Ok(())
-    } else {
-        Err(format!("{name} must be 0..=15, got {bit}"))
-    }
-}
-
-impl StatusRegister {
-    pub fn in_position(&self, word: u16) -> bool {
-        word & (1 << self.in_position_bit) != 0
-    }
-    pub fn moving(&self, word: u16) -> bool {
-        self.moving_bit.is_some_and(|b| word & (1 << b) != 0)
-    }
-    pub fn fault(&self, word: u16) -> bool {
-        word & (1 << self.fault_bit) != 0
+        self.decode_scaled(words, self.scale_counts_per_rad())
     }
 }
 
 impl RegisterMap {
+    /// The status / go / ack / fault-code part, shared with the Modbus client and server.
+    pub fn handshake(&self) -> Handshake {
+        Handshake {
+            unit_id: self.unit_id,
+            status: self.status.clone(),
+            command: self.command.clone(),
+            ack: self.ack.clone(),
+            fault_code: self.fault_code,
+        }
+    }
+
     /// The register the acknowledge is read from.
     pub fn ack_register(&self) -> RegisterRef {
-        self.ack.register.unwrap_or(RegisterRef {
-            address: self.status.address,
-            kind: self.status.kind,
-        })
+        self.handshake().ack_register()
     }
 
     /// Whether the acknowledge register's word shows the acknowledge.
     pub fn acknowledged(&self, word: u16) -> bool {
-        match (self.ack.bit, self.ack.value) {
-            (Some(b), _) => word & (1 << b) != 0,
-            (None, Some(v)) => word == v,
-            (None, None) => false,
-        }
+        self.handshake().acknowledged(word)
     }
 
     /// Reject maps the driver cannot work with.
@@ -302,40 +138,7 @@ impl RegisterMap {
         if self.target.kind != RegisterKind::Holding {
             return Err("target must be a holding register (it is written)".into());
         }
-        check_bit("status.in_position_bit", self.status.in_position_bit)?;
-        check_bit("status.fault_bit", self.status.fault_bit)?;
-        if let Some(b) = self.status.moving_bit {
-            check_bit("status.moving_bit", b)?;
-        }
-        if self.status.in_position_bit == self.status.fault_bit
-            || self.status.moving_bit == Some(self.status.in_position_bit)
-            || self.status.moving_bit == Some(self.status.fault_bit)
-        {
-            return Err("status bits in_position, moving and fault must differ".into());
-        }
-        match (self.ack.bit, self.ack.value) {
-            (Some(b), None) => {
-                check_bit("ack.bit", b)?;
-                if self.ack.register.is_none()
-                    && (b == self.status.in_position_bit
-                        || b == self.status.fault_bit
-                        || self.status.moving_bit == Some(b))
-                {
-                    return Err(format!(
-                        "ack.bit {b} in the status register collides with a status bit"
-                    ));
-                }
-            }
-            (None, Some(_)) => {
-                if self.ack.register.is_none() {
-                    return Err("ack.value needs ack.register (the status word is bits)".into());
-                }
-            }
-            _ => return Err("ack: give exactly one of bit and value".into()),
-        }
-        if self.command.clear_value == Some(self.command.go_value) {
-            return Err("command.clear_value must differ from command.go_value".into());
-        }
+        self.handshake().validate()?;
         let target_span = self.target.address..self.target.address + self.target.words();
         if target_span.contains(&self.command.address) {
             return Err("command register overlaps the target register".into());

@@ -12,5 +12,5 @@ pub use emulator::{
 };
 pub use map::{
     Acknowledge, AngleRegister, CommandRegister, RegisterKind, RegisterMap, RegisterRef,
-    StatusRegister, WordOrder,
+    StatusRegister, WordLayout, WordOrder,
 };
