@@ -114,12 +114,11 @@ pub fn analyse(names: &[String], jw: &DMatrix<f64>) -> BlockAnalysis {
         };
         let lead = basis[r][p];
         basis[r].iter_mut().for_each(|v| *v /= lead);
-        for o in 0..basis.len() {
+        let row = basis[r].clone();
+        for (o, other) in basis.iter_mut().enumerate() {
             if o != r {
-                let f = basis[o][p];
-                for c in 0..n {
-                    basis[o][c] -= f * basis[r][c];
-                }
+                let f = other[p];
+                other.iter_mut().zip(&row).for_each(|(v, w)| *v -= f * w);
             }
         }
         pivots.push(p);

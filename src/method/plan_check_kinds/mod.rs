@@ -215,11 +215,21 @@ pub fn text(c: &KindPlanCheck) -> String {
     if id.deficiency == 0 {
         let _ = writeln!(s, "  the plan identifies every parameter");
     } else {
+        let listed = 16;
+        let mut alone = id
+            .unidentifiable
+            .iter()
+            .take(listed)
+            .cloned()
+            .collect::<Vec<_>>()
+            .join(", ");
+        if id.unidentifiable.len() > listed {
+            alone.push_str(&format!(", ... ({} in all)", id.unidentifiable.len()));
+        }
         let _ = writeln!(
             s,
-            "  the plan cannot identify {} direction(s); not identifiable alone: {}",
-            id.deficiency,
-            id.unidentifiable.join(", ")
+            "  the plan cannot identify {} direction(s); not identifiable alone: {alone}",
+            id.deficiency
         );
         let shown = 12;
         for d in id.null_directions.iter().take(shown) {

@@ -91,7 +91,7 @@ pub fn check(config: &ProbeInstallConfig) -> Result<KindPlanCheck, String> {
     let identifiability = merge(
         &[&block],
         10,
-        &[free.clone()],
+        std::slice::from_ref(&free),
         vec!["the beam direction (l, m, n) has unit norm: two free tilts, so its covariance is rank 2".into()],
     );
     let mut warnings = Vec::new();

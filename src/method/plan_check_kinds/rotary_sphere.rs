@@ -219,9 +219,9 @@ pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
             });
         }
     }
-    for h in 0..nh {
-        for (a, &theta) in plan.angles_rad.iter().enumerate() {
-            let cov = fits[h][a].covariance();
+    for (h, row) in fits.iter().enumerate() {
+        for (fit, &theta) in row.iter().zip(&plan.angles_rad) {
+            let cov = fit.covariance();
             for (k, c) in ["x", "y", "z"].iter().enumerate() {
                 parameters.push(PredictedSigma {
                     name: format!("centre_{h}_{c}_m@{}", deg(theta)),
