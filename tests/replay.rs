@@ -203,11 +203,30 @@ fn replay_command_prints_the_comparison() {
     assert!(err.contains("bogus.mcap") && err.contains("MCAP"), "{err}");
 }
 
-/// Run a configuration of a kind with its own layout (probe_install, hexapod).
+/// Run a configuration of a kind with its own layout (rotary_sphere, probe_install, hexapod).
 fn record_kind(config_text: &str, dir: &Path) -> RunOutput {
     std::fs::create_dir_all(dir).expect("dir");
     let config = dir.join("kind.toml");
     std::fs::write(&config, config_text).expect("write config");
+    if config_text.contains("kind = \"rotary_sphere\"") {
+        let cfg = geocal::config::rotary_sphere::RotarySphereConfig::load(&config).expect("config");
+        let out = geocal::rotary_sphere_run::run(
+            &cfg,
+            &RunOptions {
+                out_dir: dir.to_path_buf(),
+                truth: None,
+                progress: false,
+                settings: Default::default(),
+            },
+        )
+        .expect("recorded run");
+        return RunOutput {
+            session_path: out.session_path,
+            results_path: out.results_path,
+            summary: Default::default(),
+            results: out.results,
+        };
+    }
     geocal::kinds::run_file(
         &config,
         &RunOptions {
@@ -284,6 +303,21 @@ fn assert_identical_kind_replay(recorded: &RunOutput, out: &ReplayOutput, window
             .collect::<Vec<_>>()
     };
     assert_eq!(topics(&b), topics(&a));
+    let rotary = |s: &geocal::session::reader::Session| {
+        s.rotary
+            .iter()
+            .flat_map(|(id, v)| {
+                v.iter().map(move |r| {
+                    (
+                        id.clone(),
+                        r.log_time_ns,
+                        serde_json::to_string(&r.msg).expect("json"),
+                    )
+                })
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(rotary(&b), rotary(&a));
     assert!(b.header.session_id.ends_with("-replay"));
     assert!(b.header.devices.iter().all(|d| d.driver == "replay"));
 }
@@ -329,4 +363,21 @@ fn hexapod_session_replays_identically() {
     let recorded = record_kind(&without, &dir.path().join("run2"));
     let out = replay_into(&recorded.session_path, &dir.path().join("replay2"));
     assert_identical_kind_replay(&recorded, &out, 13);
+}
+
+/// rotary_sphere: 12 angles on three heights, 5 points each; the table states, the probe
+/// readings and every event come back at their recorded log times.
+#[test]
+fn rotary_sphere_session_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = include_str!("../config/rotary-sphere.toml")
+        .replace(
+            "step_rad = 0.17453292519943295 # 10°",
+            "step_rad = 0.5235987755982988",
+        )
+        .replace("count = 36", "count = 12")
+        .replace("max_harmonic_order = 8", "max_harmonic_order = 4");
+    let recorded = record_kind(&text, &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert_identical_kind_replay(&recorded, &out, 3 * 12 * 5);
 }

@@ -1,5 +1,5 @@
-//! `geocal replay` of the plan kinds probe_install and hexapod: their own sequencers re-run
-//! against the recording through replay devices, recorded anew and compared with it.
+//! `geocal replay` of the plan kinds rotary_sphere, probe_install and hexapod: their own
+//! sequencers re-run against the recording through replay devices, recorded anew and compared.
 //!
 //! Every device hands out its recorded stream in order and sets the replay clock to the
 //! recorded log time of what it hands out (a machine's or hexapod's arrival: the recorded
@@ -15,14 +15,14 @@ use anyhow::Context;
 use async_trait::async_trait;
 use geocal_drivers::{
     AxisPositions, DeviceError, Hexapod, HexapodState, LegReading, Machine, MachineState,
-    PlatformPose, PoseReading, PoseSensor, Probe, ProbeReading,
+    PlatformPose, PoseReading, PoseSensor, Probe, ProbeReading, RotaryState, RotaryTable,
 };
 
 use super::compare::{compare_windows, event_counts, Window};
 use super::devices::ReplayClock;
 use super::{Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT};
-use crate::config::{hexapod as hx, probe_install as pi};
-use crate::sequencer::{RunSummary, SequencerError};
+use crate::config::{hexapod as hx, probe_install as pi, rotary_sphere as rs};
+use crate::sequencer::SequencerError;
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, MachinePoseSample, PlatformPoseSample,
     TOPIC_MACHINE_POSE,
@@ -33,7 +33,7 @@ use crate::session::recorder::{Recorder, RecorderOptions};
 
 /// The kinds replayed here.
 pub fn replays(kind: &str) -> bool {
-    kind == pi::KIND || kind == hx::KIND
+    kind == pi::KIND || kind == hx::KIND || kind == rs::KIND
 }
 
 fn device_id(session: &Session, kind: &str) -> anyhow::Result<String> {
@@ -110,10 +110,10 @@ impl Machine for ReplayCmm {
 struct ReplayLaserProbe {
     id: String,
     clock: Arc<ReplayClock>,
-    readings: VecDeque<(u64, Option<f64>)>,
+    /// Log time, recorded `t_s` and value (None: out of range) of every reading.
+    readings: VecDeque<(u64, f64, Option<f64>)>,
     /// The recorded `out_of_range` fault messages, one per null reading, in order.
     out_of_range: VecDeque<String>,
-    start_ns: u64,
 }
 
 #[async_trait]
@@ -122,13 +122,10 @@ impl Probe for ReplayLaserProbe {
         &self.id
     }
     async fn read(&mut self) -> Result<ProbeReading, DeviceError> {
-        let (t, value) = self.readings.pop_front().ok_or_else(|| ended(&self.id))?;
+        let (t, t_s, value) = self.readings.pop_front().ok_or_else(|| ended(&self.id))?;
         self.clock.set_fixed(t);
         match value {
-            Some(value_m) => Ok(ProbeReading {
-                t_s: t.saturating_sub(self.start_ns) as f64 * 1e-9,
-                value_m,
-            }),
+            Some(value_m) => Ok(ProbeReading { t_s, value_m }),
             None => Err(DeviceError::Rejected {
                 device: self.id.clone(),
                 message: self
@@ -201,6 +198,64 @@ impl PoseSensor for ReplayPoseSensor {
     }
 }
 
+/// The rotary table of a rotary_sphere recording: each poll returns the next recorded
+/// `/rotary/<id>/state` (moving or in position at the recorded encoder angle).
+struct ReplaySphereTable {
+    id: String,
+    clock: Arc<ReplayClock>,
+    states: VecDeque<(u64, crate::session::messages::RotaryStateSample)>,
+}
+
+#[async_trait]
+impl RotaryTable for ReplaySphereTable {
+    fn id(&self) -> &str {
+        &self.id
+    }
+    async fn start_rotation(&mut self, commanded_rad: f64) -> Result<(), DeviceError> {
+        match self.states.front() {
+            Some((_, s)) if (s.commanded_rad - commanded_rad).abs() > 1e-12 => {
+                Err(DeviceError::Rejected {
+                    device: self.id.clone(),
+                    message: format!(
+                        "the replay diverged: commanded {commanded_rad} rad, the recording \
+                         turned to {} rad",
+                        s.commanded_rad
+                    ),
+                })
+            }
+            Some(_) => Ok(()),
+            None => Err(ended(&self.id)),
+        }
+    }
+    async fn state(&mut self) -> Result<RotaryState, DeviceError> {
+        let (t, s) = self.states.pop_front().ok_or_else(|| ended(&self.id))?;
+        self.clock.set_fixed(t);
+        Ok(match s.encoder_rad {
+            Some(encoder_rad) if s.in_position => RotaryState::InPosition { encoder_rad },
+            _ => RotaryState::Moving,
+        })
+    }
+}
+
+/// The probing arm of a rotary_sphere recording: mounting the sphere at a height takes until
+/// the recorded `rotation` event that follows it; approaches take no recorded time.
+struct ReplayArm {
+    clock: Arc<ReplayClock>,
+    mounts: VecDeque<u64>,
+}
+
+#[async_trait]
+impl crate::sequencer::rotary_sphere::ProbeArm for ReplayArm {
+    async fn mount_sphere(&mut self, _h: usize, _nominal_m: [f64; 3]) -> Result<(), DeviceError> {
+        let t = self.mounts.pop_front().ok_or_else(|| ended("arm"))?;
+        self.clock.set_fixed(t);
+        Ok(())
+    }
+    async fn approach(&mut self, _start: [f64; 3], _dir: [f64; 3]) -> Result<(), DeviceError> {
+        Ok(())
+    }
+}
+
 /// A kind's configuration with the recorded plan: only `plan` matters to expanding it, the
 /// rest is taken from the header or is a placeholder.
 fn config_from_header<T: serde::de::DeserializeOwned>(
@@ -218,8 +273,9 @@ fn config_from_header<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// Windows of a kind (`probe_begin`..`probe_end` or `pose_begin`..`pose_end`) and the readings
-/// inside, as `Window`s (station: the posture or `pose`).
+/// Windows of a kind (`probe_begin`..`probe_end`, `probe_point_begin`..`probe_point_end` or
+/// `pose_begin`..`pose_end`) and the readings inside, as `Window`s (station: the posture, the
+/// sphere or `pose`).
 fn kind_windows(session: &Session) -> Vec<Window> {
     let probe: Vec<(u64, Option<u64>)> = session
         .probes
@@ -237,12 +293,23 @@ fn kind_windows(session: &Session) -> Vec<Window> {
     let mut open: Option<u64> = None;
     for e in &session.events {
         let (station, point, samples) = match &e.msg {
-            RunEvent::ProbeBegin { .. } | RunEvent::PoseBegin { .. } => {
+            RunEvent::ProbeBegin { .. }
+            | RunEvent::PoseBegin { .. }
+            | RunEvent::ProbePointBegin { .. } => {
                 open = Some(e.log_time_ns);
                 continue;
             }
             RunEvent::ProbeEnd { posture, point } => (format!("posture {posture}"), *point, &probe),
             RunEvent::PoseEnd { pose } => ("pose".to_string(), *pose, &legs),
+            RunEvent::ProbePointEnd {
+                height_index,
+                angle_index,
+                point,
+            } => (
+                format!("height {height_index} angle {angle_index}"),
+                *point,
+                &probe,
+            ),
             _ => continue,
         };
         let Some(begin) = open.take() else { continue };
@@ -297,7 +364,90 @@ pub fn replay(
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let ended: Result<RunSummary, SequencerError> = if session.header.kind == pi::KIND {
+    let sequencer_end = |e: SequencerError| match e {
+        SequencerError::Device(DeviceError::EndOfStream { device }) => {
+            (Some(device), String::new())
+        }
+        e => (None, e.to_string()),
+    };
+    let ended: Result<(), (Option<String>, String)> = if session.header.kind == rs::KIND {
+        let plan_config: rs::SpherePlanConfig =
+            serde_path_to_error::deserialize(session.header.plan.clone()).map_err(|e| {
+                anyhow::anyhow!(
+                    "the session header cannot be replayed: key `plan.{}`: {}",
+                    e.path(),
+                    e.inner()
+                )
+            })?;
+        let mut plan = crate::plan::rotary_sphere::SpherePlan::from_config(&plan_config);
+        // The recorded table states come at full speed: waiting between polls adds nothing.
+        plan.poll_interval_s = 0.0;
+        let probe_id = device_id(session, "probe")?;
+        let table_id = plan.table.clone();
+        let states: VecDeque<_> = session
+            .rotary
+            .get(&table_id)
+            .map(Vec::as_slice)
+            .unwrap_or(&[])
+            .iter()
+            .map(|s| (s.log_time_ns, s.msg.clone()))
+            .collect();
+        // The run's start: a table state's log time less its `t_s` (seconds since the start).
+        let start_ns = states.front().map_or(first_event_ns, |(t, s)| {
+            t.saturating_sub((s.t_s * 1e9).round() as u64)
+        });
+        // Each height's mount ends where its first `rotation` event was recorded.
+        let mut mounts = VecDeque::new();
+        let mut last_rotation = start_ns;
+        for e in &session.events {
+            match &e.msg {
+                RunEvent::Rotation { .. } => last_rotation = e.log_time_ns,
+                RunEvent::SphereBegin { angle_index: 0, .. } => mounts.push_back(last_rotation),
+                _ => {}
+            }
+        }
+        let devices = crate::sequencer::rotary_sphere::SphereDevices {
+            table: Box::new(ReplaySphereTable {
+                id: table_id,
+                clock: clock.clone(),
+                states,
+            }),
+            probe: Box::new(ReplayLaserProbe {
+                clock: clock.clone(),
+                readings: session
+                    .probes
+                    .get(&probe_id)
+                    .map(Vec::as_slice)
+                    .unwrap_or(&[])
+                    .iter()
+                    .map(|s| (s.log_time_ns, s.msg.t_s, s.msg.value_m))
+                    .collect(),
+                out_of_range: VecDeque::new(),
+                id: probe_id,
+            }),
+            arm: Box::new(ReplayArm {
+                clock: clock.clone(),
+                mounts,
+            }),
+        };
+        clock.set_fixed(start_ns);
+        handle.session(&super::replay_header(&session.header), start_ns);
+        let sequencer = crate::sequencer::rotary_sphere::SphereSequencer::new(
+            &plan,
+            devices,
+            handle,
+            clock.clone(),
+        );
+        runtime
+            .block_on(sequencer.run(&mut |_: u64, _: u64| {}))
+            .map(|_| ())
+            .map_err(|e| match e {
+                crate::sequencer::rotary_sphere::SphereRunError::Device(
+                    DeviceError::EndOfStream { device },
+                ) => (Some(device), String::new()),
+                e => (None, e.to_string()),
+            })
+    } else if session.header.kind == pi::KIND {
         let probe_id = device_id(session, "probe")?;
         let machine_id = device_id(session, "machine")?;
         let config: pi::ProbeInstallConfig = config_from_header(
@@ -348,10 +498,9 @@ pub fn replay(
                 clock: clock.clone(),
                 readings: recorded
                     .iter()
-                    .map(|s| (s.log_time_ns, s.msg.value_m))
+                    .map(|s| (s.log_time_ns, s.msg.t_s, s.msg.value_m))
                     .collect(),
                 out_of_range,
-                start_ns,
             }),
         };
         clock.set_fixed(start_ns);
@@ -362,7 +511,10 @@ pub fn replay(
             handle,
             clock.clone(),
         );
-        runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}))
+        runtime
+            .block_on(sequencer.run(&mut |_: u64, _: u64| {}))
+            .map(|_| ())
+            .map_err(sequencer_end)
     } else {
         let id = device_id(session, "hexapod")?;
         let config: hx::HexapodConfig = config_from_header(
@@ -414,7 +566,10 @@ pub fn replay(
         handle.session(&super::replay_header(&session.header), first_event_ns);
         let sequencer =
             crate::sequencer::hexapod::HexapodSequencer::new(&plan, devices, handle, clock.clone());
-        runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}))
+        runtime
+            .block_on(sequencer.run(&mut |_: u64, _: u64| {}))
+            .map(|_| ())
+            .map_err(sequencer_end)
     };
     recorder
         .finish()
@@ -422,15 +577,15 @@ pub fn replay(
     let replayed =
         read_session(&out_path).with_context(|| format!("reading back {}", out_path.display()))?;
     let (outcome, message) = match &ended {
-        Ok(_) => (
+        Ok(()) => (
             Outcome::Completed,
             "the sequencer completed the plan".to_string(),
         ),
-        Err(SequencerError::Device(DeviceError::EndOfStream { device })) => (
+        Err((Some(device), _)) => (
             Outcome::RecordingEnded,
             format!("the recording of {device} ends before the plan is done: replayed up to there"),
         ),
-        Err(e) => (Outcome::Diverged, format!("the replay stopped: {e}")),
+        Err((None, e)) => (Outcome::Diverged, format!("the replay stopped: {e}")),
     };
     let (results, results_error, results_path) =
         super::compare_results(session, &replayed, options)?;
