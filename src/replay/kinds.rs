@@ -390,7 +390,7 @@ pub fn replay(
             .map(Vec::as_slice)
             .unwrap_or(&[])
             .iter()
-            .map(|s| (s.log_time_ns, s.msg.clone()))
+            .map(|s| (s.log_time_ns, s.msg))
             .collect();
         // The run's start: a table state's log time less its `t_s` (seconds since the start).
         let start_ns = states.front().map_or(first_event_ns, |(t, s)| {
