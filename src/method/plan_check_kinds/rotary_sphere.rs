@@ -284,7 +284,8 @@ pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
     Ok(KindPlanCheck {
         kind: KIND.into(),
         plan: format!(
-            "{nh} heights ({nf} fit) x {na} angles x {points} points, {} reading(s) per point",
+            "{nh} heights x {na} angles x {points} points ({nf} heights fit), {} reading(s) \
+             per point",
             plan.readings_per_point
         ),
         noise_model: format!(
