@@ -350,21 +350,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
         }
         Command::Check { config, json } => {
-            use geocal::config::rotary_sphere as sphere;
-            if sphere::peek_kind(&config)?.as_deref() == Some(sphere::KIND) {
-                let cfg = sphere::RotarySphereConfig::load(&config)?;
-                let plan = geocal::plan::rotary_sphere::SpherePlan::from_config(&cfg.plan);
-                println!(
-                    "{}: valid ({} heights x {} angles x {} points)",
-                    config.display(),
-                    plan.heights.len(),
-                    plan.angles_rad.len(),
-                    plan.directions.len()
-                );
-                return Ok(());
-            }
-            if let Some(text) = geocal::kinds::check_file(&config)? {
-                print!("{text}");
+            // rotary_sphere, probe_install, hexapod: their own layouts and predictions.
+            if let Some(check) = geocal::method::plan_check_kinds::check_file(&config)? {
+                if json {
+                    println!("{}", serde_json::to_string_pretty(&check)?);
+                } else {
+                    println!("{}: valid", config.display());
+                    print!("{}", geocal::method::plan_check_kinds::text(&check));
+                }
                 return Ok(());
             }
             let cfg = geocal::config::Config::load(&config)?;

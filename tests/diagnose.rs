@@ -354,3 +354,68 @@ fn confounded_pair_is_reported_not_named() {
     );
     assert!(d.gap_after.heldout_ratio < HELDOUT_RATIO_MAX, "{text}");
 }
+
+/// `geocal diagnose` on a session of a kind it has no model for (rotary_sphere, probe_install,
+/// hexapod): a clear error naming the kind and what is supported, never a panic; with and
+/// without a twin.
+#[test]
+fn sessions_of_other_kinds_are_refused_clearly() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let sphere = include_str!("../config/rotary-sphere.toml")
+        .replace(
+            "step_rad = 0.17453292519943295 # 10°",
+            "step_rad = 0.5235987755982988",
+        )
+        .replace("count = 36", "count = 12")
+        .replace("max_harmonic_order = 8", "max_harmonic_order = 4");
+    let probe = include_str!("../config/probe-install.toml")
+        .replace("points_per_posture = 25", "points_per_posture = 10")
+        .replace("ga_generations = 2000", "ga_generations = 5")
+        .replace("ga_population = 100", "ga_population = 10");
+    let hexapod = include_str!("../config/hexapod.toml").replace("count = 29", "count = 8");
+    for (kind, text) in [
+        ("rotary_sphere", sphere),
+        ("probe_install", probe),
+        ("hexapod", hexapod),
+    ] {
+        let sub = dir.path().join(kind);
+        std::fs::create_dir_all(&sub).expect("dir");
+        let config = sub.join("c.toml");
+        std::fs::write(&config, text).expect("write config");
+        let out = sub.join("out");
+        let geocal = |args: &[&std::ffi::OsStr]| {
+            std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+                .args(args)
+                .output()
+                .expect("run geocal")
+        };
+        let run = geocal(&[
+            "run".as_ref(),
+            config.as_os_str(),
+            "--out".as_ref(),
+            out.as_os_str(),
+        ]);
+        assert!(
+            run.status.success(),
+            "{}",
+            String::from_utf8_lossy(&run.stderr)
+        );
+        let session = out.join("session.mcap");
+        for twin in [None, Some(&config)] {
+            let mut args: Vec<&std::ffi::OsStr> = vec!["diagnose".as_ref(), session.as_os_str()];
+            if let Some(t) = twin {
+                args.extend(["--twin".as_ref(), t.as_os_str()]);
+            }
+            let d = geocal(&args);
+            let err = String::from_utf8_lossy(&d.stderr);
+            assert_eq!(d.status.code(), Some(1), "{err}");
+            assert!(!err.contains("panicked"), "{err}");
+            assert!(
+                err.contains(&format!("session kind `{kind}` cannot be diagnosed")),
+                "{err}"
+            );
+            assert!(err.contains("supports `multilateration`"), "{err}");
+            assert!(err.contains("session.mcap"), "{err}");
+        }
+    }
+}

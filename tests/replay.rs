@@ -202,3 +202,182 @@ fn replay_command_prints_the_comparison() {
     let err = String::from_utf8_lossy(&out.stderr);
     assert!(err.contains("bogus.mcap") && err.contains("MCAP"), "{err}");
 }
+
+/// Run a configuration of a kind with its own layout (rotary_sphere, probe_install, hexapod).
+fn record_kind(config_text: &str, dir: &Path) -> RunOutput {
+    std::fs::create_dir_all(dir).expect("dir");
+    let config = dir.join("kind.toml");
+    std::fs::write(&config, config_text).expect("write config");
+    if config_text.contains("kind = \"rotary_sphere\"") {
+        let cfg = geocal::config::rotary_sphere::RotarySphereConfig::load(&config).expect("config");
+        let out = geocal::rotary_sphere_run::run(
+            &cfg,
+            &RunOptions {
+                out_dir: dir.to_path_buf(),
+                truth: None,
+                progress: false,
+                settings: Default::default(),
+            },
+        )
+        .expect("recorded run");
+        return RunOutput {
+            session_path: out.session_path,
+            results_path: out.results_path,
+            summary: Default::default(),
+            results: out.results,
+        };
+    }
+    geocal::kinds::run_file(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("recorded run")
+    .expect("a kind run by geocal::kinds")
+}
+
+/// The replay of a kind's recording: every reading and window again, the same events, every
+/// event and kind topic message at the same log time with the same content, and results.json
+/// identical to the last bit (bar the session id).
+fn assert_identical_kind_replay(recorded: &RunOutput, out: &ReplayOutput, windows: usize) {
+    let c = &out.comparison;
+    print!("{}", geocal::replay::text(c));
+    assert_eq!(c.outcome, Outcome::Completed, "{}", c.message);
+    assert!(c.samples_recorded > 0);
+    assert_eq!(c.samples_replayed, c.samples_recorded);
+    assert_eq!(c.windows.recorded, windows);
+    assert_eq!(c.windows.replayed, windows);
+    assert_eq!(
+        c.windows.identical, windows,
+        "{:?}",
+        c.windows.first_difference
+    );
+    assert_eq!(c.events_replayed, c.events_recorded);
+    let results = c.results.as_ref().expect("both sessions solve");
+    assert!(results.identical, "{results:?}");
+    let replayed = std::fs::read_to_string(out.results_path.as_ref().expect("results.json"))
+        .expect("replayed results");
+    let original = std::fs::read_to_string(&recorded.results_path).expect("recorded results");
+    let strip = |s: &str| {
+        let mut v: serde_json::Value = serde_json::from_str(s).expect("json");
+        v.as_object_mut().expect("object").remove("session_id");
+        serde_json::to_string_pretty(&v).expect("json")
+    };
+    assert_eq!(strip(&replayed), strip(&original));
+    // The sessions themselves: same events, readings and kind topics at the same log times.
+    let a = read_session(&recorded.session_path).expect("recording");
+    let b = read_session(&out.session_path).expect("replay");
+    let events = |s: &geocal::session::reader::Session| {
+        s.events
+            .iter()
+            .map(|e| (e.log_time_ns, serde_json::to_string(&e.msg).expect("json")))
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(events(&b), events(&a));
+    let probes = |s: &geocal::session::reader::Session| {
+        s.probes
+            .iter()
+            .flat_map(|(id, v)| {
+                v.iter().map(move |r| {
+                    (
+                        id.clone(),
+                        r.log_time_ns,
+                        serde_json::to_string(&r.msg).expect("json"),
+                    )
+                })
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(probes(&b), probes(&a));
+    let topics = |s: &geocal::session::reader::Session| {
+        s.topics
+            .iter()
+            .flat_map(|(t, v)| {
+                v.iter()
+                    .map(move |m| (t.clone(), m.log_time_ns, m.msg.clone()))
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(topics(&b), topics(&a));
+    let rotary = |s: &geocal::session::reader::Session| {
+        s.rotary
+            .iter()
+            .flat_map(|(id, v)| {
+                v.iter().map(move |r| {
+                    (
+                        id.clone(),
+                        r.log_time_ns,
+                        serde_json::to_string(&r.msg).expect("json"),
+                    )
+                })
+            })
+            .collect::<Vec<_>>()
+    };
+    assert_eq!(rotary(&b), rotary(&a));
+    assert!(b.header.session_id.ends_with("-replay"));
+    assert!(b.header.devices.iter().all(|d| d.driver == "replay"));
+}
+
+/// probe_install: 4 postures × 10 points, 3 readings each, a narrow probe range so that some
+/// readings are out of range (recorded as null with a fault) and come back as such.
+#[test]
+fn probe_install_session_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = include_str!("../config/probe-install.toml")
+        .replace("points_per_posture = 25", "points_per_posture = 10")
+        .replace("readings_per_point = 5", "readings_per_point = 3")
+        .replace("ga_population = 100", "ga_population = 10")
+        .replace("ga_generations = 2000", "ga_generations = 5")
+        .replace("range_m = [-8.0e-3, 8.0e-3]", "range_m = [-2.1e-3, 2.1e-3]");
+    let recorded = record_kind(&text, &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert!(
+        out.comparison
+            .events_recorded
+            .get("fault:out_of_range")
+            .is_some_and(|n| *n > 0),
+        "{:?}",
+        out.comparison.events_recorded
+    );
+    assert_identical_kind_replay(&recorded, &out, 40);
+}
+
+/// hexapod: home and 12 poses, with the pose sensor; and once without it (commanded poses).
+#[test]
+fn hexapod_session_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = include_str!("../config/hexapod.toml").replace("count = 29", "count = 12");
+    let recorded = record_kind(&text, &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert_identical_kind_replay(&recorded, &out, 13);
+
+    let start = text
+        .find("[devices.pose_sensor]")
+        .expect("pose sensor table");
+    let end = text[start..].find("[plan]").expect("plan table") + start;
+    let without = format!("{}{}", &text[..start], &text[end..]);
+    let recorded = record_kind(&without, &dir.path().join("run2"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay2"));
+    assert_identical_kind_replay(&recorded, &out, 13);
+}
+
+/// rotary_sphere: 12 angles on three heights, 5 points each; the table states, the probe
+/// readings and every event come back at their recorded log times.
+#[test]
+fn rotary_sphere_session_replays_identically() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let text = include_str!("../config/rotary-sphere.toml")
+        .replace(
+            "step_rad = 0.17453292519943295 # 10°",
+            "step_rad = 0.5235987755982988",
+        )
+        .replace("count = 36", "count = 12")
+        .replace("max_harmonic_order = 8", "max_harmonic_order = 4");
+    let recorded = record_kind(&text, &dir.path().join("run"));
+    let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
+    assert_identical_kind_replay(&recorded, &out, 3 * 12 * 5);
+}

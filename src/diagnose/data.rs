@@ -73,7 +73,11 @@ pub enum DataError {
     Extract(#[from] crate::extract::points::ExtractError),
     #[error("no settled point windows in the session ({0} dropped)")]
     NoPoints(usize),
-    #[error("session kind `{0}`: diagnosis handles multilateration sessions")]
+    #[error(
+        "session kind `{0}` cannot be diagnosed: `geocal diagnose` supports `multilateration` \
+         sessions only (its effect library models tracer lengths); for `{0}` use `geocal solve` \
+         (fit, χ²/dof and residuals) and `geocal check` (what the plan can identify)"
+    )]
     Kind(String),
 }
 
@@ -117,11 +121,21 @@ fn interpolate(series: &[(f64, f64)], t_s: f64) -> Option<f64> {
     })
 }
 
+/// The session kinds `geocal diagnose` supports.
+pub const SUPPORTED_KINDS: [&str; 1] = ["multilateration"];
+
+/// A clear error for a session kind the diagnosis has no model for.
+pub fn check_kind(kind: &str) -> Result<(), DataError> {
+    if SUPPORTED_KINDS.contains(&kind) {
+        Ok(())
+    } else {
+        Err(DataError::Kind(kind.to_string()))
+    }
+}
+
 impl Data {
     pub fn from_session(session: &Session) -> Result<Data, DataError> {
-        if session.header.kind != "multilateration" {
-            return Err(DataError::Kind(session.header.kind.clone()));
-        }
+        check_kind(&session.header.kind)?;
         let tracer_id = match session.tracers.keys().next() {
             Some(id) if session.tracers.len() == 1 => Some(id.clone()),
             _ => None,

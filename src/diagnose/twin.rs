@@ -342,6 +342,9 @@ pub fn diagnose_file_with_twin(
     options: &DiagnoseOptions,
 ) -> anyhow::Result<Diagnosis> {
     let recording = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    // Before simulating a twin: a kind without a diagnosis model fails here, clearly.
+    super::data::check_kind(&recording.header.kind)
+        .with_context(|| format!("diagnosing {}", path.display()))?;
     let is_config = twin.extension().is_some_and(|e| e == "toml");
     let (twin_session, source) = if is_config {
         // Without a directory given, a scratch one, removed when `scratch` drops (after the read).

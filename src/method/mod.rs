@@ -4,6 +4,7 @@
 pub mod hexapod;
 pub mod multilateration;
 pub mod plan_check;
+pub mod plan_check_kinds;
 pub mod probe_install;
 pub mod rotary_sphere;
 pub mod rotary_tracer;

@@ -9,6 +9,7 @@
 
 pub mod compare;
 pub mod devices;
+pub mod kinds;
 pub mod recording;
 
 use std::collections::BTreeMap;
@@ -123,6 +124,10 @@ pub fn plan_from_header(header: &SessionHeader) -> anyhow::Result<Plan> {
 pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<ReplayOutput> {
     let session = read_session(session_path)
         .with_context(|| format!("reading {}", session_path.display()))?;
+    // Kinds with their own sequencer and devices (probe_install, hexapod).
+    if kinds::replays(&session.header.kind) {
+        return kinds::replay(&session, session_path, options);
+    }
     let plan = plan_from_header(&session.header)
         .with_context(|| format!("rebuilding the plan of {}", session_path.display()))?;
     let recording = Recording::new(&session)?;
@@ -205,7 +210,7 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
     })
 }
 
-fn same_file(a: &Path, b: &Path) -> bool {
+pub(crate) fn same_file(a: &Path, b: &Path) -> bool {
     match (a.canonicalize(), b.canonicalize()) {
         (Ok(x), Ok(y)) => x == y,
         _ => false,
@@ -299,7 +304,7 @@ fn run_sequencer(
 
 /// The recording's header, marked as a replay: `<id>-replay`, every driver `replay` (the
 /// recorded one kept as `replayed_driver`).
-fn replay_header(original: &SessionHeader) -> SessionHeader {
+pub(crate) fn replay_header(original: &SessionHeader) -> SessionHeader {
     let mut header = original.clone();
     header.session_id = format!("{}-replay", original.session_id);
     header.started_at = time::OffsetDateTime::now_utc()
@@ -314,10 +319,10 @@ fn replay_header(original: &SessionHeader) -> SessionHeader {
     header
 }
 
-type ResultsComparison = (Option<ResultsDifference>, Option<String>, Option<PathBuf>);
+pub(crate) type ResultsComparison = (Option<ResultsDifference>, Option<String>, Option<PathBuf>);
 
 /// Solve both sessions; write the replay's results; their difference, or why there is none.
-fn compare_results(
+pub(crate) fn compare_results(
     recorded: &Session,
     replayed: &Session,
     options: &ReplayOptions,

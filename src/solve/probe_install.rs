@@ -195,7 +195,7 @@ impl BeamChart {
 /// Standard deviation of each sphere residual: the reading sigma times |∂r/∂t| = |e · w|, the
 /// cosine between the beam and the surface normal (a reading on the cap's flank moves the point
 /// mostly along the surface). Floored so grazing points cannot dominate.
-fn residual_sigmas(problem: &ProbeInstallProblem, p: &InstallParams) -> Vec<f64> {
+pub(crate) fn residual_sigmas(problem: &ProbeInstallProblem, p: &InstallParams) -> Vec<f64> {
     problem
         .observations
         .iter()
