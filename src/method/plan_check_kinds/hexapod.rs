@@ -9,7 +9,8 @@ use crate::config::hexapod::{HexapodConfig, KIND};
 use crate::model::hexapod::{relative_length, Pose, LEGS};
 use crate::plan::hexapod::HexapodPlan;
 use crate::sim::hexapod::to_pose;
-use crate::solve::hexapod::{coordinate_sigmas_m, HexapodObservations};
+use crate::solve::hexapod::HexapodObservations;
+use crate::solve::hexapod_weighted::{refine_weighted, HexapodNoise, PoseNoise};
 
 /// Name of coordinate k (0..3) of leg i's base (`base`) or platform hinge.
 fn name(part: &str, leg: usize, k: usize) -> String {
@@ -42,6 +43,31 @@ pub fn sigma_change_m(config: &HexapodConfig) -> f64 {
     config.devices.hexapod.encoder_noise_m
         * (1.0 / p.readings_per_pose.max(1) as f64 + 1.0 / p.reference_readings.max(1) as f64)
             .sqrt()
+}
+
+/// The solver's noise model for the planned poses: the encoder σ, the readings per pose (the
+/// reference pose's at home) and the pose sensor's σ (0 without one: commanded poses).
+fn noise_model(config: &HexapodConfig, poses: usize) -> HexapodNoise {
+    let p = &config.plan;
+    let (translation_sigma_m, rotation_sigma_rad) = config
+        .devices
+        .pose_sensor
+        .as_ref()
+        .map_or((0.0, 0.0), |s| (s.noise_m, s.noise_rad));
+    HexapodNoise {
+        encoder_sigma_m: config.devices.hexapod.encoder_noise_m,
+        poses: (0..poses)
+            .map(|k| PoseNoise {
+                readings: if k == 0 {
+                    p.reference_readings
+                } else {
+                    p.readings_per_pose
+                },
+                translation_sigma_m,
+                rotation_sigma_rad,
+            })
+            .collect(),
+    }
 }
 
 pub fn check(config: &HexapodConfig) -> Result<KindPlanCheck, String> {
@@ -80,8 +106,10 @@ pub fn check(config: &HexapodConfig) -> Result<KindPlanCheck, String> {
             sigma_m,
             search_poses: None,
         };
-        match coordinate_sigmas_m(&obs, &design) {
-            Ok(s) => Some(s),
+        // The weighted refit's covariance at the design hinges: noise-free changes, so it
+        // stays there; the pose sensor's noise enters the weights as in the solver.
+        match refine_weighted(&obs, &noise_model(config, poses.len()), &design) {
+            Ok(fit) => Some(fit.sigmas_m()),
             Err(e) => {
                 warnings.push(format!("the solver's covariance is not available: {e}"));
                 None
@@ -123,11 +151,6 @@ pub fn check(config: &HexapodConfig) -> Result<KindPlanCheck, String> {
         ));
     }
     match &config.devices.pose_sensor {
-        Some(s) if s.noise_m > 0.0 || s.noise_rad > 0.0 => warnings.push(format!(
-            "the pose sensor's noise ({:.2e} m, {:.2e} rad) is not in this prediction: the \
-             solver takes the measured poses as exact, so the real scatter is larger",
-            s.noise_m, s.noise_rad
-        )),
         Some(_) => {}
         None => warnings.push(
             "no pose sensor: the solver uses the commanded poses, exact only if the platform \
@@ -154,11 +177,19 @@ pub fn check(config: &HexapodConfig) -> Result<KindPlanCheck, String> {
             plan.readings_per_pose,
             plan.reference_readings
         ),
-        noise_model: format!(
-            "leg encoder σ {:.3e} m per reading; each change from home σ_enc·√(1/n + 1/n₀) = \
-             {sigma_m:.3e} m; poses taken as exact",
-            config.devices.hexapod.encoder_noise_m
-        ),
+        noise_model: {
+            let (pose_m, pose_rad) = config
+                .devices
+                .pose_sensor
+                .as_ref()
+                .map_or((0.0, 0.0), |s| (s.noise_m, s.noise_rad));
+            format!(
+                "leg encoder σ {:.3e} m per reading; each change from home σ_enc·√(1/n + 1/n₀) = \
+                 {sigma_m:.3e} m; pose σ {pose_m:.3e} m, {pose_rad:.3e} rad (in the weights, \
+                 as the solver's weighted refit)",
+                config.devices.hexapod.encoder_noise_m
+            )
+        },
         observations: changes * LEGS,
         unknowns: 6 * LEGS,
         identifiability,
@@ -168,7 +199,7 @@ pub fn check(config: &HexapodConfig) -> Result<KindPlanCheck, String> {
             "sigma_change_m": sigma_m,
             "per_leg_rank": blocks.iter().map(|b| b.rank).collect::<Vec<_>>(),
             "per_leg_condition_number": blocks.iter().map(|b| b.condition_number).collect::<Vec<_>>(),
-            "sigma_source": if solver_sigmas.is_some() { "solver covariance at the design hinges" } else { "block analysis (the solver cannot solve this plan)" },
+            "sigma_source": if solver_sigmas.is_some() { "the weighted refit's covariance at the design hinges" } else { "block analysis (the solver cannot solve this plan)" },
         }),
         warnings,
     })
