@@ -43,35 +43,6 @@ pub fn run_file(path: &Path, options: &RunOptions) -> anyhow::Result<Option<RunO
     }
 }
 
-/// Validate the configuration at `path` if its kind is one of the kinds run here.
-pub fn check_file(path: &Path) -> anyhow::Result<Option<String>> {
-    match own_kind(path)? {
-        Some(crate::config::probe_install::KIND) => {
-            let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
-            let plan = crate::plan::probe_install::ProbeInstallPlan::from_config(&config);
-            Ok(Some(format!(
-                "{}: valid ({} postures, {} points, {} readings per point)\n",
-                path.display(),
-                plan.postures_rad.len(),
-                plan.points.len(),
-                plan.readings_per_point
-            )))
-        }
-        Some(crate::config::hexapod::KIND) => {
-            let config = crate::config::hexapod::HexapodConfig::load(path)?;
-            let plan = crate::plan::hexapod::HexapodPlan::from_config(&config);
-            Ok(Some(format!(
-                "{}: valid ({} poses with home, {} leg readings per pose, {} at home)\n",
-                path.display(),
-                plan.poses.len(),
-                plan.readings_per_pose,
-                plan.reference_readings
-            )))
-        }
-        _ => Ok(None),
-    }
-}
-
 pub(crate) fn started_at(epoch_ns: u64) -> String {
     time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
         .ok()
