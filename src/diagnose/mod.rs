@@ -25,7 +25,7 @@ use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
 use loso::{leave_one_station_out, HeldOutStation};
 use points::{points_level, PointsLevel};
-use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
+use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -52,9 +52,6 @@ impl Default for DiagnoseOptions {
 /// "very strong evidence" on the Kass–Raftery scale).
 pub const CONFOUNDED_COSINE: f64 = 0.95;
 pub const DECISIVE_BIC: f64 = 10.0;
-/// A projected effect direction smaller than this fraction of the effect's own column norm
-/// is one the nominal model absorbs (e.g. the vertical eccentricity = station height).
-const EFFECT_RANK_TOL: f64 = 1e-6;
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Gap {

@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 
 use super::data::Data;
 use super::locate::WhereEntry;
-use super::stats::{chi2_sf, Basis};
+use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
 use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
@@ -109,21 +109,22 @@ fn target_offset_test(
         }
     });
     let a_w = l.solve_lower_triangular(&a)?;
-    let q = basis.project_off(&a_w);
-    let mut qn = q.clone();
-    for mut col in qn.column_iter_mut() {
-        let n = col.norm();
-        if n > 0.0 {
-            col /= n;
-        }
-    }
-    let q_basis = Basis::new(&qn, RANK_TOL, 1.0);
+    // The rank is judged against the shifts' own whitened size before the projection (as a
+    // lengths-level candidate's): a direction the model absorbs (with two targets the gauge
+    // rotation takes ω × (o₂ − o₁), two of the three) leaves a rounding remainder that must
+    // not count, nor be normalised up to a unit column.
+    let reference = (0..a_w.ncols())
+        .map(|c| a_w.column(c).norm())
+        .fold(0.0, f64::max);
+    let q_basis = Basis::new(&basis.project_off(&a_w), EFFECT_RANK_TOL, reference);
     let df = q_basis.rank();
     if df == 0 {
         return None;
     }
     let chi2_drop = (q_basis.u.transpose() * r_w).norm_squared();
-    let beta = q.clone().svd(true, true).solve(r_w, 1e-12).ok()?;
+    // Minimum-norm shifts (m): only their identifiable part (Frisch–Waugh: the projected
+    // design's coefficients are those of the joint fit).
+    let beta = q_basis.solve(r_w);
     let offsets_m = shifted
         .iter()
         .enumerate()
