@@ -634,12 +634,16 @@ pub(crate) fn diagnose_data(
         &nominal_basis,
         options.alpha,
     );
+    // `unexplained` is one decision over three tests (the final χ², the final residuals'
+    // groups, the points level after the effects): Bonferroni over them, so that its
+    // false-alarm rate on data the model holds for is at most alpha.
+    let alpha_part = options.alpha / 3.0;
     let remaining = locate(
         &fit_data,
         &final_fit.geom,
         &final_fit.resid_m,
         &final_fit.basis,
-        options.alpha,
+        alpha_part,
     );
     let mut where_ = where_;
     let (held_out, skipped) = leave_one_station_out(data, &nominal_j, &solution.residuals_m);
@@ -674,7 +678,8 @@ pub(crate) fn diagnose_data(
     // The points level, before (recorded lengths) and after (fitted effects removed): a
     // machine that departs from the quasi-rigid model is structure no candidate explains.
     let recorded: Vec<f64> = data.obs.iter().map(|o| o.length_m).collect();
-    let points_before = match points_level(data, &recorded, options.alpha) {
+    let points_before = match points_level(data, &recorded, &DMatrix::zeros(nobs, 0), options.alpha)
+    {
         Ok((level, entries)) => {
             where_.extend(entries);
             Some(level)
@@ -687,14 +692,14 @@ pub(crate) fn diagnose_data(
     let after_level = if accepted.is_empty() {
         points_before.clone()
     } else {
-        // From the lengths the final fit saw (the settling bias, if accepted, already off).
-        let corrected: Vec<f64> = fit_data
-            .obs
-            .iter()
-            .zip(&final_fit.effect_m)
-            .map(|(o, e)| o.length_m - e)
-            .collect();
-        points_level(data, &corrected, options.alpha)
+        // From the lengths the final fit saw (the settling bias, if accepted, already off),
+        // the accepted effects fitted again with the per-pass points and their uncertainty
+        // carried into the points' covariance.
+        let lengths: Vec<f64> = fit_data.obs.iter().map(|o| o.length_m).collect();
+        let columns = accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+            hcat(&d, &m.columns(data, &final_fit.geom))
+        });
+        points_level(data, &lengths, &columns, options.alpha)
             .ok()
             .map(|(after, _)| after)
     };
@@ -711,7 +716,7 @@ pub(crate) fn diagnose_data(
             _ => (p.gap.chi2, p.gap.dof),
         };
         let p_value = chi2_sf(chi2, dof as f64);
-        (p_value < options.alpha).then_some((chi2 / dof.max(1) as f64, p_value))
+        (p_value < alpha_part).then_some((chi2 / dof.max(1) as f64, p_value))
     });
     if let Some((ratio, p)) = points_after {
         notes.push(format!(
@@ -719,7 +724,7 @@ pub(crate) fn diagnose_data(
         ));
     }
     let chi2_p = chi2_sf(chi2, dof as f64);
-    let lengths_unexplained = chi2_p < options.alpha || !remaining.is_empty();
+    let lengths_unexplained = chi2_p < alpha_part || !remaining.is_empty();
     let unexplained = lengths_unexplained || points_after.is_some();
     if lengths_unexplained {
         notes.push(format!(

@@ -7,8 +7,9 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
+use super::effects::Geometry;
 use super::locate::WhereEntry;
-use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
+use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL, RANK_TOL as GEOMETRY_RANK_TOL};
 use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
@@ -78,8 +79,12 @@ pub struct TargetOffsetTest {
     /// χ² of the points level and its degrees of freedom with the shifts fitted.
     pub chi2_after: f64,
     pub dof_after: usize,
-    /// The fitted offset error of each target relative to the first (m).
+    /// The fitted offset error of each target relative to the first (m): its identifiable part
+    /// (minimum norm; with two targets the component along o₂ − o₁), and its standard
+    /// deviation per component.
     pub offsets_m: BTreeMap<String, [f64; 3]>,
+    #[serde(default)]
+    pub offsets_sigma_m: BTreeMap<String, [f64; 3]>,
 }
 
 /// Score test of per-target constant shifts (targets after the first) against the points
@@ -135,8 +140,21 @@ fn target_offset_test(
             )
         })
         .collect();
+    // Cov(β) = V S⁻² Vᵀ of the projected design.
+    let sigma = |c: usize| {
+        (0..df)
+            .map(|k| (q_basis.vt[(k, c)] / q_basis.s[k]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let offsets_sigma_m = shifted
+        .iter()
+        .enumerate()
+        .map(|(k, t)| (t.to_string(), std::array::from_fn(|a| sigma(3 * k + a))))
+        .collect();
     Some(TargetOffsetTest {
         df,
+        offsets_sigma_m,
         chi2_drop,
         p_value: chi2_sf(chi2_drop, df as f64),
         bic_delta: -chi2_drop + df as f64 * (rows as f64).ln(),
@@ -160,6 +178,8 @@ pub struct PassPoint {
 /// The points solved per pass with their full covariance (3n x 3n, point-major).
 pub struct PerPass {
     pub pass_points: Vec<PassPoint>,
+    /// Pass point of each observation of `data`.
+    pub point_of: Vec<usize>,
     /// (target, plan point, nominal) of each pass point.
     pub info: Vec<(String, usize, [f64; 3])>,
     pub solution: MultilaterationSolution,
@@ -172,6 +192,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
     let mut index: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     let mut pass_points: Vec<PassPoint> = Vec::new();
     let mut observations = Vec::with_capacity(data.obs.len());
+    let mut point_of = Vec::with_capacity(data.obs.len());
     for (o, &length_m) in data.obs.iter().zip(lengths_m) {
         let k = *index.entry((o.point, o.pass)).or_insert_with(|| {
             pass_points.push(PassPoint {
@@ -181,6 +202,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
             });
             pass_points.len() - 1
         });
+        point_of.push(k);
         observations.push(LengthObservation {
             point: k,
             segment: o.segment,
@@ -208,10 +230,39 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
         .collect();
     Ok(PerPass {
         pass_points,
+        point_of,
         info,
         solution,
         cov,
     })
+}
+
+/// How effects (`effects`: their columns, one row per observation, metres per unit parameter)
+/// move the per-pass points: the part of each effect the free geometry absorbs, J⁺·P_J·A
+/// (whitened, linearised at the per-pass optimum), points rows, for the parameter directions
+/// whose absorbed part is not negligible (EFFECT_RANK_TOL of the effect's own size). An effect
+/// fitted on the lengths leaves its estimate's uncertainty in the points along these columns;
+/// the points level fits them as free columns (the limit of an uncertain nuisance), so its
+/// test holds whatever the effect's size and however well the lengths determine it.
+fn effect_point_response(data: &Data, per_pass: &PerPass, effects: &DMatrix<f64>) -> DMatrix<f64> {
+    let n = per_pass.pass_points.len();
+    let w = DVector::from_iterator(data.obs.len(), data.obs.iter().map(|o| 1.0 / o.sigma_m));
+    let whiten = |m: &DMatrix<f64>| DMatrix::from_fn(m.nrows(), m.ncols(), |i, c| m[(i, c)] * w[i]);
+    let j_w =
+        whiten(&Geometry::from_solution(&per_pass.solution).jacobian_of(data, &per_pass.point_of));
+    let a_w = whiten(effects);
+    let geometry = Basis::new(&j_w, GEOMETRY_RANK_TOL, 0.0);
+    let reference = (0..a_w.ncols())
+        .map(|c| a_w.column(c).norm())
+        .fold(0.0, f64::max);
+    let absorbed = &a_w - geometry.project_off(&a_w);
+    let directions = Basis::new(&absorbed, EFFECT_RANK_TOL, reference);
+    let mut k = DMatrix::zeros(3 * n, directions.rank());
+    for d in 0..directions.rank() {
+        let step = geometry.solve(&(directions.u.column(d) * directions.s[d]));
+        k.column_mut(d).copy_from(&step.rows(0, 3 * n));
+    }
+    k
 }
 
 /// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
@@ -234,17 +285,26 @@ fn group_chi2(e: &DVector<f64>, c: &DMatrix<f64>, rows: &[usize]) -> (f64, f64) 
 /// Fit the points solved from `lengths_m` (one per observation of `data`; the recorded lengths,
 /// or lengths with fitted effects removed) against the quasi-rigid 21-error model. Err says
 /// why the points level cannot be computed for this session.
+/// `effects`: the columns of effects fitted with the per-pass geometry (none: zero columns).
 pub fn points_level(
     data: &Data,
     lengths_m: &[f64],
+    effects: &DMatrix<f64>,
     alpha: f64,
 ) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
+    let per_pass = per_pass_points(data, lengths_m)?;
+    let response = if effects.ncols() > 0 {
+        effect_point_response(data, &per_pass, effects)
+    } else {
+        DMatrix::zeros(3 * per_pass.pass_points.len(), 0)
+    };
     let PerPass {
         pass_points,
         info,
         solution,
         cov,
-    } = per_pass_points(data, lengths_m)?;
+        ..
+    } = per_pass;
     let axes: Vec<Option<[f64; 3]>> = pass_points
         .iter()
         .map(|p| data.point_axes_m[p.point])
@@ -263,8 +323,16 @@ pub fn points_level(
     }
     let wd = whitened_design(&structure, &grid, &obs, Some(&cov), &options)
         .map_err(|e| e.to_string())?;
+    // The model with the selected effects' point response as free columns, whitened alike.
+    let response_w =
+        wd.l.solve_lower_triangular(&response)
+            .ok_or("the points' covariance is singular")?;
+    let mut x = DMatrix::zeros(wd.x.nrows(), wd.x.ncols() + response_w.ncols());
+    x.columns_mut(0, wd.x.ncols()).copy_from(&wd.x);
+    x.columns_mut(wd.x.ncols(), response_w.ncols())
+        .copy_from(&response_w);
     // Column-normalised so that the rank cut treats metres and radians alike.
-    let mut xn = wd.x.clone();
+    let mut xn = x;
     for mut col in xn.column_iter_mut() {
         let n = col.norm();
         if n > 0.0 {
