@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
@@ -14,7 +14,7 @@ use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
 use crate::solve::multilateration::{
-    dense_point_covariance, solve, LengthObservation, MultilaterationProblem,
+    dense_point_covariance, generator, solve, LengthObservation, MultilaterationProblem,
     MultilaterationSolution, SolveOptions,
 };
 
@@ -239,12 +239,20 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
 
 /// How effects (`effects`: their columns, one row per observation, metres per unit parameter)
 /// move the per-pass points: the part of each effect the free geometry absorbs, J⁺·P_J·A
-/// (whitened, linearised at the per-pass optimum), points rows, for the parameter directions
-/// whose absorbed part is not negligible (EFFECT_RANK_TOL of the effect's own size). An effect
-/// fitted on the lengths leaves its estimate's uncertainty in the points along these columns;
-/// the points level fits them as free columns (the limit of an uncertain nuisance), so its
-/// test holds whatever the effect's size and however well the lengths determine it.
-fn effect_point_response(data: &Data, per_pass: &PerPass, effects: &DMatrix<f64>) -> DMatrix<f64> {
+/// (whitened, linearised at the per-pass optimum), points rows, in the points' datum (inner
+/// constraints on the nominal points, as their covariance), whitened by `l`: an orthonormal
+/// basis of the directions that move the points by more than EFFECT_RANK_TOL of the absorbed
+/// signal's size in noise units (not only the stations or the gauge: the vertical
+/// eccentricity is a station height). An effect fitted on the lengths leaves its estimate's uncertainty in the
+/// points along these columns; the points level fits them as free columns (the limit of an
+/// uncertain nuisance), so its test holds whatever the effect's size and however well the
+/// lengths determine it.
+fn effect_point_response(
+    data: &Data,
+    per_pass: &PerPass,
+    effects: &DMatrix<f64>,
+    l: &DMatrix<f64>,
+) -> Option<DMatrix<f64>> {
     let n = per_pass.pass_points.len();
     let w = DVector::from_iterator(data.obs.len(), data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let whiten = |m: &DMatrix<f64>| DMatrix::from_fn(m.nrows(), m.ncols(), |i, c| m[(i, c)] * w[i]);
@@ -252,17 +260,37 @@ fn effect_point_response(data: &Data, per_pass: &PerPass, effects: &DMatrix<f64>
         whiten(&Geometry::from_solution(&per_pass.solution).jacobian_of(data, &per_pass.point_of));
     let a_w = whiten(effects);
     let geometry = Basis::new(&j_w, GEOMETRY_RANK_TOL, 0.0);
-    let reference = (0..a_w.ncols())
-        .map(|c| a_w.column(c).norm())
-        .fold(0.0, f64::max);
     let absorbed = &a_w - geometry.project_off(&a_w);
-    let directions = Basis::new(&absorbed, EFFECT_RANK_TOL, reference);
-    let mut k = DMatrix::zeros(3 * n, directions.rank());
-    for d in 0..directions.rank() {
-        let step = geometry.solve(&(directions.u.column(d) * directions.s[d]));
-        k.column_mut(d).copy_from(&step.rows(0, 3 * n));
+    let reference = (0..absorbed.ncols())
+        .map(|c| absorbed.column(c).norm())
+        .fold(0.0, f64::max);
+    let mut k = DMatrix::zeros(3 * n, absorbed.ncols());
+    for c in 0..absorbed.ncols() {
+        let step = geometry.solve(&absorbed.column(c).into_owned());
+        k.column_mut(c).copy_from(&step.rows(0, 3 * n));
     }
-    k
+    // S-transform to the inner-constraint datum of the points' covariance: the rigid motion
+    // (at the solved points) that the minimum-norm step carries is removed as there.
+    let nominal: Vec<Vector3<f64>> = per_pass
+        .pass_points
+        .iter()
+        .map(|p| data.problem.nominal_points[p.point])
+        .collect();
+    let centre = nominal.iter().sum::<Vector3<f64>>() / n as f64;
+    let mut g = DMatrix::<f64>::zeros(3 * n, 6);
+    let mut e = DMatrix::<f64>::zeros(3 * n, 6);
+    for (i, (solved, nominal)) in per_pass.solution.points.iter().zip(&nominal).enumerate() {
+        g.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(solved, &centre));
+        e.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(nominal, &centre));
+    }
+    let etg_inv = (e.transpose() * &g).try_inverse()?;
+    let k_inner = &k - &g * (etg_inv * (e.transpose() * &k));
+    let k_w = l.solve_lower_triangular(&k_inner)?;
+    // Mahalanobis size of the points' move against the absorbed signal's size (whitened
+    // lengths): directions below EFFECT_RANK_TOL of it move only stations or the gauge.
+    Some(Basis::new(&k_w, EFFECT_RANK_TOL, reference).u)
 }
 
 /// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
@@ -293,23 +321,18 @@ pub fn points_level(
     alpha: f64,
 ) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
     let per_pass = per_pass_points(data, lengths_m)?;
-    let response = if effects.ncols() > 0 {
-        effect_point_response(data, &per_pass, effects)
-    } else {
-        DMatrix::zeros(3 * per_pass.pass_points.len(), 0)
-    };
     let PerPass {
         pass_points,
         info,
         solution,
         cov,
         ..
-    } = per_pass;
+    } = &per_pass;
     let axes: Vec<Option<[f64; 3]>> = pass_points
         .iter()
         .map(|p| data.point_axes_m[p.point])
         .collect();
-    let obs = point_observations(&data.machine, &info, &axes, &solution)?;
+    let obs = point_observations(&data.machine, info, &axes, solution)?;
     let structure = Structure::parse(&data.machine.structure).map_err(|e| e.to_string())?;
     let options = DecompositionOptions::default();
     let grid = grid_from_points(&obs, options.grid_tolerance_m);
@@ -321,12 +344,15 @@ pub fn points_level(
              unknowns for {equations} equations (needs at most {MAX_PARAMETERS} and at most half)"
         ));
     }
-    let wd = whitened_design(&structure, &grid, &obs, Some(&cov), &options)
-        .map_err(|e| e.to_string())?;
+    let wd =
+        whitened_design(&structure, &grid, &obs, Some(cov), &options).map_err(|e| e.to_string())?;
     // The model with the selected effects' point response as free columns, whitened alike.
-    let response_w =
-        wd.l.solve_lower_triangular(&response)
-            .ok_or("the points' covariance is singular")?;
+    let response_w = if effects.ncols() > 0 {
+        effect_point_response(data, &per_pass, effects, &wd.l)
+            .ok_or("the selected effects' point response is singular")?
+    } else {
+        DMatrix::zeros(wd.x.nrows(), 0)
+    };
     let mut x = DMatrix::zeros(wd.x.nrows(), wd.x.ncols() + response_w.ncols());
     x.columns_mut(0, wd.x.ncols()).copy_from(&wd.x);
     x.columns_mut(wd.x.ncols(), response_w.ncols())
@@ -359,10 +385,10 @@ pub fn points_level(
         rank: basis.rank(),
     };
 
-    let meta: Vec<PointMeta> = pass_points.iter().zip(&info).collect();
+    let meta: Vec<PointMeta> = pass_points.iter().zip(info).collect();
     let out = test_groups(&e, &c, &meta, alpha, "");
     let departures = point_departures(&e, &c, &meta, alpha);
-    let target_offset = target_offset_test(&info, &wd.l, &basis, &r_w, chi2, dof);
+    let target_offset = target_offset_test(info, &wd.l, &basis, &r_w, chi2, dof);
     Ok((
         PointsLevel {
             gap,
