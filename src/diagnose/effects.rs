@@ -47,12 +47,20 @@ impl Geometry {
 
     /// Dense Jacobian of the predicted lengths (rows: observations).
     pub fn jacobian(&self, data: &Data) -> DMatrix<f64> {
+        let point_of: Vec<usize> = data.obs.iter().map(|o| o.point).collect();
+        self.jacobian_of(data, &point_of)
+    }
+
+    /// As [`Geometry::jacobian`], observation i measuring point `point_of[i]` of this
+    /// geometry (e.g. one point per pass).
+    pub fn jacobian_of(&self, data: &Data, point_of: &[usize]) -> DMatrix<f64> {
         let (n, m) = (self.points.len(), self.stations.len());
         let mut j = DMatrix::zeros(data.obs.len(), self.len());
         for (i, o) in data.obs.iter().enumerate() {
-            let (u, _) = self.beam(data, i);
+            let v = self.stations[o.station] - self.points[point_of[i]];
+            let u = v / v.norm();
             for a in 0..3 {
-                j[(i, 3 * o.point + a)] = -u[a];
+                j[(i, 3 * point_of[i] + a)] = -u[a];
                 j[(i, 3 * n + 3 * o.station + a)] = u[a];
             }
             j[(i, 3 * n + 3 * m + o.segment)] = -1.0;

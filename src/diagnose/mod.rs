@@ -25,7 +25,7 @@ use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
 use loso::{leave_one_station_out, HeldOutStation};
 use points::{points_level, PointsGap, PointsLevel};
-use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, RANK_TOL};
+use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -52,9 +52,6 @@ impl Default for DiagnoseOptions {
 /// "very strong evidence" on the Kass–Raftery scale).
 pub const CONFOUNDED_COSINE: f64 = 0.95;
 pub const DECISIVE_BIC: f64 = 10.0;
-/// A projected effect direction smaller than this fraction of the effect's own column norm
-/// is one the nominal model absorbs (e.g. the vertical eccentricity = station height).
-const EFFECT_RANK_TOL: f64 = 1e-6;
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct Gap {
@@ -327,7 +324,7 @@ fn column_norm_max(m: &DMatrix<f64>) -> f64 {
         .fold(0.0, f64::max)
 }
 
-fn hcat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
+pub(crate) fn hcat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
     let mut out = DMatrix::zeros(a.nrows(), a.ncols() + b.ncols());
     out.columns_mut(0, a.ncols()).copy_from(a);
     out.columns_mut(a.ncols(), b.ncols()).copy_from(b);
@@ -347,16 +344,26 @@ struct Trial {
 /// Diagnose a multilateration session: reads only the session.
 pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
     let data = Data::from_session(session)?;
-    Ok(diagnose_data(&data, options)?.0)
+    Ok(diagnose_data(&data, options)?.diagnosis)
+}
+
+/// A diagnosis with what the twin comparison needs of its final model.
+pub(crate) struct DataDiagnosis {
+    pub diagnosis: Diagnosis,
+    /// The fitted contribution of the effects in the final model to each recorded length
+    /// (settling's window bias included, when accepted).
+    pub effect_m: Vec<f64>,
+    /// The accepted lengths-level effects' columns (one row per length, metres per unit
+    /// parameter) at the final geometry: what their estimates' uncertainty moves.
+    pub effect_columns: DMatrix<f64>,
 }
 
 /// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
-/// the twin comparison does); also the fitted contribution of the effects in the final model
-/// to each recorded length (settling's window bias included, when accepted).
+/// the twin comparison does).
 pub(crate) fn diagnose_data(
     data: &Data,
     options: &DiagnoseOptions,
-) -> Result<(Diagnosis, Vec<f64>), DiagnoseError> {
+) -> Result<DataDiagnosis, DiagnoseError> {
     let solution = solve(&data.problem, &SolveOptions::default())?;
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
@@ -652,12 +659,16 @@ pub(crate) fn diagnose_data(
         &nominal_basis,
         options.alpha,
     );
+    // `unexplained` is one decision over three tests (the final χ², the final residuals'
+    // groups, the points level after the effects): Bonferroni over them, so that its
+    // false-alarm rate on data the model holds for is at most alpha.
+    let alpha_part = options.alpha / 3.0;
     let remaining = locate(
         &fit_data,
         &final_fit.geom,
         &final_fit.resid_m,
         &final_fit.basis,
-        options.alpha,
+        alpha_part,
     );
     let mut where_ = where_;
     let (held_out, skipped) = leave_one_station_out(data, &nominal_j, &solution.residuals_m);
@@ -692,7 +703,8 @@ pub(crate) fn diagnose_data(
     // The points level, before (recorded lengths) and after (fitted effects removed): a
     // machine that departs from the quasi-rigid model is structure no candidate explains.
     let recorded: Vec<f64> = data.obs.iter().map(|o| o.length_m).collect();
-    let points_before = match points_level(data, &recorded, options.alpha) {
+    let points_before = match points_level(data, &recorded, &DMatrix::zeros(nobs, 0), options.alpha)
+    {
         Ok((level, entries)) => {
             where_.extend(entries);
             Some(level)
@@ -702,17 +714,17 @@ pub(crate) fn diagnose_data(
             None
         }
     };
+    let effect_columns = accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+        hcat(&d, &m.columns(data, &final_fit.geom))
+    });
     let after_level = if accepted.is_empty() {
         points_before.clone()
     } else {
-        // From the lengths the final fit saw (the settling bias, if accepted, already off).
-        let corrected: Vec<f64> = fit_data
-            .obs
-            .iter()
-            .zip(&final_fit.effect_m)
-            .map(|(o, e)| o.length_m - e)
-            .collect();
-        points_level(data, &corrected, options.alpha)
+        // From the lengths the final fit saw (the settling bias, if accepted, already off),
+        // the accepted effects fitted again with the per-pass points and their uncertainty
+        // carried into the points' covariance.
+        let lengths: Vec<f64> = fit_data.obs.iter().map(|o| o.length_m).collect();
+        points_level(data, &lengths, &effect_columns, options.alpha)
             .ok()
             .map(|(after, _)| after)
     };
@@ -739,7 +751,7 @@ pub(crate) fn diagnose_data(
         });
     let points_after = points_level_after
         .as_ref()
-        .filter(|g| g.p_value < options.alpha)
+        .filter(|g| g.p_value < alpha_part)
         .map(|g| (g.chi2_per_dof, g.p_value));
     if let Some((ratio, p)) = points_after {
         notes.push(format!(
@@ -747,7 +759,7 @@ pub(crate) fn diagnose_data(
         ));
     }
     let chi2_p = chi2_sf(chi2, dof as f64);
-    let lengths_unexplained = chi2_p < options.alpha || !remaining.is_empty();
+    let lengths_unexplained = chi2_p < alpha_part || !remaining.is_empty();
     let unexplained = lengths_unexplained || points_after.is_some();
     if lengths_unexplained {
         notes.push(format!(
@@ -836,7 +848,11 @@ pub(crate) fn diagnose_data(
             *e += b;
         }
     }
-    Ok((diagnosis, effect_m))
+    Ok(DataDiagnosis {
+        diagnosis,
+        effect_m,
+        effect_columns,
+    })
 }
 
 fn empty_gap(v: f64) -> Gap {

@@ -3,17 +3,18 @@
 
 use std::collections::BTreeMap;
 
-use nalgebra::{DMatrix, DVector};
+use nalgebra::{DMatrix, DVector, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
+use super::effects::Geometry;
 use super::locate::WhereEntry;
-use super::stats::{chi2_sf, Basis};
+use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL, RANK_TOL as GEOMETRY_RANK_TOL};
 use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
 use crate::solve::multilateration::{
-    dense_point_covariance, solve, LengthObservation, MultilaterationProblem,
+    dense_point_covariance, generator, solve, LengthObservation, MultilaterationProblem,
     MultilaterationSolution, SolveOptions,
 };
 
@@ -78,8 +79,12 @@ pub struct TargetOffsetTest {
     /// χ² of the points level and its degrees of freedom with the shifts fitted.
     pub chi2_after: f64,
     pub dof_after: usize,
-    /// The fitted offset error of each target relative to the first (m).
+    /// The fitted offset error of each target relative to the first (m): its identifiable part
+    /// (minimum norm; with two targets the component along o₂ − o₁), and its standard
+    /// deviation per component.
     pub offsets_m: BTreeMap<String, [f64; 3]>,
+    #[serde(default)]
+    pub offsets_sigma_m: BTreeMap<String, [f64; 3]>,
 }
 
 /// Score test of per-target constant shifts (targets after the first) against the points
@@ -109,21 +114,22 @@ fn target_offset_test(
         }
     });
     let a_w = l.solve_lower_triangular(&a)?;
-    let q = basis.project_off(&a_w);
-    let mut qn = q.clone();
-    for mut col in qn.column_iter_mut() {
-        let n = col.norm();
-        if n > 0.0 {
-            col /= n;
-        }
-    }
-    let q_basis = Basis::new(&qn, RANK_TOL, 1.0);
+    // The rank is judged against the shifts' own whitened size before the projection (as a
+    // lengths-level candidate's): a direction the model absorbs (with two targets the gauge
+    // rotation takes ω × (o₂ − o₁), two of the three) leaves a rounding remainder that must
+    // not count, nor be normalised up to a unit column.
+    let reference = (0..a_w.ncols())
+        .map(|c| a_w.column(c).norm())
+        .fold(0.0, f64::max);
+    let q_basis = Basis::new(&basis.project_off(&a_w), EFFECT_RANK_TOL, reference);
     let df = q_basis.rank();
     if df == 0 {
         return None;
     }
     let chi2_drop = (q_basis.u.transpose() * r_w).norm_squared();
-    let beta = q.clone().svd(true, true).solve(r_w, 1e-12).ok()?;
+    // Minimum-norm shifts (m): only their identifiable part (Frisch–Waugh: the projected
+    // design's coefficients are those of the joint fit).
+    let beta = q_basis.solve(r_w);
     let offsets_m = shifted
         .iter()
         .enumerate()
@@ -134,8 +140,21 @@ fn target_offset_test(
             )
         })
         .collect();
+    // Cov(β) = V S⁻² Vᵀ of the projected design.
+    let sigma = |c: usize| {
+        (0..df)
+            .map(|k| (q_basis.vt[(k, c)] / q_basis.s[k]).powi(2))
+            .sum::<f64>()
+            .sqrt()
+    };
+    let offsets_sigma_m = shifted
+        .iter()
+        .enumerate()
+        .map(|(k, t)| (t.to_string(), std::array::from_fn(|a| sigma(3 * k + a))))
+        .collect();
     Some(TargetOffsetTest {
         df,
+        offsets_sigma_m,
         chi2_drop,
         p_value: chi2_sf(chi2_drop, df as f64),
         bic_delta: -chi2_drop + df as f64 * (rows as f64).ln(),
@@ -159,6 +178,8 @@ pub struct PassPoint {
 /// The points solved per pass with their full covariance (3n x 3n, point-major).
 pub struct PerPass {
     pub pass_points: Vec<PassPoint>,
+    /// Pass point of each observation of `data`.
+    pub point_of: Vec<usize>,
     /// (target, plan point, nominal) of each pass point.
     pub info: Vec<(String, usize, [f64; 3])>,
     pub solution: MultilaterationSolution,
@@ -171,6 +192,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
     let mut index: BTreeMap<(usize, usize), usize> = BTreeMap::new();
     let mut pass_points: Vec<PassPoint> = Vec::new();
     let mut observations = Vec::with_capacity(data.obs.len());
+    let mut point_of = Vec::with_capacity(data.obs.len());
     for (o, &length_m) in data.obs.iter().zip(lengths_m) {
         let k = *index.entry((o.point, o.pass)).or_insert_with(|| {
             pass_points.push(PassPoint {
@@ -180,6 +202,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
             });
             pass_points.len() - 1
         });
+        point_of.push(k);
         observations.push(LengthObservation {
             point: k,
             segment: o.segment,
@@ -207,10 +230,80 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
         .collect();
     Ok(PerPass {
         pass_points,
+        point_of,
         info,
         solution,
         cov,
     })
+}
+
+/// How effects (`effects`: their columns, one row per observation, metres per unit parameter)
+/// move the per-pass points: the part of each effect the free geometry absorbs, J⁺·P_J·A
+/// (whitened, linearised at the per-pass optimum), points rows, in the points' datum (inner
+/// constraints on the nominal points, as their covariance), whitened by `l`: an orthonormal
+/// basis of the directions that move the points by more than EFFECT_RANK_TOL of the absorbed
+/// signal's size in noise units (not only the stations or the gauge: the vertical
+/// eccentricity is a station height). An effect fitted on the lengths leaves its estimate's uncertainty in the
+/// points along these columns; the points level fits them as free columns (the limit of an
+/// uncertain nuisance), so its test holds whatever the effect's size and however well the
+/// lengths determine it.
+fn effect_point_response(
+    data: &Data,
+    per_pass: &PerPass,
+    effects: &DMatrix<f64>,
+    l: &DMatrix<f64>,
+) -> Option<DMatrix<f64>> {
+    let (k_inner, reference) = effect_point_move(data, per_pass, effects)?;
+    let k_w = l.solve_lower_triangular(&k_inner)?;
+    // Mahalanobis size of the points' move against the absorbed signal's size (whitened
+    // lengths): directions below EFFECT_RANK_TOL of it move only stations or the gauge.
+    Some(Basis::new(&k_w, EFFECT_RANK_TOL, reference).u)
+}
+
+/// The per-pass points' move under each effect column (metres per unit parameter, rows
+/// point-major x, y, z, in the points' inner-constraint datum), and the size of the largest
+/// absorbed signal in whitened lengths (the reference of the rank cut). See
+/// `effect_point_response`.
+pub(crate) fn effect_point_move(
+    data: &Data,
+    per_pass: &PerPass,
+    effects: &DMatrix<f64>,
+) -> Option<(DMatrix<f64>, f64)> {
+    let n = per_pass.pass_points.len();
+    let w = DVector::from_iterator(data.obs.len(), data.obs.iter().map(|o| 1.0 / o.sigma_m));
+    let whiten = |m: &DMatrix<f64>| DMatrix::from_fn(m.nrows(), m.ncols(), |i, c| m[(i, c)] * w[i]);
+    let j_w =
+        whiten(&Geometry::from_solution(&per_pass.solution).jacobian_of(data, &per_pass.point_of));
+    let a_w = whiten(effects);
+    let geometry = Basis::new(&j_w, GEOMETRY_RANK_TOL, 0.0);
+    let absorbed = &a_w - geometry.project_off(&a_w);
+    let reference = (0..absorbed.ncols())
+        .map(|c| absorbed.column(c).norm())
+        .fold(0.0, f64::max);
+    let mut k = DMatrix::zeros(3 * n, absorbed.ncols());
+    for c in 0..absorbed.ncols() {
+        let step = geometry.solve(&absorbed.column(c).into_owned());
+        k.column_mut(c).copy_from(&step.rows(0, 3 * n));
+    }
+    // S-transform to the inner-constraint datum of the points' covariance: the rigid motion
+    // (at the solved points) that the minimum-norm step carries is removed as there.
+    let nominal: Vec<Vector3<f64>> = per_pass
+        .pass_points
+        .iter()
+        .map(|p| data.problem.nominal_points[p.point])
+        .collect();
+    let centre = nominal.iter().sum::<Vector3<f64>>() / n as f64;
+    let mut g = DMatrix::<f64>::zeros(3 * n, 6);
+    let mut e = DMatrix::<f64>::zeros(3 * n, 6);
+    for (i, (solved, nominal)) in per_pass.solution.points.iter().zip(&nominal).enumerate() {
+        g.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(solved, &centre));
+        e.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(nominal, &centre));
+    }
+    let etg_inv = (e.transpose() * &g).try_inverse()?;
+    let k_inner = &k - &g * (etg_inv * (e.transpose() * &k));
+    Some((k_inner, reference))
 }
 
 /// Residuals r (m, stacked point-major x, y, z) with covariance C; the χ² of a group of rows
@@ -233,22 +326,26 @@ fn group_chi2(e: &DVector<f64>, c: &DMatrix<f64>, rows: &[usize]) -> (f64, f64) 
 /// Fit the points solved from `lengths_m` (one per observation of `data`; the recorded lengths,
 /// or lengths with fitted effects removed) against the quasi-rigid 21-error model. Err says
 /// why the points level cannot be computed for this session.
+/// `effects`: the columns of effects fitted with the per-pass geometry (none: zero columns).
 pub fn points_level(
     data: &Data,
     lengths_m: &[f64],
+    effects: &DMatrix<f64>,
     alpha: f64,
 ) -> Result<(PointsLevel, Vec<WhereEntry>), String> {
+    let per_pass = per_pass_points(data, lengths_m)?;
     let PerPass {
         pass_points,
         info,
         solution,
         cov,
-    } = per_pass_points(data, lengths_m)?;
+        ..
+    } = &per_pass;
     let axes: Vec<Option<[f64; 3]>> = pass_points
         .iter()
         .map(|p| data.point_axes_m[p.point])
         .collect();
-    let obs = point_observations(&data.machine, &info, &axes, &solution)?;
+    let obs = point_observations(&data.machine, info, &axes, solution)?;
     let structure = Structure::parse(&data.machine.structure).map_err(|e| e.to_string())?;
     let options = DecompositionOptions::default();
     let grid = grid_from_points(&obs, options.grid_tolerance_m);
@@ -260,10 +357,21 @@ pub fn points_level(
              unknowns for {equations} equations (needs at most {MAX_PARAMETERS} and at most half)"
         ));
     }
-    let wd = whitened_design(&structure, &grid, &obs, Some(&cov), &options)
-        .map_err(|e| e.to_string())?;
+    let wd =
+        whitened_design(&structure, &grid, &obs, Some(cov), &options).map_err(|e| e.to_string())?;
+    // The model with the selected effects' point response as free columns, whitened alike.
+    let response_w = if effects.ncols() > 0 {
+        effect_point_response(data, &per_pass, effects, &wd.l)
+            .ok_or("the selected effects' point response is singular")?
+    } else {
+        DMatrix::zeros(wd.x.nrows(), 0)
+    };
+    let mut x = DMatrix::zeros(wd.x.nrows(), wd.x.ncols() + response_w.ncols());
+    x.columns_mut(0, wd.x.ncols()).copy_from(&wd.x);
+    x.columns_mut(wd.x.ncols(), response_w.ncols())
+        .copy_from(&response_w);
     // Column-normalised so that the rank cut treats metres and radians alike.
-    let mut xn = wd.x.clone();
+    let mut xn = x;
     for mut col in xn.column_iter_mut() {
         let n = col.norm();
         if n > 0.0 {
@@ -290,10 +398,10 @@ pub fn points_level(
         rank: basis.rank(),
     };
 
-    let meta: Vec<PointMeta> = pass_points.iter().zip(&info).collect();
+    let meta: Vec<PointMeta> = pass_points.iter().zip(info).collect();
     let out = test_groups(&e, &c, &meta, alpha, "");
     let departures = point_departures(&e, &c, &meta, alpha);
-    let target_offset = target_offset_test(&info, &wd.l, &basis, &r_w, chi2, dof);
+    let target_offset = target_offset_test(info, &wd.l, &basis, &r_w, chi2, dof);
     Ok((
         PointsLevel {
             gap,

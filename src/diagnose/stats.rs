@@ -7,6 +7,10 @@ use nalgebra::{DMatrix, DVector};
 /// collinear columns). Rounding in the SVD of the whitened designs is about 1e-15 of the
 /// largest singular value times the condition of the real directions (< 1e4 here).
 pub const RANK_TOL: f64 = 1e-9;
+/// A candidate effect's direction whose part off the current model is smaller than this
+/// fraction of the effect's own (whitened) column norm is one the model absorbs (e.g. the
+/// vertical eccentricity = station height; a common shift of a target = the gauge's).
+pub const EFFECT_RANK_TOL: f64 = 1e-6;
 
 /// ln Γ(x) for x > 0 (Lanczos, g = 7, 9 terms; relative error < 1e-15).
 pub fn ln_gamma(x: f64) -> f64 {

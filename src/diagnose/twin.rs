@@ -9,9 +9,11 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
-use super::points::{per_pass_points, point_departures, test_groups, PointDeparture, PointMeta};
-use super::stats::chi2_sf;
-use super::{diagnose_data, DiagnoseError, DiagnoseOptions, Diagnosis};
+use super::points::{
+    effect_point_move, per_pass_points, point_departures, test_groups, PointDeparture, PointMeta,
+};
+use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
+use super::{diagnose_data, hcat, DataDiagnosis, DiagnoseError, DiagnoseOptions, Diagnosis};
 use crate::config::{Config, DriverKind};
 use crate::session::reader::{read_session, Session};
 use crate::solve::multilateration::{solve, SolveOptions};
@@ -140,22 +142,32 @@ fn points_gap(d: &DVector<f64>, c: &DMatrix<f64>) -> TwinPointsGap {
     }
 }
 
-/// Fit a constant shift of each target's points after the first (`targets`: the target of each
-/// point of `d`, 3 rows per point) to `d` under covariance `c` (its null directions dropped)
-/// and remove it; returns the number of shift parameters fitted.
-fn remove_target_shifts(d: &mut DVector<f64>, c: &DMatrix<f64>, targets: &[&str]) -> usize {
+/// Columns of a constant shift of each target's points after the first (`targets`: the
+/// target of each point, 3 rows per point).
+fn target_shift_columns(targets: &[&str]) -> DMatrix<f64> {
     let mut names: Vec<&str> = targets.to_vec();
     names.sort_unstable();
     names.dedup();
     let shifted = names.get(1..).unwrap_or_default();
-    if shifted.is_empty() {
-        return 0;
-    }
-    let a = DMatrix::from_fn(d.len(), 3 * shifted.len(), |row, col| {
+    DMatrix::from_fn(3 * targets.len(), 3 * shifted.len(), |row, col| {
         f64::from(u8::from(
             shifted[col / 3] == targets[row / 3] && row % 3 == col % 3,
         ))
-    });
+    })
+}
+
+/// Fit the columns `a` to `d` under covariance `c` (its null directions dropped) as free
+/// parameters and remove them; returns the number of directions fitted: those whose
+/// Mahalanobis size exceeds EFFECT_RANK_TOL of the largest (or of `reference`).
+fn remove_columns(
+    d: &mut DVector<f64>,
+    c: &DMatrix<f64>,
+    a: &DMatrix<f64>,
+    reference: f64,
+) -> usize {
+    if a.ncols() == 0 {
+        return 0;
+    }
     let eigen = c.clone().symmetric_eigen();
     let largest = eigen.eigenvalues.amax();
     let kept: Vec<usize> = (0..eigen.eigenvalues.len())
@@ -166,13 +178,10 @@ fn remove_target_shifts(d: &mut DVector<f64>, c: &DMatrix<f64>, targets: &[&str]
         let k = kept[r];
         eigen.eigenvectors[(col, k)] / eigen.eigenvalues[k].sqrt()
     });
-    let svd = (&w * &a).svd(true, true);
-    let rank = svd.rank(1e-9 * svd.singular_values.max());
-    let Ok(beta) = svd.solve(&(&w * &*d), 1e-9 * svd.singular_values.max()) else {
-        return 0;
-    };
-    *d -= &a * beta;
-    rank
+    let basis = Basis::new(&(&w * a), EFFECT_RANK_TOL, reference);
+    let beta = basis.solve(&(&w * &*d));
+    *d -= a * beta;
+    basis.rank()
 }
 
 /// Diagnose `recording` against `twin`: every matched recorded length has the twin's residual
@@ -207,7 +216,11 @@ pub fn diagnose_against_twin(
         }
     }
     let unmatched = rec.obs.len() - matched;
-    let (mut diagnosis, effect_m) = diagnose_data(&data, options)?;
+    let DataDiagnosis {
+        mut diagnosis,
+        effect_m,
+        effect_columns,
+    } = diagnose_data(&data, options)?;
 
     let recorded: Vec<f64> = rec.obs.iter().map(|o| o.length_m).collect();
     let twin_lengths: Vec<f64> = tw.obs.iter().map(|o| o.length_m).collect();
@@ -238,16 +251,31 @@ pub fn diagnose_against_twin(
             let corrected: Vec<f64> = recorded.iter().zip(&effect_m).map(|(l, e)| l - e).collect();
             if let Ok(after) = keyed_points(&rec, &corrected) {
                 let (mut d, c, pairs) = compare_points(&after, &tp);
-                // target_offset is a points-level effect, not in the lengths' contribution:
-                // when it is named, each target's (after the first) constant shift is fitted
-                // to the difference here.
-                let shifted = diagnosis.selected.iter().any(|s| s == "target_offset");
-                let targets: Vec<&str> = pairs
-                    .iter()
-                    .map(|&(a, _)| after.per_pass.info[a].0.as_str())
-                    .collect();
-                let df = if shifted {
-                    remove_target_shifts(&mut d, &c, &targets)
+                // The selected lengths-level effects' estimates are uncertain and move the
+                // points along their response: fitted as free columns (as the points level
+                // does). target_offset is a points-level effect, not in the lengths'
+                // contribution: when it is named, each target's (after the first) constant
+                // shift is fitted too.
+                let rows: Vec<usize> = pairs.iter().flat_map(|&(a, _)| 3 * a..3 * a + 3).collect();
+                let (response, reference) = if effect_columns.ncols() > 0 {
+                    effect_point_move(&rec, &after.per_pass, &effect_columns)
+                        .map(|(k, reference)| (k.select_rows(&rows), reference))
+                        .unwrap_or_else(|| (DMatrix::zeros(rows.len(), 0), 0.0))
+                } else {
+                    (DMatrix::zeros(rows.len(), 0), 0.0)
+                };
+                let shifts = if diagnosis.selected.iter().any(|s| s == "target_offset") {
+                    let targets: Vec<&str> = pairs
+                        .iter()
+                        .map(|&(a, _)| after.per_pass.info[a].0.as_str())
+                        .collect();
+                    target_shift_columns(&targets)
+                } else {
+                    DMatrix::zeros(rows.len(), 0)
+                };
+                let columns = hcat(&response, &shifts);
+                let df = if columns.ncols() > 0 {
+                    remove_columns(&mut d, &c, &columns, reference)
                 } else {
                     0
                 };

@@ -664,7 +664,7 @@ pub fn best_fit_rigid(
 }
 
 /// Rigid-motion generators of a position q (translation, then small rotation about `centre`).
-fn generator(q: &Vector3<f64>, centre: &Vector3<f64>) -> Matrix3x6<f64> {
+pub(crate) fn generator(q: &Vector3<f64>, centre: &Vector3<f64>) -> Matrix3x6<f64> {
     let p = q - centre;
     let mut g = Matrix3x6::zeros();
     g.fixed_view_mut::<3, 3>(0, 0)
