@@ -66,9 +66,13 @@ async fn alarm_is_distinct_and_unlock_recovers() {
     };
     assert_eq!(*code, 1);
     assert!(message.contains("$X"), "{message}");
-    // Locked: a move is refused until unlocked.
+    // Locked: a move is refused until unlocked, as an alarm (the caller's recovery is `$X`).
     let refused = m.start_move(&target(0.02)).await.expect_err("locked");
     assert!(refused.to_string().contains("error:9"), "{refused}");
+    assert!(
+        matches!(refused, DeviceError::Alarm { code: 1, .. }),
+        "{refused}"
+    );
     m.unlock().await.expect("unlock");
     m.start_move(&target(0.02)).await.expect("move again");
     let at = settle(&mut m).await.expect("arrives after unlock");

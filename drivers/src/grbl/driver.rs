@@ -149,6 +149,9 @@ impl GrblConfig {
     }
 }
 
+/// GRBL's `error:9`: G-code locked out during alarm or jog state.
+const ERROR_LOCKED_BY_ALARM: u16 = 9;
+
 /// A GRBL-style controller driven line by line (`ok`/`error:` per line, `?` status).
 pub struct GrblMachine<S> {
     cfg: GrblConfig,
@@ -527,6 +530,18 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
         loop {
             match self.next_line(deadline, &what, timeout_s).await? {
                 ControllerLine::Ok => return Ok(()),
+                // The controller is locked by an alarm whose `ALARM:` report this driver has
+                // not taken (lost, or consumed as an earlier line's garbage): the alarm path
+                // (unlock, send again) is the recovery, not a rejected line.
+                ControllerLine::Error(ERROR_LOCKED_BY_ALARM) => {
+                    let code = self.alarm_pending.take().or(self.last_alarm).unwrap_or(0);
+                    return Err(self.alarm(
+                        code,
+                        &format!(
+                            " (error:{ERROR_LOCKED_BY_ALARM} to `{shown}`: locked by an alarm)"
+                        ),
+                    ));
+                }
                 ControllerLine::Error(code) => {
                     return Err(
                         self.rejected(format!("error:{code} ({}) to `{shown}`", error_text(code)))
