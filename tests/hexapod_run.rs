@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 
 use geocal::method::Results;
-use geocal::run::{solve_file, RunOptions, RunOutput};
+use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
@@ -17,23 +17,7 @@ use serde_json::Value;
 const EXAMPLE: &str = include_str!("../config/hexapod.toml");
 
 fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
-    let config = dir.join("hexapod.toml");
-    std::fs::write(&config, config_text).expect("write config");
-    let truth_path = dir.join("truth.json");
-    let output = geocal::kinds::run_file(
-        &config,
-        &RunOptions {
-            out_dir: dir.to_path_buf(),
-            truth: Some(truth_path.clone()),
-            progress: false,
-            settings: Default::default(),
-        },
-    )
-    .expect("run")
-    .expect("a hexapod config is run by geocal::kinds");
-    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
-        .expect("truth json");
-    (output, truth)
+    common::run_kind(config_text, dir, "hexapod.toml")
 }
 
 fn xyz(v: &Value) -> [f64; 3] {

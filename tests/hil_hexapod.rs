@@ -8,7 +8,7 @@ mod common;
 use std::path::Path;
 
 use geocal::method::Results;
-use geocal::run::{solve_file, RunOptions, RunOutput};
+use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::reader::read_session;
 use serde_json::Value;
@@ -47,25 +47,10 @@ emulate = true
 }
 
 fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
-    let config = dir.join("hexapod-hil.toml");
-    std::fs::write(&config, config_text).expect("write config");
-    let truth_path = dir.join("truth.json");
     let started = std::time::Instant::now();
-    let output = geocal::kinds::run_file(
-        &config,
-        &RunOptions {
-            out_dir: dir.to_path_buf(),
-            truth: Some(truth_path.clone()),
-            progress: false,
-            settings: Default::default(),
-        },
-    )
-    .expect("run")
-    .expect("a hexapod config is run by geocal::kinds");
+    let run = common::run_kind(config_text, dir, "hexapod-hil.toml");
     println!("run: {:.1} s", started.elapsed().as_secs_f64());
-    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
-        .expect("truth json");
-    (output, truth)
+    run
 }
 
 /// Every coordinate within 4 of its reported sigmas (as tests/hexapod_run.rs: for a correct

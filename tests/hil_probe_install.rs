@@ -54,24 +54,7 @@ fn hil_config(faults: &str) -> String {
 }
 
 fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
-    std::fs::create_dir_all(dir).expect("dir");
-    let config = dir.join("probe-install.toml");
-    std::fs::write(&config, config_text).expect("write config");
-    let truth_path = dir.join("truth.json");
-    let output = geocal::kinds::run_file(
-        &config,
-        &RunOptions {
-            out_dir: dir.to_path_buf(),
-            truth: Some(truth_path.clone()),
-            progress: false,
-            settings: Default::default(),
-        },
-    )
-    .expect("run")
-    .expect("a probe_install config is run by geocal::kinds");
-    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
-        .expect("truth json");
-    (output, truth)
+    common::run_kind(config_text, dir, "probe-install.toml")
 }
 
 #[test]

@@ -20,7 +20,9 @@ use geocal_drivers::{
 
 use super::compare::{compare_windows, event_counts, Window};
 use super::devices::ReplayClock;
-use super::{Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT};
+use super::{
+    write_comparison, Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT,
+};
 use crate::config::{hexapod as hx, probe_install as pi, rotary_sphere as rs};
 use crate::sequencer::SequencerError;
 use crate::session::kind_messages::{
@@ -607,16 +609,5 @@ pub fn replay(
         results,
         results_error,
     };
-    let comparison_path = options.out_dir.join("comparison.json");
-    std::fs::write(
-        &comparison_path,
-        serde_json::to_string_pretty(&comparison)? + "\n",
-    )
-    .with_context(|| format!("writing {}", comparison_path.display()))?;
-    Ok(ReplayOutput {
-        session_path: out_path,
-        results_path,
-        comparison_path,
-        comparison,
-    })
+    write_comparison(options, out_path, results_path, comparison)
 }

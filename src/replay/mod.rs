@@ -196,6 +196,16 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         results,
         results_error,
     };
+    write_comparison(options, out_path, results_path, comparison)
+}
+
+/// Write `comparison.json` into the output directory; the replay's output.
+pub(crate) fn write_comparison(
+    options: &ReplayOptions,
+    session_path: PathBuf,
+    results_path: Option<PathBuf>,
+    comparison: Comparison,
+) -> anyhow::Result<ReplayOutput> {
     let comparison_path = options.out_dir.join("comparison.json");
     std::fs::write(
         &comparison_path,
@@ -203,7 +213,7 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
     )
     .with_context(|| format!("writing {}", comparison_path.display()))?;
     Ok(ReplayOutput {
-        session_path: out_path,
+        session_path,
         results_path,
         comparison_path,
         comparison,

@@ -450,3 +450,26 @@ pub fn faults<'a>(
         })
         .collect()
 }
+
+/// Run the config text of a kind `geocal::kinds` runs (probe_install, hexapod, ...) as
+/// `dir/FILE_NAME` with its output in `dir`; the run's output and its truth file.
+pub fn run_kind(config_text: &str, dir: &Path, file_name: &str) -> (RunOutput, Value) {
+    std::fs::create_dir_all(dir).expect("dir");
+    let config = dir.join(file_name);
+    std::fs::write(&config, config_text).expect("write config");
+    let truth_path = dir.join("truth.json");
+    let output = geocal::kinds::run_file(
+        &config,
+        &RunOptions {
+            out_dir: dir.to_path_buf(),
+            truth: Some(truth_path.clone()),
+            progress: false,
+            settings: Default::default(),
+        },
+    )
+    .expect("run")
+    .unwrap_or_else(|| panic!("{file_name}: not a kind geocal::kinds runs"));
+    let truth = serde_json::from_slice(&std::fs::read(&truth_path).expect("truth file"))
+        .expect("truth json");
+    (output, truth)
+}
