@@ -8,7 +8,7 @@ use serde::{Deserialize, Serialize};
 use geocal_drivers::modbus::ModbusFaults;
 use geocal_drivers::modbus_hexapod::ModbusHexapodConfig;
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+use super::kind_config::{expect_kind, finite, invalid, non_negative, parse_strict, positive};
 use super::ConfigError;
 use crate::model::hexapod::{HexapodGeometry, LEGS};
 
@@ -243,13 +243,7 @@ impl HexapodConfig {
     }
 
     fn validate(&self, f: &Path) -> Result<(), ConfigError> {
-        if self.kind != KIND {
-            return Err(invalid(
-                f,
-                "kind",
-                format!("expected \"{KIND}\", got \"{}\"", self.kind),
-            ));
-        }
+        expect_kind(f, &self.kind, KIND)?;
         for (key, hinges) in [
             ("machine.base_hinges_m", &self.machine.base_hinges_m),
             ("machine.platform_hinges_m", &self.machine.platform_hinges_m),

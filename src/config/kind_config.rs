@@ -46,30 +46,17 @@ pub fn invalid(file: &Path, key: &str, message: impl Into<String>) -> ConfigErro
     }
 }
 
-/// The kinds whose devices are simulated only (so far): every driver must be `sim`, and the
-/// `[sim]` table must be there.
-pub fn sim_drivers_only(
-    file: &Path,
-    kind: &str,
-    drivers: &[(&str, super::DriverKind)],
-    has_sim: bool,
-) -> Result<(), ConfigError> {
-    for &(key, driver) in drivers {
-        if driver != super::DriverKind::Sim {
-            return Err(invalid(
-                file,
-                key,
-                format!(
-                    "driver \"{}\" is not available for plan kind {kind} yet: expected \"sim\"",
-                    driver.as_str()
-                ),
-            ));
-        }
+/// An `Invalid` error at `kind` unless the file declares `expected`.
+pub fn expect_kind(file: &Path, kind: &str, expected: &str) -> Result<(), ConfigError> {
+    if kind == expected {
+        Ok(())
+    } else {
+        Err(invalid(
+            file,
+            "kind",
+            format!("expected \"{expected}\", got \"{kind}\""),
+        ))
     }
-    if !has_sim {
-        return Err(invalid(file, "sim", "the `sim` drivers need a [sim] table"));
-    }
-    Ok(())
 }
 
 /// Checks that `value` is finite and positive, else an `Invalid` error.

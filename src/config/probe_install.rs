@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use geocal_drivers::grbl::{GrblConfig, GrblFaults};
 use geocal_drivers::probe::{ProbeConfig, ProbeFaults};
 
-use super::kind_config::{finite, invalid, non_negative, parse_strict, positive};
+use super::kind_config::{expect_kind, finite, invalid, non_negative, parse_strict, positive};
 pub use super::rotary_sphere::ProbeDriverKind;
 use super::{ConfigError, DriverKind};
 use crate::model::probe_install::InstallParams;
@@ -438,13 +438,7 @@ impl ProbeInstallConfig {
     }
 
     fn validate(&self, f: &Path) -> Result<(), ConfigError> {
-        if self.kind != KIND {
-            return Err(invalid(
-                f,
-                "kind",
-                format!("expected \"{KIND}\", got \"{}\"", self.kind),
-            ));
-        }
+        expect_kind(f, &self.kind, KIND)?;
         for axis in ["x", "y", "z"] {
             let Some(t) = self.machine.travel_m.get(axis) else {
                 return Err(invalid(
