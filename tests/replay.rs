@@ -278,21 +278,7 @@ fn assert_identical_kind_replay(recorded: &RunOutput, out: &ReplayOutput, window
             .collect::<Vec<_>>()
     };
     assert_eq!(events(&b), events(&a));
-    let probes = |s: &geocal::session::reader::Session| {
-        s.probes
-            .iter()
-            .flat_map(|(id, v)| {
-                v.iter().map(move |r| {
-                    (
-                        id.clone(),
-                        r.log_time_ns,
-                        serde_json::to_string(&r.msg).expect("json"),
-                    )
-                })
-            })
-            .collect::<Vec<_>>()
-    };
-    assert_eq!(probes(&b), probes(&a));
+    assert_eq!(device_stream(&b.probes), device_stream(&a.probes));
     let topics = |s: &geocal::session::reader::Session| {
         s.topics
             .iter()
@@ -303,21 +289,7 @@ fn assert_identical_kind_replay(recorded: &RunOutput, out: &ReplayOutput, window
             .collect::<Vec<_>>()
     };
     assert_eq!(topics(&b), topics(&a));
-    let rotary = |s: &geocal::session::reader::Session| {
-        s.rotary
-            .iter()
-            .flat_map(|(id, v)| {
-                v.iter().map(move |r| {
-                    (
-                        id.clone(),
-                        r.log_time_ns,
-                        serde_json::to_string(&r.msg).expect("json"),
-                    )
-                })
-            })
-            .collect::<Vec<_>>()
-    };
-    assert_eq!(rotary(&b), rotary(&a));
+    assert_eq!(device_stream(&b.rotary), device_stream(&a.rotary));
     assert!(b.header.session_id.ends_with("-replay"));
     assert!(b.header.devices.iter().all(|d| d.driver == "replay"));
 }
@@ -380,4 +352,23 @@ fn rotary_sphere_session_replays_identically() {
     let recorded = record_kind(&text, &dir.path().join("run"));
     let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
     assert_identical_kind_replay(&recorded, &out, 3 * 12 * 5);
+}
+
+/// A per-device stream of a session as (device, log time, message JSON), for comparing two
+/// sessions message by message.
+fn device_stream<T: serde::Serialize>(
+    streams: &std::collections::BTreeMap<String, Vec<geocal::session::reader::Stamped<T>>>,
+) -> Vec<(String, u64, String)> {
+    streams
+        .iter()
+        .flat_map(|(id, v)| {
+            v.iter().map(move |r| {
+                (
+                    id.clone(),
+                    r.log_time_ns,
+                    serde_json::to_string(&r.msg).expect("json"),
+                )
+            })
+        })
+        .collect()
 }

@@ -119,17 +119,24 @@ fn compare_points(
     (d, c, pairs)
 }
 
-fn points_gap(d: &DVector<f64>, c: &DMatrix<f64>) -> TwinPointsGap {
+/// Whitening W = Λ^-1/2 Vᵀ of a covariance on its informative directions (the 6 rigid
+/// motions of the inner-constraint datum carry none): WᵀW is its pseudo-inverse.
+fn whitening(c: &DMatrix<f64>) -> DMatrix<f64> {
     let eigen = c.clone().symmetric_eigen();
     let largest = eigen.eigenvalues.amax();
-    let (mut chi2, mut dof) = (0.0, 0usize);
-    for (k, &lambda) in eigen.eigenvalues.iter().enumerate() {
-        // The 6 rigid motions of the inner-constraint datum carry no information.
-        if lambda > 1e-9 * largest && lambda > 0.0 {
-            chi2 += eigen.eigenvectors.column(k).dot(d).powi(2) / lambda;
-            dof += 1;
-        }
-    }
+    let kept: Vec<usize> = (0..eigen.eigenvalues.len())
+        .filter(|&k| eigen.eigenvalues[k] > 1e-9 * largest && eigen.eigenvalues[k] > 0.0)
+        .collect();
+    DMatrix::from_fn(kept.len(), c.nrows(), |r, col| {
+        let k = kept[r];
+        eigen.eigenvectors[(col, k)] / eigen.eigenvalues[k].sqrt()
+    })
+}
+
+/// The gap of the differences `d` (covariance `c`, whitened by `w`).
+fn points_gap(d: &DVector<f64>, c: &DMatrix<f64>, w: &DMatrix<f64>) -> TwinPointsGap {
+    let chi2 = (w * d).norm_squared();
+    let dof = w.nrows();
     let rows = d.len().max(1) as f64;
     TwinPointsGap {
         chi2,
@@ -156,30 +163,20 @@ fn target_shift_columns(targets: &[&str]) -> DMatrix<f64> {
     })
 }
 
-/// Fit the columns `a` to `d` under covariance `c` (its null directions dropped) as free
-/// parameters and remove them; returns the number of directions fitted: those whose
-/// Mahalanobis size exceeds EFFECT_RANK_TOL of the largest (or of `reference`).
+/// Fit the columns `a` to `d` (whitened by `w`) as free parameters and remove them; returns
+/// the number of directions fitted: those whose Mahalanobis size exceeds EFFECT_RANK_TOL of
+/// the largest (or of `reference`).
 fn remove_columns(
     d: &mut DVector<f64>,
-    c: &DMatrix<f64>,
+    w: &DMatrix<f64>,
     a: &DMatrix<f64>,
     reference: f64,
 ) -> usize {
     if a.ncols() == 0 {
         return 0;
     }
-    let eigen = c.clone().symmetric_eigen();
-    let largest = eigen.eigenvalues.amax();
-    let kept: Vec<usize> = (0..eigen.eigenvalues.len())
-        .filter(|&k| eigen.eigenvalues[k] > 1e-9 * largest && eigen.eigenvalues[k] > 0.0)
-        .collect();
-    // Whitening W = Λ^-1/2 Vᵀ on the kept directions.
-    let w = DMatrix::from_fn(kept.len(), d.len(), |r, col| {
-        let k = kept[r];
-        eigen.eigenvectors[(col, k)] / eigen.eigenvalues[k].sqrt()
-    });
-    let basis = Basis::new(&(&w * a), EFFECT_RANK_TOL, reference);
-    let beta = basis.solve(&(&w * &*d));
+    let basis = Basis::new(&(w * a), EFFECT_RANK_TOL, reference);
+    let beta = basis.solve(&(w * &*d));
     *d -= a * beta;
     basis.rank()
 }
@@ -247,10 +244,11 @@ pub fn diagnose_against_twin(
                 .where_
                 .extend(test_groups(&d, &c, &meta, options.alpha, " vs twin"));
             report.departures = point_departures(&d, &c, &meta, options.alpha);
-            report.points_before = Some(points_gap(&d, &c));
+            report.points_before = Some(points_gap(&d, &c, &whitening(&c)));
             let corrected: Vec<f64> = recorded.iter().zip(&effect_m).map(|(l, e)| l - e).collect();
             if let Ok(after) = keyed_points(&rec, &corrected) {
                 let (mut d, c, pairs) = compare_points(&after, &tp);
+                let w = whitening(&c);
                 // The selected lengths-level effects' estimates are uncertain and move the
                 // points along their response: fitted as free columns (as the points level
                 // does). target_offset is a points-level effect, not in the lengths'
@@ -275,11 +273,11 @@ pub fn diagnose_against_twin(
                 };
                 let columns = hcat(&response, &shifts);
                 let df = if columns.ncols() > 0 {
-                    remove_columns(&mut d, &c, &columns, reference)
+                    remove_columns(&mut d, &w, &columns, reference)
                 } else {
                     0
                 };
-                let mut gap = points_gap(&d, &c);
+                let mut gap = points_gap(&d, &c, &w);
                 if df > 0 {
                     gap.dof = gap.dof.saturating_sub(df);
                     gap.chi2_per_dof = gap.chi2 / gap.dof.max(1) as f64;
