@@ -93,6 +93,7 @@ fn synthetic(seed: u64, n: usize, m: usize) -> Synthetic {
                 segment: j,
                 length_m: (pj - x).norm() - home + noise,
                 sigma_m: SIGMA_M,
+                path_sigma: None,
             });
         }
     }

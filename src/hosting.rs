@@ -11,7 +11,6 @@ use geocal_drivers::hpi3d::{EmulatorConfig, Hpi3dEmulator};
 use geocal_drivers::serial::SerialStream;
 
 use crate::config::{Config, DriverKind, HilConfig, SimConfig};
-use crate::extract::NoiseModel;
 use crate::rotary_table::HostedTable;
 use crate::sim::devices::SharedWorld;
 use crate::sim::hil::{HilTime, WorldMachineSink, WorldTracerSource};
@@ -70,10 +69,7 @@ pub async fn host(
     let source = WorldTracerSource::new(
         world.clone(),
         time.clone(),
-        NoiseModel {
-            noise_m: tracer_cfg.noise_m,
-            noise_ppm: tracer_cfg.noise_ppm,
-        },
+        tracer_cfg.noise_model(),
         sim.seed,
     );
     let (tracer, tracer_port) = Hpi3dEmulator::spawn_pty(

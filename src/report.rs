@@ -183,8 +183,11 @@ pub fn plan_check_text(check: &crate::method::plan_check::PlanCheck) -> String {
     );
     let _ = writeln!(
         s,
-        "noise: {} m + {} ppm per sample, {} samples averaged per dwell",
-        check.noise_model.noise_m, check.noise_model.noise_ppm, check.samples_per_dwell
+        "noise: {} m + {} ppm of the absolute optical path (beam + dead path {} m) per sample, {} samples averaged per dwell",
+        check.noise_model.noise_m,
+        check.noise_model.noise_ppm,
+        check.noise_model.dead_path_m,
+        check.samples_per_dwell
     );
     let _ = writeln!(
         s,

@@ -155,7 +155,8 @@ impl DriverKind {
 pub struct TracerConfig {
     pub id: String,
     pub driver: DriverKind,
-    /// Per-sample standard deviation: noise_m + noise_ppm * 1e-6 * |L|.
+    /// Per-sample standard deviation: noise_m + noise_ppm * 1e-6 * L_abs, L_abs the absolute
+    /// optical path |station − target| + dead_path_m.
     pub noise_m: f64,
     pub noise_ppm: f64,
     /// Samples per second of the length stream.
@@ -170,6 +171,17 @@ pub struct TracerConfig {
     /// `[devices.tracer.hpi3d]`: the driver's settings (driver `hpi3d`; `id` comes from here).
     #[serde(default)]
     pub hpi3d: Option<geocal_drivers::hpi3d::Hpi3dConfig>,
+}
+
+impl TracerConfig {
+    /// The declared per-sample noise (ppm of the absolute optical path, dead path included).
+    pub fn noise_model(&self) -> crate::extract::NoiseModel {
+        crate::extract::NoiseModel {
+            noise_m: self.noise_m,
+            noise_ppm: self.noise_ppm,
+            dead_path_m: self.dead_path_m,
+        }
+    }
 }
 
 fn default_wavelength() -> f64 {

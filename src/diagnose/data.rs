@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use crate::extract::{extract_points, ExtractOptions, NoiseModel};
 use crate::session::reader::Session;
 use crate::sim::effects::edlen_dn;
-use crate::solve::multilateration::MultilaterationProblem;
+use crate::solve::multilateration::{solve, MultilaterationProblem, SolveOptions};
 
 #[derive(Debug, Clone)]
 pub struct Obs {
@@ -65,6 +65,8 @@ pub struct Data {
     pub points: Vec<(String, usize, [f64; 3])>,
     pub point_axes_m: Vec<Option<[f64; 3]>>,
     pub machine: crate::session::messages::MachineInfo,
+    /// The tracer's declared dead path (m): part of the absolute optical path the air acts on.
+    pub declared_dead_path_m: f64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -252,8 +254,17 @@ impl Data {
         for o in &obs {
             station_start_s[o.station] = station_start_s[o.station].min(o.t_s);
         }
-        let problem = built.problem;
+        // Path-dependent σ evaluated once at the calibration's solution and then held, so that
+        // every fit of the diagnosis weighs the lengths alike.
+        let mut problem = built.problem;
+        if let Ok(solution) = solve(&problem, &SolveOptions::default()) {
+            problem = problem.with_fixed_sigmas(&solution.sigmas_m);
+            for (o, fixed) in obs.iter_mut().zip(&problem.observations) {
+                o.sigma_m = fixed.sigma_m;
+            }
+        }
         Ok(Data {
+            declared_dead_path_m: noise.map_or(0.0, |n| n.dead_path_m),
             points: built.points,
             point_axes_m: built.axes_m,
             machine: session.header.machine.clone(),

@@ -237,8 +237,9 @@ impl EffectModel {
                 }
                 f
             }
+            // The index error acts on the absolute optical path, the declared dead path included.
             EffectKind::AirRefraction => DMatrix::from_fn(nobs, 1, |i, _| {
-                data.obs[i].dn.unwrap_or(0.0) * geom.beam(data, i).1
+                data.obs[i].dn.unwrap_or(0.0) * (geom.beam(data, i).1 + data.declared_dead_path_m)
             }),
             EffectKind::TracerEccentricity => {
                 let mut f = DMatrix::zeros(nobs, 3 * m);
@@ -268,7 +269,8 @@ impl EffectModel {
                 }
                 f
             }
-            // dn(t) times a fixed length per station: independent of where the target is.
+            // dn(t) times an error of the declared dead path per station: independent of
+            // where the target is.
             EffectKind::DeadPath => {
                 let mut f = DMatrix::zeros(nobs, m);
                 for (i, o) in data.obs.iter().enumerate() {

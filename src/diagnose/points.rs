@@ -208,6 +208,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
             segment: o.segment,
             length_m,
             sigma_m: o.sigma_m,
+            path_sigma: None,
         });
     }
     let problem = MultilaterationProblem {

@@ -8,17 +8,33 @@ use serde::Serialize;
 use super::stillstand::{Stillstand, StillstandDetector};
 use crate::session::messages::{RunEvent, SessionHeader, TracerSample};
 use crate::session::reader::{Session, Stamped};
+pub use crate::solve::multilateration::PathSigma;
 
-/// Per-sample noise of a tracer: sigma = noise_m + noise_ppm * 1e-6 * |L|.
+/// Per-sample noise of a tracer: sigma = noise_m + noise_ppm * 1e-6 * L_abs, with L_abs the
+/// absolute optical path |station − target| + dead_path_m. The ppm part (air turbulence, index
+/// and wavelength uncertainty) grows with the whole beam, not with the relative counter
+/// length, which is near 0 at the homing point while the beam is metres long.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize)]
 pub struct NoiseModel {
     pub noise_m: f64,
     pub noise_ppm: f64,
+    /// The tracer's declared dead path: optical path the counter does not see.
+    pub dead_path_m: f64,
 }
 
 impl NoiseModel {
-    pub fn sample_sigma_m(&self, length_m: f64) -> f64 {
-        self.noise_m + self.noise_ppm * 1e-6 * length_m.abs()
+    /// σ of one sample with the beam `beam_m` = |station − target| long.
+    pub fn sample_sigma_m(&self, beam_m: f64) -> f64 {
+        self.noise_m + self.noise_ppm * 1e-6 * (beam_m.abs() + self.dead_path_m)
+    }
+
+    /// σ of the mean of `samples` samples, as a function of the beam length.
+    pub fn mean_sigma(&self, samples: usize) -> PathSigma {
+        let root_n = (samples.max(1) as f64).sqrt();
+        PathSigma {
+            at_zero_beam_m: self.sample_sigma_m(0.0) / root_n,
+            per_beam_m: self.noise_ppm * 1e-6 / root_n,
+        }
     }
 
     /// The tracer's declared noise model from the session header, if complete.
@@ -27,6 +43,7 @@ impl NoiseModel {
         Some(NoiseModel {
             noise_m: device.noise_m?,
             noise_ppm: device.noise_ppm.unwrap_or(0.0),
+            dead_path_m: device.dead_path_m.unwrap_or(0.0),
         })
     }
 }
@@ -73,7 +90,13 @@ pub struct PointMeasurement {
     pub approach: BTreeMap<String, i8>,
     pub beam_segment: u32,
     pub length_m: f64,
+    /// σ of the mean length. With a declared noise model this is its value for a beam of
+    /// zero length (`path_sigma.at_zero_beam_m`): the beam |station − target| is known only
+    /// once the geometry is solved, which then adds `path_sigma.per_beam_m` per metre.
     pub sigma_m: f64,
+    /// The declared noise model's σ of this mean as a function of the beam length; None when
+    /// no model is declared (then `sigma_m` is the samples' own scatter).
+    pub path_sigma: Option<PathSigma>,
     pub samples: usize,
     /// Device time of the settled stretch.
     pub settled_from_s: f64,
@@ -225,6 +248,7 @@ pub fn extract_points(
                         beam_segment: settled.beam_segment,
                         length_m: settled.mean_m,
                         sigma_m: settled.sigma_m,
+                        path_sigma: noise.map(|n| n.mean_sigma(settled.count)),
                         samples: settled.count,
                         settled_from_s: settled.from_s,
                         settled_to_s: settled.to_s,
@@ -326,17 +350,17 @@ fn settle(
         return Err("settled stretch holds fewer than 2 samples");
     }
     let mean_m = settled.iter().sum::<f64>() / count as f64;
-    let sample_sigma = match noise {
-        Some(model) => model.sample_sigma_m(mean_m),
+    let sigma_m = match noise {
+        Some(model) => model.mean_sigma(count).at_zero_beam_m,
         None => {
             let var =
                 settled.iter().map(|v| (v - mean_m).powi(2)).sum::<f64>() / (count - 1) as f64;
-            var.sqrt().max(1e-12)
+            var.sqrt().max(1e-12) / (count as f64).sqrt()
         }
     };
     Ok(Settled {
         mean_m,
-        sigma_m: sample_sigma / (count as f64).sqrt(),
+        sigma_m,
         count,
         from_s,
         to_s,

@@ -282,8 +282,8 @@ pub fn solve_detailed(
         gauge: solution.gauge.to_string(),
         noise_model: match declared_noise {
             Some(n) => format!(
-                "declared by the session: sigma = {} m + {} ppm * |L| per sample, divided by sqrt(samples averaged)",
-                n.noise_m, n.noise_ppm
+                "declared by the session: sigma = {} m + {} ppm * (|station - point| + dead path {} m) per sample, divided by sqrt(samples averaged); the beam re-evaluated at the solution",
+                n.noise_m, n.noise_ppm, n.dead_path_m
             ),
             None => "none declared: each point's sigma is the scatter of its settled samples / sqrt(count)".into(),
         },
@@ -444,6 +444,7 @@ impl Problem {
                 segment,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,
+                path_sigma: m.path_sigma,
             });
         }
         let problem = MultilaterationProblem {

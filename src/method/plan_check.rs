@@ -111,10 +111,7 @@ fn nominal_problem(
     plan: &Plan,
 ) -> Result<(NominalProblem, usize, NoiseModel), PlanCheckError> {
     let tracer = &config.devices.tracer;
-    let noise = NoiseModel {
-        noise_m: tracer.noise_m,
-        noise_ppm: tracer.noise_ppm,
-    };
+    let noise = tracer.noise_model();
     let samples = ((plan.dwell_s * tracer.sample_rate_hz).floor() as usize).max(1);
     let stations: Vec<Vector3<f64>> = plan
         .stations
@@ -148,8 +145,9 @@ fn nominal_problem(
             ));
             let home = (station - nominal_points[t * n]).norm();
             for i in 0..n {
-                let length_m = (station - nominal_points[t * n + i]).norm() - home;
-                let sigma_m = noise.sample_sigma_m(length_m) / (samples as f64).sqrt();
+                let beam_m = (station - nominal_points[t * n + i]).norm();
+                let length_m = beam_m - home;
+                let sigma_m = noise.sample_sigma_m(beam_m) / (samples as f64).sqrt();
                 // Every pass measures every point once more.
                 for _ in &plan.passes {
                     observations.push(LengthObservation {
@@ -157,6 +155,7 @@ fn nominal_problem(
                         segment,
                         length_m,
                         sigma_m,
+                        path_sigma: None,
                     });
                 }
             }
@@ -197,16 +196,19 @@ pub fn check(config: &Config, plan: &Plan) -> Result<PlanCheck, PlanCheckError> 
             identifiability.unidentifiable.join(", ")
         ));
     }
-    // Stillstand must not mistake noise for motion: ~6 sigma peak to peak at the longest length.
+    // Stillstand must not mistake noise for motion: ~6 sigma peak to peak at the longest beam.
     let longest_m = problem
         .observations
         .iter()
-        .map(|o| o.length_m.abs())
+        .map(|o| {
+            let station = problem.station_hints[problem.segments[o.segment].station];
+            station.map_or(0.0, |s| (s - problem.nominal_points[o.point]).norm())
+        })
         .fold(0.0, f64::max);
     let noise_p2p_m = 6.0 * noise.sample_sigma_m(longest_m);
     if plan.stillstand_tolerance_m < noise_p2p_m {
         warnings.push(format!(
-            "plan.stillstand.tolerance_m = {:.2e} m is below 6 sigma of the tracer noise at the longest length ({longest_m:.2} m): {noise_p2p_m:.2e} m; noise will delay and shorten settled windows",
+            "plan.stillstand.tolerance_m = {:.2e} m is below 6 sigma of the tracer noise at the longest beam ({longest_m:.2} m): {noise_p2p_m:.2e} m; noise will delay and shorten settled windows",
             plan.stillstand_tolerance_m
         ));
     }
@@ -581,7 +583,7 @@ mod tests {
 
     #[test]
     fn a_stillstand_tolerance_below_the_noise_is_flagged() {
-        let c = check_text(&DEMO.replace("tolerance_m = 4e-6", "tolerance_m = 5e-7"));
+        let c = check_text(&DEMO.replace("tolerance_m = 5e-6", "tolerance_m = 5e-7"));
         assert!(
             c.warnings
                 .iter()

@@ -71,7 +71,8 @@ pub struct DeviceInfo {
     pub id: String,
     pub kind: String,
     pub driver: String,
-    /// Per-sample sigma = noise_m + noise_ppm * 1e-6 * |L|.
+    /// Per-sample sigma = noise_m + noise_ppm * 1e-6 * (|station - target| + dead_path_m):
+    /// the ppm term is of the absolute optical path, dead path included.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub noise_m: Option<f64>,
     #[serde(default, skip_serializing_if = "Option::is_none")]

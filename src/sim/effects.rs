@@ -92,16 +92,17 @@ pub struct EffectsConfig {
     pub reversal: EffectSwitch,
     /// An unflagged fringe loss of `size` metres in one station, at a random time in its pass.
     pub length_step: EffectSwitch,
-    /// The tracer is not compensated for air: error dn·L, scaled by `size` (1 = physical).
+    /// The tracer is not compensated for air: error dn·L_abs, L_abs the absolute optical path
+    /// (beam plus declared dead path), scaled by `size` (1 = physical).
     pub air_refraction: EffectSwitch,
     /// Length error e·cos(azimuth − φ0) + ez·sin(elevation) of the beam from each station.
     pub tracer_eccentricity: EccentricitySwitch,
     /// The target (machine) drifts at `size` m/s in a random direction from the session start,
     /// A(t) = A + v·t: every station sees the same motion.
     pub thermal_drift: EffectSwitch,
-    /// The tracer compensates the measured length for air but not its dead path (the optical
-    /// path from the interferometer's zero): error dn(t)·dead path, [0.5, 1]·`size` metres
-    /// per station.
+    /// The dead path (the optical path from the interferometer's zero) differs from the one
+    /// declared, so the air compensation misses dn(t) times that difference: [0.5, 1]·`size`
+    /// metres per station.
     pub dead_path: EffectSwitch,
     /// The machine's scales are not compensated for temperature: each axis position is
     /// scaled by `size`·(T_material − 20 °C), `size` the expansion coefficient in 1/K
@@ -205,8 +206,10 @@ pub struct SimEffects {
     eccentricity: Vec<(f64, f64, f64)>,
     /// Target drift velocity, m/s.
     thermal_drift_m_s: Vector3<f64>,
-    /// Per station: uncompensated dead path, metres.
+    /// Per station: error of the declared dead path (uncompensated), metres.
     dead_path_m: Vec<f64>,
+    /// The tracer's declared dead path: the air acts on it as on the measured length.
+    declared_dead_path_m: f64,
     /// Per axis: settling offset at the end of a move, metres.
     settling_m: [f64; 3],
     /// Sign of each axis's last move (0: it did not move) and when that move ends.
@@ -279,6 +282,7 @@ impl SimEffects {
             eccentricity,
             thermal_drift_m_s,
             dead_path_m,
+            declared_dead_path_m: 0.0,
             settling_m,
             moved: [0.0; 3],
             move_end_s: 0.0,
@@ -291,6 +295,12 @@ impl SimEffects {
             station_start_s: 0.0,
             moves_in_station: 0,
         }
+    }
+
+    /// The tracer's declared dead path, part of the optical path the air refraction acts on.
+    pub fn with_declared_dead_path(mut self, dead_path_m: f64) -> SimEffects {
+        self.declared_dead_path_m = dead_path_m;
+        self
     }
 
     /// The tracer now stands at `station` (the operator has finished placing it).
@@ -416,7 +426,7 @@ impl SimEffects {
             self.env.humidity_pct,
         );
         if c.air_refraction.enabled {
-            err += c.air_refraction.size * dn * d;
+            err += c.air_refraction.size * dn * (d + self.declared_dead_path_m);
         }
         if c.dead_path.enabled {
             err += dn * self.dead_path_m.get(station).copied().unwrap_or(0.0);

@@ -110,8 +110,8 @@ impl TracerSource for WorldTracerSource {
     /// `t_s` is the emulator's own elapsed time; the world follows the shared `HilTime`,
     /// which differs from it only by the moment the emulator was spawned.
     fn sample(&mut self, _t_s: f64) -> SourceReading {
-        let (distance_m, home_m) = self.time.world(&self.world).hil_distances_m();
-        let sigma = self.noise.sample_sigma_m(distance_m - home_m);
+        let distance_m = self.time.world(&self.world).hil_distance_m();
+        let sigma = self.noise.sample_sigma_m(distance_m);
         let noise = Normal::new(0.0, sigma).map_or(0.0, |n| n.sample(&mut self.rng));
         self.last_noise_m = noise;
         SourceReading {

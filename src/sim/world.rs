@@ -202,10 +202,7 @@ impl SimWorld {
             home_distance_m: 0.0,
             beam_segment: 0,
             beam_interrupted: false,
-            noise: NoiseModel {
-                noise_m: tracer.noise_m,
-                noise_ppm: tracer.noise_ppm,
-            },
+            noise: tracer.noise_model(),
             rng: ChaCha8Rng::seed_from_u64(sim.noise_seed.unwrap_or(sim.seed.wrapping_add(1))),
             effects: SimEffects::new(
                 &sim.effects,
@@ -213,7 +210,8 @@ impl SimWorld {
                 sim.seed,
                 plan.stations.len(),
                 plan.targets.len() * plan.passes.len() * plan.points.len(),
-            ),
+            )
+            .with_declared_dead_path(tracer.dead_path_m),
             env: sim.environment.clone(),
             env_period_s: 1.0 / env_rate,
             next_env_s: 0.0,
@@ -255,8 +253,9 @@ impl SimWorld {
         let t_s = (self.last_sample_s + self.sample_period_s).max(self.now_s());
         self.last_sample_s = t_s;
         self.clock.advance_to(t_s);
-        let length_m = self.true_distance_m(t_s) - self.home_distance_m;
-        let sigma = self.noise.sample_sigma_m(length_m);
+        let distance_m = self.true_distance_m(t_s);
+        let length_m = distance_m - self.home_distance_m;
+        let sigma = self.noise.sample_sigma_m(distance_m);
         let noise = Normal::new(0.0, sigma).map_or(0.0, |n| n.sample(&mut self.rng));
         let seq = self.next_seq;
         self.next_seq += 1;
@@ -398,9 +397,9 @@ impl SimWorld {
 
     // --- hardware-in-the-loop (src/sim/hil.rs): the emulators read the world directly ---
 
-    /// True tracer-to-target distance now, and the distance at the last homing.
-    pub(crate) fn hil_distances_m(&self) -> (f64, f64) {
-        (self.true_distance_m(self.now_s()), self.home_distance_m)
+    /// True tracer-to-target distance now (the emulator keeps its own origin).
+    pub(crate) fn hil_distance_m(&self) -> f64 {
+        self.true_distance_m(self.now_s())
     }
 
     /// The machine's axis positions now, and whether it is still moving (a move to where

@@ -9,7 +9,54 @@ pub struct LengthObservation {
     pub point: usize,
     pub segment: usize,
     pub length_m: f64,
+    /// The standard deviation the fit weighs this length with. With `path_sigma` the solver
+    /// sets it from its geometry; what is given here only has to be positive.
     pub sigma_m: f64,
+    /// σ as a function of the beam |station − point|, when the noise grows with the optical
+    /// path (an interferometer's ppm term); None for a fixed `sigma_m`.
+    pub path_sigma: Option<PathSigma>,
+}
+
+/// σ of a length whose noise grows with the beam: at_zero_beam_m + per_beam_m·|A − P|
+/// (at_zero_beam_m holds the constant part and the tracer's dead path).
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize)]
+pub struct PathSigma {
+    pub at_zero_beam_m: f64,
+    pub per_beam_m: f64,
+}
+
+impl PathSigma {
+    pub fn sigma_m(&self, beam_m: f64) -> f64 {
+        self.at_zero_beam_m + self.per_beam_m * beam_m
+    }
+}
+
+impl MultilaterationProblem {
+    /// Set every path-dependent σ from the beams of the given geometry; returns the largest
+    /// relative change.
+    fn set_path_sigmas(&mut self, stations: &[Vector3<f64>], points: &[Vector3<f64>]) -> f64 {
+        let mut largest: f64 = 0.0;
+        for obs in &mut self.observations {
+            if let Some(path) = obs.path_sigma {
+                let station = stations[self.segments[obs.segment].station];
+                let sigma = path.sigma_m((station - points[obs.point]).norm());
+                largest = largest.max((sigma - obs.sigma_m).abs() / sigma);
+                obs.sigma_m = sigma;
+            }
+        }
+        largest
+    }
+
+    /// The same problem with every σ fixed at its value for the given solution (no longer
+    /// path dependent): what fits that must weigh alike use (robust rounds, the diagnosis).
+    pub fn with_fixed_sigmas(&self, sigmas_m: &[f64]) -> MultilaterationProblem {
+        let mut fixed = self.clone();
+        for (obs, &sigma) in fixed.observations.iter_mut().zip(sigmas_m) {
+            obs.sigma_m = sigma;
+            obs.path_sigma = None;
+        }
+        fixed
+    }
 }
 
 /// A beam segment (between two homings at point 0) and the station it belongs to.
@@ -69,6 +116,8 @@ pub struct MultilaterationSolution {
     pub segment_distance_sigma_m: Vec<f64>,
     /// Per observation, measured − predicted.
     pub residuals_m: Vec<f64>,
+    /// Per observation, the σ the fit weighed it with (path-dependent ones at the solution).
+    pub sigmas_m: Vec<f64>,
     pub residual_rms_m: f64,
     /// Σ (r/σ)²; expect about `dof` when the noise model holds.
     pub chi2: f64,
@@ -697,10 +746,11 @@ pub fn dense_point_covariance(
     let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);
     let mut row = [0.0; 7];
     let mut cols = [0usize; 7];
-    for obs in &problem.observations {
+    // The σ the solve weighed with (path-dependent ones at the solution).
+    for (obs, &sigma_m) in problem.observations.iter().zip(&solution.sigmas_m) {
         let j = problem.segments[obs.segment].station;
         let d = solution.stations[j] - solution.points[obs.point];
-        let u = d / d.norm() / obs.sigma_m;
+        let u = d / d.norm() / sigma_m;
         for k in 0..3 {
             cols[k] = 3 * j + k;
             row[k] = u[k];
@@ -708,7 +758,7 @@ pub fn dense_point_covariance(
             row[3 + k] = -u[k];
         }
         cols[6] = 3 * m + obs.segment;
-        row[6] = -1.0 / obs.sigma_m;
+        row[6] = -1.0 / sigma_m;
         for a in 0..7 {
             for b in 0..7 {
                 normal[(cols[a], cols[b])] += row[a] * row[b];
@@ -936,76 +986,39 @@ pub fn solve(
     let stations = initial_stations(problem)?;
     let layout = build_layout(problem)?;
     let points = problem.nominal_points.clone();
-    let distances_m = initial_segment_distances(problem, &stations, &points);
+    // Path-dependent σ: set from the starting geometry, then from each solution while they
+    // still change (the beams are known to millimetres from the start, so this rarely needs
+    // a second round, and then only a step or two from the solution).
+    let path_dependent = problem.observations.iter().any(|o| o.path_sigma.is_some());
+    let mut weighted = std::borrow::Cow::Borrowed(problem);
+    if path_dependent {
+        weighted.to_mut().set_path_sigmas(&stations, &points);
+    }
+    let distances_m = initial_segment_distances(&weighted, &stations, &points);
     let mut params = Params {
         points,
         stations,
         distances_m,
     };
-    let mut trial = params.clone();
     let mut normal = Normal::new(&layout);
-    let mut dx = vec![Vector3::zeros(); layout.n];
-    let mut dv = DVector::zeros(layout.nv);
-    let mut lambda = options.initial_lambda;
-    let mut current_cost = cost(problem, &params);
-    let mut converged = current_cost == 0.0;
-    let mut iterations = 0;
-    let mut need_build = true;
-    while !converged && iterations < options.max_iterations {
-        iterations += 1;
-        if need_build {
-            normal.build(problem, &layout, &params)?;
-            need_build = false;
+    let (mut iterations, mut converged) =
+        levenberg_marquardt(&weighted, &layout, &mut normal, &mut params, options)?;
+    for _ in 0..MAX_REWEIGHTS {
+        if !path_dependent {
+            break;
         }
-        if !normal.solve_damped(&layout, lambda, &mut dx, &mut dv)? {
-            lambda *= 10.0;
-            if lambda > 1e20 {
-                return Err(SolveError::Singular(
-                    "the reduced normal matrix stays indefinite under damping".into(),
-                ));
-            }
-            continue;
+        let change = weighted
+            .to_mut()
+            .set_path_sigmas(&params.stations, &params.points);
+        if change <= REWEIGHT_TOLERANCE {
+            break;
         }
-        let m = layout.m;
-        let mut max_step: f64 = 0.0;
-        for (i, d) in dx.iter().enumerate() {
-            trial.points[i] = params.points[i] + d;
-            max_step = max_step.max(d.amax());
-        }
-        for j in 0..m {
-            let d = Vector3::new(dv[3 * j], dv[3 * j + 1], dv[3 * j + 2]);
-            trial.stations[j] = params.stations[j] + d;
-            max_step = max_step.max(d.amax());
-        }
-        for (s, dist) in trial.distances_m.iter_mut().enumerate() {
-            *dist = params.distances_m[s] + dv[3 * m + s];
-            max_step = max_step.max(dv[3 * m + s].abs());
-        }
-        let new_cost = cost(problem, &trial);
-        if new_cost.is_finite() && new_cost < current_cost {
-            let decrease = (current_cost - new_cost) / current_cost;
-            std::mem::swap(&mut params, &mut trial);
-            current_cost = new_cost;
-            need_build = true;
-            // A tiny decrease only means convergence when the step was not heavily damped.
-            let nearly_gauss_newton = lambda < 1.0;
-            lambda = (lambda / 10.0).max(1e-15);
-            if (decrease <= options.tolerance && nearly_gauss_newton)
-                || max_step <= options.step_tolerance_m
-            {
-                converged = true;
-            }
-        } else {
-            // A rejected step below the resolution means we sit at the rounding floor.
-            if max_step <= options.step_tolerance_m {
-                converged = true;
-            }
-            lambda *= 10.0;
-            if lambda > 1e20 {
-                break;
-            }
-        }
+        let (more, done) =
+            levenberg_marquardt(&weighted, &layout, &mut normal, &mut params, options)?;
+        iterations += more;
+        converged = done;
     }
+    let problem = weighted.as_ref();
     align_to_nominal(problem, &mut params)?;
     let cov = covariance(problem, &layout, &mut normal, &params)?;
     let mut residuals_m = Vec::with_capacity(problem.observations.len());
@@ -1034,6 +1047,7 @@ pub fn solve(
             .map(|v| v.max(0.0).sqrt())
             .collect(),
         residuals_m,
+        sigmas_m: problem.observations.iter().map(|o| o.sigma_m).collect(),
         residual_rms_m,
         chi2,
         dof: nobs + 6 - unknowns,
@@ -1041,6 +1055,86 @@ pub fn solve(
         converged,
         gauge: GAUGE_DESCRIPTION,
     })
+}
+
+/// Rounds of re-evaluating path-dependent σ at the solution, and the relative change of any σ
+/// below which the weights count as settled (χ² then moves by well under 0.1 %).
+const MAX_REWEIGHTS: usize = 4;
+const REWEIGHT_TOLERANCE: f64 = 1e-4;
+
+/// Levenberg–Marquardt from `params` to convergence with the problem's σ held fixed; returns
+/// the iterations taken and whether it converged.
+fn levenberg_marquardt(
+    problem: &MultilaterationProblem,
+    layout: &Layout,
+    normal: &mut Normal,
+    params: &mut Params,
+    options: &SolveOptions,
+) -> Result<(usize, bool), SolveError> {
+    let mut trial = params.clone();
+    let mut dx = vec![Vector3::zeros(); layout.n];
+    let mut dv = DVector::zeros(layout.nv);
+    let mut lambda = options.initial_lambda;
+    let mut current_cost = cost(problem, params);
+    let mut converged = current_cost == 0.0;
+    let mut iterations = 0;
+    let mut need_build = true;
+    while !converged && iterations < options.max_iterations {
+        iterations += 1;
+        if need_build {
+            normal.build(problem, layout, params)?;
+            need_build = false;
+        }
+        if !normal.solve_damped(layout, lambda, &mut dx, &mut dv)? {
+            lambda *= 10.0;
+            if lambda > 1e20 {
+                return Err(SolveError::Singular(
+                    "the reduced normal matrix stays indefinite under damping".into(),
+                ));
+            }
+            continue;
+        }
+        let m = layout.m;
+        let mut max_step: f64 = 0.0;
+        for (i, d) in dx.iter().enumerate() {
+            trial.points[i] = params.points[i] + d;
+            max_step = max_step.max(d.amax());
+        }
+        for j in 0..m {
+            let d = Vector3::new(dv[3 * j], dv[3 * j + 1], dv[3 * j + 2]);
+            trial.stations[j] = params.stations[j] + d;
+            max_step = max_step.max(d.amax());
+        }
+        for (s, dist) in trial.distances_m.iter_mut().enumerate() {
+            *dist = params.distances_m[s] + dv[3 * m + s];
+            max_step = max_step.max(dv[3 * m + s].abs());
+        }
+        let new_cost = cost(problem, &trial);
+        if new_cost.is_finite() && new_cost < current_cost {
+            let decrease = (current_cost - new_cost) / current_cost;
+            std::mem::swap(params, &mut trial);
+            current_cost = new_cost;
+            need_build = true;
+            // A tiny decrease only means convergence when the step was not heavily damped.
+            let nearly_gauss_newton = lambda < 1.0;
+            lambda = (lambda / 10.0).max(1e-15);
+            if (decrease <= options.tolerance && nearly_gauss_newton)
+                || max_step <= options.step_tolerance_m
+            {
+                converged = true;
+            }
+        } else {
+            // A rejected step below the resolution means we sit at the rounding floor.
+            if max_step <= options.step_tolerance_m {
+                converged = true;
+            }
+            lambda *= 10.0;
+            if lambda > 1e20 {
+                break;
+            }
+        }
+    }
+    Ok((iterations, converged))
 }
 
 #[cfg(test)]
@@ -1122,6 +1216,7 @@ pub(crate) mod tests {
                         segment: s,
                         length_m: (pj - true_points[i]).norm() - d + noise,
                         sigma_m,
+                        path_sigma: None,
                     });
                 }
             }
@@ -1423,6 +1518,7 @@ pub(crate) mod tests {
                 segment: s,
                 length_m: (syn.true_stations[0] - syn.true_points[i]).norm() - d,
                 sigma_m: 30e-9,
+                path_sigma: None,
             });
         }
         syn.problem.station_hints = vec![None; 5];

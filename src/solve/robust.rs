@@ -54,24 +54,19 @@ pub fn solve_huber(
             huber.threshold_sigma
         )));
     }
+    // The first round weighs every length alike; its σ (path-dependent ones evaluated at that
+    // solution) then stay fixed, so the Huber weights are the only thing that changes.
+    let mut solution = solve(problem, options)?;
+    let base = problem.with_fixed_sigmas(&solution.sigmas_m);
+    let mut weighted = base.clone();
     let mut weights: Vec<f64> = vec![1.0; problem.observations.len()];
-    let mut weighted = problem.clone();
-    let mut rounds = 0;
+    let mut rounds = 1;
     loop {
-        rounds += 1;
-        for (obs, (orig, w)) in weighted
-            .observations
-            .iter_mut()
-            .zip(problem.observations.iter().zip(&weights))
-        {
-            obs.sigma_m = orig.sigma_m / w.sqrt();
-        }
-        let solution = solve(&weighted, options)?;
         let mut change: f64 = 0.0;
         for ((w, r), obs) in weights
             .iter_mut()
             .zip(&solution.residuals_m)
-            .zip(&problem.observations)
+            .zip(&base.observations)
         {
             let new = huber.weight(r / obs.sigma_m);
             change = change.max((new - *w).abs());
@@ -84,6 +79,15 @@ pub fn solve_huber(
                 rounds,
             });
         }
+        rounds += 1;
+        for (obs, (orig, w)) in weighted
+            .observations
+            .iter_mut()
+            .zip(base.observations.iter().zip(&weights))
+        {
+            obs.sigma_m = orig.sigma_m / w.sqrt();
+        }
+        solution = solve(&weighted, options)?;
     }
 }
 
