@@ -97,6 +97,15 @@ pub struct Diagnosis {
     pub selected: Vec<String>,
     pub gap_after: Gap,
     pub unexplained: bool,
+    /// The declared noise model is off by a common scale: residuals uniformly too large (or
+    /// small) with no group structure beyond it. A statement about the noise declaration,
+    /// kept apart from the effects; `unexplained` is then decided on the rescaled residuals.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub noise_scale: Option<NoiseScale>,
+    /// The calibration with the selected effects modelled (`geocal solve --effects`) and how
+    /// far its points moved from the nominal model's.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub corrected: Option<CorrectedCalibration>,
     /// The points level (solved points against the quasi-rigid 21-error model) of the nominal
     /// model; absent when the session's points cannot be tested (the reason is in `notes`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -115,6 +124,33 @@ pub struct Diagnosis {
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
+}
+
+/// The `noise_scale` finding: the declared per-length σ times `k` fits the residuals.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct NoiseScale {
+    /// √(χ²/dof) of the final model, and its two-sided confidence interval.
+    pub k: f64,
+    pub k_low: f64,
+    pub k_high: f64,
+    /// Confidence level of [k_low, k_high] (e.g. 0.95).
+    pub confidence: f64,
+    /// Degrees of freedom of the χ² that k comes from.
+    pub dof: usize,
+    /// "the declared noise model is k× too small|large".
+    pub statement: String,
+}
+
+/// The calibration re-solved with the selected effects modelled.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct CorrectedCalibration {
+    /// The command that gives it, e.g. `geocal solve SESSION --effects reversal`.
+    pub command: String,
+    pub effects: Vec<String>,
+    /// RMS over points and coordinates of (corrected − nominal-model) point positions, in
+    /// metres and in units of the corrected points' σ.
+    pub points_moved_rms_m: f64,
+    pub points_moved_rms_sigma: f64,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -833,6 +869,8 @@ pub(crate) fn diagnose_data(
         selected,
         gap_after,
         unexplained,
+        noise_scale: None,
+        corrected: None,
         points_level: points_before,
         points_level_after,
         leave_one_station_out: held_out,
