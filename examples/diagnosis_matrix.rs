@@ -33,14 +33,14 @@ const CASES: [(&str, &str); 12] = [
         "thermal_drift",
         "thermal_drift = { enabled = true, size = 4e-9 }",
     ),
-    ("dead_path", "dead_path = { enabled = true, size = 1.0 }"),
+    ("dead_path", "dead_path = { enabled = true, size = 2.0 }"),
     (
         "thermal_expansion",
         "thermal_expansion = { enabled = true, size = 2e-6 }",
     ),
     (
         "settling",
-        "settling = { enabled = true, size_m = 1.5e-6, tau_s = 0.5 }",
+        "settling = { enabled = true, size_m = 3e-6, tau_s = 0.5 }",
     ),
     (
         "target_offset",

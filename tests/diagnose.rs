@@ -91,13 +91,14 @@ fn thermal_drift_is_named() {
     );
 }
 
-/// A dead path left uncompensated: dn(t)·(0.5..1 m) per station, about ±0.2-0.5 µm over the
-/// air's ±0.5 K cycle, with no dependence on where the target is.
+/// A dead path 1-2 m longer than declared, so its refraction is left uncompensated:
+/// dn(t)·(1..2 m) per station, about ±0.5-1 µm over the air's ±0.5 K cycle, with no dependence
+/// on where the target is.
 #[test]
 fn dead_path_is_named() {
     check_named(
         "dead_path",
-        "dead_path = { enabled = true, size = 1.0 }",
+        "dead_path = { enabled = true, size = 2.0 }",
         17,
     );
 }
@@ -113,13 +114,13 @@ fn thermal_expansion_is_named() {
     );
 }
 
-/// Each moved axis lags 0.5-1 µm behind its target and settles with a 0.5 s time constant:
+/// Each moved axis lags 1-2 µm behind its target and settles with a 0.5 s time constant:
 /// the window means carry a reversal-like bias, the raw samples inside the windows a decay.
 #[test]
 fn settling_is_named() {
     check_named(
         "settling",
-        "settling = { enabled = true, size_m = 1.5e-6, tau_s = 0.5 }",
+        "settling = { enabled = true, size_m = 3e-6, tau_s = 0.5 }",
         19,
     );
 }
@@ -332,7 +333,7 @@ fn slow_warming(seed: u64, grid: Option<&str>) -> String {
     let text = with_effects(
         &diagnose_demo(),
         seed,
-        "thermal_drift = { enabled = true, size = 1e-9 }",
+        "thermal_drift = { enabled = true, size = 5e-9 }",
     )
     .replace("temp_swing_k = 0.5", "temp_swing_k = 2.0")
     .replace("temp_period_s = 900.0", "temp_period_s = 40000.0");
@@ -352,7 +353,7 @@ fn slow_warming(seed: u64, grid: Option<&str>) -> String {
 /// 1.2-2.2 m from the axes' zero, while the structure warms at a steady rate: the thermal
 /// expansion about the axes' zero moves the whole volume almost uniformly, which is what a
 /// drift of the target does, and a dead path following the warming air is a ramp along
-/// beams that barely change direction. The data hold a 1 nm/s thermal drift; the diagnosis
+/// beams that barely change direction. The data hold a 5 nm/s thermal drift; the diagnosis
 /// must not pick one of these, nor hand the signal to station_drift (which nests
 /// thermal_drift) once the group is set aside. Control: the same warming and drift on the
 /// demo's grid over the whole travel, where the signatures differ and thermal_drift wins.

@@ -5,10 +5,10 @@ mod common;
 
 use common::{diagnose_demo, run_and_diagnose, with_effects};
 
-/// A 0.6 µm bump of the tool along z around the x+ y+ z+ corner of the 3x3x3 grid (radius
+/// A 1.2 µm bump of the tool along z around the x+ y+ z+ corner of the 3x3x3 grid (radius
 /// 0.3 m): a local, non-rigid machine error. The lengths' model absorbs it (the points are
 /// free there); the quasi-rigid model cannot.
-const BUMP: &str = "local_bump = { enabled = true, size_m = 6e-7, centre_m = [1.3, 2.2, 0.95], radius_m = 0.3, direction = [0.0, 0.0, 1.0] }";
+const BUMP: &str = "local_bump = { enabled = true, size_m = 1.2e-6, centre_m = [1.3, 2.2, 0.95], radius_m = 0.3, direction = [0.0, 0.0, 1.0] }";
 
 #[test]
 fn local_bump_shows_at_the_points_level_only() {
@@ -157,7 +157,7 @@ fn against_twin(seed: u64, effects: &str) -> geocal::diagnose::Diagnosis {
 
 #[test]
 fn twin_comparison_names_the_effect() {
-    let d = against_twin(12, "reversal = { enabled = true, size = 1e-6 }");
+    let d = against_twin(12, "reversal = { enabled = true, size = 2e-6 }");
     let text = geocal::diagnose::text(&d);
     println!("{text}");
     let twin = d.twin.as_ref().expect("twin report");

@@ -196,6 +196,10 @@ struct Eval {
     theta_sigma: DVector<f64>,
     rms_after_m: f64,
     heldout_ms_m2: f64,
+    /// Mean of the held-out residuals squared, each in units of the base model's predicted
+    /// variance (noise plus prediction): the selection's held-out criterion, which the few
+    /// lengths with a long beam or a poorly determined prediction cannot dominate.
+    heldout_z2: f64,
     /// Orthonormal basis of the effect's projected columns (full data).
     u_perp: DMatrix<f64>,
 }
@@ -268,13 +272,13 @@ impl Engine {
         (ss, floor, zz)
     }
 
-    /// The base fit on all rows and per fold, its gap, held-out mean square and the number
-    /// of held-out lengths scored.
+    /// The base fit on all rows and per fold, its gap and the number of held-out lengths
+    /// scored.
     fn base(
         &self,
         design: &DMatrix<f64>,
         all_rows: &[usize],
-    ) -> (BaseFit, Vec<BaseFit>, Gap, f64, usize) {
+    ) -> (BaseFit, Vec<BaseFit>, Gap, usize) {
         let nobs = all_rows.len();
         let full = self.fit_base(design, all_rows.to_vec(), &[]);
         let fold_fits: Vec<BaseFit> = self
@@ -305,7 +309,7 @@ impl Engine {
             heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
             heldout_ratio: (zz / count.max(1) as f64).sqrt(),
         };
-        (full, fold_fits, base_gap, base_heldout_ms, count)
+        (full, fold_fits, base_gap, count)
     }
 
     fn evaluate(
@@ -336,10 +340,12 @@ impl Engine {
                 .sum::<f64>()
                 .sqrt()
         });
-        let mut ss = 0.0;
+        let (mut ss, mut zz) = (0.0, 0.0);
         let mut count = 0;
         for fit in fold_fits {
-            ss += self.heldout(design, fit, Some(a)).0;
+            let (s, _, z) = self.heldout(design, fit, Some(a));
+            ss += s;
+            zz += z;
             count += fit.held.len();
         }
         Eval {
@@ -349,6 +355,7 @@ impl Engine {
             theta_sigma,
             rms_after_m,
             heldout_ms_m2: ss / count.max(1) as f64,
+            heldout_z2: zz / count.max(1) as f64,
             u_perp: perp.u,
         }
     }
@@ -499,7 +506,8 @@ pub(crate) fn diagnose_data(
         let design = accepted
             .iter()
             .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
-        let (full, fold_fits, base_gap, base_heldout_ms, count) = engine.base(&design, &all_rows);
+        let (full, fold_fits, base_gap, count) = engine.base(&design, &all_rows);
+        let base_heldout_z2 = base_gap.heldout_ratio.powi(2);
         if round == 0 {
             let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
             notes.push(format!(
@@ -574,7 +582,7 @@ pub(crate) fn diagnose_data(
         let passes = |t: &Trial| {
             t.p_value < alpha_each
                 && t.bic_delta < 0.0
-                && (count == 0 || t.eval.heldout_ms_m2 < base_heldout_ms)
+                && (count == 0 || t.eval.heldout_z2 < base_heldout_z2)
         };
         let mut order: Vec<usize> = (0..trials.len()).collect();
         order.sort_by(|&a, &b| trials[a].bic_delta.total_cmp(&trials[b].bic_delta));
@@ -607,7 +615,7 @@ pub(crate) fn diagnose_data(
                 if trial.bic_delta >= 0.0 {
                     why.push("BIC does not improve".into());
                 }
-                if trial.eval.heldout_ms_m2 >= base_heldout_ms {
+                if count > 0 && trial.eval.heldout_z2 >= base_heldout_z2 {
                     why.push("held-out RMS does not improve".into());
                 }
                 format!("rejected: {}", why.join("; "))
