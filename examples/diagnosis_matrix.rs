@@ -27,7 +27,7 @@ const CASES: [(&str, &str); 12] = [
     ),
     (
         "tracer_eccentricity",
-        "tracer_eccentricity = { enabled = true, size_m = 2e-6, z_size_m = 1e-6 }",
+        "tracer_eccentricity = { enabled = true, size_m = 4e-6, z_size_m = 2e-6 }",
     ),
     (
         "thermal_drift",

@@ -42,7 +42,7 @@ fn local_bump_shows_at_the_points_level_only() {
 /// p 4.2e-4), and a station drift (15 parameters, two directions nearly absorbed per pass).
 #[test]
 fn points_level_after_the_effect_holds_its_uncertainty() {
-    let eccentricity = "tracer_eccentricity = { enabled = true, size_m = 2e-6, z_size_m = 1e-6 }";
+    let eccentricity = "tracer_eccentricity = { enabled = true, size_m = 4e-6, z_size_m = 2e-6 }";
     let drift = "station_drift = { enabled = true, size = 5e-9 }";
     for (effect, line, seed) in [
         ("tracer_eccentricity", eccentricity, 5009),
@@ -195,7 +195,7 @@ fn twin_points_after_the_effect_hold_its_uncertainty() {
     for seed in [5002, 5004] {
         let d = against_twin(
             seed,
-            "tracer_eccentricity = { enabled = true, size_m = 2e-6, z_size_m = 1e-6 }",
+            "tracer_eccentricity = { enabled = true, size_m = 4e-6, z_size_m = 2e-6 }",
         );
         let text = geocal::diagnose::text(&d);
         assert_eq!(

@@ -368,6 +368,10 @@ pub struct SimConfig {
     /// machine and stations of `seed` with noise of its own.
     #[serde(default)]
     pub noise_seed: Option<u64>,
+    /// The simulated tracer's noise is this many times its declared model (unset: 1): a tracer
+    /// noisier or quieter than its declaration, as the diagnosis's `noise_scale` must see.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tracer_noise_factor: Option<f64>,
     /// Run the virtual clock at most this many times faster than wall time (e.g. 20.0);
     /// unset: as fast as possible. For watching a run, or killing it mid-run in a test.
     #[serde(default, skip_serializing_if = "Option::is_none")]

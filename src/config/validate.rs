@@ -444,6 +444,9 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     if let Some(pace) = sim.pace {
         positive("sim.pace", pace)?;
     }
+    if let Some(factor) = sim.tracer_noise_factor {
+        positive("sim.tracer_noise_factor", factor)?;
+    }
     positive("sim.environment.air_temp_k", sim.environment.air_temp_k)?;
     positive("sim.environment.pressure_pa", sim.environment.pressure_pa)?;
     positive(

@@ -283,6 +283,21 @@ impl Data {
     }
 }
 
+impl Data {
+    /// The same observations with every σ multiplied by `k` (a common scale of the declared
+    /// noise model).
+    pub fn with_sigma_scaled(&self, k: f64) -> Data {
+        let mut scaled = self.clone();
+        for o in &mut scaled.obs {
+            o.sigma_m *= k;
+        }
+        for o in &mut scaled.problem.observations {
+            o.sigma_m *= k;
+        }
+        scaled
+    }
+}
+
 /// The raw settled samples of each measurement and the arrival time before them: the last
 /// `point_begin` of its (station, point, pass) (a repeat after a re-homing replaces the first).
 fn raw_windows(

@@ -25,7 +25,7 @@ use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
 use locate::{best_step, locate, WhereEntry};
 use loso::{leave_one_station_out, HeldOutStation};
 use points::{points_level, PointsGap, PointsLevel};
-use stats::{chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
+use stats::{chi2_isf, chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -690,6 +690,47 @@ pub(crate) fn diagnose_data(
         heldout_floor_m: cv_after.heldout_floor_m,
         heldout_ratio: cv_after.heldout_ratio,
     };
+    let noise_floor_m = (data.obs.iter().map(|o| o.sigma_m.powi(2)).sum::<f64>() / nobs as f64
+        * solution.dof as f64
+        / nobs as f64)
+        .sqrt();
+    // `unexplained` is one decision over three tests (the final χ², the final residuals'
+    // groups, the points level after the effects): Bonferroni over them, so that its
+    // false-alarm rate on data the model holds for is at most alpha.
+    let alpha_part = options.alpha / 3.0;
+    // Residuals uniformly too large or too small: when σ scaled by k = √(χ²/dof) leaves no
+    // group and no points-level structure, the finding is about the noise declaration, not
+    // an effect, and every test below uses the scaled σ.
+    let noise_scale = noise_scale_candidate(chi2, dof, alpha_part).filter(|scale| {
+        let scaled = fit_data.with_sigma_scaled(scale.k);
+        let groups = locate(
+            &scaled,
+            &final_fit.geom,
+            &final_fit.resid_m,
+            &final_fit.basis,
+            alpha_part,
+        );
+        let effect_columns = accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+            hcat(&d, &m.columns(&scaled, &final_fit.geom))
+        });
+        let lengths: Vec<f64> = scaled.obs.iter().map(|o| o.length_m).collect();
+        let points_fit = points_level(&scaled, &lengths, &effect_columns, alpha_part)
+            .map_or(true, |(level, _)| level.gap.p_value >= alpha_part);
+        groups.is_empty() && points_fit
+    });
+    let (scaled_data, scaled_fit_data);
+    let (data, fit_data, chi2) = match &noise_scale {
+        Some(scale) => {
+            scaled_data = data.with_sigma_scaled(scale.k);
+            scaled_fit_data = fit_data.with_sigma_scaled(scale.k);
+            notes.push(format!(
+                "{}: the tests below use the declared sigma times {:.3}",
+                scale.statement, scale.k
+            ));
+            (&scaled_data, &scaled_fit_data, chi2 / scale.k.powi(2))
+        }
+        None => (data, fit_data.as_ref(), chi2),
+    };
     let nominal_basis = {
         let jw = DMatrix::from_fn(nobs, nominal_j.ncols(), |i, c| {
             nominal_j[(i, c)] * engine.w[i]
@@ -703,12 +744,8 @@ pub(crate) fn diagnose_data(
         &nominal_basis,
         options.alpha,
     );
-    // `unexplained` is one decision over three tests (the final χ², the final residuals'
-    // groups, the points level after the effects): Bonferroni over them, so that its
-    // false-alarm rate on data the model holds for is at most alpha.
-    let alpha_part = options.alpha / 3.0;
     let remaining = locate(
-        &fit_data,
+        fit_data,
         &final_fit.geom,
         &final_fit.resid_m,
         &final_fit.basis,
@@ -817,10 +854,6 @@ pub(crate) fn diagnose_data(
                 .unwrap_or_default()
         ));
     }
-    let noise_floor_m = (data.obs.iter().map(|o| o.sigma_m.powi(2)).sum::<f64>() / nobs as f64
-        * solution.dof as f64
-        / nobs as f64)
-        .sqrt();
     let mut selected: Vec<String> = accepted
         .iter()
         .filter(|m| !confounded_kinds.contains(&m.kind))
@@ -877,7 +910,7 @@ pub(crate) fn diagnose_data(
         selected,
         gap_after,
         unexplained,
-        noise_scale: None,
+        noise_scale,
         corrected: None,
         points_level: points_before,
         points_level_after,
@@ -898,6 +931,35 @@ pub(crate) fn diagnose_data(
         diagnosis,
         effect_m,
         effect_columns,
+    })
+}
+
+/// Confidence level of the noise scale's interval.
+const NOISE_SCALE_CONFIDENCE: f64 = 0.95;
+
+/// k = √(χ²/dof) when χ² departs from its distribution under the declared noise at `alpha`
+/// on either side (the same level at which a large χ² would make the data unexplained); its
+/// interval from the χ² quantiles.
+fn noise_scale_candidate(chi2: f64, dof: usize, alpha: f64) -> Option<NoiseScale> {
+    let nu = dof as f64;
+    let upper = chi2_sf(chi2, nu);
+    if upper >= alpha && 1.0 - upper >= alpha {
+        return None;
+    }
+    let k = (chi2 / nu).sqrt();
+    let tail = 0.5 * (1.0 - NOISE_SCALE_CONFIDENCE);
+    let statement = if k > 1.0 {
+        format!("the declared noise model is {k:.2}x too small")
+    } else {
+        format!("the declared noise model is {:.2}x too large", 1.0 / k)
+    };
+    Some(NoiseScale {
+        k,
+        k_low: (chi2 / chi2_isf(tail, nu)).sqrt(),
+        k_high: (chi2 / chi2_isf(1.0 - tail, nu)).sqrt(),
+        confidence: NOISE_SCALE_CONFIDENCE,
+        dof,
+        statement,
     })
 }
 

@@ -98,6 +98,26 @@ pub fn chi2_sf(stat: f64, dof: f64) -> f64 {
     gamma_q(0.5 * dof, 0.5 * stat.max(0.0))
 }
 
+/// The x with P(χ²(dof) > x) = p (bisection on the survival function).
+pub fn chi2_isf(p: f64, dof: f64) -> f64 {
+    let (mut lo, mut hi) = (0.0, dof.max(1.0));
+    while chi2_sf(hi, dof) > p && hi < 1e12 {
+        hi *= 2.0;
+    }
+    for _ in 0..200 {
+        let mid = 0.5 * (lo + hi);
+        if chi2_sf(mid, dof) > p {
+            lo = mid;
+        } else {
+            hi = mid;
+        }
+        if hi - lo <= 1e-12 * hi {
+            break;
+        }
+    }
+    0.5 * (lo + hi)
+}
+
 /// Regularised incomplete beta I_x(a, b) (continued fraction, Lentz).
 pub fn beta_i(a: f64, b: f64, x: f64) -> f64 {
     if x <= 0.0 {

@@ -74,6 +74,8 @@ pub struct SimWorld {
     /// Set when the tracer or the reflector was moved; the next homing starts a new segment.
     beam_interrupted: bool,
     noise: NoiseModel,
+    /// Actual noise over the declared model.
+    noise_factor: f64,
     rng: ChaCha8Rng,
     // Environment.
     env: SimEnvironmentConfig,
@@ -203,6 +205,7 @@ impl SimWorld {
             beam_segment: 0,
             beam_interrupted: false,
             noise: tracer.noise_model(),
+            noise_factor: sim.tracer_noise_factor.unwrap_or(1.0),
             rng: ChaCha8Rng::seed_from_u64(sim.noise_seed.unwrap_or(sim.seed.wrapping_add(1))),
             effects: SimEffects::new(
                 &sim.effects,
@@ -255,7 +258,7 @@ impl SimWorld {
         self.clock.advance_to(t_s);
         let distance_m = self.true_distance_m(t_s);
         let length_m = distance_m - self.home_distance_m;
-        let sigma = self.noise.sample_sigma_m(distance_m);
+        let sigma = self.noise_factor * self.noise.sample_sigma_m(distance_m);
         let noise = Normal::new(0.0, sigma).map_or(0.0, |n| n.sample(&mut self.rng));
         let seq = self.next_seq;
         self.next_seq += 1;
