@@ -56,6 +56,10 @@ enum Command {
         /// Down-weight outlier lengths with a Huber loss beyond this many sigmas (e.g. 3).
         #[arg(long, value_name = "SIGMAS")]
         huber: Option<f64>,
+        /// Fit these unmodelled effects (names as `geocal diagnose` gives them, comma
+        /// separated, e.g. reversal,station_drift) jointly with the geometry.
+        #[arg(long, value_name = "EFFECT,...", value_delimiter = ',')]
+        effects: Vec<String>,
     },
     /// Where a session departs from the nominal model, which unmodelled effect explains it.
     Diagnose {
@@ -150,6 +154,7 @@ fn main() -> ExitCode {
 fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     geocal::method::SolveSettings {
         huber: huber.map(|threshold_sigma| geocal::solve::robust::Huber { threshold_sigma }),
+        effects: Vec::new(),
     }
 }
 
@@ -233,8 +238,13 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             json,
             out,
             huber,
+            effects,
         } => {
-            let results = geocal::run::solve_file(&session, &settings(huber))?;
+            let settings = geocal::method::SolveSettings {
+                effects: geocal::diagnose::correct::parse_effects(&effects)?,
+                ..settings(huber)
+            };
+            let results = geocal::run::solve_file(&session, &settings)?;
             if let Some(path) = out {
                 std::fs::write(&path, results.to_json_pretty())
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;

@@ -132,6 +132,21 @@ impl EffectKind {
     }
 }
 
+/// The library effect called `name`, or an error that lists the known names.
+pub fn effect_by_name(name: &str) -> Result<EffectKind, String> {
+    LIBRARY
+        .iter()
+        .copied()
+        .find(|k| k.name() == name)
+        .ok_or_else(|| {
+            let known: Vec<&str> = LIBRARY.iter().map(|k| k.name()).collect();
+            format!(
+                "unknown effect `{name}`; known effects: {}",
+                known.join(", ")
+            )
+        })
+}
+
 /// One effect as a model: its kind and, for a length step, where the step is (pass group and
 /// position in the pass's time order from which the lengths are shifted); for settling, its
 /// time constant.

@@ -1,6 +1,7 @@
 //! Sim-to-real gap diagnosis (`geocal diagnose`): where the lengths depart from the nominal
 //! multilateration model, which unmodelled effect explains it, and how far the gap shrinks.
 
+pub mod correct;
 pub mod data;
 pub mod effects;
 pub mod locate;
@@ -164,7 +165,61 @@ pub enum DiagnoseError {
 /// Read a session file and diagnose it.
 pub fn diagnose_file(path: &Path, options: &DiagnoseOptions) -> anyhow::Result<Diagnosis> {
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    diagnose(&session, options).with_context(|| format!("diagnosing {}", path.display()))
+    let mut diagnosis =
+        diagnose(&session, options).with_context(|| format!("diagnosing {}", path.display()))?;
+    match corrected_calibration(&session, path, &diagnosis.selected) {
+        Ok(corrected) => diagnosis.corrected = corrected,
+        Err(why) => diagnosis
+            .notes
+            .push(format!("the calibration with the selected effects: {why}")),
+    }
+    Ok(diagnosis)
+}
+
+/// The calibration re-solved with the selected effects that the solve can model, and how far
+/// its points moved from the nominal calibration's; None when none was selected.
+fn corrected_calibration(
+    session: &Session,
+    path: &Path,
+    selected: &[String],
+) -> Result<Option<CorrectedCalibration>, String> {
+    let kinds = selected
+        .iter()
+        .filter_map(|name| effects::effect_by_name(name).ok())
+        .filter(|k| !matches!(k, EffectKind::Settling | EffectKind::TargetOffset))
+        .collect::<Vec<_>>();
+    if kinds.is_empty() {
+        return Ok(None);
+    }
+    let solve_with = |effects: Vec<EffectKind>| {
+        let settings = crate::method::SolveSettings {
+            effects,
+            ..Default::default()
+        };
+        crate::method::multilateration::solve(session, &settings).map_err(|e| e.to_string())
+    };
+    let nominal = solve_with(Vec::new())?;
+    let corrected = solve_with(kinds.clone())?;
+    let (mut moved_m2, mut moved_z2, mut count) = (0.0, 0.0, 0usize);
+    for (a, b) in nominal.points.iter().zip(&corrected.points) {
+        for k in 0..3 {
+            let d = b.actual_m[k] - a.actual_m[k];
+            moved_m2 += d * d;
+            moved_z2 += (d / b.sigma_m[k]).powi(2);
+            count += 1;
+        }
+    }
+    let names: Vec<&str> = kinds.iter().map(|k| k.name()).collect();
+    Ok(Some(CorrectedCalibration {
+        command: format!(
+            "geocal solve {} --effects {}",
+            path.display(),
+            names.join(",")
+        ),
+        effects: names.iter().map(|n| n.to_string()).collect(),
+        points_moved_rms_m: (moved_m2 / count.max(1) as f64).sqrt(),
+        points_moved_rms_sigma: (moved_z2 / count.max(1) as f64).sqrt(),
+    }))
 }
 
 /// The linearised model around the nominal optimum: a base design (nominal parameters plus
@@ -1046,17 +1101,20 @@ fn settling_record(fit: &settling::SettlingFit, status: String) -> Candidate {
     }
 }
 
-struct JointFit {
-    geom: Geometry,
-    resid_m: Vec<f64>,
+pub(crate) struct JointFit {
+    pub geom: Geometry,
+    pub resid_m: Vec<f64>,
     /// The accepted effects' fitted contribution to each length (m).
-    effect_m: Vec<f64>,
-    basis: Basis,
+    pub effect_m: Vec<f64>,
+    /// The effects' parameters (in the models' column order).
+    pub theta: DVector<f64>,
+    /// Basis of the whitened joint design (geometry, then the effects' columns).
+    pub basis: Basis,
 }
 
 /// Gauss–Newton on the geometry and the effects' parameters together, relinearising the
 /// effect columns at the updated geometry (they depend on it through beam directions).
-fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -> JointFit {
+pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -> JointFit {
     let nobs = data.obs.len();
     let mut geom = start.clone();
     let widths: Vec<usize> = models.iter().map(|m| m.param_names(data).len()).collect();
@@ -1102,6 +1160,7 @@ fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -> JointFit 
         basis: Basis::new(&aw, RANK_TOL, 0.0),
         geom,
         resid_m: r.iter().copied().collect(),
+        theta,
     }
 }
 
@@ -1295,6 +1354,26 @@ pub fn text(d: &Diagnosis) -> String {
             "explained: the remaining residuals agree with the noise model"
         }
     );
+    if let Some(scale) = &d.noise_scale {
+        let _ = writeln!(
+            s,
+            "  noise: {} (k = {:.2}, {:.0} % interval {:.2}-{:.2})",
+            scale.statement,
+            scale.k,
+            100.0 * scale.confidence,
+            scale.k_low,
+            scale.k_high
+        );
+    }
+    if let Some(c) = &d.corrected {
+        let _ = writeln!(
+            s,
+            "  corrected calibration: `{}` (points move {:.3} um RMS, {:.1} sigma)",
+            c.command,
+            c.points_moved_rms_m * 1e6,
+            c.points_moved_rms_sigma
+        );
+    }
     for n in &d.notes {
         let _ = writeln!(s, "  note: {n}");
     }

@@ -62,6 +62,8 @@ impl Results {
 pub struct SolveSettings {
     /// Down-weight outlier lengths with a Huber loss (threshold in sigmas).
     pub huber: Option<crate::solve::robust::Huber>,
+    /// Unmodelled effects (the diagnosis's names) fitted jointly with the geometry.
+    pub effects: Vec<crate::diagnose::effects::EffectKind>,
 }
 
 pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {

@@ -29,6 +29,8 @@ pub enum MultilaterationError {
     Extract(#[from] crate::extract::points::ExtractError),
     #[error("no settled point windows in the session ({dropped} dropped)")]
     NoPoints { dropped: usize },
+    #[error(transparent)]
+    Effects(#[from] crate::diagnose::correct::CorrectionError),
     #[error("multilateration: {0}")]
     Solve(#[from] SolveError),
 }
@@ -55,6 +57,10 @@ pub struct MultilaterationResults {
     pub geometric_errors: Option<serde_json::Value>,
     /// What the engineer should know about how these results were obtained.
     pub notes: Vec<String>,
+    /// The unmodelled effects fitted jointly with the geometry (`geocal solve --effects`):
+    /// effect → parameter → value, with `<parameter>.sigma` beside each (SI units).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub effects: BTreeMap<String, BTreeMap<String, f64>>,
     /// Present when a robust loss was used: what it down-weighted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub robust: Option<RobustReport>,
@@ -158,8 +164,24 @@ pub fn solve_detailed(
             dropped: extraction.dropped.len(),
         });
     }
-    let problem = Problem::build(&extraction);
-    let (solution, robust) = match settings.huber {
+    let mut problem = Problem::build(&extraction);
+    // Effects modelled: the lengths corrected by their jointly fitted contribution (the
+    // geometry of the joint optimum is the solve of the corrected lengths).
+    let correction = if settings.effects.is_empty() {
+        None
+    } else {
+        let c = crate::diagnose::correct::correction(session, &settings.effects)?;
+        for (obs, dl) in problem
+            .problem
+            .observations
+            .iter_mut()
+            .zip(&c.length_correction_m)
+        {
+            obs.length_m -= dl;
+        }
+        Some(c)
+    };
+    let (mut solution, robust) = match settings.huber {
         None => (adjust(&problem.problem, &SolveOptions::default())?, None),
         Some(huber) => {
             let r = solve_huber(&problem.problem, &SolveOptions::default(), huber)?;
@@ -189,6 +211,14 @@ pub fn solve_detailed(
         }
     };
 
+    // The effects' uncertainty moves the points too.
+    if let Some(c) = &correction {
+        for (i, cov) in solution.point_covariance.iter_mut().enumerate() {
+            *cov += c.point_covariance_m2.fixed_view::<3, 3>(3 * i, 3 * i);
+        }
+    }
+    let effect_parameters = correction.as_ref().map_or(0, |c| c.parameters);
+    let dof = solution.dof.saturating_sub(effect_parameters);
     let mut per_station = vec![(0usize, 0.0f64); problem.problem.station_hints.len()];
     let mut per_point = vec![0usize; problem.points.len()];
     for (obs, r) in problem
@@ -255,13 +285,15 @@ pub fn solve_detailed(
         })
         .collect();
     let mut notes = Vec::new();
-    let geometric_errors = match geometric_errors(session, &problem, &solution, &mut notes) {
-        Ok(value) => Some(value),
-        Err(why) => {
-            notes.push(format!("no geometric errors: {why}"));
-            None
-        }
-    };
+    let extra_covariance = correction.as_ref().map(|c| &c.point_covariance_m2);
+    let geometric_errors =
+        match geometric_errors(session, &problem, &solution, extra_covariance, &mut notes) {
+            Ok(value) => Some(value),
+            Err(why) => {
+                notes.push(format!("no geometric errors: {why}"));
+                None
+            }
+        };
     let mut dropped_reasons = BTreeMap::new();
     for d in &extraction.dropped {
         *dropped_reasons.entry(d.reason.clone()).or_insert(0) += 1;
@@ -271,12 +303,12 @@ pub fn solve_detailed(
         kind: "multilateration".into(),
         session_id: session.header.session_id.clone(),
         residual_rms_m: solution.residual_rms_m,
-        chi2_per_dof: if solution.dof > 0 {
-            solution.chi2 / solution.dof as f64
+        chi2_per_dof: if dof > 0 {
+            solution.chi2 / dof as f64
         } else {
             f64::NAN
         },
-        dof: solution.dof,
+        dof,
         iterations: solution.iterations,
         converged: solution.converged,
         gauge: solution.gauge.to_string(),
@@ -297,6 +329,7 @@ pub fn solve_detailed(
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
         },
+        effects: correction.map(|c| c.effects).unwrap_or_default(),
         geometric_errors,
         notes,
         robust,
@@ -314,6 +347,7 @@ fn geometric_errors(
     session: &Session,
     problem: &Problem,
     solution: &MultilaterationSolution,
+    extra_covariance: Option<&nalgebra::DMatrix<f64>>,
     notes: &mut Vec<String>,
 ) -> Result<serde_json::Value, String> {
     let machine = &session.header.machine;
@@ -345,7 +379,10 @@ fn geometric_errors(
     }
     // The points share stations, so their errors are correlated: use the full covariance
     // where the dense algebra is affordable, else the per-point blocks (and say so).
-    let full = dense_point_covariance(&problem.problem, solution);
+    let full = dense_point_covariance(&problem.problem, solution).map(|q| match extra_covariance {
+        Some(extra) if extra.shape() == q.shape() => q + extra,
+        _ => q,
+    });
     if full.is_none() {
         notes.push(
             "geometric error sigmas use per-point covariance blocks only (the plan is too large for \

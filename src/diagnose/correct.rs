@@ -1,0 +1,183 @@
+//! The calibration with named effects modelled (`geocal solve --effects`): their parameters
+//! fitted jointly with the geometry (the diagnosis's final model), the lengths corrected by
+//! their contribution, and the covariance their uncertainty adds to the points.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{DMatrix, DVector, Matrix6, Vector3, Vector6};
+
+use super::data::Data;
+use super::effects::{effect_by_name, EffectKind, EffectModel, Geometry};
+use super::locate::best_step;
+use super::stats::{Basis, RANK_TOL};
+use super::{joint_fit, DiagnoseError};
+use crate::session::reader::Session;
+use crate::solve::multilateration::{generator, solve, SolveOptions};
+
+/// What modelling the effects changes in the calibration.
+#[derive(Debug, Clone)]
+pub struct EffectCorrection {
+    /// Per recorded length (the extraction's measurement order): the effects' fitted
+    /// contribution, to be taken off the measured length (m).
+    pub length_correction_m: Vec<f64>,
+    /// Effect name → parameter name → value, with `<parameter>.sigma` beside each.
+    pub effects: BTreeMap<String, BTreeMap<String, f64>>,
+    /// Number of effect parameters fitted (they take degrees of freedom from χ²).
+    pub parameters: usize,
+    /// Covariance the effects' uncertainty adds to the points (3n x 3n, point-major, in the
+    /// points' inner-constraint datum).
+    pub point_covariance_m2: DMatrix<f64>,
+}
+
+#[derive(Debug, thiserror::Error)]
+pub enum CorrectionError {
+    #[error("{0}")]
+    Name(String),
+    #[error(
+        "effect `{0}` cannot be modelled in the calibration: {1}; use `geocal diagnose` to test it"
+    )]
+    Unsupported(&'static str, &'static str),
+    #[error(transparent)]
+    Diagnose(#[from] DiagnoseError),
+    #[error("effects fit: {0}")]
+    Fit(String),
+}
+
+/// Parse a comma-separated list of effect names (unknown names list the known ones).
+pub fn parse_effects(names: &[String]) -> Result<Vec<EffectKind>, CorrectionError> {
+    let mut kinds = Vec::new();
+    for name in names.iter().flat_map(|n| n.split(',')) {
+        let name = name.trim();
+        if name.is_empty() {
+            continue;
+        }
+        let kind = effect_by_name(name).map_err(CorrectionError::Name)?;
+        match kind {
+            EffectKind::Settling => {
+                return Err(CorrectionError::Unsupported(
+                    "settling",
+                    "its bias is fitted on the raw samples inside the dwell windows, not on the settled lengths",
+                ))
+            }
+            EffectKind::TargetOffset => {
+                return Err(CorrectionError::Unsupported(
+                    "target_offset",
+                    "the free points of the calibration absorb it (it is seen only at the points level)",
+                ))
+            }
+            _ => {}
+        }
+        if !kinds.contains(&kind) {
+            kinds.push(kind);
+        }
+    }
+    Ok(kinds)
+}
+
+/// Fit `kinds` jointly with the geometry of a multilateration session.
+pub fn correction(
+    session: &Session,
+    kinds: &[EffectKind],
+) -> Result<EffectCorrection, CorrectionError> {
+    let data = Data::from_session(session).map_err(DiagnoseError::from)?;
+    let nominal = solve(&data.problem, &SolveOptions::default()).map_err(DiagnoseError::from)?;
+    let geom = Geometry::from_solution(&nominal);
+    let nobs = data.obs.len();
+    let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
+    let nominal_basis = whitened_basis(&geom.jacobian(&data), &w);
+    let models: Vec<EffectModel> = kinds
+        .iter()
+        .map(|&kind| {
+            if kind != EffectKind::LengthStep {
+                return Ok(EffectModel::plain(kind));
+            }
+            // The step's place: the best change point of any pass in the nominal residuals.
+            let r = DVector::from_fn(nobs, |i, _| nominal.residuals_m[i] * w[i]);
+            let res_w = nominal_basis.project_off_vec(&r);
+            let (g, k, _, _) = best_step(&data, &nominal_basis, &res_w, None)
+                .ok_or_else(|| CorrectionError::Fit("no pass to place a length step in".into()))?;
+            Ok(EffectModel {
+                kind,
+                step: Some((g, k)),
+                tau_s: None,
+            })
+        })
+        .collect::<Result<_, CorrectionError>>()?;
+    let fit = joint_fit(&data, &geom, &models);
+    let np = fit.geom.len();
+    let parameters = fit.theta.len();
+    // Covariance of the effects' parameters: their block of the joint pseudo-inverse.
+    let theta_cov = DMatrix::from_fn(parameters, parameters, |a, b| {
+        (0..fit.basis.rank())
+            .map(|k| fit.basis.vt[(k, np + a)] * fit.basis.vt[(k, np + b)] / fit.basis.s[k].powi(2))
+            .sum::<f64>()
+    });
+    if (0..parameters).any(|c| theta_cov[(c, c)] <= 0.0) {
+        return Err(CorrectionError::Fit(
+            "an effect parameter is not identifiable from these lengths (the geometry absorbs it)"
+                .into(),
+        ));
+    }
+    let mut effects: BTreeMap<String, BTreeMap<String, f64>> = BTreeMap::new();
+    let mut column = 0;
+    for model in &models {
+        let entry = effects.entry(model.kind.name().to_string()).or_default();
+        for name in model.param_names(&data) {
+            entry.insert(name.clone(), fit.theta[column]);
+            entry.insert(format!("{name}.sigma"), theta_cov[(column, column)].sqrt());
+            column += 1;
+        }
+    }
+    // How each parameter moves the points when the lengths are corrected by its column
+    // (the geometry's least-squares response, S-transformed to the points' datum).
+    let columns = models.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+        let a = m.columns(&data, &fit.geom);
+        let mut joined = DMatrix::zeros(nobs, d.ncols() + a.ncols());
+        joined.columns_mut(0, d.ncols()).copy_from(&d);
+        joined.columns_mut(d.ncols(), a.ncols()).copy_from(&a);
+        joined
+    });
+    let geometry_basis = whitened_basis(&fit.geom.jacobian(&data), &w);
+    let n = fit.geom.points.len();
+    let mut response = DMatrix::zeros(3 * n, parameters);
+    for c in 0..parameters {
+        let a_w = DVector::from_fn(nobs, |i, _| columns[(i, c)] * w[i]);
+        let step = geometry_basis.solve(&a_w);
+        let moved = without_rigid_motion(&data, &step.as_slice()[..3 * n]);
+        response.column_mut(c).copy_from(&moved);
+    }
+    let point_covariance_m2 = &response * theta_cov * response.transpose();
+    Ok(EffectCorrection {
+        length_correction_m: fit.effect_m,
+        effects,
+        parameters,
+        point_covariance_m2,
+    })
+}
+
+fn whitened_basis(design: &DMatrix<f64>, w: &DVector<f64>) -> Basis {
+    let dw = DMatrix::from_fn(design.nrows(), design.ncols(), |i, c| design[(i, c)] * w[i]);
+    Basis::new(&dw, RANK_TOL, 0.0)
+}
+
+/// Point displacements (3n, point-major) with their best-fit rigid motion about the nominal
+/// points' centre taken off: the inner-constraint datum the calibration reports points in.
+fn without_rigid_motion(data: &Data, moved: &[f64]) -> DVector<f64> {
+    let nominal: Vec<Vector3<f64>> = data.problem.nominal_points.clone();
+    let centre = nominal.iter().sum::<Vector3<f64>>() / nominal.len().max(1) as f64;
+    let mut normal = Matrix6::<f64>::zeros();
+    let mut rhs = Vector6::<f64>::zeros();
+    for (i, p) in nominal.iter().enumerate() {
+        let g = generator(p, &centre);
+        let d = Vector3::new(moved[3 * i], moved[3 * i + 1], moved[3 * i + 2]);
+        normal += g.transpose() * g;
+        rhs += g.transpose() * d;
+    }
+    let motion = normal
+        .try_inverse()
+        .map_or(Vector6::zeros(), |inv| inv * rhs);
+    DVector::from_fn(moved.len(), |k, _| {
+        let g = generator(&nominal[k / 3], &centre);
+        moved[k] - (g * motion)[k % 3]
+    })
+}
