@@ -29,8 +29,8 @@ fn solve(name: &str, effects: Vec<EffectKind>) -> MultilaterationResults {
         effects,
         ..Default::default()
     };
-    let results = geocal::run::solve_file(&session_dir(name).join("session.mcap"), &settings)
-        .expect("solve");
+    let results =
+        geocal::run::solve_file(&session_dir(name).join("session.mcap"), &settings).expect("solve");
     results.multilateration().expect("multilateration").clone()
 }
 
@@ -91,7 +91,10 @@ fn clean_session_fits_its_declared_noise_and_its_sigmas_are_honest() {
         results.chi2_per_dof
     );
     for (k, v) in z.iter().enumerate() {
-        assert!((0.7..=1.4).contains(v), "coordinate {k}: RMS(error/sigma) {v}");
+        assert!(
+            (0.7..=1.4).contains(v),
+            "coordinate {k}: RMS(error/sigma) {v}"
+        );
     }
 }
 
