@@ -84,8 +84,7 @@ fn each_effect_modelled_restores_the_points() {
 #[test]
 fn unknown_and_unmodellable_effects_are_clear_errors() {
     let unknown = parse_effects(&["reversal,backlash".to_string()])
-        .err()
-        .expect("unknown name refused")
+        .expect_err("unknown name refused")
         .to_string();
     assert!(unknown.contains("unknown effect `backlash`"), "{unknown}");
     assert!(
@@ -93,8 +92,7 @@ fn unknown_and_unmodellable_effects_are_clear_errors() {
         "{unknown}"
     );
     let settling = parse_effects(&["settling".to_string()])
-        .err()
-        .expect("settling refused")
+        .expect_err("settling refused")
         .to_string();
     assert!(
         settling.contains("cannot be modelled in the calibration"),
