@@ -6,6 +6,7 @@ pub mod kind_messages;
 pub mod messages;
 pub mod reader;
 pub mod recorder;
+pub mod repair;
 
 pub use reader::{
     read_session, read_session_bytes, Completeness, DamagedChunk, ReadError, Session, Stamped,

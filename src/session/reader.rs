@@ -420,8 +420,9 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
             // A damaged record header, or the file's cut end: the next good record tells.
             match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
                 Some(next) => {
-                    dec.damage(Damage::new(pos, next - pos, why));
-                    indexing = None;
+                    let i = dec.damage(Damage::new(pos, next - pos, why));
+                    // A chunk's message indexes follow it: they tell what it held.
+                    indexing = (opcode == op::CHUNK).then_some(i);
                     pos = next;
                     continue;
                 }
