@@ -49,7 +49,11 @@ fn recorded() -> &'static Recorded {
             .arg(&run_dir)
             .output()
             .expect("run geocal");
-        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
         let (_, messages) = read_session_raw(&run_dir.join("session.mcap")).expect("raw read");
         let path = dir.path().join("session.mcap");
         let rec = Recorder::create(
@@ -67,7 +71,9 @@ fn recorded() -> &'static Recorded {
         }
         rec.finish().expect("finish");
         let bytes = std::fs::read(&path).expect("read back");
-        let summary = mcap::Summary::read(&bytes).expect("summary").expect("summary");
+        let summary = mcap::Summary::read(&bytes)
+            .expect("summary")
+            .expect("summary");
         let mut chunks = summary.chunk_indexes.clone();
         chunks.sort_by_key(|c| c.chunk_start_offset);
         assert!(chunks.len() >= 20, "{} chunks", chunks.len());
@@ -210,7 +216,10 @@ fn check_damaged(which: &[usize], how: fn(&mut [u8], &ChunkIndex)) -> (usize, us
         );
         assert_same_solution(&got, &expected);
     }
-    (expected.extraction.windows_used, all.extraction.windows_used)
+    (
+        expected.extraction.windows_used,
+        all.extraction.windows_used,
+    )
 }
 
 /// The first chunk from `near` on whose log times overlap a dwell window (most chunks hold
@@ -277,10 +286,16 @@ fn python_messages(path: &Path) -> Vec<Message> {
         .arg("--dump")
         .arg(&dump)
         .output()
-        .unwrap_or_else(|e| panic!("cannot run python3 ({e}); install Python 3 and {INSTALL_HINT}"));
+        .unwrap_or_else(|e| {
+            panic!("cannot run python3 ({e}); install Python 3 and {INSTALL_HINT}")
+        });
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert_ne!(out.status.code(), Some(3), "{INSTALL_HINT}\n{stderr}");
-    assert!(out.status.success(), "check_session.py on {}: {stderr}", path.display());
+    assert!(
+        out.status.success(),
+        "check_session.py on {}: {stderr}",
+        path.display()
+    );
     let text = std::fs::read_to_string(&dump).expect("dump");
     text.lines()
         .map(|line| {
@@ -301,7 +316,9 @@ fn python_messages(path: &Path) -> Vec<Message> {
 
 /// The messages of an intact file's chunks, by the mcap crate, skipping chunks `lost`.
 fn chunk_messages(bytes: &[u8], keep: impl Fn(&ChunkIndex) -> bool) -> Vec<Message> {
-    let summary = mcap::Summary::read(bytes).expect("summary").expect("summary");
+    let summary = mcap::Summary::read(bytes)
+        .expect("summary")
+        .expect("summary");
     let mut chunks = summary.chunk_indexes.clone();
     chunks.sort_by_key(|c| c.chunk_start_offset);
     let mut out = Vec::new();
@@ -349,9 +366,15 @@ fn repair_of_a_damaged_file_keeps_every_readable_message() {
     std::fs::write(&input, &bytes).expect("write");
     let output = dir.path().join("repaired.mcap");
     let report = repair(&input, &output);
-    let lost = [r.chunks[n / 5].chunk_start_offset, r.chunks[n / 2].chunk_start_offset];
+    let lost = [
+        r.chunks[n / 5].chunk_start_offset,
+        r.chunks[n / 2].chunk_start_offset,
+    ];
     for offset in lost {
-        assert!(report.contains(&format!("damaged bytes {offset}..")), "{report}");
+        assert!(
+            report.contains(&format!("damaged bytes {offset}..")),
+            "{report}"
+        );
     }
     let expected = chunk_messages(&r.bytes, |c| !lost.contains(&c.chunk_start_offset));
     assert_eq!(python_messages(&output), expected);
@@ -393,18 +416,19 @@ fn repair_of_a_killed_hil_run() {
         .spawn()
         .expect("spawn geocal");
     std::thread::sleep(Duration::from_secs(4));
-    assert!(child.try_wait().expect("status").is_none(), "the run ended before the kill");
+    assert!(
+        child.try_wait().expect("status").is_none(),
+        "the run ended before the kill"
+    );
     child.kill().expect("SIGKILL");
     child.wait().expect("reap");
     let killed = out.join("session.mcap");
     let bytes = std::fs::read(&killed).expect("killed file");
     // What the mcap crate itself reads of the killed file: every message up to its cut.
     let mut expected = Vec::new();
-    let stream = mcap::MessageStream::new_with_options(
-        &bytes,
-        mcap::read::Options::IgnoreEndMagic.into(),
-    )
-    .expect("stream");
+    let stream =
+        mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into())
+            .expect("stream");
     for m in stream {
         let Ok(m) = m else { break };
         expected.push((
@@ -414,7 +438,11 @@ fn repair_of_a_killed_hil_run() {
             m.data.into_owned(),
         ));
     }
-    assert!(expected.len() > 100, "{} messages before the kill", expected.len());
+    assert!(
+        expected.len() > 100,
+        "{} messages before the kill",
+        expected.len()
+    );
     let output = dir.path().join("repaired.mcap");
     repair(&killed, &output);
     assert_eq!(python_messages(&output), expected);

@@ -139,7 +139,8 @@ pub fn extract_points(
 ) -> Result<Extraction, ExtractError> {
     let samples = select_tracer(session, tracer_id)?;
     // Messages of a damaged chunk are lost: a window they may have touched is never half-used.
-    let damaged = |from_ns: u64, to_ns: u64| session.damaged.iter().any(|d| d.overlaps(from_ns, to_ns));
+    let damaged =
+        |from_ns: u64, to_ns: u64| session.damaged.iter().any(|d| d.overlaps(from_ns, to_ns));
     let reason = |w: &OpenWindow, to_ns: u64, otherwise: &'static str| {
         if damaged(w.log_time_ns, to_ns) {
             DAMAGED_CHUNK
@@ -230,8 +231,13 @@ pub fn extract_points(
                     }
                     continue;
                 };
-                let why = reason(&w, event.log_time_ns, "point_end does not match its point_begin");
-                if (&w.station, w.point, w.pass) != (station, *point, *pass) || why == DAMAGED_CHUNK {
+                let why = reason(
+                    &w,
+                    event.log_time_ns,
+                    "point_end does not match its point_begin",
+                );
+                if (&w.station, w.point, w.pass) != (station, *point, *pass) || why == DAMAGED_CHUNK
+                {
                     out.dropped.push(dropped(&w, why));
                     continue;
                 }

@@ -210,9 +210,7 @@ pub(crate) fn resync(
         let body = &buf[pos + RECORD_PREFIX..end];
         match opcode {
             op::CHUNK => chunk_ok(&buf[pos..end]),
-            op::MESSAGE_INDEX => {
-                can_follow(buf, end) && IndexCounts::default().add(body)
-            }
+            op::MESSAGE_INDEX => can_follow(buf, end) && IndexCounts::default().add(body),
             op::DATA_END => body.len() == 4 && can_follow(buf, end),
             op::FOOTER => body.len() == 20 && buf[end..].starts_with(mcap::MAGIC),
             op::SCHEMA | op::CHANNEL | op::MESSAGE if !saw_chunk => {

@@ -10,10 +10,10 @@ use serde::de::DeserializeOwned;
 use serde::Deserialize;
 use thiserror::Error;
 
+pub use super::damage::DamagedChunk;
 use super::damage::{
     can_follow, framed, known_opcode, le_u64, resync, Damage, IndexCounts, RECORD_PREFIX,
 };
-pub use super::damage::DamagedChunk;
 use super::messages::{
     EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
     TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
@@ -200,7 +200,12 @@ fn check_magic(buf: &[u8], file: &str) -> Result<(), ReadError> {
 
 fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
     check_magic(buf, file)?;
-    let decoded = match mcap::Summary::read(buf) {
+    let summary = if summary_crc_ok(buf) {
+        mcap::Summary::read(buf)
+    } else {
+        Ok(None)
+    };
+    let decoded = match summary {
         Ok(Some(summary)) => match read_indexed(buf, file, &summary)? {
             Some(d) => d,
             None => read_linear(buf, file)?,
@@ -212,6 +217,33 @@ fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
         }
     };
     decoded.into_session(file, buf.len() as u64)
+}
+
+/// Whether the summary section is intact by its CRC (in the footer). Only then is it parsed:
+/// the mcap crate trusts the sizes in it, and a corrupt one can make it allocate gigabytes.
+/// A file without a summary CRC is read linearly.
+fn summary_crc_ok(buf: &[u8]) -> bool {
+    const FOOTER_RECORD: usize = RECORD_PREFIX + 20;
+    let Some(footer) = buf.len().checked_sub(mcap::MAGIC.len() + FOOTER_RECORD) else {
+        return false;
+    };
+    if !matches!(framed(buf, footer), Some((op::FOOTER, end)) if end == footer + FOOTER_RECORD) {
+        return false;
+    }
+    let summary_start = le_u64(&buf[footer + RECORD_PREFIX..]);
+    let crc_at = footer + RECORD_PREFIX + 16;
+    let saved = u32::from_le_bytes([
+        buf[crc_at],
+        buf[crc_at + 1],
+        buf[crc_at + 2],
+        buf[crc_at + 3],
+    ]);
+    match usize::try_from(summary_start) {
+        Ok(start) if start >= mcap::MAGIC.len() && start <= footer && saved != 0 => {
+            crc32fast::hash(&buf[start..crc_at]) == saved
+        }
+        _ => false,
+    }
 }
 
 /// Reads the chunks the summary lists. Returns None when the summary does not account for
@@ -322,7 +354,10 @@ fn read_indexed_with(
     // What the damaged chunks held, from the summary's chunk indexes and the message indexes.
     let mut lost = 0;
     for damage in &mut dec.damages {
-        let Some(index) = chunks.iter().find(|c| c.chunk_start_offset == damage.offset) else {
+        let Some(index) = chunks
+            .iter()
+            .find(|c| c.chunk_start_offset == damage.offset)
+        else {
             continue;
         };
         damage.header_times = Some((index.message_start_time, index.message_end_time));

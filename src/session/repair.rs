@@ -173,7 +173,10 @@ pub fn text(report: &RepairReport) -> String {
                 "  lost: bytes {bytes_read}..{file_bytes}, the cut end of the file ({reason})"
             )
         } else {
-            writeln!(s, "  the input ends without summary or footer ({reason}): rebuilt")
+            writeln!(
+                s,
+                "  the input ends without summary or footer ({reason}): rebuilt"
+            )
         };
     }
     if !report.has_header {
