@@ -61,6 +61,14 @@ enum Command {
         #[arg(long, value_name = "EFFECT,...", value_delimiter = ',')]
         effects: Vec<String>,
     },
+    /// Copy every readable message of a truncated or damaged session into a complete MCAP
+    /// file (summary, indexes, CRCs) and print what was lost (docs/repair.md).
+    Repair {
+        session: PathBuf,
+        /// The repaired file (default: SESSION's name with `.repaired.mcap`, beside it).
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
     /// Where a session departs from the nominal model, which unmodelled effect explains it.
     Diagnose {
         session: PathBuf,
@@ -145,10 +153,34 @@ fn main() -> ExitCode {
     match dispatch(Cli::parse().command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprint!("{}", error_text(&e));
             ExitCode::FAILURE
         }
     }
+}
+
+/// The error and its causes, one cause per line, outermost first. Many messages embed their
+/// source's text as a suffix: that suffix is cut from the line, so no cause shows twice.
+fn error_text(e: &anyhow::Error) -> String {
+    let mut lines: Vec<String> = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if let Some(last) = lines.last_mut() {
+            if let Some(head) = last.strip_suffix(&format!(": {text}")) {
+                *last = head.to_owned();
+            } else if last.contains(&text) {
+                continue;
+            }
+        }
+        lines.push(text);
+    }
+    let mut out = String::new();
+    for (i, line) in lines.iter().enumerate() {
+        out += if i == 0 { "error: " } else { "  because: " };
+        out += line;
+        out += "\n";
+    }
+    out
 }
 
 fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
@@ -254,6 +286,11 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             } else {
                 print!("{}", geocal::report::text(&results));
             }
+        }
+        Command::Repair { session, out } => {
+            let out = out.unwrap_or_else(|| geocal::session::repair::default_output(&session));
+            let report = geocal::session::repair::repair(&session, &out)?;
+            print!("{}", geocal::session::repair::text(&report));
         }
         Command::Diagnose {
             session,

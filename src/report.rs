@@ -89,6 +89,9 @@ fn multilateration_text(r: &MultilaterationResults) -> String {
     for (reason, count) in &r.extraction.dropped_reasons {
         let _ = writeln!(s, "    dropped {count}: {reason}");
     }
+    for chunk in &r.extraction.damaged_chunks {
+        let _ = writeln!(s, "    damaged chunk skipped: {}", chunk.describe());
+    }
     let _ = writeln!(
         s,
         "  residual RMS {:.3} µm, chi²/dof {:.2} ({} dof), {} iterations{}",

@@ -492,6 +492,7 @@ mod tests {
             topics: Default::default(),
             events,
             completeness: crate::session::reader::Completeness::Complete,
+            damaged: Vec::new(),
             skipped: 0,
             ignored: 0,
         };

@@ -15,7 +15,7 @@ use crate::sequencer::{RunSummary, Sequencer};
 use crate::session::messages::{
     DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT,
 };
-use crate::session::reader::read_session;
+use crate::session::reader::{read_session, Completeness};
 use crate::session::recorder::{Recorder, RecorderOptions};
 
 pub struct RunOptions {
@@ -152,7 +152,18 @@ pub(crate) fn solve_and_write(
 /// Read a session file and solve it with the method of its kind.
 pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    solve_session(&session, settings).with_context(|| format!("solving {}", path.display()))
+    solve_session(&session, settings).with_context(|| {
+        let file = path.display();
+        let damage = match (&session.completeness, session.damaged.len()) {
+            (Completeness::Truncated { bytes_read, .. }, _) => format!(
+                " (cut short after byte {bytes_read}: resume the run with \
+                 `geocal run --resume DIR`, or run `geocal repair {file}`)"
+            ),
+            (_, 0) => String::new(),
+            (_, n) => format!(" ({n} damaged chunks skipped, listed above)"),
+        };
+        format!("solving {file}{damage}")
+    })
 }
 
 pub(crate) fn progress_bar(show: bool) -> indicatif::ProgressBar {

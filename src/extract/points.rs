@@ -139,6 +139,9 @@ pub enum ExtractError {
     UnknownTracer(String),
 }
 
+/// Why a window is dropped when messages it may hold were in a damaged chunk.
+pub const DAMAGED_CHUNK: &str = "samples lost in a damaged chunk";
+
 struct OpenWindow {
     log_time_ns: u64,
     station: String,
@@ -158,6 +161,16 @@ pub fn extract_points(
     options: &ExtractOptions,
 ) -> Result<Extraction, ExtractError> {
     let samples = select_tracer(session, tracer_id)?;
+    // Messages of a damaged chunk are lost: a window they may have touched is never half-used.
+    let damaged = |from_ns: u64, to_ns: u64| session.lost_between(from_ns, to_ns);
+    let reason = |w: &OpenWindow, to_ns: u64, otherwise: &'static str| {
+        if damaged(w.log_time_ns, to_ns) {
+            DAMAGED_CHUNK
+        } else {
+            otherwise
+        }
+    };
+    let mut previous_ns = 0;
     let mut out = Extraction::default();
     let mut station_index: BTreeMap<String, usize> = BTreeMap::new();
     let mut open: Option<OpenWindow> = None;
@@ -174,6 +187,7 @@ pub fn extract_points(
     };
 
     for event in &session.events {
+        let since_ns = std::mem::replace(&mut previous_ns, event.log_time_ns);
         match &event.msg {
             RunEvent::StationBegin {
                 station, hint_m, ..
@@ -190,8 +204,8 @@ pub fn extract_points(
                 approach,
             } => {
                 if let Some(w) = open.take() {
-                    out.dropped
-                        .push(dropped(&w, "point_begin without point_end"));
+                    let why = reason(&w, event.log_time_ns, "point_begin without point_end");
+                    out.dropped.push(dropped(&w, why));
                 }
                 open = Some(OpenWindow {
                     log_time_ns: event.log_time_ns,
@@ -227,10 +241,26 @@ pub fn extract_points(
                 point,
                 pass,
             } => {
-                let Some(w) = open.take() else { continue };
-                if (&w.station, w.point, w.pass) != (station, *point, *pass) {
-                    out.dropped
-                        .push(dropped(&w, "point_end does not match its point_begin"));
+                let Some(w) = open.take() else {
+                    // Its point_begin was in a damaged chunk.
+                    if damaged(since_ns, event.log_time_ns) {
+                        out.dropped.push(DroppedWindow {
+                            station: station.clone(),
+                            point: *point,
+                            pass: *pass,
+                            reason: DAMAGED_CHUNK.into(),
+                        });
+                    }
+                    continue;
+                };
+                let why = reason(
+                    &w,
+                    event.log_time_ns,
+                    "point_end does not match its point_begin",
+                );
+                if (&w.station, w.point, w.pass) != (station, *point, *pass) || why == DAMAGED_CHUNK
+                {
+                    out.dropped.push(dropped(&w, why));
                     continue;
                 }
                 let index = index_of(&mut out, &w.station, None);
@@ -260,8 +290,8 @@ pub fn extract_points(
         }
     }
     if let Some(w) = open.take() {
-        out.dropped
-            .push(dropped(&w, "no point_end (session cut short?)"));
+        let why = reason(&w, u64::MAX, "no point_end (session cut short?)");
+        out.dropped.push(dropped(&w, why));
     }
     Ok(out)
 }

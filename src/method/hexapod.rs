@@ -42,6 +42,11 @@ pub enum HexapodMethodError {
     MissingAxis { pose: usize, axis: String },
     #[error("the first measured pose is {0}, not the reference pose 0")]
     NoReference(usize),
+    #[error(
+        "the reference pose 0 was lost in a damaged chunk: leg changes cannot be referenced \
+         (`geocal repair` cannot bring it back; measure again)"
+    )]
+    ReferenceLost,
     #[error(transparent)]
     Solve(#[from] HexapodError),
 }
@@ -170,6 +175,9 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                     rotation_vector_rad: [a("rx")?, a("ry")?, a("rz")?],
                 };
                 if out.is_empty() && *pose != 0 {
+                    if session.lost_between(0, e.log_time_ns) {
+                        return Err(HexapodMethodError::ReferenceLost);
+                    }
                     return Err(HexapodMethodError::NoReference(*pose));
                 }
                 open = Some((*pose, e.log_time_ns, to_pose(&commanded)));
@@ -182,6 +190,9 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                     continue;
                 }
                 let end_ns = e.log_time_ns;
+                if session.lost_between(begin_ns, end_ns) {
+                    continue;
+                }
                 let within = |t: u64| t >= begin_ns && t <= end_ns;
                 let mut sum = [0.0; LEGS];
                 let mut n = 0;

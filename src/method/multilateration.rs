@@ -10,7 +10,7 @@ use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
 use crate::session::messages::MachineInfo;
-use crate::session::reader::Session;
+use crate::session::reader::{DamagedChunk, Session};
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
 };
@@ -127,6 +127,9 @@ pub struct ExtractionSummary {
     /// Why windows were dropped, with counts.
     pub dropped_reasons: BTreeMap<String, usize>,
     pub samples_used: usize,
+    /// Chunks of the session file that could not be read (their windows are dropped).
+    #[serde(default)]
+    pub damaged_chunks: Vec<DamagedChunk>,
 }
 
 fn arr(v: &Vector3<f64>) -> [f64; 3] {
@@ -328,6 +331,7 @@ pub fn solve_detailed(
             windows_repeated: extraction.repeated.len(),
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
+            damaged_chunks: session.damaged.clone(),
         },
         effects: correction.map(|c| c.effects).unwrap_or_default(),
         geometric_errors,

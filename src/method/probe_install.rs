@@ -141,6 +141,11 @@ pub fn observations(
                 posture: p, point, ..
             } => {
                 if posture.is_none_or(|(q, _, _)| q != *p) {
+                    // Its posture_begin was lost in a damaged chunk: the point is dropped.
+                    if session.lost_between(0, e.log_time_ns) {
+                        open = None;
+                        continue;
+                    }
                     return Err(ProbeInstallMethodError::OutsidePosture {
                         posture: *p,
                         point: *point,
@@ -156,6 +161,9 @@ pub fn observations(
                     continue;
                 }
                 let end_ns = e.log_time_ns;
+                if session.lost_between(begin_ns, end_ns) {
+                    continue;
+                }
                 let mut values = Vec::new();
                 for r in readings
                     .iter()

@@ -1,6 +1,7 @@
 //! Rotary axis from a reference sphere (plan kind `rotary_sphere`): probed points from the
 //! session's events and raw probe readings -> sphere centres -> axis errors -> results.
 
+use std::collections::btree_map::Entry;
 use std::collections::BTreeMap;
 
 use nalgebra::Vector3;
@@ -185,8 +186,18 @@ fn collect_points(
                 nominal_m,
                 direction,
             } => {
-                let Some(sphere) = spheres.get_mut(&(*h, *a)).filter(|_| *point < np) else {
+                if *h >= nh || *a >= na || *point >= np {
                     return Err(outside("probe_point_begin", e.log_time_ns, *h, *a, *point));
+                }
+                let sphere = match spheres.entry((*h, *a)) {
+                    Entry::Occupied(sphere) => sphere.into_mut(),
+                    // Its sphere_begin was lost in a damaged chunk: the plan has the angle.
+                    Entry::Vacant(v) if session.lost_between(0, e.log_time_ns) => {
+                        v.insert((plan.angles_rad[*a], BTreeMap::new()))
+                    }
+                    Entry::Vacant(_) => {
+                        return Err(outside("probe_point_begin", e.log_time_ns, *h, *a, *point))
+                    }
                 };
                 sphere.1.insert(
                     *point,
@@ -206,9 +217,15 @@ fn collect_points(
                 point,
             } => {
                 let Some(p) = spheres.get_mut(&(*h, *a)).and_then(|s| s.1.get_mut(point)) else {
+                    if *point < np && session.lost_between(0, e.log_time_ns) {
+                        continue;
+                    }
                     return Err(outside("probe_point_end", e.log_time_ns, *h, *a, *point));
                 };
-                p.end_ns = Some(e.log_time_ns);
+                // A window that may have lost readings in a damaged chunk stays unused.
+                if !session.lost_between(p.begin_ns, e.log_time_ns) {
+                    p.end_ns = Some(e.log_time_ns);
+                }
             }
             _ => {}
         }
@@ -289,22 +306,30 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
                 SpherePlan::measured_point(&p.nominal_m, &p.direction, p.sum_m / p.readings as f64)
             })
             .collect();
-        let fit = fit_sphere(
+        let fit = match fit_sphere(
             &pts,
             Some(plan.radius_m),
             Some(noise_m / (fewest as f64).sqrt()),
-        )
-        .map_err(|source| RotarySphereMethodError::Sphere {
-            height_index: h,
-            angle_index: a,
-            source,
-        })?;
+        ) {
+            Ok(fit) => fit,
+            // The points left of an incomplete sphere may not determine it (e.g. all on the
+            // equator): it is left out like one with fewer than 4.
+            Err(_) if used.len() < plan.directions.len() => continue,
+            Err(source) => {
+                return Err(RotarySphereMethodError::Sphere {
+                    height_index: h,
+                    angle_index: a,
+                    source,
+                })
+            }
+        };
         let n_readings = used.iter().map(|p| p.readings).sum();
         fits.insert((h, a), (*commanded_rad, fit, n_readings));
     }
     if incomplete > 0 {
         notes.push(format!(
-            "{incomplete} sphere(s) lack some probed points; spheres with fewer than 4 are left out"
+            "{incomplete} sphere(s) lack some probed points; spheres with fewer than 4, or whose \
+             points left do not determine them, are left out"
         ));
     }
 

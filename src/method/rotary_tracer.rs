@@ -280,6 +280,7 @@ mod tests {
             events: events.into_iter().enumerate().map(stamp).collect(),
             topics: BTreeMap::new(),
             completeness: Completeness::Complete,
+            damaged: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

@@ -524,6 +524,7 @@ mod tests {
             topics: BTreeMap::new(),
             events: Vec::new(),
             completeness: Completeness::Complete,
+            damaged: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

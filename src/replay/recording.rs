@@ -470,6 +470,7 @@ mod tests {
             topics: BTreeMap::new(),
             events: vec![begin(0, 62), begin(1, 150)],
             completeness: Completeness::Complete,
+            damaged: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

@@ -1,12 +1,16 @@
 //! The recorded session: message types (the geocal-session/1 contract), the MCAP recorder
 //! and the one session reader that solve, replay, diagnose and report share.
 
+pub mod damage;
 pub mod kind_messages;
 pub mod messages;
 pub mod reader;
 pub mod recorder;
+pub mod repair;
 
-pub use reader::{read_session, read_session_bytes, Completeness, ReadError, Session, Stamped};
+pub use reader::{
+    read_session, read_session_bytes, Completeness, DamagedChunk, ReadError, Session, Stamped,
+};
 pub use recorder::{
     Compression, RecordStats, Recorder, RecorderError, RecorderHandle, RecorderOptions,
 };

@@ -10,6 +10,10 @@ use serde::de::DeserializeOwned;
 use serde::Deserialize;
 use thiserror::Error;
 
+pub use super::damage::DamagedChunk;
+use super::damage::{
+    can_follow, framed, known_opcode, le_u64, resync, Damage, IndexCounts, RECORD_PREFIX,
+};
 use super::messages::{
     EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
     TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
@@ -61,10 +65,20 @@ pub struct Session {
     /// (each kind's method parses them: `session::kind_messages`). Sorted by log time.
     pub topics: BTreeMap<String, Vec<Stamped<serde_json::Value>>>,
     pub completeness: Completeness,
+    /// Chunks that failed their CRC, decompression or parsing: skipped, in file order.
+    pub damaged: Vec<DamagedChunk>,
     /// Messages on known topics that did not parse (each one is warned about).
     pub skipped: u64,
     /// Messages on topics this reader does not know (other plan kinds, other tools).
     pub ignored: u64,
+}
+
+impl Session {
+    /// Whether messages with a log time in `from_ns ..= to_ns` may have been lost in a
+    /// damaged chunk: a window there must be dropped, never half-used.
+    pub fn lost_between(&self, from_ns: u64, to_ns: u64) -> bool {
+        self.damaged.iter().any(|d| d.overlaps(from_ns, to_ns))
+    }
 }
 
 #[derive(Debug, Error)]
@@ -139,6 +153,39 @@ pub fn read_session_raw(path: &Path) -> Result<(Session, Vec<RawMessage>), ReadE
     Ok((dec.into_session(&file, buf.len() as u64)?, raw))
 }
 
+/// Every readable message of a session file exactly as recorded, without decoding them, and
+/// what could not be read: what `geocal repair` copies.
+#[derive(Debug, Clone)]
+pub struct RawRead {
+    /// In file order.
+    pub messages: Vec<RawMessage>,
+    pub damaged: Vec<DamagedChunk>,
+    pub completeness: Completeness,
+    pub file_bytes: u64,
+}
+
+/// Reads a session file linearly for its raw messages; needs no session header.
+pub fn read_raw(path: &Path) -> Result<RawRead, ReadError> {
+    let file = path.display().to_string();
+    let buf = std::fs::read(path).map_err(|source| ReadError::Io {
+        file: file.clone(),
+        source,
+    })?;
+    check_magic(&buf, &file)?;
+    let mut dec = Decoder::new(&file);
+    dec.raw = Some(RawLog::default());
+    dec.raw_only = true;
+    let mut dec = read_linear_into(&buf, dec)?;
+    let damaged = dec.damaged_chunks(&file);
+    let completeness = dec.completeness(&file, buf.len() as u64);
+    Ok(RawRead {
+        messages: dec.raw.take().map(|r| r.messages).unwrap_or_default(),
+        damaged,
+        completeness,
+        file_bytes: buf.len() as u64,
+    })
+}
+
 /// Reads a session held in memory (tests, data received over the network).
 pub fn read_session_bytes(bytes: &[u8]) -> Result<Session, ReadError> {
     read_impl(bytes, "<in-memory session>")
@@ -161,7 +208,12 @@ fn check_magic(buf: &[u8], file: &str) -> Result<(), ReadError> {
 
 fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
     check_magic(buf, file)?;
-    let decoded = match mcap::Summary::read(buf) {
+    let summary = if summary_crc_ok(buf) {
+        mcap::Summary::read(buf)
+    } else {
+        Ok(None)
+    };
+    let decoded = match summary {
         Ok(Some(summary)) => match read_indexed(buf, file, &summary)? {
             Some(d) => d,
             None => read_linear(buf, file)?,
@@ -173,6 +225,33 @@ fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
         }
     };
     decoded.into_session(file, buf.len() as u64)
+}
+
+/// Whether the summary section is intact by its CRC (in the footer). Only then is it parsed:
+/// the mcap crate trusts the sizes in it, and a corrupt one can make it allocate gigabytes.
+/// A file without a summary CRC is read linearly.
+fn summary_crc_ok(buf: &[u8]) -> bool {
+    const FOOTER_RECORD: usize = RECORD_PREFIX + 20;
+    let Some(footer) = buf.len().checked_sub(mcap::MAGIC.len() + FOOTER_RECORD) else {
+        return false;
+    };
+    if !matches!(framed(buf, footer), Some((op::FOOTER, end)) if end == footer + FOOTER_RECORD) {
+        return false;
+    }
+    let summary_start = le_u64(&buf[footer + RECORD_PREFIX..]);
+    let crc_at = footer + RECORD_PREFIX + 16;
+    let saved = u32::from_le_bytes([
+        buf[crc_at],
+        buf[crc_at + 1],
+        buf[crc_at + 2],
+        buf[crc_at + 3],
+    ]);
+    match usize::try_from(summary_start) {
+        Ok(start) if start >= mcap::MAGIC.len() && start <= footer && saved != 0 => {
+            crc32fast::hash(&buf[start..crc_at]) == saved
+        }
+        _ => false,
+    }
 }
 
 /// Reads the chunks the summary lists. Returns None when the summary does not account for
@@ -212,7 +291,7 @@ fn read_indexed_with(
     let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
     chunks.sort_by_key(|c| c.chunk_start_offset);
     let mut ranges = Vec::with_capacity(chunks.len());
-    for index in chunks {
+    for index in &chunks {
         let start = index.chunk_start_offset;
         let range = usize::try_from(start)
             .ok()
@@ -264,7 +343,8 @@ fn read_indexed_with(
                     if failure.is_none() {
                         failure = match dec.absorb(worker) {
                             Ok(()) => worker_failure,
-                            Err(f) => Some((0, f)),
+                            Err(Failure::Fatal(err)) => Some(err),
+                            Err(Failure::Damaged(_)) => None,
                         };
                     }
                 }
@@ -276,17 +356,31 @@ fn read_indexed_with(
         // A worker met a message on a channel it did not know: decode serially instead.
         return read_indexed_with(buf, file, summary, 1);
     }
-    match failure {
-        None => {}
-        Some((_, Failure::Fatal(err))) => return Err(err),
-        Some((s, Failure::Mcap(err))) => {
-            tracing::debug!("{file}: chunk at byte {s}: {err}; reading linearly");
-            return Ok(None);
+    if let Some(err) = failure {
+        return Err(err);
+    }
+    // What the damaged chunks held, from the summary's chunk indexes and the message indexes.
+    let mut lost = 0;
+    for damage in &mut dec.damages {
+        let Some(index) = chunks
+            .iter()
+            .find(|c| c.chunk_start_offset == damage.offset)
+        else {
+            continue;
+        };
+        damage.header_times = Some((index.message_start_time, index.message_end_time));
+        damage.index = IndexCounts::of_chunk(buf, index);
+        match &damage.index {
+            Some(counts) => lost += counts.messages,
+            None => {
+                tracing::debug!("{file}: a damaged chunk has no message index; reading linearly");
+                return Ok(None);
+            }
         }
     }
-    if dec.messages != stats.message_count {
+    if dec.messages + lost != stats.message_count {
         tracing::debug!(
-            "{file}: chunk indexes hold {} of {} messages; reading linearly",
+            "{file}: chunk indexes hold {} (+ {lost} damaged) of {} messages; reading linearly",
             dec.messages,
             stats.message_count
         );
@@ -333,10 +427,9 @@ fn chunk_reader() -> LinearReader {
 /// must give an error, not an allocation of terabytes.
 const MAX_RECORD_BYTES: usize = 1 << 30;
 
-const RECORD_PREFIX: usize = 9; // opcode u8 + length u64
-
 /// Walks the top-level records itself, so that a cut anywhere stops cleanly at the last
-/// complete record (and so that the amount read is exact).
+/// complete record (and so that the amount read is exact). A damaged record is skipped and
+/// reading goes on at the next trustworthy one.
 fn read_linear(buf: &[u8], file: &str) -> Result<Decoder, ReadError> {
     read_linear_into(buf, Decoder::new(file))
 }
@@ -345,6 +438,9 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
     let mut sans = chunk_reader();
     let mut pos = mcap::MAGIC.len();
     let mut in_data_section = true;
+    let mut saw_chunk = false;
+    // The damaged chunk whose message indexes (the records right after it) are being read.
+    let mut indexing: Option<usize> = None;
     let truncation: Option<(usize, String)> = loop {
         let rest = &buf[pos..];
         if rest.is_empty() {
@@ -354,52 +450,88 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
             break Some((pos, format!("record header at byte {pos} is cut short")));
         }
         let opcode = rest[0];
-        let mut len_bytes = [0u8; 8];
-        len_bytes.copy_from_slice(&rest[1..RECORD_PREFIX]);
-        let len = u64::from_le_bytes(len_bytes);
-        let end = usize::try_from(len)
-            .ok()
-            .and_then(|l| l.checked_add(RECORD_PREFIX))
-            .filter(|&l| l <= rest.len());
-        let Some(end) = end else {
-            break Some((
-                pos,
+        let Some((_, end)) = framed(buf, pos).filter(|_| known_opcode(opcode)) else {
+            let why = if known_opcode(opcode) {
+                let len = le_u64(&rest[1..]);
                 format!(
                     "record (opcode {opcode:#04x}, {len} bytes) at byte {pos} runs past the end \
                      of the file"
-                ),
-            ));
+                )
+            } else {
+                format!("record at byte {pos} has no MCAP opcode ({opcode:#04x})")
+            };
+            // A damaged record header, or the file's cut end: the next good record tells.
+            match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
+                Some(next) => {
+                    let i = dec.damage(Damage::new(pos, next - pos, why));
+                    // A chunk's message indexes follow it: they tell what it held.
+                    indexing = (opcode == op::CHUNK).then_some(i);
+                    pos = next;
+                    continue;
+                }
+                None => break Some((pos, why)),
+            }
         };
-        let record = &rest[..end];
+        let record = &buf[pos..end];
         let body = &record[RECORD_PREFIX..];
+        if opcode != op::MESSAGE_INDEX {
+            indexing = None;
+        }
         let result = match opcode {
             op::FOOTER => {
-                let after = &rest[end..];
-                if after.len() >= mcap::MAGIC.len() && &after[..mcap::MAGIC.len()] == mcap::MAGIC {
+                if buf[end..].starts_with(mcap::MAGIC) {
                     break None;
                 }
-                break Some((
-                    pos + end,
-                    "the end magic after the footer is missing".into(),
-                ));
+                break Some((end, "the end magic after the footer is missing".into()));
             }
             op::DATA_END => {
                 in_data_section = false;
                 Ok(())
             }
             _ if !in_data_section => Ok(()),
-            op::CHUNK => dec.feed_chunk(&mut sans, record),
+            op::CHUNK => {
+                saw_chunk = true;
+                dec.feed_whole_chunk(&mut sans, record)
+            }
+            op::MESSAGE_INDEX => {
+                if let Some(i) = indexing {
+                    let damage = &mut dec.damages[i];
+                    if !damage.index.get_or_insert_with(Default::default).add(body) {
+                        damage.index = None;
+                        indexing = None;
+                    }
+                }
+                Ok(())
+            }
             op::SCHEMA | op::CHANNEL | op::MESSAGE => dec.on_record(opcode, body),
             _ => Ok(()),
         };
         match result {
-            Ok(()) => pos += end,
+            Ok(()) => {
+                dec.settle_neighbours();
+                pos = end;
+            }
             Err(Failure::Fatal(err)) => return Err(err),
-            Err(Failure::Mcap(err)) => {
-                break Some((
-                    pos,
-                    format!("record (opcode {opcode:#04x}) at byte {pos}: {err}"),
-                ))
+            Err(Failure::Damaged(err)) => {
+                sans = chunk_reader();
+                let why = format!("record (opcode {opcode:#04x}) at byte {pos}: {err}");
+                let i = dec.damage(Damage::new(pos, end - pos, why).with_header_times(record));
+                if can_follow(buf, end) {
+                    indexing = (opcode == op::CHUNK).then_some(i);
+                    pos = end;
+                } else {
+                    // Its length is wrong too: look for the next good record inside it.
+                    match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
+                        Some(next) => {
+                            dec.damages[i].length = (next - pos) as u64;
+                            pos = next;
+                        }
+                        None => {
+                            let reason = dec.damages.pop().map(|d| d.reason).unwrap_or_default();
+                            break Some((pos, reason));
+                        }
+                    }
+                }
             }
         }
     };
@@ -409,17 +541,41 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
     Ok(dec)
 }
 
+/// Whether a whole chunk record decodes (CRC, decompression, records): a resync candidate.
+fn chunk_decodes(record: &[u8]) -> bool {
+    let mut dec = Decoder::new("");
+    dec.raw_only = true;
+    dec.feed_whole_chunk(&mut chunk_reader(), record).is_ok()
+}
+
+/// A chunk may not claim more than this many times its stored size, plus a floor: a corrupt
+/// size must not make a small file allocate a gigabyte (zstd on JSON gives about 10x).
+const MAX_CHUNK_EXPANSION: u64 = 1024;
+const CHUNK_EXPANSION_FLOOR: u64 = 1 << 20;
+
 enum Failure {
-    /// The file is damaged here: stop and report what was read.
-    Mcap(mcap::McapError),
+    /// This record is damaged: skip it, report it, go on.
+    Damaged(String),
     /// The session itself is unusable (bad header).
     Fatal(ReadError),
 }
 
 impl From<mcap::McapError> for Failure {
     fn from(e: mcap::McapError) -> Self {
-        Failure::Mcap(e)
+        Failure::Damaged(e.to_string())
     }
+}
+
+/// Where a decoder stood before a chunk, to take back a chunk that fails half-way.
+struct Mark {
+    messages: u64,
+    skipped: u64,
+    ignored: u64,
+    events: usize,
+    had_header: bool,
+    raw_headers: usize,
+    raw_messages: usize,
+    streams: [Vec<usize>; 6],
 }
 
 #[derive(Debug, Clone, Copy)]
@@ -464,6 +620,15 @@ struct Decoder {
     truncation: Option<(u64, String)>,
     /// Keep every message raw as well (`read_session_raw`).
     raw: Option<RawLog>,
+    /// Only count and keep raw messages: no typed decoding, no header needed (repair).
+    raw_only: bool,
+    /// Damaged records skipped, in file order.
+    damages: Vec<Damage>,
+    /// Log times of the messages since the last `settle_neighbours`, and the largest before.
+    span_ns: Option<(u64, u64)>,
+    last_ns: Option<u64>,
+    /// Damages from this index on still wait for the first message after them.
+    awaiting_after: usize,
 }
 
 /// Schemas, channels and messages as recorded, for `read_session_raw`.
@@ -508,6 +673,17 @@ impl<T> Streams<T> {
             publish_time_ns,
             msg,
         });
+    }
+
+    fn lens(&self) -> Vec<usize> {
+        self.streams.iter().map(|(_, v)| v.len()).collect()
+    }
+
+    /// Back to the lengths `lens` had; streams created since then are emptied.
+    fn truncate(&mut self, lens: &[usize]) {
+        for (i, (_, v)) in self.streams.iter_mut().enumerate() {
+            v.truncate(lens.get(i).copied().unwrap_or(0));
+        }
     }
 
     /// The same streams (same indices), empty: for a worker decoding later chunks.
@@ -563,7 +739,98 @@ impl Decoder {
             ignored: 0,
             truncation: None,
             raw: None,
+            raw_only: false,
+            damages: Vec::new(),
+            span_ns: None,
+            last_ns: None,
+            awaiting_after: 0,
         }
+    }
+
+    /// Records a damaged record; returns its index in `damages`.
+    fn damage(&mut self, mut damage: Damage) -> usize {
+        self.settle_neighbours();
+        damage.before_ns = self.last_ns;
+        self.damages.push(damage);
+        self.damages.len() - 1
+    }
+
+    /// The messages read since the last call are good: they bound the damages before them.
+    fn settle_neighbours(&mut self) {
+        let Some((first, last)) = self.span_ns.take() else {
+            return;
+        };
+        for d in &mut self.damages[self.awaiting_after..] {
+            d.after_ns = Some(first);
+        }
+        self.awaiting_after = self.damages.len();
+        self.last_ns = Some(self.last_ns.map_or(last, |l| l.max(last)));
+    }
+
+    fn mark(&self) -> Mark {
+        Mark {
+            messages: self.messages,
+            skipped: self.skipped,
+            ignored: self.ignored,
+            events: self.events.len(),
+            had_header: self.header.is_some(),
+            raw_headers: self.raw_headers.len(),
+            raw_messages: self.raw.as_ref().map_or(0, |r| r.messages.len()),
+            streams: [
+                self.tracers.lens(),
+                self.env.lens(),
+                self.rotary.lens(),
+                self.machines.lens(),
+                self.probes.lens(),
+                self.json.lens(),
+            ],
+        }
+    }
+
+    /// Takes back every message decoded since `mark`: a chunk counts whole or not at all.
+    fn rollback(&mut self, mark: Mark) {
+        self.messages = mark.messages;
+        self.skipped = mark.skipped;
+        self.ignored = mark.ignored;
+        self.events.truncate(mark.events);
+        if !mark.had_header {
+            self.header = None;
+        }
+        self.raw_headers.truncate(mark.raw_headers);
+        if let Some(raw) = self.raw.as_mut() {
+            raw.messages.truncate(mark.raw_messages);
+        }
+        let [t, e, r, m, p, j] = mark.streams;
+        self.tracers.truncate(&t);
+        self.env.truncate(&e);
+        self.rotary.truncate(&r);
+        self.machines.truncate(&m);
+        self.probes.truncate(&p);
+        self.json.truncate(&j);
+        self.span_ns = None;
+    }
+
+    /// Feeds one whole chunk record; on failure nothing of it is kept and the reader must be
+    /// replaced (its state is undefined).
+    fn feed_whole_chunk(&mut self, sans: &mut LinearReader, record: &[u8]) -> Result<(), Failure> {
+        if record.len() >= RECORD_PREFIX + 24 {
+            let claimed = le_u64(&record[RECORD_PREFIX + 16..]);
+            let bound = (record.len() as u64)
+                .saturating_mul(MAX_CHUNK_EXPANSION)
+                .saturating_add(CHUNK_EXPANSION_FLOOR);
+            if claimed > bound {
+                return Err(Failure::Damaged(format!(
+                    "the chunk claims {claimed} bytes uncompressed from {} stored",
+                    record.len()
+                )));
+            }
+        }
+        let mark = self.mark();
+        let result = self.feed_chunk(sans, record);
+        if matches!(result, Err(Failure::Damaged(_))) {
+            self.rollback(mark);
+        }
+        result
     }
 
     fn define_channel(&mut self, id: u16, topic: &str, encoding: &str) {
@@ -653,21 +920,27 @@ impl Decoder {
         self.probes.absorb(other.probes);
         self.json.absorb(other.json);
         self.events.extend(other.events);
+        self.damages.extend(other.damages);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
         }
         Ok(())
     }
 
-    /// Feeds whole chunk records; on failure, the byte offset of the chunk and why.
-    fn feed_chunks(
-        &mut self,
-        buf: &[u8],
-        ranges: &[(usize, usize)],
-    ) -> Result<(), (usize, Failure)> {
+    /// Feeds whole chunk records, skipping (and noting) damaged ones; fails only when the
+    /// session itself is unusable.
+    fn feed_chunks(&mut self, buf: &[u8], ranges: &[(usize, usize)]) -> Result<(), ReadError> {
         let mut sans = chunk_reader();
         for &(s, e) in ranges {
-            self.feed_chunk(&mut sans, &buf[s..e]).map_err(|f| (s, f))?;
+            match self.feed_whole_chunk(&mut sans, &buf[s..e]) {
+                Ok(()) => {}
+                Err(Failure::Fatal(err)) => return Err(err),
+                Err(Failure::Damaged(why)) => {
+                    sans = chunk_reader();
+                    let why = format!("chunk at byte {s}: {why}");
+                    self.damage(Damage::new(s, e - s, why));
+                }
+            }
         }
         Ok(())
     }
@@ -732,7 +1005,7 @@ impl Decoder {
                 // channel_id u16, sequence u32, log_time u64, publish_time u64, then the data.
                 // Parsed by hand: this runs for every message.
                 if body.len() < 22 {
-                    return Err(Failure::Mcap(mcap::McapError::UnexpectedEoc));
+                    return Err(mcap::McapError::UnexpectedEoc.into());
                 }
                 let channel_id = u16::from_le_bytes([body[0], body[1]]);
                 let log_time = le_u64(&body[6..14]);
@@ -761,6 +1034,13 @@ impl Decoder {
         data: &[u8],
     ) -> Result<(), Failure> {
         self.messages += 1;
+        self.span_ns = Some(match self.span_ns {
+            None => (log_time_ns, log_time_ns),
+            Some((a, b)) => (a.min(log_time_ns), b.max(log_time_ns)),
+        });
+        if self.raw_only {
+            return Ok(());
+        }
         let slot = self
             .slots
             .get(usize::from(channel_id))
@@ -867,27 +1147,52 @@ impl Decoder {
             Some(Slot::Json(i)) => self.json.streams[*i].0.clone(),
             Some(Slot::Event) => TOPIC_EVENT.to_owned(),
             Some(Slot::Session) => TOPIC_SESSION.to_owned(),
-            _ => format!("channel {channel_id}"),
+            _ => match self.raw.as_ref().and_then(|r| r.channels.get(&channel_id)) {
+                Some(channel) => channel.topic.clone(),
+                None => format!("channel {channel_id}"),
+            },
         }
     }
 
-    fn into_session(self, file: &str, file_bytes: u64) -> Result<Session, ReadError> {
-        let completeness = match self.truncation {
-            None => Completeness::Complete,
-            Some((bytes_read, reason)) => {
-                tracing::warn!(
-                    "{file} is incomplete: read {bytes_read} of {file_bytes} bytes \
-                     ({} messages): {reason}",
-                    self.messages
-                );
-                Completeness::Truncated {
-                    bytes_read,
-                    file_bytes,
-                    messages_read: self.messages,
-                    reason,
-                }
-            }
+    /// Whether the file was read to its end magic; warns when it was not.
+    fn completeness(&mut self, file: &str, file_bytes: u64) -> Completeness {
+        let Some((bytes_read, reason)) = self.truncation.take() else {
+            return Completeness::Complete;
         };
+        tracing::warn!(
+            "{file} is incomplete: read {bytes_read} of {file_bytes} bytes ({} messages): \
+             {reason}; run `geocal repair {file}` for a complete copy, or resume the run with \
+             `geocal run --resume DIR`",
+            self.messages
+        );
+        Completeness::Truncated {
+            bytes_read,
+            file_bytes,
+            messages_read: self.messages,
+            reason,
+        }
+    }
+
+    /// The damaged records as reported, each warned about once.
+    fn damaged_chunks(&mut self, file: &str) -> Vec<DamagedChunk> {
+        self.settle_neighbours();
+        let damages = std::mem::take(&mut self.damages);
+        damages
+            .into_iter()
+            .map(|d| {
+                let chunk = d.finish(|channel| self.topic_of(channel));
+                tracing::warn!(
+                    "{file}: damaged, skipped {}; run `geocal repair {file}` for a clean copy",
+                    chunk.describe()
+                );
+                chunk
+            })
+            .collect()
+    }
+
+    fn into_session(mut self, file: &str, file_bytes: u64) -> Result<Session, ReadError> {
+        let damaged = self.damaged_chunks(file);
+        let completeness = self.completeness(file, file_bytes);
         let Some(header) = self.header else {
             let truncated = match &completeness {
                 Completeness::Complete => String::new(),
@@ -926,6 +1231,7 @@ impl Decoder {
             events,
             topics,
             completeness,
+            damaged,
             skipped: self.skipped,
             ignored: self.ignored,
         })
@@ -934,12 +1240,6 @@ impl Decoder {
 
 /// Topics of plan kinds that the reader keeps as JSON for the kind's method.
 const KIND_TOPIC_PREFIXES: [&str; 3] = ["/probe/", "/machine/", "/hexapod/"];
-
-fn le_u64(b: &[u8]) -> u64 {
-    let mut a = [0u8; 8];
-    a.copy_from_slice(&b[..8]);
-    u64::from_le_bytes(a)
-}
 
 fn tracer_id(topic: &str) -> Option<&str> {
     let id = topic.strip_prefix("/tracer/")?.strip_suffix("/range")?;

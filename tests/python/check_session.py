@@ -39,17 +39,23 @@ def main():
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("file")
     parser.add_argument("--expect-tracer-samples", type=int, default=None)
+    parser.add_argument("--dump", default=None,
+                        help="write every message as topic, log_time, publish_time, hex data")
     args = parser.parse_args()
 
     failures = []
     counts = collections.Counter()
     validators = {}
     last_log_time = None
+    dump = open(args.dump, "w", encoding="ascii") if args.dump else None
     with open(args.file, "rb") as f:
         reader = make_reader(f)
         for schema, channel, message in reader.iter_messages(log_time_order=False):
             topic = channel.topic
             counts[topic] += 1
+            if dump:
+                dump.write(f"{topic}\t{message.log_time}\t{message.publish_time}\t"
+                           f"{message.data.hex()}\n")
             where = f"{topic} @ log_time {message.log_time}"
             if channel.message_encoding != "json":
                 failures.append(f"{where}: message encoding {channel.message_encoding!r}")
@@ -80,6 +86,8 @@ def main():
             if topic == "/geocal/session" and doc.get("format") != "geocal-session/1":
                 failures.append(f"{where}: format {doc.get('format')!r}")
 
+    if dump:
+        dump.close()
     for topic in sorted(counts):
         print(f"{topic}\t{counts[topic]}")
     if counts["/geocal/session"] != 1:

@@ -1,0 +1,222 @@
+//! Damaged parts of a session file: what the reader skipped (byte range, log-time range, the
+//! messages lost), and how it finds the next trustworthy record after a damaged one.
+
+use std::collections::BTreeMap;
+
+use mcap::records::{op, Record};
+use serde::{Deserialize, Serialize};
+
+/// A chunk (or other record) that failed its CRC, decompression or parsing: skipped whole,
+/// reading went on with the next record.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct DamagedChunk {
+    /// The skipped bytes: `byte_offset .. byte_offset + byte_length` of the file.
+    pub byte_offset: u64,
+    pub byte_length: u64,
+    /// The lost messages' log times lie in `start_log_time_ns ..= end_log_time_ns`.
+    pub start_log_time_ns: u64,
+    pub end_log_time_ns: u64,
+    /// Where that range comes from: `index` (the file's message indexes: exact),
+    /// `chunk_header` (the chunk's own header, consistent with the messages around it) or
+    /// `neighbours` (from the last message before to the first after: nothing better survived).
+    pub time_source: String,
+    /// Messages lost, from the file's message indexes; null when no index survived.
+    #[serde(default)]
+    pub messages: Option<u64>,
+    /// Messages lost by topic (from the message indexes), when known.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub lost_by_topic: BTreeMap<String, u64>,
+    pub reason: String,
+}
+
+/// What is known of a damaged record while reading; becomes a [`DamagedChunk`] at the end.
+#[derive(Debug, Clone)]
+pub(crate) struct Damage {
+    pub offset: u64,
+    pub length: u64,
+    pub reason: String,
+    /// Start and end log times from the chunk's header (unverified: the CRC does not cover it).
+    pub header_times: Option<(u64, u64)>,
+    /// From the message indexes: count, first and last log time, count by channel id.
+    pub index: Option<IndexCounts>,
+    /// Largest log time read before the damage, smallest after it (file order).
+    pub before_ns: Option<u64>,
+    pub after_ns: Option<u64>,
+}
+
+#[derive(Debug, Clone, Default)]
+pub(crate) struct IndexCounts {
+    pub messages: u64,
+    pub first_ns: u64,
+    pub last_ns: u64,
+    pub by_channel: BTreeMap<u16, u64>,
+}
+
+impl IndexCounts {
+    /// Adds one MessageIndex record (the body after opcode and length).
+    pub fn add(&mut self, body: &[u8]) -> bool {
+        let Ok(Record::MessageIndex(index)) = mcap::parse_record(op::MESSAGE_INDEX, body) else {
+            return false;
+        };
+        for entry in &index.records {
+            if self.messages == 0 {
+                self.first_ns = entry.log_time;
+                self.last_ns = entry.log_time;
+            }
+            self.first_ns = self.first_ns.min(entry.log_time);
+            self.last_ns = self.last_ns.max(entry.log_time);
+            self.messages += 1;
+        }
+        *self.by_channel.entry(index.channel_id).or_insert(0) += index.records.len() as u64;
+        true
+    }
+
+    /// The message indexes a chunk index points to, or None if any is unreadable.
+    pub fn of_chunk(buf: &[u8], chunk: &mcap::records::ChunkIndex) -> Option<IndexCounts> {
+        let mut counts = IndexCounts::default();
+        for &offset in chunk.message_index_offsets.values() {
+            let pos = usize::try_from(offset).ok()?;
+            let (opcode, end) = framed(buf, pos)?;
+            if opcode != op::MESSAGE_INDEX || !counts.add(&buf[pos + RECORD_PREFIX..end]) {
+                return None;
+            }
+        }
+        (!chunk.message_index_offsets.is_empty()).then_some(counts)
+    }
+}
+
+impl Damage {
+    pub fn new(offset: usize, length: usize, reason: String) -> Damage {
+        Damage {
+            offset: offset as u64,
+            length: length as u64,
+            reason,
+            header_times: None,
+            index: None,
+            before_ns: None,
+            after_ns: None,
+        }
+    }
+
+    /// The chunk header's start and end times, if the record is a chunk long enough to hold them.
+    pub fn with_header_times(mut self, record: &[u8]) -> Damage {
+        if record.first() == Some(&op::CHUNK) && record.len() >= RECORD_PREFIX + 16 {
+            let start = le_u64(&record[RECORD_PREFIX..]);
+            let end = le_u64(&record[RECORD_PREFIX + 8..]);
+            self.header_times = (start <= end).then_some((start, end));
+        }
+        self
+    }
+
+    /// The report: the index's times when it survived, else the header's when they fit
+    /// between the neighbours, else the neighbours themselves.
+    pub fn finish(self, topic_of: impl Fn(u16) -> String) -> DamagedChunk {
+        let before = self.before_ns.unwrap_or(0);
+        let after = self.after_ns.unwrap_or(u64::MAX);
+        let (start, end, source) = match (&self.index, self.header_times) {
+            (Some(ix), _) if ix.messages > 0 => (ix.first_ns, ix.last_ns, "index"),
+            (_, Some((s, e))) if before <= s && e <= after => (s, e, "chunk_header"),
+            _ => (before, after, "neighbours"),
+        };
+        let lost_by_topic = self
+            .index
+            .as_ref()
+            .map(|ix| {
+                let mut by_topic = BTreeMap::new();
+                for (&channel, &n) in &ix.by_channel {
+                    *by_topic.entry(topic_of(channel)).or_insert(0) += n;
+                }
+                by_topic
+            })
+            .unwrap_or_default();
+        DamagedChunk {
+            byte_offset: self.offset,
+            byte_length: self.length,
+            start_log_time_ns: start,
+            end_log_time_ns: end,
+            time_source: source.into(),
+            messages: self.index.map(|ix| ix.messages),
+            lost_by_topic,
+            reason: self.reason,
+        }
+    }
+}
+
+impl DamagedChunk {
+    /// Whether the lost messages may hold any with a log time in `from_ns ..= to_ns`.
+    pub fn overlaps(&self, from_ns: u64, to_ns: u64) -> bool {
+        self.start_log_time_ns <= to_ns && from_ns <= self.end_log_time_ns
+    }
+
+    /// One line for a warning or a report.
+    pub fn describe(&self) -> String {
+        let messages = match self.messages {
+            Some(n) => format!("{n} messages lost"),
+            None => "messages lost: unknown (no index)".into(),
+        };
+        format!(
+            "bytes {}..{} (log time {}..={} ns, from the {}; {messages}): {}",
+            self.byte_offset,
+            self.byte_offset + self.byte_length,
+            self.start_log_time_ns,
+            self.end_log_time_ns,
+            self.time_source.replace('_', " "),
+            self.reason
+        )
+    }
+}
+
+pub(crate) const RECORD_PREFIX: usize = 9; // opcode u8 + length u64
+
+pub(crate) fn le_u64(b: &[u8]) -> u64 {
+    let mut a = [0u8; 8];
+    a.copy_from_slice(&b[..8]);
+    u64::from_le_bytes(a)
+}
+
+/// The opcode and end offset of the record at `pos` when its length stays inside `buf`.
+pub(crate) fn framed(buf: &[u8], pos: usize) -> Option<(u8, usize)> {
+    let prefix = buf.get(pos..pos.checked_add(RECORD_PREFIX)?)?;
+    let len = usize::try_from(le_u64(&prefix[1..])).ok()?;
+    let end = pos.checked_add(RECORD_PREFIX)?.checked_add(len)?;
+    (end <= buf.len()).then_some((prefix[0], end))
+}
+
+/// A record of an MCAP opcode (private records 0x80.. are skipped by readers, not damage).
+pub(crate) fn known_opcode(opcode: u8) -> bool {
+    (op::HEADER..=op::DATA_END).contains(&opcode) || opcode >= 0x80
+}
+
+/// Whether a record can follow at `pos`: the end of the buffer, or a framed known record.
+pub(crate) fn can_follow(buf: &[u8], pos: usize) -> bool {
+    pos == buf.len() || framed(buf, pos).is_some_and(|(opcode, _)| known_opcode(opcode))
+}
+
+/// The first offset from `from` on where a record starts that can be trusted after damage: a
+/// chunk that decodes (`chunk_ok`, CRC checked), a message index, DataEnd or footer that
+/// parses and is followed by a record or the end; in a file without chunks so far, a
+/// schema, channel or message followed by a record. None when nothing follows: the file is
+/// cut short there rather than damaged.
+pub(crate) fn resync(
+    buf: &[u8],
+    from: usize,
+    saw_chunk: bool,
+    chunk_ok: impl Fn(&[u8]) -> bool,
+) -> Option<usize> {
+    (from..buf.len()).find(|&pos| {
+        let Some((opcode, end)) = framed(buf, pos) else {
+            return false;
+        };
+        let body = &buf[pos + RECORD_PREFIX..end];
+        match opcode {
+            op::CHUNK => chunk_ok(&buf[pos..end]),
+            op::MESSAGE_INDEX => can_follow(buf, end) && IndexCounts::default().add(body),
+            op::DATA_END => body.len() == 4 && can_follow(buf, end),
+            op::FOOTER => body.len() == 20 && buf[end..].starts_with(mcap::MAGIC),
+            op::SCHEMA | op::CHANNEL | op::MESSAGE if !saw_chunk => {
+                can_follow(buf, end) && mcap::parse_record(opcode, body).is_ok()
+            }
+            _ => false,
+        }
+    })
+}
