@@ -400,6 +400,26 @@ fn repair_of_a_truncated_file_keeps_its_complete_chunks() {
     assert_eq!(python_messages(&output), expected);
 }
 
+/// What the mcap crate itself reads of a file cut short: every message up to its cut.
+fn readable_messages(bytes: &[u8]) -> Vec<Message> {
+    let mut out = Vec::new();
+    let Ok(stream) =
+        mcap::MessageStream::new_with_options(bytes, mcap::read::Options::IgnoreEndMagic.into())
+    else {
+        return out;
+    };
+    for m in stream {
+        let Ok(m) = m else { break };
+        out.push((
+            m.channel.topic.clone(),
+            m.log_time,
+            m.publish_time,
+            m.data.into_owned(),
+        ));
+    }
+    out
+}
+
 #[test]
 fn repair_of_a_killed_hil_run() {
     let dir = tempfile::tempdir().expect("tempdir");
@@ -415,29 +435,25 @@ fn repair_of_a_killed_hil_run() {
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn geocal");
-    std::thread::sleep(Duration::from_secs(4));
-    assert!(
-        child.try_wait().expect("status").is_none(),
-        "the run ended before the kill"
-    );
+    // Killed mid-run once a few hundred messages are on disk: waiting on data, not on time,
+    // holds on a loaded machine.
+    let killed = out.join("session.mcap");
+    let deadline = std::time::Instant::now() + Duration::from_secs(180);
+    while readable_messages(&std::fs::read(&killed).unwrap_or_default()).len() < 300 {
+        assert!(
+            child.try_wait().expect("status").is_none(),
+            "the run ended before the kill"
+        );
+        assert!(
+            std::time::Instant::now() < deadline,
+            "no 300 messages on disk after 180 s"
+        );
+        std::thread::sleep(Duration::from_millis(200));
+    }
     child.kill().expect("SIGKILL");
     child.wait().expect("reap");
-    let killed = out.join("session.mcap");
     let bytes = std::fs::read(&killed).expect("killed file");
-    // What the mcap crate itself reads of the killed file: every message up to its cut.
-    let mut expected = Vec::new();
-    let stream =
-        mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into())
-            .expect("stream");
-    for m in stream {
-        let Ok(m) = m else { break };
-        expected.push((
-            m.channel.topic.clone(),
-            m.log_time,
-            m.publish_time,
-            m.data.into_owned(),
-        ));
-    }
+    let expected = readable_messages(&bytes);
     assert!(
         expected.len() > 100,
         "{} messages before the kill",
