@@ -202,55 +202,21 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             yes,
             resume,
         } => {
-            use geocal::config::rotary_sphere as sphere;
-            if let (None, Some(config)) = (&resume, &config) {
-                if sphere::peek_kind(config)?.as_deref() == Some(sphere::KIND) {
-                    let cfg = sphere::RotarySphereConfig::load(config)?;
-                    let output = geocal::rotary_sphere_run::run(
-                        &cfg,
-                        &geocal::run::RunOptions {
-                            out_dir: out,
-                            truth,
-                            progress: std::io::stderr().is_terminal(),
-                            settings: settings(huber),
-                        },
-                    )?;
-                    if json {
-                        println!("{}", output.results.to_json_pretty());
-                    } else {
-                        print!("{}", geocal::report::text(&output.results));
-                        println!(
-                            "\n  {} probe readings recorded to {}\n  results in {}",
-                            output.summary.readings,
-                            output.session_path.display(),
-                            output.results_path.display()
-                        );
-                    }
-                    return Ok(());
-                }
-            }
             let options = geocal::run::RunOptions {
                 out_dir: resume.clone().unwrap_or(out),
                 truth,
                 progress: std::io::stderr().is_terminal(),
                 settings: settings(huber),
             };
-            let load = |path: &std::path::Path| -> anyhow::Result<geocal::config::Config> {
-                let mut cfg = geocal::config::Config::load(path)?;
-                if yes {
-                    cfg.operator
-                        .get_or_insert_with(Default::default)
-                        .piped_stdin = true;
-                }
-                Ok(cfg)
-            };
+            let flags = geocal::kinds::RunFlags { assume_yes: yes };
             let output = match (resume, config) {
-                (Some(dir), config) => geocal::resume::resume(&dir, config.as_deref(), &options)?,
-                // Kinds with their own configuration layout (probe_install, hexapod) first.
-                (None, Some(config)) => match geocal::kinds::run_file(&config, &options)? {
-                    Some(output) => output,
-                    None => geocal::run::run(&load(&config)?, &options)?,
-                },
+                (Some(dir), config) => {
+                    let kind = geocal::kinds::kind_of_run_dir(&dir, config.as_deref())?;
+                    kind.resume(&dir, config.as_deref(), &options)?
+                }
+                (None, Some(config)) => {
+                    geocal::kinds::kind_of_config(&config)?.run(&config, &options, &flags)?
+                }
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
             if json {
@@ -258,8 +224,8 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             } else {
                 print!("{}", geocal::report::text(&output.results));
                 println!(
-                    "\n  {} samples recorded to {}\n  results in {}",
-                    output.summary.samples,
+                    "\n  {} recorded to {}\n  results in {}",
+                    output.recorded,
                     output.session_path.display(),
                     output.results_path.display()
                 );
@@ -318,8 +284,8 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
         } => {
-            let cfg = geocal::config::Config::load(&config)?;
-            geocal::simulate::simulate(&cfg, &geocal::simulate::SimulateOptions { truth, json })?;
+            geocal::kinds::kind_of_config(&config)?
+                .simulate(&config, &geocal::simulate::SimulateOptions { truth, json })?;
         }
         Command::Replay {
             session,
@@ -397,25 +363,12 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
         }
         Command::Check { config, json } => {
-            // rotary_sphere, probe_install, hexapod: their own layouts and predictions.
-            if let Some(check) = geocal::method::plan_check_kinds::check_file(&config)? {
-                if json {
-                    println!("{}", serde_json::to_string_pretty(&check)?);
-                } else {
-                    println!("{}: valid", config.display());
-                    print!("{}", geocal::method::plan_check_kinds::text(&check));
-                }
-                return Ok(());
-            }
-            let cfg = geocal::config::Config::load(&config)?;
-            let plan = geocal::plan::Plan::from_config(&cfg);
-            let check = geocal::method::plan_check::check(&cfg, &plan)
-                .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", config.display()))?;
+            let check = geocal::kinds::kind_of_config(&config)?.check(&config)?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&check)?);
+                println!("{}", serde_json::to_string_pretty(&check.json)?);
             } else {
                 println!("{}: valid", config.display());
-                print!("{}", geocal::report::plan_check_text(&check));
+                print!("{}", check.text);
             }
         }
     }

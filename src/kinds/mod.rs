@@ -1,10 +1,15 @@
-//! Runs of the plan kinds with their own configuration layout (`probe_install`, `hexapod`):
-//! which kind a configuration file declares, and the whole run of each (config -> plan ->
-//! simulated devices -> kind sequencer -> recorded session -> solve).
+//! The plan kinds: the registry every command dispatches through (`registry`), and the runs
+//! of the kinds with their own configuration layout (`probe_install`, `hexapod`: config ->
+//! plan -> simulated devices -> kind sequencer -> recorded session -> solve).
 
 pub mod hexapod;
 pub mod hexapod_devices;
 pub mod probe_install;
+pub mod registry;
+
+pub use registry::{
+    kind_named, kind_of_config, kind_of_run_dir, Kind, KindCheck, KindRunOutput, RunFlags, KINDS,
+};
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -15,22 +20,11 @@ use crate::sequencer::{RunSummary, SequencerError};
 use crate::session::messages::{DeviceInfo, SessionHeader};
 use crate::session::recorder::RecorderHandle;
 
-/// The kind a configuration file declares when it is one of the kinds run here.
-pub fn own_kind(path: &Path) -> anyhow::Result<Option<&'static str>> {
-    let text = std::fs::read_to_string(path)
-        .map_err(|e| anyhow::anyhow!("{}: cannot read: {e}", path.display()))?;
-    Ok(
-        match crate::config::kind_config::declared_kind(&text).as_deref() {
-            Some(crate::config::probe_install::KIND) => Some(crate::config::probe_install::KIND),
-            Some(crate::config::hexapod::KIND) => Some(crate::config::hexapod::KIND),
-            _ => None,
-        },
-    )
-}
-
-/// Run the configuration at `path` if its kind is one of the kinds run here; None otherwise.
+/// Run the configuration at `path` if it declares one of the kinds with their own layout
+/// (not the core tracer layout); None otherwise.
 pub fn run_file(path: &Path, options: &RunOptions) -> anyhow::Result<Option<RunOutput>> {
-    match own_kind(path)? {
+    let text = crate::config::kind_config::read(path)?;
+    match crate::config::kind_config::declared_kind(&text).as_deref() {
         Some(crate::config::probe_install::KIND) => {
             let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
             probe_install::run(&config, options).map(Some)

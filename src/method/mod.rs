@@ -11,12 +11,10 @@ pub mod rotary_tracer;
 
 use serde::Serialize;
 
-use crate::session::reader::Session;
-
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
-    #[error("session kind `{0}` has no solver yet (known: multilateration, rotary_tracer, rotary_sphere, probe_install, hexapod)")]
-    UnknownKind(String),
+    #[error("session kind `{0}` has no solver (known: {1})")]
+    UnknownKind(String, String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
     #[error(transparent)]
@@ -66,21 +64,5 @@ pub struct SolveSettings {
     pub effects: Vec<crate::diagnose::effects::EffectKind>,
 }
 
-pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
-    match session.header.kind.as_str() {
-        "multilateration" => Ok(Results::Multilateration(multilateration::solve(
-            session, settings,
-        )?)),
-        rotary_tracer::KIND => Ok(Results::RotaryTracer(rotary_tracer::solve(
-            session, settings,
-        )?)),
-        crate::config::rotary_sphere::KIND => Ok(Results::RotarySphere(Box::new(
-            rotary_sphere::solve(session)?,
-        ))),
-        crate::config::probe_install::KIND => Ok(Results::ProbeInstall(Box::new(
-            probe_install::solve(session)?,
-        ))),
-        crate::config::hexapod::KIND => Ok(Results::Hexapod(Box::new(hexapod::solve(session)?))),
-        other => Err(MethodError::UnknownKind(other.to_string())),
-    }
-}
+/// Solve a session with the method of its kind.
+pub use crate::kinds::registry::solve_session;

@@ -1,0 +1,352 @@
+//! The plan kinds and what every command needs of one: the `Kind` trait, and `KINDS`, the
+//! only list that names them. The commands (`run`, `run --resume`, `check`, `solve`,
+//! `simulate`) find a configuration's or a session's kind here and call it; none of them
+//! names a kind.
+
+use std::path::Path;
+
+use anyhow::Context;
+
+use crate::config::kind_config;
+use crate::config::{hexapod as hexapod_config, probe_install as probe_install_config};
+use crate::config::{rotary_sphere as rotary_sphere_config, Config, PlanKind};
+use crate::method::{self, MethodError, Results, SolveSettings};
+use crate::run::RunOptions;
+use crate::session::reader::Session;
+
+/// What a run of any kind leaves behind.
+pub struct KindRunOutput {
+    pub session_path: std::path::PathBuf,
+    pub results_path: std::path::PathBuf,
+    pub results: Results,
+    /// What was recorded, for the closing line ("12000 samples", "540 probe readings").
+    pub recorded: String,
+}
+
+/// A plan check of any kind: its JSON and its text report.
+pub struct KindCheck {
+    pub json: serde_json::Value,
+    pub text: String,
+}
+
+/// Choices on the command line that every kind's run accepts.
+#[derive(Debug, Clone, Default)]
+pub struct RunFlags {
+    /// Answer the operator's prompts from a pipe instead of a terminal (`--yes`).
+    pub assume_yes: bool,
+}
+
+/// Everything a command needs of a plan kind.
+pub trait Kind: Sync {
+    /// The `kind` in configuration files, session headers and results.
+    fn name(&self) -> &'static str;
+
+    /// Parse and validate the configuration at `path`, check the plan and predict its
+    /// uncertainties (`geocal check`).
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck>;
+
+    /// Run the configuration at `path` on its devices (simulated, emulated or real, as it
+    /// declares), record the session and solve it (`geocal run`).
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput>;
+
+    /// Continue the interrupted run recorded in `dir` (`geocal run --resume DIR`).
+    fn resume(
+        &self,
+        _dir: &Path,
+        _config: Option<&Path>,
+        _options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        anyhow::bail!(
+            "a {} run cannot be resumed yet: start it again with `geocal run CONFIG`",
+            self.name()
+        )
+    }
+
+    /// Solve a recorded session of this kind (`geocal solve`).
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError>;
+
+    /// Host the configuration's device emulators on their own (`geocal simulate`).
+    fn simulate(
+        &self,
+        _path: &Path,
+        _options: &crate::simulate::SimulateOptions,
+    ) -> anyhow::Result<()> {
+        anyhow::bail!(
+            "geocal simulate hosts the tracer emulator of multilateration and rotary_tracer \
+             plans; a {} plan has none",
+            self.name()
+        )
+    }
+}
+
+/// Every plan kind geocal knows.
+pub static KINDS: &[&dyn Kind] = &[
+    &TracerKind(PlanKind::Multilateration),
+    &TracerKind(PlanKind::RotaryTracer),
+    &RotarySphere,
+    &ProbeInstall,
+    &Hexapod,
+];
+
+/// The names of every kind, for error messages.
+pub fn kind_names() -> String {
+    KINDS
+        .iter()
+        .map(|k| k.name())
+        .collect::<Vec<_>>()
+        .join(", ")
+}
+
+/// The kind called `name`.
+pub fn kind_named(name: &str) -> Option<&'static dyn Kind> {
+    KINDS.iter().copied().find(|k| k.name() == name)
+}
+
+/// The kind a configuration file declares (`kind = "..."`; none declared is multilateration).
+pub fn kind_of_config(path: &Path) -> anyhow::Result<&'static dyn Kind> {
+    let text = kind_config::read(path)?;
+    let declared = kind_config::declared_kind(&text);
+    let name = declared
+        .as_deref()
+        .unwrap_or(PlanKind::Multilateration.as_str());
+    kind_named(name).with_context(|| {
+        format!(
+            "{}: kind = \"{name}\" is not a plan kind (known: {})",
+            path.display(),
+            kind_names()
+        )
+    })
+}
+
+/// The kind of the interrupted run in `dir`: the given configuration's, else the one stored
+/// at run start, else the recorded session's.
+pub fn kind_of_run_dir(dir: &Path, config: Option<&Path>) -> anyhow::Result<&'static dyn Kind> {
+    let stored = dir.join(crate::resume::CONFIG_FILE);
+    if let Some(path) = config.or(stored.exists().then_some(stored.as_path())) {
+        return kind_of_config(path);
+    }
+    let session_path = dir.join(crate::resume::SESSION_FILE);
+    let (session, _) =
+        crate::session::reader::read_session_raw(&session_path).with_context(|| {
+            format!(
+                "{} holds neither {} nor a readable {}: is it a run's output directory?",
+                dir.display(),
+                crate::resume::CONFIG_FILE,
+                crate::resume::SESSION_FILE
+            )
+        })?;
+    let name = session.header.kind.as_str();
+    kind_named(name).with_context(|| {
+        format!(
+            "{}: kind \"{name}\" is not a plan kind (known: {})",
+            session_path.display(),
+            kind_names()
+        )
+    })
+}
+
+/// Solve a session with the method of its kind.
+pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+    let name = session.header.kind.as_str();
+    match kind_named(name) {
+        Some(kind) => kind.solve(session, settings),
+        None => Err(MethodError::UnknownKind(name.to_string(), kind_names())),
+    }
+}
+
+fn closing_count(n: u64, what: &str) -> String {
+    format!("{n} {what}")
+}
+
+/// The kinds that measure with a tracer on the core configuration layout.
+struct TracerKind(PlanKind);
+
+impl TracerKind {
+    fn load(path: &Path, flags: &RunFlags) -> anyhow::Result<Config> {
+        let mut config = Config::load(path)?;
+        if flags.assume_yes {
+            config
+                .operator
+                .get_or_insert_with(Default::default)
+                .piped_stdin = true;
+        }
+        Ok(config)
+    }
+}
+
+fn from_run(output: crate::run::RunOutput) -> KindRunOutput {
+    KindRunOutput {
+        recorded: closing_count(output.summary.samples, "samples"),
+        session_path: output.session_path,
+        results_path: output.results_path,
+        results: output.results,
+    }
+}
+
+impl Kind for TracerKind {
+    fn name(&self) -> &'static str {
+        self.0.as_str()
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = Config::load(path)?;
+        let plan = crate::plan::Plan::from_config(&config);
+        let check = method::plan_check::check(&config, &plan)
+            .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))?;
+        Ok(KindCheck {
+            json: serde_json::to_value(&check)?,
+            text: crate::report::plan_check_text(&check),
+        })
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        crate::run::run(&Self::load(path, flags)?, options).map(from_run)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        crate::resume::resume(dir, config, options).map(from_run)
+    }
+
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(match self.0 {
+            PlanKind::Multilateration => {
+                Results::Multilateration(method::multilateration::solve(session, settings)?)
+            }
+            PlanKind::RotaryTracer => {
+                Results::RotaryTracer(method::rotary_tracer::solve(session, settings)?)
+            }
+        })
+    }
+
+    fn simulate(
+        &self,
+        path: &Path,
+        options: &crate::simulate::SimulateOptions,
+    ) -> anyhow::Result<()> {
+        crate::simulate::simulate(&Config::load(path)?, options)
+    }
+}
+
+/// A kind-layout plan check as a `KindCheck`.
+fn kind_layout_check(
+    path: &Path,
+    check: Result<method::plan_check_kinds::KindPlanCheck, impl std::fmt::Display>,
+) -> anyhow::Result<KindCheck> {
+    let check = check.map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))?;
+    Ok(KindCheck {
+        json: serde_json::to_value(&check)?,
+        text: method::plan_check_kinds::text(&check),
+    })
+}
+
+struct RotarySphere;
+
+impl Kind for RotarySphere {
+    fn name(&self) -> &'static str {
+        rotary_sphere_config::KIND
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = rotary_sphere_config::RotarySphereConfig::load(path)?;
+        kind_layout_check(
+            path,
+            method::plan_check_kinds::rotary_sphere::check(&config),
+        )
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        _flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        let config = rotary_sphere_config::RotarySphereConfig::load(path)?;
+        let output = crate::rotary_sphere_run::run(&config, options)?;
+        Ok(KindRunOutput {
+            recorded: closing_count(output.summary.readings, "probe readings"),
+            session_path: output.session_path,
+            results_path: output.results_path,
+            results: output.results,
+        })
+    }
+
+    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::RotarySphere(Box::new(
+            method::rotary_sphere::solve(session)?,
+        )))
+    }
+}
+
+struct ProbeInstall;
+
+impl Kind for ProbeInstall {
+    fn name(&self) -> &'static str {
+        probe_install_config::KIND
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = probe_install_config::ProbeInstallConfig::load(path)?;
+        kind_layout_check(
+            path,
+            method::plan_check_kinds::probe_install::check(&config),
+        )
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        _flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        let config = probe_install_config::ProbeInstallConfig::load(path)?;
+        super::probe_install::run(&config, options).map(from_run)
+    }
+
+    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::ProbeInstall(Box::new(
+            method::probe_install::solve(session)?,
+        )))
+    }
+}
+
+struct Hexapod;
+
+impl Kind for Hexapod {
+    fn name(&self) -> &'static str {
+        hexapod_config::KIND
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = hexapod_config::HexapodConfig::load(path)?;
+        kind_layout_check(path, method::plan_check_kinds::hexapod::check(&config))
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        _flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        let config = hexapod_config::HexapodConfig::load(path)?;
+        super::hexapod::run(&config, options).map(from_run)
+    }
+
+    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::Hexapod(Box::new(method::hexapod::solve(session)?)))
+    }
+}
