@@ -29,7 +29,7 @@ pub const SESSION_FILE: &str = "session.mcap";
 const RESTART_S: f64 = 1.0;
 
 /// Store the run's configuration in its output directory, so `--resume DIR` needs nothing else.
-pub fn store_config(config: &Config, dir: &Path) -> anyhow::Result<()> {
+pub fn store_config<C: serde::Serialize>(config: &C, dir: &Path) -> anyhow::Result<()> {
     let text = toml::to_string(config).context("serialising the run's configuration")?;
     let path = dir.join(CONFIG_FILE);
     let tmp = dir.join(format!("{CONFIG_FILE}.tmp"));
@@ -157,87 +157,119 @@ impl Interrupted {
     }
 }
 
-/// What a resumed run needs from the interrupted one: the messages to copy, where to go on.
-pub struct Continuation {
-    resume_index: u32,
-    interrupted: Interrupted,
-    /// (station, target, pass, point) where the run goes on; None when nothing is left.
-    continues_at: Option<(String, String, usize, usize)>,
+/// The interrupted recording of a run directory, whatever the kind: its messages to copy into
+/// the new session file, its times and the files to delete once the continuation is safe.
+pub struct Interruption {
+    /// This resume's number (1 for the first).
+    pub resume_index: u32,
+    /// The interrupted session as read (up to its last complete chunk).
+    pub session: Session,
     messages: Vec<RawMessage>,
     messages_kept: u64,
     /// Log time of the interrupted session's header: the epoch of a simulated run's clock.
     header_log_time_ns: u64,
     last_log_time_ns: u64,
+    dir: PathBuf,
+    /// The file read: `session.mcap`, or an interrupted file when the last resume's copy
+    /// never reached the disk.
+    source: PathBuf,
     /// The interrupted files to delete once the continued session is safely finished.
     interrupted_files: Vec<PathBuf>,
 }
 
-/// A simulated run in virtual time (not emulated, not live).
-fn simulated(config: &Config) -> bool {
-    config.sim.is_some() && !config.emulated()
-}
+impl Interruption {
+    /// Read the interrupted session of `dir` (nothing is moved yet: see `set_aside`).
+    pub fn read(dir: &Path) -> anyhow::Result<Interruption> {
+        let (source, resume_index) = find_source(dir)?;
+        let (session, messages) =
+            read_session_raw(&source).with_context(|| format!("reading {}", source.display()))?;
+        let header_log_time_ns = messages
+            .iter()
+            .find(|m| m.channel.topic == TOPIC_SESSION)
+            .map(|m| m.log_time_ns)
+            .context("the interrupted session has no header message")?;
+        let last_log_time_ns = messages.iter().map(|m| m.log_time_ns).max().unwrap_or(0);
+        Ok(Interruption {
+            resume_index,
+            session,
+            messages_kept: messages.len() as u64,
+            messages,
+            header_log_time_ns,
+            last_log_time_ns,
+            dir: dir.to_path_buf(),
+            source,
+            interrupted_files: Vec::new(),
+        })
+    }
 
-impl Continuation {
+    /// Move `session.mcap` aside (as `session.interrupted-N.mcap`) so that the continuation
+    /// can be written in its place.
+    pub fn set_aside(&mut self) -> anyhow::Result<()> {
+        let session_path = self.dir.join(SESSION_FILE);
+        let kept = self
+            .dir
+            .join(format!("session.interrupted-{}.mcap", self.resume_index));
+        if self.source == session_path {
+            std::fs::rename(&self.source, &kept).with_context(|| {
+                format!("moving {} to {}", self.source.display(), kept.display())
+            })?;
+        }
+        self.interrupted_files = interrupted_files(&self.dir)?
+            .into_iter()
+            .map(|f| f.1)
+            .collect();
+        Ok(())
+    }
+
+    /// How many messages of the interrupted file the continuation keeps (all it could read).
+    pub fn messages_kept(&self) -> u64 {
+        self.messages_kept
+    }
+
     /// The clock epoch of the continuation: a simulated run keeps its virtual clock's epoch
     /// (its world resumes after the last log time); a live or emulated run uses the host clock.
-    pub fn epoch_ns(&self, config: &Config) -> u64 {
-        if simulated(config) {
+    pub fn epoch_ns(&self, simulated: bool) -> u64 {
+        if simulated {
             self.header_log_time_ns
         } else {
             system_now_ns()
         }
     }
 
-    /// Bring a rebuilt simulated world to the moment after the interruption.
-    pub fn prepare_world(&self, config: &Config, built: &BuiltDevices) -> anyhow::Result<()> {
-        if !simulated(config) {
-            if built.clock.now_ns() <= self.last_log_time_ns {
-                bail!(
-                    "the host clock ({} ns) is not past the interrupted session's last log time \
-                     ({} ns): log times must increase",
-                    built.clock.now_ns(),
-                    self.last_log_time_ns
-                );
-            }
-            return Ok(());
-        }
-        let (Some(world), Some(sim)) = (&built.world, &config.sim) else {
-            return Ok(());
-        };
+    /// Where a simulated world resumes: its time (s since the epoch, after a restart pause)
+    /// and a noise seed of its own for this resume.
+    pub fn simulated_restart(&self, seed: u64) -> (f64, u64) {
         let t_s = self
             .last_log_time_ns
             .saturating_sub(self.header_log_time_ns) as f64
             * 1e-9
             + RESTART_S;
-        let noise_seed = sim
-            .seed
+        let noise_seed = seed
             .wrapping_add(1)
             .wrapping_add(u64::from(self.resume_index).wrapping_mul(0x9e37_79b9_7f4a_7c15));
-        world
-            .lock()
-            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-            .resume_at(t_s, noise_seed);
+        (t_s, noise_seed)
+    }
+
+    /// A live clock must be past the interrupted session: log times must increase.
+    pub fn check_live_clock(&self, now_ns: u64) -> anyhow::Result<()> {
+        if now_ns <= self.last_log_time_ns {
+            bail!(
+                "the host clock ({now_ns} ns) is not past the interrupted session's last log \
+                 time ({} ns): log times must increase",
+                self.last_log_time_ns
+            );
+        }
         Ok(())
     }
 
     /// Copy the interrupted session into the new file, record the `resume` event and make
-    /// both durable before anything new happens; returns where the sequencer goes on.
-    pub fn record_start(&mut self, handle: &RecorderHandle, clock: &dyn Clock) -> ResumeAt {
+    /// both durable before anything new happens.
+    pub fn record_copy(&mut self, handle: &RecorderHandle, resume: RunEvent, clock: &dyn Clock) {
         for m in self.messages.drain(..) {
             handle.raw(m);
         }
-        let at = self.continues_at.clone();
-        let event = RunEvent::Resume {
-            resume_index: self.resume_index,
-            messages_kept: self.messages_kept,
-            station: at.as_ref().map(|w| w.0.clone()),
-            target: at.as_ref().map(|w| w.1.clone()),
-            pass: at.as_ref().map(|w| w.2),
-            point: at.as_ref().map(|w| w.3),
-        };
-        handle.event(&event, clock.now_ns());
+        handle.event(&resume, clock.now_ns());
         handle.checkpoint();
-        self.interrupted.at.clone()
     }
 
     /// The continued session is finished: read it back, and once it holds at least every
@@ -260,6 +292,63 @@ impl Continuation {
                 .with_context(|| format!("removing {} (no longer needed)", file.display()))?;
         }
         Ok(())
+    }
+}
+
+/// What a resumed tracer run needs from the interrupted one: its recording, where to go on.
+pub struct Continuation {
+    interruption: Interruption,
+    interrupted: Interrupted,
+    /// (station, target, pass, point) where the run goes on; None when nothing is left.
+    continues_at: Option<(String, String, usize, usize)>,
+}
+
+/// A simulated run in virtual time (not emulated, not live).
+fn simulated(config: &Config) -> bool {
+    config.sim.is_some() && !config.emulated()
+}
+
+impl Continuation {
+    pub fn epoch_ns(&self, config: &Config) -> u64 {
+        self.interruption.epoch_ns(simulated(config))
+    }
+
+    /// Bring a rebuilt simulated world to the moment after the interruption.
+    pub fn prepare_world(&self, config: &Config, built: &BuiltDevices) -> anyhow::Result<()> {
+        if !simulated(config) {
+            return self.interruption.check_live_clock(built.clock.now_ns());
+        }
+        let (Some(world), Some(sim)) = (&built.world, &config.sim) else {
+            return Ok(());
+        };
+        let (t_s, noise_seed) = self.interruption.simulated_restart(sim.seed);
+        world
+            .lock()
+            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+            .resume_at(t_s, noise_seed);
+        Ok(())
+    }
+
+    /// Copy the interrupted session into the new file and record the `resume` event;
+    /// returns where the sequencer goes on.
+    pub fn record_start(&mut self, handle: &RecorderHandle, clock: &dyn Clock) -> ResumeAt {
+        let at = self.continues_at.clone();
+        let event = RunEvent::Resume {
+            resume_index: self.interruption.resume_index,
+            messages_kept: self.interruption.messages_kept(),
+            station: at.as_ref().map(|w| w.0.clone()),
+            target: at.as_ref().map(|w| w.1.clone()),
+            pass: at.as_ref().map(|w| w.2),
+            point: at.as_ref().map(|w| w.3),
+            height_index: None,
+            angle_index: None,
+        };
+        self.interruption.record_copy(handle, event, clock);
+        self.interrupted.at.clone()
+    }
+
+    pub fn finished(&self, session_path: &Path) -> anyhow::Result<()> {
+        self.interruption.finished(session_path)
     }
 }
 
@@ -309,16 +398,20 @@ fn find_source(dir: &Path) -> anyhow::Result<(PathBuf, u32)> {
 
 /// The configuration to resume with: the one stored in DIR, or `given` (which must then
 /// equal the stored one, if any).
-fn load_config(dir: &Path, given: Option<&Path>) -> anyhow::Result<Config> {
+pub fn load_stored_config<C: PartialEq>(
+    dir: &Path,
+    given: Option<&Path>,
+    load: impl Fn(&Path) -> anyhow::Result<C>,
+) -> anyhow::Result<C> {
     let stored_path = dir.join(CONFIG_FILE);
     let stored = if stored_path.exists() {
-        Some(Config::load(&stored_path)?)
+        Some(load(&stored_path)?)
     } else {
         None
     };
     match (given, stored) {
         (Some(path), Some(stored)) => {
-            let config = Config::load(path)?;
+            let config = load(path)?;
             if config != stored {
                 bail!(
                     "{} differs from the configuration the run in {} was started with ({}); \
@@ -330,7 +423,7 @@ fn load_config(dir: &Path, given: Option<&Path>) -> anyhow::Result<Config> {
             }
             Ok(config)
         }
-        (Some(path), None) => Ok(Config::load(path)?),
+        (Some(path), None) => load(path),
         (None, Some(stored)) => Ok(stored),
         (None, None) => bail!(
             "{} holds no {CONFIG_FILE}: give the run's configuration file as well",
@@ -345,34 +438,27 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
-    let config = load_config(dir, config)?;
+    let config = load_stored_config(dir, config, |p| Ok(Config::load(p)?))?;
     if config.devices.machine.driver == crate::config::DriverKind::Passive {
         bail!("a passive run cannot be resumed: its machine restarts its NC program");
     }
     let plan = Plan::from_config(&config);
-    let (source, resume_index) = find_source(dir)?;
-    let (session, messages) =
-        read_session_raw(&source).with_context(|| format!("reading {}", source.display()))?;
+    let mut interruption = Interruption::read(dir)?;
+    let session = &interruption.session;
     if session.header.kind != config.kind.as_str()
         || session.header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
     {
         bail!(
             "{} was recorded with another plan than the configuration's (kind {:?})",
-            source.display(),
+            dir.display(),
             session.header.kind
         );
     }
-    let header_log_time_ns = messages
-        .iter()
-        .find(|m| m.channel.topic == TOPIC_SESSION)
-        .map(|m| m.log_time_ns)
-        .context("the interrupted session has no header message")?;
-    let last_log_time_ns = messages.iter().map(|m| m.log_time_ns).max().unwrap_or(0);
-    let interrupted = Interrupted::from_session(&plan, &session);
+    let interrupted = Interrupted::from_session(&plan, session);
     if interrupted.out_of_order > 0 {
         tracing::warn!(
             "{}: {} finished windows lie after the first unfinished point; they are measured again",
-            source.display(),
+            dir.display(),
             interrupted.out_of_order
         );
     }
@@ -386,29 +472,18 @@ pub fn resume(
             order[at.order_index],
         )
     });
+    interruption.set_aside()?;
     tracing::info!(
-        kept = messages.len(),
+        kept = interruption.messages_kept(),
         finished = interrupted.finished.len(),
         "resuming {} at {:?}",
-        source.display(),
+        dir.display(),
         continues_at
     );
-    // Keep the interrupted file aside until the continued session is safely finished.
-    let session_path = options.out_dir.join(SESSION_FILE);
-    let kept = dir.join(format!("session.interrupted-{resume_index}.mcap"));
-    if source == session_path {
-        std::fs::rename(&source, &kept)
-            .with_context(|| format!("moving {} to {}", source.display(), kept.display()))?;
-    }
     let mut continuation = Continuation {
-        resume_index,
-        messages_kept: messages.len() as u64,
+        interruption,
         interrupted,
         continues_at,
-        messages,
-        header_log_time_ns,
-        last_log_time_ns,
-        interrupted_files: interrupted_files(dir)?.into_iter().map(|f| f.1).collect(),
     };
     crate::run::execute(&config, options, Some(&mut continuation))
 }

@@ -1,8 +1,8 @@
 //! A whole `rotary_sphere` run: config -> plan -> devices (simulated, emulated or real) ->
 //! sequencer -> recorded session -> solve -> results, read back from the file as `solve` does.
 
-use std::collections::BTreeMap;
-use std::path::PathBuf;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::{Path, PathBuf};
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
@@ -15,9 +15,11 @@ use crate::config::rotary_sphere::{ProbeDriverKind, RotarySphereConfig, KIND};
 use crate::config::DriverKind;
 use crate::method::Results;
 use crate::plan::rotary_sphere::SpherePlan;
+use crate::resume::Interruption;
 use crate::run::RunOptions;
 use crate::sequencer::rotary_sphere::{ProbeArm, SphereDevices, SphereRunSummary, SphereSequencer};
-use crate::session::messages::{DeviceInfo, MachineInfo, SessionHeader, SESSION_FORMAT};
+use crate::session::messages::{DeviceInfo, MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
+use crate::session::reader::Session;
 use crate::sim::rotary_sphere::{
     SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
 };
@@ -228,23 +230,117 @@ fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
 }
 
 pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<SphereRunOutput> {
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    crate::resume::store_config(config, &options.out_dir)?;
+    execute(config, options, None)
+}
+
+/// `geocal run [CONFIG] --resume DIR` of a rotary_sphere run: the spheres the interrupted run
+/// finished are kept, the run continues at the first unfinished one.
+pub fn resume(
+    dir: &Path,
+    config: Option<&Path>,
+    options: &RunOptions,
+) -> anyhow::Result<SphereRunOutput> {
+    let config =
+        crate::resume::load_stored_config(dir, config, |p| Ok(RotarySphereConfig::load(p)?))?;
+    let mut interruption = Interruption::read(dir)?;
+    let header = &interruption.session.header;
+    if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
+    {
+        anyhow::bail!(
+            "{} was recorded with another plan than the configuration's (kind {:?})",
+            dir.display(),
+            header.kind
+        );
+    }
+    let plan = SpherePlan::from_config(&config.plan);
+    let first = first_unfinished_sphere(&plan, &interruption.session);
+    interruption.set_aside()?;
+    tracing::info!(
+        kept = interruption.messages_kept(),
+        "resuming {} at sphere {first:?}",
+        dir.display()
+    );
+    execute(&config, options, Some((interruption, first)))
+}
+
+/// The first sphere (height, angle index) in plan order without a `sphere_end`; (heights, 0)
+/// when every sphere is finished.
+fn first_unfinished_sphere(plan: &SpherePlan, session: &Session) -> (usize, usize) {
+    let finished: BTreeSet<(usize, usize)> = session
+        .events
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::SphereEnd {
+                height_index,
+                angle_index,
+            } => Some((height_index, angle_index)),
+            _ => None,
+        })
+        .collect();
+    (0..plan.heights.len())
+        .flat_map(|h| (0..plan.angles_rad.len()).map(move |a| (h, a)))
+        .find(|sphere| !finished.contains(sphere))
+        .unwrap_or((plan.heights.len(), 0))
+}
+
+/// A run from the start, or the continuation of an interrupted one at a sphere.
+fn execute(
+    config: &RotarySphereConfig,
+    options: &RunOptions,
+    mut continuation: Option<(Interruption, (usize, usize))>,
+) -> anyhow::Result<SphereRunOutput> {
     let mut plan = SpherePlan::from_config(&config.plan);
     // The simulated table spends virtual time on each state query: no wall-time pause.
     if config.devices.rotary_table.driver == DriverKind::Sim {
         plan.poll_interval_s = 0.0;
     }
-    let epoch_ns = system_now_ns();
+    let simulated = config.devices.probe.driver == ProbeDriverKind::Sim
+        && config.devices.rotary_table.driver == DriverKind::Sim;
+    let epoch_ns = continuation
+        .as_ref()
+        .map_or_else(system_now_ns, |(c, _)| c.epoch_ns(simulated));
     let runtime = crate::run::run_runtime()?;
     let built = runtime.block_on(build(config, &plan, epoch_ns))?;
     let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
     let handle = recorder.handle();
-    handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
+    let mut first_sphere = (0, 0);
+    match continuation.as_mut() {
+        Some((interruption, first)) => {
+            match (&built.world, &config.sim) {
+                (Some(world), Some(sim)) if simulated => {
+                    let (t_s, noise_seed) = interruption.simulated_restart(sim.seed);
+                    world
+                        .lock()
+                        .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+                        .resume_at(t_s, noise_seed);
+                }
+                _ => interruption.check_live_clock(built.clock.now_ns())?,
+            }
+            let event = RunEvent::Resume {
+                resume_index: interruption.resume_index,
+                messages_kept: interruption.messages_kept(),
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
+                height_index: (first.0 < plan.heights.len()).then_some(first.0),
+                angle_index: (first.0 < plan.heights.len()).then_some(first.1),
+            };
+            interruption.record_copy(&handle, event, built.clock.as_ref());
+            first_sphere = *first;
+        }
+        None => handle.session(&session_header(config, epoch_ns), built.clock.now_ns()),
+    }
     let bar = progress_bar(options.progress);
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
     };
-    let sequencer = SphereSequencer::new(&plan, built.devices, handle, built.clock.clone());
+    let sequencer = SphereSequencer::new(&plan, built.devices, handle, built.clock.clone())
+        .resume_at(first_sphere);
     let summary = runtime.block_on(sequencer.run(&mut progress));
     let emulator_requests = built.emulator.as_ref().map(|e| {
         e.stats()
@@ -257,6 +353,9 @@ pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<
     // Finish the file even after a failed run: every recorded reading stays readable.
     let stats = recorder.finish().context("finishing the session file")?;
     let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    if let Some((interruption, _)) = &continuation {
+        interruption.finished(&session_path)?;
+    }
     tracing::info!(
         readings = summary.readings,
         bytes = stats.bytes,

@@ -254,6 +254,15 @@ fn kind_layout_check(
     })
 }
 
+fn from_sphere_run(output: crate::rotary_sphere_run::SphereRunOutput) -> KindRunOutput {
+    KindRunOutput {
+        recorded: closing_count(output.summary.readings, "probe readings"),
+        session_path: output.session_path,
+        results_path: output.results_path,
+        results: output.results,
+    }
+}
+
 struct RotarySphere;
 
 impl Kind for RotarySphere {
@@ -276,13 +285,16 @@ impl Kind for RotarySphere {
         _flags: &RunFlags,
     ) -> anyhow::Result<KindRunOutput> {
         let config = rotary_sphere_config::RotarySphereConfig::load(path)?;
-        let output = crate::rotary_sphere_run::run(&config, options)?;
-        Ok(KindRunOutput {
-            recorded: closing_count(output.summary.readings, "probe readings"),
-            session_path: output.session_path,
-            results_path: output.results_path,
-            results: output.results,
-        })
+        crate::rotary_sphere_run::run(&config, options).map(from_sphere_run)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        crate::rotary_sphere_run::resume(dir, config, options).map(from_sphere_run)
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {

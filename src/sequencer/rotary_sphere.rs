@@ -65,6 +65,9 @@ pub struct SphereSequencer<'a> {
     clock: Arc<dyn Clock>,
     start_ns: u64,
     summary: SphereRunSummary,
+    /// The first sphere (height, angle index) to measure: spheres before it in plan order
+    /// were finished by an interrupted run.
+    first_sphere: (usize, usize),
 }
 
 impl<'a> SphereSequencer<'a> {
@@ -82,7 +85,14 @@ impl<'a> SphereSequencer<'a> {
             clock,
             start_ns,
             summary: SphereRunSummary::default(),
+            first_sphere: (0, 0),
         }
+    }
+
+    /// Continue an interrupted run at sphere (height, angle index).
+    pub fn resume_at(mut self, first_sphere: (usize, usize)) -> Self {
+        self.first_sphere = first_sphere;
+        self
     }
 
     /// Run the whole plan; `progress(done, total)` after every probed point.
@@ -92,13 +102,18 @@ impl<'a> SphereSequencer<'a> {
     ) -> Result<SphereRunSummary, SphereRunError> {
         let plan = self.plan;
         let total = plan.total_points();
-        let mut done = 0;
-        for (h, height) in plan.heights.iter().enumerate() {
+        let (first_height, first_angle) = self.first_sphere;
+        let mut done = (first_height * plan.angles_rad.len() + first_angle) as u64
+            * plan.directions.len() as u64;
+        for (h, height) in plan.heights.iter().enumerate().skip(first_height) {
             self.devices
                 .arm
                 .mount_sphere(h, height.sphere_m.into())
                 .await?;
             for (a, &commanded_rad) in plan.angles_rad.iter().enumerate() {
+                if (h, a) < self.first_sphere {
+                    continue;
+                }
                 self.rotate(commanded_rad).await?;
                 self.event(RunEvent::SphereBegin {
                     height_index: h,
@@ -266,6 +281,8 @@ impl<'a> SphereSequencer<'a> {
             angle_index: a,
             point: k,
         });
+        // A probed point is on disk before the arm moves on (merged when points come fast).
+        self.recorder.checkpoint();
         self.summary.points += 1;
         Ok(())
     }

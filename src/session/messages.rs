@@ -245,6 +245,11 @@ pub enum RunEvent {
         pass: Option<usize>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         point: Option<usize>,
+        /// Where a `rotary_sphere` run continues: the first unfinished sphere.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        height_index: Option<usize>,
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        angle_index: Option<usize>,
     },
     /// Passive mode: the machine stopped where no point was expected, or left before its
     /// dwell was complete (src/sequencer/passive.rs). `point`/`pass` name the stop that was
@@ -392,6 +397,8 @@ impl TryFrom<WireEvent> for RunEvent {
                 target: w.target,
                 pass: w.pass,
                 point: w.point,
+                height_index: w.height_index,
+                angle_index: w.angle_index,
             },
             "unplanned_stop" => RunEvent::UnplannedStop {
                 station: w.station.ok_or_else(|| need("station"))?,
@@ -499,6 +506,8 @@ mod tests {
                 target: Some("t0".into()),
                 pass: Some(1),
                 point: Some(7),
+                height_index: None,
+                angle_index: None,
             },
             RunEvent::Resume {
                 resume_index: 2,
@@ -507,6 +516,8 @@ mod tests {
                 target: None,
                 pass: None,
                 point: None,
+                height_index: Some(2),
+                angle_index: Some(17),
             },
             RunEvent::PostureBegin {
                 posture: 1,

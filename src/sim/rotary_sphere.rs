@@ -86,6 +86,14 @@ impl SphereWorld {
         self.now_s
     }
 
+    /// Continue after an interrupted run: the same true axis and spheres, time `t_s`, the
+    /// probe noise drawn from `noise_seed`.
+    pub fn resume_at(&mut self, t_s: f64, noise_seed: u64) {
+        self.now_s = t_s;
+        self.clock.advance_to(t_s);
+        self.rng = ChaCha8Rng::seed_from_u64(noise_seed);
+    }
+
     fn advance(&mut self, dt_s: f64) {
         self.now_s += dt_s.max(0.0);
         self.clock.advance_to(self.now_s);
