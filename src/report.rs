@@ -14,7 +14,7 @@ pub fn text(results: &Results) -> String {
         }
         Results::RotarySphere(r) => crate::method::rotary_sphere::text(r),
         Results::ProbeInstall(r) => crate::report_kinds::probe_install_text(r),
-        Results::Hexapod(r) => crate::report_kinds::hexapod_text(r),
+        Results::Hexapod(r) => crate::kinds::hexapod::report::text(r),
     }
 }
 

@@ -216,7 +216,7 @@ fn uncertainties_are_honest_with_and_without_pose_noise() {
 }
 
 fn pose_of(v: &Value) -> geocal::model::hexapod::Pose {
-    geocal::sim::hexapod::to_pose(&geocal_drivers::PlatformPose {
+    geocal::kinds::hexapod::sim::to_pose(&geocal_drivers::PlatformPose {
         translation_m: xyz(&v["translation_m"]),
         rotation_vector_rad: xyz(&v["rotation_vector_rad"]),
     })
@@ -234,7 +234,7 @@ fn platform_reaches_the_forward_kinematics_of_the_design_lengths() {
     use geocal::model::hexapod::{leg_length, pose_jacobian, HexapodGeometry, LEGS};
     let dir = tempfile::tempdir().expect("tempdir");
     let (_, truth) = run(EXAMPLE, dir.path());
-    let config = geocal::config::hexapod::HexapodConfig::parse(EXAMPLE, Path::new("h.toml"))
+    let config = geocal::kinds::hexapod::config::HexapodConfig::parse(EXAMPLE, Path::new("h.toml"))
         .expect("config");
     let design = config.machine.nominal();
     let coords = |key: &str| -> Vec<f64> { (0..LEGS).flat_map(|i| xyz(&truth[key][i])).collect() };

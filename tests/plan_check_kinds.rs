@@ -9,7 +9,8 @@
 use std::path::{Path, PathBuf};
 use std::process::Command;
 
-use geocal::method::plan_check_kinds::{check_file, KindPlanCheck};
+use geocal::kinds::registry::kind_layout_plan_check;
+use geocal::method::plan_check_kinds::KindPlanCheck;
 use geocal::method::Results;
 use geocal::run::{RunOptions, RunOutput};
 use nalgebra::{Matrix3, Vector3};
@@ -26,7 +27,7 @@ fn write(dir: &Path, name: &str, text: &str) -> PathBuf {
 }
 
 fn predicted(path: &Path) -> KindPlanCheck {
-    check_file(path)
+    kind_layout_plan_check(path)
         .expect("check")
         .expect("a kind checked here")
 }

@@ -1,12 +1,11 @@
 //! Configuration files (TOML): machine, devices, plan and simulated world, parsed strictly
 //! (unknown keys rejected) and validated, with errors naming the file, the key and what is expected.
 
-pub mod hexapod;
 mod hil;
 pub mod kind_config;
 pub mod probe_install;
 pub mod rotary_sphere;
-mod rotary_table;
+pub(crate) mod rotary_table;
 mod validate;
 
 use std::collections::BTreeMap;

@@ -102,7 +102,7 @@ pub(super) fn validate(table: &RotaryTableConfig, emulated: bool) -> Result<(), 
 }
 
 /// `[hil.table_faults]`: probabilities in [0, 1], durations finite and not negative.
-pub(super) fn validate_faults(f: &ModbusTableFaults) -> Result<(), Invalid> {
+pub(crate) fn validate_faults(f: &ModbusTableFaults) -> Result<(), Invalid> {
     if !(0.0..=1.0).contains(&f.drop_probability) {
         return fail(
             "hil.table_faults.drop_probability",

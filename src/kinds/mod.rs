@@ -3,39 +3,21 @@
 //! plan -> simulated devices -> kind sequencer -> recorded session -> solve).
 
 pub mod hexapod;
-pub mod hexapod_devices;
 pub mod probe_install;
 pub mod registry;
 
 pub use registry::{
-    kind_named, kind_of_config, kind_of_run_dir, Kind, KindCheck, KindRunOutput, RunFlags, KINDS,
+    kind_named, kind_of_config, kind_of_run_dir, run_file, Kind, KindCheck, KindRunOutput,
+    RunFlags, KINDS,
 };
 
 use std::collections::BTreeMap;
-use std::path::Path;
 
 use crate::clock::Clock;
 use crate::run::{RunOptions, RunOutput};
 use crate::sequencer::{RunSummary, SequencerError};
 use crate::session::messages::{DeviceInfo, SessionHeader};
 use crate::session::recorder::RecorderHandle;
-
-/// Run the configuration at `path` if it declares one of the kinds with their own layout
-/// (not the core tracer layout); None otherwise.
-pub fn run_file(path: &Path, options: &RunOptions) -> anyhow::Result<Option<RunOutput>> {
-    let text = crate::config::kind_config::read(path)?;
-    match crate::config::kind_config::declared_kind(&text).as_deref() {
-        Some(crate::config::probe_install::KIND) => {
-            let config = crate::config::probe_install::ProbeInstallConfig::load(path)?;
-            probe_install::run(&config, options).map(Some)
-        }
-        Some(crate::config::hexapod::KIND) => {
-            let config = crate::config::hexapod::HexapodConfig::load(path)?;
-            hexapod::run(&config, options).map(Some)
-        }
-        _ => Ok(None),
-    }
-}
 
 pub(crate) fn started_at(epoch_ns: u64) -> String {
     time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)

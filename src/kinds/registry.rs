@@ -8,7 +8,7 @@ use std::path::Path;
 use anyhow::Context;
 
 use crate::config::kind_config;
-use crate::config::{hexapod as hexapod_config, probe_install as probe_install_config};
+use crate::config::probe_install as probe_install_config;
 use crate::config::{rotary_sphere as rotary_sphere_config, Config, PlanKind};
 use crate::method::{self, MethodError, Results, SolveSettings};
 use crate::run::RunOptions;
@@ -90,7 +90,7 @@ pub static KINDS: &[&dyn Kind] = &[
     &TracerKind(PlanKind::RotaryTracer),
     &RotarySphere,
     &ProbeInstall,
-    &Hexapod,
+    &super::hexapod::Hexapod,
 ];
 
 /// The names of every kind, for error messages.
@@ -150,6 +150,49 @@ pub fn kind_of_run_dir(dir: &Path, config: Option<&Path>) -> anyhow::Result<&'st
     })
 }
 
+/// Run the configuration at `path` if it declares one of the kinds with their own layout
+/// (probe_install, hexapod), with the run's summary; None otherwise.
+pub fn run_file(
+    path: &Path,
+    options: &RunOptions,
+) -> anyhow::Result<Option<crate::run::RunOutput>> {
+    let text = kind_config::read(path)?;
+    match kind_config::declared_kind(&text).as_deref() {
+        Some(probe_install_config::KIND) => {
+            let config = probe_install_config::ProbeInstallConfig::load(path)?;
+            super::probe_install::run(&config, options).map(Some)
+        }
+        Some(super::hexapod::config::KIND) => {
+            let config = super::hexapod::config::HexapodConfig::load(path)?;
+            super::hexapod::run::run(&config, options).map(Some)
+        }
+        _ => Ok(None),
+    }
+}
+
+/// The plan check of the configuration at `path` if it declares one of the kinds with their
+/// own layout (rotary_sphere, probe_install, hexapod); None otherwise. Validates it first.
+pub fn kind_layout_plan_check(
+    path: &Path,
+) -> anyhow::Result<Option<method::plan_check_kinds::KindPlanCheck>> {
+    use super::hexapod::config as hx;
+    use crate::config::{probe_install as pi, rotary_sphere as rs};
+    let text = kind_config::read(path)?;
+    let check = match kind_config::declared_kind(&text).as_deref() {
+        Some(rs::KIND) => {
+            method::plan_check_kinds::rotary_sphere::check(&rs::RotarySphereConfig::load(path)?)
+        }
+        Some(pi::KIND) => {
+            method::plan_check_kinds::probe_install::check(&pi::ProbeInstallConfig::load(path)?)
+        }
+        Some(hx::KIND) => super::hexapod::check::check(&hx::HexapodConfig::load(path)?),
+        _ => return Ok(None),
+    };
+    check
+        .map(Some)
+        .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))
+}
+
 /// Solve a session with the method of its kind.
 pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
     let name = session.header.kind.as_str();
@@ -179,7 +222,7 @@ impl TracerKind {
     }
 }
 
-fn from_run(output: crate::run::RunOutput) -> KindRunOutput {
+pub(crate) fn from_run(output: crate::run::RunOutput) -> KindRunOutput {
     KindRunOutput {
         recorded: closing_count(output.summary.samples, "samples"),
         session_path: output.session_path,
@@ -243,7 +286,7 @@ impl Kind for TracerKind {
 }
 
 /// A kind-layout plan check as a `KindCheck`.
-fn kind_layout_check(
+pub(crate) fn kind_layout_check(
     path: &Path,
     check: Result<method::plan_check_kinds::KindPlanCheck, impl std::fmt::Display>,
 ) -> anyhow::Result<KindCheck> {
@@ -333,32 +376,5 @@ impl Kind for ProbeInstall {
         Ok(Results::ProbeInstall(Box::new(
             method::probe_install::solve(session)?,
         )))
-    }
-}
-
-struct Hexapod;
-
-impl Kind for Hexapod {
-    fn name(&self) -> &'static str {
-        hexapod_config::KIND
-    }
-
-    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
-        let config = hexapod_config::HexapodConfig::load(path)?;
-        kind_layout_check(path, method::plan_check_kinds::hexapod::check(&config))
-    }
-
-    fn run(
-        &self,
-        path: &Path,
-        options: &RunOptions,
-        _flags: &RunFlags,
-    ) -> anyhow::Result<KindRunOutput> {
-        let config = hexapod_config::HexapodConfig::load(path)?;
-        super::hexapod::run(&config, options).map(from_run)
-    }
-
-    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::Hexapod(Box::new(method::hexapod::solve(session)?)))
     }
 }

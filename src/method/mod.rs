@@ -1,7 +1,6 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind. `solve_session` picks the method from the session's kind.
 
-pub mod hexapod;
 pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
@@ -24,7 +23,7 @@ pub enum MethodError {
     #[error(transparent)]
     ProbeInstall(#[from] probe_install::ProbeInstallMethodError),
     #[error(transparent)]
-    Hexapod(#[from] hexapod::HexapodMethodError),
+    Hexapod(#[from] crate::kinds::hexapod::solve::HexapodMethodError),
 }
 
 /// Results of any method, serialised as geocal-results/1.
@@ -37,7 +36,7 @@ pub enum Results {
     RotaryTracer(rotary_tracer::RotaryTracerResults),
     RotarySphere(Box<rotary_sphere::RotarySphereResults>),
     ProbeInstall(Box<probe_install::ProbeInstallResults>),
-    Hexapod(Box<hexapod::HexapodResults>),
+    Hexapod(Box<crate::kinds::hexapod::solve::HexapodResults>),
 }
 
 impl Results {

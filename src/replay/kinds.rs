@@ -23,7 +23,8 @@ use super::devices::ReplayClock;
 use super::{
     write_comparison, Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT,
 };
-use crate::config::{hexapod as hx, probe_install as pi, rotary_sphere as rs};
+use crate::config::{probe_install as pi, rotary_sphere as rs};
+use crate::kinds::hexapod::config as hx;
 use crate::sequencer::SequencerError;
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, MachinePoseSample, PlatformPoseSample,
@@ -531,7 +532,7 @@ pub fn replay(
                 },
             }),
         )?;
-        let plan = crate::plan::hexapod::HexapodPlan::from_config(&config);
+        let plan = crate::kinds::hexapod::plan::HexapodPlan::from_config(&config);
         let sensor = session
             .header
             .devices
@@ -552,7 +553,7 @@ pub fn replay(
             }) as Box<dyn PoseSensor>),
             None => None,
         };
-        let devices = crate::sequencer::hexapod::HexapodDevices {
+        let devices = crate::kinds::hexapod::sequence::HexapodDevices {
             hexapod: Box::new(ReplayHexapod {
                 clock: clock.clone(),
                 arrivals,
@@ -566,8 +567,12 @@ pub fn replay(
         // first arrival, and nothing this kind records counts from the start.
         clock.set_fixed(first_event_ns);
         handle.session(&super::replay_header(&session.header), first_event_ns);
-        let sequencer =
-            crate::sequencer::hexapod::HexapodSequencer::new(&plan, devices, handle, clock.clone());
+        let sequencer = crate::kinds::hexapod::sequence::HexapodSequencer::new(
+            &plan,
+            devices,
+            handle,
+            clock.clone(),
+        );
         runtime
             .block_on(sequencer.run(&mut |_: u64, _: u64| {}))
             .map(|_| ())

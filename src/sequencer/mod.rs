@@ -10,8 +10,7 @@
 //! and the move commanded again; faults the drivers recovered from by themselves (CRC
 //! failures, reconnects) are recorded as `fault` events too.
 
-pub mod hexapod;
-mod kind_faults;
+pub(crate) mod kind_faults;
 pub mod passive;
 pub mod probe_install;
 pub mod rotary_sphere;

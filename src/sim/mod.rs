@@ -4,8 +4,6 @@
 pub mod bump;
 pub mod devices;
 pub mod effects;
-pub mod hexapod;
-pub mod hexapod_source;
 pub mod hil;
 pub mod pace;
 pub mod passive_machine;

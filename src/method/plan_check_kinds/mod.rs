@@ -7,12 +7,10 @@
 //! where it does not, the block analysis (`linear`) names the null directions and gives σ only
 //! for what stays identifiable.
 
-pub mod hexapod;
 pub mod linear;
 pub mod probe_install;
 pub mod rotary_sphere;
 
-use std::path::Path;
 
 use serde::Serialize;
 
@@ -151,22 +149,6 @@ pub(crate) fn merge(
             .collect(),
         conventions,
     }
-}
-
-/// The plan check of the configuration at `path` if its kind is one of these; None otherwise
-/// (multilateration and rotary_tracer have `method::plan_check`). Validates the config first.
-pub fn check_file(path: &Path) -> anyhow::Result<Option<KindPlanCheck>> {
-    use crate::config::{hexapod as hx, probe_install as pi, rotary_sphere as rs};
-    let kind = rs::peek_kind(path)?;
-    let check = match kind.as_deref() {
-        Some(rs::KIND) => rotary_sphere::check(&rs::RotarySphereConfig::load(path)?),
-        Some(pi::KIND) => probe_install::check(&pi::ProbeInstallConfig::load(path)?),
-        Some(hx::KIND) => hexapod::check(&hx::HexapodConfig::load(path)?),
-        _ => return Ok(None),
-    };
-    check
-        .map(Some)
-        .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))
 }
 
 /// σ in a readable unit: µm for metres, µrad for radians.

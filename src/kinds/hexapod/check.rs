@@ -3,12 +3,12 @@
 
 use nalgebra::DMatrix;
 
-use super::linear::{analyse, BlockAnalysis};
-use super::{merge, summarise, KindPlanCheck, PredictedSigma};
-use crate::config::hexapod::{HexapodConfig, KIND};
+use crate::kinds::hexapod::config::{HexapodConfig, KIND};
+use crate::kinds::hexapod::plan::HexapodPlan;
+use crate::kinds::hexapod::sim::to_pose;
+use crate::method::plan_check_kinds::linear::{analyse, BlockAnalysis};
+use crate::method::plan_check_kinds::{merge, summarise, KindPlanCheck, PredictedSigma};
 use crate::model::hexapod::{relative_length, Pose, LEGS};
-use crate::plan::hexapod::HexapodPlan;
-use crate::sim::hexapod::to_pose;
 use crate::solve::hexapod::HexapodObservations;
 use crate::solve::hexapod_weighted::{refine_weighted, HexapodNoise, PoseNoise};
 

@@ -5,7 +5,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::config::hexapod::HexapodConfig;
+use crate::kinds::hexapod::config::HexapodConfig;
 
 /// Names of a pose's coordinates in `pose_begin` events: translation (m), rotation vector (rad).
 pub const POSE_AXES: [&str; 6] = ["x", "y", "z", "rx", "ry", "rz"];

@@ -10,10 +10,10 @@ use std::sync::Arc;
 
 use geocal_drivers::{Hexapod, HexapodState, PlatformPose, PoseSensor};
 
-use super::kind_faults::{retried, EventLog};
-use super::{Progress, RunSummary, SequencerError};
 use crate::clock::Clock;
-use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
+use crate::kinds::hexapod::plan::{HexapodPlan, POSE_AXES};
+use crate::sequencer::kind_faults::{retried, EventLog};
+use crate::sequencer::{Progress, RunSummary, SequencerError};
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, to_value, LegSample, PlatformPoseSample, SCHEMA_LEGS,
     SCHEMA_PLATFORM_POSE,

@@ -8,8 +8,10 @@ use serde::{Deserialize, Serialize};
 use geocal_drivers::modbus::ModbusFaults;
 use geocal_drivers::modbus_hexapod::ModbusHexapodConfig;
 
-use super::kind_config::{expect_kind, finite, invalid, non_negative, parse_strict, positive};
-use super::ConfigError;
+use crate::config::kind_config::{
+    expect_kind, finite, invalid, non_negative, parse_strict, positive,
+};
+use crate::config::ConfigError;
 use crate::model::hexapod::{HexapodGeometry, LEGS};
 
 pub const KIND: &str = "hexapod";
@@ -233,7 +235,7 @@ pub struct HexapodSim {
 
 impl HexapodConfig {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        Self::parse(&super::kind_config::read(path)?, path)
+        Self::parse(&crate::config::kind_config::read(path)?, path)
     }
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {
@@ -422,13 +424,15 @@ impl HexapodConfig {
             }
         }
         if let Some(hil) = &self.hil {
-            super::rotary_table::validate_faults(&hil.hexapod_faults).map_err(|(key, m)| {
-                invalid(
-                    f,
-                    &key.replacen("hil.table_faults", "hil.hexapod_faults", 1),
-                    m,
-                )
-            })?;
+            crate::config::rotary_table::validate_faults(&hil.hexapod_faults).map_err(
+                |(key, m)| {
+                    invalid(
+                        f,
+                        &key.replacen("hil.table_faults", "hil.hexapod_faults", 1),
+                        m,
+                    )
+                },
+            )?;
         }
         Ok(())
     }

@@ -14,10 +14,10 @@ use geocal_drivers::{
 };
 
 use crate::clock::{Clock, SystemClock, VirtualClock};
-use crate::config::hexapod::{HexapodConfig, HexapodDriver, PoseSensorDriver};
-use crate::sequencer::hexapod::HexapodDevices;
-use crate::sim::hexapod::{HexapodWorld, SharedHexapodWorld, SimHexapod, SimPoseSensor};
-use crate::sim::hexapod_source::WorldHexapodSource;
+use crate::kinds::hexapod::config::{HexapodConfig, HexapodDriver, PoseSensorDriver};
+use crate::kinds::hexapod::hil_source::WorldHexapodSource;
+use crate::kinds::hexapod::sequence::HexapodDevices;
+use crate::kinds::hexapod::sim::{HexapodWorld, SharedHexapodWorld, SimHexapod, SimPoseSensor};
 use crate::sim::hil::HilTime;
 
 /// The Modbus hexapod emulator this run hosts, and where it listens.

@@ -6,9 +6,9 @@ use std::sync::{Arc, MutexGuard};
 use geocal_drivers::modbus_hexapod::HexapodSource;
 use geocal_drivers::PlatformPose;
 
-use super::hexapod::{HexapodWorld, SharedHexapodWorld};
-use super::hil::HilTime;
+use super::sim::{HexapodWorld, SharedHexapodWorld};
 use crate::clock::VirtualClock;
+use crate::sim::hil::HilTime;
 
 /// The world's hexapod as the Modbus emulator drives it. The emulator runs in real time, so
 /// every call first brings the world's clock (`clock`, the one the world was built with) up
@@ -75,11 +75,11 @@ mod tests {
     use std::sync::Mutex;
 
     use super::*;
-    use crate::config::hexapod::HexapodConfig;
+    use crate::kinds::hexapod::config::HexapodConfig;
 
     #[test]
     fn a_go_moves_the_world_platform_and_the_legs_follow() {
-        let text = include_str!("../../config/hexapod.toml")
+        let text = include_str!("../../../config/hexapod.toml")
             .replace("speed_m_s = 0.01", "speed_m_s = 2.0")
             .replace("angular_speed_rad_s = 0.05", "angular_speed_rad_s = 20.0");
         let config =

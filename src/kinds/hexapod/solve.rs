@@ -8,14 +8,14 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::hexapod::{HexapodMachine, HexapodPlanConfig, KIND};
+use crate::kinds::hexapod::config::{HexapodMachine, HexapodPlanConfig, KIND};
+use crate::kinds::hexapod::sim::to_pose;
 use crate::model::hexapod::{Pose, LEGS};
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, PlatformPoseSample,
 };
 use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
-use crate::sim::hexapod::to_pose;
 use crate::solve::hexapod::{
     solve_lm, solve_two_stage, GridRound, HexapodError, HexapodObservations, LmOptions,
     TwoStageOptions,

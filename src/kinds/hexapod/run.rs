@@ -4,10 +4,10 @@
 use std::collections::BTreeMap;
 
 use crate::clock::system_now_ns;
-use crate::config::hexapod::{HexapodConfig, KIND};
-use crate::plan::hexapod::{HexapodPlan, POSE_AXES};
+use crate::kinds::hexapod::config::{HexapodConfig, KIND};
+use crate::kinds::hexapod::plan::{HexapodPlan, POSE_AXES};
+use crate::kinds::hexapod::sequence::HexapodSequencer;
 use crate::run::{RunOptions, RunOutput};
-use crate::sequencer::hexapod::HexapodSequencer;
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
 
 /// The header: the hexapod device carries the design hinges (`design`), the solver's start.
@@ -18,7 +18,7 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
         .as_ref()
         .map(|s| format!("-seed{}", s.seed))
         .unwrap_or_default();
-    let mut devices = vec![super::device(
+    let mut devices = vec![crate::kinds::device(
         &h.id,
         "hexapod",
         h.driver.as_str(),
@@ -43,7 +43,7 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
         devices[0].extra.insert("modbus".into(), m);
     }
     if let Some(s) = &config.devices.pose_sensor {
-        devices.push(super::device(
+        devices.push(crate::kinds::device(
             &s.id,
             "pose_sensor",
             s.driver.as_str(),
@@ -54,7 +54,7 @@ pub fn session_header(config: &HexapodConfig, epoch_ns: u64) -> SessionHeader {
     SessionHeader {
         format: SESSION_FORMAT.into(),
         session_id: format!("{KIND}-{}{seed}", epoch_ns / 1_000_000),
-        started_at: super::started_at(epoch_ns),
+        started_at: crate::kinds::started_at(epoch_ns),
         kind: KIND.into(),
         machine: MachineInfo {
             name: config.machine.name.clone(),
@@ -72,7 +72,7 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
     let plan = HexapodPlan::from_config(config);
     let epoch_ns = system_now_ns();
     let runtime = crate::run::run_runtime()?;
-    let built = runtime.block_on(super::hexapod_devices::build(config, epoch_ns))?;
+    let built = runtime.block_on(super::devices::build(config, epoch_ns))?;
     let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
     let handle = recorder.handle();
     handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
@@ -103,5 +103,5 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
         ),
         _ => {}
     }
-    super::finish_and_solve(recorder, summary, session_path, options)
+    crate::kinds::finish_and_solve(recorder, summary, session_path, options)
 }

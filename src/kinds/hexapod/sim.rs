@@ -18,7 +18,7 @@ use rand_distr::{Distribution, StandardNormal};
 use serde::Serialize;
 
 use crate::clock::VirtualClock;
-use crate::config::hexapod::HexapodConfig;
+use crate::kinds::hexapod::config::HexapodConfig;
 use crate::model::hexapod::{forward_kinematics, leg_length, HexapodGeometry, Pose, LEGS};
 
 const POLL_S: f64 = 0.02;
@@ -159,7 +159,7 @@ impl HexapodWorld {
 
     pub fn truth(&self) -> HexapodTruth {
         HexapodTruth {
-            kind: crate::config::hexapod::KIND,
+            kind: crate::kinds::hexapod::config::KIND,
             seed: self.seed,
             base_m: self.truth.base_m.iter().map(|v| (*v).into()).collect(),
             platform_m: self.truth.platform_m.iter().map(|v| (*v).into()).collect(),
