@@ -16,7 +16,6 @@ pub mod operator;
 pub mod plan;
 pub mod replay;
 pub mod report;
-pub mod report_kinds;
 pub mod resume;
 pub mod rotary_sphere_run;
 pub mod rotary_table;

@@ -13,7 +13,7 @@ pub fn text(results: &Results) -> String {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
         Results::RotarySphere(r) => crate::method::rotary_sphere::text(r),
-        Results::ProbeInstall(r) => crate::report_kinds::probe_install_text(r),
+        Results::ProbeInstall(r) => crate::kinds::probe_install::report::text(r),
         Results::Hexapod(r) => crate::kinds::hexapod::report::text(r),
     }
 }
@@ -74,7 +74,7 @@ fn rotary_text(r: &RotaryResult) -> String {
     s
 }
 
-fn um(v: f64) -> f64 {
+pub(crate) fn um(v: f64) -> f64 {
     v * 1e6
 }
 

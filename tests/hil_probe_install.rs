@@ -142,10 +142,10 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
 fn real_ports_without_hil_are_opened_by_path() {
     use std::sync::{Arc, Mutex};
 
-    use geocal::config::probe_install::ProbeInstallConfig;
+    use geocal::kinds::probe_install::config::ProbeInstallConfig;
+    use geocal::kinds::probe_install::hil_source::{WorldCmmSink, WorldLaserSource};
+    use geocal::kinds::probe_install::sim::ProbeInstallWorld;
     use geocal::sim::hil::HilTime;
-    use geocal::sim::probe_install::ProbeInstallWorld;
-    use geocal::sim::probe_install_source::{WorldCmmSink, WorldLaserSource};
     use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig};
     use geocal_drivers::probe::{ProbeEmulator, ProbeEmulatorConfig};
 

@@ -46,11 +46,10 @@ const KNOWN: &[&str] = &[
     "config/mod.rs -> crate::sim::effects: imports a higher layer",
     "config/mod.rs -> crate::sim::passive_machine: imports a higher layer",
     "config/mod.rs -> crate::sim::truth: imports a higher layer",
-    "config/probe_install.rs -> crate::plan::probe_install: imports a higher layer",
     "import circle: config -> devices -> hosting -> nc -> plan -> rotary_table -> sequencer -> sim",
     // The run machinery and the methods still hold kind code; the solve with effects uses
     // the diagnosis's effect models.
-    "import circle: diagnose -> kinds -> method -> report -> report_kinds -> resume -> rotary_sphere_run -> run",
+    "import circle: diagnose -> kinds -> method -> report -> resume -> rotary_sphere_run -> run",
     "method/mod.rs -> crate::diagnose::effects: imports a higher layer",
     "method/mod.rs -> crate::kinds::registry::solve_session: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct: imports a higher layer",
@@ -64,6 +63,13 @@ const KNOWN: &[&str] = &[
     "replay/kinds.rs -> crate::kinds::hexapod::sequence: shared machinery imports kind hexapod",
     "report.rs -> crate::kinds::hexapod::report::text: imports a higher layer",
     "report.rs -> crate::kinds::hexapod::report::text: shared machinery imports kind hexapod",
+    "method/mod.rs -> crate::kinds::probe_install::solve: imports a higher layer",
+    "method/mod.rs -> crate::kinds::probe_install::solve: shared machinery imports kind probe_install",
+    "replay/kinds.rs -> crate::kinds::probe_install::config: shared machinery imports kind probe_install",
+    "replay/kinds.rs -> crate::kinds::probe_install::plan: shared machinery imports kind probe_install",
+    "replay/kinds.rs -> crate::kinds::probe_install::sequence: shared machinery imports kind probe_install",
+    "report.rs -> crate::kinds::probe_install::report::text: imports a higher layer",
+    "report.rs -> crate::kinds::probe_install::report::text: shared machinery imports kind probe_install",
 ];
 
 /// The `.rs` files under `dir`, test modules kept in files of their own (`tests.rs`) left out.

@@ -3,7 +3,6 @@
 
 mod hil;
 pub mod kind_config;
-pub mod probe_install;
 pub mod rotary_sphere;
 pub(crate) mod rotary_table;
 mod validate;

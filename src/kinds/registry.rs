@@ -8,7 +8,6 @@ use std::path::Path;
 use anyhow::Context;
 
 use crate::config::kind_config;
-use crate::config::probe_install as probe_install_config;
 use crate::config::{rotary_sphere as rotary_sphere_config, Config, PlanKind};
 use crate::method::{self, MethodError, Results, SolveSettings};
 use crate::run::RunOptions;
@@ -89,7 +88,7 @@ pub static KINDS: &[&dyn Kind] = &[
     &TracerKind(PlanKind::Multilateration),
     &TracerKind(PlanKind::RotaryTracer),
     &RotarySphere,
-    &ProbeInstall,
+    &super::probe_install::ProbeInstall,
     &super::hexapod::Hexapod,
 ];
 
@@ -158,9 +157,9 @@ pub fn run_file(
 ) -> anyhow::Result<Option<crate::run::RunOutput>> {
     let text = kind_config::read(path)?;
     match kind_config::declared_kind(&text).as_deref() {
-        Some(probe_install_config::KIND) => {
-            let config = probe_install_config::ProbeInstallConfig::load(path)?;
-            super::probe_install::run(&config, options).map(Some)
+        Some(super::probe_install::config::KIND) => {
+            let config = super::probe_install::config::ProbeInstallConfig::load(path)?;
+            super::probe_install::run::run(&config, options).map(Some)
         }
         Some(super::hexapod::config::KIND) => {
             let config = super::hexapod::config::HexapodConfig::load(path)?;
@@ -176,15 +175,14 @@ pub fn kind_layout_plan_check(
     path: &Path,
 ) -> anyhow::Result<Option<method::plan_check_kinds::KindPlanCheck>> {
     use super::hexapod::config as hx;
-    use crate::config::{probe_install as pi, rotary_sphere as rs};
+    use super::probe_install::config as pi;
+    use crate::config::rotary_sphere as rs;
     let text = kind_config::read(path)?;
     let check = match kind_config::declared_kind(&text).as_deref() {
         Some(rs::KIND) => {
             method::plan_check_kinds::rotary_sphere::check(&rs::RotarySphereConfig::load(path)?)
         }
-        Some(pi::KIND) => {
-            method::plan_check_kinds::probe_install::check(&pi::ProbeInstallConfig::load(path)?)
-        }
+        Some(pi::KIND) => super::probe_install::check::check(&pi::ProbeInstallConfig::load(path)?),
         Some(hx::KIND) => super::hexapod::check::check(&hx::HexapodConfig::load(path)?),
         _ => return Ok(None),
     };
@@ -343,38 +341,6 @@ impl Kind for RotarySphere {
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
         Ok(Results::RotarySphere(Box::new(
             method::rotary_sphere::solve(session)?,
-        )))
-    }
-}
-
-struct ProbeInstall;
-
-impl Kind for ProbeInstall {
-    fn name(&self) -> &'static str {
-        probe_install_config::KIND
-    }
-
-    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
-        let config = probe_install_config::ProbeInstallConfig::load(path)?;
-        kind_layout_check(
-            path,
-            method::plan_check_kinds::probe_install::check(&config),
-        )
-    }
-
-    fn run(
-        &self,
-        path: &Path,
-        options: &RunOptions,
-        _flags: &RunFlags,
-    ) -> anyhow::Result<KindRunOutput> {
-        let config = probe_install_config::ProbeInstallConfig::load(path)?;
-        super::probe_install::run(&config, options).map(from_run)
-    }
-
-    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::ProbeInstall(Box::new(
-            method::probe_install::solve(session)?,
         )))
     }
 }

@@ -4,7 +4,6 @@
 pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
-pub mod probe_install;
 pub mod rotary_sphere;
 pub mod rotary_tracer;
 
@@ -21,7 +20,7 @@ pub enum MethodError {
     #[error(transparent)]
     RotarySphere(#[from] rotary_sphere::RotarySphereMethodError),
     #[error(transparent)]
-    ProbeInstall(#[from] probe_install::ProbeInstallMethodError),
+    ProbeInstall(#[from] crate::kinds::probe_install::solve::ProbeInstallMethodError),
     #[error(transparent)]
     Hexapod(#[from] crate::kinds::hexapod::solve::HexapodMethodError),
 }
@@ -35,7 +34,7 @@ pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
     RotarySphere(Box<rotary_sphere::RotarySphereResults>),
-    ProbeInstall(Box<probe_install::ProbeInstallResults>),
+    ProbeInstall(Box<crate::kinds::probe_install::solve::ProbeInstallResults>),
     Hexapod(Box<crate::kinds::hexapod::solve::HexapodResults>),
 }
 

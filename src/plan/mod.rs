@@ -2,7 +2,6 @@
 //! stations (placed by the operator or turned by a rotary table) and the visiting order of
 //! each pass. Pure data; the sequencer executes it.
 
-pub mod probe_install;
 pub mod rotary_sphere;
 
 use nalgebra::{Rotation3, Unit, Vector3};

@@ -23,8 +23,9 @@ use super::devices::ReplayClock;
 use super::{
     write_comparison, Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT,
 };
-use crate::config::{probe_install as pi, rotary_sphere as rs};
+use crate::config::rotary_sphere as rs;
 use crate::kinds::hexapod::config as hx;
+use crate::kinds::probe_install::config as pi;
 use crate::sequencer::SequencerError;
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, MachinePoseSample, PlatformPoseSample,
@@ -466,7 +467,7 @@ pub fn replay(
                 },
             }),
         )?;
-        let plan = crate::plan::probe_install::ProbeInstallPlan::from_config(&config);
+        let plan = crate::kinds::probe_install::plan::ProbeInstallPlan::from_config(&config);
         let recorded = session
             .probes
             .get(&probe_id)
@@ -489,7 +490,7 @@ pub fn replay(
                 _ => None,
             })
             .collect();
-        let devices = crate::sequencer::probe_install::ProbeInstallDevices {
+        let devices = crate::kinds::probe_install::sequence::ProbeInstallDevices {
             machine: Box::new(ReplayCmm {
                 id: machine_id,
                 clock: clock.clone(),
@@ -508,7 +509,7 @@ pub fn replay(
         };
         clock.set_fixed(start_ns);
         handle.session(&super::replay_header(&session.header), start_ns);
-        let sequencer = crate::sequencer::probe_install::ProbeInstallSequencer::new(
+        let sequencer = crate::kinds::probe_install::sequence::ProbeInstallSequencer::new(
             &plan,
             devices,
             handle,

@@ -12,7 +12,6 @@
 
 pub(crate) mod kind_faults;
 pub mod passive;
-pub mod probe_install;
 pub mod rotary_sphere;
 
 use std::collections::BTreeMap;
@@ -113,7 +112,7 @@ const MAX_BEAM_WAIT_S: f64 = 600.0;
 /// Beam breaks tolerated within one pass before the run fails.
 const MAX_BEAM_BREAKS: u32 = 10;
 /// Machine alarms tolerated during one move before the run fails.
-const MAX_ALARMS: u32 = 3;
+pub(crate) const MAX_ALARMS: u32 = 3;
 
 /// How a step ended: done, or cut short by a beam break (the pass must be repeated from it).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]

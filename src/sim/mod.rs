@@ -7,8 +7,6 @@ pub mod effects;
 pub mod hil;
 pub mod pace;
 pub mod passive_machine;
-pub mod probe_install;
-pub mod probe_install_source;
 pub mod rotary;
 pub mod rotary_sphere;
 pub mod sphere_table_source;

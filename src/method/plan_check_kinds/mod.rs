@@ -8,9 +8,7 @@
 //! for what stays identifiable.
 
 pub mod linear;
-pub mod probe_install;
 pub mod rotary_sphere;
-
 
 use serde::Serialize;
 

@@ -2,13 +2,10 @@
 
 use std::fmt::Write;
 
-use crate::method::probe_install::ProbeInstallResults;
+use super::solve::ProbeInstallResults;
+use crate::report::um;
 
-pub(crate) fn um(v_m: f64) -> f64 {
-    v_m * 1e6
-}
-
-pub fn probe_install_text(r: &ProbeInstallResults) -> String {
+pub fn text(r: &ProbeInstallResults) -> String {
     let mut s = String::new();
     let _ = writeln!(
         s,

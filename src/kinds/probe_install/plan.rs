@@ -6,7 +6,7 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::Serialize;
 
-use crate::config::probe_install::ProbeInstallConfig;
+use crate::kinds::probe_install::config::ProbeInstallConfig;
 use crate::model::probe_install::{beam_in_base, probe_offset};
 use crate::solve::probe_install::tangent_basis;
 

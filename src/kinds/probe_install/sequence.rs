@@ -10,10 +10,10 @@ use std::sync::Arc;
 
 use geocal_drivers::{AxisPositions, DeviceError, Machine, MachineState, Probe};
 
-use super::kind_faults::EventLog;
-use super::{Progress, RunSummary, SequencerError};
 use crate::clock::Clock;
-use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
+use crate::kinds::probe_install::plan::{ProbeInstallPlan, CMM_AXES};
+use crate::sequencer::kind_faults::EventLog;
+use crate::sequencer::{Progress, RunSummary, SequencerError};
 use crate::session::kind_messages::{
     to_value, MachinePoseSample, SCHEMA_MACHINE_POSE, TOPIC_MACHINE_POSE,
 };
@@ -175,7 +175,7 @@ impl<'a> ProbeInstallSequencer<'a> {
             "alarm",
             format!("{error}: unlocking and commanding the move again"),
         );
-        if *alarms > super::MAX_ALARMS {
+        if *alarms > crate::sequencer::MAX_ALARMS {
             return Err(error.into());
         }
         let mut attempt = 0;

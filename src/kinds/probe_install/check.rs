@@ -4,13 +4,13 @@
 
 use nalgebra::{DMatrix, SMatrix};
 
-use super::linear::analyse;
-use super::{merge, summarise, KindPlanCheck, PredictedSigma};
-use crate::config::probe_install::{ProbeInstallConfig, KIND};
+use crate::kinds::probe_install::config::{ProbeInstallConfig, KIND};
+use crate::kinds::probe_install::plan::ProbeInstallPlan;
+use crate::method::plan_check_kinds::linear::analyse;
+use crate::method::plan_check_kinds::{merge, summarise, KindPlanCheck, PredictedSigma};
 use crate::model::probe_install::{
     sphere_residual_jacobian, ProbeObservation, N_PARAMS, PARAM_NAMES,
 };
-use crate::plan::probe_install::ProbeInstallPlan;
 use crate::solve::probe_install::{
     residual_sigmas, solve_lm, tangent_basis, LmOptions, ProbeInstallProblem,
 };

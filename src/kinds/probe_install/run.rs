@@ -9,14 +9,16 @@ use geocal_drivers::grbl::{GrblEmulator, GrblEmulatorConfig, GrblMachine};
 use geocal_drivers::probe::{AsciiProbe, ProbeEmulator};
 
 use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
-use crate::config::probe_install::{ProbeInstallConfig, KIND};
-use crate::plan::probe_install::{ProbeInstallPlan, CMM_AXES};
+use crate::kinds::probe_install::config::{ProbeInstallConfig, KIND};
+use crate::kinds::probe_install::hil_source::{WorldCmmSink, WorldLaserSource};
+use crate::kinds::probe_install::plan::{ProbeInstallPlan, CMM_AXES};
+use crate::kinds::probe_install::sequence::{ProbeInstallDevices, ProbeInstallSequencer};
+use crate::kinds::probe_install::sim::{
+    ProbeInstallWorld, SharedProbeWorld, SimCmm, SimLaserProbe,
+};
 use crate::run::{RunOptions, RunOutput};
-use crate::sequencer::probe_install::{ProbeInstallDevices, ProbeInstallSequencer};
 use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
 use crate::sim::hil::HilTime;
-use crate::sim::probe_install::{ProbeInstallWorld, SharedProbeWorld, SimCmm, SimLaserProbe};
-use crate::sim::probe_install_source::{WorldCmmSink, WorldLaserSource};
 
 pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHeader {
     let m = &config.devices.machine;
@@ -29,7 +31,7 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
     SessionHeader {
         format: SESSION_FORMAT.into(),
         session_id: format!("{KIND}-{}{seed}", epoch_ns / 1_000_000),
-        started_at: super::started_at(epoch_ns),
+        started_at: crate::kinds::started_at(epoch_ns),
         kind: KIND.into(),
         machine: MachineInfo {
             name: config.machine.name.clone(),
@@ -39,7 +41,7 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
             targets: Vec::new(),
         },
         devices: vec![
-            super::device(
+            crate::kinds::device(
                 &m.id,
                 "machine",
                 m.driver.as_str(),
@@ -49,7 +51,7 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
                     ("rotary_speed_rad_s".into(), m.rotary_speed_rad_s.into()),
                 ]),
             ),
-            super::device(
+            crate::kinds::device(
                 &p.id,
                 "probe",
                 p.driver.as_str(),
@@ -82,7 +84,7 @@ pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<
             world: world.clone(),
         }),
     };
-    super::record_and_solve(
+    crate::kinds::record_and_solve(
         &session_header(config, epoch_ns),
         clock.as_ref(),
         options,
@@ -209,5 +211,5 @@ fn run_on_drivers(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::
             .truth();
         crate::run::write_truth(path, &truth)?;
     }
-    super::finish_and_solve(recorder, summary, session_path, options)
+    crate::kinds::finish_and_solve(recorder, summary, session_path, options)
 }

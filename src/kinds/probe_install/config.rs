@@ -9,11 +9,13 @@ use serde::{Deserialize, Serialize};
 use geocal_drivers::grbl::{GrblConfig, GrblFaults};
 use geocal_drivers::probe::{ProbeConfig, ProbeFaults};
 
-use super::kind_config::{expect_kind, finite, invalid, non_negative, parse_strict, positive};
-pub use super::rotary_sphere::ProbeDriverKind;
-use super::{ConfigError, DriverKind};
+use crate::config::kind_config::{
+    expect_kind, finite, invalid, non_negative, parse_strict, positive,
+};
+pub use crate::config::rotary_sphere::ProbeDriverKind;
+use crate::config::{ConfigError, DriverKind};
+use crate::kinds::probe_install::plan::CMM_AXES;
 use crate::model::probe_install::InstallParams;
-use crate::plan::probe_install::CMM_AXES;
 
 pub const KIND: &str = "probe_install";
 
@@ -428,7 +430,7 @@ impl ProbeInstallConfig {
     }
 
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        Self::parse(&super::kind_config::read(path)?, path)
+        Self::parse(&crate::config::kind_config::read(path)?, path)
     }
 
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {

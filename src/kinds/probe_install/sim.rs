@@ -12,9 +12,9 @@ use rand_distr::{Distribution, StandardNormal};
 use serde::Serialize;
 
 use crate::clock::VirtualClock;
-use crate::config::probe_install::ProbeInstallConfig;
+use crate::kinds::probe_install::config::ProbeInstallConfig;
+use crate::kinds::probe_install::plan::CMM_AXES;
 use crate::model::probe_install::{beam_in_base, probe_offset, InstallParams};
-use crate::plan::probe_install::CMM_AXES;
 
 /// How often (virtual time) the sequencer's state queries advance the clock, seconds.
 const POLL_S: f64 = 0.02;
@@ -124,7 +124,7 @@ impl ProbeInstallWorld {
     pub fn truth(&self) -> ProbeInstallTruth {
         let v = self.truth.to_vector();
         ProbeInstallTruth {
-            kind: crate::config::probe_install::KIND,
+            kind: crate::kinds::probe_install::config::KIND,
             seed: self.seed,
             parameters: crate::model::probe_install::PARAM_NAMES
                 .iter()
@@ -323,7 +323,7 @@ mod tests {
         config.devices.probe.noise_m = 1e-15;
         let clock = Arc::new(VirtualClock::new(0));
         let mut world = ProbeInstallWorld::new(&config, clock);
-        let plan = crate::plan::probe_install::ProbeInstallPlan::from_config(&config);
+        let plan = crate::kinds::probe_install::plan::ProbeInstallPlan::from_config(&config);
         let truth = world.true_installation();
         for p in &plan.points {
             world.start_move(p.axes).expect("in travel");

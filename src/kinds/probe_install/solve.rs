@@ -6,7 +6,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::config::probe_install::{ProbeInstallPlan, KIND};
+use crate::kinds::probe_install::config::{ProbeInstallPlan, KIND};
 use crate::model::probe_install::{ProbeObservation, N_PARAMS, PARAM_NAMES};
 use crate::session::kind_messages::{MachinePoseSample, TOPIC_MACHINE_POSE};
 use crate::session::messages::RunEvent;

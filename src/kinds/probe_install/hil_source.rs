@@ -6,8 +6,8 @@ use std::sync::{Arc, MutexGuard};
 use geocal_drivers::grbl::MachineSink;
 use geocal_drivers::probe::ProbeSource;
 
-use super::hil::HilTime;
-use super::probe_install::{ProbeInstallWorld, SharedProbeWorld};
+use super::sim::{ProbeInstallWorld, SharedProbeWorld};
+use crate::sim::hil::HilTime;
 
 /// Lock the world and bring its clock up to now; a poisoned world only means a panic
 /// elsewhere, so the emulators keep serving.
@@ -91,8 +91,8 @@ mod tests {
 
     use super::*;
     use crate::clock::VirtualClock;
-    use crate::config::probe_install::ProbeInstallConfig;
-    use crate::plan::probe_install::ProbeInstallPlan;
+    use crate::kinds::probe_install::config::ProbeInstallConfig;
+    use crate::kinds::probe_install::plan::ProbeInstallPlan;
 
     #[test]
     fn a_commanded_move_takes_wall_time_and_the_probe_reads_the_sphere_there() {

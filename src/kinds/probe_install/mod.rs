@@ -1,0 +1,50 @@
+//! Plan kind `probe_install` (DESIGN.md method 4): its configuration, plan, sequencer,
+//! simulated world and HIL source, run, method, plan check and report, and the `Kind` the
+//! commands call.
+
+pub mod check;
+pub mod config;
+pub mod hil_source;
+pub mod plan;
+pub mod report;
+pub mod run;
+pub mod sequence;
+pub mod sim;
+pub mod solve;
+
+use std::path::Path;
+
+use crate::kinds::registry::{
+    from_run, kind_layout_check, Kind, KindCheck, KindRunOutput, RunFlags,
+};
+use crate::method::{MethodError, Results, SolveSettings};
+use crate::run::RunOptions;
+use crate::session::reader::Session;
+
+/// Plan kind `probe_install`: a touch probe's installation on a five-axis machine.
+pub struct ProbeInstall;
+
+impl Kind for ProbeInstall {
+    fn name(&self) -> &'static str {
+        config::KIND
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = config::ProbeInstallConfig::load(path)?;
+        kind_layout_check(path, check::check(&config))
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        _flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        let config = config::ProbeInstallConfig::load(path)?;
+        run::run(&config, options).map(from_run)
+    }
+
+    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::ProbeInstall(Box::new(solve::solve(session)?)))
+    }
+}
