@@ -9,9 +9,9 @@
 use std::path::Path;
 use std::time::Instant;
 
-use geocal::config::rotary_sphere::RotarySphereConfig;
+use geocal::kinds::rotary_sphere::config::RotarySphereConfig;
+use geocal::kinds::rotary_sphere::run::run;
 use geocal::method::Results;
-use geocal::rotary_sphere_run::run;
 use geocal::run::RunOptions;
 
 const CONFIG: &str = include_str!("../config/rotary-sphere.toml");

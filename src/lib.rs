@@ -17,7 +17,6 @@ pub mod plan;
 pub mod replay;
 pub mod report;
 pub mod resume;
-pub mod rotary_sphere_run;
 pub mod rotary_table;
 pub mod run;
 pub mod sequencer;

@@ -124,7 +124,7 @@ fn small_sphere(seed: u64) -> String {
 /// The identifiable truth: the same identification on the true, noise-free centres (the
 /// location errors are the least-squares axis; docs/rotary-sphere.md).
 fn sphere_errors(
-    r: &geocal::method::rotary_sphere::RotarySphereResults,
+    r: &geocal::kinds::rotary_sphere::solve::RotarySphereResults,
     truth: &Value,
     check: &KindPlanCheck,
 ) -> (Vec<f64>, Vec<f64>) {
@@ -192,12 +192,12 @@ fn rotary_sphere_prediction_matches_the_scatter_over_seeds() {
     let (mut location, mut motion) = (Vec::new(), Vec::new());
     for seed in 0..seeds {
         let sub = dir.path().join(format!("s{seed}"));
-        let cfg = geocal::config::rotary_sphere::RotarySphereConfig::parse(
+        let cfg = geocal::kinds::rotary_sphere::config::RotarySphereConfig::parse(
             &small_sphere(300 + seed),
             Path::new("sphere.toml"),
         )
         .expect("config");
-        let out = geocal::rotary_sphere_run::run(&cfg, &options(&sub)).expect("run");
+        let out = geocal::kinds::rotary_sphere::run::run(&cfg, &options(&sub)).expect("run");
         let Results::RotarySphere(r) = &out.results else {
             panic!("rotary_sphere results expected");
         };

@@ -209,8 +209,9 @@ fn record_kind(config_text: &str, dir: &Path) -> RunOutput {
     let config = dir.join("kind.toml");
     std::fs::write(&config, config_text).expect("write config");
     if config_text.contains("kind = \"rotary_sphere\"") {
-        let cfg = geocal::config::rotary_sphere::RotarySphereConfig::load(&config).expect("config");
-        let out = geocal::rotary_sphere_run::run(
+        let cfg = geocal::kinds::rotary_sphere::config::RotarySphereConfig::load(&config)
+            .expect("config");
+        let out = geocal::kinds::rotary_sphere::run::run(
             &cfg,
             &RunOptions {
                 out_dir: dir.to_path_buf(),

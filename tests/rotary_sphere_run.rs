@@ -5,10 +5,10 @@
 
 use std::path::Path;
 
-use geocal::config::rotary_sphere::RotarySphereConfig;
-use geocal::method::rotary_sphere::RotarySphereResults;
+use geocal::kinds::rotary_sphere::config::RotarySphereConfig;
+use geocal::kinds::rotary_sphere::run::{run, SphereRunOutput};
+use geocal::kinds::rotary_sphere::solve::RotarySphereResults;
 use geocal::method::Results;
-use geocal::rotary_sphere_run::{run, SphereRunOutput};
 use geocal::run::{solve_file, RunOptions};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
@@ -62,7 +62,7 @@ fn normalised_errors(r: &RotarySphereResults, truth: &Value) -> Vec<f64> {
         let mut h: Vec<usize> = r
             .spheres
             .iter()
-            .filter(|s| s.role == geocal::config::rotary_sphere::HeightRole::Fit)
+            .filter(|s| s.role == geocal::kinds::rotary_sphere::config::HeightRole::Fit)
             .map(|s| s.height_index)
             .collect();
         h.dedup();

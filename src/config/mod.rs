@@ -3,7 +3,6 @@
 
 mod hil;
 pub mod kind_config;
-pub mod rotary_sphere;
 pub(crate) mod rotary_table;
 mod validate;
 
@@ -466,5 +465,23 @@ impl Config {
             .iter()
             .find(|t| t.id == id)
             .map(|t| t.offset_m)
+    }
+}
+
+/// The driver of a touch or displacement probe.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeDriverKind {
+    Sim,
+    /// Line-oriented ASCII request/response readout (drivers/src/probe).
+    Ascii,
+}
+
+impl ProbeDriverKind {
+    pub fn as_str(self) -> &'static str {
+        match self {
+            ProbeDriverKind::Sim => "sim",
+            ProbeDriverKind::Ascii => "ascii",
+        }
     }
 }

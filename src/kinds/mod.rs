@@ -5,6 +5,7 @@
 pub mod hexapod;
 pub mod probe_install;
 pub mod registry;
+pub mod rotary_sphere;
 
 pub use registry::{
     kind_named, kind_of_config, kind_of_run_dir, run_file, Kind, KindCheck, KindRunOutput,

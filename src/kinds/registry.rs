@@ -8,7 +8,7 @@ use std::path::Path;
 use anyhow::Context;
 
 use crate::config::kind_config;
-use crate::config::{rotary_sphere as rotary_sphere_config, Config, PlanKind};
+use crate::config::{Config, PlanKind};
 use crate::method::{self, MethodError, Results, SolveSettings};
 use crate::run::RunOptions;
 use crate::session::reader::Session;
@@ -87,7 +87,7 @@ pub trait Kind: Sync {
 pub static KINDS: &[&dyn Kind] = &[
     &TracerKind(PlanKind::Multilateration),
     &TracerKind(PlanKind::RotaryTracer),
-    &RotarySphere,
+    &super::rotary_sphere::RotarySphere,
     &super::probe_install::ProbeInstall,
     &super::hexapod::Hexapod,
 ];
@@ -176,12 +176,10 @@ pub fn kind_layout_plan_check(
 ) -> anyhow::Result<Option<method::plan_check_kinds::KindPlanCheck>> {
     use super::hexapod::config as hx;
     use super::probe_install::config as pi;
-    use crate::config::rotary_sphere as rs;
+    use crate::kinds::rotary_sphere::config as rs;
     let text = kind_config::read(path)?;
     let check = match kind_config::declared_kind(&text).as_deref() {
-        Some(rs::KIND) => {
-            method::plan_check_kinds::rotary_sphere::check(&rs::RotarySphereConfig::load(path)?)
-        }
+        Some(rs::KIND) => super::rotary_sphere::check::check(&rs::RotarySphereConfig::load(path)?),
         Some(pi::KIND) => super::probe_install::check::check(&pi::ProbeInstallConfig::load(path)?),
         Some(hx::KIND) => super::hexapod::check::check(&hx::HexapodConfig::load(path)?),
         _ => return Ok(None),
@@ -293,54 +291,4 @@ pub(crate) fn kind_layout_check(
         json: serde_json::to_value(&check)?,
         text: method::plan_check_kinds::text(&check),
     })
-}
-
-fn from_sphere_run(output: crate::rotary_sphere_run::SphereRunOutput) -> KindRunOutput {
-    KindRunOutput {
-        recorded: closing_count(output.summary.readings, "probe readings"),
-        session_path: output.session_path,
-        results_path: output.results_path,
-        results: output.results,
-    }
-}
-
-struct RotarySphere;
-
-impl Kind for RotarySphere {
-    fn name(&self) -> &'static str {
-        rotary_sphere_config::KIND
-    }
-
-    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
-        let config = rotary_sphere_config::RotarySphereConfig::load(path)?;
-        kind_layout_check(
-            path,
-            method::plan_check_kinds::rotary_sphere::check(&config),
-        )
-    }
-
-    fn run(
-        &self,
-        path: &Path,
-        options: &RunOptions,
-        _flags: &RunFlags,
-    ) -> anyhow::Result<KindRunOutput> {
-        let config = rotary_sphere_config::RotarySphereConfig::load(path)?;
-        crate::rotary_sphere_run::run(&config, options).map(from_sphere_run)
-    }
-
-    fn resume(
-        &self,
-        dir: &Path,
-        config: Option<&Path>,
-        options: &RunOptions,
-    ) -> anyhow::Result<KindRunOutput> {
-        crate::rotary_sphere_run::resume(dir, config, options).map(from_sphere_run)
-    }
-
-    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::RotarySphere(Box::new(
-            method::rotary_sphere::solve(session)?,
-        )))
-    }
 }

@@ -4,7 +4,6 @@
 pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
-pub mod rotary_sphere;
 pub mod rotary_tracer;
 
 use serde::Serialize;
@@ -18,7 +17,7 @@ pub enum MethodError {
     #[error(transparent)]
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
     #[error(transparent)]
-    RotarySphere(#[from] rotary_sphere::RotarySphereMethodError),
+    RotarySphere(#[from] crate::kinds::rotary_sphere::solve::RotarySphereMethodError),
     #[error(transparent)]
     ProbeInstall(#[from] crate::kinds::probe_install::solve::ProbeInstallMethodError),
     #[error(transparent)]
@@ -33,7 +32,7 @@ pub enum MethodError {
 pub enum Results {
     Multilateration(multilateration::MultilaterationResults),
     RotaryTracer(rotary_tracer::RotaryTracerResults),
-    RotarySphere(Box<rotary_sphere::RotarySphereResults>),
+    RotarySphere(Box<crate::kinds::rotary_sphere::solve::RotarySphereResults>),
     ProbeInstall(Box<crate::kinds::probe_install::solve::ProbeInstallResults>),
     Hexapod(Box<crate::kinds::hexapod::solve::HexapodResults>),
 }

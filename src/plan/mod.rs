@@ -2,8 +2,6 @@
 //! stations (placed by the operator or turned by a rotary table) and the visiting order of
 //! each pass. Pure data; the sequencer executes it.
 
-pub mod rotary_sphere;
-
 use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 

@@ -23,9 +23,9 @@ use super::devices::ReplayClock;
 use super::{
     write_comparison, Comparison, Outcome, ReplayOptions, ReplayOutput, COMPARISON_FORMAT,
 };
-use crate::config::rotary_sphere as rs;
 use crate::kinds::hexapod::config as hx;
 use crate::kinds::probe_install::config as pi;
+use crate::kinds::rotary_sphere::config as rs;
 use crate::sequencer::SequencerError;
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, MachinePoseSample, PlatformPoseSample,
@@ -249,7 +249,7 @@ struct ReplayArm {
 }
 
 #[async_trait]
-impl crate::sequencer::rotary_sphere::ProbeArm for ReplayArm {
+impl crate::kinds::rotary_sphere::sequence::ProbeArm for ReplayArm {
     async fn mount_sphere(&mut self, _h: usize, _nominal_m: [f64; 3]) -> Result<(), DeviceError> {
         let t = self.mounts.pop_front().ok_or_else(|| ended("arm"))?;
         self.clock.set_fixed(t);
@@ -383,7 +383,7 @@ pub fn replay(
                     e.inner()
                 )
             })?;
-        let mut plan = crate::plan::rotary_sphere::SpherePlan::from_config(&plan_config);
+        let mut plan = crate::kinds::rotary_sphere::plan::SpherePlan::from_config(&plan_config);
         // The recorded table states come at full speed: waiting between polls adds nothing.
         plan.poll_interval_s = 0.0;
         let probe_id = device_id(session, "probe")?;
@@ -410,7 +410,7 @@ pub fn replay(
                 _ => {}
             }
         }
-        let devices = crate::sequencer::rotary_sphere::SphereDevices {
+        let devices = crate::kinds::rotary_sphere::sequence::SphereDevices {
             table: Box::new(ReplaySphereTable {
                 id: table_id,
                 clock: clock.clone(),
@@ -436,7 +436,7 @@ pub fn replay(
         };
         clock.set_fixed(start_ns);
         handle.session(&super::replay_header(&session.header), start_ns);
-        let sequencer = crate::sequencer::rotary_sphere::SphereSequencer::new(
+        let sequencer = crate::kinds::rotary_sphere::sequence::SphereSequencer::new(
             &plan,
             devices,
             handle,
@@ -446,7 +446,7 @@ pub fn replay(
             .block_on(sequencer.run(&mut |_: u64, _: u64| {}))
             .map(|_| ())
             .map_err(|e| match e {
-                crate::sequencer::rotary_sphere::SphereRunError::Device(
+                crate::kinds::rotary_sphere::sequence::SphereRunError::Device(
                     DeviceError::EndOfStream { device },
                 ) => (Some(device), String::new()),
                 e => (None, e.to_string()),

@@ -12,7 +12,6 @@
 
 pub(crate) mod kind_faults;
 pub mod passive;
-pub mod rotary_sphere;
 
 use std::collections::BTreeMap;
 use std::sync::Arc;

@@ -8,8 +8,6 @@ pub mod hil;
 pub mod pace;
 pub mod passive_machine;
 pub mod rotary;
-pub mod rotary_sphere;
-pub mod sphere_table_source;
 pub mod table_source;
 pub mod truth;
 pub mod world;

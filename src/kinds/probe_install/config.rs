@@ -12,7 +12,7 @@ use geocal_drivers::probe::{ProbeConfig, ProbeFaults};
 use crate::config::kind_config::{
     expect_kind, finite, invalid, non_negative, parse_strict, positive,
 };
-pub use crate::config::rotary_sphere::ProbeDriverKind;
+pub use crate::config::ProbeDriverKind;
 use crate::config::{ConfigError, DriverKind};
 use crate::kinds::probe_install::plan::CMM_AXES;
 use crate::model::probe_install::InstallParams;

@@ -8,7 +8,6 @@
 //! for what stays identifiable.
 
 pub mod linear;
-pub mod rotary_sphere;
 
 use serde::Serialize;
 

@@ -7,7 +7,7 @@
 
 use geocal_drivers::modbus_table::{KinematicTable, TableSource};
 
-use super::rotary_sphere::SharedSphereWorld;
+use super::sim::SharedSphereWorld;
 
 pub struct SphereTableSource {
     world: SharedSphereWorld,
@@ -43,9 +43,9 @@ mod tests {
 
     use super::*;
     use crate::clock::VirtualClock;
-    use crate::config::rotary_sphere::RotarySphereConfig;
-    use crate::plan::rotary_sphere::SpherePlan;
-    use crate::sim::rotary_sphere::SphereWorld;
+    use crate::kinds::rotary_sphere::config::RotarySphereConfig;
+    use crate::kinds::rotary_sphere::plan::SpherePlan;
+    use crate::kinds::rotary_sphere::sim::SphereWorld;
 
     #[test]
     fn go_turns_the_sphere_world_and_settles_after_the_motion() {

@@ -4,13 +4,13 @@
 
 use nalgebra::{DMatrix, Matrix3, SMatrix};
 
-use super::linear::{analyse, BlockAnalysis};
-use super::{merge, summarise, KindPlanCheck, PredictedSigma};
-use crate::config::rotary_sphere::{HeightRole, RotarySphereConfig, KIND};
+use crate::kinds::rotary_sphere::config::{HeightRole, RotarySphereConfig, KIND};
+use crate::kinds::rotary_sphere::plan::SpherePlan;
+use crate::method::plan_check_kinds::linear::{analyse, BlockAnalysis};
+use crate::method::plan_check_kinds::{merge, summarise, KindPlanCheck, PredictedSigma};
 use crate::model::rotary_sphere::{
     located_centre_jacobian, motion_jacobian, rz, LOCATION_NAMES, MOTION_NAMES,
 };
-use crate::plan::rotary_sphere::SpherePlan;
 use crate::solve::rotary_sphere::{
     fit_sphere, identify_rotary_axis, CentreSeries, HarmonicOrder, IdentifyOptions, SphereFit,
     TangentialConvention,

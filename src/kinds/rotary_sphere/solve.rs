@@ -7,10 +7,10 @@ use std::collections::BTreeMap;
 use nalgebra::Vector3;
 use serde::Serialize;
 
-use crate::config::rotary_sphere::{HeightRole, SpherePlanConfig, KIND};
+use crate::kinds::rotary_sphere::config::{HeightRole, SpherePlanConfig, KIND};
+use crate::kinds::rotary_sphere::plan::SpherePlan;
 use crate::method::multilateration::RESULTS_FORMAT;
 use crate::model::rotary_sphere::{LOCATION_NAMES, MOTION_NAMES};
-use crate::plan::rotary_sphere::SpherePlan;
 use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
 use crate::solve::rotary_sphere::{

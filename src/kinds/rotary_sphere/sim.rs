@@ -13,10 +13,10 @@ use rand_distr::{Distribution, Normal};
 use serde::Serialize;
 
 use crate::clock::VirtualClock;
-use crate::config::rotary_sphere::{RotarySphereConfig, SphereSimConfig};
+use crate::kinds::rotary_sphere::config::{RotarySphereConfig, SphereSimConfig};
+use crate::kinds::rotary_sphere::plan::SpherePlan;
+use crate::kinds::rotary_sphere::sequence::ProbeArm;
 use crate::model::rotary_sphere::{LOCATION_NAMES, MOTION_NAMES};
-use crate::plan::rotary_sphere::SpherePlan;
-use crate::sequencer::rotary_sphere::ProbeArm;
 use crate::solve::rotary_sphere::simulation::TrueAxis;
 
 /// How much virtual time one table state query takes (the sequencer polls until in position).
@@ -167,7 +167,7 @@ impl SphereWorld {
     pub fn export_truth(&self, plan: &SpherePlan) -> SphereTruth {
         let angles = plan.angles_rad.clone();
         SphereTruth {
-            kind: crate::config::rotary_sphere::KIND,
+            kind: crate::kinds::rotary_sphere::config::KIND,
             location_names: LOCATION_NAMES,
             location: self.truth.location,
             motion_names: MOTION_NAMES,
@@ -310,7 +310,7 @@ impl ProbeArm for SimArm {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::rotary_sphere::RotarySphereConfig;
+    use crate::kinds::rotary_sphere::config::RotarySphereConfig;
 
     fn world(noise_m: f64) -> (SphereWorld, SpherePlan) {
         let path =

@@ -11,19 +11,21 @@ use geocal_drivers::probe::{AsciiProbe, ProbeConfig, ProbeEmulator};
 use geocal_drivers::{DeviceError, Probe, RotaryTable};
 
 use crate::clock::{system_now_ns, Clock, SystemClock, VirtualClock};
-use crate::config::rotary_sphere::{ProbeDriverKind, RotarySphereConfig, KIND};
 use crate::config::DriverKind;
-use crate::method::Results;
-use crate::plan::rotary_sphere::SpherePlan;
-use crate::resume::Interruption;
-use crate::run::RunOptions;
-use crate::sequencer::rotary_sphere::{ProbeArm, SphereDevices, SphereRunSummary, SphereSequencer};
-use crate::session::messages::{DeviceInfo, MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
-use crate::session::reader::Session;
-use crate::sim::rotary_sphere::{
+use crate::kinds::rotary_sphere::config::{ProbeDriverKind, RotarySphereConfig, KIND};
+use crate::kinds::rotary_sphere::hil_source::SphereTableSource;
+use crate::kinds::rotary_sphere::plan::SpherePlan;
+use crate::kinds::rotary_sphere::sequence::{
+    ProbeArm, SphereDevices, SphereRunSummary, SphereSequencer,
+};
+use crate::kinds::rotary_sphere::sim::{
     SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
 };
-use crate::sim::sphere_table_source::SphereTableSource;
+use crate::method::Results;
+use crate::resume::Interruption;
+use crate::run::RunOptions;
+use crate::session::messages::{DeviceInfo, MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
+use crate::session::reader::Session;
 
 pub struct SphereRunOutput {
     pub session_path: PathBuf,

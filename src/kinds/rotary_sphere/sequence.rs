@@ -13,7 +13,7 @@ use async_trait::async_trait;
 use geocal_drivers::{DeviceError, Probe, RotaryState, RotaryTable};
 
 use crate::clock::Clock;
-use crate::plan::rotary_sphere::SpherePlan;
+use crate::kinds::rotary_sphere::plan::SpherePlan;
 use crate::session::messages::{ProbeSample, RotaryStateSample, RunEvent};
 use crate::session::recorder::RecorderHandle;
 
@@ -148,7 +148,8 @@ impl<'a> SphereSequencer<'a> {
         error: DeviceError,
         attempt: &mut u32,
     ) -> Result<(), SphereRunError> {
-        if let Some((event, retry)) = super::kind_faults::retry_decision(&error, attempt) {
+        if let Some((event, retry)) = crate::sequencer::kind_faults::retry_decision(&error, attempt)
+        {
             self.event(event);
             return if retry { Ok(()) } else { Err(error.into()) };
         }

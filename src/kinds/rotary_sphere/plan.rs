@@ -3,7 +3,7 @@
 
 use nalgebra::Vector3;
 
-use crate::config::rotary_sphere::{HeightRole, SpherePlanConfig};
+use crate::kinds::rotary_sphere::config::{HeightRole, SpherePlanConfig};
 use crate::model::rotary_sphere::rz;
 use crate::solve::rotary_sphere::simulation::probe_directions;
 
@@ -93,7 +93,7 @@ impl SpherePlan {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::config::rotary_sphere::RotarySphereConfig;
+    use crate::kinds::rotary_sphere::config::RotarySphereConfig;
 
     #[test]
     fn published_plan_expands() {

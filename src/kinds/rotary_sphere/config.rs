@@ -5,13 +5,13 @@ use std::path::Path;
 
 use serde::{Deserialize, Serialize};
 
-use super::{ConfigError, DriverKind, RotaryTableConfig};
+use crate::config::{ConfigError, DriverKind, RotaryTableConfig};
 
 pub const KIND: &str = "rotary_sphere";
 
 /// The `kind` of a configuration file, read before its schema is chosen (None when absent).
 pub fn peek_kind(path: &Path) -> Result<Option<String>, ConfigError> {
-    let text = super::kind_config::read(path)?;
+    let text = crate::config::kind_config::read(path)?;
     let value: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: path.to_path_buf(),
         key: "(document)".into(),
@@ -54,22 +54,7 @@ pub struct SphereDevicesConfig {
     pub probe: ProbeDeviceConfig,
 }
 
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
-#[serde(rename_all = "snake_case")]
-pub enum ProbeDriverKind {
-    Sim,
-    /// Line-oriented ASCII request/response readout (drivers/src/probe).
-    Ascii,
-}
-
-impl ProbeDriverKind {
-    pub fn as_str(self) -> &'static str {
-        match self {
-            ProbeDriverKind::Sim => "sim",
-            ProbeDriverKind::Ascii => "ascii",
-        }
-    }
-}
+pub use crate::config::ProbeDriverKind;
 
 /// The probe: a displacement sensor on a probing arm; one reading per probed point.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -218,12 +203,12 @@ pub struct SphereHilConfig {
 
 impl RotarySphereConfig {
     pub fn load(path: &Path) -> Result<Self, ConfigError> {
-        Self::parse(&super::kind_config::read(path)?, path)
+        Self::parse(&crate::config::kind_config::read(path)?, path)
     }
 
     /// Parse and validate configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &Path) -> Result<Self, ConfigError> {
-        let config: Self = super::kind_config::parse_strict(text, file)?;
+        let config: Self = crate::config::kind_config::parse_strict(text, file)?;
         config
             .validate()
             .map_err(|(key, message)| ConfigError::Invalid {
@@ -449,7 +434,7 @@ mod tests {
 
     #[test]
     fn a_modbus_table_needs_its_map_and_with_sim_the_emulator() {
-        let text = include_str!("../../config/rotary-sphere.toml").replacen(
+        let text = include_str!("../../../config/rotary-sphere.toml").replacen(
             "id = \"c\"\ndriver = \"sim\"",
             "id = \"c\"\ndriver = \"modbus_tcp\"",
             1,

@@ -1,0 +1,65 @@
+//! Plan kind `rotary_sphere` (DESIGN.md method 2): its configuration, plan, sequencer,
+//! simulated world and HIL table source, run and resume, method and plan check, and the
+//! `Kind` the commands call.
+
+pub mod check;
+pub mod config;
+pub mod hil_source;
+pub mod plan;
+pub mod run;
+pub mod sequence;
+pub mod sim;
+pub mod solve;
+
+use std::path::Path;
+
+use crate::kinds::registry::{kind_layout_check, Kind, KindCheck, KindRunOutput, RunFlags};
+use crate::method::{MethodError, Results, SolveSettings};
+use crate::run::RunOptions;
+use crate::session::reader::Session;
+
+fn from_sphere_run(output: run::SphereRunOutput) -> KindRunOutput {
+    KindRunOutput {
+        recorded: format!("{} probe readings", output.summary.readings),
+        session_path: output.session_path,
+        results_path: output.results_path,
+        results: output.results,
+    }
+}
+
+/// Plan kind `rotary_sphere`: a rotary table's axis errors from a probed sphere.
+pub struct RotarySphere;
+
+impl Kind for RotarySphere {
+    fn name(&self) -> &'static str {
+        config::KIND
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        let config = config::RotarySphereConfig::load(path)?;
+        kind_layout_check(path, check::check(&config))
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        _flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        let config = config::RotarySphereConfig::load(path)?;
+        run::run(&config, options).map(from_sphere_run)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        run::resume(dir, config, options).map(from_sphere_run)
+    }
+
+    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::RotarySphere(Box::new(solve::solve(session)?)))
+    }
+}
