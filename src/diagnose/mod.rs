@@ -12,7 +12,7 @@ pub mod stats;
 mod text;
 pub mod twin;
 
-pub use text::text;
+pub use text::{details, summary, text, SUMMARY_MAX_LINES, TABLE_MAX_ROWS};
 
 use std::collections::BTreeMap;
 use std::path::Path;
