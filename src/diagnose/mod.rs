@@ -6,6 +6,7 @@ pub mod data;
 pub mod effects;
 pub mod locate;
 pub mod loso;
+pub mod plot;
 pub mod points;
 pub mod settling;
 pub mod stats;
@@ -165,18 +166,50 @@ pub enum DiagnoseError {
     Solve(#[from] crate::solve::multilateration::SolveError),
 }
 
+/// Each length's residual in units of its σ, before (nominal model) and after the final model
+/// (the selected effects and any confounded group fitted): what `geocal diagnose --plot` draws.
+/// Not part of geocal-diagnosis/1.
+#[derive(Debug, Clone, PartialEq)]
+pub struct StandardisedResiduals {
+    pub station_ids: Vec<String>,
+    pub lengths: Vec<StandardisedResidual>,
+    /// The effects in the final model; empty when it is the nominal model (`after` = `before`).
+    pub final_effects: Vec<String>,
+}
+
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StandardisedResidual {
+    /// Index into `station_ids`.
+    pub station: usize,
+    /// Seconds since the session's first settled length.
+    pub t_s: f64,
+    pub before: f64,
+    pub after: f64,
+}
+
 /// Read a session file and diagnose it.
 pub fn diagnose_file(path: &Path, options: &DiagnoseOptions) -> anyhow::Result<Diagnosis> {
+    Ok(diagnose_file_detailed(path, options)?.0)
+}
+
+/// [`diagnose_file`] with the standardised residuals of every length.
+pub fn diagnose_file_detailed(
+    path: &Path,
+    options: &DiagnoseOptions,
+) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    let mut diagnosis =
-        diagnose(&session, options).with_context(|| format!("diagnosing {}", path.display()))?;
+    let detailed = Data::from_session(&session)
+        .map_err(DiagnoseError::from)
+        .and_then(|data| diagnose_data(&data, options))
+        .with_context(|| format!("diagnosing {}", path.display()))?;
+    let mut diagnosis = detailed.diagnosis;
     match corrected_calibration(&session, path, &diagnosis.selected) {
         Ok(corrected) => diagnosis.corrected = corrected,
         Err(why) => diagnosis
             .notes
             .push(format!("the calibration with the selected effects: {why}")),
     }
-    Ok(diagnosis)
+    Ok((diagnosis, detailed.residuals))
 }
 
 /// The calibration re-solved with the selected effects that the solve can model, and how far
@@ -457,6 +490,7 @@ pub(crate) struct DataDiagnosis {
     /// The accepted lengths-level effects' columns (one row per length, metres per unit
     /// parameter) at the final geometry: what their estimates' uncertainty moves.
     pub effect_columns: DMatrix<f64>,
+    pub residuals: StandardisedResiduals,
 }
 
 /// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
@@ -732,6 +766,8 @@ pub(crate) fn diagnose_data(
         _ => std::borrow::Cow::Borrowed(data),
     };
     let final_fit = joint_fit(&fit_data, &geom, &accepted);
+    let residuals =
+        standardised_residuals(data, &solution.residuals_m, &final_fit.resid_m, &accepted);
     let chi2: f64 = final_fit
         .resid_m
         .iter()
@@ -989,7 +1025,39 @@ pub(crate) fn diagnose_data(
         diagnosis,
         effect_m,
         effect_columns,
+        residuals,
     })
+}
+
+/// Residuals over the declared σ (not rescaled by a noise-scale finding), time from the
+/// first length.
+fn standardised_residuals(
+    data: &Data,
+    before_m: &[f64],
+    after_m: &[f64],
+    final_effects: &[EffectModel],
+) -> StandardisedResiduals {
+    let t0 = data.obs.iter().map(|o| o.t_s).fold(f64::INFINITY, f64::min);
+    let mut final_effects: Vec<String> = final_effects
+        .iter()
+        .map(|m| m.kind.name().to_string())
+        .collect();
+    final_effects.dedup();
+    StandardisedResiduals {
+        station_ids: data.station_ids.clone(),
+        lengths: data
+            .obs
+            .iter()
+            .zip(before_m.iter().zip(after_m))
+            .map(|(o, (b, a))| StandardisedResidual {
+                station: o.station,
+                t_s: o.t_s - t0,
+                before: b / o.sigma_m,
+                after: a / o.sigma_m,
+            })
+            .collect(),
+        final_effects,
+    }
 }
 
 /// Confidence level of the noise scale's interval.
