@@ -419,14 +419,13 @@ fn how_far(d: &Diagnosis) -> String {
 fn points_line(d: &Diagnosis) -> Option<String> {
     let mut parts = Vec::new();
     if let Some(p) = &d.points_level {
-        let after = d
-            .points_level_after
-            .as_ref()
-            .map_or_else(|| "n/a".to_string(), |g| ratio(g.chi2_per_dof));
+        let after = d.points_level_after.as_ref().map_or_else(
+            || "n/a".to_string(),
+            |g| format!("{} (p {:.1e})", ratio(g.chi2_per_dof), g.p_value),
+        );
         parts.push(format!(
-            "chi²/dof {} → {} (solved points against the 21-error model)",
+            "chi²/dof {} → {after}, solved points against the 21-error model",
             ratio(p.gap.chi2_per_dof),
-            after
         ));
     }
     if let Some(t) = &d.twin {
