@@ -108,7 +108,7 @@ fn group_label(w: &WhereEntry) -> String {
     if w.level == "lengths" {
         label
     } else {
-        format!("{label} ({} level)", w.level)
+        format!("{}-level {label}", w.level)
     }
 }
 
@@ -362,10 +362,16 @@ fn format_params(params: &[Param]) -> String {
                 .iter()
                 .map(|p| {
                     let symbol = symbol_and_unit(&p.leaf).0;
-                    format!(
-                        "{symbol} {}",
-                        value_with_sigma(p.value * factor, p.sigma * factor)
-                    )
+                    // A σ a millionth of the effect's size is no measurement: the direction is
+                    // not identified and its value is the minimum-norm zero.
+                    if p.sigma.is_finite() && p.sigma <= 1e-6 * magnitude {
+                        format!("{symbol} not identified")
+                    } else {
+                        format!(
+                            "{symbol} {}",
+                            value_with_sigma(p.value * factor, p.sigma * factor)
+                        )
+                    }
                 })
                 .collect();
             let joined = values.join(", ");
@@ -919,6 +925,21 @@ mod tests {
             .expect("station_drift parameters");
         assert!(drift.contains("    and 4 more\n"), "{report}");
         assert!(report.contains("  note: a note"), "{report}");
+    }
+
+    #[test]
+    fn a_direction_the_data_do_not_determine_is_not_identified() {
+        let params =
+            [("e", 4.41e-6, 6.1e-7), ("ez", -3e-19, 2e-19)].map(|(symbol, value, sigma)| Param {
+                owner: None,
+                leaf: format!("{symbol}_m"),
+                value,
+                sigma,
+            });
+        assert_eq!(
+            format_params(&params),
+            "e 4.41 ± 0.61, ez not identified µm"
+        );
     }
 
     #[test]
