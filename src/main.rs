@@ -82,6 +82,10 @@ enum Command {
         /// Keep the simulated twin's session in this directory.
         #[arg(long, value_name = "DIR")]
         twin_out: Option<PathBuf>,
+        /// Draw each length's residual / sigma against time, one row per station, before and
+        /// after the selected effects, to this SVG file.
+        #[arg(long, value_name = "FILE.svg")]
+        plot: Option<PathBuf>,
     },
     /// Host the configured device emulators (HPI-3D and GRBL on ptys, the Modbus table on
     /// 127.0.0.1) backed by the simulated world, for a run driven from another process;
@@ -263,16 +267,20 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             json,
             twin,
             twin_out,
+            plot,
         } => {
-            let diagnosis = match twin {
-                None => geocal::diagnose::diagnose_file(&session, &Default::default())?,
-                Some(twin) => geocal::diagnose::twin::diagnose_file_with_twin(
+            let (diagnosis, residuals) = match twin {
+                None => geocal::diagnose::diagnose_file_detailed(&session, &Default::default())?,
+                Some(twin) => geocal::diagnose::twin::diagnose_file_with_twin_detailed(
                     &session,
                     &twin,
                     twin_out.as_deref(),
                     &Default::default(),
                 )?,
             };
+            if let Some(path) = plot {
+                geocal::diagnose::plot::write_svg(&path, &diagnosis.session_id, &residuals)?;
+            }
             if json {
                 println!("{}", serde_json::to_string_pretty(&diagnosis)?);
             } else {

@@ -13,7 +13,10 @@ use super::points::{
     effect_point_move, per_pass_points, point_departures, test_groups, PointDeparture, PointMeta,
 };
 use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
-use super::{diagnose_data, hcat, DataDiagnosis, DiagnoseError, DiagnoseOptions, Diagnosis};
+use super::{
+    diagnose_data, hcat, DataDiagnosis, DiagnoseError, DiagnoseOptions, Diagnosis,
+    StandardisedResiduals,
+};
 use crate::config::{Config, DriverKind};
 use crate::session::reader::{read_session, Session};
 use crate::solve::multilateration::{solve, SolveOptions};
@@ -191,6 +194,16 @@ pub fn diagnose_against_twin(
     source: &str,
     options: &DiagnoseOptions,
 ) -> Result<Diagnosis, DiagnoseError> {
+    Ok(diagnose_against_twin_detailed(recording, twin, source, options)?.0)
+}
+
+/// [`diagnose_against_twin`] with the standardised residuals of the twin-corrected lengths.
+pub fn diagnose_against_twin_detailed(
+    recording: &Session,
+    twin: &Session,
+    source: &str,
+    options: &DiagnoseOptions,
+) -> Result<(Diagnosis, StandardisedResiduals), DiagnoseError> {
     let rec = Data::from_session(recording)?;
     let tw = Data::from_session(twin)?;
     let twin_fit = solve(&tw.problem, &SolveOptions::default())?;
@@ -217,6 +230,7 @@ pub fn diagnose_against_twin(
         mut diagnosis,
         effect_m,
         effect_columns,
+        residuals,
     } = diagnose_data(&data, options)?;
 
     let recorded: Vec<f64> = rec.obs.iter().map(|o| o.length_m).collect();
@@ -302,7 +316,7 @@ pub fn diagnose_against_twin(
         tw.session_id
     ));
     diagnosis.twin = Some(report);
-    Ok(diagnosis)
+    Ok((diagnosis, residuals))
 }
 
 /// Simulate the twin of `recording` from `config_path`: the config's plan, machine and noise
@@ -367,6 +381,16 @@ pub fn diagnose_file_with_twin(
     twin_dir: Option<&Path>,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<Diagnosis> {
+    Ok(diagnose_file_with_twin_detailed(path, twin, twin_dir, options)?.0)
+}
+
+/// [`diagnose_file_with_twin`] with the standardised residuals of the twin-corrected lengths.
+pub fn diagnose_file_with_twin_detailed(
+    path: &Path,
+    twin: &Path,
+    twin_dir: Option<&Path>,
+    options: &DiagnoseOptions,
+) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
     let recording = read_session(path).with_context(|| format!("reading {}", path.display()))?;
     // Before simulating a twin: a kind without a diagnosis model fails here, clearly.
     super::data::check_kind(&recording.header.kind)
@@ -395,6 +419,6 @@ pub fn diagnose_file_with_twin(
             read_session(twin).with_context(|| format!("reading the twin {}", twin.display()))?;
         (session, "session")
     };
-    diagnose_against_twin(&recording, &twin_session, source, options)
+    diagnose_against_twin_detailed(&recording, &twin_session, source, options)
         .with_context(|| format!("diagnosing {} against {}", path.display(), twin.display()))
 }
