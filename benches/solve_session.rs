@@ -29,14 +29,15 @@ const DT_S: f64 = 0.05;
 const DWELL_SAMPLES: usize = 9;
 /// Machine feed between points: a short grid step takes 1-2 samples of motion.
 const FEED_M_S: f64 = 1.0;
-/// Per-sample tracer noise (sigma = a + b*|L|), declared in the header as the session's model.
+/// Per-sample tracer noise (sigma = a + b*(|station - target| + dead path), the absolute optical
+/// path; no dead path here), declared in the header as the session's model.
 const NOISE_M: f64 = 1.0e-7;
 const NOISE_PPM: f64 = 0.1;
 /// Stillstand window in the recorded plan: shorter than the dwell, so every dwell settles.
 const WINDOW_S: f64 = 0.3;
 const TOLERANCE_M: f64 = 2e-6;
 /// Bump when the generator changes, so a stale cached file is not reused.
-const DATA_VERSION: u32 = 1;
+const DATA_VERSION: u32 = 2;
 
 fn data_path() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!(
@@ -145,8 +146,8 @@ fn generate(path: &Path) {
     let mut seq = 0u64;
     let mut t_s = 0.0;
     let mut samples = 0u64;
-    let mut sample = |t_s: f64, length_m: f64, rng: &mut ChaCha8Rng| {
-        let sigma = NOISE_M + NOISE_PPM * 1e-6 * length_m.abs();
+    let mut sample = |t_s: f64, length_m: f64, beam_m: f64, rng: &mut ChaCha8Rng| {
+        let sigma = NOISE_M + NOISE_PPM * 1e-6 * beam_m;
         let s = TracerSample {
             seq,
             t_s,
@@ -190,7 +191,7 @@ fn generate(path: &Path) {
                 for k in 0..steps {
                     t_s += DT_S;
                     let x = from + (truth[i] - from) * (k as f64 / steps as f64);
-                    sample(t_s, length(&x), &mut rng);
+                    sample(t_s, length(&x), (station - x).norm(), &mut rng);
                 }
                 for (a, axis) in ["x", "y", "z"].iter().enumerate() {
                     let d = nom[a] - nominal[i - 1][a];
@@ -213,11 +214,12 @@ fn generate(path: &Path) {
                 log_ns(t_s) - 1_000_000,
             );
             let at = length(&truth[i]);
+            let beam = (station - truth[i]).norm();
             for k in 0..DWELL_SAMPLES {
                 if k > 0 {
                     t_s += DT_S;
                 }
-                sample(t_s, at, &mut rng);
+                sample(t_s, at, beam, &mut rng);
             }
             h.event(
                 &RunEvent::PointEnd {

@@ -317,7 +317,7 @@ pub fn solve_detailed(
         gauge: solution.gauge.to_string(),
         noise_model: match declared_noise {
             Some(n) => format!(
-                "declared by the session: sigma = {} m + {} ppm * (|station - point| + dead path {} m) per sample, divided by sqrt(samples averaged); the beam re-evaluated at the solution",
+                "declared by the session: sigma = {} m + {} ppm * (|station - point| + dead path {} m) per sample, divided by sqrt(samples averaged); the beam re-evaluated as the solve moves the stations",
                 n.noise_m, n.noise_ppm, n.dead_path_m
             ),
             None => "none declared: each point's sigma is the scatter of its settled samples / sqrt(count)".into(),

@@ -34,6 +34,20 @@ impl PathSigma {
 impl MultilaterationProblem {
     /// Set every path-dependent σ from the beams of the given geometry; returns the largest
     /// relative change.
+    /// The largest relative change of a path-dependent σ if it were evaluated at the given
+    /// geometry (nothing is changed).
+    fn path_sigma_change(&self, stations: &[Vector3<f64>], points: &[Vector3<f64>]) -> f64 {
+        let mut largest: f64 = 0.0;
+        for obs in &self.observations {
+            if let Some(path) = obs.path_sigma {
+                let station = stations[self.segments[obs.segment].station];
+                let sigma = path.sigma_m((station - points[obs.point]).norm());
+                largest = largest.max((sigma - obs.sigma_m).abs() / sigma);
+            }
+        }
+        largest
+    }
+
     fn set_path_sigmas(&mut self, stations: &[Vector3<f64>], points: &[Vector3<f64>]) -> f64 {
         let mut largest: f64 = 0.0;
         for obs in &mut self.observations {
@@ -986,9 +1000,9 @@ pub fn solve(
     let stations = initial_stations(problem)?;
     let layout = build_layout(problem)?;
     let points = problem.nominal_points.clone();
-    // Path-dependent σ: set from the starting geometry, then from each solution while they
-    // still change (the beams are known to millimetres from the start, so this rarely needs
-    // a second round, and then only a step or two from the solution).
+    // Path-dependent σ: set from the starting geometry, re-evaluated after every accepted
+    // step that moved them by more than REWEIGHT_TOLERANCE (the first steps, while the
+    // stations move from their hints), and checked once more at each solution.
     let path_dependent = problem.observations.iter().any(|o| o.path_sigma.is_some());
     let mut weighted = std::borrow::Cow::Borrowed(problem);
     if path_dependent {
@@ -1001,8 +1015,14 @@ pub fn solve(
         distances_m,
     };
     let mut normal = Normal::new(&layout);
-    let (mut iterations, mut converged) =
-        levenberg_marquardt(&weighted, &layout, &mut normal, &mut params, options)?;
+    let (mut iterations, mut converged) = levenberg_marquardt(
+        &mut weighted,
+        path_dependent,
+        &layout,
+        &mut normal,
+        &mut params,
+        options,
+    )?;
     for _ in 0..MAX_REWEIGHTS {
         if !path_dependent {
             break;
@@ -1013,8 +1033,14 @@ pub fn solve(
         if change <= REWEIGHT_TOLERANCE {
             break;
         }
-        let (more, done) =
-            levenberg_marquardt(&weighted, &layout, &mut normal, &mut params, options)?;
+        let (more, done) = levenberg_marquardt(
+            &mut weighted,
+            path_dependent,
+            &layout,
+            &mut normal,
+            &mut params,
+            options,
+        )?;
         iterations += more;
         converged = done;
     }
@@ -1062,10 +1088,12 @@ pub fn solve(
 const MAX_REWEIGHTS: usize = 4;
 const REWEIGHT_TOLERANCE: f64 = 1e-4;
 
-/// Levenberg–Marquardt from `params` to convergence with the problem's σ held fixed; returns
-/// the iterations taken and whether it converged.
+/// Levenberg–Marquardt from `params` to convergence; with `reweight`, path-dependent σ are
+/// re-evaluated after an accepted step that moved them (each step is judged with fixed σ).
+/// Returns the iterations taken and whether it converged.
 fn levenberg_marquardt(
-    problem: &MultilaterationProblem,
+    weighted: &mut std::borrow::Cow<MultilaterationProblem>,
+    reweight: bool,
     layout: &Layout,
     normal: &mut Normal,
     params: &mut Params,
@@ -1075,12 +1103,13 @@ fn levenberg_marquardt(
     let mut dx = vec![Vector3::zeros(); layout.n];
     let mut dv = DVector::zeros(layout.nv);
     let mut lambda = options.initial_lambda;
-    let mut current_cost = cost(problem, params);
+    let mut current_cost = cost(weighted, params);
     let mut converged = current_cost == 0.0;
     let mut iterations = 0;
     let mut need_build = true;
     while !converged && iterations < options.max_iterations {
         iterations += 1;
+        let problem: &MultilaterationProblem = weighted;
         if need_build {
             normal.build(problem, layout, params)?;
             need_build = false;
@@ -1115,11 +1144,21 @@ fn levenberg_marquardt(
             std::mem::swap(params, &mut trial);
             current_cost = new_cost;
             need_build = true;
+            let reweighted = reweight
+                && weighted.path_sigma_change(&params.stations, &params.points)
+                    > REWEIGHT_TOLERANCE;
+            if reweighted {
+                weighted
+                    .to_mut()
+                    .set_path_sigmas(&params.stations, &params.points);
+                current_cost = cost(weighted, params);
+            }
             // A tiny decrease only means convergence when the step was not heavily damped.
             let nearly_gauss_newton = lambda < 1.0;
             lambda = (lambda / 10.0).max(1e-15);
-            if (decrease <= options.tolerance && nearly_gauss_newton)
-                || max_step <= options.step_tolerance_m
+            if !reweighted
+                && ((decrease <= options.tolerance && nearly_gauss_newton)
+                    || max_step <= options.step_tolerance_m)
             {
                 converged = true;
             }
