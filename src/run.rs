@@ -66,7 +66,7 @@ pub(crate) fn execute(
         }
     };
 
-    let bar = progress_bar(options.progress);
+    let bar = progress_bar(options.progress, "points");
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
@@ -166,27 +166,23 @@ pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Resul
     })
 }
 
-pub(crate) fn progress_bar(show: bool) -> indicatif::ProgressBar {
+/// A progress bar on stderr counting `what` (hidden unless `show`).
+pub(crate) fn progress_bar(show: bool, what: &str) -> indicatif::ProgressBar {
     if !show {
         return indicatif::ProgressBar::hidden();
     }
     let bar = indicatif::ProgressBar::new(0);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} points ({eta} left)",
-    ) {
+    let template = format!(
+        "{{spinner}} [{{elapsed_precise}}] {{bar:40}} {{pos}}/{{len}} {what} ({{eta}} left)"
+    );
+    if let Ok(style) = indicatif::ProgressStyle::with_template(&template) {
         bar.set_style(style);
     }
     bar
 }
 
 fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
-    let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
-        .ok()
-        .and_then(|t| {
-            t.format(&time::format_description::well_known::Rfc3339)
-                .ok()
-        })
-        .unwrap_or_default();
+    let started_at = crate::session::messages::started_at(epoch_ns);
     let tracer = &config.devices.tracer;
     let mut devices = vec![DeviceInfo {
         id: tracer.id.clone(),

@@ -54,28 +54,8 @@ fn recorded() -> &'static Recorded {
             "{}",
             String::from_utf8_lossy(&out.stderr)
         );
-        let (_, messages) = read_session_raw(&run_dir.join("session.mcap")).expect("raw read");
         let path = dir.path().join("session.mcap");
-        let rec = Recorder::create(
-            &path,
-            RecorderOptions {
-                chunk_size: 16 * 1024,
-                flush_interval: Duration::from_secs(3600),
-                ..RecorderOptions::default()
-            },
-        )
-        .expect("recorder");
-        let h = rec.handle();
-        for m in messages {
-            h.raw(m);
-        }
-        rec.finish().expect("finish");
-        let bytes = std::fs::read(&path).expect("read back");
-        let summary = mcap::Summary::read(&bytes)
-            .expect("summary")
-            .expect("summary");
-        let mut chunks = summary.chunk_indexes.clone();
-        chunks.sort_by_key(|c| c.chunk_start_offset);
+        let (bytes, chunks) = rechunked(&run_dir.join("session.mcap"), &path, 16 * 1024);
         assert!(chunks.len() >= 20, "{} chunks", chunks.len());
         Recorded {
             _dir: dir,
@@ -84,6 +64,33 @@ fn recorded() -> &'static Recorded {
             chunks,
         }
     })
+}
+
+/// The session at `source` written again to `dest` with chunks of `chunk_size` bytes: its
+/// bytes and its chunk index in file order.
+fn rechunked(source: &Path, dest: &Path, chunk_size: u64) -> (Vec<u8>, Vec<ChunkIndex>) {
+    let (_, messages) = read_session_raw(source).expect("raw read");
+    let rec = Recorder::create(
+        dest,
+        RecorderOptions {
+            chunk_size,
+            flush_interval: Duration::from_secs(3600),
+            ..RecorderOptions::default()
+        },
+    )
+    .expect("recorder");
+    let h = rec.handle();
+    for m in messages {
+        h.raw(m);
+    }
+    rec.finish().expect("finish");
+    let bytes = std::fs::read(dest).expect("read back");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("summary");
+    let mut chunks = summary.chunk_indexes.clone();
+    chunks.sort_by_key(|c| c.chunk_start_offset);
+    (bytes, chunks)
 }
 
 /// Flips 8 bytes in the middle of chunk `i`'s compressed data.
@@ -484,28 +491,8 @@ fn rechunked_kind_session(config: &str, dir: &Path, chunk_size: u64) -> (PathBuf
         "{}",
         String::from_utf8_lossy(&out.stderr)
     );
-    let (_, messages) = read_session_raw(&run_dir.join("session.mcap")).expect("raw read");
     let path = dir.join("rechunked.mcap");
-    let rec = Recorder::create(
-        &path,
-        RecorderOptions {
-            chunk_size,
-            flush_interval: Duration::from_secs(3600),
-            ..RecorderOptions::default()
-        },
-    )
-    .expect("recorder");
-    let h = rec.handle();
-    for m in messages {
-        h.raw(m);
-    }
-    rec.finish().expect("finish");
-    let bytes = std::fs::read(&path).expect("read back");
-    let summary = mcap::Summary::read(&bytes)
-        .expect("summary")
-        .expect("summary");
-    let mut chunks = summary.chunk_indexes.clone();
-    chunks.sort_by_key(|c| c.chunk_start_offset);
+    let (_, chunks) = rechunked(&run_dir.join("session.mcap"), &path, chunk_size);
     (path, chunks)
 }
 

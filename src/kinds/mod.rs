@@ -20,16 +20,6 @@ use crate::sequencer::{RunSummary, SequencerError};
 use crate::session::messages::{DeviceInfo, SessionHeader};
 use crate::session::recorder::RecorderHandle;
 
-pub(crate) fn started_at(epoch_ns: u64) -> String {
-    time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
-        .ok()
-        .and_then(|t| {
-            t.format(&time::format_description::well_known::Rfc3339)
-                .ok()
-        })
-        .unwrap_or_default()
-}
-
 pub(crate) fn device(
     id: &str,
     kind: &str,

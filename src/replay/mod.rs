@@ -291,7 +291,7 @@ fn run_sequencer(
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    let bar = crate::run::progress_bar(options.progress);
+    let bar = crate::run::progress_bar(options.progress, "points");
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);

@@ -436,6 +436,17 @@ impl TryFrom<WireEvent> for RunEvent {
     }
 }
 
+/// A header's `started_at`: the epoch (ns since 1970, UTC) in RFC 3339.
+pub fn started_at(epoch_ns: u64) -> String {
+    time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
+        .ok()
+        .and_then(|t| {
+            t.format(&time::format_description::well_known::Rfc3339)
+                .ok()
+        })
+        .unwrap_or_default()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

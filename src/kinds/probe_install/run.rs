@@ -31,7 +31,7 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
     SessionHeader {
         format: SESSION_FORMAT.into(),
         session_id: format!("{KIND}-{}{seed}", epoch_ns / 1_000_000),
-        started_at: crate::kinds::started_at(epoch_ns),
+        started_at: crate::session::messages::started_at(epoch_ns),
         kind: KIND.into(),
         machine: MachineInfo {
             name: config.machine.name.clone(),

@@ -24,7 +24,7 @@ use crate::kinds::rotary_sphere::sim::{
 use crate::method::Results;
 use crate::resume::Interruption;
 use crate::run::RunOptions;
-use crate::session::messages::{DeviceInfo, MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
+use crate::session::messages::{MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
 use crate::session::reader::Session;
 
 pub struct SphereRunOutput {
@@ -177,28 +177,8 @@ async fn build(
     })
 }
 
-fn device(id: &str, kind: &str, driver: &str, noise_m: Option<f64>) -> DeviceInfo {
-    DeviceInfo {
-        id: id.into(),
-        kind: kind.into(),
-        driver: driver.into(),
-        noise_m,
-        noise_ppm: None,
-        dead_path_m: None,
-        wavelength_m: None,
-        compensated: None,
-        extra: BTreeMap::new(),
-    }
-}
-
 fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
-    let started_at = time::OffsetDateTime::from_unix_timestamp_nanos(epoch_ns as i128)
-        .ok()
-        .and_then(|t| {
-            t.format(&time::format_description::well_known::Rfc3339)
-                .ok()
-        })
-        .unwrap_or_default();
+    let started_at = crate::session::messages::started_at(epoch_ns);
     let seed = config
         .sim
         .as_ref()
@@ -219,12 +199,19 @@ fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
             targets: Vec::new(),
         },
         devices: vec![
-            device(&table.id, "rotary_table", table.driver.as_str(), None),
-            device(
+            crate::kinds::device(
+                &table.id,
+                "rotary_table",
+                table.driver.as_str(),
+                None,
+                BTreeMap::new(),
+            ),
+            crate::kinds::device(
                 &probe.id,
                 "probe",
                 probe.driver.as_str(),
                 Some(probe.noise_m),
+                BTreeMap::new(),
             ),
         ],
         plan: serde_json::to_value(&config.plan).unwrap_or_default(),
@@ -336,7 +323,7 @@ fn execute(
         }
         None => handle.session(&session_header(config, epoch_ns), built.clock.now_ns()),
     }
-    let bar = progress_bar(options.progress);
+    let bar = crate::run::progress_bar(options.progress, "probed points");
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
@@ -378,17 +365,4 @@ fn execute(
         results,
         emulator_requests,
     })
-}
-
-fn progress_bar(show: bool) -> indicatif::ProgressBar {
-    if !show {
-        return indicatif::ProgressBar::hidden();
-    }
-    let bar = indicatif::ProgressBar::new(0);
-    if let Ok(style) = indicatif::ProgressStyle::with_template(
-        "{spinner} [{elapsed_precise}] {bar:40} {pos}/{len} probed points ({eta} left)",
-    ) {
-        bar.set_style(style);
-    }
-    bar
 }
