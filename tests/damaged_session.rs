@@ -42,18 +42,7 @@ fn recorded() -> &'static Recorded {
         let run_dir = dir.path().join("run");
         let config = dir.path().join("demo.toml");
         std::fs::write(&config, small_demo()).expect("config");
-        let out = geocal()
-            .arg("run")
-            .arg(&config)
-            .arg("--out")
-            .arg(&run_dir)
-            .output()
-            .expect("run geocal");
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
+        run_config(&config, &run_dir);
         let path = dir.path().join("session.mcap");
         let (bytes, chunks) = rechunked(&run_dir.join("session.mcap"), &path, 16 * 1024);
         assert!(chunks.len() >= 20, "{} chunks", chunks.len());
@@ -64,6 +53,22 @@ fn recorded() -> &'static Recorded {
             chunks,
         }
     })
+}
+
+/// `geocal run CONFIG --out DIR`, which must succeed.
+fn run_config(config: &Path, out_dir: &Path) {
+    let out = geocal()
+        .arg("run")
+        .arg(config)
+        .arg("--out")
+        .arg(out_dir)
+        .output()
+        .expect("run geocal");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
 }
 
 /// The session at `source` written again to `dest` with chunks of `chunk_size` bytes: its
@@ -479,18 +484,7 @@ fn rechunked_kind_session(config: &str, dir: &Path, chunk_size: u64) -> (PathBuf
     let config = Path::new(env!("CARGO_MANIFEST_DIR"))
         .join("config")
         .join(config);
-    let out = geocal()
-        .arg("run")
-        .arg(&config)
-        .arg("--out")
-        .arg(&run_dir)
-        .output()
-        .expect("run geocal");
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    run_config(&config, &run_dir);
     let path = dir.join("rechunked.mcap");
     let (_, chunks) = rechunked(&run_dir.join("session.mcap"), &path, chunk_size);
     (path, chunks)
