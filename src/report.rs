@@ -12,7 +12,7 @@ pub fn text(results: &Results) -> String {
         Results::RotaryTracer(r) => {
             multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
         }
-        Results::RotarySphere(r) => crate::kinds::rotary_sphere::solve::text(r),
+        Results::RotarySphere(r) => crate::kinds::rotary_sphere::report::text(r),
         Results::ProbeInstall(r) => crate::kinds::probe_install::report::text(r),
         Results::Hexapod(r) => crate::kinds::hexapod::report::text(r),
     }

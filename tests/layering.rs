@@ -75,8 +75,8 @@ const KNOWN: &[&str] = &[
     "replay/kinds.rs -> crate::kinds::rotary_sphere::config: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::plan: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::sequence: shared machinery imports kind rotary_sphere",
-    "report.rs -> crate::kinds::rotary_sphere::solve::text: imports a higher layer",
-    "report.rs -> crate::kinds::rotary_sphere::solve::text: shared machinery imports kind rotary_sphere",
+    "report.rs -> crate::kinds::rotary_sphere::report::text: imports a higher layer",
+    "report.rs -> crate::kinds::rotary_sphere::report::text: shared machinery imports kind rotary_sphere",
 ];
 
 /// The `.rs` files under `dir`, test modules kept in files of their own (`tests.rs`) left out.

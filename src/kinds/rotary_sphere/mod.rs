@@ -6,6 +6,7 @@ pub mod check;
 pub mod config;
 pub mod hil_source;
 pub mod plan;
+pub mod report;
 pub mod run;
 pub mod sequence;
 pub mod sim;
