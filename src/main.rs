@@ -226,7 +226,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {
-                print!("{}", geocal::report::text(&output.results));
+                print!("{}", geocal::kinds::registry::report(&output.results));
                 println!(
                     "\n  {} recorded to {}\n  results in {}",
                     output.recorded,
@@ -254,7 +254,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             if json {
                 println!("{}", results.to_json_pretty());
             } else {
-                print!("{}", geocal::report::text(&results));
+                print!("{}", geocal::kinds::registry::report(&results));
             }
         }
         Command::Repair { session, out } => {

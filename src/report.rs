@@ -6,15 +6,15 @@ use crate::method::multilateration::MultilaterationResults;
 use crate::method::rotary_tracer::RotaryResult;
 use crate::method::Results;
 
-pub fn text(results: &Results) -> String {
+/// The report of a tracer method's results (multilateration, rotary_tracer); other kinds
+/// report from their folders (`kinds::registry::report` picks).
+pub fn tracer_text(results: &Results) -> Option<String> {
     match results {
-        Results::Multilateration(r) => multilateration_text(r),
+        Results::Multilateration(r) => Some(multilateration_text(r)),
         Results::RotaryTracer(r) => {
-            multilateration_text(&r.multilateration) + &rotary_text(&r.rotary)
+            Some(multilateration_text(&r.multilateration) + &rotary_text(&r.rotary))
         }
-        Results::RotarySphere(r) => crate::kinds::rotary_sphere::report::text(r),
-        Results::ProbeInstall(r) => crate::kinds::probe_install::report::text(r),
-        Results::Hexapod(r) => crate::kinds::hexapod::report::text(r),
+        _ => None,
     }
 }
 

@@ -61,22 +61,16 @@ const KNOWN: &[&str] = &[
     "replay/kinds.rs -> crate::kinds::hexapod::config: shared machinery imports kind hexapod",
     "replay/kinds.rs -> crate::kinds::hexapod::plan: shared machinery imports kind hexapod",
     "replay/kinds.rs -> crate::kinds::hexapod::sequence: shared machinery imports kind hexapod",
-    "report.rs -> crate::kinds::hexapod::report::text: imports a higher layer",
-    "report.rs -> crate::kinds::hexapod::report::text: shared machinery imports kind hexapod",
     "method/mod.rs -> crate::kinds::probe_install::solve: imports a higher layer",
     "method/mod.rs -> crate::kinds::probe_install::solve: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::config: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::plan: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::sequence: shared machinery imports kind probe_install",
-    "report.rs -> crate::kinds::probe_install::report::text: imports a higher layer",
-    "report.rs -> crate::kinds::probe_install::report::text: shared machinery imports kind probe_install",
     "method/mod.rs -> crate::kinds::rotary_sphere::solve: imports a higher layer",
     "method/mod.rs -> crate::kinds::rotary_sphere::solve: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::config: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::plan: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::sequence: shared machinery imports kind rotary_sphere",
-    "report.rs -> crate::kinds::rotary_sphere::report::text: imports a higher layer",
-    "report.rs -> crate::kinds::rotary_sphere::report::text: shared machinery imports kind rotary_sphere",
 ];
 
 /// The `.rs` files under `dir`, test modules kept in files of their own (`tests.rs`) left out.

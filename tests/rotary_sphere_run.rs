@@ -211,7 +211,7 @@ fn replay_gives_identical_results_and_events_are_recorded() {
         "independent reader: {stdout}\n{}",
         String::from_utf8_lossy(&py.stderr)
     );
-    let text = geocal::report::text(&output.results);
+    let text = geocal::kinds::registry::report(&output.results);
     assert!(
         text.contains("EXOC") && text.contains("validation height 2"),
         "{text}"

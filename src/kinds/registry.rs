@@ -189,6 +189,16 @@ pub fn kind_layout_plan_check(
         .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))
 }
 
+/// The text report of any kind's results: what an engineer reads at the end of a run.
+pub fn report(results: &Results) -> String {
+    match results {
+        Results::RotarySphere(r) => super::rotary_sphere::report::text(r),
+        Results::ProbeInstall(r) => super::probe_install::report::text(r),
+        Results::Hexapod(r) => super::hexapod::report::text(r),
+        tracer => crate::report::tracer_text(tracer).unwrap_or_default(),
+    }
+}
+
 /// Solve a session with the method of its kind.
 pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
     let name = session.header.kind.as_str();
