@@ -373,3 +373,52 @@ fn device_stream<T: serde::Serialize>(
         })
         .collect()
 }
+
+/// A recording the sequencer cannot follow (one point moved in the recorded events): the
+/// replay stops, says where and why, and shows its last decisions beside the recorded events
+/// around that sample.
+#[test]
+fn a_diverging_replay_shows_its_decisions_and_the_recorded_events() {
+    use geocal::session::reader::read_session_raw;
+    use geocal::session::{Recorder, RecorderOptions};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&small_demo(), &dir.path().join("run"));
+    let (_, messages) = read_session_raw(&recorded.session_path).expect("raw read");
+    let altered = dir.path().join("altered.mcap");
+    let recorder = Recorder::create(&altered, RecorderOptions::default()).expect("recorder");
+    let handle = recorder.handle();
+    let mut moved = false;
+    for mut m in messages {
+        let text = String::from_utf8_lossy(&m.data).to_string();
+        if !moved && text.contains("\"point_begin\"") && text.contains("\"point\":3") {
+            let mut event: serde_json::Value = serde_json::from_str(&text).expect("event json");
+            event["axes"]["x"] = serde_json::json!(0.55);
+            m.data = serde_json::to_vec(&event).expect("json");
+            moved = true;
+        }
+        handle.raw(m);
+    }
+    recorder.finish().expect("finish");
+    assert!(moved, "a point_begin of point 3 in the recording");
+    let out = replay_into(&altered, &dir.path().join("replay"));
+    let c = &out.comparison;
+    let text = geocal::replay::text(c);
+    print!("{text}");
+    assert_eq!(c.outcome, Outcome::Diverged, "{}", c.message);
+    assert!(c.message.contains("x=0.55 m"), "{}", c.message);
+    assert!(
+        c.trail.last().is_some_and(|d| d.contains("move to")),
+        "{:?}",
+        c.trail
+    );
+    assert!(
+        c.recorded_nearby.iter().any(|e| e.contains("x\":0.55")),
+        "{:?}",
+        c.recorded_nearby
+    );
+    assert!(text.contains("the replay's last decisions:"), "{text}");
+    assert!(
+        text.contains("recorded events near where it stopped:"),
+        "{text}"
+    );
+}

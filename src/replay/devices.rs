@@ -41,6 +41,9 @@ pub struct ReplayState {
     table_arrival: Option<(Arrival, f64)>,
     /// Cursor values at which the sequencer homed the tracer.
     pub homings: Vec<usize>,
+    /// The replay's decisions in order (moves and where they end, homings): shown when the
+    /// replay diverges, so that the divergence can be traced to a decision.
+    pub trail: Vec<String>,
 }
 
 pub type SharedReplay = Arc<Mutex<ReplayState>>;
@@ -152,6 +155,7 @@ impl ReplayState {
             machine_arrival: None,
             table_arrival: None,
             homings: Vec::new(),
+            trail: Vec::new(),
         };
         (Arc::new(Mutex::new(state)), clock)
     }
@@ -162,6 +166,34 @@ impl ReplayState {
 
     pub fn cursor(&self) -> usize {
         self.cursor
+    }
+
+    /// The recorded run's events around the cursor, one line each (link faults left out):
+    /// the last `before` placed at or before it and the next `after`, what the recording did
+    /// where the replay stopped.
+    pub fn recorded_events_near(&self, before: usize, after: usize) -> Vec<String> {
+        let events: Vec<_> = self
+            .recording
+            .events
+            .iter()
+            .filter(|e| {
+                !matches!(&e.msg, RunEvent::Fault { code, .. }
+                    if ["crc", "resync", "frames_lost"].contains(&code.as_str()))
+            })
+            .collect();
+        let split = events.partition_point(|e| e.after <= self.cursor);
+        events[split.saturating_sub(before)..(split + after).min(events.len())]
+            .iter()
+            .map(|e| {
+                let seq = e
+                    .after
+                    .checked_sub(1)
+                    .and_then(|i| self.recording.samples.get(i))
+                    .map_or(String::new(), |s| format!(" (seq {})", s.msg.seq));
+                let text = serde_json::to_string(&e.msg).unwrap_or_default();
+                format!("after sample {}{seq}: {}", e.after, shorten(&text, 160))
+            })
+            .collect()
     }
 
     /// The next recorded fault of a device, if the replay has reached it.
@@ -238,6 +270,7 @@ impl Tracer for ReplayTracer {
             return Err(e);
         }
         s.homings.push(cursor);
+        s.trail.push(format!("after sample {cursor}: tracer homed"));
         Ok(())
     }
 
@@ -310,7 +343,17 @@ impl Machine for ReplayMachine {
         if let Some(e) = ReplayState::due(&mut s.machine_faults, cursor) {
             return Err(e);
         }
-        let arrival = s.recording.arrival(&s.plan, &self.id, cursor, target)?;
+        let (arrival, why) = s
+            .recording
+            .arrival_explained(&s.plan, &self.id, cursor, target)?;
+        let ends = match arrival {
+            Arrival::At(at) => format!("arrives after sample {at}"),
+            Arrival::Never => "never arrives".to_string(),
+        };
+        s.trail.push(format!(
+            "after sample {cursor}: move to {}: {ends} ({why})",
+            crate::replay::recording::show_axes(target)
+        ));
         s.machine_arrival = Some((arrival, target.clone()));
         Ok(())
     }
@@ -485,6 +528,14 @@ impl Probe for ReplayProbe {
             .ok_or_else(|| DeviceError::EndOfStream {
                 device: self.id.clone(),
             })
+    }
+}
+
+/// `text` cut to at most `max` characters (on a character boundary), marked with "…".
+fn shorten(text: &str, max: usize) -> String {
+    match text.char_indices().nth(max) {
+        Some((cut, _)) => format!("{}…", &text[..cut]),
+        None => text.to_string(),
     }
 }
 

@@ -612,6 +612,8 @@ pub fn replay(
         windows: compare_windows(&kind_windows(session), &kind_windows(&replayed)),
         events_recorded: event_counts(session),
         events_replayed: event_counts(&replayed),
+        trail: Vec::new(),
+        recorded_nearby: Vec::new(),
         results,
         results_error,
     };

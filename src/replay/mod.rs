@@ -75,6 +75,12 @@ pub struct Comparison {
     /// `fault:<code>` and `rehome` event counts.
     pub events_recorded: BTreeMap<String, usize>,
     pub events_replayed: BTreeMap<String, usize>,
+    /// When the replay diverged: its last decisions (moves, where they end and why, homings)
+    /// and the recorded events around the sample where it stopped.
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub trail: Vec<String>,
+    #[serde(skip_serializing_if = "Vec::is_empty", default)]
+    pub recorded_nearby: Vec<String>,
     /// Both sessions solved with the same settings; None when either cannot be solved.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub results: Option<ResultsDifference>,
@@ -141,7 +147,8 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         );
     }
 
-    let (ended, samples_replayed) = run_sequencer(&session, recording, plan, &out_path, options)?;
+    let ran = run_sequencer(&session, recording, plan, &out_path, options)?;
+    let (ended, samples_replayed) = (ran.ended, ran.delivered);
     let replayed =
         read_session(&out_path).with_context(|| format!("reading back {}", out_path.display()))?;
     let (outcome, mut message) = match &ended {
@@ -160,6 +167,7 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         ),
         Err(e) => (Outcome::Diverged, format!("the replay stopped: {e}")),
     };
+    let diverged = outcome == Outcome::Diverged;
     let truncation = match &session.completeness {
         Completeness::Complete => None,
         Completeness::Truncated {
@@ -193,6 +201,12 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         windows,
         events_recorded: event_counts(&session),
         events_replayed: event_counts(&replayed),
+        trail: if diverged { ran.trail } else { Vec::new() },
+        recorded_nearby: if diverged {
+            ran.recorded_nearby
+        } else {
+            Vec::new()
+        },
         results,
         results_error,
     };
@@ -242,15 +256,28 @@ fn last_t_s(session: &Session) -> f64 {
         .map_or(0.0, |s| s.msg.t_s)
 }
 
-/// Runs the sequencer on the replay drivers into `out_path`; the sequencer's result and the
-/// number of samples it was given.
+/// What a replayed sequencer run left: how it ended, how many samples it was given, its last
+/// decisions and the recorded events where it stopped.
+struct SequencerRun {
+    ended: Result<(), SequencerError>,
+    delivered: usize,
+    trail: Vec<String>,
+    recorded_nearby: Vec<String>,
+}
+
+/// Decisions and recorded events shown when a replay diverges.
+const TRAIL_SHOWN: usize = 8;
+const NEARBY_BEFORE: usize = 8;
+const NEARBY_AFTER: usize = 4;
+
+/// Runs the sequencer on the replay drivers into `out_path`.
 fn run_sequencer(
     session: &Session,
     recording: Recording,
     plan: Plan,
     out_path: &Path,
     options: &ReplayOptions,
-) -> anyhow::Result<(Result<(), SequencerError>, usize)> {
+) -> anyhow::Result<SequencerRun> {
     let tracer_id = recording.tracer_id.clone();
     let machine_id = recording.machine_id.clone();
     let env_id = recording.env_id.clone();
@@ -308,8 +335,23 @@ fn run_sequencer(
     recorder
         .finish()
         .context("finishing the replayed session file")?;
-    let delivered = shared.lock().map_or(0, |s| s.cursor());
-    Ok((ended, delivered))
+    let (delivered, trail, recorded_nearby) = shared.lock().map_or_else(
+        |_| (0, Vec::new(), Vec::new()),
+        |s| {
+            let skip = s.trail.len().saturating_sub(TRAIL_SHOWN);
+            (
+                s.cursor(),
+                s.trail[skip..].to_vec(),
+                s.recorded_events_near(NEARBY_BEFORE, NEARBY_AFTER),
+            )
+        },
+    );
+    Ok(SequencerRun {
+        ended,
+        delivered,
+        trail,
+        recorded_nearby,
+    })
 }
 
 /// The recording's header, marked as a replay: `<id>-replay`, every driver `replay` (the
@@ -402,6 +444,18 @@ pub fn text(c: &Comparison) -> String {
         show(&c.events_recorded),
         show(&c.events_replayed)
     ));
+    if !c.trail.is_empty() {
+        s.push_str("  the replay's last decisions:\n");
+        for line in &c.trail {
+            s.push_str(&format!("    {line}\n"));
+        }
+    }
+    if !c.recorded_nearby.is_empty() {
+        s.push_str("  recorded events near where it stopped:\n");
+        for line in &c.recorded_nearby {
+            s.push_str(&format!("    {line}\n"));
+        }
+    }
     match (&c.results, &c.results_error) {
         (Some(r), _) if r.identical => s.push_str(&format!(
             "  results: identical ({} values compared)\n",

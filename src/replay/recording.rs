@@ -172,6 +172,18 @@ impl Recording {
         start_cursor: usize,
         target: &AxisPositions,
     ) -> Result<Arrival, DeviceError> {
+        self.arrival_explained(plan, machine_id, start_cursor, target)
+            .map(|(arrival, _)| arrival)
+    }
+
+    /// `arrival`, with what in the recording decided it (for the replay's trail).
+    pub fn arrival_explained(
+        &self,
+        plan: &Plan,
+        machine_id: &str,
+        start_cursor: usize,
+        target: &AxisPositions,
+    ) -> Result<(Arrival, &'static str), DeviceError> {
         let home = plan.points.first().map(|p| p.axes_m);
         let to_home = home.is_some_and(|h| same_axes(target, &h));
         for event in self.events.iter().filter(|e| e.after > start_cursor) {
@@ -200,11 +212,11 @@ impl Recording {
                     return Ok(if to_home && *point == 0 {
                         self.homing_arrival(plan, start_cursor + 1, event.after)
                     } else {
-                        Arrival::At(event.after)
+                        (Arrival::At(event.after), "the next point_begin")
                     });
                 }
                 RunEvent::Fault { code, .. } if code == "beam_break" => {
-                    return Ok(Arrival::At(event.after))
+                    return Ok((Arrival::At(event.after), "a beam_break fault"))
                 }
                 RunEvent::Rehome { .. } if to_home => {
                     return Ok(self.homing_arrival(plan, start_cursor + 1, event.after))
@@ -225,15 +237,15 @@ impl Recording {
                 _ => {}
             }
         }
-        Ok(Arrival::Never)
+        Ok((Arrival::Never, "the recording ends first"))
     }
 
     /// The arrival for a homing whose first sample after zeroing was sample `marked - 1`:
     /// the latest arrival (not before `lo`) from which the sequencer's homing dwell (stillstand
     /// with no minimum dwell, or `max_dwell_s`) ends exactly at the sample before that.
-    fn homing_arrival(&self, plan: &Plan, lo: usize, marked: usize) -> Arrival {
+    fn homing_arrival(&self, plan: &Plan, lo: usize, marked: usize) -> (Arrival, &'static str) {
         let Some(end) = marked.checked_sub(2) else {
-            return Arrival::At(lo);
+            return (Arrival::At(lo), "a homing at the recording's start");
         };
         let ends_at = |a: usize| -> Option<usize> {
             let begin_s = self.samples.get(a.checked_sub(1)?)?.msg.t_s;
@@ -257,7 +269,7 @@ impl Recording {
         let mut a = end;
         while a >= lo.max(1) {
             if ends_at(a) == Some(end) {
-                return Arrival::At(a);
+                return (Arrival::At(a), "the recorded homing reproduced");
             }
             // A dwell ends by max_dwell_s: earlier arrivals cannot end this late.
             let begin_s = self.samples[a - 1].msg.t_s;
@@ -270,7 +282,10 @@ impl Recording {
             "replay: no arrival reproduces the recorded homing before sample {marked}; \
              reporting arrival at once"
         );
-        Arrival::At(lo)
+        (
+            Arrival::At(lo),
+            "no arrival reproduces the recorded homing: at once",
+        )
     }
 
     /// Index of the first tracer sample with a log time after `log_time_ns`.
@@ -380,7 +395,7 @@ fn same_axes(a: &AxisPositions, h: &[f64; 3]) -> bool {
         .all(|(name, v)| a.get(*name).is_some_and(|w| (v - w).abs() <= AXIS_MATCH_M))
 }
 
-fn show_axes(a: &std::collections::BTreeMap<String, f64>) -> String {
+pub fn show_axes(a: &std::collections::BTreeMap<String, f64>) -> String {
     let parts: Vec<String> = a.iter().map(|(k, v)| format!("{k}={v} m")).collect();
     format!("({})", parts.join(", "))
 }
