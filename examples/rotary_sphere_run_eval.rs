@@ -11,7 +11,6 @@ use std::time::Instant;
 
 use geocal::kinds::rotary_sphere::config::RotarySphereConfig;
 use geocal::kinds::rotary_sphere::run::run;
-use geocal::method::Results;
 use geocal::run::RunOptions;
 
 const CONFIG: &str = include_str!("../config/rotary-sphere.toml");
@@ -64,7 +63,10 @@ fn main() -> anyhow::Result<()> {
                 },
             )?;
             ms += start.elapsed().as_secs_f64() * 1e3;
-            let Results::RotarySphere(r) = &output.results else {
+            let Some(r) = output
+                .results
+                .get::<geocal::kinds::rotary_sphere::solve::RotarySphereResults>()
+            else {
                 anyhow::bail!("expected rotary_sphere results");
             };
             let v = &r.validation[0];

@@ -9,7 +9,6 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use geocal::config::Config;
-use geocal::method::Results;
 use geocal::run::{run, RunOptions};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde_json::Value;
@@ -109,7 +108,10 @@ fn evaluate(config: &Config, out_dir: &Path) -> anyhow::Result<Row> {
         },
     )?;
     let truth: Value = serde_json::from_slice(&std::fs::read(&truth_path)?)?;
-    let Results::RotaryTracer(results) = &output.results else {
+    let Some(results) = output
+        .results
+        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+    else {
         bail!("the configuration is not of kind rotary_tracer");
     };
     let ml = &results.multilateration;

@@ -3,18 +3,26 @@
 use std::fmt::Write;
 
 use crate::method::multilateration::MultilaterationResults;
-use crate::method::rotary_tracer::RotaryResult;
-use crate::method::Results;
+use crate::method::rotary_tracer::{RotaryResult, RotaryTracerResults};
+use crate::method::KindResults;
 
-/// The report of a tracer method's results (multilateration, rotary_tracer); other kinds
-/// report from their folders (`kinds::registry::report` picks).
-pub fn tracer_text(results: &Results) -> Option<String> {
-    match results {
-        Results::Multilateration(r) => Some(multilateration_text(r)),
-        Results::RotaryTracer(r) => {
-            Some(multilateration_text(&r.multilateration) + &rotary_text(&r.rotary))
-        }
-        _ => None,
+impl KindResults for MultilaterationResults {
+    fn report(&self) -> String {
+        multilateration_text(self)
+    }
+
+    fn tracer_network(&self) -> Option<&MultilaterationResults> {
+        Some(self)
+    }
+}
+
+impl KindResults for RotaryTracerResults {
+    fn report(&self) -> String {
+        multilateration_text(&self.multilateration) + &rotary_text(&self.rotary)
+    }
+
+    fn tracer_network(&self) -> Option<&MultilaterationResults> {
+        Some(&self.multilateration)
     }
 }
 

@@ -7,7 +7,6 @@ mod common;
 
 use std::path::Path;
 
-use geocal::method::Results;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::messages::RunEvent;
@@ -28,7 +27,10 @@ fn xyz(v: &Value) -> [f64; 3] {
 /// error is N(0, 1), P(|z| > 4) = 6e-5, so 36 coordinates fail by chance with probability
 /// 0.2 %. Returns the RMS normalised error.
 fn assert_hinges_recovered(output: &RunOutput, truth: &Value) -> f64 {
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     let mut sum_z2 = 0.0;
@@ -53,7 +55,10 @@ fn assert_hinges_recovered(output: &RunOutput, truth: &Value) -> f64 {
 fn recovers_the_true_hinges_and_replays_identically() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run(EXAMPLE, dir.path());
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     assert_eq!((r.poses, r.readings), (30, 129));
@@ -119,7 +124,10 @@ fn commanded_poses_and_larger_errors() {
         .replace("seed = 424242", "seed = 7\nexact_poses = true");
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run(&text, dir.path());
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     assert_eq!(r.pose_source, "commanded");
@@ -136,7 +144,10 @@ fn commanded_poses_and_larger_errors() {
 /// mean's variance as the reported correlations give it (2 Σ ρ²/36²: the legs' coordinates are
 /// strongly correlated, so one run's marginal RMS scatters far more than √(2/36)).
 fn error_against_covariance(output: &RunOutput, truth: &Value) -> (f64, f64, f64) {
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     let coords = |base: &dyn Fn(usize) -> [f64; 3], platform: &dyn Fn(usize) -> [f64; 3]| {
@@ -184,7 +195,10 @@ fn uncertainties_are_honest_with_and_without_pose_noise() {
                 .replace("seed = 5,", &format!("seed = {},", 50 + seed));
             let dir = tempfile::tempdir().expect("tempdir");
             let (output, truth) = run(&text, dir.path());
-            let Results::Hexapod(r) = &output.results else {
+            let Some(r) = output
+                .results
+                .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+            else {
                 panic!("expected hexapod results");
             };
             assert_eq!((r.pose_sigma_m, r.pose_sigma_rad), (noise_m, noise_rad));
@@ -287,7 +301,10 @@ fn platform_reaches_the_forward_kinematics_of_the_design_lengths() {
     let text = format!("{}{}", &EXAMPLE[..cut], &EXAMPLE[end..]);
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run(&text, dir.path());
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     let (maha, _, _) = error_against_covariance(&output, &truth);

@@ -7,7 +7,6 @@ mod common;
 
 use std::path::Path;
 
-use geocal::method::Results;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::reader::read_session;
@@ -57,7 +56,10 @@ fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
 /// covariance each normalised error is N(0, 1); 36 fail by chance with probability 0.2 %),
 /// and chi²/dof of the 138 degrees of freedom within ±3 of its standard deviation 0.12.
 fn assert_hinges_recovered(output: &RunOutput, truth: &Value) {
-    let Results::Hexapod(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+    else {
         panic!("expected hexapod results");
     };
     assert_eq!((r.poses, r.readings), (30, 129));

@@ -9,7 +9,6 @@ mod common;
 
 use std::path::Path;
 
-use geocal::method::Results;
 use geocal::run::{RunOptions, RunOutput};
 use geocal::session::reader::read_session;
 use serde_json::Value;
@@ -68,7 +67,11 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
                   reconnect_after_s = 0.2, alarm_at_line = 60 }\n\
                   probe_faults = { no_answer_at_requests = [10], garbage_at_requests = [40] }\n";
     let (hil, truth) = run(&hil_config(faults), &dir.path().join("hil"));
-    let (Results::ProbeInstall(s), Results::ProbeInstall(r)) = (&sim.results, &hil.results) else {
+    type ProbeInstallResults = geocal::kinds::probe_install::solve::ProbeInstallResults;
+    let (Some(s), Some(r)) = (
+        sim.results.get::<ProbeInstallResults>(),
+        hil.results.get::<ProbeInstallResults>(),
+    ) else {
         panic!("expected probe_install results");
     };
     assert_eq!(
@@ -206,7 +209,10 @@ fn real_ports_without_hil_are_opened_by_path() {
     )
     .expect("run")
     .expect("probe_install");
-    let Results::ProbeInstall(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::probe_install::solve::ProbeInstallResults>()
+    else {
         panic!("expected probe_install results");
     };
     assert_eq!((r.points, r.readings), (100, 500));

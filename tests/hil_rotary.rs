@@ -8,7 +8,6 @@ mod common;
 
 use common::hil_rotary_config;
 use common::{assert_recovers_truth, faults, run_with_truth};
-use geocal::method::Results;
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
 
@@ -19,7 +18,10 @@ fn run_and_check(extra: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
     let started = std::time::Instant::now();
     let (output, truth) = run_with_truth(&hil_rotary_config(extra), dir.path());
     println!("{label}: {:.1} s", started.elapsed().as_secs_f64());
-    let Results::RotaryTracer(results) = &output.results else {
+    let Some(results) = output
+        .results
+        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+    else {
         panic!("expected rotary_tracer results");
     };
     let ml = &results.multilateration;

@@ -54,20 +54,14 @@ const KNOWN: &[&str] = &[
     "method/mod.rs -> crate::kinds::registry::solve_session: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct::correction: imports a higher layer",
-    // Every kind's results in one enum, their reports and their replays: to move behind the
-    // Kind trait (results and report in each kind's folder, replay devices per kind).
-    "method/mod.rs -> crate::kinds::hexapod::solve: imports a higher layer",
-    "method/mod.rs -> crate::kinds::hexapod::solve: shared machinery imports kind hexapod",
+    // The replays of the kinds with their own sequencers: replay devices to move behind the
+    // Kind trait.
     "replay/kinds.rs -> crate::kinds::hexapod::config: shared machinery imports kind hexapod",
     "replay/kinds.rs -> crate::kinds::hexapod::plan: shared machinery imports kind hexapod",
     "replay/kinds.rs -> crate::kinds::hexapod::sequence: shared machinery imports kind hexapod",
-    "method/mod.rs -> crate::kinds::probe_install::solve: imports a higher layer",
-    "method/mod.rs -> crate::kinds::probe_install::solve: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::config: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::plan: shared machinery imports kind probe_install",
     "replay/kinds.rs -> crate::kinds::probe_install::sequence: shared machinery imports kind probe_install",
-    "method/mod.rs -> crate::kinds::rotary_sphere::solve: imports a higher layer",
-    "method/mod.rs -> crate::kinds::rotary_sphere::solve: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::config: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::plan: shared machinery imports kind rotary_sphere",
     "replay/kinds.rs -> crate::kinds::rotary_sphere::sequence: shared machinery imports kind rotary_sphere",

@@ -11,7 +11,6 @@ use std::process::Command;
 
 use geocal::kinds::registry::kind_layout_plan_check;
 use geocal::method::plan_check_kinds::KindPlanCheck;
-use geocal::method::Results;
 use geocal::run::{RunOptions, RunOutput};
 use nalgebra::{Matrix3, Vector3};
 use serde_json::Value;
@@ -198,7 +197,10 @@ fn rotary_sphere_prediction_matches_the_scatter_over_seeds() {
         )
         .expect("config");
         let out = geocal::kinds::rotary_sphere::run::run(&cfg, &options(&sub)).expect("run");
-        let Results::RotarySphere(r) = &out.results else {
+        let Some(r) = out
+            .results
+            .get::<geocal::kinds::rotary_sphere::solve::RotarySphereResults>()
+        else {
             panic!("rotary_sphere results expected");
         };
         let (l, m) = sphere_errors(r, &truth(&sub), &check);
@@ -258,7 +260,10 @@ fn probe_install_prediction_matches_the_scatter_over_seeds() {
         let out: RunOutput = geocal::kinds::run_file(&cfg, &options(&sub))
             .expect("run")
             .expect("probe_install");
-        let Results::ProbeInstall(r) = &out.results else {
+        let Some(r) = out
+            .results
+            .get::<geocal::kinds::probe_install::solve::ProbeInstallResults>()
+        else {
             panic!("probe_install results expected");
         };
         let t = truth(&sub);
@@ -365,7 +370,10 @@ fn hexapod_prediction_matches_the_scatter_over_seeds() {
         let out: RunOutput = geocal::kinds::run_file(&cfg, &options(&sub))
             .expect("run")
             .expect("hexapod");
-        let Results::Hexapod(r) = &out.results else {
+        let Some(r) = out
+            .results
+            .get::<geocal::kinds::hexapod::solve::HexapodResults>()
+        else {
             panic!("hexapod results expected");
         };
         let t = truth(&sub);

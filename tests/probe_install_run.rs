@@ -7,7 +7,6 @@ mod common;
 
 use std::path::Path;
 
-use geocal::method::Results;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::TOPIC_MACHINE_POSE;
 use geocal::session::messages::RunEvent;
@@ -24,7 +23,10 @@ fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
 fn recovers_the_true_installation_and_replays_identically() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run(EXAMPLE, dir.path());
-    let Results::ProbeInstall(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::probe_install::solve::ProbeInstallResults>()
+    else {
         panic!("expected probe_install results");
     };
     assert_eq!(r.kind, "probe_install");
@@ -112,7 +114,10 @@ fn out_of_range_readings_are_recorded_as_faults() {
         .replace("ga_generations = 2000", "ga_generations = 200");
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, _) = run(&text, dir.path());
-    let Results::ProbeInstall(r) = &output.results else {
+    let Some(r) = output
+        .results
+        .get::<geocal::kinds::probe_install::solve::ProbeInstallResults>()
+    else {
         panic!("expected probe_install results");
     };
     let session = read_session(&output.session_path).expect("read session");
@@ -152,7 +157,10 @@ fn probe_direction_effect_shows_in_chi2() {
         };
         let dir = tempfile::tempdir().expect("tempdir");
         let (output, truth) = run(&text, dir.path());
-        let Results::ProbeInstall(r) = &output.results else {
+        let Some(r) = output
+            .results
+            .get::<geocal::kinds::probe_install::solve::ProbeInstallResults>()
+        else {
             panic!("expected probe_install results");
         };
         assert_eq!(r.dof, 90);

@@ -5,7 +5,6 @@
 mod common;
 
 use common::{assert_recovers_truth, run_with_truth, xyz};
-use geocal::method::Results;
 use geocal::run::solve_file;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
@@ -41,7 +40,10 @@ fn reduced() -> String {
 fn rotary_tracer_recovers_table_angles_axis_and_points() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run_with_truth(&reduced(), dir.path());
-    let Results::RotaryTracer(results) = &output.results else {
+    let Some(results) = output
+        .results
+        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+    else {
         panic!("expected rotary_tracer results");
     };
     let ml = &results.multilateration;

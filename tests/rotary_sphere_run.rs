@@ -42,10 +42,9 @@ fn run_text(text: &str, dir: &Path) -> (SphereRunOutput, Value) {
 }
 
 fn sphere(results: &Results) -> &RotarySphereResults {
-    match results {
-        Results::RotarySphere(r) => r,
-        _ => panic!("expected rotary_sphere results"),
-    }
+    results
+        .get::<RotarySphereResults>()
+        .expect("expected rotary_sphere results")
 }
 
 fn vec3(v: &Value) -> Vector3<f64> {

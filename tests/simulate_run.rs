@@ -11,7 +11,6 @@ use std::process::{Command, Stdio};
 
 use common::assert_recovers_truth;
 use common::{driver_tables, hil_rotary_config, rotary_base};
-use geocal::method::Results;
 
 const GEOCAL: &str = env!("CARGO_BIN_EXE_geocal");
 
@@ -161,7 +160,7 @@ fn simulate_and_run_as_two_processes() {
         serde_json::from_str(&std::fs::read_to_string(&truth_path).expect("truth")).expect("json");
     let results =
         geocal::run::solve_file(&out_dir.join("session.mcap"), &Default::default()).expect("solve");
-    let Results::RotaryTracer(results) = &results else {
+    let Some(results) = results.get::<geocal::method::rotary_tracer::RotaryTracerResults>() else {
         panic!("expected rotary_tracer results");
     };
     let ml = &results.multilateration;

@@ -191,12 +191,7 @@ pub fn kind_layout_plan_check(
 
 /// The text report of any kind's results: what an engineer reads at the end of a run.
 pub fn report(results: &Results) -> String {
-    match results {
-        Results::RotarySphere(r) => super::rotary_sphere::report::text(r),
-        Results::ProbeInstall(r) => super::probe_install::report::text(r),
-        Results::Hexapod(r) => super::hexapod::report::text(r),
-        tracer => crate::report::tracer_text(tracer).unwrap_or_default(),
-    }
+    results.report()
 }
 
 /// Solve a session with the method of its kind.
@@ -274,10 +269,10 @@ impl Kind for TracerKind {
     fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
         Ok(match self.0 {
             PlanKind::Multilateration => {
-                Results::Multilateration(method::multilateration::solve(session, settings)?)
+                Results::new(method::multilateration::solve(session, settings)?)
             }
             PlanKind::RotaryTracer => {
-                Results::RotaryTracer(method::rotary_tracer::solve(session, settings)?)
+                Results::new(method::rotary_tracer::solve(session, settings)?)
             }
         })
     }

@@ -6,7 +6,7 @@ pub mod plan_check;
 pub mod plan_check_kinds;
 pub mod rotary_tracer;
 
-use serde::Serialize;
+use std::any::Any;
 
 #[derive(Debug, thiserror::Error)]
 pub enum MethodError {
@@ -16,39 +16,89 @@ pub enum MethodError {
     Multilateration(#[from] multilateration::MultilaterationError),
     #[error(transparent)]
     RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
+    /// A kind's own solve failed: its error, as it says it.
     #[error(transparent)]
-    RotarySphere(#[from] crate::kinds::rotary_sphere::solve::RotarySphereMethodError),
-    #[error(transparent)]
-    ProbeInstall(#[from] crate::kinds::probe_install::solve::ProbeInstallMethodError),
-    #[error(transparent)]
-    Hexapod(#[from] crate::kinds::hexapod::solve::HexapodMethodError),
+    Kind(Box<dyn std::error::Error + Send + Sync>),
 }
 
-/// Results of any method, serialised as geocal-results/1.
-// One value per solve: the size difference between variants costs nothing worth a Box.
-#[allow(clippy::large_enum_variant)]
-#[derive(Debug, Clone, Serialize)]
-#[serde(untagged)]
-pub enum Results {
-    Multilateration(multilateration::MultilaterationResults),
-    RotaryTracer(rotary_tracer::RotaryTracerResults),
-    RotarySphere(Box<crate::kinds::rotary_sphere::solve::RotarySphereResults>),
-    ProbeInstall(Box<crate::kinds::probe_install::solve::ProbeInstallResults>),
-    Hexapod(Box<crate::kinds::hexapod::solve::HexapodResults>),
+impl MethodError {
+    /// A kind's own error (`solve(session).map_err(MethodError::of_kind)`).
+    pub fn of_kind(e: impl std::error::Error + Send + Sync + 'static) -> Self {
+        MethodError::Kind(Box::new(e))
+    }
+}
+
+/// What every kind's results offer the commands: their results.json, their text report and,
+/// for kinds that measure with a tracer, the tracer network solved (stations and points).
+pub trait KindResults: ResultsValue {
+    /// The report an engineer reads at the end of a run.
+    fn report(&self) -> String;
+    fn tracer_network(&self) -> Option<&multilateration::MultilaterationResults> {
+        None
+    }
+}
+
+/// What any serialisable results type gives by itself: its JSON and a copy.
+pub trait ResultsValue: Any + std::fmt::Debug + Send + Sync {
+    /// geocal-results/1, pretty-printed.
+    fn to_json_pretty(&self) -> String;
+    fn to_json_value(&self) -> serde_json::Result<serde_json::Value>;
+    fn clone_boxed(&self) -> Box<dyn KindResults>;
+}
+
+impl<T> ResultsValue for T
+where
+    T: KindResults + serde::Serialize + Clone + std::fmt::Debug + Send + Sync + 'static,
+{
+    fn to_json_pretty(&self) -> String {
+        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+    }
+
+    fn to_json_value(&self) -> serde_json::Result<serde_json::Value> {
+        serde_json::to_value(self)
+    }
+
+    fn clone_boxed(&self) -> Box<dyn KindResults> {
+        Box::new(self.clone())
+    }
+}
+
+/// Results of any kind's method.
+#[derive(Debug)]
+pub struct Results(Box<dyn KindResults>);
+
+impl Clone for Results {
+    fn clone(&self) -> Self {
+        Results(self.0.clone_boxed())
+    }
 }
 
 impl Results {
+    pub fn new(results: impl KindResults) -> Self {
+        Results(Box::new(results))
+    }
+
+    /// The results as the kind's own type, if they are of type `T`.
+    pub fn get<T: KindResults>(&self) -> Option<&T> {
+        let any: &dyn Any = self.0.as_ref();
+        any.downcast_ref::<T>()
+    }
+
     pub fn to_json_pretty(&self) -> String {
-        serde_json::to_string_pretty(self).unwrap_or_else(|e| format!("{{\"error\": \"{e}\"}}"))
+        self.0.to_json_pretty()
+    }
+
+    pub fn to_json_value(&self) -> serde_json::Result<serde_json::Value> {
+        self.0.to_json_value()
+    }
+
+    pub fn report(&self) -> String {
+        self.0.report()
     }
 
     /// The stations and points every tracer method has (None for methods without a tracer).
     pub fn multilateration(&self) -> Option<&multilateration::MultilaterationResults> {
-        match self {
-            Results::Multilateration(r) => Some(r),
-            Results::RotaryTracer(r) => Some(&r.multilateration),
-            Results::RotarySphere(_) | Results::ProbeInstall(_) | Results::Hexapod(_) => None,
-        }
+        self.0.tracer_network()
     }
 }
 

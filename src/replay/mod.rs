@@ -390,10 +390,7 @@ pub(crate) fn compare_results(
     let recorded_results = solve_session(recorded, &options.settings);
     Ok(match (recorded_results, replayed_results) {
         (Ok(a), Ok(b)) => (
-            Some(results_difference(
-                &serde_json::to_value(&a)?,
-                &serde_json::to_value(&b)?,
-            )),
+            Some(results_difference(&a.to_json_value()?, &b.to_json_value()?)),
             None,
             results_path,
         ),

@@ -46,6 +46,8 @@ impl Kind for Hexapod {
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::Hexapod(Box::new(solve::solve(session)?)))
+        solve::solve(session)
+            .map(Results::new)
+            .map_err(MethodError::of_kind)
     }
 }

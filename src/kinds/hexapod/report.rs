@@ -66,3 +66,9 @@ pub fn text(r: &HexapodResults) -> String {
     }
     s
 }
+
+impl crate::method::KindResults for HexapodResults {
+    fn report(&self) -> String {
+        text(self)
+    }
+}

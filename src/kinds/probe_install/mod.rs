@@ -45,6 +45,8 @@ impl Kind for ProbeInstall {
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::ProbeInstall(Box::new(solve::solve(session)?)))
+        solve::solve(session)
+            .map(Results::new)
+            .map_err(MethodError::of_kind)
     }
 }

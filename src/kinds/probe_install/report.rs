@@ -64,3 +64,9 @@ pub fn text(r: &ProbeInstallResults) -> String {
     );
     s
 }
+
+impl crate::method::KindResults for ProbeInstallResults {
+    fn report(&self) -> String {
+        text(self)
+    }
+}

@@ -61,6 +61,8 @@ impl Kind for RotarySphere {
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(Results::RotarySphere(Box::new(solve::solve(session)?)))
+        solve::solve(session)
+            .map(Results::new)
+            .map_err(MethodError::of_kind)
     }
 }

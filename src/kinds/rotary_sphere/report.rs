@@ -101,3 +101,9 @@ pub fn text(r: &RotarySphereResults) -> String {
     }
     s
 }
+
+impl crate::method::KindResults for RotarySphereResults {
+    fn report(&self) -> String {
+        text(self)
+    }
+}
