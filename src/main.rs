@@ -196,6 +196,7 @@ fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
 
 fn dispatch(command: Command) -> anyhow::Result<()> {
     use std::io::IsTerminal;
+    let kinds = geocal::kinds::Registry::standard();
     match command {
         Command::Run {
             config,
@@ -215,18 +216,16 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             let flags = geocal::kinds::RunFlags { assume_yes: yes };
             let output = match (resume, config) {
                 (Some(dir), config) => {
-                    let kind = geocal::kinds::kind_of_run_dir(&dir, config.as_deref())?;
+                    let kind = kinds.of_run_dir(&dir, config.as_deref())?;
                     kind.resume(&dir, config.as_deref(), &options)?
                 }
-                (None, Some(config)) => {
-                    geocal::kinds::kind_of_config(&config)?.run(&config, &options, &flags)?
-                }
+                (None, Some(config)) => kinds.of_config(&config)?.run(&config, &options, &flags)?,
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {
-                print!("{}", geocal::kinds::registry::report(&output.results));
+                print!("{}", output.results.report());
                 println!(
                     "\n  {} recorded to {}\n  results in {}",
                     output.recorded,
@@ -254,7 +253,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             if json {
                 println!("{}", results.to_json_pretty());
             } else {
-                print!("{}", geocal::kinds::registry::report(&results));
+                print!("{}", results.report());
             }
         }
         Command::Repair { session, out } => {
@@ -292,7 +291,8 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
         } => {
-            geocal::kinds::kind_of_config(&config)?
+            kinds
+                .of_config(&config)?
                 .simulate(&config, &geocal::simulate::SimulateOptions { truth, json })?;
         }
         Command::Replay {
@@ -371,7 +371,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
         }
         Command::Check { config, json } => {
-            let check = geocal::kinds::kind_of_config(&config)?.check(&config)?;
+            let check = kinds.of_config(&config)?.check(&config)?;
             if json {
                 println!("{}", serde_json::to_string_pretty(&check.json)?);
             } else {

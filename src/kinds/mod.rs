@@ -9,7 +9,7 @@ pub mod rotary_sphere;
 
 pub use registry::{
     kind_named, kind_of_config, kind_of_run_dir, run_file, Kind, KindCheck, KindRunOutput,
-    RunFlags, KINDS,
+    Registry, RunFlags, KINDS,
 };
 
 use std::collections::BTreeMap;

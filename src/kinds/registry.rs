@@ -92,61 +92,122 @@ pub static KINDS: &[&dyn Kind] = &[
     &super::hexapod::Hexapod,
 ];
 
+/// A list of kinds to dispatch through: `Registry::standard()` holds `KINDS`; a program or
+/// a test with a kind of its own adds it with `with`.
+#[derive(Clone)]
+pub struct Registry {
+    kinds: Vec<&'static dyn Kind>,
+}
+
+impl Registry {
+    /// Every plan kind geocal knows.
+    pub fn standard() -> Registry {
+        Registry {
+            kinds: KINDS.to_vec(),
+        }
+    }
+
+    /// This registry and `kind` (which replaces a kind of the same name).
+    pub fn with(mut self, kind: &'static dyn Kind) -> Registry {
+        self.kinds.retain(|k| k.name() != kind.name());
+        self.kinds.push(kind);
+        self
+    }
+
+    /// The names of every kind, for error messages.
+    pub fn names(&self) -> String {
+        self.kinds
+            .iter()
+            .map(|k| k.name())
+            .collect::<Vec<_>>()
+            .join(", ")
+    }
+
+    /// The kind called `name`.
+    pub fn named(&self, name: &str) -> Option<&'static dyn Kind> {
+        self.kinds.iter().copied().find(|k| k.name() == name)
+    }
+
+    /// The kind a configuration file declares (`kind = "..."`; none declared is
+    /// multilateration).
+    pub fn of_config(&self, path: &Path) -> anyhow::Result<&'static dyn Kind> {
+        let text = kind_config::read(path)?;
+        let declared = kind_config::declared_kind(&text);
+        let name = declared
+            .as_deref()
+            .unwrap_or(PlanKind::Multilateration.as_str());
+        self.named(name).with_context(|| {
+            format!(
+                "{}: kind = \"{name}\" is not a plan kind (known: {})",
+                path.display(),
+                self.names()
+            )
+        })
+    }
+
+    /// The kind of the interrupted run in `dir`: the given configuration's, else the one
+    /// stored at run start, else the recorded session's.
+    pub fn of_run_dir(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+    ) -> anyhow::Result<&'static dyn Kind> {
+        let stored = dir.join(crate::resume::CONFIG_FILE);
+        if let Some(path) = config.or(stored.exists().then_some(stored.as_path())) {
+            return self.of_config(path);
+        }
+        let session_path = dir.join(crate::resume::SESSION_FILE);
+        let (session, _) =
+            crate::session::reader::read_session_raw(&session_path).with_context(|| {
+                format!(
+                    "{} holds neither {} nor a readable {}: is it a run's output directory?",
+                    dir.display(),
+                    crate::resume::CONFIG_FILE,
+                    crate::resume::SESSION_FILE
+                )
+            })?;
+        let name = session.header.kind.as_str();
+        self.named(name).with_context(|| {
+            format!(
+                "{}: kind \"{name}\" is not a plan kind (known: {})",
+                session_path.display(),
+                self.names()
+            )
+        })
+    }
+
+    /// Solve a session with the method of its kind.
+    pub fn solve_session(
+        &self,
+        session: &Session,
+        settings: &SolveSettings,
+    ) -> Result<Results, MethodError> {
+        let name = session.header.kind.as_str();
+        match self.named(name) {
+            Some(kind) => kind.solve(session, settings),
+            None => Err(MethodError::UnknownKind(name.to_string(), self.names())),
+        }
+    }
+}
+
 /// The names of every kind, for error messages.
 pub fn kind_names() -> String {
-    KINDS
-        .iter()
-        .map(|k| k.name())
-        .collect::<Vec<_>>()
-        .join(", ")
+    Registry::standard().names()
 }
 
 /// The kind called `name`.
 pub fn kind_named(name: &str) -> Option<&'static dyn Kind> {
-    KINDS.iter().copied().find(|k| k.name() == name)
+    Registry::standard().named(name)
 }
 
 /// The kind a configuration file declares (`kind = "..."`; none declared is multilateration).
 pub fn kind_of_config(path: &Path) -> anyhow::Result<&'static dyn Kind> {
-    let text = kind_config::read(path)?;
-    let declared = kind_config::declared_kind(&text);
-    let name = declared
-        .as_deref()
-        .unwrap_or(PlanKind::Multilateration.as_str());
-    kind_named(name).with_context(|| {
-        format!(
-            "{}: kind = \"{name}\" is not a plan kind (known: {})",
-            path.display(),
-            kind_names()
-        )
-    })
+    Registry::standard().of_config(path)
 }
 
-/// The kind of the interrupted run in `dir`: the given configuration's, else the one stored
-/// at run start, else the recorded session's.
+/// The kind of the interrupted run in `dir` (see `Registry::of_run_dir`).
 pub fn kind_of_run_dir(dir: &Path, config: Option<&Path>) -> anyhow::Result<&'static dyn Kind> {
-    let stored = dir.join(crate::resume::CONFIG_FILE);
-    if let Some(path) = config.or(stored.exists().then_some(stored.as_path())) {
-        return kind_of_config(path);
-    }
-    let session_path = dir.join(crate::resume::SESSION_FILE);
-    let (session, _) =
-        crate::session::reader::read_session_raw(&session_path).with_context(|| {
-            format!(
-                "{} holds neither {} nor a readable {}: is it a run's output directory?",
-                dir.display(),
-                crate::resume::CONFIG_FILE,
-                crate::resume::SESSION_FILE
-            )
-        })?;
-    let name = session.header.kind.as_str();
-    kind_named(name).with_context(|| {
-        format!(
-            "{}: kind \"{name}\" is not a plan kind (known: {})",
-            session_path.display(),
-            kind_names()
-        )
-    })
+    Registry::standard().of_run_dir(dir, config)
 }
 
 /// Run the configuration at `path` if it declares one of the kinds with their own layout
@@ -196,11 +257,7 @@ pub fn report(results: &Results) -> String {
 
 /// Solve a session with the method of its kind.
 pub fn solve_session(session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
-    let name = session.header.kind.as_str();
-    match kind_named(name) {
-        Some(kind) => kind.solve(session, settings),
-        None => Err(MethodError::UnknownKind(name.to_string(), kind_names())),
-    }
+    Registry::standard().solve_session(session, settings)
 }
 
 fn closing_count(n: u64, what: &str) -> String {
