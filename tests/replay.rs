@@ -88,6 +88,37 @@ fn simulated_session_replays_identically() {
     assert!(out.comparison_path.exists());
 }
 
+/// A recording made before the sequencer wrote its arrivals (`/machine/<id>/state`): the
+/// replay infers where each move ended from the events and replays it identically still.
+#[test]
+fn a_recording_without_arrivals_replays_identically() {
+    use geocal::session::reader::read_session_raw;
+    use geocal::session::{Recorder, RecorderOptions};
+    let dir = tempfile::tempdir().expect("tempdir");
+    let recorded = record(&small_demo(), &dir.path().join("run"));
+    let (_, messages) = read_session_raw(&recorded.session_path).expect("raw read");
+    let older = dir.path().join("older").join("session.mcap");
+    std::fs::create_dir_all(older.parent().expect("dir")).expect("dir");
+    let recorder = Recorder::create(&older, RecorderOptions::default()).expect("recorder");
+    let handle = recorder.handle();
+    let mut dropped = 0;
+    for m in messages {
+        if m.channel.topic.starts_with("/machine/") {
+            dropped += 1;
+        } else {
+            handle.raw(m);
+        }
+    }
+    recorder.finish().expect("finish");
+    assert!(dropped > 0, "the recording holds its arrivals");
+    let out = replay_into(&older, &dir.path().join("replay"));
+    assert_identical_replay(&recorded, &out);
+    assert!(
+        out.comparison.trail.is_empty(),
+        "a completed replay shows no trail"
+    );
+}
+
 /// The tracer on a rotary table: the table reports in position where the recording shows it,
 /// at the recorded encoder angle (4 table stations 90° apart and one off the table, 10 Hz).
 #[test]

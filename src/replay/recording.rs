@@ -10,7 +10,9 @@ use geocal_drivers::{AxisPositions, DeviceError, LinkFault};
 
 use crate::extract::{Stillstand, StillstandDetector};
 use crate::plan::Plan;
-use crate::session::messages::{EnvSample, RotaryStateSample, RunEvent, TracerSample};
+use crate::session::messages::{
+    EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
+};
 use crate::session::reader::{Completeness, Session, Stamped};
 
 /// A recorded message and its place among the tracer samples.
@@ -49,6 +51,9 @@ pub struct Recording {
     pub events: Vec<Placed<RunEvent>>,
     pub env: Vec<Placed<EnvSample>>,
     pub rotary: Vec<Placed<RotaryStateSample>>,
+    /// The machine's recorded arrivals (`/machine/<id>/state` polls that reported it at
+    /// rest); empty in recordings made before the sequencer wrote them.
+    pub arrivals: Vec<Placed<MachineStateSample>>,
     /// Per cursor k (0..=n): whether the messages recorded after sample k-1 carry later log
     /// times than it (a wall-clock recording) rather than the same one (a virtual clock).
     pub later_at: Vec<bool>,
@@ -121,6 +126,22 @@ impl Recording {
             })
             .unwrap_or_default();
 
+        let machine_id = device_id(session, "machine").unwrap_or_else(|| "machine".into());
+        let arrivals: Vec<_> = session
+            .machines
+            .get(&machine_id)
+            .map(|v| {
+                v.iter()
+                    .filter(|e| e.msg.state == "Idle")
+                    .map(|e| Placed {
+                        after: place(e.log_time_ns),
+                        log_time_ns: e.log_time_ns,
+                        msg: e.msg.clone(),
+                    })
+                    .collect()
+            })
+            .unwrap_or_default();
+
         let n = samples.len();
         let mut later_at = vec![false; n + 1];
         let mut earliest = samples.first().map_or(0, |s| s.log_time_ns);
@@ -129,6 +150,7 @@ impl Recording {
             .map(|e| (e.after, e.log_time_ns))
             .chain(env.iter().map(|e| (e.after, e.log_time_ns)))
             .chain(rotary.iter().map(|e| (e.after, e.log_time_ns)))
+            .chain(arrivals.iter().map(|e| (e.after, e.log_time_ns)))
         {
             let before = after.checked_sub(1).map(|i| samples[i].log_time_ns);
             if before.is_none_or(|b| t > b) {
@@ -146,13 +168,14 @@ impl Recording {
             .unwrap_or(earliest);
         Ok(Recording {
             tracer_id,
-            machine_id: device_id(session, "machine").unwrap_or_else(|| "machine".into()),
+            machine_id,
             env_id,
             table_id,
             samples,
             events,
             env,
             rotary,
+            arrivals,
             later_at,
             earliest_ns: earliest,
             start_ns,
@@ -178,6 +201,28 @@ impl Recording {
 
     /// `arrival`, with what in the recording decided it (for the replay's trail).
     pub fn arrival_explained(
+        &self,
+        plan: &Plan,
+        machine_id: &str,
+        start_cursor: usize,
+        target: &AxisPositions,
+    ) -> Result<(Arrival, &'static str), DeviceError> {
+        let inferred = self.inferred_arrival(plan, machine_id, start_cursor, target)?;
+        if self.arrivals.is_empty() {
+            return Ok(inferred);
+        }
+        // The move ends at the poll that reported the machine at rest; the events have still
+        // checked that the move is the recorded one.
+        Ok(
+            match self.arrivals.iter().find(|a| a.after > start_cursor) {
+                Some(recorded) => (Arrival::At(recorded.after), "the recorded arrival"),
+                None => (Arrival::Never, "the recording ends first"),
+            },
+        )
+    }
+
+    /// The arrival of a recording without recorded arrivals, inferred from the events.
+    fn inferred_arrival(
         &self,
         plan: &Plan,
         machine_id: &str,
@@ -244,6 +289,10 @@ impl Recording {
     /// the latest arrival (not before `lo`) from which the sequencer's homing dwell (stillstand
     /// with no minimum dwell, or `max_dwell_s`) ends exactly at the sample before that.
     fn homing_arrival(&self, plan: &Plan, lo: usize, marked: usize) -> (Arrival, &'static str) {
+        if !self.arrivals.is_empty() {
+            // Recorded, not inferred (see `arrival_explained`).
+            return (Arrival::At(lo), "recorded");
+        }
         let Some(end) = marked.checked_sub(2) else {
             return (Arrival::At(lo), "a homing at the recording's start");
         };

@@ -24,7 +24,9 @@ use geocal_drivers::{
 use crate::clock::Clock;
 use crate::extract::{Stillstand, StillstandDetector};
 use crate::plan::{Plan, PlanRotation, PlanTarget, AXES};
-use crate::session::messages::{EnvSample, RotaryStateSample, RunEvent, TracerSample};
+use crate::session::messages::{
+    EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
+};
 use crate::session::recorder::RecorderHandle;
 
 /// The devices of a run, as trait objects built from the configuration.
@@ -665,7 +667,10 @@ impl<'a> Sequencer<'a> {
         let mut tracking = first.tracking;
         let mut alarms = 0;
         loop {
-            if let MachineState::Idle { .. } = self.machine_state(&command, &mut alarms).await? {
+            if let MachineState::Idle { position } =
+                self.machine_state(&command, &mut alarms).await?
+            {
+                self.record_arrival(&position, &command);
                 break;
             }
             let sample = self.sample().await?;
@@ -683,6 +688,29 @@ impl<'a> Sequencer<'a> {
         } else {
             Step::BeamBroken
         })
+    }
+
+    /// The status poll that reported the machine at rest: where the move ended among the
+    /// samples, so that a replay need not infer it.
+    /// (An axis the controller does not report is given as commanded.)
+    fn record_arrival(&mut self, position: &AxisPositions, commanded: &AxisPositions) {
+        let now_ns = self.clock.now_ns();
+        let axis = |a: &str| {
+            position
+                .get(a)
+                .or_else(|| commanded.get(a))
+                .copied()
+                .unwrap_or_default()
+        };
+        let sample = MachineStateSample {
+            t_s: now_ns.saturating_sub(self.start_ns) as f64 * 1e-9,
+            state: "Idle".into(),
+            position_m: [axis("x"), axis("y"), axis("z")],
+            frame: "machine".into(),
+            feed_m_s: None,
+        };
+        self.recorder
+            .machine_state(self.devices.machine.id(), &sample, now_ns);
     }
 
     /// The machine was sent to `target`: update the approach signs of the axes that move.
