@@ -6,17 +6,17 @@
 
 mod common;
 
-use common::hil_rotary_config;
 use common::{assert_recovers_truth, faults, run_with_truth};
+use common::{generous_timeouts, hil_rotary_config};
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
 
 /// Run, check the truth (points, stations, home distances; step angles within 3 sigma),
 /// return the session's events and header.
-fn run_and_check(extra: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
+fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
     let dir = tempfile::tempdir().expect("tempdir");
     let started = std::time::Instant::now();
-    let (output, truth) = run_with_truth(&hil_rotary_config(extra), dir.path());
+    let (output, truth) = run_with_truth(config, dir.path());
     println!("{label}: {:.1} s", started.elapsed().as_secs_f64());
     let Some(results) = output
         .results
@@ -69,7 +69,8 @@ fn run_and_check(extra: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
 
 #[test]
 fn hil_rotary_run_over_modbus_tcp_recovers_truth() {
-    let (events, header) = run_and_check("", "HIL rotary run");
+    let (events, header) =
+        run_and_check(&generous_timeouts(&hil_rotary_config("")), "HIL rotary run");
     let table = header
         .devices
         .iter()
@@ -107,7 +108,10 @@ alarm_code = 1
 [hil.table_faults]
 drop_at_requests = [12]
 ";
-    let (events, _) = run_and_check(faults_toml, "HIL rotary run with faults");
+    let (events, _) = run_and_check(
+        &hil_rotary_config(faults_toml),
+        "HIL rotary run with faults",
+    );
     for e in &events {
         if let RunEvent::Fault { .. } | RunEvent::Rehome { .. } = e {
             println!("{e:?}");

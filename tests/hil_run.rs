@@ -5,7 +5,9 @@
 
 mod common;
 
-use common::{assert_recovers_truth, faults, hil_config, run_with_truth, HIL_FAULTS};
+use common::{
+    assert_recovers_truth, faults, generous_timeouts, hil_config, run_with_truth, HIL_FAULTS,
+};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 
@@ -22,7 +24,7 @@ fn events(session: &std::path::Path) -> Vec<RunEvent> {
 fn hil_run_recovers_truth() {
     let dir = tempfile::tempdir().expect("tempdir");
     let started = std::time::Instant::now();
-    let (output, truth) = run_with_truth(&hil_config(""), dir.path());
+    let (output, truth) = run_with_truth(&generous_timeouts(&hil_config("")), dir.path());
     println!("HIL run: {:.1} s", started.elapsed().as_secs_f64());
     let results = output.results.multilateration().expect("tracer results");
     assert_eq!(results.points.len(), 18);

@@ -315,6 +315,23 @@ emulate = true
     )
 }
 
+/// A HIL configuration with generous time-outs (2 s for the tracer's stream, 0.5 s for its
+/// acks, 2 s for GRBL's `ok` and a Modbus table's answer): for runs that must record no fault at all, so that a loaded
+/// machine that stalls an emulator for a while is not taken for a fault. Runs with injected
+/// silences keep the short time-outs that detect them.
+pub fn generous_timeouts(config: &str) -> String {
+    let text = config
+        .replace("stream_timeout_s = 0.2", "stream_timeout_s = 2.0")
+        .replace("ack_timeout_s = 0.05", "ack_timeout_s = 0.5")
+        .replace("ack_timeout_s = 0.3", "ack_timeout_s = 2.0")
+        .replace("\ntimeout_s = 0.2", "\ntimeout_s = 2.0");
+    assert!(
+        text.contains("stream_timeout_s = 2.0") && text.contains("ack_timeout_s = 2.0"),
+        "the time-outs to make generous are in the configuration"
+    );
+    text
+}
+
 /// Every fault the HIL emulators inject (`[hil.tracer_faults]`, `[hil.machine_faults]`), for
 /// `hil_config`: dropped, corrupted and garbage frames, a silent tracer, a beam break, a lost `ok`.
 pub const HIL_FAULTS: &str = "
