@@ -108,9 +108,23 @@ fn build_simulated(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, clock.clone())?));
     let world_opt = Some(world.clone());
     if config.devices.machine.driver == DriverKind::Passive {
-        return Ok(crate::sim::passive_machine::build(
-            config, plan, world, clock,
-        ));
+        // geocal gets a machine it cannot command; the program drives it.
+        let (tracer, operator) =
+            crate::sim::passive_machine::tracer_and_operator(config, plan, world.clone());
+        return Ok(BuiltDevices {
+            devices: Devices {
+                tracer: paced(config, tracer),
+                environment: sim_environment(config, &world),
+                machine: Box::new(crate::sequencer::passive::PassiveMachine {
+                    id: config.devices.machine.id.clone(),
+                }),
+                operator,
+                rotary: None,
+            },
+            clock,
+            world: world_opt,
+            emulators: Default::default(),
+        });
     }
     Ok(BuiltDevices {
         devices: Devices {

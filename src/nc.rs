@@ -1,30 +1,9 @@
 //! The NC program of a passive run (`geocal export-nc`): the plan's moves, dwells and operator
 //! stops in the sequencer's exact order, as blocks and as ISO G-code (millimetres only here).
 
-use serde::{Deserialize, Serialize};
-
+pub use crate::config::passive::PassiveConfig;
 use crate::config::Config;
 use crate::plan::{Plan, PlanTarget};
-
-/// `[devices.machine.passive]`: how the program dwells and how stops are matched to points.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct PassiveConfig {
-    /// Extra dwell beyond what the sequencer needs (stillstand window + `plan.dwell_s`), s.
-    pub dwell_margin_s: f64,
-    /// How far a true station may lie from its hint, metres: the tolerance of the predicted
-    /// length change between stops (src/sequencer/passive.rs).
-    pub hint_tolerance_m: f64,
-}
-
-impl Default for PassiveConfig {
-    fn default() -> Self {
-        Self {
-            dwell_margin_s: 1.0,
-            hint_tolerance_m: 0.1,
-        }
-    }
-}
 
 /// One block of the program.
 #[derive(Debug, Clone, PartialEq)]

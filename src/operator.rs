@@ -1,23 +1,14 @@
 //! The operator of a real run at a console: prints what to do (place the tracer on a station,
 //! mount a reflector), waits for Enter, and keeps each prompt with its acknowledgement time.
 
+pub use crate::config::operator::OperatorConfig;
 use std::io::{BufRead, IsTerminal, Write};
 use std::time::{Instant, SystemTime, UNIX_EPOCH};
 
 use async_trait::async_trait;
 use geocal_drivers::{DeviceError, Operator};
-use serde::{Deserialize, Serialize};
+use serde::Serialize;
 use tokio::sync::mpsc;
-
-/// `[operator]`: how a real run's operator acknowledges prompts.
-#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct OperatorConfig {
-    /// Read acknowledgements as lines from stdin even when it is not a terminal (a pipe
-    /// from a supervising program); `geocal run --yes` sets it.
-    #[serde(default)]
-    pub piped_stdin: bool,
-}
 
 /// One prompt and when it was acknowledged (Unix seconds).
 #[derive(Debug, Clone, PartialEq, Serialize)]

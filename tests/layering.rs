@@ -39,14 +39,6 @@ const KIND_NAMES: &[&str] = &[
 
 /// Violations of today, as `file -> crate path: rule` (see the module comment).
 const KNOWN: &[&str] = &[
-    // The configuration declares the simulator's and the NC writer's sections with their types.
-    "config/mod.rs -> crate::extract: imports a higher layer",
-    "config/mod.rs -> crate::nc: imports a higher layer",
-    "config/mod.rs -> crate::operator: imports a higher layer",
-    "config/mod.rs -> crate::sim::effects: imports a higher layer",
-    "config/mod.rs -> crate::sim::passive_machine: imports a higher layer",
-    "config/mod.rs -> crate::sim::truth: imports a higher layer",
-    "import circle: config -> devices -> hosting -> nc -> plan -> rotary_table -> sequencer -> sim",
     // The run machinery and the methods still hold kind code; the solve with effects uses
     // the diagnosis's effect models.
     "import circle: diagnose -> kinds -> method -> report -> resume -> run",

@@ -3,7 +3,11 @@
 
 mod hil;
 pub mod kind_config;
+pub mod noise;
+pub mod operator;
+pub mod passive;
 pub(crate) mod rotary_table;
+pub mod sim;
 mod validate;
 
 use std::collections::BTreeMap;
@@ -52,7 +56,7 @@ pub struct Config {
     pub hil: Option<HilConfig>,
     /// How the operator of a real run acknowledges prompts (`src/operator.rs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub operator: Option<crate::operator::OperatorConfig>,
+    pub operator: Option<operator::OperatorConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]
@@ -172,8 +176,8 @@ pub struct TracerConfig {
 
 impl TracerConfig {
     /// The declared per-sample noise (ppm of the absolute optical path, dead path included).
-    pub fn noise_model(&self) -> crate::extract::NoiseModel {
-        crate::extract::NoiseModel {
+    pub fn noise_model(&self) -> noise::NoiseModel {
+        noise::NoiseModel {
             noise_m: self.noise_m,
             noise_ppm: self.noise_ppm,
             dead_path_m: self.dead_path_m,
@@ -214,7 +218,7 @@ pub struct MachineDeviceConfig {
     pub grbl: Option<geocal_drivers::grbl::GrblConfig>,
     /// `[devices.machine.passive]`: NC program and stop matching settings (driver `passive`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub passive: Option<crate::nc::PassiveConfig>,
+    pub passive: Option<passive::PassiveConfig>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -349,7 +353,7 @@ pub struct SimConfig {
     pub station_hint_error_m: f64,
     /// Sizes of the machine's geometric errors.
     #[serde(default)]
-    pub errors: crate::sim::truth::ErrorSizes,
+    pub errors: sim::ErrorSizes,
     /// Time the operator needs to move the tracer to the next station, seconds.
     #[serde(default = "default_relocation_s")]
     pub relocation_s: f64,
@@ -360,7 +364,7 @@ pub struct SimConfig {
     pub rotary: SimRotaryConfig,
     /// Unmodelled effects of the simulated world (the vocabulary of `geocal diagnose`).
     #[serde(default)]
-    pub effects: crate::sim::effects::EffectsConfig,
+    pub effects: sim::EffectsConfig,
     /// Seed of the tracer noise alone (default seed + 1): a twin of a recorded run keeps the
     /// machine and stations of `seed` with noise of its own.
     #[serde(default)]
@@ -375,7 +379,7 @@ pub struct SimConfig {
     pub pace: Option<f64>,
     /// The simulated machine of a passive run: unplanned stops and dwell jitter.
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub passive: Option<crate::sim::passive_machine::SimPassiveConfig>,
+    pub passive: Option<sim::SimPassiveConfig>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.

@@ -1,36 +1,7 @@
 //! A local, non-rigid machine error for the simulated world (`[sim.effects] local_bump`): a
 //! Gaussian bump of the tool position in one region, which no 21-error quasi-rigid model expresses.
 
-use serde::{Deserialize, Serialize};
-
-/// Displacement size·d̂·exp(−|q − c|²/(2 r²)) of the axes at commanded axes q (machine frame,
-/// m). A product of functions of x, y and z, so no sum of per-axis error functions (the
-/// quasi-rigid model) holds it; the lengths' model absorbs it, since the points are free there.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct BumpSwitch {
-    pub enabled: bool,
-    /// Peak displacement, metres.
-    pub size_m: f64,
-    /// Centre of the bump in axis coordinates, metres.
-    pub centre_m: [f64; 3],
-    /// Gaussian radius r, metres.
-    pub radius_m: f64,
-    /// Direction of the displacement (normalised here).
-    pub direction: [f64; 3],
-}
-
-impl Default for BumpSwitch {
-    fn default() -> Self {
-        BumpSwitch {
-            enabled: false,
-            size_m: 0.0,
-            centre_m: [0.0; 3],
-            radius_m: 0.1,
-            direction: [0.0, 0.0, 1.0],
-        }
-    }
-}
+pub use crate::config::sim::BumpSwitch;
 
 impl BumpSwitch {
     /// The axes displaced by the bump (unchanged when off or degenerate).

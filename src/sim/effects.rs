@@ -4,8 +4,11 @@
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
+pub use crate::config::sim::{
+    EccentricitySwitch, EffectSwitch, EffectsConfig, PeriodicSwitch, SettlingSwitch,
+    TargetOffsetSwitch,
+};
 use crate::config::SimEnvironmentConfig;
 
 /// Reference air of the tracer's wavelength (Edlén): 20 °C, 1013.25 hPa, 50 %RH.
@@ -35,165 +38,6 @@ pub fn material_temp_k(env: &SimEnvironmentConfig, base_k: f64, t_s: f64) -> f64
 
 /// Reference temperature of machine scales and lengths (ISO 1): 20 °C.
 pub const REFERENCE_MATERIAL_TEMP_K: f64 = 293.15;
-
-/// One switch with a size; `size_m` (or m/s for drift) is the effect's scale.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct EffectSwitch {
-    pub enabled: bool,
-    /// Size of the effect: metres (station_drift: metres per second; air_refraction: scale
-    /// of the Edlén-predicted error, 1 = an uncompensated tracer).
-    pub size: f64,
-}
-
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct EccentricitySwitch {
-    pub enabled: bool,
-    /// Horizontal eccentricity e of the tracer's reference, metres.
-    pub size_m: f64,
-    /// Vertical term ez, metres.
-    pub z_size_m: f64,
-}
-
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct PeriodicSwitch {
-    pub enabled: bool,
-    pub size_m: f64,
-    pub period_m: f64,
-}
-
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct SettlingSwitch {
-    pub enabled: bool,
-    /// Offset at the end of a move, [0.5, 1]·size_m per axis, metres.
-    pub size_m: f64,
-    /// Decay time constant, seconds.
-    pub tau_s: f64,
-}
-
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct TargetOffsetSwitch {
-    pub enabled: bool,
-    /// Length of the offset error, metres.
-    pub size_m: f64,
-}
-
-/// `[sim.effects]`: every effect off by default.
-#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Default)]
-#[serde(deny_unknown_fields, default)]
-pub struct EffectsConfig {
-    /// Station moves during its pass at `size` m/s in a random direction per station.
-    pub station_drift: EffectSwitch,
-    /// Axis reversal offset B/2·sign(approach), |B| about `size` metres per axis.
-    pub reversal: EffectSwitch,
-    /// An unflagged fringe loss of `size` metres in one station, at a random time in its pass.
-    pub length_step: EffectSwitch,
-    /// The tracer is not compensated for air: error dn·L_abs, L_abs the absolute optical path
-    /// (beam plus declared dead path), scaled by `size` (1 = physical).
-    pub air_refraction: EffectSwitch,
-    /// Length error e·cos(azimuth − φ0) + ez·sin(elevation) of the beam from each station.
-    pub tracer_eccentricity: EccentricitySwitch,
-    /// The target (machine) drifts at `size` m/s in a random direction from the session start,
-    /// A(t) = A + v·t: every station sees the same motion.
-    pub thermal_drift: EffectSwitch,
-    /// The dead path (the optical path from the interferometer's zero) differs from the one
-    /// declared, so the air compensation misses dn(t) times that difference: [0.5, 1]·`size`
-    /// metres per station.
-    pub dead_path: EffectSwitch,
-    /// The machine's scales are not compensated for temperature: each axis position is
-    /// scaled by `size`·(T_material − 20 °C), `size` the expansion coefficient in 1/K
-    /// (11.5e-6 for steel), T_material the mean of the material sensors.
-    pub thermal_expansion: EffectSwitch,
-    /// Each axis that moved lags behind its target along the approach direction by an offset
-    /// that decays after the move: −sign(move)·s_a·exp(−(t − t_end)/tau_s).
-    pub settling: SettlingSwitch,
-    /// The reflector sits `size_m` from its configured offset (tool frame), in a random
-    /// direction per target: the machine's angular errors turn it with the axes.
-    pub target_offset: TargetOffsetSwitch,
-    /// Not in the diagnosis library (a test of `unexplained`): interferometer nonlinearity
-    /// size·sin(2π·L/period) in the absolute distance.
-    pub periodic_nonlinearity: PeriodicSwitch,
-    /// Not in the diagnosis library (a test of the points level): a local bump of the tool
-    /// position that the quasi-rigid 21-error model cannot express (src/sim/bump.rs).
-    pub local_bump: crate::sim::bump::BumpSwitch,
-}
-
-impl EffectsConfig {
-    pub fn any(&self) -> bool {
-        self.station_drift.enabled
-            || self.reversal.enabled
-            || self.length_step.enabled
-            || self.air_refraction.enabled
-            || self.tracer_eccentricity.enabled
-            || self.thermal_drift.enabled
-            || self.dead_path.enabled
-            || self.thermal_expansion.enabled
-            || self.settling.enabled
-            || self.target_offset.enabled
-            || self.periodic_nonlinearity.enabled
-            || self.local_bump.enabled
-    }
-
-    /// Ranges serde cannot check; on failure (key, what was expected).
-    pub fn validate(&self) -> Result<(), (String, String)> {
-        let sizes = [
-            ("station_drift.size", self.station_drift.size),
-            ("reversal.size", self.reversal.size),
-            ("length_step.size", self.length_step.size),
-            ("air_refraction.size", self.air_refraction.size),
-            (
-                "tracer_eccentricity.size_m",
-                self.tracer_eccentricity.size_m,
-            ),
-            (
-                "tracer_eccentricity.z_size_m",
-                self.tracer_eccentricity.z_size_m,
-            ),
-            ("thermal_drift.size", self.thermal_drift.size),
-            ("dead_path.size", self.dead_path.size),
-            ("thermal_expansion.size", self.thermal_expansion.size),
-            ("settling.size_m", self.settling.size_m),
-            ("target_offset.size_m", self.target_offset.size_m),
-            (
-                "periodic_nonlinearity.size_m",
-                self.periodic_nonlinearity.size_m,
-            ),
-        ];
-        for (key, v) in sizes {
-            if !(v.is_finite() && v >= 0.0) {
-                return Err((
-                    format!("sim.effects.{key}"),
-                    format!("expected a number >= 0, found {v}"),
-                ));
-            }
-        }
-        let st = &self.settling;
-        if st.enabled && !(st.tau_s.is_finite() && st.tau_s > 0.0) {
-            return Err((
-                "sim.effects.settling.tau_s".into(),
-                format!(
-                    "expected a positive time constant when enabled, found {}",
-                    st.tau_s
-                ),
-            ));
-        }
-        let pn = &self.periodic_nonlinearity;
-        if pn.enabled && !(pn.period_m.is_finite() && pn.period_m > 0.0) {
-            return Err((
-                "sim.effects.periodic_nonlinearity.period_m".into(),
-                format!(
-                    "expected a positive period when enabled, found {}",
-                    pn.period_m
-                ),
-            ));
-        }
-        Ok(())
-    }
-}
 
 /// The effects' drawn parameters and the little state they need (approach, station start).
 #[derive(Debug, Clone)]

@@ -8,32 +8,11 @@ use async_trait::async_trait;
 use geocal_drivers::{DeviceError, Operator, Tracer, TracerReading};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
-use serde::{Deserialize, Serialize};
 
 use super::devices::SharedWorld;
 use super::world::SimWorld;
+pub use crate::config::sim::{SimPassiveConfig, UnplannedStop};
 use crate::nc::NcBlock;
-
-/// `[sim.passive]`.
-#[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct SimPassiveConfig {
-    /// Stops the program does not hold: the machine pauses part way through a move.
-    pub unplanned_stops: Vec<UnplannedStop>,
-    /// Each G4 dwell lasts up to this much longer or shorter (uniform), seconds; keep it
-    /// below `devices.machine.passive.dwell_margin_s`.
-    pub dwell_jitter_s: f64,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields)]
-pub struct UnplannedStop {
-    /// Which G1 of the program (0-based, counting every move).
-    pub move_index: usize,
-    /// Where along the move the machine pauses, 0..1.
-    pub fraction: f64,
-    pub duration_s: f64,
-}
 
 enum State {
     Ready,
@@ -168,14 +147,13 @@ impl ProgramRunner {
     }
 }
 
-/// The devices of a passive simulated run: the tracer drives the machine's program, the
-/// operator releases its M0 stops, and geocal gets a machine it cannot command.
-pub fn build(
+/// The simulated tracer and operator of a passive run: the tracer drives the machine's
+/// program, the operator releases its M0 stops.
+pub fn tracer_and_operator(
     config: &crate::config::Config,
     plan: &crate::plan::Plan,
     world: SharedWorld,
-    clock: Arc<crate::clock::VirtualClock>,
-) -> crate::devices::BuiltDevices {
+) -> (Box<dyn Tracer>, Box<dyn Operator>) {
     let releases = Arc::new(AtomicU32::new(0));
     let sim = config.sim.as_ref();
     let runner = ProgramRunner::new(
@@ -189,23 +167,8 @@ pub fn build(
         world: world.clone(),
         runner,
     });
-    crate::devices::BuiltDevices {
-        devices: crate::sequencer::Devices {
-            tracer: crate::devices::paced(config, tracer),
-            environment: crate::devices::sim_environment(config, &world),
-            machine: Box::new(crate::sequencer::passive::PassiveMachine {
-                id: config.devices.machine.id.clone(),
-            }),
-            operator: Box::new(PassiveSimOperator {
-                world: world.clone(),
-                releases,
-            }),
-            rotary: None,
-        },
-        clock,
-        world: Some(world),
-        emulators: Default::default(),
-    }
+    let operator = Box::new(PassiveSimOperator { world, releases });
+    (tracer, operator)
 }
 
 /// The simulated tracer of a passive run: before each sample the machine's program runs up

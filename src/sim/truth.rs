@@ -11,49 +11,8 @@ use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
 use serde_json::{json, Map, Value};
 
+pub use crate::config::sim::ErrorSizes;
 use crate::model::kinematics::{Axis, AxisErrors, GeometricErrors, Squareness};
-
-/// Target RMS sizes of the truth errors over the travel (metres, radians).
-#[derive(Clone, Debug, Serialize, Deserialize, PartialEq)]
-#[serde(deny_unknown_fields, default)]
-pub struct ErrorSizes {
-    /// Positioning errors (EXX, EYY, EZZ).
-    pub positioning_m: f64,
-    /// Straightness errors (EYX, EZX, EXY, EZY, EXZ, EYZ).
-    pub straightness_m: f64,
-    /// Roll, pitch and yaw (EAX … ECZ).
-    pub angular_rad: f64,
-    /// Typical magnitude of each squareness error (EC0Y, EA0Z, EB0Z).
-    pub squareness_rad: f64,
-}
-
-impl Default for ErrorSizes {
-    fn default() -> Self {
-        ErrorSizes {
-            positioning_m: 5e-6,
-            straightness_m: 3e-6,
-            angular_rad: 5e-6,
-            squareness_rad: 5e-6,
-        }
-    }
-}
-
-impl ErrorSizes {
-    /// Every size must be finite and non-negative; the error names the offending key.
-    pub fn check(&self) -> Result<(), String> {
-        for (key, v) in [
-            ("positioning_m", self.positioning_m),
-            ("straightness_m", self.straightness_m),
-            ("angular_rad", self.angular_rad),
-            ("squareness_rad", self.squareness_rad),
-        ] {
-            if !v.is_finite() || v < 0.0 {
-                return Err(format!("{key} must be a finite number >= 0, got {v}"));
-            }
-        }
-        Ok(())
-    }
-}
 
 /// A smooth error curve: `Σ legendre[k] · P_k(u)` for u ∈ [−1, 1]; outside, continued along
 /// the tangent at the nearer end (C¹, grows only linearly, unlike the polynomial itself).
