@@ -291,9 +291,10 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             truth,
             json,
         } => {
-            kinds
-                .of_config(&config)?
-                .simulate(&config, &geocal::simulate::SimulateOptions { truth, json })?;
+            kinds.of_config(&config)?.simulate(
+                &config,
+                &geocal::run::simulate::SimulateOptions { truth, json },
+            )?;
         }
         Command::Replay {
             session,
@@ -363,7 +364,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 plan.points.len(),
                 plan.passes.len()
             );
-            let text = geocal::nc::to_gcode(&geocal::nc::program(&cfg, &plan), &title);
+            let text = geocal::plan::nc::to_gcode(&geocal::plan::nc::program(&cfg, &plan), &title);
             match out {
                 Some(path) => std::fs::write(&path, text)
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,

@@ -13,17 +13,10 @@ const LAYERS: &[&[&str]] = &[
     &["clock", "solve", "model"],
     &["session"],
     &["config"],
-    &["plan", "nc", "operator"],
+    &["plan"],
     &["extract"],
-    &["sim", "sequencer", "devices", "hosting", "rotary_table"],
-    &[
-        "method",
-        "report",
-        "report_kinds",
-        "run",
-        "resume",
-        "simulate",
-    ],
+    &["sim", "sequencer", "devices"],
+    &["method", "report", "run"],
     &["kinds"],
     &["diagnose", "replay", "monitor", "lib", "main"],
 ];
@@ -41,7 +34,7 @@ const KIND_NAMES: &[&str] = &[
 const KNOWN: &[&str] = &[
     // The run machinery and the methods still hold kind code; the solve with effects uses
     // the diagnosis's effect models.
-    "import circle: diagnose -> kinds -> method -> report -> resume -> run",
+    "import circle: diagnose -> kinds -> method -> report -> run",
     "method/mod.rs -> crate::diagnose::effects: imports a higher layer",
     "method/mod.rs -> crate::kinds::registry::solve_session: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct: imports a higher layer",

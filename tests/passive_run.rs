@@ -6,7 +6,7 @@ mod common;
 
 use common::{assert_recovers_truth, run_with_truth, small_demo};
 use geocal::config::Config;
-use geocal::nc::{parse_gcode, NcBlock};
+use geocal::plan::nc::{parse_gcode, NcBlock};
 use geocal::plan::Plan;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;

@@ -54,7 +54,7 @@ pub struct Config {
     /// Hardware-in-the-loop: host device emulators backed by `[sim]` (see `hil.rs`).
     #[serde(default)]
     pub hil: Option<HilConfig>,
-    /// How the operator of a real run acknowledges prompts (`src/operator.rs`).
+    /// How the operator of a real run acknowledges prompts (`src/devices/operator.rs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub operator: Option<operator::OperatorConfig>,
 }

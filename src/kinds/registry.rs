@@ -73,7 +73,7 @@ pub trait Kind: Sync {
     fn simulate(
         &self,
         _path: &Path,
-        _options: &crate::simulate::SimulateOptions,
+        _options: &crate::run::simulate::SimulateOptions,
     ) -> anyhow::Result<()> {
         anyhow::bail!(
             "geocal simulate hosts the tracer emulator of multilateration and rotary_tracer \
@@ -152,18 +152,18 @@ impl Registry {
         dir: &Path,
         config: Option<&Path>,
     ) -> anyhow::Result<&'static dyn Kind> {
-        let stored = dir.join(crate::resume::CONFIG_FILE);
+        let stored = dir.join(crate::run::resume::CONFIG_FILE);
         if let Some(path) = config.or(stored.exists().then_some(stored.as_path())) {
             return self.of_config(path);
         }
-        let session_path = dir.join(crate::resume::SESSION_FILE);
+        let session_path = dir.join(crate::run::resume::SESSION_FILE);
         let (session, _) =
             crate::session::reader::read_session_raw(&session_path).with_context(|| {
                 format!(
                     "{} holds neither {} nor a readable {}: is it a run's output directory?",
                     dir.display(),
-                    crate::resume::CONFIG_FILE,
-                    crate::resume::SESSION_FILE
+                    crate::run::resume::CONFIG_FILE,
+                    crate::run::resume::SESSION_FILE
                 )
             })?;
         let name = session.header.kind.as_str();
@@ -320,7 +320,7 @@ impl Kind for TracerKind {
         config: Option<&Path>,
         options: &RunOptions,
     ) -> anyhow::Result<KindRunOutput> {
-        crate::resume::resume(dir, config, options).map(from_run)
+        crate::run::resume::resume(dir, config, options).map(from_run)
     }
 
     fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
@@ -337,9 +337,9 @@ impl Kind for TracerKind {
     fn simulate(
         &self,
         path: &Path,
-        options: &crate::simulate::SimulateOptions,
+        options: &crate::run::simulate::SimulateOptions,
     ) -> anyhow::Result<()> {
-        crate::simulate::simulate(&Config::load(path)?, options)
+        crate::run::simulate::simulate(&Config::load(path)?, options)
     }
 }
 

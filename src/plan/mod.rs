@@ -2,6 +2,8 @@
 //! stations (placed by the operator or turned by a rotary table) and the visiting order of
 //! each pass. Pure data; the sequencer executes it.
 
+pub mod nc;
+
 use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 

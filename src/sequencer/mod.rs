@@ -67,7 +67,7 @@ pub enum SequencerError {
     },
 }
 
-/// Where a resumed run continues (`geocal run --resume`, src/resume.rs): the first
+/// Where a resumed run continues (`geocal run --resume`, src/run/resume.rs): the first
 /// unfinished point in plan order, and what the interrupted run left behind.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct ResumeAt {

@@ -230,7 +230,7 @@ pub enum RunEvent {
         height_index: usize,
         angle_index: usize,
     },
-    /// `geocal run --resume`: the run was interrupted and continues here (src/resume.rs).
+    /// `geocal run --resume`: the run was interrupted and continues here (src/run/resume.rs).
     /// Everything before this event was copied from the interrupted file; a window left open
     /// by the interruption is not used. `point` is where the run continues (None: nothing
     /// was left to measure).

@@ -138,7 +138,7 @@ pub struct RawMessage {
 
 /// Reads a session file linearly (up to its last complete chunk, as for a truncated file),
 /// returning the decoded session and every message in file order as raw records: what
-/// `geocal run --resume` (src/resume.rs) copies into the continued file.
+/// `geocal run --resume` (src/run/resume.rs) copies into the continued file.
 pub fn read_session_raw(path: &Path) -> Result<(Session, Vec<RawMessage>), ReadError> {
     let file = path.display().to_string();
     let buf = std::fs::read(path).map_err(|source| ReadError::Io {

@@ -1,4 +1,4 @@
-//! The simulated machine of a passive run: it executes the exported NC program (src/nc.rs)
+//! The simulated machine of a passive run: it executes the exported NC program (src/plan/nc.rs)
 //! by itself in virtual time, with unplanned stops and dwell jitter from `[sim.passive]`.
 
 use std::sync::atomic::{AtomicU32, Ordering};
@@ -12,7 +12,7 @@ use rand_chacha::ChaCha8Rng;
 use super::devices::SharedWorld;
 use super::world::SimWorld;
 pub use crate::config::sim::{SimPassiveConfig, UnplannedStop};
-use crate::nc::NcBlock;
+use crate::plan::nc::NcBlock;
 
 enum State {
     Ready,
@@ -157,7 +157,7 @@ pub fn tracer_and_operator(
     let releases = Arc::new(AtomicU32::new(0));
     let sim = config.sim.as_ref();
     let runner = ProgramRunner::new(
-        crate::nc::program(config, plan),
+        crate::plan::nc::program(config, plan),
         sim.and_then(|s| s.passive.clone()).unwrap_or_default(),
         releases.clone(),
         sim.map_or(0, |s| s.seed),

@@ -105,7 +105,7 @@ pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<
 struct Emulated {
     _machine: GrblEmulator,
     _probe: ProbeEmulator,
-    _links: crate::hosting::LinkDir,
+    _links: crate::devices::hosting::LinkDir,
 }
 
 /// The GRBL and ASCII drivers: at their configured ports, or under `[hil]` against the
@@ -133,7 +133,7 @@ async fn connect(
         .map(|h| (h.machine_faults.clone(), h.probe_faults.clone()))
         .unwrap_or_default();
     // The controller behind a stable link path, so that a pulled cable can be re-plugged.
-    let links = crate::hosting::LinkDir::create()?;
+    let links = crate::devices::hosting::LinkDir::create()?;
     let travel = |axis: &str| {
         config
             .machine
@@ -159,7 +159,7 @@ async fn connect(
         .to_string();
     tracing::info!("GRBL emulator on {}", grbl.port);
     let machine = GrblMachine::open(grbl)?;
-    let (probe_emu, probe) = crate::hosting::host_ascii_probe(
+    let (probe_emu, probe) = crate::devices::hosting::host_ascii_probe(
         &probe_cfg,
         &probe_faults,
         Box::new(WorldLaserSource::new(world.clone(), time.clone())),

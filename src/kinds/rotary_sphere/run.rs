@@ -22,7 +22,7 @@ use crate::kinds::rotary_sphere::sim::{
     SharedSphereWorld, SimArm, SimSphereProbe, SimSphereTable, SphereWorld,
 };
 use crate::method::Results;
-use crate::resume::Interruption;
+use crate::run::resume::Interruption;
 use crate::run::RunOptions;
 use crate::session::messages::{MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
 use crate::session::reader::Session;
@@ -42,7 +42,7 @@ struct Built {
     world: Option<SharedSphereWorld>,
     emulator: Option<ProbeEmulator>,
     /// The Modbus table emulator of an emulated (`[hil]`) run with a Modbus table.
-    table_emulator: Option<crate::rotary_table::HostedTable>,
+    table_emulator: Option<crate::devices::rotary_table::HostedTable>,
 }
 
 /// An arm without a controller: the operator is told where to bring the probe.
@@ -118,16 +118,19 @@ async fn build(
                 .map(|h| h.table_faults.clone())
                 .unwrap_or_default();
             let source = SphereTableSource::new(w.clone(), sim.speed_rad_s, sim.settle_s);
-            let hosted =
-                crate::rotary_table::host_emulator_with(table_cfg, &faults, Box::new(source))
-                    .await?;
-            let driver = crate::rotary_table::connect_hosted(table_cfg, &hosted).await?;
+            let hosted = crate::devices::rotary_table::host_emulator_with(
+                table_cfg,
+                &faults,
+                Box::new(source),
+            )
+            .await?;
+            let driver = crate::devices::rotary_table::connect_hosted(table_cfg, &hosted).await?;
             table_emulator = Some(hosted);
             driver
         }
         // A real table (no [sim]): the Modbus driver at its configured address.
         (DriverKind::ModbusTcp | DriverKind::ModbusRtu, None, _) => {
-            crate::rotary_table::connect_real(table_cfg).await?
+            crate::devices::rotary_table::connect_real(table_cfg).await?
         }
         (kind, _, _) => anyhow::bail!(
             "devices.rotary_table.driver = \"{}\": a simulated rotary_sphere run needs the \"sim\" \
@@ -150,8 +153,11 @@ async fn build(
                 .as_ref()
                 .map(|h| h.probe_faults.clone())
                 .unwrap_or_default();
-            let (emu, driver) =
-                crate::hosting::host_ascii_probe(&probe_config(config), &faults, Box::new(source))?;
+            let (emu, driver) = crate::devices::hosting::host_ascii_probe(
+                &probe_config(config),
+                &faults,
+                Box::new(source),
+            )?;
             emulator = Some(emu);
             Box::new(driver)
         }
@@ -221,7 +227,7 @@ fn session_header(config: &RotarySphereConfig, epoch_ns: u64) -> SessionHeader {
 pub fn run(config: &RotarySphereConfig, options: &RunOptions) -> anyhow::Result<SphereRunOutput> {
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    crate::resume::store_config(config, &options.out_dir)?;
+    crate::run::resume::store_config(config, &options.out_dir)?;
     execute(config, options, None)
 }
 
@@ -233,7 +239,7 @@ pub fn resume(
     options: &RunOptions,
 ) -> anyhow::Result<SphereRunOutput> {
     let config =
-        crate::resume::load_stored_config(dir, config, |p| Ok(RotarySphereConfig::load(p)?))?;
+        crate::run::resume::load_stored_config(dir, config, |p| Ok(RotarySphereConfig::load(p)?))?;
     let mut interruption = Interruption::read(dir)?;
     let header = &interruption.session.header;
     if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()

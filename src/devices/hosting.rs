@@ -1,6 +1,6 @@
 //! Hosting the configured device emulators backed by the simulated world: the HPI-3D and
 //! GRBL emulators on ptys, the Modbus table on 127.0.0.1 or a pty. Used by `[hil]` runs
-//! (src/devices.rs) and by `geocal simulate` (src/simulate.rs); the ASCII probe emulator with
+//! (src/devices/mod.rs) and by `geocal simulate` (src/run/simulate.rs); the ASCII probe emulator with
 //! its driver for the kinds that read a probe (`host_ascii_probe`).
 
 use std::sync::Arc;
@@ -11,7 +11,7 @@ use geocal_drivers::hpi3d::{EmulatorConfig, Hpi3dEmulator};
 use geocal_drivers::serial::SerialStream;
 
 use crate::config::{Config, DriverKind, HilConfig, SimConfig};
-use crate::rotary_table::HostedTable;
+use crate::devices::rotary_table::HostedTable;
 use crate::sim::devices::SharedWorld;
 use crate::sim::hil::{HilTime, WorldMachineSink, WorldTracerSource};
 
@@ -120,7 +120,7 @@ pub async fn host(
     // The rotary table: the Modbus table emulator.
     let table = match config.devices.rotary_table.as_ref() {
         Some(table) if table.driver != DriverKind::Sim => Some(
-            crate::rotary_table::host_emulator(
+            crate::devices::rotary_table::host_emulator(
                 table,
                 &hil.table_faults,
                 world.clone(),

@@ -8,6 +8,10 @@
 //!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
 //!   real drivers to them; the world follows wall time.
 
+pub mod hosting;
+pub mod operator;
+pub mod rotary_table;
+
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
@@ -34,10 +38,10 @@ pub struct BuiltDevices {
     pub emulators: Emulators,
 }
 
-/// Device emulators hosted by this process (`[hil] emulate = true`; `src/hosting.rs`).
+/// Device emulators hosted by this process (`[hil] emulate = true`; `src/devices/hosting.rs`).
 #[derive(Default)]
 pub struct Emulators {
-    pub hosted: Option<crate::hosting::Hosted>,
+    pub hosted: Option<crate::devices::hosting::Hosted>,
 }
 
 /// Build the devices; must run inside the tokio runtime that will run the sequencer (the
@@ -186,7 +190,7 @@ async fn build_emulated(
     let world_clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: SharedWorld = Arc::new(Mutex::new(SimWorld::new(config, plan, world_clock)?));
 
-    let mut hosted = crate::hosting::host(config, sim, hil, &world, &time).await?;
+    let mut hosted = crate::devices::hosting::host(config, sim, hil, &world, &time).await?;
 
     // The tracer: the real driver on the other end of the HPI-3D emulator's pty.
     let mut hpi3d = hpi3d_config(config);
@@ -223,7 +227,7 @@ async fn build_emulated(
     // The rotary table: the Modbus driver to its emulator, or the simulated table.
     let rotary = match (config.devices.rotary_table.as_ref(), hosted.table.as_ref()) {
         (Some(table), Some(emulator)) => {
-            Some(crate::rotary_table::connect_hosted(table, emulator).await?)
+            Some(crate::devices::rotary_table::connect_hosted(table, emulator).await?)
         }
         _ => sim_rotary(config, &world_opt),
     };
@@ -249,8 +253,9 @@ async fn build_emulated(
 async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
     let _ = plan;
     // First, so that a run without a console fails before it touches a device.
-    let operator =
-        crate::operator::ConsoleOperator::stdin(&config.operator.clone().unwrap_or_default())?;
+    let operator = crate::devices::operator::ConsoleOperator::stdin(
+        &config.operator.clone().unwrap_or_default(),
+    )?;
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);
@@ -281,7 +286,7 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
     };
     let rotary = match config.devices.rotary_table.as_ref() {
         Some(table) if table.driver != DriverKind::Sim => {
-            Some(crate::rotary_table::connect_real(table).await?)
+            Some(crate::devices::rotary_table::connect_real(table).await?)
         }
         Some(table) => anyhow::bail!(
             "devices.rotary_table.driver = \"{}\" in a real run: expected \"modbus_tcp\" or \"modbus_rtu\"",

@@ -1,6 +1,9 @@
 //! A whole run: config -> plan -> devices -> sequencer -> recorded session -> solve -> results.
 //! The results come from reading the recorded session back, exactly as `geocal solve` does.
 
+pub mod resume;
+pub mod simulate;
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
@@ -10,7 +13,7 @@ use crate::clock::system_now_ns;
 use crate::config::Config;
 use crate::method::{solve_session, Results, SolveSettings};
 use crate::plan::{Plan, AXES};
-use crate::resume::Continuation;
+use crate::run::resume::Continuation;
 use crate::sequencer::{RunSummary, Sequencer};
 use crate::session::messages::{
     DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT,
@@ -37,11 +40,11 @@ pub struct RunOutput {
 pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    crate::resume::store_config(config, &options.out_dir)?;
+    crate::run::resume::store_config(config, &options.out_dir)?;
     execute(config, options, None)
 }
 
-/// A run from the start, or the continuation of an interrupted one (src/resume.rs).
+/// A run from the start, or the continuation of an interrupted one (src/run/resume.rs).
 pub(crate) fn execute(
     config: &Config,
     options: &RunOptions,
@@ -125,7 +128,7 @@ pub(crate) fn run_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 pub(crate) fn create_session(out_dir: &Path) -> anyhow::Result<(PathBuf, Recorder)> {
     std::fs::create_dir_all(out_dir)
         .with_context(|| format!("creating output directory {}", out_dir.display()))?;
-    let session_path = out_dir.join(crate::resume::SESSION_FILE);
+    let session_path = out_dir.join(crate::run::resume::SESSION_FILE);
     let recorder = Recorder::create(&session_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", session_path.display()))?;
     Ok((session_path, recorder))

@@ -75,7 +75,7 @@ pub fn simulate(config: &Config, options: &SimulateOptions) -> anyhow::Result<()
             &plan,
             Arc::new(VirtualClock::new(epoch_ns)),
         )?));
-        let hosted = crate::hosting::host(config, sim, &hil, &world, &time).await?;
+        let hosted = crate::devices::hosting::host(config, sim, &hil, &world, &time).await?;
         let mut devices = vec![HostedDevice {
             kind: "tracer".into(),
             id: config.devices.tracer.id.clone(),
