@@ -160,7 +160,7 @@ mod tests {
 
     /// The rotary example with its table on `driver` (emulated) and a fast simulated table.
     fn emulated(driver: &str) -> Config {
-        let text = include_str!("../config/rotary-tracer.toml")
+        let text = include_str!("../../config/rotary-tracer.toml")
             .replace(
                 "id = \"c\"\ndriver = \"sim\"",
                 &format!("id = \"c\"\ndriver = \"{driver}\""),

@@ -174,7 +174,7 @@ mod tests {
     use super::*;
 
     fn config() -> Config {
-        let text = include_str!("../config/demo-multilateration.toml")
+        let text = include_str!("../../config/demo-multilateration.toml")
             .replace("count = 5 }", "count = 3 }")
             .replace("count = 4 }", "count = 2 }")
             .replace(
@@ -232,14 +232,14 @@ mod tests {
 
     #[test]
     fn passive_settings_are_checked() {
-        let text = include_str!("../config/demo-multilateration.toml").replace(
+        let text = include_str!("../../config/demo-multilateration.toml").replace(
             "driver = \"sim\"\nfeed_m_s",
             "driver = \"passive\"\nfeed_m_s",
         );
         let bad = format!("{text}\n[devices.machine.passive]\nhint_tolerance_m = -1.0\n");
         let e = Config::parse(&bad, std::path::Path::new("p.toml")).unwrap_err();
         assert!(e.to_string().contains("hint_tolerance_m"), "{e}");
-        let rotary = include_str!("../config/rotary-tracer.toml").replace(
+        let rotary = include_str!("../../config/rotary-tracer.toml").replace(
             "driver = \"sim\"\nfeed_m_s",
             "driver = \"passive\"\nfeed_m_s",
         );

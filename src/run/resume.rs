@@ -494,7 +494,7 @@ mod tests {
     use crate::session::reader::Stamped;
 
     fn config() -> Config {
-        let text = include_str!("../config/demo-multilateration.toml")
+        let text = include_str!("../../config/demo-multilateration.toml")
             .replace("count = 5 }", "count = 3 }")
             .replace("count = 4 }", "count = 2 }");
         Config::parse(&text, Path::new("demo.toml")).unwrap()
