@@ -103,5 +103,5 @@ pub fn run(config: &HexapodConfig, options: &RunOptions) -> anyhow::Result<RunOu
         ),
         _ => {}
     }
-    crate::kinds::finish_and_solve(recorder, summary, session_path, options)
+    crate::kinds::finish_and_solve(recorder, summary, session_path, options, None)
 }
