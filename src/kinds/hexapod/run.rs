@@ -248,3 +248,20 @@ fn execute(
         interruption.as_ref(),
     )
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--resume DIR` runs on the configuration stored at run start: it must read back as
+    /// the one the run started with.
+    #[test]
+    fn the_stored_configuration_reads_back_equal() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/hexapod.toml");
+        let config = HexapodConfig::load(Path::new(path)).expect("example config");
+        let dir = tempfile::tempdir().expect("temp dir");
+        crate::resume::store_config(&config, dir.path()).expect("store");
+        let stored = dir.path().join(crate::resume::CONFIG_FILE);
+        assert_eq!(HexapodConfig::load(&stored).expect("stored config"), config);
+    }
+}

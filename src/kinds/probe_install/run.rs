@@ -359,3 +359,23 @@ async fn connect(
     };
     Ok((devices, Some(emulated)))
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--resume DIR` runs on the configuration stored at run start: it must read back as
+    /// the one the run started with.
+    #[test]
+    fn the_stored_configuration_reads_back_equal() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/probe-install.toml");
+        let config = ProbeInstallConfig::load(Path::new(path)).expect("example config");
+        let dir = tempfile::tempdir().expect("temp dir");
+        crate::resume::store_config(&config, dir.path()).expect("store");
+        let stored = dir.path().join(crate::resume::CONFIG_FILE);
+        assert_eq!(
+            ProbeInstallConfig::load(&stored).expect("stored config"),
+            config
+        );
+    }
+}
