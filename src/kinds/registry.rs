@@ -56,15 +56,10 @@ pub trait Kind: Sync {
     /// Continue the interrupted run recorded in `dir` (`geocal run --resume DIR`).
     fn resume(
         &self,
-        _dir: &Path,
-        _config: Option<&Path>,
-        _options: &RunOptions,
-    ) -> anyhow::Result<KindRunOutput> {
-        anyhow::bail!(
-            "a {} run cannot be resumed yet: start it again with `geocal run CONFIG`",
-            self.name()
-        )
-    }
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput>;
 
     /// Solve a recorded session of this kind (`geocal solve`).
     fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError>;
