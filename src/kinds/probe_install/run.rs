@@ -1,5 +1,6 @@
 //! A whole `probe_install` run: devices (simulated in virtual time, GRBL + ASCII drivers on real
-//! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file.
+//! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file;
+//! and the continuation of an interrupted run (`geocal run --resume`).
 
 use std::collections::{BTreeMap, BTreeSet};
 use std::path::Path;
