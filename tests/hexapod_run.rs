@@ -7,6 +7,7 @@ mod common;
 
 use std::path::Path;
 
+use geocal::method::Results;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::messages::RunEvent;
@@ -26,11 +27,8 @@ fn xyz(v: &Value) -> [f64; 3] {
 /// Every coordinate within 4 of its reported sigmas: for a correct covariance each normalised
 /// error is N(0, 1), P(|z| > 4) = 6e-5, so 36 coordinates fail by chance with probability
 /// 0.2 %. Returns the RMS normalised error.
-fn assert_hinges_recovered(output: &RunOutput, truth: &Value) -> f64 {
-    let Some(r) = output
-        .results
-        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
-    else {
+fn assert_hinges_recovered(results: &Results, truth: &Value) -> f64 {
+    let Some(r) = results.get::<geocal::kinds::hexapod::solve::HexapodResults>() else {
         panic!("expected hexapod results");
     };
     let mut sum_z2 = 0.0;
@@ -63,7 +61,7 @@ fn recovers_the_true_hinges_and_replays_identically() {
     };
     assert_eq!((r.poses, r.readings), (30, 129));
     assert_eq!(r.pose_source, "measured");
-    let rms_z = assert_hinges_recovered(&output, &truth);
+    let rms_z = assert_hinges_recovered(&output.results, &truth);
     let (maha, z2, z2_var) = error_against_covariance(&output, &truth);
     println!(
         "config seed: Mahalanobis per dof {:.3} (σ {:.3}), mean z² {z2:.3} ± {:.3}",
@@ -131,7 +129,7 @@ fn commanded_poses_and_larger_errors() {
         panic!("expected hexapod results");
     };
     assert_eq!(r.pose_source, "commanded");
-    let rms_z = assert_hinges_recovered(&output, &truth);
+    let rms_z = assert_hinges_recovered(&output.results, &truth);
     println!(
         "±5 mm: rms normalised error {rms_z:.2}, chi2/dof {:.3}",
         r.chi2_per_dof
@@ -202,7 +200,7 @@ fn uncertainties_are_honest_with_and_without_pose_noise() {
                 panic!("expected hexapod results");
             };
             assert_eq!((r.pose_sigma_m, r.pose_sigma_rad), (noise_m, noise_rad));
-            assert_hinges_recovered(&output, &truth);
+            assert_hinges_recovered(&output.results, &truth);
             let (m, z, v) = error_against_covariance(&output, &truth);
             maha += m;
             z2 += z;
@@ -348,4 +346,106 @@ fn bad_configs_give_file_key_and_expectation() {
         ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
+}
+
+/// A run killed in the middle of a pose (the killed file is the first messages of a full run,
+/// up to the measured pose of pose 15, before its leg reading) resumes with `geocal run
+/// --resume`: the kept messages come first, unchanged; the run continues at the unfinished
+/// pose; the solve uses every pose once and recovers the truth.
+#[test]
+fn a_killed_run_resumes_at_its_unfinished_pose() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let full_dir = dir.path().join("full");
+    run(EXAMPLE, &full_dir);
+    let killed_dir = dir.path().join("killed");
+    let pose_topic = hexapod_pose_topic("hex0");
+    let (messages, cut) = common::killed_run_dir(&full_dir, &killed_dir, |messages| {
+        messages
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.channel.topic == pose_topic)
+            .nth(15)
+            .map(|(i, _)| i + 1)
+            .expect("16 measured poses")
+    });
+    let killed = read_session(&killed_dir.join("session.mcap")).expect("killed session");
+    let finished = killed
+        .events
+        .iter()
+        .filter(|e| matches!(e.msg, RunEvent::PoseEnd { .. }))
+        .count();
+    assert_eq!(finished, 15, "the cut lies inside pose 15");
+
+    common::resume_cli(env!("CARGO_BIN_EXE_geocal"), &killed_dir);
+    let resumed_path = killed_dir.join("session.mcap");
+    let (resumed, resumed_messages) =
+        geocal::session::reader::read_session_raw(&resumed_path).expect("resumed session");
+    assert!(resumed.completeness.is_complete());
+    assert_eq!(
+        &resumed_messages[..cut],
+        &messages[..cut],
+        "kept messages first, unchanged"
+    );
+    let last_kept_ns = messages[..cut].iter().map(|m| m.log_time_ns).max();
+    assert!(
+        resumed_messages[cut..]
+            .iter()
+            .all(|m| Some(m.log_time_ns) > last_kept_ns),
+        "the simulated clock goes on after the interruption"
+    );
+    let resume_at = resumed
+        .events
+        .iter()
+        .position(|e| matches!(e.msg, RunEvent::Resume { .. }))
+        .expect("a resume event");
+    let RunEvent::Resume {
+        pose,
+        messages_kept,
+        ..
+    } = resumed.events[resume_at].msg
+    else {
+        unreachable!("found as a resume event")
+    };
+    assert_eq!((pose, messages_kept), (Some(15), cut as u64));
+    let poses_after: Vec<usize> = resumed.events[resume_at..]
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::PoseBegin { pose, .. } => Some(pose),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        poses_after,
+        (15..30).collect::<Vec<_>>(),
+        "the finished poses are not measured again"
+    );
+    assert!(
+        common::interrupted_files_left(&killed_dir).is_empty(),
+        "interrupted files deleted"
+    );
+
+    let results = solve_file(&resumed_path, &Default::default()).expect("solve");
+    let Some(r) = results.get::<geocal::kinds::hexapod::solve::HexapodResults>() else {
+        panic!("expected hexapod results");
+    };
+    assert_eq!((r.poses, r.readings), (30, 129), "every pose used once");
+    let truth: Value = serde_json::from_str(
+        &std::fs::read_to_string(killed_dir.join("truth.json")).expect("truth"),
+    )
+    .expect("truth JSON");
+    // Power-on home, the 16 poses the killed run commanded, the 15 of the continuation.
+    assert_eq!(truth["poses"].as_array().map(Vec::len), Some(1 + 16 + 15));
+    let rms_z = assert_hinges_recovered(&results, &truth);
+    println!(
+        "resumed at pose 15 after {cut} of {} messages; rms normalised error {rms_z:.2}, \
+         chi2/dof {:.3}",
+        messages.len(),
+        r.chi2_per_dof
+    );
+    // As for an unbroken run: chi²/dof of 138 dof, ±3 of its σ = 0.12.
+    assert!(
+        (0.65..=1.35).contains(&r.chi2_per_dof),
+        "{}",
+        r.chi2_per_dof
+    );
 }

@@ -7,6 +7,7 @@ mod common;
 
 use std::path::Path;
 
+use geocal::method::Results;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::reader::read_session;
@@ -55,11 +56,8 @@ fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
 /// Every coordinate within 4 of its reported sigmas (as tests/hexapod_run.rs: for a correct
 /// covariance each normalised error is N(0, 1); 36 fail by chance with probability 0.2 %),
 /// and chi²/dof of the 138 degrees of freedom within ±3 of its standard deviation 0.12.
-fn assert_hinges_recovered(output: &RunOutput, truth: &Value) {
-    let Some(r) = output
-        .results
-        .get::<geocal::kinds::hexapod::solve::HexapodResults>()
-    else {
+fn assert_hinges_recovered(results: &Results, truth: &Value) {
+    let Some(r) = results.get::<geocal::kinds::hexapod::solve::HexapodResults>() else {
         panic!("expected hexapod results");
     };
     assert_eq!((r.poses, r.readings), (30, 129));
@@ -104,7 +102,7 @@ fn assert_hinges_recovered(output: &RunOutput, truth: &Value) {
 fn modbus_tcp_hexapod_recovers_the_hinges() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run(&hil_config(""), dir.path());
-    assert_hinges_recovered(&output, &truth);
+    assert_hinges_recovered(&output.results, &truth);
     let session = read_session(&output.session_path).expect("read session");
     let hex = session
         .header
@@ -140,7 +138,7 @@ fn unanswered_modbus_requests_are_timeouts_then_reconnects() {
         &hil_config("hexapod_faults = { drop_at_requests = [10, 100] }"),
         dir.path(),
     );
-    assert_hinges_recovered(&output, &truth);
+    assert_hinges_recovered(&output.results, &truth);
     let session = read_session(&output.session_path).expect("read session");
     let events: Vec<_> = session.events.iter().map(|e| e.msg.clone()).collect();
     let timeouts = common::faults(&events, "timeout");
@@ -181,4 +179,53 @@ fn bad_modbus_configs_give_file_key_and_expectation() {
         ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), &example, &cases);
+}
+
+/// An emulated run killed in the middle of pose 15 (after its measured pose, before its leg
+/// reading) resumes with `geocal run --resume` on the host clock: the kept messages first,
+/// unchanged, the poses from 15 on measured over Modbus again, every pose used once and the
+/// hinges recovered.
+#[test]
+fn a_killed_emulated_run_resumes_at_its_unfinished_pose() {
+    use geocal::session::messages::RunEvent;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let full_dir = dir.path().join("full");
+    run(&hil_config(""), &full_dir);
+    let killed_dir = dir.path().join("killed");
+    let pose_topic = hexapod_pose_topic("hex0");
+    let (messages, cut) = common::killed_run_dir(&full_dir, &killed_dir, |messages| {
+        messages
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.channel.topic == pose_topic)
+            .nth(15)
+            .map(|(i, _)| i + 1)
+            .expect("16 measured poses")
+    });
+    common::resume_cli(env!("CARGO_BIN_EXE_geocal"), &killed_dir);
+    let resumed_path = killed_dir.join("session.mcap");
+    let (resumed, resumed_messages) =
+        geocal::session::reader::read_session_raw(&resumed_path).expect("resumed session");
+    assert!(resumed.completeness.is_complete());
+    assert_eq!(&resumed_messages[..cut], &messages[..cut], "kept messages");
+    let resume_at = resumed
+        .events
+        .iter()
+        .position(|e| matches!(e.msg, RunEvent::Resume { .. }))
+        .expect("a resume event");
+    let poses_after: Vec<usize> = resumed.events[resume_at..]
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::PoseBegin { pose, .. } => Some(pose),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(poses_after, (15..30).collect::<Vec<_>>());
+    assert!(common::interrupted_files_left(&killed_dir).is_empty());
+    let results = solve_file(&resumed_path, &Default::default()).expect("solve");
+    let truth: Value = serde_json::from_str(
+        &std::fs::read_to_string(killed_dir.join("truth.json")).expect("truth"),
+    )
+    .expect("truth JSON");
+    assert_hinges_recovered(&results, &truth);
 }

@@ -232,3 +232,65 @@ fn real_ports_without_hil_are_opened_by_path() {
     assert_eq!(faults, 0);
     drop((grbl, probe));
 }
+
+/// An emulated run killed in the middle of posture 2 (after its 301st probe reading) resumes
+/// with `geocal run --resume` on the host clock: the kept messages first, unchanged, postures
+/// 2 and 3 measured over the ptys again, every point used once and the installation
+/// recovered (each parameter within 4 of its sigmas, chi²/dof in [0.6, 1.5], as above).
+#[test]
+fn a_killed_emulated_run_resumes_at_its_unfinished_posture() {
+    use geocal::session::messages::RunEvent;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let full_dir = dir.path().join("full");
+    run(&hil_config(""), &full_dir);
+    let killed_dir = dir.path().join("killed");
+    let (messages, cut) = common::killed_run_dir(&full_dir, &killed_dir, |messages| {
+        messages
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.channel.topic.starts_with("/probe/"))
+            .nth(300)
+            .map(|(i, _)| i + 1)
+            .expect("301 readings")
+    });
+    common::resume_cli(env!("CARGO_BIN_EXE_geocal"), &killed_dir);
+    let resumed_path = killed_dir.join("session.mcap");
+    let (resumed, resumed_messages) =
+        geocal::session::reader::read_session_raw(&resumed_path).expect("resumed session");
+    assert!(resumed.completeness.is_complete());
+    assert_eq!(&resumed_messages[..cut], &messages[..cut], "kept messages");
+    let resume_at = resumed
+        .events
+        .iter()
+        .position(|e| matches!(e.msg, RunEvent::Resume { .. }))
+        .expect("a resume event");
+    let postures_after: Vec<usize> = resumed.events[resume_at..]
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::PostureBegin { posture, .. } => Some(posture),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(postures_after, vec![2, 3]);
+    assert!(common::interrupted_files_left(&killed_dir).is_empty());
+    let results = geocal::run::solve_file(&resumed_path, &Default::default()).expect("solve");
+    let Some(r) = results.get::<geocal::kinds::probe_install::solve::ProbeInstallResults>() else {
+        panic!("expected probe_install results");
+    };
+    assert_eq!(
+        (r.points, r.readings, r.readings_out_of_range),
+        (100, 500, 0)
+    );
+    let truth: Value = serde_json::from_str(
+        &std::fs::read_to_string(killed_dir.join("truth.json")).expect("truth"),
+    )
+    .expect("truth JSON");
+    let truth_params = truth["parameters"].as_array().expect("truth parameters");
+    for (p, t) in r.parameters.iter().zip(truth_params) {
+        assert_eq!(t["name"], p.name.as_str());
+        let z = (p.value - t["value"].as_f64().expect("truth value")) / p.sigma;
+        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
+    }
+    println!("resumed emulated run: chi2/dof {:.3}", r.chi2_per_dof);
+    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+}

@@ -7,6 +7,7 @@ mod common;
 
 use std::path::Path;
 
+use geocal::kinds::probe_install::solve::ProbeInstallResults;
 use geocal::run::{solve_file, RunOutput};
 use geocal::session::kind_messages::TOPIC_MACHINE_POSE;
 use geocal::session::messages::RunEvent;
@@ -17,6 +18,37 @@ const EXAMPLE: &str = include_str!("../config/probe-install.toml");
 
 fn run(config_text: &str, dir: &Path) -> (RunOutput, Value) {
     common::run_kind(config_text, dir, "probe-install.toml")
+}
+
+/// Every parameter within 4 of its reported sigmas of the truth: for a correct covariance
+/// each normalised error is N(0, 1), P(|z| > 4) = 6e-5, so 11 parameters fail by chance with
+/// probability < 1e-3. The beam components are judged together with the others (their
+/// covariance is rank 2 on the unit sphere, their sigmas are still marginal ones). And the
+/// noise model holds: chi²/dof of 90 degrees of freedom has a standard deviation of
+/// sqrt(2/90) = 0.15; [0.6, 1.5] is about ±3 of them. Returns the RMS normalised error.
+fn assert_recovers_the_truth(r: &ProbeInstallResults, truth: &Value) -> f64 {
+    let truth_params = truth["parameters"].as_array().expect("truth parameters");
+    let mut sum_z2 = 0.0;
+    for (p, t) in r.parameters.iter().zip(truth_params) {
+        assert_eq!(t["name"], p.name.as_str());
+        let err = p.value - t["value"].as_f64().expect("truth value");
+        let z = err / p.sigma;
+        println!(
+            "{:<18} error {err:+.3e}  sigma {:.3e}  z {z:+.2}  (nominal off by {:+.3e})",
+            p.name,
+            p.sigma,
+            p.nominal - t["value"].as_f64().unwrap_or(0.0)
+        );
+        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma", p.name);
+        sum_z2 += z * z;
+    }
+    let rms_z = (sum_z2 / 11.0).sqrt();
+    println!(
+        "chi2/dof {:.3}, rms normalised error {rms_z:.2}",
+        r.chi2_per_dof
+    );
+    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    rms_z
 }
 
 #[test]
@@ -35,33 +67,7 @@ fn recovers_the_true_installation_and_replays_identically() {
         (100, 500, 0)
     );
 
-    // Every parameter within 4 of its reported sigmas of the truth: for a correct covariance
-    // each normalised error is N(0, 1), P(|z| > 4) = 6e-5, so 11 parameters fail by chance
-    // with probability < 1e-3. The beam components are judged together with the others
-    // (their covariance is rank 2 on the unit sphere, their sigmas are still marginal ones).
-    let truth_params = truth["parameters"].as_array().expect("truth parameters");
-    let mut sum_z2 = 0.0;
-    for (p, t) in r.parameters.iter().zip(truth_params) {
-        assert_eq!(t["name"], p.name.as_str());
-        let err = p.value - t["value"].as_f64().expect("truth value");
-        let z = err / p.sigma;
-        println!(
-            "{:<18} error {err:+.3e}  sigma {:.3e}  z {z:+.2}  (nominal off by {:+.3e})",
-            p.name,
-            p.sigma,
-            p.nominal - t["value"].as_f64().unwrap_or(0.0)
-        );
-        assert!(z.abs() <= 4.0, "{}: {z:.2} sigma", p.name);
-        sum_z2 += z * z;
-    }
-    // The noise model holds: chi²/dof of 90 degrees of freedom has a standard deviation of
-    // sqrt(2/90) = 0.15; [0.6, 1.5] is about ±3 of them.
-    println!(
-        "chi2/dof {:.3}, rms normalised error {:.2}",
-        r.chi2_per_dof,
-        (sum_z2 / 11.0).sqrt()
-    );
-    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    assert_recovers_the_truth(r, &truth);
 
     // The radius: before calibration the mis-installation distorts the measured sphere; after,
     // the fitted radius carries only noise: σ_r ≈ 3·σ_point/√N = 3·0.45 µm/10 ≈ 0.13 µm (cap
@@ -270,4 +276,114 @@ fn bad_configs_give_file_key_and_expectation() {
         ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), &real, &cases);
+}
+
+/// A run killed in the middle of a posture (the killed file is the first messages of a full
+/// run, up to its 301st probe reading: posture 2, point 10) resumes with `geocal run --resume`:
+/// the kept messages come first, unchanged; the run continues at the unfinished posture,
+/// measured again in full; the solve uses every point once and recovers the truth.
+#[test]
+fn a_killed_run_resumes_at_its_unfinished_posture() {
+    let text = EXAMPLE.replace("ga_generations = 2000", "ga_generations = 200");
+    let dir = tempfile::tempdir().expect("tempdir");
+    let full_dir = dir.path().join("full");
+    run(&text, &full_dir);
+    let killed_dir = dir.path().join("killed");
+    let (messages, cut) = common::killed_run_dir(&full_dir, &killed_dir, |messages| {
+        messages
+            .iter()
+            .enumerate()
+            .filter(|(_, m)| m.channel.topic.starts_with("/probe/"))
+            .nth(300)
+            .map(|(i, _)| i + 1)
+            .expect("301 readings")
+    });
+    let killed = read_session(&killed_dir.join("session.mcap")).expect("killed session");
+    let interrupted_posture = killed
+        .events
+        .iter()
+        .rev()
+        .find_map(|e| match e.msg {
+            RunEvent::PostureBegin { posture, .. } => Some(posture),
+            _ => None,
+        })
+        .expect("a posture begun");
+    assert_eq!(interrupted_posture, 2, "the cut lies inside posture 2");
+
+    common::resume_cli(env!("CARGO_BIN_EXE_geocal"), &killed_dir);
+    let resumed_path = killed_dir.join("session.mcap");
+    let (resumed, resumed_messages) =
+        geocal::session::reader::read_session_raw(&resumed_path).expect("resumed session");
+    assert!(resumed.completeness.is_complete());
+    assert_eq!(
+        &resumed_messages[..cut],
+        &messages[..cut],
+        "kept messages first, unchanged"
+    );
+    let last_kept_ns = messages[..cut].iter().map(|m| m.log_time_ns).max();
+    assert!(
+        resumed_messages[cut..]
+            .iter()
+            .all(|m| Some(m.log_time_ns) > last_kept_ns),
+        "the simulated clock goes on after the interruption"
+    );
+    let resume_at = resumed
+        .events
+        .iter()
+        .position(|e| matches!(e.msg, RunEvent::Resume { .. }))
+        .expect("a resume event");
+    let RunEvent::Resume {
+        posture,
+        messages_kept,
+        ..
+    } = resumed.events[resume_at].msg
+    else {
+        unreachable!("found as a resume event")
+    };
+    assert_eq!(
+        (posture, messages_kept),
+        (Some(interrupted_posture), cut as u64)
+    );
+    let postures_after: Vec<usize> = resumed.events[resume_at..]
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::PostureBegin { posture, .. } => Some(posture),
+            _ => None,
+        })
+        .collect();
+    assert_eq!(
+        postures_after,
+        (interrupted_posture..4).collect::<Vec<_>>(),
+        "the finished postures are not measured again"
+    );
+    let seqs: Vec<u64> = resumed.probes["laser0"].iter().map(|r| r.msg.seq).collect();
+    assert!(
+        seqs.windows(2).all(|w| w[0] < w[1]),
+        "reading numbers go on after the resume"
+    );
+    assert!(
+        common::interrupted_files_left(&killed_dir).is_empty(),
+        "interrupted files deleted"
+    );
+
+    let results = solve_file(&resumed_path, &Default::default()).expect("solve");
+    let Some(r) = results.get::<geocal::kinds::probe_install::solve::ProbeInstallResults>() else {
+        panic!("expected probe_install results");
+    };
+    assert_eq!(
+        (r.points, r.readings, r.readings_out_of_range),
+        (100, 500, 0),
+        "every point used once"
+    );
+    let truth: Value = serde_json::from_str(
+        &std::fs::read_to_string(killed_dir.join("truth.json")).expect("truth"),
+    )
+    .expect("truth JSON");
+    let rms_z = assert_recovers_the_truth(r, &truth);
+    println!(
+        "resumed at posture {interrupted_posture} after {cut} of {} messages; rms normalised \
+         error {rms_z:.2}, chi2/dof {:.3}",
+        messages.len(),
+        r.chi2_per_dof
+    );
 }

@@ -14,11 +14,8 @@ pub use registry::{
 
 use std::collections::BTreeMap;
 
-use crate::clock::Clock;
 use crate::run::{RunOptions, RunOutput};
-use crate::sequencer::{RunSummary, SequencerError};
-use crate::session::messages::{DeviceInfo, SessionHeader};
-use crate::session::recorder::RecorderHandle;
+use crate::session::messages::DeviceInfo;
 
 pub(crate) fn device(
     id: &str,
@@ -40,41 +37,22 @@ pub(crate) fn device(
     }
 }
 
-/// Record a simulated run of a kind and solve it: the session header, the sequencer's run
-/// (`run` is given the recorder) on a fresh runtime, the truth (`--truth`), then the file is
-/// finished and solved as `geocal solve` does.
-pub(crate) fn record_and_solve<Fut, T>(
-    header: &SessionHeader,
-    clock: &dyn Clock,
-    options: &RunOptions,
-    run: impl FnOnce(RecorderHandle) -> Fut,
-    truth: impl FnOnce() -> anyhow::Result<T>,
-) -> anyhow::Result<RunOutput>
-where
-    Fut: std::future::Future<Output = Result<RunSummary, SequencerError>>,
-    T: serde::Serialize,
-{
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
-    let handle = recorder.handle();
-    handle.session(header, clock.now_ns());
-    let summary = crate::run::run_runtime()?.block_on(run(handle));
-    if let Some(path) = &options.truth {
-        crate::run::write_truth(path, &truth()?)?;
-    }
-    finish_and_solve(recorder, summary, session_path, options)
-}
-
-/// Finish the recording, keep the run's error if it failed, then solve the file as `geocal
-/// solve` does and write results.json.
+/// Finish the recording, keep the run's error if it failed, let a resumed run's
+/// `interruption` check the finished file and delete the interrupted ones, then solve the file
+/// as `geocal solve` does and write results.json.
 pub(crate) fn finish_and_solve(
     recorder: crate::session::recorder::Recorder,
     summary: Result<crate::sequencer::RunSummary, crate::sequencer::SequencerError>,
     session_path: std::path::PathBuf,
     options: &RunOptions,
+    interruption: Option<&crate::run::resume::Interruption>,
 ) -> anyhow::Result<RunOutput> {
     use anyhow::Context;
     let stats = recorder.finish().context("finishing the session file")?;
     let summary = summary.context("run failed (the session recorded so far is kept)")?;
+    if let Some(interruption) = interruption {
+        interruption.finished(&session_path)?;
+    }
     tracing::info!(
         samples = summary.samples,
         points = summary.points_measured,

@@ -53,7 +53,8 @@ pub trait Kind: Sync {
         flags: &RunFlags,
     ) -> anyhow::Result<KindRunOutput>;
 
-    /// Continue the interrupted run recorded in `dir` (`geocal run --resume DIR`).
+    /// Continue the interrupted run recorded in `dir` (`geocal run --resume DIR`). Every
+    /// built-in kind resumes; a kind that cannot says so.
     fn resume(
         &self,
         _dir: &Path,
@@ -61,7 +62,7 @@ pub trait Kind: Sync {
         _options: &RunOptions,
     ) -> anyhow::Result<KindRunOutput> {
         anyhow::bail!(
-            "a {} run cannot be resumed yet: start it again with `geocal run CONFIG`",
+            "a {} run cannot be resumed: start it again with `geocal run CONFIG`",
             self.name()
         )
     }

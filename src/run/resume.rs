@@ -342,6 +342,8 @@ impl Continuation {
             point: at.as_ref().map(|w| w.3),
             height_index: None,
             angle_index: None,
+            posture: None,
+            pose: None,
         };
         self.interruption.record_copy(handle, event, clock);
         self.interrupted.at.clone()

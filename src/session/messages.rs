@@ -250,6 +250,13 @@ pub enum RunEvent {
         height_index: Option<usize>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         angle_index: Option<usize>,
+        /// Where a run measured posture by posture continues: the first unfinished posture,
+        /// measured again in full.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        posture: Option<usize>,
+        /// Where a run measured pose by pose continues: the first unfinished pose.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        pose: Option<usize>,
     },
     /// Passive mode: the machine stopped where no point was expected, or left before its
     /// dwell was complete (src/sequencer/passive.rs). `point`/`pass` name the stop that was
@@ -399,6 +406,8 @@ impl TryFrom<WireEvent> for RunEvent {
                 point: w.point,
                 height_index: w.height_index,
                 angle_index: w.angle_index,
+                posture: w.posture,
+                pose: w.pose,
             },
             "unplanned_stop" => RunEvent::UnplannedStop {
                 station: w.station.ok_or_else(|| need("station"))?,
@@ -519,6 +528,8 @@ mod tests {
                 point: Some(7),
                 height_index: None,
                 angle_index: None,
+                posture: None,
+                pose: None,
             },
             RunEvent::Resume {
                 resume_index: 2,
@@ -529,6 +540,32 @@ mod tests {
                 point: None,
                 height_index: Some(2),
                 angle_index: Some(17),
+                posture: None,
+                pose: None,
+            },
+            RunEvent::Resume {
+                resume_index: 1,
+                messages_kept: 7,
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
+                height_index: None,
+                angle_index: None,
+                posture: Some(2),
+                pose: None,
+            },
+            RunEvent::Resume {
+                resume_index: 1,
+                messages_kept: 8,
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
+                height_index: None,
+                angle_index: None,
+                posture: None,
+                pose: Some(11),
             },
             RunEvent::PostureBegin {
                 posture: 1,

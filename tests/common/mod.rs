@@ -490,3 +490,60 @@ pub fn run_kind(config_text: &str, dir: &Path, file_name: &str) -> (RunOutput, V
         .expect("truth json");
     (output, truth)
 }
+
+/// The directory a run killed after `cut` messages would leave: `full_dir`'s stored
+/// configuration and a session file holding the first `cut` messages of `full_dir`'s
+/// session, in `killed_dir`. Returns every raw message of the full session.
+pub fn killed_run_dir(
+    full_dir: &Path,
+    killed_dir: &Path,
+    cut: impl FnOnce(&[geocal::session::reader::RawMessage]) -> usize,
+) -> (Vec<geocal::session::reader::RawMessage>, usize) {
+    use geocal::session::{Recorder, RecorderOptions};
+    let (_, messages) = geocal::session::reader::read_session_raw(&full_dir.join("session.mcap"))
+        .expect("raw read of the full session");
+    let cut = cut(&messages);
+    std::fs::create_dir_all(killed_dir).expect("killed dir");
+    std::fs::copy(
+        full_dir.join("run-config.toml"),
+        killed_dir.join("run-config.toml"),
+    )
+    .expect("the run stores its configuration");
+    let recorder = Recorder::create(&killed_dir.join("session.mcap"), RecorderOptions::default())
+        .expect("recorder");
+    let handle = recorder.handle();
+    for m in messages[..cut].iter().cloned() {
+        handle.raw(m);
+    }
+    recorder.finish().expect("finish");
+    (messages, cut)
+}
+
+/// `geocal run --resume DIR --truth DIR/truth.json` with stdin closed; panics with its stderr
+/// unless it succeeds.
+pub fn resume_cli(exe: &str, dir: &Path) {
+    let out = std::process::Command::new(exe)
+        .arg("run")
+        .arg("--resume")
+        .arg(dir)
+        .arg("--truth")
+        .arg(dir.join("truth.json"))
+        .stdin(std::process::Stdio::null())
+        .output()
+        .expect("geocal run --resume");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+}
+
+/// `session.interrupted-N.mcap` files left in `dir`.
+pub fn interrupted_files_left(dir: &Path) -> Vec<std::path::PathBuf> {
+    std::fs::read_dir(dir)
+        .expect("list dir")
+        .filter_map(Result::ok)
+        .map(|e| e.path())
+        .filter(|p| p.to_string_lossy().contains("interrupted"))
+        .collect()
+}

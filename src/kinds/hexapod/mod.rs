@@ -1,6 +1,6 @@
 //! Plan kind `hexapod` (DESIGN.md method 5): its configuration, plan, sequencer, simulated
-//! world and HIL source, devices, run, method, plan check and report, and the `Kind` the
-//! commands call.
+//! world and HIL source, devices, run and resume, method, plan check and report, and the
+//! `Kind` the commands call.
 
 pub mod check;
 pub mod config;
@@ -43,6 +43,15 @@ impl Kind for Hexapod {
     ) -> anyhow::Result<KindRunOutput> {
         let config = config::HexapodConfig::load(path)?;
         run::run(&config, options).map(from_run)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        run::resume(dir, config, options).map(from_run)
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {

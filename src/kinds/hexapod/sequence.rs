@@ -4,7 +4,8 @@
 //! Events: `pose_begin` / `pose_end` around the measurements at one pose (after arrival);
 //! `/hexapod/<id>/pose` for each measured pose and `/hexapod/<id>/legs` for each encoder
 //! reading. Timeouts and protocol errors are retried with `fault` events; faults the driver
-//! recovered from itself (`reconnect`) are `fault` events too.
+//! recovered from itself (`reconnect`) are `fault` events too. A checkpoint follows every
+//! `pose_end`: a resumed run keeps the finished poses and measures the unfinished one again.
 
 use std::sync::Arc;
 
@@ -36,6 +37,8 @@ pub struct HexapodSequencer<'a> {
     /// Wall-time pause between two state queries of a moving hexapod (0 for the simulated
     /// one, whose queries cost virtual time).
     poll_interval_s: f64,
+    /// The first pose to measure: poses before it were finished by an interrupted run.
+    first_pose: usize,
 }
 
 impl<'a> HexapodSequencer<'a> {
@@ -51,7 +54,14 @@ impl<'a> HexapodSequencer<'a> {
             log: EventLog::new(recorder, clock),
             summary: RunSummary::default(),
             poll_interval_s: 0.0,
+            first_pose: 0,
         }
+    }
+
+    /// Continue an interrupted run at `pose` (measured again in full).
+    pub fn resume_at(mut self, pose: usize) -> Self {
+        self.first_pose = pose;
+        self
     }
 
     /// Pause `s` seconds of wall time between state queries (a real controller's driver).
@@ -64,7 +74,7 @@ impl<'a> HexapodSequencer<'a> {
         let plan = self.plan;
         let total = plan.poses.len() as u64;
         let id = self.devices.hexapod.id().to_string();
-        for (pose, p) in plan.poses.iter().enumerate() {
+        for (pose, p) in plan.poses.iter().enumerate().skip(self.first_pose) {
             let command = PlatformPose {
                 translation_m: p.translation_m,
                 rotation_vector_rad: p.rotation_vector_rad,
@@ -130,6 +140,8 @@ impl<'a> HexapodSequencer<'a> {
                 self.summary.samples += 1;
             }
             self.log.event(RunEvent::PoseEnd { pose });
+            // A finished pose is on disk before the platform moves on: a resume keeps it.
+            self.log.recorder.checkpoint();
             self.summary.points_measured += 1;
             progress(pose as u64 + 1, total);
         }

@@ -183,6 +183,26 @@ impl HexapodWorld {
         self.clock.elapsed_s()
     }
 
+    /// Continue after an interrupted run: the same true hinges and encoder counts, the
+    /// interrupted run's moves (`commanded`, in order) in the truth with the platform at rest
+    /// at the last of them, the noise drawn from `noise_seed` (independent of the first
+    /// attempt's); a simulated run's clock goes on at `t_s`, an emulated world follows wall
+    /// time instead (None). A commanded pose without a true pose near it leaves the platform
+    /// where it was, as `start_move` refuses it.
+    pub fn resume_at(&mut self, t_s: Option<f64>, noise_seed: u64, commanded: &[PlatformPose]) {
+        if let Some(t_s) = t_s {
+            self.clock.advance_to(t_s);
+        }
+        self.rng = ChaCha8Rng::seed_from_u64(noise_seed);
+        for c in commanded {
+            if let Some(reached) = reached_pose(&self.nominal, &self.truth, self.exact_poses, c) {
+                self.poses.push((*c, reached));
+                self.pose = reached;
+            }
+        }
+        self.move_end_s = self.now_s();
+    }
+
     pub fn start_move(&mut self, commanded: PlatformPose) -> Result<(), String> {
         let target = reached_pose(&self.nominal, &self.truth, self.exact_poses, &commanded)
             .ok_or_else(|| {

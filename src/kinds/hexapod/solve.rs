@@ -182,6 +182,8 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                 }
                 open = Some((*pose, e.log_time_ns, to_pose(&commanded)));
             }
+            // A pose left open by the interruption is measured again after this.
+            RunEvent::Resume { .. } => open = None,
             RunEvent::PoseEnd { pose } => {
                 let Some((p, begin_ns, commanded)) = open.take() else {
                     continue;

@@ -1,6 +1,6 @@
 //! Plan kind `probe_install` (DESIGN.md method 4): its configuration, plan, sequencer,
-//! simulated world and HIL source, run, method, plan check and report, and the `Kind` the
-//! commands call.
+//! simulated world and HIL source, run and resume, method, plan check and report, and the
+//! `Kind` the commands call.
 
 pub mod check;
 pub mod config;
@@ -42,6 +42,15 @@ impl Kind for ProbeInstall {
     ) -> anyhow::Result<KindRunOutput> {
         let config = config::ProbeInstallConfig::load(path)?;
         run::run(&config, options).map(from_run)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        run::resume(dir, config, options).map(from_run)
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {

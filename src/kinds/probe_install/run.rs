@@ -1,7 +1,9 @@
 //! A whole `probe_install` run: devices (simulated in virtual time, GRBL + ASCII drivers on real
-//! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file.
+//! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file;
+//! and the continuation of an interrupted run (`geocal run --resume`).
 
-use std::collections::BTreeMap;
+use std::collections::{BTreeMap, BTreeSet};
+use std::path::Path;
 use std::sync::{Arc, Mutex};
 
 use anyhow::Context;
@@ -16,8 +18,10 @@ use crate::kinds::probe_install::sequence::{ProbeInstallDevices, ProbeInstallSeq
 use crate::kinds::probe_install::sim::{
     ProbeInstallWorld, SharedProbeWorld, SimCmm, SimLaserProbe,
 };
+use crate::run::resume::Interruption;
 use crate::run::{RunOptions, RunOutput};
-use crate::session::messages::{MachineInfo, SessionHeader, SESSION_FORMAT};
+use crate::session::messages::{MachineInfo, RunEvent, SessionHeader, SESSION_FORMAT};
+use crate::session::reader::Session;
 use crate::sim::hil::HilTime;
 
 pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHeader {
@@ -67,37 +71,218 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
 }
 
 pub fn run(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
-    if !config.all_sim() {
-        return run_on_drivers(config, options);
+    std::fs::create_dir_all(&options.out_dir)
+        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
+    crate::run::resume::store_config(config, &options.out_dir)?;
+    execute(config, options, None)
+}
+
+/// Where an interrupted run goes on, read from its recording.
+struct Continuation {
+    interruption: Interruption,
+    /// The first posture without `posture_end` (the number of postures: none left).
+    posture: usize,
+    /// The `seq` of the next probe reading.
+    next_seq: u64,
+    /// The last machine position the interrupted run commanded (x, y, z, a, b).
+    machine_at: Option<[f64; 5]>,
+}
+
+/// `geocal run [CONFIG] --resume DIR` of a probe_install run: the postures the interrupted
+/// run finished are kept, the run continues at the first unfinished one (measured again in
+/// full; the solver sets the interrupted attempt's readings aside).
+pub fn resume(
+    dir: &Path,
+    config: Option<&Path>,
+    options: &RunOptions,
+) -> anyhow::Result<RunOutput> {
+    let config =
+        crate::run::resume::load_stored_config(dir, config, |p| Ok(ProbeInstallConfig::load(p)?))?;
+    let mut interruption = Interruption::read(dir)?;
+    let header = &interruption.session.header;
+    if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
+    {
+        anyhow::bail!(
+            "{} was recorded with another plan than the configuration's (kind {:?})",
+            dir.display(),
+            header.kind
+        );
     }
-    let plan = ProbeInstallPlan::from_config(config);
-    let epoch_ns = system_now_ns();
-    let clock = Arc::new(VirtualClock::new(epoch_ns));
-    let world = Arc::new(Mutex::new(ProbeInstallWorld::new(config, clock.clone())));
-    let devices = ProbeInstallDevices {
-        machine: Box::new(SimCmm {
-            id: config.devices.machine.id.clone(),
-            world: world.clone(),
-        }),
-        probe: Box::new(SimLaserProbe {
-            id: config.devices.probe.id.clone(),
-            world: world.clone(),
-        }),
+    let plan = ProbeInstallPlan::from_config(&config);
+    let session = &interruption.session;
+    let posture = first_unfinished_posture(&plan, session);
+    let next_seq = session
+        .probes
+        .values()
+        .flatten()
+        .map(|r| r.msg.seq + 1)
+        .max()
+        .unwrap_or(0);
+    let machine_at = last_commanded(session);
+    interruption.set_aside()?;
+    tracing::info!(
+        kept = interruption.messages_kept(),
+        "resuming {} at posture {posture}",
+        dir.display()
+    );
+    let continuation = Continuation {
+        interruption,
+        posture,
+        next_seq,
+        machine_at,
     };
-    crate::kinds::record_and_solve(
-        &session_header(config, epoch_ns),
-        clock.as_ref(),
+    execute(&config, options, Some(continuation))
+}
+
+/// The first posture in plan order without a `posture_end`; the number of postures when
+/// every one is finished.
+fn first_unfinished_posture(plan: &ProbeInstallPlan, session: &Session) -> usize {
+    let finished: BTreeSet<usize> = session
+        .events
+        .iter()
+        .filter_map(|e| match e.msg {
+            RunEvent::PostureEnd { posture } => Some(posture),
+            _ => None,
+        })
+        .collect();
+    (0..plan.postures_rad.len())
+        .find(|p| !finished.contains(p))
+        .unwrap_or(plan.postures_rad.len())
+}
+
+/// The machine position of the last `probe_begin` (where the machine stood when the run was
+/// interrupted, give or take the move that was under way).
+fn last_commanded(session: &Session) -> Option<[f64; 5]> {
+    session.events.iter().rev().find_map(|e| match &e.msg {
+        RunEvent::ProbeBegin { axes, .. } => {
+            let v: Option<Vec<f64>> = CMM_AXES.iter().map(|a| axes.get(*a).copied()).collect();
+            v.and_then(|v| <[f64; 5]>::try_from(v).ok())
+        }
+        _ => None,
+    })
+}
+
+/// A run's devices, its log clock and the simulated world behind them (simulated and
+/// emulated runs).
+struct Built {
+    devices: ProbeInstallDevices,
+    clock: Arc<dyn Clock>,
+    world: Option<SharedProbeWorld>,
+    emulators: Option<Emulated>,
+}
+
+/// The devices: simulated in virtual time, or the GRBL and ASCII drivers (real, or under
+/// `[hil]` against the emulators). Must run inside the runtime that runs the sequencer.
+async fn build(config: &ProbeInstallConfig, epoch_ns: u64) -> anyhow::Result<Built> {
+    if config.all_sim() {
+        let clock = Arc::new(VirtualClock::new(epoch_ns));
+        let world = Arc::new(Mutex::new(ProbeInstallWorld::new(config, clock.clone())));
+        let devices = ProbeInstallDevices {
+            machine: Box::new(SimCmm {
+                id: config.devices.machine.id.clone(),
+                world: world.clone(),
+            }),
+            probe: Box::new(SimLaserProbe {
+                id: config.devices.probe.id.clone(),
+                world: world.clone(),
+            }),
+        };
+        return Ok(Built {
+            devices,
+            clock,
+            world: Some(world),
+            emulators: None,
+        });
+    }
+    // An emulated run's world follows wall time (its own clock is advanced to `HilTime` at
+    // every emulator call); the session is stamped by the same `HilTime`.
+    let time = Arc::new(HilTime::new(epoch_ns));
+    let world: Option<SharedProbeWorld> = config.emulated().then(|| {
+        Arc::new(Mutex::new(ProbeInstallWorld::new(
+            config,
+            Arc::new(VirtualClock::new(epoch_ns)),
+        )))
+    });
+    let clock: Arc<dyn Clock> = if config.emulated() {
+        time.clone()
+    } else {
+        Arc::new(SystemClock)
+    };
+    let (devices, emulators) = connect(config, world.as_ref().map(|w| (w, &time))).await?;
+    Ok(Built {
+        devices,
+        clock,
+        world,
+        emulators,
+    })
+}
+
+/// A run from the start, or the continuation of an interrupted one at a posture.
+fn execute(
+    config: &ProbeInstallConfig,
+    options: &RunOptions,
+    continuation: Option<Continuation>,
+) -> anyhow::Result<RunOutput> {
+    let plan = ProbeInstallPlan::from_config(config);
+    let simulated = config.all_sim();
+    let epoch_ns = continuation
+        .as_ref()
+        .map_or_else(system_now_ns, |c| c.interruption.epoch_ns(simulated));
+    let runtime = crate::run::run_runtime()?;
+    let built = runtime.block_on(build(config, epoch_ns))?;
+    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let handle = recorder.handle();
+    let mut interruption = None;
+    let mut first = (0, 0);
+    match continuation {
+        Some(mut c) => {
+            if let (Some(world), Some(sim)) = (&built.world, &config.sim) {
+                let (t_s, noise_seed) = c.interruption.simulated_restart(sim.seed);
+                world
+                    .lock()
+                    .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+                    .resume_at(simulated.then_some(t_s), noise_seed, c.machine_at);
+            }
+            if !simulated {
+                c.interruption.check_live_clock(built.clock.now_ns())?;
+            }
+            let left = c.posture < plan.postures_rad.len();
+            let event = RunEvent::Resume {
+                resume_index: c.interruption.resume_index,
+                messages_kept: c.interruption.messages_kept(),
+                station: None,
+                target: None,
+                pass: None,
+                point: None,
+                height_index: None,
+                angle_index: None,
+                posture: left.then_some(c.posture),
+                pose: None,
+            };
+            c.interruption
+                .record_copy(&handle, event, built.clock.as_ref());
+            first = (c.posture, c.next_seq);
+            interruption = Some(c.interruption);
+        }
+        None => handle.session(&session_header(config, epoch_ns), built.clock.now_ns()),
+    }
+    let sequencer = ProbeInstallSequencer::new(&plan, built.devices, handle, built.clock.clone())
+        .resume_at(first.0, first.1);
+    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
+    drop(built.emulators);
+    if let (Some(path), Some(world)) = (&options.truth, &built.world) {
+        let truth = world
+            .lock()
+            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+            .truth();
+        crate::run::write_truth(path, &truth)?;
+    }
+    crate::kinds::finish_and_solve(
+        recorder,
+        summary,
+        session_path,
         options,
-        |handle| async {
-            let sequencer = ProbeInstallSequencer::new(&plan, devices, handle, clock.clone());
-            sequencer.run(&mut |_: u64, _: u64| {}).await
-        },
-        || {
-            Ok(world
-                .lock()
-                .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-                .truth())
-        },
+        interruption.as_ref(),
     )
 }
 
@@ -176,40 +361,22 @@ async fn connect(
     Ok((devices, Some(emulated)))
 }
 
-/// A run on the GRBL and ASCII drivers, real or emulated (in real time).
-fn run_on_drivers(config: &ProbeInstallConfig, options: &RunOptions) -> anyhow::Result<RunOutput> {
-    let plan = ProbeInstallPlan::from_config(config);
-    let epoch_ns = system_now_ns();
-    let emulate = config.emulated();
-    // An emulated run's world follows wall time (its own clock is advanced to `HilTime` at
-    // every emulator call); the session is stamped by the same `HilTime`.
-    let time = Arc::new(HilTime::new(epoch_ns));
-    let world: Option<SharedProbeWorld> = emulate.then(|| {
-        Arc::new(Mutex::new(ProbeInstallWorld::new(
-            config,
-            Arc::new(VirtualClock::new(epoch_ns)),
-        )))
-    });
-    let clock: Arc<dyn Clock> = if emulate {
-        time.clone()
-    } else {
-        Arc::new(SystemClock)
-    };
-    let runtime = crate::run::run_runtime()?;
-    let (devices, emulators) =
-        runtime.block_on(connect(config, world.as_ref().map(|w| (w, &time))))?;
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
-    let handle = recorder.handle();
-    handle.session(&session_header(config, epoch_ns), clock.now_ns());
-    let sequencer = ProbeInstallSequencer::new(&plan, devices, handle, clock.clone());
-    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
-    drop(emulators);
-    if let (Some(path), Some(world)) = (&options.truth, &world) {
-        let truth = world
-            .lock()
-            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-            .truth();
-        crate::run::write_truth(path, &truth)?;
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// `--resume DIR` runs on the configuration stored at run start: it must read back as
+    /// the one the run started with.
+    #[test]
+    fn the_stored_configuration_reads_back_equal() {
+        let path = concat!(env!("CARGO_MANIFEST_DIR"), "/config/probe-install.toml");
+        let config = ProbeInstallConfig::load(Path::new(path)).expect("example config");
+        let dir = tempfile::tempdir().expect("temp dir");
+        crate::run::resume::store_config(&config, dir.path()).expect("store");
+        let stored = dir.path().join(crate::run::resume::CONFIG_FILE);
+        assert_eq!(
+            ProbeInstallConfig::load(&stored).expect("stored config"),
+            config
+        );
     }
-    crate::kinds::finish_and_solve(recorder, summary, session_path, options)
 }

@@ -5,6 +5,8 @@
 //! the readings of one point; `/machine/pose` at every arrival; `/probe/<id>/reading` for every
 //! reading (null when out of range or refused by the sensor, with a `fault` event). Timeouts and
 //! protocol errors are retried, alarms cleared, and link faults drained, all as `fault` events.
+//! A checkpoint follows every `posture_end`: a resumed run keeps the finished postures and
+//! measures the unfinished one again.
 
 use std::sync::Arc;
 
@@ -34,6 +36,8 @@ pub struct ProbeInstallSequencer<'a> {
     log: EventLog,
     seq: u64,
     summary: RunSummary,
+    /// The first posture to measure: postures before it were finished by an interrupted run.
+    first_posture: usize,
 }
 
 impl<'a> ProbeInstallSequencer<'a> {
@@ -49,17 +53,30 @@ impl<'a> ProbeInstallSequencer<'a> {
             log: EventLog::new(recorder, clock),
             seq: 0,
             summary: RunSummary::default(),
+            first_posture: 0,
         }
+    }
+
+    /// Continue an interrupted run at `posture` (measured again in full); the readings go on
+    /// counting at `next_seq`, so that `seq` stays unique in the continued session.
+    pub fn resume_at(mut self, posture: usize, next_seq: u64) -> Self {
+        self.first_posture = posture;
+        self.seq = next_seq;
+        self
     }
 
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
         let plan = self.plan;
         let total = plan.points.len() as u64;
         let mut current: Option<usize> = None;
+        let first = self.first_posture;
         for (done, p) in plan.points.iter().enumerate() {
+            if p.posture < first {
+                continue;
+            }
             if current != Some(p.posture) {
                 if let Some(prev) = current {
-                    self.log.event(RunEvent::PostureEnd { posture: prev });
+                    self.end_posture(prev);
                 }
                 let [a_rad, b_rad] = plan.postures_rad[p.posture];
                 self.log.event(RunEvent::PostureBegin {
@@ -88,10 +105,16 @@ impl<'a> ProbeInstallSequencer<'a> {
             progress(done as u64 + 1, total);
         }
         if let Some(prev) = current {
-            self.log.event(RunEvent::PostureEnd { posture: prev });
+            self.end_posture(prev);
         }
         self.summary.faults = self.log.faults;
         Ok(self.summary)
+    }
+
+    /// A finished posture is on disk before the machine moves on: a resume keeps it.
+    fn end_posture(&mut self, posture: usize) {
+        self.log.event(RunEvent::PostureEnd { posture });
+        self.log.recorder.checkpoint();
     }
 
     /// Command a move, wait for Idle, record the commanded and reported positions. Timeouts

@@ -145,6 +145,23 @@ impl ProbeInstallWorld {
         self.clock.elapsed_s()
     }
 
+    /// Continue after an interrupted run: the same true installation and sphere, the machine
+    /// at rest where the interrupted run last commanded it (`at`), the probe noise drawn from
+    /// `noise_seed` (independent of the first attempt's); a simulated run's clock goes on at
+    /// `t_s`, an emulated world follows wall time instead (None).
+    pub fn resume_at(&mut self, t_s: Option<f64>, noise_seed: u64, at: Option<[f64; 5]>) {
+        if let Some(t_s) = t_s {
+            self.clock.advance_to(t_s);
+        }
+        self.rng = ChaCha8Rng::seed_from_u64(noise_seed);
+        if let Some(at) = at {
+            self.position = at;
+            self.move_from = at;
+        }
+        self.move_start_s = self.now_s();
+        self.move_end_s = self.now_s();
+    }
+
     /// Bring the world's clock up to `t_s` (an emulated run: the world follows wall time).
     pub(crate) fn advance_to(&self, t_s: f64) {
         self.clock.advance_to(t_s);

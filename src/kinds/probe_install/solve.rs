@@ -115,7 +115,19 @@ fn parse<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// The observations (one per point) and the out-of-range count.
+/// One closed `probe_begin`..`probe_end` window: its posture, its observation (None when no
+/// reading had a value) and its reading counts.
+struct PointWindow {
+    posture: usize,
+    observation: Option<ProbeObservation>,
+    valid: usize,
+    out_of_range: usize,
+}
+
+/// The observations (one per point with a valid reading), the valid raw readings in them and
+/// the out-of-range count. A posture a resumed run measures again (`posture_begin` repeated,
+/// or left unfinished at a `resume` event) keeps only its last attempt, so every posture is
+/// used once.
 pub fn observations(
     session: &Session,
     noise_m: f64,
@@ -127,16 +139,26 @@ pub fn observations(
     let poses = session.topics.get(TOPIC_MACHINE_POSE).unwrap_or(&empty);
     let mut posture: Option<(usize, f64, f64)> = None;
     let mut open: Option<(usize, usize, u64)> = None;
-    let mut out = Vec::new();
-    let (mut raw, mut out_of_range) = (0, 0);
+    let mut windows: Vec<PointWindow> = Vec::new();
+    let set_aside = |windows: &mut Vec<PointWindow>, p: usize| windows.retain(|w| w.posture != p);
     for e in &session.events {
         match &e.msg {
             RunEvent::PostureBegin {
                 posture: p,
                 a_rad,
                 b_rad,
-            } => posture = Some((*p, *a_rad, *b_rad)),
+            } => {
+                set_aside(&mut windows, *p);
+                posture = Some((*p, *a_rad, *b_rad));
+            }
             RunEvent::PostureEnd { .. } => posture = None,
+            // The interrupted attempt of an unfinished posture: measured again after this.
+            RunEvent::Resume { .. } => {
+                if let Some((p, _, _)) = posture.take() {
+                    set_aside(&mut windows, p);
+                }
+                open = None;
+            }
             RunEvent::ProbeBegin {
                 posture: p, point, ..
             } => {
@@ -165,6 +187,7 @@ pub fn observations(
                     continue;
                 }
                 let mut values = Vec::new();
+                let mut out_of_range = 0;
                 for r in readings
                     .iter()
                     .filter(|r| r.log_time_ns >= begin_ns && r.log_time_ns <= end_ns)
@@ -174,43 +197,52 @@ pub fn observations(
                         None => out_of_range += 1,
                     }
                 }
-                if values.is_empty() {
-                    continue;
-                }
-                raw += values.len();
-                let stamped = poses
-                    .iter()
-                    .rev()
-                    .find(|m| m.log_time_ns <= begin_ns)
-                    .ok_or(ProbeInstallMethodError::NoPosition {
-                        posture: *p,
-                        point: *point,
-                    })?;
-                let pose: MachinePoseSample =
-                    parse(TOPIC_MACHINE_POSE, stamped.log_time_ns, &stamped.msg)?;
-                let axis = |name: &str| {
-                    pose.reported
-                        .get(name)
-                        .or_else(|| pose.commanded.get(name))
-                        .copied()
-                        .ok_or_else(|| ProbeInstallMethodError::MissingAxis {
+                let observation = if values.is_empty() {
+                    None
+                } else {
+                    let stamped = poses
+                        .iter()
+                        .rev()
+                        .find(|m| m.log_time_ns <= begin_ns)
+                        .ok_or(ProbeInstallMethodError::NoPosition {
                             posture: *p,
                             point: *point,
-                            axis: name.to_string(),
-                        })
+                        })?;
+                    let pose: MachinePoseSample =
+                        parse(TOPIC_MACHINE_POSE, stamped.log_time_ns, &stamped.msg)?;
+                    let axis = |name: &str| {
+                        pose.reported
+                            .get(name)
+                            .or_else(|| pose.commanded.get(name))
+                            .copied()
+                            .ok_or_else(|| ProbeInstallMethodError::MissingAxis {
+                                posture: *p,
+                                point: *point,
+                                axis: name.to_string(),
+                            })
+                    };
+                    let n = values.len() as f64;
+                    Some(ProbeObservation {
+                        a_rad: axis("a")?,
+                        b_rad: axis("b")?,
+                        machine_m: [axis("x")?, axis("y")?, axis("z")?],
+                        reading_m: values.iter().sum::<f64>() / n,
+                        sigma_m: noise_m / n.sqrt(),
+                    })
                 };
-                let n = values.len() as f64;
-                out.push(ProbeObservation {
-                    a_rad: axis("a")?,
-                    b_rad: axis("b")?,
-                    machine_m: [axis("x")?, axis("y")?, axis("z")?],
-                    reading_m: values.iter().sum::<f64>() / n,
-                    sigma_m: noise_m / n.sqrt(),
+                windows.push(PointWindow {
+                    posture: *p,
+                    observation,
+                    valid: values.len(),
+                    out_of_range,
                 });
             }
             _ => {}
         }
     }
+    let raw = windows.iter().map(|w| w.valid).sum();
+    let out_of_range = windows.iter().map(|w| w.out_of_range).sum();
+    let out = windows.into_iter().filter_map(|w| w.observation).collect();
     Ok((out, raw, out_of_range))
 }
 

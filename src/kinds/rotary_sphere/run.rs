@@ -323,6 +323,8 @@ fn execute(
                 point: None,
                 height_index: (first.0 < plan.heights.len()).then_some(first.0),
                 angle_index: (first.0 < plan.heights.len()).then_some(first.1),
+                posture: None,
+                pose: None,
             };
             interruption.record_copy(&handle, event, built.clock.as_ref());
             first_sphere = *first;
