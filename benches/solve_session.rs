@@ -333,12 +333,13 @@ fn main() {
             solution.chi2 / solution.dof as f64
         );
         drop((solution, problem, extraction));
-        let results = method
-            .run(|| geocal::method::solve_session(&session, &Default::default()).expect("method"));
+        let results = method.run(|| {
+            geocal::kinds::registry::solve_session(&session, &Default::default()).expect("method")
+        });
         drop(results);
         drop(session);
-        let results =
-            whole.run(|| geocal::run::solve_file(&path, &Default::default()).expect("solve_file"));
+        let results = whole
+            .run(|| geocal::kinds::solve_file(&path, &Default::default()).expect("solve_file"));
         let r = results.multilateration().expect("tracer results");
         whole.note = format!(
             "residual RMS {:.1} nm, {} points",

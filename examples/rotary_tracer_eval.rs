@@ -9,7 +9,8 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use geocal::config::Config;
-use geocal::run::{run, RunOptions};
+use geocal::kinds::tracer_plan::run::run;
+use geocal::run::RunOptions;
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde_json::Value;
 
@@ -110,7 +111,7 @@ fn evaluate(config: &Config, out_dir: &Path) -> anyhow::Result<Row> {
     let truth: Value = serde_json::from_slice(&std::fs::read(&truth_path)?)?;
     let Some(results) = output
         .results
-        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+        .get::<geocal::kinds::rotary_tracer::solve::RotaryTracerResults>()
     else {
         bail!("the configuration is not of kind rotary_tracer");
     };

@@ -12,7 +12,6 @@ pub mod model;
 pub mod monitor;
 pub mod plan;
 pub mod replay;
-pub mod report;
 pub mod run;
 pub mod sequencer;
 pub mod session;

@@ -245,7 +245,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 effects: geocal::diagnose::correct::parse_effects(&effects)?,
                 ..settings(huber)
             };
-            let results = geocal::run::solve_file(&session, &settings)?;
+            let results = geocal::kinds::solve_file(&session, &settings)?;
             if let Some(path) = out {
                 std::fs::write(&path, results.to_json_pretty())
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
@@ -293,7 +293,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
         } => {
             kinds.of_config(&config)?.simulate(
                 &config,
-                &geocal::run::simulate::SimulateOptions { truth, json },
+                &geocal::kinds::tracer_plan::simulate::SimulateOptions { truth, json },
             )?;
         }
         Command::Replay {

@@ -11,8 +11,9 @@ use std::sync::OnceLock;
 use std::time::Duration;
 
 use common::{hil_config, small_demo};
+use geocal::kinds::registry::solve_session;
 use geocal::method::multilateration::MultilaterationResults;
-use geocal::method::{solve_session, SolveSettings};
+use geocal::method::SolveSettings;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::{read_session, read_session_raw, Session};
 use geocal::session::{Recorder, RecorderOptions};

@@ -8,8 +8,8 @@ use std::path::Path;
 
 use common::{assert_recovers_truth, run_with_truth, truth_point, xyz, DEMO};
 use geocal::config::Config;
+use geocal::kinds::solve_file;
 use geocal::method::multilateration::MultilaterationResults;
-use geocal::run::solve_file;
 use serde_json::Value;
 
 /// Every identifiable geometric error value of the results beside the simulated truth,

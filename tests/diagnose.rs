@@ -348,7 +348,7 @@ fn reads_only_the_session() {
     let config =
         geocal::config::Config::parse(&text, std::path::Path::new("x.toml")).expect("config");
     let dir = tempfile::tempdir().expect("tempdir");
-    let output = geocal::run::run(
+    let output = geocal::kinds::tracer_plan::run::run(
         &config,
         &geocal::run::RunOptions {
             out_dir: dir.path().to_path_buf(),

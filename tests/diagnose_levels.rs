@@ -133,7 +133,7 @@ fn against_twin(seed: u64, effects: &str) -> geocal::diagnose::Diagnosis {
     let recorded_config = with_effects(&diagnose_demo(), seed, effects);
     let config = geocal::config::Config::parse(&recorded_config, std::path::Path::new("rec.toml"))
         .expect("config");
-    let output = geocal::run::run(
+    let output = geocal::kinds::tracer_plan::run::run(
         &config,
         &geocal::run::RunOptions {
             out_dir: dir.path().join("rec"),

@@ -7,8 +7,9 @@ mod common;
 
 use std::path::Path;
 
+use geocal::kinds::solve_file;
 use geocal::method::Results;
-use geocal::run::{solve_file, RunOutput};
+use geocal::run::RunOutput;
 use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::reader::read_session;
 use serde_json::Value;

@@ -133,7 +133,7 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
     assert_eq!(hil.summary.faults, 6);
 
     // The recording alone gives the same results (`geocal solve`).
-    let replay = geocal::run::solve_file(&hil.session_path, &Default::default()).expect("solve");
+    let replay = geocal::kinds::solve_file(&hil.session_path, &Default::default()).expect("solve");
     assert_eq!(replay.to_json_pretty(), hil.results.to_json_pretty());
 }
 
@@ -273,7 +273,7 @@ fn a_killed_emulated_run_resumes_at_its_unfinished_posture() {
         .collect();
     assert_eq!(postures_after, vec![2, 3]);
     assert!(common::interrupted_files_left(&killed_dir).is_empty());
-    let results = geocal::run::solve_file(&resumed_path, &Default::default()).expect("solve");
+    let results = geocal::kinds::solve_file(&resumed_path, &Default::default()).expect("solve");
     let Some(r) = results.get::<geocal::kinds::probe_install::solve::ProbeInstallResults>() else {
         panic!("expected probe_install results");
     };

@@ -20,7 +20,7 @@ fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
     println!("{label}: {:.1} s", started.elapsed().as_secs_f64());
     let Some(results) = output
         .results
-        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+        .get::<geocal::kinds::rotary_tracer::solve::RotaryTracerResults>()
     else {
         panic!("expected rotary_tracer results");
     };

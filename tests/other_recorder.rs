@@ -9,8 +9,10 @@ use std::io::Cursor;
 use std::path::{Path, PathBuf};
 
 use geocal::config::Config;
+use geocal::kinds::solve_file;
+use geocal::kinds::tracer_plan::run::run;
 use geocal::method::Results;
-use geocal::run::{run, solve_file, RunOptions};
+use geocal::run::RunOptions;
 use geocal::session::messages::{schema, tracer_topic};
 use geocal::session::reader::{read_session, Session};
 use serde_json::Value;

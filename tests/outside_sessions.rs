@@ -29,8 +29,8 @@ fn solve(name: &str, effects: Vec<EffectKind>) -> MultilaterationResults {
         effects,
         ..Default::default()
     };
-    let results =
-        geocal::run::solve_file(&session_dir(name).join("session.mcap"), &settings).expect("solve");
+    let results = geocal::kinds::solve_file(&session_dir(name).join("session.mcap"), &settings)
+        .expect("solve");
     results.multilateration().expect("multilateration").clone()
 }
 

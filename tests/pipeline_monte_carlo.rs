@@ -7,7 +7,8 @@ mod common;
 use std::path::Path;
 
 use geocal::config::Config;
-use geocal::run::{run, RunOptions};
+use geocal::kinds::tracer_plan::run::run;
+use geocal::run::RunOptions;
 use serde_json::Value;
 
 use common::DEMO;

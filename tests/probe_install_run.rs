@@ -8,7 +8,8 @@ mod common;
 use std::path::Path;
 
 use geocal::kinds::probe_install::solve::ProbeInstallResults;
-use geocal::run::{solve_file, RunOutput};
+use geocal::kinds::solve_file;
+use geocal::run::RunOutput;
 use geocal::session::kind_messages::TOPIC_MACHINE_POSE;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;

@@ -9,8 +9,9 @@ use std::path::Path;
 
 use common::{hil_config, small_demo, HIL_FAULTS};
 use geocal::config::Config;
+use geocal::kinds::tracer_plan::run::run;
 use geocal::replay::{replay, Outcome, ReplayOptions, ReplayOutput};
-use geocal::run::{run, RunOptions, RunOutput};
+use geocal::run::{RunOptions, RunOutput};
 use geocal::session::reader::read_session;
 
 fn record(config_text: &str, dir: &Path) -> RunOutput {

@@ -184,7 +184,7 @@ fn killed_runs_resume_and_match_an_unbroken_run() {
             .collect();
         assert!(leftovers.is_empty(), "{leftovers:?}");
 
-        let results = geocal::run::solve_file(&final_path, &Default::default()).expect("solve");
+        let results = geocal::kinds::solve_file(&final_path, &Default::default()).expect("solve");
         let resumed = results.multilateration().expect("tracer results");
         let truth: serde_json::Value =
             serde_json::from_slice(&std::fs::read(out.join("truth.json")).expect("truth"))

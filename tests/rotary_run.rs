@@ -5,7 +5,7 @@
 mod common;
 
 use common::{assert_recovers_truth, run_with_truth, xyz};
-use geocal::run::solve_file;
+use geocal::kinds::solve_file;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 use nalgebra::Vector3;
@@ -42,7 +42,7 @@ fn rotary_tracer_recovers_table_angles_axis_and_points() {
     let (output, truth) = run_with_truth(&reduced(), dir.path());
     let Some(results) = output
         .results
-        .get::<geocal::method::rotary_tracer::RotaryTracerResults>()
+        .get::<geocal::kinds::rotary_tracer::solve::RotaryTracerResults>()
     else {
         panic!("expected rotary_tracer results");
     };

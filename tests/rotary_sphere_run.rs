@@ -8,8 +8,9 @@ use std::path::Path;
 use geocal::kinds::rotary_sphere::config::RotarySphereConfig;
 use geocal::kinds::rotary_sphere::run::{run, SphereRunOutput};
 use geocal::kinds::rotary_sphere::solve::RotarySphereResults;
+use geocal::kinds::solve_file;
 use geocal::method::Results;
-use geocal::run::{solve_file, RunOptions};
+use geocal::run::RunOptions;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 use geocal::solve::rotary_sphere::{

@@ -158,9 +158,10 @@ fn simulate_and_run_as_two_processes() {
     // The run's results against simulate's truth, as the in-process runs are judged.
     let truth: serde_json::Value =
         serde_json::from_str(&std::fs::read_to_string(&truth_path).expect("truth")).expect("json");
-    let results =
-        geocal::run::solve_file(&out_dir.join("session.mcap"), &Default::default()).expect("solve");
-    let Some(results) = results.get::<geocal::method::rotary_tracer::RotaryTracerResults>() else {
+    let results = geocal::kinds::solve_file(&out_dir.join("session.mcap"), &Default::default())
+        .expect("solve");
+    let Some(results) = results.get::<geocal::kinds::rotary_tracer::solve::RotaryTracerResults>()
+    else {
         panic!("expected rotary_tracer results");
     };
     let ml = &results.multilateration;

@@ -16,7 +16,7 @@ fn point_error_m(config: &str, effects: &str) -> (f64, f64) {
         effects: parse_effects(&[effects.to_string()]).expect("effect names"),
         ..Default::default()
     };
-    let results = geocal::run::solve_file(&output.session_path, &settings).expect("solve");
+    let results = geocal::kinds::solve_file(&output.session_path, &settings).expect("solve");
     let results = results.multilateration().expect("multilateration");
     let truth_points: Vec<[f64; 3]> = results
         .points

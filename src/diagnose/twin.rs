@@ -360,7 +360,7 @@ pub fn simulate_twin(
             })?;
         station.hint_m = Some(solved.position_m);
     }
-    let output = crate::run::run(
+    let output = crate::kinds::tracer_plan::run::run(
         &config,
         &crate::run::RunOptions {
             out_dir: out_dir.to_path_buf(),

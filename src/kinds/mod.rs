@@ -3,13 +3,16 @@
 //! plan -> simulated devices -> kind sequencer -> recorded session -> solve).
 
 pub mod hexapod;
+pub mod multilateration;
 pub mod probe_install;
 pub mod registry;
 pub mod rotary_sphere;
+pub mod rotary_tracer;
+pub mod tracer_plan;
 
 pub use registry::{
-    kind_named, kind_of_config, kind_of_run_dir, run_file, Kind, KindCheck, KindRunOutput,
-    Registry, RunFlags, KINDS,
+    kind_named, kind_of_config, kind_of_run_dir, run_file, solve_file, Kind, KindCheck,
+    KindRunOutput, Registry, RunFlags, KINDS,
 };
 
 use std::collections::BTreeMap;
@@ -60,7 +63,7 @@ pub(crate) fn finish_and_solve(
         "run recorded to {}",
         session_path.display()
     );
-    let (results, results_path) = crate::run::solve_and_write(&session_path, options)?;
+    let (results, results_path) = crate::kinds::registry::solve_and_write(&session_path, options)?;
     Ok(RunOutput {
         session_path,
         results_path,

@@ -3,15 +3,15 @@
 //! `simulate`) find a configuration's or a session's kind here and call it; none of them
 //! names a kind.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
 use crate::config::kind_config;
-use crate::config::{Config, PlanKind};
+use crate::config::PlanKind;
 use crate::method::{self, MethodError, Results, SolveSettings};
 use crate::run::RunOptions;
-use crate::session::reader::Session;
+use crate::session::reader::{read_session, Completeness, Session};
 
 /// What a run of any kind leaves behind.
 pub struct KindRunOutput {
@@ -74,7 +74,7 @@ pub trait Kind: Sync {
     fn simulate(
         &self,
         _path: &Path,
-        _options: &crate::run::simulate::SimulateOptions,
+        _options: &crate::kinds::tracer_plan::simulate::SimulateOptions,
     ) -> anyhow::Result<()> {
         anyhow::bail!(
             "geocal simulate hosts the tracer emulator of multilateration and rotary_tracer \
@@ -86,8 +86,8 @@ pub trait Kind: Sync {
 
 /// Every plan kind geocal knows.
 pub static KINDS: &[&dyn Kind] = &[
-    &TracerKind(PlanKind::Multilateration),
-    &TracerKind(PlanKind::RotaryTracer),
+    &super::multilateration::Multilateration,
+    &super::rotary_tracer::RotaryTracer,
     &super::rotary_sphere::RotarySphere,
     &super::probe_install::ProbeInstall,
     &super::hexapod::Hexapod,
@@ -265,82 +265,13 @@ fn closing_count(n: u64, what: &str) -> String {
     format!("{n} {what}")
 }
 
-/// The kinds that measure with a tracer on the core configuration layout.
-struct TracerKind(PlanKind);
-
-impl TracerKind {
-    fn load(path: &Path, flags: &RunFlags) -> anyhow::Result<Config> {
-        let mut config = Config::load(path)?;
-        if flags.assume_yes {
-            config
-                .operator
-                .get_or_insert_with(Default::default)
-                .piped_stdin = true;
-        }
-        Ok(config)
-    }
-}
-
+/// A run's output as any kind's: what was recorded, counted in samples.
 pub(crate) fn from_run(output: crate::run::RunOutput) -> KindRunOutput {
     KindRunOutput {
         recorded: closing_count(output.summary.samples, "samples"),
         session_path: output.session_path,
         results_path: output.results_path,
         results: output.results,
-    }
-}
-
-impl Kind for TracerKind {
-    fn name(&self) -> &'static str {
-        self.0.as_str()
-    }
-
-    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
-        let config = Config::load(path)?;
-        let plan = crate::plan::Plan::from_config(&config);
-        let check = method::plan_check::check(&config, &plan)
-            .map_err(|e| anyhow::anyhow!("{}: plan check: {e}", path.display()))?;
-        Ok(KindCheck {
-            json: serde_json::to_value(&check)?,
-            text: crate::report::plan_check_text(&check),
-        })
-    }
-
-    fn run(
-        &self,
-        path: &Path,
-        options: &RunOptions,
-        flags: &RunFlags,
-    ) -> anyhow::Result<KindRunOutput> {
-        crate::run::run(&Self::load(path, flags)?, options).map(from_run)
-    }
-
-    fn resume(
-        &self,
-        dir: &Path,
-        config: Option<&Path>,
-        options: &RunOptions,
-    ) -> anyhow::Result<KindRunOutput> {
-        crate::run::resume::resume(dir, config, options).map(from_run)
-    }
-
-    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
-        Ok(match self.0 {
-            PlanKind::Multilateration => {
-                Results::new(method::multilateration::solve(session, settings)?)
-            }
-            PlanKind::RotaryTracer => {
-                Results::new(method::rotary_tracer::solve(session, settings)?)
-            }
-        })
-    }
-
-    fn simulate(
-        &self,
-        path: &Path,
-        options: &crate::run::simulate::SimulateOptions,
-    ) -> anyhow::Result<()> {
-        crate::run::simulate::simulate(&Config::load(path)?, options)
     }
 }
 
@@ -353,5 +284,34 @@ pub(crate) fn kind_layout_check(
     Ok(KindCheck {
         json: serde_json::to_value(&check)?,
         text: method::plan_check_kinds::text(&check),
+    })
+}
+
+/// Solve the finished session file exactly as `geocal solve` does; write results.json.
+pub(crate) fn solve_and_write(
+    session_path: &Path,
+    options: &RunOptions,
+) -> anyhow::Result<(Results, PathBuf)> {
+    let results = solve_file(session_path, &options.settings)?;
+    let results_path = options.out_dir.join("results.json");
+    std::fs::write(&results_path, results.to_json_pretty())
+        .with_context(|| format!("writing {}", results_path.display()))?;
+    Ok((results, results_path))
+}
+
+/// Read a session file and solve it with the method of its kind.
+pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
+    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    solve_session(&session, settings).with_context(|| {
+        let file = path.display();
+        let damage = match (&session.completeness, session.damaged.len()) {
+            (Completeness::Truncated { bytes_read, .. }, _) => format!(
+                " (cut short after byte {bytes_read}: resume the run with \
+                 `geocal run --resume DIR`, or run `geocal repair {file}`)"
+            ),
+            (_, 0) => String::new(),
+            (_, n) => format!(" ({n} damaged chunks skipped, listed above)"),
+        };
+        format!("solving {file}{damage}")
     })
 }

@@ -1,10 +1,10 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
-//! results for one plan kind. `solve_session` picks the method from the session's kind.
+//! results for one plan kind (`kinds::registry::solve_session` picks it from the session's kind).
 
 pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
-pub mod rotary_tracer;
+pub mod report;
 
 use std::any::Any;
 
@@ -14,8 +14,6 @@ pub enum MethodError {
     UnknownKind(String, String),
     #[error(transparent)]
     Multilateration(#[from] multilateration::MultilaterationError),
-    #[error(transparent)]
-    RotaryTracer(#[from] rotary_tracer::RotaryTracerError),
     /// A kind's own solve failed: its error, as it says it.
     #[error(transparent)]
     Kind(Box<dyn std::error::Error + Send + Sync>),
@@ -110,6 +108,3 @@ pub struct SolveSettings {
     /// Unmodelled effects (the diagnosis's names) fitted jointly with the geometry.
     pub effects: Vec<crate::diagnose::effects::EffectKind>,
 }
-
-/// Solve a session with the method of its kind.
-pub use crate::kinds::registry::solve_session;

@@ -20,7 +20,8 @@ use geocal_drivers::DeviceError;
 use serde::Serialize;
 
 use crate::config::Config;
-use crate::method::{solve_session, SolveSettings};
+use crate::kinds::registry::solve_session;
+use crate::method::SolveSettings;
 use crate::plan::Plan;
 use crate::sequencer::{Devices, Sequencer, SequencerError};
 use crate::session::messages::SessionHeader;

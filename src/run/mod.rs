@@ -1,24 +1,15 @@
-//! A whole run: config -> plan -> devices -> sequencer -> recorded session -> solve -> results.
-//! The results come from reading the recorded session back, exactly as `geocal solve` does.
+//! What every kind's run shares: its options and output, the runtime its drivers live on,
+//! the session file it records into, the truth it writes, its progress bar, and what an
+//! interrupted run leaves (`resume`).
 
 pub mod resume;
-pub mod simulate;
 
-use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 
-use crate::clock::system_now_ns;
-use crate::config::Config;
-use crate::method::{solve_session, Results, SolveSettings};
-use crate::plan::{Plan, AXES};
-use crate::run::resume::Continuation;
-use crate::sequencer::{RunSummary, Sequencer};
-use crate::session::messages::{
-    DeviceInfo, MachineInfo, SessionHeader, TargetInfo, SESSION_FORMAT,
-};
-use crate::session::reader::{read_session, Completeness};
+use crate::method::{Results, SolveSettings};
+use crate::sequencer::RunSummary;
 use crate::session::recorder::{Recorder, RecorderOptions};
 
 pub struct RunOptions {
@@ -35,85 +26,6 @@ pub struct RunOutput {
     pub results_path: PathBuf,
     pub summary: RunSummary,
     pub results: Results,
-}
-
-pub fn run(config: &Config, options: &RunOptions) -> anyhow::Result<RunOutput> {
-    std::fs::create_dir_all(&options.out_dir)
-        .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
-    crate::run::resume::store_config(config, &options.out_dir)?;
-    execute(config, options, None)
-}
-
-/// A run from the start, or the continuation of an interrupted one (src/run/resume.rs).
-pub(crate) fn execute(
-    config: &Config,
-    options: &RunOptions,
-    mut continuation: Option<&mut Continuation>,
-) -> anyhow::Result<RunOutput> {
-    let plan = Plan::from_config(config);
-    let epoch_ns = continuation
-        .as_ref()
-        .map_or_else(system_now_ns, |c| c.epoch_ns(config));
-    let runtime = run_runtime()?;
-    let built = runtime.block_on(crate::devices::build(config, &plan, epoch_ns))?;
-    if let Some(c) = continuation.as_deref() {
-        c.prepare_world(config, &built)?;
-    }
-    let (session_path, recorder) = create_session(&options.out_dir)?;
-    let handle = recorder.handle();
-    let resume_at = match continuation.as_deref_mut() {
-        Some(c) => Some(c.record_start(&handle, built.clock.as_ref())),
-        None => {
-            handle.session(&session_header(config, epoch_ns), built.clock.now_ns());
-            None
-        }
-    };
-
-    let bar = progress_bar(options.progress, "points");
-    let mut progress = |done: u64, total: u64| {
-        bar.set_length(total);
-        bar.set_position(done);
-    };
-    let mut sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
-    if let Some(at) = resume_at {
-        sequencer = sequencer.resume_at(at);
-    }
-    if config.devices.machine.driver == crate::config::DriverKind::Passive {
-        let passive = config.devices.machine.passive.clone().unwrap_or_default();
-        sequencer = sequencer.passive(passive.hint_tolerance_m);
-    }
-    let summary = runtime.block_on(sequencer.run(&mut progress));
-    // Stop the emulators of an emulated run.
-    drop(built.emulators);
-    bar.finish_and_clear();
-    // Finish the file even after a failed run: every recorded sample stays readable.
-    let stats = recorder.finish().context("finishing the session file")?;
-    let summary = summary.context("run failed (the session recorded so far is kept)")?;
-    if let Some(c) = continuation.as_deref() {
-        c.finished(&session_path)?;
-    }
-    tracing::info!(
-        samples = summary.samples,
-        points = summary.points_measured,
-        bytes = stats.bytes,
-        "run recorded to {}",
-        session_path.display()
-    );
-
-    if let (Some(path), Some(world)) = (&options.truth, &built.world) {
-        let world = world
-            .lock()
-            .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
-        write_truth(path, &world.truth(config, &plan))?;
-    }
-
-    let (results, results_path) = solve_and_write(&session_path, options)?;
-    Ok(RunOutput {
-        session_path,
-        results_path,
-        summary,
-        results,
-    })
 }
 
 /// The single-threaded runtime a run's drivers, emulators and sequencer live on.
@@ -140,35 +52,6 @@ pub(crate) fn write_truth<T: serde::Serialize>(path: &Path, truth: &T) -> anyhow
         .with_context(|| format!("writing truth to {}", path.display()))
 }
 
-/// Solve the finished session file exactly as `geocal solve` does; write results.json.
-pub(crate) fn solve_and_write(
-    session_path: &Path,
-    options: &RunOptions,
-) -> anyhow::Result<(Results, PathBuf)> {
-    let results = solve_file(session_path, &options.settings)?;
-    let results_path = options.out_dir.join("results.json");
-    std::fs::write(&results_path, results.to_json_pretty())
-        .with_context(|| format!("writing {}", results_path.display()))?;
-    Ok((results, results_path))
-}
-
-/// Read a session file and solve it with the method of its kind.
-pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
-    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    solve_session(&session, settings).with_context(|| {
-        let file = path.display();
-        let damage = match (&session.completeness, session.damaged.len()) {
-            (Completeness::Truncated { bytes_read, .. }, _) => format!(
-                " (cut short after byte {bytes_read}: resume the run with \
-                 `geocal run --resume DIR`, or run `geocal repair {file}`)"
-            ),
-            (_, 0) => String::new(),
-            (_, n) => format!(" ({n} damaged chunks skipped, listed above)"),
-        };
-        format!("solving {file}{damage}")
-    })
-}
-
 /// A progress bar on stderr counting `what` (hidden unless `show`).
 pub(crate) fn progress_bar(show: bool, what: &str) -> indicatif::ProgressBar {
     if !show {
@@ -182,78 +65,4 @@ pub(crate) fn progress_bar(show: bool, what: &str) -> indicatif::ProgressBar {
         bar.set_style(style);
     }
     bar
-}
-
-fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
-    let started_at = crate::session::messages::started_at(epoch_ns);
-    let tracer = &config.devices.tracer;
-    let mut devices = vec![DeviceInfo {
-        id: tracer.id.clone(),
-        kind: "tracer".into(),
-        driver: tracer.driver.as_str().into(),
-        noise_m: Some(tracer.noise_m),
-        noise_ppm: Some(tracer.noise_ppm),
-        dead_path_m: Some(tracer.dead_path_m),
-        wavelength_m: Some(tracer.wavelength_m),
-        compensated: Some(tracer.compensated),
-        extra: BTreeMap::from([("sample_rate_hz".into(), tracer.sample_rate_hz.into())]),
-    }];
-    if let Some(env) = &config.devices.environment {
-        devices.push(plain_device(&env.id, "environment", env.driver.as_str()));
-    }
-    let machine = &config.devices.machine;
-    let mut machine_device = plain_device(&machine.id, "machine", machine.driver.as_str());
-    machine_device
-        .extra
-        .insert("feed_m_s".into(), machine.feed_m_s.into());
-    devices.push(machine_device);
-    if let Some(table) = &config.devices.rotary_table {
-        devices.push(plain_device(
-            &table.id,
-            "rotary_table",
-            table.driver.as_str(),
-        ));
-    }
-    let seed = config
-        .sim
-        .as_ref()
-        .map(|s| format!("-seed{}", s.seed))
-        .unwrap_or_default();
-    SessionHeader {
-        format: SESSION_FORMAT.into(),
-        session_id: format!("{}-{}{}", config.kind.as_str(), epoch_ns / 1_000_000, seed),
-        started_at,
-        kind: config.kind.as_str().into(),
-        machine: MachineInfo {
-            name: config.machine.name.clone(),
-            structure: config.machine.structure.clone(),
-            axes: AXES.iter().map(|a| a.to_string()).collect(),
-            travel_m: config.machine.travel_m.clone(),
-            targets: config
-                .machine
-                .targets
-                .iter()
-                .map(|t| TargetInfo {
-                    id: t.id.clone(),
-                    offset_m: t.offset_m,
-                })
-                .collect(),
-        },
-        devices,
-        plan: serde_json::to_value(&config.plan).unwrap_or_default(),
-    }
-}
-
-fn plain_device(id: &str, kind: &str, driver: &str) -> DeviceInfo {
-    DeviceInfo {
-        id: id.into(),
-        kind: kind.into(),
-        driver: driver.into(),
-        noise_m: None,
-        noise_ppm: None,
-        dead_path_m: None,
-        wavelength_m: None,
-        compensated: None,
-        extra: BTreeMap::new(),
-    }
 }

@@ -4,8 +4,9 @@
 use std::path::Path;
 
 use geocal::config::Config;
+use geocal::kinds::tracer_plan::run::run;
 use geocal::method::multilateration::MultilaterationResults;
-use geocal::run::{run, RunOptions, RunOutput};
+use geocal::run::{RunOptions, RunOutput};
 use nalgebra::{Matrix3, Rotation3, Vector3};
 use serde_json::Value;
 
@@ -220,7 +221,7 @@ pub fn with_effects(base: &str, seed: u64, effects: &str) -> String {
 pub fn record_session(config_text: &str, dir: &Path) -> std::path::PathBuf {
     let config = geocal::config::Config::parse(config_text, std::path::Path::new("effects.toml"))
         .expect("config");
-    let output = geocal::run::run(
+    let output = geocal::kinds::tracer_plan::run::run(
         &config,
         &geocal::run::RunOptions {
             out_dir: dir.to_path_buf(),

@@ -3,7 +3,7 @@
 use std::fmt::Write;
 
 use super::solve::ProbeInstallResults;
-use crate::report::um;
+use crate::method::report::um;
 
 pub fn text(r: &ProbeInstallResults) -> String {
     let mut s = String::new();

@@ -365,7 +365,7 @@ fn execute(
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?;
         crate::run::write_truth(path, &world.export_truth(&plan))?;
     }
-    let (results, results_path) = crate::run::solve_and_write(&session_path, options)?;
+    let (results, results_path) = crate::kinds::registry::solve_and_write(&session_path, options)?;
     Ok(SphereRunOutput {
         session_path,
         results_path,

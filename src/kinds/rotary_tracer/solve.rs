@@ -4,7 +4,7 @@
 use nalgebra::{DMatrix, Vector3};
 use serde::{Deserialize, Serialize};
 
-use super::multilateration::{self, MultilaterationError, MultilaterationResults};
+use crate::method::multilateration::{self, MultilaterationError, MultilaterationResults};
 use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
 use crate::solve::circle::{fit_circle, CircleError};

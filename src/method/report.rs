@@ -1,92 +1,15 @@
-//! Human-readable reports of results: what an engineer reads at the end of a run.
+//! Human-readable text of the tracer methods' results (the network of stations and points)
+//! and plan check, and the units reports show beside SI.
 
 use std::fmt::Write;
 
 use crate::method::multilateration::MultilaterationResults;
-use crate::method::rotary_tracer::{RotaryResult, RotaryTracerResults};
-use crate::method::KindResults;
 
-impl KindResults for MultilaterationResults {
-    fn report(&self) -> String {
-        multilateration_text(self)
-    }
-
-    fn tracer_network(&self) -> Option<&MultilaterationResults> {
-        Some(self)
-    }
-}
-
-impl KindResults for RotaryTracerResults {
-    fn report(&self) -> String {
-        multilateration_text(&self.multilateration) + &rotary_text(&self.rotary)
-    }
-
-    fn tracer_network(&self) -> Option<&MultilaterationResults> {
-        Some(&self.multilateration)
-    }
-}
-
-/// Arcseconds per radian.
-const ARCSEC_PER_RAD: f64 = 180.0 * 3600.0 / std::f64::consts::PI;
-
-fn rotary_text(r: &RotaryResult) -> String {
-    let mut s = String::new();
-    let _ = writeln!(
-        s,
-        "\n  rotary table {} (circle through the table stations):",
-        r.table
-    );
-    let _ = writeln!(
-        s,
-        "    axis point  [{:.6}, {:.6}, {:.6}] m  σ [{:.2}, {:.2}, {:.2}] µm",
-        r.axis_point_m[0],
-        r.axis_point_m[1],
-        r.axis_point_m[2],
-        um(r.axis_point_sigma_m[0]),
-        um(r.axis_point_sigma_m[1]),
-        um(r.axis_point_sigma_m[2])
-    );
-    let _ = writeln!(
-        s,
-        "    axis dir.   [{:.7}, {:.7}, {:.7}]  σ [{:.2}, {:.2}, {:.2}] µrad",
-        r.axis_direction[0],
-        r.axis_direction[1],
-        r.axis_direction[2],
-        um(r.axis_direction_sigma[0]),
-        um(r.axis_direction_sigma[1]),
-        um(r.axis_direction_sigma[2])
-    );
-    let _ = writeln!(
-        s,
-        "    radius {:.6} m (σ {:.2} µm), stations off the circle: RMS {:.3} µm",
-        r.radius_m,
-        um(r.radius_sigma_m),
-        um(r.circle_residual_rms_m)
-    );
-    let _ = writeln!(
-        s,
-        "    station   commanded [°]   measured [°]   error [\"]    σ [\"]   (from {})",
-        r.reference_station
-    );
-    for step in &r.steps {
-        let _ = writeln!(
-            s,
-            "    {:<8} {:>13.4} {:>14.6} {:>10.3} {:>8.3}",
-            step.station,
-            step.commanded_rad.to_degrees(),
-            step.measured_rad.to_degrees(),
-            step.error_rad * ARCSEC_PER_RAD,
-            step.sigma_rad * ARCSEC_PER_RAD
-        );
-    }
-    s
-}
-
-pub(crate) fn um(v: f64) -> f64 {
+pub fn um(v: f64) -> f64 {
     v * 1e6
 }
 
-fn multilateration_text(r: &MultilaterationResults) -> String {
+pub fn multilateration_text(r: &MultilaterationResults) -> String {
     let mut s = String::new();
     let _ = writeln!(s, "geocal multilateration — session {}", r.session_id);
     let _ = writeln!(

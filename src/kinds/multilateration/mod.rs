@@ -1,0 +1,54 @@
+//! Multilateration (DESIGN.md): a laser tracer moved between stations measures lengths to the
+//! machine's points; the network solve (`method::multilateration`, shared with the diagnosis
+//! and rotary_tracer) gives stations, points and their covariance.
+
+pub mod report;
+
+use std::path::Path;
+
+use super::registry::{Kind, KindCheck, KindRunOutput, RunFlags};
+use super::tracer_plan;
+use crate::kinds::tracer_plan::simulate::SimulateOptions;
+use crate::method::{MethodError, Results, SolveSettings};
+use crate::run::RunOptions;
+use crate::session::reader::Session;
+
+pub struct Multilateration;
+
+impl Kind for Multilateration {
+    fn name(&self) -> &'static str {
+        crate::config::PlanKind::Multilateration.as_str()
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        tracer_plan::check(path)
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        tracer_plan::run(path, options, flags)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        tracer_plan::resume(dir, config, options)
+    }
+
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::new(crate::method::multilateration::solve(
+            session, settings,
+        )?))
+    }
+
+    fn simulate(&self, path: &Path, options: &SimulateOptions) -> anyhow::Result<()> {
+        tracer_plan::simulate(path, options)
+    }
+}

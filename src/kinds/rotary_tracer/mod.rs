@@ -1,0 +1,55 @@
+//! Rotary tracer (DESIGN.md): the tracer on a rotary table, turned from station to station;
+//! the network solve, then a circle through the table stations gives the table's axis and
+//! step errors (`solve`).
+
+pub mod report;
+pub mod solve;
+
+use std::path::Path;
+
+use super::registry::{Kind, KindCheck, KindRunOutput, RunFlags};
+use super::tracer_plan;
+use crate::kinds::tracer_plan::simulate::SimulateOptions;
+use crate::method::{MethodError, Results, SolveSettings};
+use crate::run::RunOptions;
+use crate::session::reader::Session;
+
+pub struct RotaryTracer;
+
+impl Kind for RotaryTracer {
+    fn name(&self) -> &'static str {
+        crate::config::PlanKind::RotaryTracer.as_str()
+    }
+
+    fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
+        tracer_plan::check(path)
+    }
+
+    fn run(
+        &self,
+        path: &Path,
+        options: &RunOptions,
+        flags: &RunFlags,
+    ) -> anyhow::Result<KindRunOutput> {
+        tracer_plan::run(path, options, flags)
+    }
+
+    fn resume(
+        &self,
+        dir: &Path,
+        config: Option<&Path>,
+        options: &RunOptions,
+    ) -> anyhow::Result<KindRunOutput> {
+        tracer_plan::resume(dir, config, options)
+    }
+
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+        Ok(Results::new(
+            solve::solve(session, settings).map_err(MethodError::of_kind)?,
+        ))
+    }
+
+    fn simulate(&self, path: &Path, options: &SimulateOptions) -> anyhow::Result<()> {
+        tracer_plan::simulate(path, options)
+    }
+}
