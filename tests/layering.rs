@@ -38,17 +38,6 @@ const KNOWN: &[&str] = &[
     "method/mod.rs -> crate::diagnose::effects: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct: imports a higher layer",
     "method/multilateration.rs -> crate::diagnose::correct::correction: imports a higher layer",
-    // The replays of the kinds with their own sequencers: replay devices to move behind the
-    // Kind trait.
-    "replay/kinds.rs -> crate::kinds::hexapod::config: shared machinery imports kind hexapod",
-    "replay/kinds.rs -> crate::kinds::hexapod::plan: shared machinery imports kind hexapod",
-    "replay/kinds.rs -> crate::kinds::hexapod::sequence: shared machinery imports kind hexapod",
-    "replay/kinds.rs -> crate::kinds::probe_install::config: shared machinery imports kind probe_install",
-    "replay/kinds.rs -> crate::kinds::probe_install::plan: shared machinery imports kind probe_install",
-    "replay/kinds.rs -> crate::kinds::probe_install::sequence: shared machinery imports kind probe_install",
-    "replay/kinds.rs -> crate::kinds::rotary_sphere::config: shared machinery imports kind rotary_sphere",
-    "replay/kinds.rs -> crate::kinds::rotary_sphere::plan: shared machinery imports kind rotary_sphere",
-    "replay/kinds.rs -> crate::kinds::rotary_sphere::sequence: shared machinery imports kind rotary_sphere",
 ];
 
 /// The `.rs` files under `dir`, test modules kept in files of their own (`tests.rs`) left out.

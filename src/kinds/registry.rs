@@ -10,6 +10,7 @@ use anyhow::Context;
 use crate::config::kind_config;
 use crate::config::PlanKind;
 use crate::method::{self, MethodError, Results, SolveSettings};
+pub use crate::run::replay::ReplaySequence;
 use crate::run::RunOptions;
 use crate::session::reader::{read_session, Completeness, Session};
 
@@ -69,6 +70,12 @@ pub trait Kind: Sync {
 
     /// Solve a recorded session of this kind (`geocal solve`).
     fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError>;
+
+    /// For a kind with its own sequencer: how `geocal replay` re-runs it against a recording
+    /// (None: the kind replays through the tracer sequencer, `replay::replay`).
+    fn own_replay(&self) -> Option<ReplaySequence> {
+        None
+    }
 
     /// Host the configuration's device emulators on their own (`geocal simulate`).
     fn simulate(

@@ -12,8 +12,9 @@ use geocal_drivers::{
 };
 
 use super::recording::{Arrival, Recording};
-use crate::clock::Clock;
 use crate::plan::Plan;
+use crate::run::replay::ClockState;
+pub use crate::run::replay::ReplayClock;
 use crate::session::messages::RunEvent;
 
 /// What every replay device shares: the recording and how far the replay has got.
@@ -58,35 +59,7 @@ fn lock<'a>(
     })
 }
 
-/// Log times that follow the recording. With k samples delivered, the clock reads sample
-/// k-1's recorded log time; where the recording stamped the messages after that sample later
-/// (a wall clock), each further reading is 1 ns later, staying before sample k's log time, so
-/// that a window opened there excludes sample k-1 exactly as the recorded one does.
-#[derive(Debug, Default)]
-pub struct ReplayClock {
-    state: Mutex<ClockState>,
-}
-
-#[derive(Debug, Default)]
-struct ClockState {
-    base_ns: u64,
-    limit_ns: u64,
-    strict: bool,
-    calls: u64,
-}
-
 impl ReplayClock {
-    /// Read `ns` until the cursor next moves.
-    pub fn set_fixed(&self, ns: u64) {
-        let mut c = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        *c = ClockState {
-            base_ns: ns,
-            limit_ns: ns,
-            strict: false,
-            calls: 0,
-        };
-    }
-
     /// Follow the recording with `k` samples delivered.
     pub fn at_cursor(&self, recording: &Recording, k: usize) {
         let base_ns = k
@@ -105,18 +78,6 @@ impl ReplayClock {
             strict: recording.later_at.get(k).copied().unwrap_or(true),
             calls: 0,
         };
-    }
-}
-
-impl Clock for ReplayClock {
-    fn now_ns(&self) -> u64 {
-        let mut c = self.state.lock().unwrap_or_else(|e| e.into_inner());
-        if !c.strict {
-            return c.base_ns;
-        }
-        let t = c.base_ns.saturating_add(c.calls).min(c.limit_ns);
-        c.calls += 1;
-        t
     }
 }
 
@@ -544,6 +505,7 @@ mod tests {
     use std::collections::BTreeMap;
 
     use super::*;
+    use crate::clock::Clock;
     use crate::session::messages::TracerSample;
     use crate::session::reader::testutil::header;
     use crate::session::reader::{Completeness, Session, Stamped};

@@ -131,9 +131,11 @@ pub fn plan_from_header(header: &SessionHeader) -> anyhow::Result<Plan> {
 pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<ReplayOutput> {
     let session = read_session(session_path)
         .with_context(|| format!("reading {}", session_path.display()))?;
-    // Kinds with their own sequencer and devices (probe_install, hexapod).
-    if kinds::replays(&session.header.kind) {
-        return kinds::replay(&session, session_path, options);
+    // Kinds with their own sequencer and devices replay through it.
+    if let Some(replay_sequence) =
+        crate::kinds::kind_named(&session.header.kind).and_then(|k| k.own_replay())
+    {
+        return kinds::replay(&session, session_path, options, replay_sequence);
     }
     let plan = plan_from_header(&session.header)
         .with_context(|| format!("rebuilding the plan of {}", session_path.display()))?;
@@ -314,7 +316,10 @@ fn run_sequencer(
     let recorder = Recorder::create(out_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", out_path.display()))?;
     let handle = recorder.handle();
-    handle.session(&replay_header(&session.header), header_ns);
+    handle.session(
+        &crate::run::replay::replay_header(&session.header),
+        header_ns,
+    );
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -353,23 +358,6 @@ fn run_sequencer(
         trail,
         recorded_nearby,
     })
-}
-
-/// The recording's header, marked as a replay: `<id>-replay`, every driver `replay` (the
-/// recorded one kept as `replayed_driver`).
-pub(crate) fn replay_header(original: &SessionHeader) -> SessionHeader {
-    let mut header = original.clone();
-    header.session_id = format!("{}-replay", original.session_id);
-    header.started_at = time::OffsetDateTime::now_utc()
-        .format(&time::format_description::well_known::Rfc3339)
-        .unwrap_or_default();
-    for device in &mut header.devices {
-        device
-            .extra
-            .insert("replayed_driver".into(), device.driver.clone().into());
-        device.driver = "replay".into();
-    }
-    header
 }
 
 pub(crate) type ResultsComparison = (Option<ResultsDifference>, Option<String>, Option<PathBuf>);

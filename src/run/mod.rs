@@ -2,6 +2,7 @@
 //! the session file it records into, the truth it writes, its progress bar, and what an
 //! interrupted run leaves (`resume`).
 
+pub mod replay;
 pub mod resume;
 
 use std::path::{Path, PathBuf};

@@ -7,6 +7,7 @@ pub mod config;
 pub mod devices;
 pub mod hil_source;
 pub mod plan;
+pub mod replay;
 pub mod report;
 pub mod run;
 pub mod sequence;
@@ -52,6 +53,10 @@ impl Kind for Hexapod {
         options: &RunOptions,
     ) -> anyhow::Result<KindRunOutput> {
         run::resume(dir, config, options).map(from_run)
+    }
+
+    fn own_replay(&self) -> Option<crate::run::replay::ReplaySequence> {
+        Some(replay::replay)
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {

@@ -6,6 +6,7 @@ pub mod check;
 pub mod config;
 pub mod hil_source;
 pub mod plan;
+pub mod replay;
 pub mod report;
 pub mod run;
 pub mod sequence;
@@ -51,6 +52,10 @@ impl Kind for ProbeInstall {
         options: &RunOptions,
     ) -> anyhow::Result<KindRunOutput> {
         run::resume(dir, config, options).map(from_run)
+    }
+
+    fn own_replay(&self) -> Option<crate::run::replay::ReplaySequence> {
+        Some(replay::replay)
     }
 
     fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
