@@ -190,7 +190,7 @@ fn error_text(e: &anyhow::Error) -> String {
 fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     geocal::method::SolveSettings {
         huber: huber.map(|threshold_sigma| geocal::solve::robust::Huber { threshold_sigma }),
-        effects: Vec::new(),
+        effects: None,
     }
 }
 

@@ -26,7 +26,7 @@ fn truth(name: &str) -> Value {
 
 fn solve(name: &str, effects: Vec<EffectKind>) -> MultilaterationResults {
     let settings = SolveSettings {
-        effects,
+        effects: geocal::diagnose::correct::fit(effects),
         ..Default::default()
     };
     let results = geocal::kinds::solve_file(&session_dir(name).join("session.mcap"), &settings)

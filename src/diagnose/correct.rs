@@ -3,6 +3,7 @@
 //! their contribution, and the covariance their uncertainty adds to the points.
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix6, Vector3, Vector6};
 
@@ -11,23 +12,10 @@ use super::effects::{effect_by_name, EffectKind, EffectModel, Geometry};
 use super::locate::best_step;
 use super::stats::{Basis, RANK_TOL};
 use super::{joint_fit, DiagnoseError};
+pub use crate::method::effects::EffectCorrection;
+use crate::method::effects::EffectsFit;
 use crate::session::reader::Session;
 use crate::solve::multilateration::{generator, solve, SolveOptions};
-
-/// What modelling the effects changes in the calibration.
-#[derive(Debug, Clone)]
-pub struct EffectCorrection {
-    /// Per recorded length (the extraction's measurement order): the effects' fitted
-    /// contribution, to be taken off the measured length (m).
-    pub length_correction_m: Vec<f64>,
-    /// Effect name → parameter name → value, with `<parameter>.sigma` beside each.
-    pub effects: BTreeMap<String, BTreeMap<String, f64>>,
-    /// Number of effect parameters fitted (they take degrees of freedom from χ²).
-    pub parameters: usize,
-    /// Covariance the effects' uncertainty adds to the points (3n x 3n, point-major, in the
-    /// points' inner-constraint datum).
-    pub point_covariance_m2: DMatrix<f64>,
-}
 
 #[derive(Debug, thiserror::Error)]
 pub enum CorrectionError {
@@ -44,7 +32,7 @@ pub enum CorrectionError {
 }
 
 /// Parse a comma-separated list of effect names (unknown names list the known ones).
-pub fn parse_effects(names: &[String]) -> Result<Vec<EffectKind>, CorrectionError> {
+pub fn parse_effects(names: &[String]) -> Result<Option<Arc<dyn EffectsFit>>, CorrectionError> {
     let mut kinds = Vec::new();
     for name in names.iter().flat_map(|n| n.split(',')) {
         let name = name.trim();
@@ -71,7 +59,7 @@ pub fn parse_effects(names: &[String]) -> Result<Vec<EffectKind>, CorrectionErro
             kinds.push(kind);
         }
     }
-    Ok(kinds)
+    Ok(fit(kinds))
 }
 
 /// Fit `kinds` jointly with the geometry of a multilateration session.
@@ -180,4 +168,27 @@ fn without_rigid_motion(data: &Data, moved: &[f64]) -> DVector<f64> {
         let g = generator(&nominal[k / 3], &centre);
         moved[k] - (g * motion)[k % 3]
     })
+}
+
+/// The diagnosis's effect models as the solve fits them (`SolveSettings::effects`): None when
+/// no effect is named.
+pub fn fit(kinds: Vec<EffectKind>) -> Option<Arc<dyn EffectsFit>> {
+    (!kinds.is_empty()).then(|| Arc::new(FittedEffects(kinds)) as Arc<dyn EffectsFit>)
+}
+
+/// Effects of the diagnosis's library, fitted jointly with the geometry.
+#[derive(Debug)]
+pub struct FittedEffects(pub Vec<EffectKind>);
+
+impl EffectsFit for FittedEffects {
+    fn names(&self) -> Vec<&'static str> {
+        self.0.iter().map(|k| k.name()).collect()
+    }
+
+    fn correction(
+        &self,
+        session: &Session,
+    ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>> {
+        correction(session, &self.0).map_err(Into::into)
+    }
 }

@@ -229,7 +229,7 @@ fn corrected_calibration(
     }
     let solve_with = |effects: Vec<EffectKind>| {
         let settings = crate::method::SolveSettings {
-            effects,
+            effects: correct::fit(effects),
             ..Default::default()
         };
         crate::method::multilateration::solve(session, &settings).map_err(|e| e.to_string())

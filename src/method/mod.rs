@@ -1,6 +1,7 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind (`kinds::registry::solve_session` picks it from the session's kind).
 
+pub mod effects;
 pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
@@ -101,10 +102,18 @@ impl Results {
 }
 
 /// Choices a user makes when solving; a replay with the same settings gives the same results.
-#[derive(Debug, Clone, Default, PartialEq)]
+#[derive(Debug, Clone, Default)]
 pub struct SolveSettings {
     /// Down-weight outlier lengths with a Huber loss (threshold in sigmas).
     pub huber: Option<crate::solve::robust::Huber>,
-    /// Unmodelled effects (the diagnosis's names) fitted jointly with the geometry.
-    pub effects: Vec<crate::diagnose::effects::EffectKind>,
+    /// Unmodelled effects fitted jointly with the geometry (the diagnosis's models:
+    /// `diagnose::correct::parse_effects`); None: none.
+    pub effects: Option<std::sync::Arc<dyn effects::EffectsFit>>,
+}
+
+impl PartialEq for SolveSettings {
+    fn eq(&self, other: &Self) -> bool {
+        let names = |s: &SolveSettings| s.effects.as_ref().map(|e| e.names());
+        self.huber == other.huber && names(self) == names(other)
+    }
 }

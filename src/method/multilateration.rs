@@ -30,7 +30,7 @@ pub enum MultilaterationError {
     #[error("no settled point windows in the session ({dropped} dropped)")]
     NoPoints { dropped: usize },
     #[error(transparent)]
-    Effects(#[from] crate::diagnose::correct::CorrectionError),
+    Effects(Box<dyn std::error::Error + Send + Sync>),
     #[error("multilateration: {0}")]
     Solve(#[from] SolveError),
 }
@@ -170,10 +170,10 @@ pub fn solve_detailed(
     let mut problem = Problem::build(&extraction);
     // Effects modelled: the lengths corrected by their jointly fitted contribution (the
     // geometry of the joint optimum is the solve of the corrected lengths).
-    let correction = if settings.effects.is_empty() {
-        None
-    } else {
-        let c = crate::diagnose::correct::correction(session, &settings.effects)?;
+    let correction = if let Some(effects) = &settings.effects {
+        let c = effects
+            .correction(session)
+            .map_err(MultilaterationError::Effects)?;
         for (obs, dl) in problem
             .problem
             .observations
@@ -183,6 +183,8 @@ pub fn solve_detailed(
             obs.length_m -= dl;
         }
         Some(c)
+    } else {
+        None
     };
     let (mut solution, robust) = match settings.huber {
         None => (adjust(&problem.problem, &SolveOptions::default())?, None),
