@@ -76,11 +76,11 @@ pub enum DataError {
     #[error("no settled point windows in the session ({0} dropped)")]
     NoPoints(usize),
     #[error(
-        "session kind `{0}` cannot be diagnosed: `geocal diagnose` supports `multilateration` \
+        "session kind `{0}` cannot be diagnosed: `geocal diagnose` supports `{1}` \
          sessions only (its effect library models tracer lengths); for `{0}` use `geocal solve` \
          (fit, χ²/dof and residuals) and `geocal check` (what the plan can identify)"
     )]
-    Kind(String),
+    Kind(String, String),
 }
 
 /// Linear interpolation of the logged air at t (held constant outside the log).
@@ -123,16 +123,19 @@ fn interpolate(series: &[(f64, f64)], t_s: f64) -> Option<f64> {
     })
 }
 
-/// The session kinds `geocal diagnose` supports.
-pub const SUPPORTED_KINDS: [&str; 1] = ["multilateration"];
-
-/// A clear error for a session kind the diagnosis has no model for.
+/// A clear error for a session kind the diagnosis has no model for (the kind says,
+/// `Kind::diagnosable`).
 pub fn check_kind(kind: &str) -> Result<(), DataError> {
-    if SUPPORTED_KINDS.contains(&kind) {
-        Ok(())
-    } else {
-        Err(DataError::Kind(kind.to_string()))
+    if crate::kinds::kind_named(kind).is_some_and(|k| k.diagnosable()) {
+        return Ok(());
     }
+    let supported = crate::kinds::KINDS
+        .iter()
+        .filter(|k| k.diagnosable())
+        .map(|k| k.name())
+        .collect::<Vec<_>>()
+        .join("`, `");
+    Err(DataError::Kind(kind.to_string(), supported))
 }
 
 impl Data {

@@ -77,6 +77,11 @@ pub trait Kind: Sync {
         None
     }
 
+    /// Whether `geocal diagnose` has effect models for this kind's sessions.
+    fn diagnosable(&self) -> bool {
+        false
+    }
+
     /// Host the configuration's device emulators on their own (`geocal simulate`).
     fn simulate(
         &self,

@@ -48,6 +48,10 @@ impl Kind for Multilateration {
         )?))
     }
 
+    fn diagnosable(&self) -> bool {
+        true
+    }
+
     fn simulate(&self, path: &Path, options: &SimulateOptions) -> anyhow::Result<()> {
         tracer_plan::simulate(path, options)
     }
