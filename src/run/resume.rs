@@ -253,3 +253,28 @@ pub fn load_stored_config<C: PartialEq>(
         ),
     }
 }
+
+/// The configuration to resume with (`load_stored_config`) and the interrupted recording of
+/// `dir`, which must be of `kind` and have been recorded with the configuration's plan
+/// (`plan_of`, as the session header stores it).
+pub fn read_interrupted_run<C: PartialEq, P: serde::Serialize>(
+    dir: &Path,
+    given: Option<&Path>,
+    kind: &str,
+    load: impl Fn(&Path) -> anyhow::Result<C>,
+    plan_of: impl Fn(&C) -> &P,
+) -> anyhow::Result<(C, Interruption)> {
+    let config = load_stored_config(dir, given, load)?;
+    let interruption = Interruption::read(dir)?;
+    let header = &interruption.session.header;
+    if header.kind != kind
+        || header.plan != serde_json::to_value(plan_of(&config)).unwrap_or_default()
+    {
+        bail!(
+            "{} was recorded with another plan than the configuration's (kind {:?})",
+            dir.display(),
+            header.kind
+        );
+    }
+    Ok((config, interruption))
+}

@@ -100,18 +100,13 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
-    let config =
-        crate::run::resume::load_stored_config(dir, config, |p| Ok(HexapodConfig::load(p)?))?;
-    let mut interruption = Interruption::read(dir)?;
-    let header = &interruption.session.header;
-    if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
-    {
-        anyhow::bail!(
-            "{} was recorded with another plan than the configuration's (kind {:?})",
-            dir.display(),
-            header.kind
-        );
-    }
+    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+        dir,
+        config,
+        KIND,
+        |p| Ok(HexapodConfig::load(p)?),
+        |c: &HexapodConfig| &c.plan,
+    )?;
     let plan = HexapodPlan::from_config(&config);
     let pose = first_unfinished_pose(&plan, &interruption.session);
     let commanded = commanded_poses(&interruption.session);

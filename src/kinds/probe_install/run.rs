@@ -96,18 +96,13 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
-    let config =
-        crate::run::resume::load_stored_config(dir, config, |p| Ok(ProbeInstallConfig::load(p)?))?;
-    let mut interruption = Interruption::read(dir)?;
-    let header = &interruption.session.header;
-    if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
-    {
-        anyhow::bail!(
-            "{} was recorded with another plan than the configuration's (kind {:?})",
-            dir.display(),
-            header.kind
-        );
-    }
+    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+        dir,
+        config,
+        KIND,
+        |p| Ok(ProbeInstallConfig::load(p)?),
+        |c: &ProbeInstallConfig| &c.plan,
+    )?;
     let plan = ProbeInstallPlan::from_config(&config);
     let session = &interruption.session;
     let posture = first_unfinished_posture(&plan, session);

@@ -238,18 +238,13 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<SphereRunOutput> {
-    let config =
-        crate::run::resume::load_stored_config(dir, config, |p| Ok(RotarySphereConfig::load(p)?))?;
-    let mut interruption = Interruption::read(dir)?;
-    let header = &interruption.session.header;
-    if header.kind != KIND || header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
-    {
-        anyhow::bail!(
-            "{} was recorded with another plan than the configuration's (kind {:?})",
-            dir.display(),
-            header.kind
-        );
-    }
+    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+        dir,
+        config,
+        KIND,
+        |p| Ok(RotarySphereConfig::load(p)?),
+        |c: &RotarySphereConfig| &c.plan,
+    )?;
     let plan = SpherePlan::from_config(&config.plan);
     let first = first_unfinished_sphere(&plan, &interruption.session);
     interruption.set_aside()?;
