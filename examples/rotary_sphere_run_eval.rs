@@ -60,6 +60,7 @@ fn main() -> anyhow::Result<()> {
                     truth: None,
                     progress: false,
                     settings: Default::default(),
+                    control: Default::default(),
                 },
             )?;
             ms += start.elapsed().as_secs_f64() * 1e3;

@@ -106,6 +106,7 @@ fn evaluate(config: &Config, out_dir: &Path) -> anyhow::Result<Row> {
             truth: Some(truth_path.clone()),
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )?;
     let truth: Value = serde_json::from_slice(&std::fs::read(&truth_path)?)?;

@@ -212,6 +212,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 truth,
                 progress: std::io::stderr().is_terminal(),
                 settings: settings(huber),
+                control: Default::default(),
             };
             let flags = geocal::kinds::RunFlags { assume_yes: yes };
             let output = match (resume, config) {

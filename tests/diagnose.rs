@@ -355,6 +355,7 @@ fn reads_only_the_session() {
             truth: Some(dir.path().join("truth.json")),
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");

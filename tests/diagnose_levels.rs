@@ -140,6 +140,7 @@ fn against_twin(seed: u64, effects: &str) -> geocal::diagnose::Diagnosis {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");

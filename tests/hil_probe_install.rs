@@ -205,6 +205,7 @@ fn real_ports_without_hil_are_opened_by_path() {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run")

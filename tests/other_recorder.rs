@@ -28,6 +28,7 @@ fn small_run(dir: &Path) -> (PathBuf, Results) {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");

@@ -36,6 +36,7 @@ fn reported_uncertainty_matches_actual_error_over_seeds() {
                 truth: Some(truth_path.clone()),
                 progress: false,
                 settings: Default::default(),
+                control: Default::default(),
             },
         )
         .expect("run");

@@ -46,6 +46,7 @@ fn options(dir: &Path) -> RunOptions {
         truth: Some(dir.join("truth.json")),
         progress: false,
         settings: Default::default(),
+        control: Default::default(),
     }
 }
 

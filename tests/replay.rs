@@ -23,6 +23,7 @@ fn record(config_text: &str, dir: &Path) -> RunOutput {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("recorded run")
@@ -250,6 +251,7 @@ fn record_kind(config_text: &str, dir: &Path) -> RunOutput {
                 truth: None,
                 progress: false,
                 settings: Default::default(),
+                control: Default::default(),
             },
         )
         .expect("recorded run");
@@ -267,6 +269,7 @@ fn record_kind(config_text: &str, dir: &Path) -> RunOutput {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("recorded run")

@@ -34,6 +34,7 @@ fn run_text(text: &str, dir: &Path) -> (SphereRunOutput, Value) {
             truth: Some(truth_path.clone()),
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");
@@ -418,6 +419,7 @@ fn a_probe_that_never_answers_properly_ends_the_run_with_its_session_kept() {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .err()

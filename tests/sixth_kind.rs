@@ -53,6 +53,7 @@ fn a_sixth_kind_runs_through_the_registry_with_one_line() {
         truth: None,
         progress: false,
         settings: Default::default(),
+        control: Default::default(),
     };
     let out = kind
         .run(&config, &options, &RunFlags::default())

@@ -46,7 +46,14 @@ pub struct Emulators {
 
 /// Build the devices; must run inside the tokio runtime that will run the sequencer (the
 /// drivers' reader tasks and the emulators are spawned on it).
-pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
+/// A real run's operator comes from `operator` when given (the daemon's prompts), else from
+/// the console.
+pub async fn build(
+    config: &Config,
+    plan: &Plan,
+    epoch_ns: u64,
+    operator: Option<&crate::sequencer::control::OperatorSource>,
+) -> anyhow::Result<BuiltDevices> {
     let all_sim = config.devices.tracer.driver == DriverKind::Sim
         && matches!(
             config.devices.machine.driver,
@@ -62,7 +69,7 @@ pub async fn build(config: &Config, plan: &Plan, epoch_ns: u64) -> anyhow::Resul
     } else if all_sim {
         build_simulated(config, plan, epoch_ns)
     } else {
-        build_real(config, plan, epoch_ns).await
+        build_real(config, plan, epoch_ns, operator).await
     }
 }
 
@@ -250,12 +257,20 @@ async fn build_emulated(
     })
 }
 
-async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Result<BuiltDevices> {
+async fn build_real(
+    config: &Config,
+    plan: &Plan,
+    _epoch_ns: u64,
+    operator: Option<&crate::sequencer::control::OperatorSource>,
+) -> anyhow::Result<BuiltDevices> {
     let _ = plan;
     // First, so that a run without a console fails before it touches a device.
-    let operator = crate::devices::operator::ConsoleOperator::stdin(
-        &config.operator.clone().unwrap_or_default(),
-    )?;
+    let operator: Box<dyn Operator> = match operator {
+        Some(source) => source(),
+        None => Box::new(crate::devices::operator::ConsoleOperator::stdin(
+            &config.operator.clone().unwrap_or_default(),
+        )?),
+    };
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);
@@ -299,7 +314,7 @@ async fn build_real(config: &Config, plan: &Plan, _epoch_ns: u64) -> anyhow::Res
             tracer,
             environment,
             machine,
-            operator: Box::new(operator),
+            operator,
             rotary,
         },
         clock: Arc::new(SystemClock),

@@ -367,6 +367,7 @@ pub fn simulate_twin(
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .with_context(|| format!("simulating the twin from {}", config_path.display()))?;

@@ -20,6 +20,8 @@ pub struct RunOptions {
     /// Show a progress bar.
     pub progress: bool,
     pub settings: SolveSettings,
+    /// Cancellation, live tap, progress and operator for a run driven by the daemon.
+    pub control: crate::sequencer::control::RunControl,
 }
 
 pub struct RunOutput {
@@ -38,11 +40,16 @@ pub(crate) fn run_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 }
 
 /// Create the output directory and the session file in it: (its path, its recorder).
-pub(crate) fn create_session(out_dir: &Path) -> anyhow::Result<(PathBuf, Recorder)> {
+pub(crate) fn create_session(options: &RunOptions) -> anyhow::Result<(PathBuf, Recorder)> {
+    let out_dir = &options.out_dir;
     std::fs::create_dir_all(out_dir)
         .with_context(|| format!("creating output directory {}", out_dir.display()))?;
     let session_path = out_dir.join(crate::run::resume::SESSION_FILE);
-    let recorder = Recorder::create(&session_path, RecorderOptions::default())
+    let recorder_options = RecorderOptions {
+        tap: options.control.tap.clone(),
+        ..RecorderOptions::default()
+    };
+    let recorder = Recorder::create(&session_path, recorder_options)
         .with_context(|| format!("creating {}", session_path.display()))?;
     Ok((session_path, recorder))
 }

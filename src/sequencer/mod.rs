@@ -10,6 +10,7 @@
 //! and the move commanded again; faults the drivers recovered from by themselves (CRC
 //! failures, reconnects) are recorded as `fault` events too.
 
+pub mod control;
 pub(crate) mod kind_faults;
 pub mod passive;
 
@@ -65,6 +66,8 @@ pub enum SequencerError {
         commanded_rad: f64,
         waited_s: f64,
     },
+    #[error(transparent)]
+    Cancelled(#[from] crate::sequencer::control::Cancelled),
 }
 
 /// Where a resumed run continues (`geocal run --resume`, src/run/resume.rs): the first

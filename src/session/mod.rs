@@ -7,6 +7,7 @@ pub mod messages;
 pub mod reader;
 pub mod recorder;
 pub mod repair;
+pub mod tap;
 
 pub use reader::{
     read_session, read_session_bytes, Completeness, DamagedChunk, ReadError, Session, Stamped,

@@ -1646,6 +1646,7 @@ mod tests {
                     chunk_size: 2048,
                     flush_interval: std::time::Duration::from_secs(3600),
                     compression: Compression::Zstd,
+                    tap: Default::default(),
                 },
             )
             .unwrap();

@@ -21,6 +21,7 @@ use super::messages::{
     SCHEMA_SESSION, SCHEMA_TRACER, TOPIC_EVENT, TOPIC_SESSION,
 };
 use super::reader::RawMessage;
+use super::tap::{Tap, TapChannel, TappedMessage};
 
 /// Chunk compression of the recorded file.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
@@ -38,6 +39,8 @@ pub struct RecorderOptions {
     /// Wall time between chunk closes + fsync: the most a killed process can lose.
     pub flush_interval: Duration,
     pub compression: Compression,
+    /// Receives a copy of every message written (live view, progress).
+    pub tap: Tap,
 }
 
 impl Default for RecorderOptions {
@@ -46,6 +49,7 @@ impl Default for RecorderOptions {
             chunk_size: 1024 * 1024,
             flush_interval: Duration::from_secs(1),
             compression: Compression::Zstd,
+            tap: Tap::default(),
         }
     }
 }
@@ -283,6 +287,8 @@ impl Recorder {
             error: None,
             dirty: false,
             last_sync: Instant::now(),
+            tap: options.tap.clone(),
+            tap_channels: HashMap::new(),
         };
         let thread = std::thread::Builder::new()
             .name("geocal-recorder".into())
@@ -407,6 +413,9 @@ struct WriterThread {
     /// Messages written since the last flush.
     dirty: bool,
     last_sync: Instant,
+    tap: Tap,
+    /// Every channel as a tap sees it, by id (kept only when tapped).
+    tap_channels: HashMap<u16, Arc<TapChannel>>,
 }
 
 /// Checkpoints (`RecorderHandle::checkpoint`) closer together than this are merged: a real
@@ -686,7 +695,39 @@ impl WriterThread {
                 },
                 &self.buf,
             )
-            .map_err(WriteFailure::Mcap)
+            .map_err(WriteFailure::Mcap)?;
+        if let (Some(tap), Some(channel)) = (&self.tap.0, self.tap_channels.get(&channel_id)) {
+            tap.message(&TappedMessage {
+                channel,
+                sequence,
+                log_time_ns,
+                publish_time_ns: publish_time,
+                data: &self.buf,
+            });
+        }
+        Ok(())
+    }
+
+    /// Remember a new channel for the tap (nothing without one).
+    fn note_channel(
+        &mut self,
+        id: u16,
+        topic: &str,
+        message_encoding: &str,
+        schema: Option<(&str, &str, &[u8])>,
+    ) {
+        if self.tap.0.is_none() {
+            return;
+        }
+        self.tap_channels.insert(
+            id,
+            Arc::new(TapChannel {
+                id,
+                topic: topic.to_owned(),
+                message_encoding: message_encoding.to_owned(),
+                schema: schema.map(|(n, e, d)| (n.to_owned(), e.to_owned(), d.to_vec())),
+            }),
+        );
     }
 
     /// The channel of a copied message: geocal's own schema for its own topics (so that
@@ -735,6 +776,12 @@ impl WriterThread {
             )
             .map_err(WriteFailure::Mcap)?;
         self.by_topic.insert(m.channel.topic.clone(), id);
+        let schema = m
+            .channel
+            .schema
+            .as_ref()
+            .map(|(n, e, d)| (n.as_str(), e.as_str(), d.as_slice()));
+        self.note_channel(id, &m.channel.topic, &m.channel.message_encoding, schema);
         Ok(id)
     }
 
@@ -758,6 +805,13 @@ impl WriterThread {
             .add_channel(self.schemas[slot], topic, "json", &Default::default())
             .map_err(WriteFailure::Mcap)?;
         self.by_topic.insert(topic.to_owned(), id);
+        let (name, text) = kind.name_and_text();
+        self.note_channel(
+            id,
+            topic,
+            "json",
+            Some((name, "jsonschema", text.as_bytes())),
+        );
         Ok(id)
     }
 }
@@ -779,9 +833,16 @@ impl WriterThread {
                 id
             }
         };
-        writer
+        let id = writer
             .add_channel(schema_id, topic, "json", &Default::default())
-            .map_err(WriteFailure::Mcap)
+            .map_err(WriteFailure::Mcap)?;
+        self.note_channel(
+            id,
+            topic,
+            "json",
+            Some((schema.name, "jsonschema", schema.text.as_bytes())),
+        );
+        Ok(id)
     }
 }
 
@@ -817,7 +878,55 @@ mod tests {
             chunk_size: 64 * 1024,
             flush_interval,
             compression,
+            tap: Default::default(),
         }
+    }
+
+    /// Keeps every tapped message as (topic, schema name, log time, bytes).
+    #[derive(Default)]
+    struct Collect(std::sync::Mutex<Vec<(String, Option<String>, u64, Vec<u8>)>>);
+
+    impl crate::session::tap::MessageTap for Collect {
+        fn message(&self, m: &TappedMessage<'_>) {
+            let schema = m.channel.schema.as_ref().map(|(name, _, _)| name.clone());
+            if let Ok(mut all) = self.0.lock() {
+                all.push((
+                    m.channel.topic.clone(),
+                    schema,
+                    m.log_time_ns,
+                    m.data.to_vec(),
+                ));
+            }
+        }
+    }
+
+    #[test]
+    fn a_tap_sees_every_message_as_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("tap.mcap");
+        let collect = Arc::new(Collect::default());
+        let options = RecorderOptions {
+            tap: Tap::new(collect.clone()),
+            ..opts(Compression::Zstd, Duration::from_secs(1))
+        };
+        let rec = Recorder::create(&path, options).unwrap();
+        let h = rec.handle();
+        h.session(&header(), 1);
+        for i in 0..50u64 {
+            h.tracer("tracer0", &tracer_sample(i), 10 + i);
+        }
+        h.event(&events()[0], 100);
+        rec.finish().unwrap();
+        let (_, raw) = crate::session::reader::read_session_raw(&path).unwrap();
+        let tapped = collect.0.lock().unwrap();
+        assert_eq!(tapped.len(), raw.len());
+        for (t, r) in tapped.iter().zip(&raw) {
+            assert_eq!(t.0, r.channel.topic);
+            assert_eq!(t.1, r.channel.schema.as_ref().map(|(n, _, _)| n.clone()));
+            assert_eq!(t.2, r.log_time_ns);
+            assert_eq!(t.3, r.data);
+        }
+        assert_eq!(tapped[1].0, "/tracer/tracer0/range");
     }
 
     #[test]

@@ -112,6 +112,7 @@ pub fn run_with_truth(config_text: &str, dir: &Path) -> (RunOutput, Value) {
             truth: Some(truth_path.clone()),
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");
@@ -228,6 +229,7 @@ pub fn record_session(config_text: &str, dir: &Path) -> std::path::PathBuf {
             truth: None,
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run");
@@ -483,6 +485,7 @@ pub fn run_kind(config_text: &str, dir: &Path, file_name: &str) -> (RunOutput, V
             truth: Some(truth_path.clone()),
             progress: false,
             settings: Default::default(),
+            control: Default::default(),
         },
     )
     .expect("run")

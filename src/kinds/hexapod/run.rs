@@ -173,7 +173,7 @@ fn execute(
         .map_or_else(system_now_ns, |c| c.interruption.epoch_ns(simulated));
     let runtime = crate::run::run_runtime()?;
     let built = runtime.block_on(super::devices::build(config, epoch_ns))?;
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
     let mut first_pose = 0;
@@ -217,7 +217,9 @@ fn execute(
     let sequencer = HexapodSequencer::new(&plan, built.devices, handle, built.clock.clone())
         .with_poll_interval(poll_s)
         .resume_at(first_pose);
-    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
+    let summary = runtime.block_on(options.control.until_cancelled(
+        sequencer.run(&mut |done: u64, total: u64| options.control.report_progress(done, total)),
+    ));
     if let Some(hosted) = &built.hosted {
         tracing::info!(stats = ?hosted.emulator.stats(), "Modbus hexapod emulator");
     }

@@ -225,7 +225,7 @@ fn execute(
         .map_or_else(system_now_ns, |c| c.interruption.epoch_ns(simulated));
     let runtime = crate::run::run_runtime()?;
     let built = runtime.block_on(build(config, epoch_ns))?;
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
     let mut first = (0, 0);
@@ -263,7 +263,9 @@ fn execute(
     }
     let sequencer = ProbeInstallSequencer::new(&plan, built.devices, handle, built.clock.clone())
         .resume_at(first.0, first.1);
-    let summary = runtime.block_on(sequencer.run(&mut |_: u64, _: u64| {}));
+    let summary = runtime.block_on(options.control.until_cancelled(
+        sequencer.run(&mut |done: u64, total: u64| options.control.report_progress(done, total)),
+    ));
     drop(built.emulators);
     if let (Some(path), Some(world)) = (&options.truth, &built.world) {
         let truth = world

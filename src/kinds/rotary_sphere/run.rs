@@ -294,7 +294,7 @@ fn execute(
         .map_or_else(system_now_ns, |(c, _)| c.epoch_ns(simulated));
     let runtime = crate::run::run_runtime()?;
     let built = runtime.block_on(build(config, &plan, epoch_ns))?;
-    let (session_path, recorder) = crate::run::create_session(&options.out_dir)?;
+    let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut first_sphere = (0, 0);
     match continuation.as_mut() {
@@ -330,10 +330,15 @@ fn execute(
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
+        options.control.report_progress(done, total);
     };
     let sequencer = SphereSequencer::new(&plan, built.devices, handle, built.clock.clone())
         .resume_at(first_sphere);
-    let summary = runtime.block_on(sequencer.run(&mut progress));
+    let summary = runtime.block_on(
+        options
+            .control
+            .until_cancelled(sequencer.run(&mut progress)),
+    );
     let emulator_requests = built.emulator.as_ref().map(|e| {
         e.stats()
             .requests

@@ -48,6 +48,8 @@ pub enum SphereRunError {
         commanded_rad: f64,
         waited_s: f64,
     },
+    #[error(transparent)]
+    Cancelled(#[from] crate::sequencer::control::Cancelled),
 }
 
 #[derive(Debug, Default, Clone, PartialEq)]

@@ -35,11 +35,16 @@ pub(crate) fn execute(
         .as_ref()
         .map_or_else(system_now_ns, |c| c.epoch_ns(config));
     let runtime = run_runtime()?;
-    let built = runtime.block_on(crate::devices::build(config, &plan, epoch_ns))?;
+    let built = runtime.block_on(crate::devices::build(
+        config,
+        &plan,
+        epoch_ns,
+        options.control.operator.as_ref(),
+    ))?;
     if let Some(c) = continuation.as_deref() {
         c.prepare_world(config, &built)?;
     }
-    let (session_path, recorder) = create_session(&options.out_dir)?;
+    let (session_path, recorder) = create_session(options)?;
     let handle = recorder.handle();
     let resume_at = match continuation.as_deref_mut() {
         Some(c) => Some(c.record_start(&handle, built.clock.as_ref())),
@@ -53,6 +58,7 @@ pub(crate) fn execute(
     let mut progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
+        options.control.report_progress(done, total);
     };
     let mut sequencer = Sequencer::new(&plan, built.devices, handle, built.clock.clone());
     if let Some(at) = resume_at {
@@ -62,7 +68,11 @@ pub(crate) fn execute(
         let passive = config.devices.machine.passive.clone().unwrap_or_default();
         sequencer = sequencer.passive(passive.hint_tolerance_m);
     }
-    let summary = runtime.block_on(sequencer.run(&mut progress));
+    let summary = runtime.block_on(
+        options
+            .control
+            .until_cancelled(sequencer.run(&mut progress)),
+    );
     // Stop the emulators of an emulated run.
     drop(built.emulators);
     bar.finish_and_clear();
