@@ -882,9 +882,11 @@ mod tests {
         }
     }
 
-    /// Keeps every tapped message as (topic, schema name, log time, bytes).
+    /// A tapped message as (topic, schema name, log time, bytes).
+    type Kept = (String, Option<String>, u64, Vec<u8>);
+
     #[derive(Default)]
-    struct Collect(std::sync::Mutex<Vec<(String, Option<String>, u64, Vec<u8>)>>);
+    struct Collect(std::sync::Mutex<Vec<Kept>>);
 
     impl crate::session::tap::MessageTap for Collect {
         fn message(&self, m: &TappedMessage<'_>) {
