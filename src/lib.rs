@@ -14,6 +14,7 @@ pub mod plan;
 pub mod replay;
 pub mod run;
 pub mod sequencer;
+pub mod serve;
 pub mod session;
 pub mod sim;
 pub mod solve;

@@ -144,17 +144,89 @@ enum Command {
         #[arg(long)]
         json: bool,
     },
+    /// The acquisition daemon: queue and run jobs, keep them in a catalog that survives
+    /// crashes, and serve the HTTP control API (docs/serve.md). Stops cleanly on SIGTERM.
+    Serve {
+        /// The daemon's configuration (TOML; every key optional).
+        #[arg(long, value_name = "FILE")]
+        config: Option<PathBuf>,
+        /// Jobs, their files and the catalog (overrides the configuration's data_dir).
+        #[arg(long, value_name = "DIR")]
+        data_dir: Option<PathBuf>,
+        /// The API's address (default 127.0.0.1:7878; beyond loopback a token_file is required).
+        #[arg(long, value_name = "ADDR")]
+        listen: Option<std::net::SocketAddr>,
+        /// The bearer token's file (overrides the configuration's token_file).
+        #[arg(long, value_name = "FILE")]
+        token_file: Option<PathBuf>,
+    },
+    /// Speak to a running daemon: submit a plan, list and follow jobs, acknowledge prompts,
+    /// fetch results and sessions.
+    Client {
+        /// The daemon's URL.
+        #[arg(long, env = "GEOCAL_SERVER", default_value = "http://127.0.0.1:7878")]
+        server: String,
+        /// The bearer token's file (needed when the daemon has one).
+        #[arg(long, env = "GEOCAL_TOKEN_FILE", value_name = "FILE")]
+        token_file: Option<PathBuf>,
+        #[command(subcommand)]
+        command: ClientCommand,
+    },
+}
+
+#[derive(Subcommand)]
+enum ClientCommand {
+    /// Submit a plan configuration as a run job; print its id (and follow it with --follow).
+    Submit {
+        config: PathBuf,
+        /// Follow the job's progress until it ends; exit non-zero unless it succeeded.
+        #[arg(long)]
+        follow: bool,
+    },
+    /// List every job.
+    Jobs,
+    /// Show one job as JSON.
+    Status { id: i64 },
+    /// Follow a job until it ends.
+    Follow { id: i64 },
+    /// Cancel a queued or running job.
+    Cancel { id: i64 },
+    /// Resume an interrupted or cancelled run.
+    Resume { id: i64 },
+    /// List the operator prompts waiting.
+    Prompts,
+    /// Acknowledge an operator prompt.
+    Ack { prompt: u64 },
+    /// Download a job's `results`, `session`, or another file it left (by name).
+    Fetch {
+        id: i64,
+        #[arg(default_value = "results")]
+        what: String,
+        #[arg(long, value_name = "FILE")]
+        out: Option<PathBuf>,
+    },
 }
 
 fn main() -> ExitCode {
-    tracing_subscriber::fmt()
-        .with_env_filter(
-            tracing_subscriber::EnvFilter::try_from_default_env()
-                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("warn")),
-        )
-        .with_writer(std::io::stderr)
-        .init();
-    match dispatch(Cli::parse().command) {
+    use std::io::IsTerminal;
+    let cli = Cli::parse();
+    // The daemon logs what it does (info), as JSON lines when a supervisor reads its output.
+    let default_level = if matches!(cli.command, Command::Serve { .. }) {
+        "info"
+    } else {
+        "warn"
+    };
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    let logger = tracing_subscriber::fmt()
+        .with_env_filter(filter)
+        .with_writer(std::io::stderr);
+    if matches!(cli.command, Command::Serve { .. }) && !std::io::stderr().is_terminal() {
+        logger.json().init();
+    } else {
+        logger.init();
+    }
+    match dispatch(cli.command) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprint!("{}", error_text(&e));
@@ -372,6 +444,32 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 None => print!("{text}"),
             }
         }
+        Command::Serve {
+            config,
+            data_dir,
+            listen,
+            token_file,
+        } => {
+            let mut serve_config = match config {
+                Some(path) => geocal::serve::ServeConfig::load(&path)?,
+                None => geocal::serve::ServeConfig::default(),
+            };
+            if let Some(dir) = data_dir {
+                serve_config.data_dir = dir;
+            }
+            if let Some(address) = listen {
+                serve_config.listen = address;
+            }
+            if let Some(path) = token_file {
+                serve_config.token_file = Some(path);
+            }
+            geocal::serve::serve(serve_config, kinds)?;
+        }
+        Command::Client {
+            server,
+            token_file,
+            command,
+        } => client(&server, token_file.as_deref(), command)?,
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;
             if json {
@@ -380,6 +478,61 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 println!("{}: valid", config.display());
                 print!("{}", check.text);
             }
+        }
+    }
+    Ok(())
+}
+
+fn client(
+    server: &str,
+    token_file: Option<&std::path::Path>,
+    command: ClientCommand,
+) -> anyhow::Result<()> {
+    use geocal::serve::client::{default_fetch_path, job_line, Client};
+    let client = Client::new(server, token_file)?;
+    let follow = |id: i64| -> anyhow::Result<()> {
+        let job = client.follow(id, |line| eprintln!("{line}"))?;
+        println!("{}", serde_json::to_string_pretty(&job)?);
+        if job.state != geocal::serve::catalog::JobState::Succeeded {
+            anyhow::bail!("job {id} ended {}", job.state.as_str());
+        }
+        Ok(())
+    };
+    match command {
+        ClientCommand::Submit {
+            config,
+            follow: and_follow,
+        } => {
+            let id = client.submit(&config)?;
+            println!("{id}");
+            if and_follow {
+                follow(id)?;
+            }
+        }
+        ClientCommand::Jobs => {
+            for job in client.jobs()? {
+                println!("{}", job_line(&job));
+            }
+        }
+        ClientCommand::Status { id } => {
+            println!("{}", serde_json::to_string_pretty(&client.job(id)?)?)
+        }
+        ClientCommand::Follow { id } => follow(id)?,
+        ClientCommand::Cancel { id } => client.cancel(id)?,
+        ClientCommand::Resume { id } => client.resume(id)?,
+        ClientCommand::Prompts => {
+            for prompt in client.prompts()? {
+                println!(
+                    "{:>4}  job {:<5} {}",
+                    prompt.id, prompt.job, prompt.instruction
+                );
+            }
+        }
+        ClientCommand::Ack { prompt } => client.ack(prompt)?,
+        ClientCommand::Fetch { id, what, out } => {
+            let out = out.unwrap_or_else(|| default_fetch_path(id, &what));
+            let bytes = client.fetch(id, &what, &out)?;
+            println!("{bytes} bytes to {}", out.display());
         }
     }
     Ok(())

@@ -107,6 +107,23 @@ fn metres(v: [f64; 3]) -> String {
     format!("({:.4}, {:.4}, {:.4}) m", v[0], v[1], v[2])
 }
 
+/// What the operator is asked to do to place the tracer on a station.
+pub fn place_station_instruction(index: usize, id: &str, hint_m: Option<[f64; 3]>) -> String {
+    let near = hint_m.map_or(String::new(), |h| format!(" near {}", metres(h)));
+    format!(
+        "place the tracer on station {id} (station {} of the plan){near}",
+        index + 1
+    )
+}
+
+/// What the operator is asked to do to mount a reflector.
+pub fn mount_target_instruction(target: &str, offset_m: [f64; 3]) -> String {
+    format!(
+        "mount reflector {target} at offset {} from the tool point",
+        metres(offset_m)
+    )
+}
+
 #[async_trait]
 impl Operator for ConsoleOperator {
     async fn place_station(
@@ -115,20 +132,11 @@ impl Operator for ConsoleOperator {
         id: &str,
         hint_m: Option<[f64; 3]>,
     ) -> Result<(), DeviceError> {
-        let near = hint_m.map_or(String::new(), |h| format!(" near {}", metres(h)));
-        self.ask(format!(
-            "place the tracer on station {id} (station {} of the plan){near}",
-            index + 1
-        ))
-        .await
+        self.ask(place_station_instruction(index, id, hint_m)).await
     }
 
     async fn mount_target(&mut self, target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError> {
-        self.ask(format!(
-            "mount reflector {target} at offset {} from the tool point",
-            metres(offset_m)
-        ))
-        .await
+        self.ask(mount_target_instruction(target, offset_m)).await
     }
 }
 

@@ -142,10 +142,13 @@ enum Command {
 pub struct RecorderHandle {
     tx: Sender<Command>,
     lost_after_close: Arc<AtomicU64>,
+    /// Messages sent and not yet written.
+    queued: Arc<AtomicU64>,
 }
 
 impl RecorderHandle {
     fn send(&self, payload: Payload, log_time_ns: u64) {
+        self.queued.fetch_add(1, Ordering::Relaxed);
         if self
             .tx
             .send(Command::Write {
@@ -153,9 +156,11 @@ impl RecorderHandle {
                 log_time_ns,
             })
             .is_err()
-            && self.lost_after_close.fetch_add(1, Ordering::Relaxed) == 0
         {
-            tracing::warn!("session recorder already finished: message dropped");
+            self.queued.fetch_sub(1, Ordering::Relaxed);
+            if self.lost_after_close.fetch_add(1, Ordering::Relaxed) == 0 {
+                tracing::warn!("session recorder already finished: message dropped");
+            }
         }
     }
 
@@ -266,7 +271,9 @@ impl Recorder {
                 source,
             })?;
         let (tx, rx) = mpsc::channel();
+        let queued = Arc::new(AtomicU64::new(0));
         let mut state = WriterThread {
+            queued: queued.clone(),
             path: path.to_owned(),
             writer: Some(writer),
             sync_file,
@@ -301,6 +308,7 @@ impl Recorder {
             handle: RecorderHandle {
                 tx,
                 lost_after_close: Arc::new(AtomicU64::new(0)),
+                queued,
             },
             thread: Some(thread),
             path: path.to_owned(),
@@ -414,6 +422,7 @@ struct WriterThread {
     dirty: bool,
     last_sync: Instant,
     tap: Tap,
+    queued: Arc<AtomicU64>,
     /// Every channel as a tap sees it, by id (kept only when tapped).
     tap_channels: HashMap<u16, Arc<TapChannel>>,
 }
@@ -546,6 +555,7 @@ impl WriterThread {
     }
 
     fn write(&mut self, payload: Payload, log_time_ns: u64) {
+        self.queued.fetch_sub(1, Ordering::Relaxed);
         if self.error.is_some() || self.writer.is_none() {
             self.stats.lost += 1;
             return;
@@ -703,6 +713,7 @@ impl WriterThread {
                 log_time_ns,
                 publish_time_ns: publish_time,
                 data: &self.buf,
+                queue_depth: self.queued.load(Ordering::Relaxed),
             });
         }
         Ok(())

@@ -21,6 +21,8 @@ pub struct TappedMessage<'a> {
     pub log_time_ns: u64,
     pub publish_time_ns: u64,
     pub data: &'a [u8],
+    /// Messages sent to the recorder and not yet written when this one was.
+    pub queue_depth: u64,
 }
 
 /// Called on the recorder's writer thread for every message written: it must return quickly

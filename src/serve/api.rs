@@ -1,0 +1,444 @@
+//! The HTTP/JSON control API, versioned under `/v1`, with its OpenAPI document generated
+//! from the handlers (`/v1/openapi.json`), Server-Sent Events and Prometheus metrics.
+
+use std::convert::Infallible;
+use std::net::SocketAddr;
+use std::sync::Arc;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{ConnectInfo, DefaultBodyLimit, Path, State};
+use axum::http::{header, HeaderMap, StatusCode};
+use axum::response::sse::{Event, KeepAlive, Sse};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures_util::{Stream, StreamExt};
+use serde::{Deserialize, Serialize};
+use utoipa::{OpenApi, ToSchema};
+
+use super::auth::{require_token, Token};
+use super::catalog::{JobFile, JobRecord, JobState, JobType};
+use super::jobs::{Daemon, JobError, ServerEvent};
+use super::prompts::PendingPrompt;
+use super::status::{DeviceStatus, Progress};
+
+/// A job as the API shows it.
+#[derive(Debug, Clone, Serialize, serde::Deserialize, ToSchema)]
+pub struct JobView {
+    pub id: i64,
+    /// The plan kind (multilateration, rotary_tracer, rotary_sphere, probe_install, hexapod).
+    pub kind: String,
+    #[serde(rename = "type")]
+    pub job_type: JobType,
+    pub state: JobState,
+    pub progress: Progress,
+    pub submitted_at: String,
+    pub started_at: Option<String>,
+    pub finished_at: Option<String>,
+    pub submitted_by: String,
+    pub config_sha256: Option<String>,
+    pub source_job: Option<i64>,
+    pub error: Option<String>,
+    pub resume: bool,
+    pub files: Vec<JobFile>,
+}
+
+/// A solve, diagnose or replay of an earlier job's session (`application/json`).
+#[derive(Debug, Clone, Deserialize, ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct SessionJob {
+    #[serde(rename = "type")]
+    pub job_type: JobType,
+    /// The job whose session to read.
+    pub session_of: i64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Created {
+    pub id: i64,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct StateReply {
+    pub id: i64,
+    pub state: JobState,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct ErrorBody {
+    pub error: String,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
+pub struct Health {
+    pub status: String,
+    pub version: String,
+    pub accepting_jobs: bool,
+    pub busy: bool,
+}
+
+/// An error as the API answers it: a status and `{"error": "..."}`.
+pub struct ApiError(StatusCode, String);
+
+impl IntoResponse for ApiError {
+    fn into_response(self) -> Response {
+        (self.0, Json(ErrorBody { error: self.1 })).into_response()
+    }
+}
+
+impl From<JobError> for ApiError {
+    fn from(e: JobError) -> Self {
+        let status = match &e {
+            JobError::BadRequest(_) => StatusCode::BAD_REQUEST,
+            JobError::NotFound(_) => StatusCode::NOT_FOUND,
+            JobError::Conflict(_) => StatusCode::CONFLICT,
+            JobError::ShuttingDown => StatusCode::SERVICE_UNAVAILABLE,
+            JobError::Internal(e) => {
+                tracing::error!("internal error: {e:#}");
+                StatusCode::INTERNAL_SERVER_ERROR
+            }
+        };
+        let message = match &e {
+            JobError::Internal(e) => super::jobs::error_chain(e),
+            other => other.to_string(),
+        };
+        ApiError(status, message)
+    }
+}
+
+type ApiResult<T> = Result<T, ApiError>;
+
+fn view(daemon: &Daemon, job: JobRecord) -> JobView {
+    let progress = daemon.live_progress(job.id).unwrap_or(Progress {
+        done: job.progress_done,
+        total: job.progress_total,
+        ..Progress::default()
+    });
+    JobView {
+        id: job.id,
+        kind: job.kind,
+        job_type: job.job_type,
+        state: job.state,
+        progress,
+        submitted_at: job.submitted_at,
+        started_at: job.started_at,
+        finished_at: job.finished_at,
+        submitted_by: job.submitted_by,
+        config_sha256: job.config_sha256,
+        source_job: job.source_job,
+        error: job.error,
+        resume: job.resume,
+        files: job.files,
+    }
+}
+
+/// Submit a job: a plan configuration as TOML (`Content-Type: application/toml`) runs it; a
+/// JSON `SessionJob` solves, diagnoses or replays an earlier job's session.
+#[utoipa::path(post, path = "/v1/jobs",
+    request_body(content = String, content_type = "application/toml",
+        description = "a plan configuration, as for `geocal run`"),
+    responses(
+        (status = 201, body = Created),
+        (status = 400, body = ErrorBody, description = "the configuration is invalid: the error names the key"),
+        (status = 413, description = "the body is over the daemon's limit"),
+        (status = 415, body = ErrorBody)))]
+async fn submit(
+    State(daemon): State<Arc<Daemon>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    headers: HeaderMap,
+    body: Bytes,
+) -> ApiResult<(StatusCode, Json<Created>)> {
+    let content_type = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .split(';')
+        .next()
+        .unwrap_or("")
+        .trim()
+        .to_ascii_lowercase();
+    let by = peer.to_string();
+    let id = match content_type.as_str() {
+        "application/toml" | "text/toml" => {
+            let text = std::str::from_utf8(&body).map_err(|e| {
+                ApiError(
+                    StatusCode::BAD_REQUEST,
+                    format!("the body is not UTF-8: {e}"),
+                )
+            })?;
+            let daemon = daemon.clone();
+            let text = text.to_owned();
+            blocking(move || daemon.submit_run(&text, &by)).await?
+        }
+        "application/json" => {
+            let job: SessionJob = serde_json::from_slice(&body).map_err(|e| {
+                ApiError(
+                    StatusCode::BAD_REQUEST,
+                    format!("the body is not a session job: {e}"),
+                )
+            })?;
+            let daemon = daemon.clone();
+            blocking(move || daemon.submit_on_session(job.job_type, job.session_of, &by)).await?
+        }
+        other => {
+            return Err(ApiError(
+                StatusCode::UNSUPPORTED_MEDIA_TYPE,
+                format!(
+                    "Content-Type `{other}`: expected application/toml (a plan configuration) \
+                     or application/json (a solve, diagnose or replay job)"
+                ),
+            ))
+        }
+    };
+    Ok((StatusCode::CREATED, Json(Created { id })))
+}
+
+/// Run a catalog call off the async threads (it may check a plan or hash files).
+async fn blocking<T: Send + 'static>(
+    f: impl FnOnce() -> Result<T, JobError> + Send + 'static,
+) -> ApiResult<T> {
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?
+        .map_err(ApiError::from)
+}
+
+/// Every job, newest first.
+#[utoipa::path(get, path = "/v1/jobs", responses((status = 200, body = Vec<JobView>)))]
+async fn list_jobs(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<JobView>>> {
+    let jobs = daemon.jobs()?;
+    Ok(Json(jobs.into_iter().map(|j| view(&daemon, j)).collect()))
+}
+
+/// One job: state, progress (done/total, current station, ETA, last faults), files.
+#[utoipa::path(get, path = "/v1/jobs/{id}", params(("id" = i64, Path)),
+    responses((status = 200, body = JobView), (status = 404, body = ErrorBody)))]
+async fn get_job(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<Json<JobView>> {
+    let job = daemon.job(id)?;
+    Ok(Json(view(&daemon, job)))
+}
+
+/// Cancel a queued job, or a running one cleanly (flushed, resumable).
+#[utoipa::path(post, path = "/v1/jobs/{id}/cancel", params(("id" = i64, Path)),
+    responses((status = 202, body = StateReply), (status = 404, body = ErrorBody),
+        (status = 409, body = ErrorBody)))]
+async fn cancel_job(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<(StatusCode, Json<StateReply>)> {
+    let state = daemon.cancel(id)?;
+    Ok((StatusCode::ACCEPTED, Json(StateReply { id, state })))
+}
+
+/// Continue an interrupted or cancelled run at its first unfinished point.
+#[utoipa::path(post, path = "/v1/jobs/{id}/resume", params(("id" = i64, Path)),
+    responses((status = 202, body = StateReply), (status = 404, body = ErrorBody),
+        (status = 409, body = ErrorBody, description = "the job is not an interrupted or cancelled run")))]
+async fn resume_job(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<(StatusCode, Json<StateReply>)> {
+    let d = daemon.clone();
+    blocking(move || d.resume(id)).await?;
+    Ok((
+        StatusCode::ACCEPTED,
+        Json(StateReply {
+            id,
+            state: JobState::Queued,
+        }),
+    ))
+}
+
+/// The job's results (geocal-results/1).
+#[utoipa::path(get, path = "/v1/jobs/{id}/results", params(("id" = i64, Path)),
+    responses((status = 200, content_type = "application/json", description = "geocal-results/1"),
+        (status = 404, body = ErrorBody)))]
+async fn job_results(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<Response> {
+    job_file(&daemon, id, "results.json", "application/json").await
+}
+
+/// The job's recorded session (MCAP).
+#[utoipa::path(get, path = "/v1/jobs/{id}/session", params(("id" = i64, Path)),
+    responses((status = 200, content_type = "application/octet-stream", description = "the session's MCAP file"),
+        (status = 404, body = ErrorBody)))]
+async fn job_session(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<Response> {
+    job_file(&daemon, id, "session.mcap", "application/octet-stream").await
+}
+
+/// Any file the job left (its report, diagnosis, plan, log), by the name its file list gives.
+#[utoipa::path(get, path = "/v1/jobs/{id}/files/{name}", params(("id" = i64, Path), ("name" = String, Path)),
+    responses((status = 200, description = "the file"), (status = 404, body = ErrorBody)))]
+async fn job_named_file(
+    State(daemon): State<Arc<Daemon>>,
+    Path((id, name)): Path<(i64, String)>,
+) -> ApiResult<Response> {
+    let content_type = match name.rsplit_once('.').map(|(_, ext)| ext) {
+        Some("json") => "application/json",
+        Some("html") => "text/html; charset=utf-8",
+        Some("svg") => "image/svg+xml",
+        Some("toml") | Some("log") | Some("md") | Some("txt") => "text/plain; charset=utf-8",
+        _ => "application/octet-stream",
+    };
+    job_file(&daemon, id, &name, content_type).await
+}
+
+/// Stream `name` from job `id`'s folder. Only names in the job's file list (as the catalog
+/// recorded them, or as the folder lists them now) are served: no client-chosen paths.
+async fn job_file(daemon: &Daemon, id: i64, name: &str, content_type: &str) -> ApiResult<Response> {
+    let job = daemon.job(id)?;
+    let listed = std::fs::read_dir(&job.dir)
+        .map(|entries| {
+            entries
+                .flatten()
+                .any(|e| e.file_name().to_str() == Some(name) && e.path().is_file())
+        })
+        .unwrap_or(false);
+    if !listed {
+        return Err(ApiError(
+            StatusCode::NOT_FOUND,
+            format!("job {id} has no file `{name}` (yet)"),
+        ));
+    }
+    let file = tokio::fs::File::open(job.dir.join(name))
+        .await
+        .map_err(|e| ApiError(StatusCode::NOT_FOUND, format!("job {id}: {name}: {e}")))?;
+    let body = Body::from_stream(tokio_util::io::ReaderStream::new(file));
+    Ok(([(header::CONTENT_TYPE, content_type.to_owned())], body).into_response())
+}
+
+/// Every device seen by the daemon's runs: connected, last reading, signal, last error.
+#[utoipa::path(get, path = "/v1/devices", responses((status = 200, body = Vec<DeviceStatus>)))]
+async fn devices(State(daemon): State<Arc<Daemon>>) -> Json<Vec<DeviceStatus>> {
+    Json(daemon.status.devices())
+}
+
+/// Operator prompts waiting for acknowledgement.
+#[utoipa::path(get, path = "/v1/prompts", responses((status = 200, body = Vec<PendingPrompt>)))]
+async fn prompts(State(daemon): State<Arc<Daemon>>) -> Json<Vec<PendingPrompt>> {
+    Json(daemon.prompts.list())
+}
+
+/// Acknowledge a prompt (what Enter does at the console).
+#[utoipa::path(post, path = "/v1/prompts/{id}/ack", params(("id" = u64, Path)),
+    responses((status = 204), (status = 404, body = ErrorBody)))]
+async fn ack_prompt(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<u64>,
+) -> ApiResult<StatusCode> {
+    if daemon.prompts.acknowledge(id) {
+        Ok(StatusCode::NO_CONTENT)
+    } else {
+        Err(ApiError(
+            StatusCode::NOT_FOUND,
+            format!("no prompt {id} is waiting"),
+        ))
+    }
+}
+
+/// Job states, progress, stations, faults and prompts as Server-Sent Events (the event name
+/// is the `type`).
+#[utoipa::path(get, path = "/v1/events",
+    responses((status = 200, content_type = "text/event-stream", body = ServerEvent)))]
+async fn events(
+    State(daemon): State<Arc<Daemon>>,
+) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    let stream = tokio_stream::wrappers::BroadcastStream::new(daemon.events.subscribe())
+        .filter_map(|event| async move {
+            let event = event.ok()?;
+            Event::default().event(event.name()).json_data(&event).ok()
+        })
+        .map(Ok)
+        // Open streams must not hold up a shutdown.
+        .take_until(daemon.shutdown.clone().cancelled_owned());
+    Sse::new(stream).keep_alive(KeepAlive::default())
+}
+
+#[utoipa::path(get, path = "/v1/health", responses((status = 200, body = Health)))]
+async fn health(State(daemon): State<Arc<Daemon>>) -> Json<Health> {
+    Json(Health {
+        status: "ok".into(),
+        version: env!("CARGO_PKG_VERSION").into(),
+        accepting_jobs: !daemon.shutdown.is_cancelled(),
+        busy: daemon.is_busy(),
+    })
+}
+
+/// Prometheus metrics: jobs by state, samples recorded, faults by kind, recorder queue depth.
+#[utoipa::path(get, path = "/metrics",
+    responses((status = 200, content_type = "text/plain", description = "Prometheus text format")))]
+async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
+    let text = super::metrics::render(&daemon)
+        .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+    Ok((
+        [(
+            header::CONTENT_TYPE,
+            "application/openmetrics-text; version=1.0.0; charset=utf-8",
+        )],
+        text,
+    )
+        .into_response())
+}
+
+#[derive(OpenApi)]
+#[openapi(
+    info(title = "geocal daemon", description = "Calibration jobs, devices, prompts and live events of `geocal serve`."),
+    paths(submit, list_jobs, get_job, cancel_job, resume_job, job_results, job_session,
+        job_named_file, devices, prompts, ack_prompt, events, health, metrics),
+    components(schemas(JobView, SessionJob, Created, StateReply, ErrorBody, Health, JobFile,
+        JobState, JobType, Progress, DeviceStatus, PendingPrompt, ServerEvent)),
+    modifiers(&BearerAuth),
+    security(("bearer" = []))
+)]
+pub struct ApiDoc;
+
+struct BearerAuth;
+
+impl utoipa::Modify for BearerAuth {
+    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
+        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
+        let components = openapi.components.get_or_insert_with(Default::default);
+        components.add_security_scheme(
+            "bearer",
+            SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
+        );
+    }
+}
+
+async fn openapi() -> Json<utoipa::openapi::OpenApi> {
+    Json(ApiDoc::openapi())
+}
+
+/// Every route, behind the token check and the body limit.
+pub fn router(daemon: Arc<Daemon>, token: Option<Token>) -> Router {
+    let limit = daemon.config.max_body_bytes;
+    Router::new()
+        .route("/v1/jobs", post(submit).get(list_jobs))
+        .route("/v1/jobs/{id}", get(get_job))
+        .route("/v1/jobs/{id}/cancel", post(cancel_job))
+        .route("/v1/jobs/{id}/resume", post(resume_job))
+        .route("/v1/jobs/{id}/results", get(job_results))
+        .route("/v1/jobs/{id}/session", get(job_session))
+        .route("/v1/jobs/{id}/files/{name}", get(job_named_file))
+        .route("/v1/devices", get(devices))
+        .route("/v1/prompts", get(prompts))
+        .route("/v1/prompts/{id}/ack", post(ack_prompt))
+        .route("/v1/events", get(events))
+        .route("/v1/health", get(health))
+        .route("/v1/openapi.json", get(openapi))
+        .route("/metrics", get(metrics))
+        .layer(DefaultBodyLimit::max(limit))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::new(token),
+            require_token,
+        ))
+        .with_state(daemon)
+}

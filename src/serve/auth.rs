@@ -1,0 +1,123 @@
+//! The bearer token: read from a file only its owner can read, compared in constant time;
+//! a request without it, or with another, is a 401 and is logged.
+
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+
+use anyhow::Context;
+use axum::extract::{ConnectInfo, Request, State};
+use axum::http::{header, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use subtle::ConstantTimeEq;
+
+#[derive(Clone)]
+pub struct Token(Vec<u8>);
+
+impl Token {
+    /// The token in `path` (surrounding whitespace ignored). Refused when the file is
+    /// readable by its group or others, or holds fewer than 16 characters.
+    pub fn load(path: &Path) -> anyhow::Result<Token> {
+        let metadata = std::fs::metadata(path)
+            .with_context(|| format!("reading the token file {}", path.display()))?;
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            let mode = metadata.permissions().mode();
+            if mode & 0o077 != 0 {
+                anyhow::bail!(
+                    "the token file {} is readable or writable by its group or others (mode \
+                     {:o}); make it private with `chmod 600 {}`",
+                    path.display(),
+                    mode & 0o777,
+                    path.display()
+                );
+            }
+        }
+        #[cfg(not(unix))]
+        let _ = metadata;
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the token file {}", path.display()))?;
+        let token = text.trim();
+        if token.len() < 16 {
+            anyhow::bail!(
+                "the token in {} is {} characters long: use at least 16 (e.g. `openssl rand \
+                 -hex 32`)",
+                path.display(),
+                token.len()
+            );
+        }
+        Ok(Token(token.as_bytes().to_vec()))
+    }
+
+    pub fn matches(&self, presented: &[u8]) -> bool {
+        // ct_eq on slices of different lengths is false without comparing the bytes.
+        bool::from(self.0.as_slice().ct_eq(presented))
+    }
+}
+
+/// The middleware: with a token configured, every request must carry `Authorization: Bearer
+/// <token>`.
+pub async fn require_token(
+    State(token): State<Arc<Option<Token>>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let Some(token) = token.as_ref() else {
+        return next.run(request).await;
+    };
+    let presented = request
+        .headers()
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "))
+        .map(|v| v.trim().as_bytes().to_vec());
+    match presented {
+        Some(p) if token.matches(&p) => next.run(request).await,
+        presented => {
+            tracing::warn!(
+                peer = %peer,
+                method = %request.method(),
+                path = %request.uri().path(),
+                "refused: {}",
+                if presented.is_some() { "wrong bearer token" } else { "no bearer token" }
+            );
+            (
+                StatusCode::UNAUTHORIZED,
+                [(header::WWW_AUTHENTICATE, "Bearer")],
+                axum::Json(super::api::ErrorBody {
+                    error: "a bearer token is required (Authorization: Bearer <token>)".into(),
+                }),
+            )
+                .into_response()
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn token_files_must_be_private_and_long_enough() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("token");
+        std::fs::write(&path, "0123456789abcdef0123\n").unwrap();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o644)).unwrap();
+            let err = Token::load(&path).err().unwrap().to_string();
+            assert!(err.contains("chmod 600"), "{err}");
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        }
+        let token = Token::load(&path).unwrap();
+        assert!(token.matches(b"0123456789abcdef0123"));
+        assert!(!token.matches(b"0123456789abcdef012"));
+        assert!(!token.matches(b"0123456789abcdef0124"));
+        std::fs::write(&path, "short").unwrap();
+        assert!(Token::load(&path).is_err());
+    }
+}

@@ -1,0 +1,229 @@
+//! `geocal client`: submit a plan to a daemon, list and follow its jobs, acknowledge prompts,
+//! fetch what a job left.
+
+use std::io::BufRead;
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::Context;
+use reqwest::blocking::{Client as Http, RequestBuilder, Response};
+
+use super::api::{Created, JobView};
+use super::catalog::JobState;
+use super::prompts::PendingPrompt;
+
+pub struct Client {
+    server: String,
+    token: Option<String>,
+    http: Http,
+}
+
+impl Client {
+    /// A client of the daemon at `server` (`http://host:port`), with the token in
+    /// `token_file` if given.
+    pub fn new(server: &str, token_file: Option<&Path>) -> anyhow::Result<Client> {
+        let token = match token_file {
+            Some(path) => Some(
+                std::fs::read_to_string(path)
+                    .with_context(|| format!("reading the token file {}", path.display()))?
+                    .trim()
+                    .to_owned(),
+            ),
+            None => None,
+        };
+        let http = Http::builder()
+            .connect_timeout(Duration::from_secs(10))
+            .timeout(None)
+            .build()
+            .context("building the HTTP client")?;
+        Ok(Client {
+            server: server.trim_end_matches('/').to_owned(),
+            token,
+            http,
+        })
+    }
+
+    fn request(&self, builder: RequestBuilder) -> anyhow::Result<Response> {
+        let builder = match &self.token {
+            Some(token) => builder.bearer_auth(token),
+            None => builder,
+        };
+        let response = builder
+            .send()
+            .with_context(|| format!("reaching the daemon at {}", self.server))?;
+        if response.status().is_success() {
+            return Ok(response);
+        }
+        let status = response.status();
+        let body = response.text().unwrap_or_default();
+        let message = serde_json::from_str::<super::api::ErrorBody>(&body)
+            .map(|e| e.error)
+            .unwrap_or(body);
+        anyhow::bail!("the daemon answered {status}: {message}")
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.server)
+    }
+
+    pub fn submit(&self, config: &Path) -> anyhow::Result<i64> {
+        let text =
+            std::fs::read(config).with_context(|| format!("reading {}", config.display()))?;
+        let created: Created = self
+            .request(
+                self.http
+                    .post(self.url("/v1/jobs"))
+                    .header(reqwest::header::CONTENT_TYPE, "application/toml")
+                    .body(text),
+            )?
+            .json()
+            .context("reading the daemon's answer")?;
+        Ok(created.id)
+    }
+
+    pub fn jobs(&self) -> anyhow::Result<Vec<JobView>> {
+        Ok(self.request(self.http.get(self.url("/v1/jobs")))?.json()?)
+    }
+
+    pub fn job(&self, id: i64) -> anyhow::Result<JobView> {
+        Ok(self
+            .request(self.http.get(self.url(&format!("/v1/jobs/{id}"))))?
+            .json()?)
+    }
+
+    pub fn cancel(&self, id: i64) -> anyhow::Result<()> {
+        self.request(self.http.post(self.url(&format!("/v1/jobs/{id}/cancel"))))?;
+        Ok(())
+    }
+
+    pub fn resume(&self, id: i64) -> anyhow::Result<()> {
+        self.request(self.http.post(self.url(&format!("/v1/jobs/{id}/resume"))))?;
+        Ok(())
+    }
+
+    pub fn prompts(&self) -> anyhow::Result<Vec<PendingPrompt>> {
+        Ok(self
+            .request(self.http.get(self.url("/v1/prompts")))?
+            .json()?)
+    }
+
+    pub fn ack(&self, prompt: u64) -> anyhow::Result<()> {
+        self.request(
+            self.http
+                .post(self.url(&format!("/v1/prompts/{prompt}/ack"))),
+        )?;
+        Ok(())
+    }
+
+    /// Download `what` of job `id` (`results`, `session`, or a file name) to `out`.
+    pub fn fetch(&self, id: i64, what: &str, out: &Path) -> anyhow::Result<u64> {
+        let path = match what {
+            "results" => format!("/v1/jobs/{id}/results"),
+            "session" => format!("/v1/jobs/{id}/session"),
+            name => format!("/v1/jobs/{id}/files/{name}"),
+        };
+        let mut response = self.request(self.http.get(self.url(&path)))?;
+        let mut file =
+            std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+        response
+            .copy_to(&mut file)
+            .with_context(|| format!("writing {}", out.display()))
+    }
+
+    /// Follow job `id` on the event stream until it ends, calling `line` with each change;
+    /// its final state.
+    pub fn follow(&self, id: i64, mut line: impl FnMut(&str)) -> anyhow::Result<JobView> {
+        let response = self.request(self.http.get(self.url("/v1/events")))?;
+        // The job may have ended before the stream opened.
+        let job = self.job(id)?;
+        if ended(job.state) {
+            return Ok(job);
+        }
+        let mut event = String::new();
+        for text in std::io::BufReader::new(response).lines() {
+            let text = text.context("reading the event stream")?;
+            if let Some(name) = text.strip_prefix("event:") {
+                event = name.trim().to_owned();
+            } else if let Some(data) = text.strip_prefix("data:") {
+                let value: serde_json::Value =
+                    serde_json::from_str(data.trim()).unwrap_or_default();
+                let of_job = value.get("id").and_then(|v| v.as_i64()) == Some(id)
+                    || value.pointer("/prompt/job").and_then(|v| v.as_i64()) == Some(id);
+                if !of_job {
+                    continue;
+                }
+                line(&describe(&event, &value));
+                if event == "job" {
+                    let state = value.get("state").and_then(|s| s.as_str()).unwrap_or("");
+                    if ["succeeded", "failed", "cancelled", "interrupted"].contains(&state) {
+                        return self.job(id);
+                    }
+                }
+            }
+        }
+        // The stream closed (the daemon stopped): report where the job stands.
+        self.job(id)
+    }
+}
+
+fn ended(state: JobState) -> bool {
+    !matches!(state, JobState::Queued | JobState::Running)
+}
+
+fn describe(event: &str, value: &serde_json::Value) -> String {
+    let text = |pointer: &str| {
+        value
+            .pointer(pointer)
+            .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_owned))
+            .unwrap_or_default()
+    };
+    match event {
+        "job" => format!("job {}: {} {}", text("/id"), text("/state"), text("/error"))
+            .trim_end()
+            .to_owned(),
+        "progress" => format!(
+            "job {}: {}/{} points{}",
+            text("/id"),
+            text("/progress/done"),
+            text("/progress/total"),
+            value
+                .pointer("/progress/eta_s")
+                .and_then(|v| v.as_f64())
+                .map_or(String::new(), |eta| format!(", about {eta:.0} s left"))
+        ),
+        "station" => format!("job {}: station {}", text("/id"), text("/station")),
+        "fault" => format!("job {}: fault {}", text("/id"), text("/message")),
+        "prompt" => format!(
+            "job {}: operator prompt {}: {} (acknowledge with `geocal client ack {}`)",
+            text("/prompt/job"),
+            text("/prompt/id"),
+            text("/prompt/instruction"),
+            text("/prompt/id")
+        ),
+        other => format!("{other}: {value}"),
+    }
+}
+
+/// One line per job for `geocal client jobs`.
+pub fn job_line(job: &JobView) -> String {
+    format!(
+        "{:>5}  {:<8} {:<15} {:<11} {:>5}/{:<5} {}",
+        job.id,
+        job.job_type.as_str(),
+        job.kind,
+        job.state.as_str(),
+        job.progress.done,
+        job.progress.total,
+        job.error.as_deref().unwrap_or("")
+    )
+}
+
+/// Where `fetch` writes by default: the name the daemon uses.
+pub fn default_fetch_path(id: i64, what: &str) -> PathBuf {
+    let name = match what {
+        "results" => "results.json",
+        "session" => "session.mcap",
+        name => name,
+    };
+    PathBuf::from(format!("job-{id}-{name}"))
+}

@@ -1,0 +1,185 @@
+//! The daemon's configuration (`geocal serve --config FILE`): where it listens, where it keeps
+//! its data, its token, limits, which serial ports and hosts job configs may name, the live
+//! view's address, and its schedules.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use serde::Deserialize;
+
+pub const DEFAULT_LISTEN: &str = "127.0.0.1:7878";
+pub const DEFAULT_LIVE: &str = "127.0.0.1:8765";
+
+#[derive(Debug, Clone, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ServeConfig {
+    /// The HTTP API's address (loopback by default).
+    #[serde(default = "default_listen")]
+    pub listen: SocketAddr,
+    /// Jobs, their files and the catalog.
+    #[serde(default = "default_data_dir")]
+    pub data_dir: PathBuf,
+    /// A file holding the bearer token (required to listen beyond loopback; must not be
+    /// group- or world-readable).
+    #[serde(default)]
+    pub token_file: Option<PathBuf>,
+    /// Largest request body accepted, bytes (larger: 413).
+    #[serde(default = "default_max_body_bytes")]
+    pub max_body_bytes: usize,
+    /// The Foxglove WebSocket live view's address; "off" to disable.
+    #[serde(default = "default_live")]
+    pub live: String,
+    /// Serial ports a job's configuration may name (exact paths, or a prefix ending in `*`).
+    #[serde(default)]
+    pub allowed_ports: Vec<String>,
+    /// Hosts (`host` or `host:port`) a job's configuration may name.
+    #[serde(default)]
+    pub allowed_hosts: Vec<String>,
+    /// Scheduled jobs.
+    #[serde(default)]
+    pub schedule: Vec<toml::Value>,
+}
+
+fn default_listen() -> SocketAddr {
+    DEFAULT_LISTEN
+        .parse()
+        .unwrap_or(SocketAddr::from(([127, 0, 0, 1], 7878)))
+}
+
+fn default_data_dir() -> PathBuf {
+    PathBuf::from("geocal-data")
+}
+
+fn default_max_body_bytes() -> usize {
+    1 << 20
+}
+
+fn default_live() -> String {
+    DEFAULT_LIVE.into()
+}
+
+impl Default for ServeConfig {
+    fn default() -> Self {
+        ServeConfig {
+            listen: default_listen(),
+            data_dir: default_data_dir(),
+            token_file: None,
+            max_body_bytes: default_max_body_bytes(),
+            live: default_live(),
+            allowed_ports: Vec::new(),
+            allowed_hosts: Vec::new(),
+            schedule: Vec::new(),
+        }
+    }
+}
+
+impl ServeConfig {
+    pub fn load(path: &Path) -> anyhow::Result<ServeConfig> {
+        let text = std::fs::read_to_string(path)
+            .with_context(|| format!("reading the daemon configuration {}", path.display()))?;
+        Ok(crate::config::kind_config::parse_strict(&text, path)?)
+    }
+}
+
+/// Serial ports and hosts a job's configuration names: every string under `devices` (and
+/// `hil`) at a key that names a port or a host.
+pub fn named_endpoints(config: &toml::Table) -> Vec<(String, String)> {
+    fn walk(key_path: &str, value: &toml::Value, out: &mut Vec<(String, String)>) {
+        match value {
+            toml::Value::Table(table) => {
+                for (key, value) in table {
+                    let path = format!("{key_path}.{key}");
+                    if let toml::Value::String(text) = value {
+                        if ENDPOINT_KEYS.contains(&key.as_str()) {
+                            out.push((path.clone(), text.clone()));
+                        }
+                    }
+                    walk(&path, value, out);
+                }
+            }
+            toml::Value::Array(items) => {
+                for (i, item) in items.iter().enumerate() {
+                    walk(&format!("{key_path}[{i}]"), item, out);
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    for (key, value) in config {
+        walk(key, value, &mut out);
+    }
+    out
+}
+
+const ENDPOINT_KEYS: &[&str] = &["port", "serial_port", "device", "host", "address", "addr"];
+
+/// Whether `value` at `key_path` is allowed: serial ports (paths) against `allowed_ports`,
+/// anything else against `allowed_hosts`.
+pub fn endpoint_allowed(config: &ServeConfig, value: &str) -> bool {
+    let matches = |pattern: &String| match pattern.strip_suffix('*') {
+        Some(prefix) => value.starts_with(prefix),
+        None => value == pattern,
+    };
+    if value.starts_with('/') {
+        config.allowed_ports.iter().any(matches)
+    } else {
+        let host = value.rsplit_once(':').map_or(value, |(h, _)| h);
+        config
+            .allowed_hosts
+            .iter()
+            .any(|p| matches(p) || p.as_str() == host)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn endpoints_are_found_and_checked_against_the_allow_lists() {
+        let plan: toml::Table = toml::from_str(
+            r#"
+            kind = "multilateration"
+            [devices.tracer.hpi3d]
+            port = "/dev/ttyUSB0"
+            [devices.rotary_table.modbus.transport.tcp]
+            host = "192.168.1.20:502"
+            [plan]
+            port = 3
+            "#,
+        )
+        .unwrap();
+        let found = named_endpoints(&plan);
+        assert_eq!(
+            found,
+            vec![
+                (
+                    "devices.rotary_table.modbus.transport.tcp.host".into(),
+                    "192.168.1.20:502".into()
+                ),
+                ("devices.tracer.hpi3d.port".into(), "/dev/ttyUSB0".into()),
+            ]
+        );
+        let config = ServeConfig {
+            allowed_ports: vec!["/dev/ttyUSB*".into()],
+            allowed_hosts: vec!["192.168.1.20".into()],
+            ..ServeConfig::default()
+        };
+        assert!(endpoint_allowed(&config, "/dev/ttyUSB0"));
+        assert!(!endpoint_allowed(&config, "/dev/ttyACM0"));
+        assert!(endpoint_allowed(&config, "192.168.1.20:502"));
+        assert!(!endpoint_allowed(&config, "10.0.0.1:502"));
+        assert!(!endpoint_allowed(&ServeConfig::default(), "/dev/ttyUSB0"));
+    }
+
+    #[test]
+    fn unknown_keys_name_the_key() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        std::fs::write(&path, "listen = \"127.0.0.1:1\"\nlisten_port = 3\n").unwrap();
+        let err = ServeConfig::load(&path).unwrap_err().to_string();
+        assert!(err.contains("listen_port"), "{err}");
+    }
+}

@@ -1,0 +1,540 @@
+//! The daemon's jobs: submission (validated with the strict parsers, stored under the data
+//! dir), one worker that runs them one at a time, cancel and resume.
+
+use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, Mutex};
+
+use anyhow::Context;
+use serde::Serialize;
+use tokio::sync::{broadcast, Notify};
+use tokio_util::sync::CancellationToken;
+use utoipa::ToSchema;
+
+use super::catalog::{Catalog, JobRecord, JobState, JobType, NewJob};
+use super::config::ServeConfig;
+use super::prompts::{PendingPrompt, PromptBoard};
+use super::status::{Change, DaemonTap, Progress, StatusBoard};
+use crate::kinds::{Registry, RunFlags};
+use crate::run::RunOptions;
+use crate::sequencer::control::RunControl;
+use crate::session::tap::{MessageTap, Tap};
+
+/// The plan configuration of a run job, as submitted.
+pub const PLAN_FILE: &str = "plan.toml";
+/// The daemon's log of a job (its error, if it failed).
+pub const JOB_LOG_FILE: &str = "job.log";
+
+/// What the event stream (`GET /v1/events`) carries.
+#[derive(Debug, Clone, Serialize, ToSchema)]
+#[serde(tag = "type", rename_all = "snake_case")]
+pub enum ServerEvent {
+    /// A job changed state.
+    Job {
+        id: i64,
+        state: JobState,
+        error: Option<String>,
+    },
+    /// The running job's progress.
+    Progress { id: i64, progress: Progress },
+    /// The tracer moved to another station.
+    Station { id: i64, station: String },
+    /// A device reported a fault.
+    Fault {
+        id: i64,
+        device: String,
+        message: String,
+    },
+    /// An operator prompt waits for acknowledgement.
+    Prompt { prompt: PendingPrompt },
+}
+
+impl ServerEvent {
+    pub fn name(&self) -> &'static str {
+        match self {
+            ServerEvent::Job { .. } => "job",
+            ServerEvent::Progress { .. } => "progress",
+            ServerEvent::Station { .. } => "station",
+            ServerEvent::Fault { .. } => "fault",
+            ServerEvent::Prompt { .. } => "prompt",
+        }
+    }
+}
+
+/// Why a request about jobs was refused (the API maps each to a status code).
+#[derive(Debug, thiserror::Error)]
+pub enum JobError {
+    #[error("{0}")]
+    BadRequest(String),
+    #[error("no job {0}")]
+    NotFound(i64),
+    #[error("{0}")]
+    Conflict(String),
+    #[error("the daemon is shutting down and accepts no jobs")]
+    ShuttingDown,
+    #[error(transparent)]
+    Internal(#[from] anyhow::Error),
+}
+
+struct Running {
+    id: i64,
+    cancel: CancellationToken,
+}
+
+/// Everything the API and the worker share.
+pub struct Daemon {
+    pub config: ServeConfig,
+    catalog: Mutex<Catalog>,
+    registry: Registry,
+    wake: Notify,
+    running: Mutex<Option<Running>>,
+    pub events: broadcast::Sender<ServerEvent>,
+    pub status: StatusBoard,
+    pub prompts: PromptBoard,
+    accepting: AtomicBool,
+    /// Stops the worker once the running job has ended.
+    pub shutdown: CancellationToken,
+    live: Option<Arc<dyn MessageTap>>,
+}
+
+impl Daemon {
+    /// Open the data dir's catalog; jobs found running are marked interrupted.
+    pub fn open(
+        config: ServeConfig,
+        registry: Registry,
+        live: Option<Arc<dyn MessageTap>>,
+    ) -> anyhow::Result<Arc<Daemon>> {
+        let mut catalog = Catalog::open(&config.data_dir)?;
+        for id in catalog.mark_interrupted()? {
+            tracing::warn!(
+                job = id,
+                "job was running when the daemon stopped: interrupted"
+            );
+        }
+        let (events, _) = broadcast::channel(1024);
+        let prompt_events = events.clone();
+        Ok(Arc::new(Daemon {
+            config,
+            catalog: Mutex::new(catalog),
+            registry,
+            wake: Notify::new(),
+            running: Mutex::new(None),
+            status: StatusBoard::default(),
+            prompts: PromptBoard::new(Arc::new(move |prompt: &PendingPrompt| {
+                let _ = prompt_events.send(ServerEvent::Prompt {
+                    prompt: prompt.clone(),
+                });
+            })),
+            events,
+            accepting: AtomicBool::new(true),
+            shutdown: CancellationToken::new(),
+            live,
+        }))
+    }
+
+    fn catalog(&self) -> anyhow::Result<std::sync::MutexGuard<'_, Catalog>> {
+        self.catalog
+            .lock()
+            .map_err(|_| anyhow::anyhow!("job catalog lock poisoned"))
+    }
+
+    pub fn job(&self, id: i64) -> Result<JobRecord, JobError> {
+        self.catalog()?.get(id)?.ok_or(JobError::NotFound(id))
+    }
+
+    pub fn jobs(&self) -> Result<Vec<JobRecord>, JobError> {
+        Ok(self.catalog()?.list()?)
+    }
+
+    pub fn count_by_state(&self) -> anyhow::Result<Vec<(JobState, u64)>> {
+        self.catalog()?.count_by_state()
+    }
+
+    /// The live progress of job `id` if it runs now.
+    pub fn live_progress(&self, id: i64) -> Option<Progress> {
+        let running = self.running.lock().ok()?;
+        (running.as_ref()?.id == id).then(|| self.status.progress())
+    }
+
+    fn check_accepting(&self) -> Result<(), JobError> {
+        if self.accepting.load(Ordering::SeqCst) {
+            Ok(())
+        } else {
+            Err(JobError::ShuttingDown)
+        }
+    }
+
+    /// Queue a run of the plan configuration `toml`, checked with the same strict parser as
+    /// `geocal check`; nothing is kept of a configuration that fails.
+    pub fn submit_run(&self, toml_text: &str, submitted_by: &str) -> Result<i64, JobError> {
+        self.check_accepting()?;
+        let table: toml::Table = toml_text.parse().map_err(|e| {
+            JobError::BadRequest(format!("the plan configuration is not TOML: {e}"))
+        })?;
+        for (key, value) in super::config::named_endpoints(&table) {
+            if !super::config::endpoint_allowed(&self.config, &value) {
+                return Err(JobError::BadRequest(format!(
+                    "key `{key}`: \"{value}\" is not in the daemon's allowed_ports or \
+                     allowed_hosts"
+                )));
+            }
+        }
+        // Check in a scratch folder, then move the file into the job's folder.
+        let scratch = tempfile::Builder::new()
+            .prefix("submit-")
+            .tempdir_in(&self.config.data_dir)
+            .context("creating a scratch folder in the data dir")?;
+        let path = scratch.path().join(PLAN_FILE);
+        std::fs::write(&path, toml_text).context("storing the submitted configuration")?;
+        let kind = self
+            .registry
+            .of_config(&path)
+            .and_then(|kind| kind.check(&path).map(|_| kind))
+            .map_err(|e| {
+                JobError::BadRequest(
+                    error_chain(&e).replace(&*path.to_string_lossy(), "(submitted plan)"),
+                )
+            })?;
+        let sha = super::catalog::sha256_hex(toml_text.as_bytes());
+        let id = {
+            let mut catalog = self.catalog()?;
+            let id = catalog.add(&NewJob {
+                job_type: JobType::Run,
+                kind: kind.name(),
+                submitted_by,
+                config_sha256: Some(&sha),
+                source_job: None,
+            })?;
+            let dir = catalog.dir_of(id);
+            std::fs::create_dir_all(&dir).with_context(|| format!("creating {}", dir.display()))?;
+            std::fs::rename(&path, dir.join(PLAN_FILE))
+                .with_context(|| format!("storing the plan in {}", dir.display()))?;
+            catalog.record_files(id)?;
+            id
+        };
+        tracing::info!(
+            job = id,
+            kind = kind.name(),
+            by = submitted_by,
+            "run queued"
+        );
+        self.announce(id, JobState::Queued, None);
+        self.wake.notify_one();
+        Ok(id)
+    }
+
+    /// Queue a solve, diagnose or replay of the session of job `source`.
+    pub fn submit_on_session(
+        &self,
+        job_type: JobType,
+        source: i64,
+        submitted_by: &str,
+    ) -> Result<i64, JobError> {
+        self.check_accepting()?;
+        if job_type == JobType::Run {
+            return Err(JobError::BadRequest(
+                "a run is submitted as a plan configuration (Content-Type: application/toml)"
+                    .into(),
+            ));
+        }
+        let source_job = self.job(source)?;
+        let session = source_job.dir.join(crate::run::resume::SESSION_FILE);
+        if !session.is_file() {
+            return Err(JobError::Conflict(format!(
+                "job {source} has no recorded session yet"
+            )));
+        }
+        let id = {
+            let mut catalog = self.catalog()?;
+            let id = catalog.add(&NewJob {
+                job_type,
+                kind: &source_job.kind,
+                submitted_by,
+                config_sha256: None,
+                source_job: Some(source),
+            })?;
+            std::fs::create_dir_all(catalog.dir_of(id)).context("creating the job's folder")?;
+            id
+        };
+        self.announce(id, JobState::Queued, None);
+        self.wake.notify_one();
+        Ok(id)
+    }
+
+    /// Cancel a queued job at once, or a running one cleanly (its recorder flushes and
+    /// closes the file; it can be resumed).
+    pub fn cancel(&self, id: i64) -> Result<JobState, JobError> {
+        let job = self.job(id)?;
+        match job.state {
+            JobState::Queued => {
+                self.catalog()?.finish(
+                    id,
+                    JobState::Cancelled,
+                    Some("cancelled before it started"),
+                )?;
+                self.announce(id, JobState::Cancelled, None);
+                Ok(JobState::Cancelled)
+            }
+            JobState::Running => {
+                if let Ok(running) = self.running.lock() {
+                    if let Some(r) = running.as_ref().filter(|r| r.id == id) {
+                        r.cancel.cancel();
+                    }
+                }
+                self.prompts.clear_job(id);
+                Ok(JobState::Running)
+            }
+            state => Err(JobError::Conflict(format!(
+                "job {id} is {} and cannot be cancelled",
+                state.as_str()
+            ))),
+        }
+    }
+
+    /// Queue an interrupted or cancelled run to continue at its first unfinished point.
+    pub fn resume(&self, id: i64) -> Result<(), JobError> {
+        self.check_accepting()?;
+        let job = self.job(id)?;
+        if job.job_type != JobType::Run || !job.state.resumable() {
+            return Err(JobError::Conflict(format!(
+                "job {id} is a {} job in state {}: only an interrupted or cancelled run can \
+                 be resumed",
+                job.job_type.as_str(),
+                job.state.as_str()
+            )));
+        }
+        self.catalog()?.queue_resume(id)?;
+        self.announce(id, JobState::Queued, None);
+        self.wake.notify_one();
+        Ok(())
+    }
+
+    /// Stop taking jobs and cancel the running one; the worker ends once it has stopped.
+    pub fn stop(&self) {
+        self.accepting.store(false, Ordering::SeqCst);
+        if let Ok(running) = self.running.lock() {
+            if let Some(r) = running.as_ref() {
+                tracing::info!(job = r.id, "shutting down: cancelling the running job");
+                r.cancel.cancel();
+                self.prompts.clear_job(r.id);
+            }
+        }
+        self.shutdown.cancel();
+        self.wake.notify_one();
+    }
+
+    pub fn is_busy(&self) -> bool {
+        self.running.lock().map(|r| r.is_some()).unwrap_or(true)
+    }
+
+    fn announce(&self, id: i64, state: JobState, error: Option<String>) {
+        let _ = self.events.send(ServerEvent::Job { id, state, error });
+    }
+
+    /// Run queued jobs one at a time until `stop`.
+    pub async fn work(self: Arc<Self>) {
+        loop {
+            if self.shutdown.is_cancelled() {
+                return;
+            }
+            let next = match self.catalog().and_then(|c| c.next_queued()) {
+                Ok(next) => next,
+                Err(e) => {
+                    tracing::error!("reading the job catalog: {e:#}");
+                    None
+                }
+            };
+            let Some(job) = next else {
+                tokio::select! {
+                    _ = self.wake.notified() => {}
+                    _ = self.shutdown.cancelled() => return,
+                    // A submission between the query and the wait is not missed.
+                    _ = tokio::time::sleep(std::time::Duration::from_secs(1)) => {}
+                }
+                continue;
+            };
+            let daemon = self.clone();
+            let id = job.id;
+            let done = tokio::task::spawn_blocking(move || daemon.run_job(job)).await;
+            if let Err(e) = done {
+                tracing::error!(job = id, "job thread failed: {e}");
+            }
+        }
+    }
+
+    /// Run one job to its end on this (blocking) thread and record how it ended.
+    fn run_job(self: &Arc<Self>, job: JobRecord) {
+        let id = job.id;
+        let cancel = CancellationToken::new();
+        if let Ok(mut running) = self.running.lock() {
+            *running = Some(Running {
+                id,
+                cancel: cancel.clone(),
+            });
+        }
+        if let Err(e) = self.catalog().and_then(|mut c| c.start(id)) {
+            tracing::error!(job = id, "marking the job running: {e:#}");
+        }
+        self.status.job_started();
+        self.announce(id, JobState::Running, None);
+        tracing::info!(
+            job = id,
+            kind = job.kind,
+            resume = job.resume,
+            "job started"
+        );
+
+        let control = self.control(id, cancel.clone());
+        // The runs build their own runtimes: run them on a thread that is outside tokio's.
+        let daemon = self.clone();
+        let job_for_thread = job.clone();
+        let outcome = std::thread::Builder::new()
+            .name(format!("geocal-job-{id}"))
+            .spawn(move || daemon.execute(&job_for_thread, control))
+            .map_err(anyhow::Error::from)
+            .and_then(|thread| {
+                thread
+                    .join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("the job's thread panicked")))
+            });
+        let (state, error) = match outcome {
+            Ok(()) => (JobState::Succeeded, None),
+            Err(_) if cancel.is_cancelled() => (
+                JobState::Cancelled,
+                Some("cancelled; the session recorded so far is kept and can be resumed".into()),
+            ),
+            Err(e) => (JobState::Failed, Some(error_chain(&e))),
+        };
+        let progress = self.status.progress();
+        let recorded = self.catalog().and_then(|mut c| {
+            c.set_progress(id, progress.done, progress.total)?;
+            c.record_files(id)?;
+            c.finish(id, state, error.as_deref())
+        });
+        if let Err(e) = recorded {
+            tracing::error!(job = id, "recording the job's end: {e:#}");
+        }
+        if let Some(e) = &error {
+            let _ = std::fs::write(job.dir.join(JOB_LOG_FILE), format!("{e}\n"));
+        }
+        self.prompts.clear_job(id);
+        if let Ok(mut running) = self.running.lock() {
+            *running = None;
+        }
+        tracing::info!(job = id, state = state.as_str(), "job ended");
+        self.announce(id, state, error);
+    }
+
+    fn control(self: &Arc<Self>, id: i64, cancel: CancellationToken) -> RunControl {
+        let events = self.events.clone();
+        let tap = DaemonTap {
+            board: self.status.clone(),
+            on_change: Box::new(move |change| {
+                let event = match change {
+                    Change::Station(station) => ServerEvent::Station { id, station },
+                    Change::Fault { device, message } => ServerEvent::Fault {
+                        id,
+                        device,
+                        message,
+                    },
+                };
+                let _ = events.send(event);
+            }),
+            live: self.live.clone(),
+        };
+        let progress_events = self.events.clone();
+        let board = self.status.clone();
+        let prompts = self.prompts.clone();
+        RunControl {
+            cancel,
+            tap: Tap::new(Arc::new(tap)),
+            progress: Some(Arc::new(move |done, total| {
+                let progress = board.set_progress(done, total);
+                let _ = progress_events.send(ServerEvent::Progress { id, progress });
+            })),
+            operator: Some(Arc::new(move || prompts.operator(id))),
+        }
+    }
+
+    fn execute(&self, job: &JobRecord, control: RunControl) -> anyhow::Result<()> {
+        let kind = self
+            .registry
+            .named(&job.kind)
+            .ok_or_else(|| anyhow::anyhow!("no plan kind `{}`", job.kind))?;
+        let options = RunOptions {
+            out_dir: job.dir.clone(),
+            truth: Some(job.dir.join("truth.json")),
+            progress: false,
+            settings: Default::default(),
+            control,
+        };
+        let session_of = |source: Option<i64>| -> anyhow::Result<PathBuf> {
+            let source =
+                source.ok_or_else(|| anyhow::anyhow!("job {} names no session", job.id))?;
+            Ok(self
+                .job(source)
+                .map_err(anyhow::Error::from)?
+                .dir
+                .join(crate::run::resume::SESSION_FILE))
+        };
+        match job.job_type {
+            JobType::Run if job.resume => {
+                kind.resume(&job.dir, Some(&job.dir.join(PLAN_FILE)), &options)?;
+            }
+            JobType::Run => {
+                kind.run(&job.dir.join(PLAN_FILE), &options, &RunFlags::default())?;
+            }
+            JobType::Solve => {
+                let results =
+                    crate::kinds::solve_file(&session_of(job.source_job)?, &options.settings)?;
+                write(
+                    &job.dir.join("results.json"),
+                    results.to_json_pretty().as_bytes(),
+                )?;
+            }
+            JobType::Diagnose => {
+                let (diagnosis, residuals) = crate::diagnose::diagnose_file_detailed(
+                    &session_of(job.source_job)?,
+                    &Default::default(),
+                )?;
+                write(
+                    &job.dir.join("diagnosis.json"),
+                    serde_json::to_string_pretty(&diagnosis)?.as_bytes(),
+                )?;
+                crate::diagnose::plot::write_svg(
+                    &job.dir.join("residuals.svg"),
+                    &diagnosis.session_id,
+                    &residuals,
+                )?;
+            }
+            JobType::Replay => {
+                let output = crate::replay::replay(
+                    &session_of(job.source_job)?,
+                    &crate::replay::ReplayOptions {
+                        out_dir: job.dir.clone(),
+                        realtime: false,
+                        settings: Default::default(),
+                        progress: false,
+                    },
+                )?;
+                if output.comparison.outcome == crate::replay::Outcome::Diverged {
+                    anyhow::bail!("{}", output.comparison.message);
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+fn write(path: &Path, data: &[u8]) -> anyhow::Result<()> {
+    std::fs::write(path, data).with_context(|| format!("writing {}", path.display()))
+}
+
+/// An error with its causes on one line.
+pub fn error_chain(error: &anyhow::Error) -> String {
+    error
+        .chain()
+        .map(|e| e.to_string())
+        .collect::<Vec<_>>()
+        .join(": ")
+}

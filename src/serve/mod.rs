@@ -1,0 +1,121 @@
+//! `geocal serve`: the acquisition daemon — a job catalog that survives crashes, one worker
+//! that runs jobs, the HTTP control API, and a client that speaks to it.
+
+pub mod api;
+pub mod auth;
+pub mod catalog;
+pub mod client;
+pub mod config;
+pub mod jobs;
+pub mod metrics;
+pub mod prompts;
+pub mod status;
+
+use std::net::SocketAddr;
+use std::time::Duration;
+
+use anyhow::Context;
+
+pub use config::ServeConfig;
+
+use crate::kinds::Registry;
+
+/// Start the daemon and serve until SIGTERM or SIGINT: then stop taking jobs, cancel the
+/// running one cleanly (its session flushed and resumable) and return.
+pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
+    let token = match &config.token_file {
+        Some(path) => Some(auth::Token::load(path)?),
+        None if !config.listen.ip().is_loopback() => anyhow::bail!(
+            "listening on {} (beyond loopback) needs a bearer token: set token_file in the \
+             daemon configuration (a file only its owner can read)",
+            config.listen
+        ),
+        None => None,
+    };
+    std::fs::create_dir_all(&config.data_dir)
+        .with_context(|| format!("creating the data dir {}", config.data_dir.display()))?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()
+        .context("starting the async runtime")?;
+    runtime.block_on(run(config, registry, token))
+}
+
+async fn run(
+    config: ServeConfig,
+    registry: Registry,
+    token: Option<auth::Token>,
+) -> anyhow::Result<()> {
+    let listener = tokio::net::TcpListener::bind(config.listen)
+        .await
+        .with_context(|| format!("listening on {}", config.listen))?;
+    let address = listener.local_addr().context("reading the bound address")?;
+    let data_dir = config.data_dir.clone();
+    let daemon = jobs::Daemon::open(config, registry, None)?;
+    let worker = tokio::spawn(daemon.clone().work());
+
+    let app =
+        api::router(daemon.clone(), token).into_make_service_with_connect_info::<SocketAddr>();
+    // The line tools and tests wait for: the API is up.
+    println!(
+        "geocal serve: listening on http://{address}, data in {}",
+        data_dir.display()
+    );
+    tracing::info!(%address, data_dir = %data_dir.display(), "geocal serve ready");
+    notify_systemd(&[sd_notify::NotifyState::Ready]);
+    let watchdog = tokio::spawn(watchdog());
+
+    let stopping = daemon.clone();
+    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
+        wait_for_signal().await;
+        tracing::info!("stopping: no new jobs; cancelling the running one");
+        notify_systemd(&[sd_notify::NotifyState::Stopping]);
+        stopping.stop();
+    });
+    let served = server.await.context("serving the API");
+    // The worker ends once the cancelled job has flushed and closed its session.
+    if let Err(e) = worker.await {
+        tracing::error!("job worker: {e}");
+    }
+    watchdog.abort();
+    tracing::info!("geocal serve stopped");
+    served
+}
+
+async fn wait_for_signal() {
+    let terminate = async {
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(mut term) => {
+                term.recv().await;
+            }
+            Err(e) => {
+                tracing::error!("cannot listen for SIGTERM: {e}");
+                std::future::pending::<()>().await;
+            }
+        }
+    };
+    tokio::select! {
+        _ = terminate => {}
+        _ = tokio::signal::ctrl_c() => {}
+    }
+}
+
+fn notify_systemd(state: &[sd_notify::NotifyState<'_>]) {
+    if let Err(e) = sd_notify::notify(false, state) {
+        tracing::debug!("sd_notify: {e}");
+    }
+}
+
+/// Tell systemd's watchdog the daemon lives, at half its interval, when it asks for that.
+async fn watchdog() {
+    let mut usec = 0u64;
+    if !sd_notify::watchdog_enabled(false, &mut usec) || usec == 0 {
+        return;
+    }
+    let period = Duration::from_micros(usec / 2);
+    loop {
+        notify_systemd(&[sd_notify::NotifyState::Watchdog]);
+        tokio::time::sleep(period).await;
+    }
+}
