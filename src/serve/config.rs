@@ -91,7 +91,8 @@ pub fn named_endpoints(config: &toml::Table) -> Vec<(String, String)> {
                 for (key, value) in table {
                     let path = format!("{key_path}.{key}");
                     if let toml::Value::String(text) = value {
-                        if ENDPOINT_KEYS.contains(&key.as_str()) {
+                        // An empty port is filled in by a hosted emulator.
+                        if ENDPOINT_KEYS.contains(&key.as_str()) && !text.is_empty() {
                             out.push((path.clone(), text.clone()));
                         }
                     }

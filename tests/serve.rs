@@ -1,0 +1,761 @@
+//! `geocal serve` as outside tools use it: a real HTTP client (reqwest; and Python `requests`
+//! as an outside peer) submits plans, follows them on the API and the event stream, cancels,
+//! resumes after a kill -9, and fetches what the jobs left; bad requests are clear 4xx that
+//! write nothing.
+
+mod common;
+
+use std::io::{BufRead, BufReader};
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use reqwest::blocking::Client;
+use reqwest::StatusCode;
+use serde_json::Value;
+
+/// Simulated time runs this many times faster than wall time: a small demo takes seconds.
+const PACE: &str = "\npace = 300.0\n";
+/// Long enough for any job here on a loaded 2-core machine.
+const JOB_TIMEOUT: Duration = Duration::from_secs(600);
+
+struct Daemon {
+    child: Child,
+    url: String,
+    data_dir: PathBuf,
+}
+
+impl Daemon {
+    fn start(data_dir: &Path, extra: &[&str]) -> Daemon {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_geocal"))
+            .arg("serve")
+            .arg("--data-dir")
+            .arg(data_dir)
+            .args(["--listen", "127.0.0.1:0"])
+            .args(extra)
+            .stdin(Stdio::null())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::null())
+            .spawn()
+            .expect("spawn geocal serve");
+        let stdout = child.stdout.take().expect("stdout");
+        let mut line = String::new();
+        BufReader::new(stdout)
+            .read_line(&mut line)
+            .expect("the daemon's first line");
+        let url = line
+            .split_whitespace()
+            .find(|w| w.starts_with("http://"))
+            .unwrap_or_else(|| panic!("no address in {line:?}"))
+            .trim_end_matches(',')
+            .to_owned();
+        Daemon {
+            child,
+            url,
+            data_dir: data_dir.to_owned(),
+        }
+    }
+
+    fn at(&self, path: &str) -> String {
+        format!("{}{path}", self.url)
+    }
+
+    fn kill_9(&mut self) {
+        self.child.kill().expect("SIGKILL");
+        self.child.wait().expect("reap");
+    }
+}
+
+impl Drop for Daemon {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn http() -> Client {
+    Client::builder()
+        .timeout(None)
+        .build()
+        .expect("http client")
+}
+
+fn submit(client: &Client, daemon: &Daemon, toml: &str) -> i64 {
+    let response = client
+        .post(daemon.at("/v1/jobs"))
+        .header("Content-Type", "application/toml")
+        .body(toml.to_owned())
+        .send()
+        .expect("POST /v1/jobs");
+    let status = response.status();
+    let body: Value = response.json().expect("json");
+    assert_eq!(status, StatusCode::CREATED, "{body}");
+    body["id"].as_i64().expect("id")
+}
+
+fn job(client: &Client, daemon: &Daemon, id: i64) -> Value {
+    client
+        .get(daemon.at(&format!("/v1/jobs/{id}")))
+        .send()
+        .expect("GET job")
+        .json()
+        .expect("job json")
+}
+
+fn wait_for(client: &Client, daemon: &Daemon, id: i64, states: &[&str]) -> Value {
+    let start = Instant::now();
+    loop {
+        let j = job(client, daemon, id);
+        if states.contains(&j["state"].as_str().unwrap_or("")) {
+            return j;
+        }
+        assert!(
+            start.elapsed() < JOB_TIMEOUT,
+            "job {id} never reached {states:?}: {j}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn post(client: &Client, daemon: &Daemon, path: &str) -> (StatusCode, Value) {
+    let response = client.post(daemon.at(path)).send().expect("POST");
+    let status = response.status();
+    (status, response.json().unwrap_or(Value::Null))
+}
+
+fn fetch(client: &Client, daemon: &Daemon, path: &str) -> Vec<u8> {
+    let response = client.get(daemon.at(path)).send().expect("GET");
+    assert_eq!(response.status(), StatusCode::OK, "{path}");
+    response.bytes().expect("body").to_vec()
+}
+
+/// The events on `/v1/events` until a job ends, collected on a thread of its own.
+fn follow_events(daemon: &Daemon) -> std::thread::JoinHandle<Vec<(String, Value)>> {
+    let response = http()
+        .get(daemon.at("/v1/events"))
+        .send()
+        .expect("GET /v1/events");
+    assert_eq!(response.status(), StatusCode::OK);
+    std::thread::spawn(move || {
+        let mut events = Vec::new();
+        let mut name = String::new();
+        for line in BufReader::new(response).lines() {
+            let Ok(line) = line else { break };
+            if let Some(n) = line.strip_prefix("event:") {
+                name = n.trim().to_owned();
+            } else if let Some(data) = line.strip_prefix("data:") {
+                let value: Value = serde_json::from_str(data.trim()).expect("event json");
+                let end = name == "job"
+                    && ["succeeded", "failed", "cancelled"]
+                        .contains(&value["state"].as_str().unwrap_or(""));
+                events.push((name.clone(), value));
+                if end {
+                    break;
+                }
+            }
+        }
+        events
+    })
+}
+
+fn job_dirs(data_dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(data_dir.join("jobs"))
+        .map(|d| {
+            d.flatten()
+                .map(|e| e.file_name().to_string_lossy().into_owned())
+                .collect()
+        })
+        .unwrap_or_default();
+    names.sort();
+    names
+}
+
+fn hil() -> String {
+    common::generous_timeouts(&common::hil_config(""))
+}
+
+/// Results JSON without what names the moment of the run (session id, start time).
+fn without_time(mut results: Value) -> Value {
+    fn strip(v: &mut Value) {
+        match v {
+            Value::Object(map) => {
+                map.remove("session_id");
+                map.remove("started_at");
+                map.values_mut().for_each(strip);
+            }
+            Value::Array(items) => items.iter_mut().for_each(strip),
+            _ => {}
+        }
+    }
+    strip(&mut results);
+    results
+}
+
+#[test]
+fn a_hil_run_submitted_over_http_is_followed_to_the_end_and_its_results_fetched() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let client = http();
+    let config = hil();
+    let events = follow_events(&daemon);
+    let id = submit(&client, &daemon, &config);
+
+    // While it runs, the API shows progress and the devices.
+    let running = wait_for(&client, &daemon, id, &["running", "succeeded", "failed"]);
+    let mut saw_progress = false;
+    let mut saw_devices = false;
+    while job(&client, &daemon, id)["state"] == "running" {
+        let j = job(&client, &daemon, id);
+        saw_progress |= j["progress"]["total"].as_u64().unwrap_or(0) > 0;
+        let devices: Value = client
+            .get(daemon.at("/v1/devices"))
+            .send()
+            .expect("devices")
+            .json()
+            .expect("json");
+        saw_devices |= devices.as_array().is_some_and(|d| {
+            d.iter()
+                .any(|d| d["id"] == "tracer0" && d["readings"].as_u64() > Some(0))
+        });
+        std::thread::sleep(Duration::from_millis(100));
+    }
+    let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
+    assert_eq!(done["state"], "succeeded", "{done}");
+    assert_eq!(done["kind"], "multilateration");
+    assert_eq!(running["type"], "run");
+    assert!(
+        saw_progress && saw_devices,
+        "progress and devices seen while running"
+    );
+    let total = done["progress"]["total"].as_u64().expect("total");
+    assert_eq!(done["progress"]["done"].as_u64(), Some(total));
+
+    // The event stream told the whole story.
+    let events = events.join().expect("events thread");
+    assert!(
+        events.iter().all(|(_, v)| v["id"].as_i64() == Some(id)),
+        "{events:?}"
+    );
+    let events: Vec<(String, Value)> = events
+        .into_iter()
+        .filter(|(n, v)| !(n == "job" && v["state"] == "queued"))
+        .collect();
+    let names: Vec<&str> = events.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(
+        events.first().map(|e| e.1["state"].clone()),
+        Some(Value::from("running")),
+        "{names:?}"
+    );
+    assert!(names.contains(&"station"), "{names:?}");
+    let progress: Vec<u64> = events
+        .iter()
+        .filter(|(n, _)| n == "progress")
+        .map(|(_, v)| v["progress"]["done"].as_u64().expect("done"))
+        .collect();
+    assert_eq!(progress.last(), Some(&total));
+    assert!(progress.windows(2).all(|w| w[0] <= w[1]));
+    assert_eq!(
+        events.last().map(|e| e.1["state"].clone()),
+        Some(Value::from("succeeded"))
+    );
+
+    // Results and session fetched; the results are what `geocal solve` makes of the session.
+    let results: Value =
+        serde_json::from_slice(&fetch(&client, &daemon, &format!("/v1/jobs/{id}/results")))
+            .expect("results");
+    assert_eq!(results["format"], "geocal-results/1");
+    let session = dir.path().join("fetched.mcap");
+    std::fs::write(
+        &session,
+        fetch(&client, &daemon, &format!("/v1/jobs/{id}/session")),
+    )
+    .expect("write");
+    let solved = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["solve", "--json"])
+        .arg(&session)
+        .output()
+        .expect("geocal solve");
+    assert!(solved.status.success());
+    let solved: Value = serde_json::from_slice(&solved.stdout).expect("solve json");
+    assert_eq!(
+        solved, results,
+        "the daemon's results are geocal solve's of its session"
+    );
+    // The catalog's hashes are the fetched files'.
+    let session_entry = done["files"]
+        .as_array()
+        .and_then(|f| f.iter().find(|f| f["name"] == "session.mcap"))
+        .expect("session.mcap listed");
+    assert_eq!(
+        session_entry["sha256"],
+        geocal::serve::catalog::hash_file(&session).expect("hash").1
+    );
+
+    // The emulated run recovers the simulated truth like a `geocal run` of the same config.
+    let truth: Value = serde_json::from_slice(&fetch(
+        &client,
+        &daemon,
+        &format!("/v1/jobs/{id}/files/truth.json"),
+    ))
+    .expect("truth");
+    let typed: geocal::method::multilateration::MultilaterationResults =
+        serde_json::from_value(results).expect("typed results");
+    common::assert_recovers_truth(&typed, &truth);
+}
+
+#[test]
+fn a_simulated_run_through_the_daemon_equals_geocal_run() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let client = http();
+    let config = common::small_demo();
+    let id = submit(&client, &daemon, &config);
+    let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let from_daemon: Value =
+        serde_json::from_slice(&fetch(&client, &daemon, &format!("/v1/jobs/{id}/results")))
+            .expect("results");
+
+    let plan = dir.path().join("plan.toml");
+    std::fs::write(&plan, &config).expect("plan");
+    let out = dir.path().join("direct");
+    let run = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("run")
+        .arg(&plan)
+        .arg("--out")
+        .arg(&out)
+        .output()
+        .expect("geocal run");
+    assert!(
+        run.status.success(),
+        "{}",
+        String::from_utf8_lossy(&run.stderr)
+    );
+    let direct: Value =
+        serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
+            .expect("json");
+    assert_eq!(without_time(from_daemon), without_time(direct));
+}
+
+#[test]
+fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let mut daemon = Daemon::start(&data, &[]);
+    let client = http();
+    let id = submit(&client, &daemon, &hil());
+    // Kill it once some points are measured and flushed.
+    let start = Instant::now();
+    loop {
+        let j = job(&client, &daemon, id);
+        assert_eq!(j["state"], "running", "the run must still be running: {j}");
+        if j["progress"]["done"].as_u64().unwrap_or(0) >= 4 {
+            break;
+        }
+        assert!(start.elapsed() < JOB_TIMEOUT);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    std::thread::sleep(Duration::from_millis(1500));
+    daemon.kill_9();
+    let job_dir = data.join("jobs").join(id.to_string());
+    let killed = dir.path().join("killed.mcap");
+    std::fs::copy(job_dir.join("session.mcap"), &killed).expect("copy the killed session");
+
+    let daemon = Daemon::start(&data, &[]);
+    let interrupted = job(&client, &daemon, id);
+    assert_eq!(interrupted["state"], "interrupted", "{interrupted}");
+    let (status, body) = post(&client, &daemon, &format!("/v1/jobs/{id}/resume"));
+    assert_eq!(status, StatusCode::ACCEPTED, "{body}");
+    let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
+    assert_eq!(done["state"], "succeeded", "{done}");
+
+    // Every message flushed before the kill is in the final session, unchanged and in order.
+    let (_, before) =
+        geocal::session::reader::read_session_raw(&killed).expect("killed file reads");
+    let (_, after) = geocal::session::reader::read_session_raw(&job_dir.join("session.mcap"))
+        .expect("final file");
+    assert!(
+        before.len() > 100,
+        "the kill came after some data: {}",
+        before.len()
+    );
+    for (a, b) in before.iter().zip(&after) {
+        assert_eq!(
+            (&a.channel.topic, a.log_time_ns, a.publish_time_ns, &a.data),
+            (&b.channel.topic, b.log_time_ns, b.publish_time_ns, &b.data)
+        );
+    }
+    let results: geocal::method::multilateration::MultilaterationResults =
+        serde_json::from_slice(&fetch(&client, &daemon, &format!("/v1/jobs/{id}/results")))
+            .expect("results");
+    let truth: Value =
+        serde_json::from_slice(&std::fs::read(job_dir.join("truth.json")).expect("truth"))
+            .expect("json");
+    common::assert_recovers_truth(&results, &truth);
+}
+
+#[test]
+fn jobs_wait_their_turn_and_cancel_cleanly() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let client = http();
+    let paced = format!("{}{PACE}", common::small_demo());
+    let first = submit(&client, &daemon, &paced);
+    let second = submit(&client, &daemon, &paced);
+    let third = submit(&client, &daemon, &paced);
+    wait_for(&client, &daemon, first, &["running"]);
+    assert_eq!(job(&client, &daemon, second)["state"], "queued");
+
+    // A queued job is cancelled at once and never runs.
+    let (status, body) = post(&client, &daemon, &format!("/v1/jobs/{third}/cancel"));
+    assert_eq!(
+        (status, body["state"].clone()),
+        (StatusCode::ACCEPTED, Value::from("cancelled"))
+    );
+
+    // A running job stops cleanly: its session is complete and readable, and it resumes.
+    let start = Instant::now();
+    while job(&client, &daemon, first)["progress"]["done"]
+        .as_u64()
+        .unwrap_or(0)
+        < 3
+    {
+        assert!(start.elapsed() < JOB_TIMEOUT);
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let (status, _) = post(&client, &daemon, &format!("/v1/jobs/{first}/cancel"));
+    assert_eq!(status, StatusCode::ACCEPTED);
+    let cancelled = wait_for(
+        &client,
+        &daemon,
+        first,
+        &["cancelled", "succeeded", "failed"],
+    );
+    assert_eq!(cancelled["state"], "cancelled", "{cancelled}");
+    let session = dir
+        .path()
+        .join("data/jobs")
+        .join(first.to_string())
+        .join("session.mcap");
+    let read = geocal::session::read_session(&session).expect("the cancelled session reads");
+    assert_eq!(read.completeness, geocal::session::Completeness::Complete);
+
+    // The second runs next; the third never did.
+    let second_done = wait_for(&client, &daemon, second, &["succeeded", "failed"]);
+    assert_eq!(second_done["state"], "succeeded", "{second_done}");
+    assert!(second_done["started_at"].as_str() >= cancelled["finished_at"].as_str());
+    let third_now = job(&client, &daemon, third);
+    assert_eq!(third_now["state"], "cancelled");
+    assert!(third_now["started_at"].is_null());
+
+    let (status, _) = post(&client, &daemon, &format!("/v1/jobs/{first}/resume"));
+    assert_eq!(status, StatusCode::ACCEPTED);
+    let resumed = wait_for(&client, &daemon, first, &["succeeded", "failed"]);
+    assert_eq!(resumed["state"], "succeeded", "{resumed}");
+    let results: Value = serde_json::from_slice(&fetch(
+        &client,
+        &daemon,
+        &format!("/v1/jobs/{first}/results"),
+    ))
+    .expect("results");
+    assert_eq!(results["format"], "geocal-results/1");
+}
+
+#[test]
+fn bad_requests_are_clear_and_write_nothing() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let serve_config = dir.path().join("serve.toml");
+    std::fs::write(&serve_config, "max_body_bytes = 8192\n").expect("config");
+    let daemon = Daemon::start(&data, &["--config", serve_config.to_str().expect("utf-8")]);
+    let client = http();
+    let send = |body: &str, content_type: &str| {
+        let r = client
+            .post(daemon.at("/v1/jobs"))
+            .header("Content-Type", content_type)
+            .body(body.to_owned())
+            .send()
+            .expect("POST");
+        let status = r.status();
+        (status, r.text().unwrap_or_default())
+    };
+    let (status, body) = send("kind = \"multilateration\"\n[plan\n", "application/toml");
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    assert!(body.contains("not TOML"), "{body}");
+    let unknown = common::small_demo().replace("[sim]\n", "[sim]\nsead = 3\n");
+    let (status, body) = send(&unknown, "application/toml");
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    assert!(body.contains("sead"), "the error names the key: {body}");
+    let (status, body) = send(&"#".repeat(9000), "application/toml");
+    assert_eq!(status, StatusCode::PAYLOAD_TOO_LARGE, "{body}");
+    let (status, body) = send("{}", "text/plain");
+    assert_eq!(status, StatusCode::UNSUPPORTED_MEDIA_TYPE, "{body}");
+    let port = common::small_demo().replace(
+        "[sim]\n",
+        "[devices.tracer.hpi3d]\nport = \"/dev/ttyS0\"\n[sim]\n",
+    );
+    let (status, body) = send(&port, "application/toml");
+    assert_eq!(status, StatusCode::BAD_REQUEST, "{body}");
+    assert!(
+        body.contains("/dev/ttyS0") && body.contains("allowed_ports"),
+        "{body}"
+    );
+    let (status, body) = send(r#"{"type":"solve","session_of":77}"#, "application/json");
+    assert_eq!(status, StatusCode::NOT_FOUND, "{body}");
+
+    let r = client.get(daemon.at("/v1/jobs/12345")).send().expect("GET");
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    let r = client
+        .get(daemon.at("/v1/jobs/..%2F..%2Fetc"))
+        .send()
+        .expect("GET");
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
+    assert!(
+        job_dirs(&data).is_empty(),
+        "nothing written: {:?}",
+        job_dirs(&data)
+    );
+    let jobs: Value = client
+        .get(daemon.at("/v1/jobs"))
+        .send()
+        .expect("GET")
+        .json()
+        .expect("json");
+    assert_eq!(jobs, Value::Array(vec![]));
+
+    // A resume of a job that is not interrupted.
+    let id = submit(&client, &daemon, &common::small_demo());
+    wait_for(&client, &daemon, id, &["succeeded", "failed"]);
+    let (status, body) = post(&client, &daemon, &format!("/v1/jobs/{id}/resume"));
+    assert_eq!(status, StatusCode::CONFLICT, "{body}");
+    assert!(body["error"]
+        .as_str()
+        .unwrap_or("")
+        .contains("only an interrupted or cancelled run"));
+    let r = client
+        .get(daemon.at(&format!("/v1/jobs/{id}/files/..%2Fcatalog.sqlite")))
+        .send()
+        .expect("GET");
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    assert_eq!(job_dirs(&data), vec![id.to_string()]);
+}
+
+#[test]
+fn a_token_guards_every_route_and_beyond_loopback_one_is_required() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let refused = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("serve")
+        .arg("--data-dir")
+        .arg(dir.path().join("open"))
+        .args(["--listen", "0.0.0.0:0"])
+        .output()
+        .expect("geocal serve");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("token_file"), "{stderr}");
+
+    let token_file = dir.path().join("token");
+    std::fs::write(&token_file, "s3cret-token-0123456789\n").expect("token");
+    let loose = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("serve")
+        .arg("--data-dir")
+        .arg(dir.path().join("loose"))
+        .args(["--listen", "0.0.0.0:0", "--token-file"])
+        .arg(&token_file)
+        .output()
+        .expect("geocal serve");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        if std::fs::metadata(&token_file)
+            .expect("meta")
+            .permissions()
+            .mode()
+            & 0o077
+            != 0
+        {
+            assert!(!loose.status.success(), "a readable token file is refused");
+        }
+        std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(0o600))
+            .expect("chmod");
+    }
+    let daemon = Daemon::start(
+        &dir.path().join("data"),
+        &["--token-file", token_file.to_str().expect("utf-8")],
+    );
+    let client = http();
+    for path in ["/v1/health", "/v1/jobs", "/metrics", "/v1/openapi.json"] {
+        let r = client.get(daemon.at(path)).send().expect("GET");
+        assert_eq!(
+            r.status(),
+            StatusCode::UNAUTHORIZED,
+            "{path} without a token"
+        );
+        let r = client
+            .get(daemon.at(path))
+            .bearer_auth("s3cret-token-0123456780")
+            .send()
+            .expect("GET");
+        assert_eq!(
+            r.status(),
+            StatusCode::UNAUTHORIZED,
+            "{path} with a wrong token"
+        );
+        let r = client
+            .get(daemon.at(path))
+            .bearer_auth("s3cret-token-0123456789")
+            .send()
+            .expect("GET");
+        assert_eq!(r.status(), StatusCode::OK, "{path} with the token");
+    }
+    let r = client
+        .post(daemon.at("/v1/jobs"))
+        .header("Content-Type", "application/toml")
+        .body(common::small_demo())
+        .send()
+        .expect("POST");
+    assert_eq!(r.status(), StatusCode::UNAUTHORIZED);
+    assert!(job_dirs(&daemon.data_dir).is_empty());
+}
+
+#[test]
+fn the_openapi_document_health_and_metrics_describe_the_daemon() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let client = http();
+    let doc: Value = client
+        .get(daemon.at("/v1/openapi.json"))
+        .send()
+        .expect("GET")
+        .json()
+        .expect("json");
+    assert!(doc["openapi"].as_str().is_some_and(|v| v.starts_with("3.")));
+    for path in [
+        "/v1/jobs",
+        "/v1/jobs/{id}",
+        "/v1/jobs/{id}/cancel",
+        "/v1/jobs/{id}/resume",
+        "/v1/jobs/{id}/results",
+        "/v1/jobs/{id}/session",
+        "/v1/devices",
+        "/v1/prompts",
+        "/v1/prompts/{id}/ack",
+        "/v1/events",
+        "/v1/health",
+        "/metrics",
+    ] {
+        assert!(
+            doc["paths"][path].is_object(),
+            "{path} in the OpenAPI document"
+        );
+    }
+    let health: Value = client
+        .get(daemon.at("/v1/health"))
+        .send()
+        .expect("GET")
+        .json()
+        .expect("json");
+    assert_eq!(health["status"], "ok");
+    let id = submit(&client, &daemon, &common::small_demo());
+    wait_for(&client, &daemon, id, &["succeeded"]);
+    let metrics = client
+        .get(daemon.at("/metrics"))
+        .send()
+        .expect("GET")
+        .text()
+        .expect("text");
+    assert!(
+        metrics.contains("geocal_jobs{state=\"succeeded\"} 1"),
+        "{metrics}"
+    );
+    let samples: u64 = metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("geocal_samples_recorded_total "))
+        .and_then(|v| v.trim().parse().ok())
+        .expect("samples metric");
+    assert!(samples > 1000, "{samples}");
+
+    // A solve job on the run's session gives the run's results again.
+    let r = client
+        .post(daemon.at("/v1/jobs"))
+        .header("Content-Type", "application/json")
+        .body(format!(r#"{{"type":"solve","session_of":{id}}}"#))
+        .send()
+        .expect("POST");
+    assert_eq!(r.status(), StatusCode::CREATED);
+    let solve: Value = r.json().expect("json");
+    let solve = solve["id"].as_i64().expect("id");
+    assert_eq!(
+        wait_for(&client, &daemon, solve, &["succeeded", "failed"])["state"],
+        "succeeded"
+    );
+    assert_eq!(
+        fetch(&client, &daemon, &format!("/v1/jobs/{solve}/results")),
+        fetch(&client, &daemon, &format!("/v1/jobs/{id}/results"))
+    );
+}
+
+#[test]
+fn sigterm_cancels_the_running_job_and_exits_zero() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let data = dir.path().join("data");
+    let mut daemon = Daemon::start(&data, &[]);
+    let client = http();
+    let id = submit(&client, &daemon, &format!("{}{PACE}", common::small_demo()));
+    let start = Instant::now();
+    while job(&client, &daemon, id)["progress"]["done"]
+        .as_u64()
+        .unwrap_or(0)
+        < 2
+    {
+        assert!(start.elapsed() < JOB_TIMEOUT);
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    let pid = daemon.child.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill")
+        .success());
+    let start = Instant::now();
+    let status = loop {
+        if let Some(status) = daemon.child.try_wait().expect("wait") {
+            break status;
+        }
+        assert!(start.elapsed() < JOB_TIMEOUT, "the daemon did not stop");
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert!(status.success(), "{status}");
+    let daemon = Daemon::start(&data, &[]);
+    let stopped = job(&client, &daemon, id);
+    assert_eq!(stopped["state"], "cancelled", "{stopped}");
+    let (status, _) = post(&client, &daemon, &format!("/v1/jobs/{id}/resume"));
+    assert_eq!(status, StatusCode::ACCEPTED);
+    assert_eq!(
+        wait_for(&client, &daemon, id, &["succeeded", "failed"])["state"],
+        "succeeded"
+    );
+}
+
+#[test]
+fn an_outside_python_client_runs_a_job() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let plan = dir.path().join("plan.toml");
+    std::fs::write(&plan, common::small_demo()).expect("plan");
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py");
+    let output = Command::new("python3")
+        .arg(script)
+        .arg(&daemon.url)
+        .arg(&plan)
+        .output()
+        .expect("python3 must be installed (pip install requests)");
+    assert!(
+        output.status.success(),
+        "the Python client failed (pip install requests?)\nstdout:\n{}\nstderr:\n{}",
+        String::from_utf8_lossy(&output.stdout),
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    assert!(stdout.contains("succeeded"), "{stdout}");
+}
