@@ -759,3 +759,71 @@ fn an_outside_python_client_runs_a_job() {
     let stdout = String::from_utf8_lossy(&output.stdout);
     assert!(stdout.contains("succeeded"), "{stdout}");
 }
+
+#[test]
+fn operator_prompts_wait_for_an_acknowledgement_over_the_api() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    let client = http();
+    let config = format!("{}\n[operator]\nrehearse = true\n", hil());
+    let id = submit(&client, &daemon, &config);
+    let start = Instant::now();
+    let mut acknowledged = Vec::new();
+    loop {
+        let j = job(&client, &daemon, id);
+        if j["state"] != "running" && j["state"] != "queued" {
+            assert_eq!(j["state"], "succeeded", "{j}");
+            break;
+        }
+        let prompts: Value = client
+            .get(daemon.at("/v1/prompts"))
+            .send()
+            .expect("GET")
+            .json()
+            .expect("json");
+        for prompt in prompts.as_array().expect("array") {
+            assert_eq!(prompt["job"].as_i64(), Some(id));
+            // Held for a moment: the run must wait for it.
+            std::thread::sleep(Duration::from_millis(300));
+            assert_eq!(job(&client, &daemon, id)["state"], "running");
+            let still: Value = client
+                .get(daemon.at("/v1/prompts"))
+                .send()
+                .expect("GET")
+                .json()
+                .expect("json");
+            assert_eq!(
+                still.as_array().map(Vec::len),
+                Some(1),
+                "the prompt still waits"
+            );
+            let p = prompt["id"].as_u64().expect("prompt id");
+            let r = client
+                .post(daemon.at(&format!("/v1/prompts/{p}/ack")))
+                .send()
+                .expect("POST");
+            assert_eq!(r.status(), StatusCode::NO_CONTENT);
+            acknowledged.push(prompt["instruction"].as_str().unwrap_or("").to_owned());
+        }
+        assert!(start.elapsed() < JOB_TIMEOUT);
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let r = client
+        .post(daemon.at("/v1/prompts/9999/ack"))
+        .send()
+        .expect("POST");
+    assert_eq!(r.status(), StatusCode::NOT_FOUND);
+    // Four stations and one reflector, mounted at the first station: every change was asked
+    // for, in the plan's order.
+    let expected = [
+        "place the tracer on station s1",
+        "mount reflector t0",
+        "place the tracer on station s2",
+        "place the tracer on station s3",
+        "place the tracer on station s4",
+    ];
+    assert_eq!(acknowledged.len(), expected.len(), "{acknowledged:?}");
+    for (text, start) in acknowledged.iter().zip(expected) {
+        assert!(text.starts_with(start), "{text} should start with {start}");
+    }
+}

@@ -10,4 +10,9 @@ pub struct OperatorConfig {
     /// from a supervising program); `geocal run --yes` sets it.
     #[serde(default)]
     pub piped_stdin: bool,
+    /// Simulated and emulated runs ask the operator too (at the console, or over the
+    /// daemon's API) before each station and reflector change, as a real run would: a
+    /// rehearsal of the prompts, and how the prompt path is tested.
+    #[serde(default)]
+    pub rehearse: bool,
 }

@@ -64,12 +64,55 @@ pub async fn build(
             .rotary_table
             .as_ref()
             .is_none_or(|t| t.driver == DriverKind::Sim);
-    if config.emulated() {
-        build_emulated(config, plan, epoch_ns).await
+    let mut built = if config.emulated() {
+        build_emulated(config, plan, epoch_ns).await?
     } else if all_sim {
-        build_simulated(config, plan, epoch_ns)
+        build_simulated(config, plan, epoch_ns)?
     } else {
-        build_real(config, plan, epoch_ns, operator).await
+        return build_real(config, plan, epoch_ns, operator).await;
+    };
+    let operator_config = config.operator.clone().unwrap_or_default();
+    if operator_config.rehearse {
+        let ask = real_operator(config, operator)?;
+        let act = std::mem::replace(&mut built.devices.operator, Box::new(NoOperator));
+        built.devices.operator = Box::new(crate::devices::operator::Rehearsal { ask, act });
+    }
+    Ok(built)
+}
+
+/// The operator who answers a real run's prompts: the daemon's when given, else the console's.
+fn real_operator(
+    config: &Config,
+    operator: Option<&crate::sequencer::control::OperatorSource>,
+) -> anyhow::Result<Box<dyn Operator>> {
+    Ok(match operator {
+        Some(source) => source(),
+        None => Box::new(crate::devices::operator::ConsoleOperator::stdin(
+            &config.operator.clone().unwrap_or_default(),
+        )?),
+    })
+}
+
+/// A placeholder while an operator is being wrapped.
+struct NoOperator;
+
+#[async_trait::async_trait]
+impl Operator for NoOperator {
+    async fn place_station(
+        &mut self,
+        _index: usize,
+        _id: &str,
+        _hint_m: Option<[f64; 3]>,
+    ) -> Result<(), geocal_drivers::DeviceError> {
+        Ok(())
+    }
+
+    async fn mount_target(
+        &mut self,
+        _target: &str,
+        _offset_m: [f64; 3],
+    ) -> Result<(), geocal_drivers::DeviceError> {
+        Ok(())
     }
 }
 
@@ -265,12 +308,7 @@ async fn build_real(
 ) -> anyhow::Result<BuiltDevices> {
     let _ = plan;
     // First, so that a run without a console fails before it touches a device.
-    let operator: Box<dyn Operator> = match operator {
-        Some(source) => source(),
-        None => Box::new(crate::devices::operator::ConsoleOperator::stdin(
-            &config.operator.clone().unwrap_or_default(),
-        )?),
-    };
+    let operator = real_operator(config, operator)?;
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);

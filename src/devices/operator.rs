@@ -140,6 +140,31 @@ impl Operator for ConsoleOperator {
     }
 }
 
+/// A simulated or emulated run that asks its operator first, as a real run would, then lets
+/// the simulated operator act (`[operator] rehearse = true`).
+pub struct Rehearsal {
+    pub ask: Box<dyn Operator>,
+    pub act: Box<dyn Operator>,
+}
+
+#[async_trait]
+impl Operator for Rehearsal {
+    async fn place_station(
+        &mut self,
+        index: usize,
+        id: &str,
+        hint_m: Option<[f64; 3]>,
+    ) -> Result<(), DeviceError> {
+        self.ask.place_station(index, id, hint_m).await?;
+        self.act.place_station(index, id, hint_m).await
+    }
+
+    async fn mount_target(&mut self, target: &str, offset_m: [f64; 3]) -> Result<(), DeviceError> {
+        self.ask.mount_target(target, offset_m).await?;
+        self.act.mount_target(target, offset_m).await
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use std::sync::{Arc, Mutex};
