@@ -18,6 +18,7 @@ const LAYERS: &[&[&str]] = &[
     &["method", "run"],
     &["kinds"],
     &["diagnose", "replay", "monitor", "lib", "main"],
+    &["serve"],
 ];
 
 /// The plan kinds: a path segment with one of these names belongs to that kind.

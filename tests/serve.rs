@@ -27,7 +27,25 @@ struct Daemon {
 
 impl Daemon {
     fn start(data_dir: &Path, extra: &[&str]) -> Daemon {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        Daemon::start_with_env(data_dir, extra, &[])
+    }
+
+    /// With `env`; through a shell that sets WATCHDOG_PID to the daemon's own pid (as systemd
+    /// does) and execs it.
+    fn start_with_env(data_dir: &Path, extra: &[&str], env: &[(&str, &str)]) -> Daemon {
+        let mut command = if env.is_empty() {
+            Command::new(env!("CARGO_BIN_EXE_geocal"))
+        } else {
+            let mut c = Command::new("sh");
+            c.args([
+                "-c",
+                "WATCHDOG_PID=$$ exec \"$0\" \"$@\"",
+                env!("CARGO_BIN_EXE_geocal"),
+            ]);
+            c
+        };
+        let mut child = command
+            .envs(env.iter().copied())
             .arg("serve")
             .arg("--data-dir")
             .arg(data_dir)
@@ -826,4 +844,46 @@ fn operator_prompts_wait_for_an_acknowledgement_over_the_api() {
     for (text, start) in acknowledged.iter().zip(expected) {
         assert!(text.starts_with(start), "{text} should start with {start}");
     }
+}
+
+#[test]
+fn systemd_hears_ready_watchdog_and_stopping() {
+    use std::os::unix::net::UnixDatagram;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let socket_path = dir.path().join("notify.sock");
+    let socket = UnixDatagram::bind(&socket_path).expect("bind the notify socket");
+    socket
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .expect("timeout");
+    let mut daemon = Daemon::start_with_env(
+        &dir.path().join("data"),
+        &[],
+        &[
+            ("NOTIFY_SOCKET", socket_path.to_str().expect("utf-8")),
+            ("WATCHDOG_USEC", "200000"),
+        ],
+    );
+    let mut heard = Vec::new();
+    let mut buffer = [0u8; 512];
+    while !(heard.iter().any(|m: &String| m.contains("READY=1"))
+        && heard.iter().filter(|m| m.contains("WATCHDOG=1")).count() >= 2)
+    {
+        let n = socket
+            .recv(&mut buffer)
+            .unwrap_or_else(|e| panic!("a notification within 60 s ({e}); heard {heard:?}"));
+        heard.push(String::from_utf8_lossy(&buffer[..n]).into_owned());
+    }
+    let pid = daemon.child.id().to_string();
+    assert!(Command::new("kill")
+        .args(["-TERM", &pid])
+        .status()
+        .expect("kill")
+        .success());
+    loop {
+        let n = socket.recv(&mut buffer).expect("STOPPING within 60 s");
+        if String::from_utf8_lossy(&buffer[..n]).contains("STOPPING=1") {
+            break;
+        }
+    }
+    assert!(daemon.child.wait().expect("wait").success());
 }

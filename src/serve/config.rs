@@ -176,6 +176,15 @@ mod tests {
     }
 
     #[test]
+    fn the_shipped_configuration_parses() {
+        let text = include_str!("../../deploy/serve.toml");
+        let config: ServeConfig =
+            crate::config::kind_config::parse_strict(text, Path::new("deploy/serve.toml")).unwrap();
+        assert!(config.listen.ip().is_loopback());
+        assert!(endpoint_allowed(&config, "/dev/ttyUSB3"));
+    }
+
+    #[test]
     fn unknown_keys_name_the_key() {
         let dir = tempfile::tempdir().unwrap();
         let path = dir.path().join("serve.toml");
