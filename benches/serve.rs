@@ -4,7 +4,6 @@
 //! daemon's resident memory over 20 consecutive jobs.
 
 #[path = "../tests/common/mod.rs"]
-#[allow(dead_code)]
 mod common;
 
 use std::io::{BufRead, BufReader};
