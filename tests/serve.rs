@@ -748,11 +748,11 @@ fn sigterm_cancels_the_running_job_and_exits_zero() {
 }
 
 #[test]
-fn an_outside_python_client_runs_a_job() {
+fn an_outside_python_client_runs_a_hil_job() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = Daemon::start(&dir.path().join("data"), &[]);
     let plan = dir.path().join("plan.toml");
-    std::fs::write(&plan, common::small_demo()).expect("plan");
+    std::fs::write(&plan, hil()).expect("plan");
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/serve_client.py");
     let output = Command::new("python3")
         .arg(script)
