@@ -879,3 +879,74 @@ fn systemd_hears_ready_watchdog_and_stopping() {
     }
     assert!(daemon.child.wait().expect("wait").success());
 }
+
+#[test]
+fn schedules_submit_their_plan_and_skip_while_busy() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    std::fs::write(
+        dir.path().join("plan.toml"),
+        format!("{}{PACE}", common::small_demo()),
+    )
+    .expect("plan");
+    let serve_config = dir.path().join("serve.toml");
+    std::fs::write(
+        &serve_config,
+        "[[schedule]]\nname = \"often\"\ncron = \"*/2 * * * * *\"\nplan = \"plan.toml\"\n\
+         time_zone = \"UTC\"\nwhen_busy = \"skip\"\n",
+    )
+    .expect("config");
+    let daemon = Daemon::start(
+        &dir.path().join("data"),
+        &["--config", serve_config.to_str().expect("utf-8")],
+    );
+    let client = http();
+    // Two scheduled runs, one after the other: firings while the first runs are skipped.
+    let start = Instant::now();
+    let jobs = loop {
+        let jobs: Value = client
+            .get(daemon.at("/v1/jobs"))
+            .send()
+            .expect("GET")
+            .json()
+            .expect("json");
+        let jobs = jobs.as_array().cloned().unwrap_or_default();
+        if jobs.len() >= 2 {
+            break jobs;
+        }
+        assert!(start.elapsed() < JOB_TIMEOUT, "{jobs:?}");
+        std::thread::sleep(Duration::from_millis(100));
+    };
+    assert!(
+        jobs.iter().all(|j| j["submitted_by"] == "schedule:often"),
+        "{jobs:?}"
+    );
+    let (first, second) = (
+        jobs[1]["id"].as_i64().expect("id"),
+        jobs[0]["id"].as_i64().expect("id"),
+    );
+    let first = wait_for(&client, &daemon, first, &["succeeded", "failed"]);
+    assert_eq!(first["state"], "succeeded", "{first}");
+    let second = job(&client, &daemon, second);
+    // Skipping while busy: the second was submitted only after the first had ended.
+    assert!(
+        second["submitted_at"].as_str() >= first["finished_at"].as_str(),
+        "{first} {second}"
+    );
+
+    // A bad expression refuses the start and names the key.
+    std::fs::write(
+        &serve_config,
+        "[[schedule]]\nname = \"bad\"\ncron = \"61 * * * *\"\nplan = \"plan.toml\"\n",
+    )
+    .expect("config");
+    let refused = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["serve", "--listen", "127.0.0.1:0", "--config"])
+        .arg(&serve_config)
+        .arg("--data-dir")
+        .arg(dir.path().join("other"))
+        .output()
+        .expect("geocal serve");
+    assert!(!refused.status.success());
+    let stderr = String::from_utf8_lossy(&refused.stderr);
+    assert!(stderr.contains("schedule[0].cron"), "{stderr}");
+}

@@ -38,7 +38,10 @@ pub struct ServeConfig {
     pub allowed_hosts: Vec<String>,
     /// Scheduled jobs.
     #[serde(default)]
-    pub schedule: Vec<toml::Value>,
+    pub schedule: Vec<super::schedule::ScheduleConfig>,
+    /// Where relative plan paths of the schedules start (the configuration file's folder).
+    #[serde(skip)]
+    pub base_dir: PathBuf,
 }
 
 fn default_listen() -> SocketAddr {
@@ -70,6 +73,7 @@ impl Default for ServeConfig {
             allowed_ports: Vec::new(),
             allowed_hosts: Vec::new(),
             schedule: Vec::new(),
+            base_dir: PathBuf::from("."),
         }
     }
 }
@@ -78,7 +82,13 @@ impl ServeConfig {
     pub fn load(path: &Path) -> anyhow::Result<ServeConfig> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("reading the daemon configuration {}", path.display()))?;
-        Ok(crate::config::kind_config::parse_strict(&text, path)?)
+        let mut config: ServeConfig = crate::config::kind_config::parse_strict(&text, path)?;
+        config.base_dir = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_owned();
+        Ok(config)
     }
 }
 

@@ -323,6 +323,20 @@ impl Daemon {
         self.wake.notify_one();
     }
 
+    /// What makes the daemon busy (a job running or waiting), for a schedule that skips.
+    pub fn busy_reason(&self) -> Option<String> {
+        if let Some(id) = self
+            .running
+            .lock()
+            .ok()
+            .and_then(|r| r.as_ref().map(|r| r.id))
+        {
+            return Some(format!("job {id} is running"));
+        }
+        let queued = self.catalog().ok()?.next_queued().ok()??;
+        Some(format!("job {} is queued", queued.id))
+    }
+
     pub fn is_busy(&self) -> bool {
         self.running.lock().map(|r| r.is_some()).unwrap_or(true)
     }

@@ -9,6 +9,7 @@ pub mod config;
 pub mod jobs;
 pub mod metrics;
 pub mod prompts;
+pub mod schedule;
 pub mod status;
 
 use std::net::SocketAddr;
@@ -32,6 +33,8 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         ),
         None => None,
     };
+    // A bad schedule refuses the start, like a bad key.
+    schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
     std::fs::create_dir_all(&config.data_dir)
         .with_context(|| format!("creating the data dir {}", config.data_dir.display()))?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -52,8 +55,11 @@ async fn run(
         .with_context(|| format!("listening on {}", config.listen))?;
     let address = listener.local_addr().context("reading the bound address")?;
     let data_dir = config.data_dir.clone();
+    let scheduler =
+        schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
     let daemon = jobs::Daemon::open(config, registry, None)?;
     let worker = tokio::spawn(daemon.clone().work());
+    let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
 
     let app =
         api::router(daemon.clone(), token).into_make_service_with_connect_info::<SocketAddr>();
@@ -79,8 +85,57 @@ async fn run(
         tracing::error!("job worker: {e}");
     }
     watchdog.abort();
+    schedules.abort();
     tracing::info!("geocal serve stopped");
     served
+}
+
+/// Submit the schedules' plans when they come due, once a second.
+async fn run_schedules(daemon: std::sync::Arc<jobs::Daemon>, mut scheduler: schedule::Scheduler) {
+    if scheduler.is_empty() {
+        return;
+    }
+    for (name, next) in scheduler.upcoming() {
+        tracing::info!(schedule = name, next = ?next, "schedule loaded");
+    }
+    let mut tick = tokio::time::interval(Duration::from_secs(1));
+    loop {
+        tick.tick().await;
+        if daemon.shutdown.is_cancelled() {
+            return;
+        }
+        let busy = daemon.busy_reason();
+        for firing in scheduler.due(chrono::Utc::now(), busy.as_deref()) {
+            let name = firing.schedule.clone();
+            match firing.decision {
+                schedule::Decision::Skip { reason } => {
+                    tracing::warn!(schedule = name, "schedule skipped: {reason}");
+                }
+                schedule::Decision::Submit => {
+                    let daemon = daemon.clone();
+                    let submitted = tokio::task::spawn_blocking(move || {
+                        let text = std::fs::read_to_string(&firing.plan).map_err(|e| {
+                            jobs::JobError::BadRequest(format!(
+                                "reading {}: {e}",
+                                firing.plan.display()
+                            ))
+                        })?;
+                        daemon.submit_run(&text, &format!("schedule:{}", firing.schedule))
+                    })
+                    .await;
+                    match submitted {
+                        Ok(Ok(id)) => {
+                            tracing::info!(schedule = name, job = id, "schedule submitted")
+                        }
+                        Ok(Err(e)) => {
+                            tracing::error!(schedule = name, "schedule not submitted: {e}")
+                        }
+                        Err(e) => tracing::error!(schedule = name, "schedule task failed: {e}"),
+                    }
+                }
+            }
+        }
+    }
 }
 
 async fn wait_for_signal() {
