@@ -121,8 +121,9 @@ fn monte_carlo(budget_declares: &UncertaintyConfig) -> Draws {
                 counter_m - (x - x_ref) + reflector_m + n(SIGMA_STAT_M).sample(&mut rng)
             })
             .collect();
+        let sigma = [SIGMA_STAT_M; 7];
         let geometric_errors = json!({"axes": {"x": {"positions_m": POSITIONS_M,
-            "errors": {"EXX": {"unit": "m", "values": values, "sigma": [SIGMA_STAT_M; 7]}}}}});
+            "errors": {"EXX": {"unit": "m", "values": values, "sigma": sigma}}}}});
         let material = MaterialTemperature::from_values([logged_material_k]);
         let evaluation = evaluate_tracer(
             &[],
