@@ -13,6 +13,8 @@
 //! would hand on. This keeps 500 draws well under a second and tests what the budget claims:
 //! which inputs act, through which sensitivity, on the reported (normalised) value.
 
+mod common;
+
 use geocal::config::sim::{EffectSwitch, EffectsConfig};
 use geocal::config::uncertainty::{NormalisationConfig, UncertaintyConfig};
 use geocal::config::SimEnvironmentConfig;
@@ -189,4 +191,61 @@ fn monte_carlo_catches_a_budget_missing_a_contributor() {
     let ratio = 2.0 * std(&d.reported_m) / mean(&d.expanded_m);
     eprintln!("budget without the CTE: Monte Carlo 2s / U = {ratio:.3}");
     assert!((ratio - 1.0).abs() > 0.15, "ratio {ratio}");
+}
+
+/// End to end through a whole simulated run: the same machine measured at 20 °C and with its
+/// scales 1 K warm (the sim's `thermal_expansion` at steel's CTE); the warm run's EXX
+/// referred to 20 °C must match the cold run's raw EXX within the statistical σ of the two,
+/// while the warm run's raw EXX is off by the expansion.
+#[test]
+fn a_warm_run_normalised_matches_the_run_at_20_c() {
+    use geocal::evaluate::tracer::evaluate_session;
+    use geocal::method::multilateration::MultilaterationResults;
+    use geocal::session::reader::read_session;
+    use std::path::Path;
+
+    let evaluate = |material_k: f64, expansion: bool| {
+        let text = format!(
+            "{}\n[sim.environment]\nmaterial_temp_k = [{material_k}]\ntemp_swing_k = 0.0\n\n\
+             [sim.effects]\nthermal_expansion = {{ enabled = {expansion}, size = 11.5e-6 }}\n\n\
+             [normalisation]\nscale_cte_per_k = 11.5e-6\n",
+            common::small_demo()
+        );
+        let config = geocal::config::Config::parse(&text, Path::new("warm.toml")).expect("config");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let (output, _) = common::run_with_truth(&text, dir.path());
+        let results = output
+            .results
+            .get::<MultilaterationResults>()
+            .expect("tracer results")
+            .clone();
+        let session = read_session(&output.session_path).expect("session");
+        evaluate_session(&session, &results, Some(&config)).expect("evaluation")
+    };
+    let cold = evaluate(293.15, false);
+    let warm = evaluate(294.15, true);
+    let (c, w) = (&cold.positioning[0].curve, &warm.positioning[0].curve);
+    assert_eq!((c.error.as_str(), w.error.as_str()), ("EXX", "EXX"));
+    let warm_k = warm.material_temperature.expect("logged").mean_k;
+    assert!((warm_k - 294.15).abs() < 1e-9, "{warm_k}");
+    let last = c.positions_m.len() - 1;
+    let rel = |v: &[Option<f64>]| v[last].expect("value") - v[0].expect("value");
+    let sigma = |v: &[Option<f64>]| {
+        let s = |i: usize| v[i].expect("sigma");
+        (s(0).powi(2) + s(last).powi(2)).sqrt()
+    };
+    let both_sigma = (sigma(&c.sigma_m).powi(2) + sigma(&w.sigma_m).powi(2)).sqrt();
+    let expansion_m = 11.5e-6 * (c.positions_m[last] - c.positions_m[0]);
+    let (cold_raw, warm_raw, warm_norm) = (rel(&c.raw_m), rel(&w.raw_m), rel(&w.normalised_m));
+    eprintln!(
+        "EXX(last) − EXX(first): cold raw {:.3} µm, warm raw {:.3} µm, warm normalised {:.3} µm; \
+         expansion {:.3} µm, σ of the difference {:.3} µm",
+        cold_raw * 1e6,
+        warm_raw * 1e6,
+        warm_norm * 1e6,
+        expansion_m * 1e6,
+        both_sigma * 1e6
+    );
+    assert!((warm_norm - cold_raw).abs() < 3.0 * both_sigma);
+    assert!((warm_raw - cold_raw - expansion_m).abs() < 3.0 * both_sigma);
 }

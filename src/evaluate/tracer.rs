@@ -9,7 +9,9 @@ use super::normalise::{
 };
 use super::uncertainty::{angle_budget, length_budget, Budget, EdlenSensitivities, LengthContext};
 use crate::config::uncertainty::{NormalisationConfig, UncertaintyConfig};
-use crate::method::multilateration::PointResult;
+use crate::config::Config;
+use crate::method::multilateration::{MultilaterationResults, PointResult};
+use crate::session::reader::Session;
 
 /// One positioning error curve with a budget per position where it has a value.
 #[derive(Debug, Clone, PartialEq, Serialize)]
@@ -170,6 +172,38 @@ pub fn evaluate_tracer(
         points: point_budgets(points, material, normalisation.scale_cte_per_k, declared),
         notes,
     })
+}
+
+/// The evaluation of a tracer run: material temperatures from the session, the declared
+/// uncertainties and the scales' CTE from the configuration (the defaults without one, or
+/// without its sections; the evaluation's notes say which).
+pub fn evaluate_session(
+    session: &Session,
+    results: &MultilaterationResults,
+    config: Option<&Config>,
+) -> Result<TracerEvaluation, EvaluateError> {
+    let declared = config.and_then(|c| c.uncertainty);
+    let normalisation = config.and_then(|c| c.normalisation);
+    let material = MaterialTemperature::from_session(session);
+    let mut evaluation = evaluate_tracer(
+        &results.points,
+        results.geometric_errors.as_ref(),
+        material.as_ref(),
+        &declared.unwrap_or_default(),
+        &normalisation.unwrap_or_default(),
+    )?;
+    if declared.is_none() {
+        evaluation
+            .notes
+            .push("no [uncertainty] declared: the default uncertainties are used".to_string());
+    }
+    if normalisation.is_none() {
+        evaluation.notes.push(
+            "no [normalisation] declared: the scales' CTE is the default (steel, 11.5e-6 /K)"
+                .to_string(),
+        );
+    }
+    Ok(evaluation)
 }
 
 #[cfg(test)]
