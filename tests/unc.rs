@@ -209,7 +209,7 @@ fn a_warm_run_normalised_matches_the_run_at_20_c() {
             "{}\n[sim.environment]\nmaterial_temp_k = [{material_k}]\ntemp_swing_k = 0.0\n\n\
              [sim.effects]\nthermal_expansion = {{ enabled = {expansion}, size = 11.5e-6 }}\n\n\
              [normalisation]\nscale_cte_per_k = 11.5e-6\n",
-            common::small_demo()
+            common::DEMO
         );
         let config = geocal::config::Config::parse(&text, Path::new("warm.toml")).expect("config");
         let dir = tempfile::tempdir().expect("tempdir");
@@ -223,6 +223,11 @@ fn a_warm_run_normalised_matches_the_run_at_20_c() {
         evaluate_session(&session, &results, Some(&config)).expect("evaluation")
     };
     let cold = evaluate(293.15, false);
+    assert!(
+        !cold.positioning.is_empty(),
+        "no positioning curves: {:?}",
+        cold.notes
+    );
     let warm = evaluate(294.15, true);
     let (c, w) = (&cold.positioning[0].curve, &warm.positioning[0].curve);
     assert_eq!((c.error.as_str(), w.error.as_str()), ("EXX", "EXX"));
