@@ -79,7 +79,7 @@ pub struct PositioningCurve {
     pub sigma_m: Vec<Option<f64>>,
 }
 
-fn numbers(v: &Value, key: &str) -> Result<Vec<Option<f64>>, EvaluateError> {
+pub(super) fn numbers(v: &Value, key: &str) -> Result<Vec<Option<f64>>, EvaluateError> {
     let list = v
         .as_array()
         .ok_or_else(|| bad(key, "expected an array of numbers or nulls"))?;

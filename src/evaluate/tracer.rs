@@ -21,6 +21,18 @@ pub struct PositioningEvaluation {
     pub budgets: Vec<Option<Budget>>,
 }
 
+/// Budgets of one of the other error functions (straightness, roll, pitch, yaw) of an axis.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct FunctionEvaluation {
+    pub axis: String,
+    pub error: String,
+    /// "m" or "rad".
+    pub unit: String,
+    pub positions_m: Vec<f64>,
+    /// Parallel to `positions_m`; None where the solve gave no value.
+    pub budgets: Vec<Option<Budget>>,
+}
+
 /// Everything the report shows of the budget and the normalisation of a tracer run.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct TracerEvaluation {
@@ -29,6 +41,8 @@ pub struct TracerEvaluation {
     pub material_temperature: Option<MaterialTemperature>,
     pub edlen: EdlenSensitivities,
     pub positioning: Vec<PositioningEvaluation>,
+    /// The other 15 error functions: straightness (m), roll, pitch and yaw (rad).
+    pub functions: Vec<FunctionEvaluation>,
     pub squareness: Vec<Budget>,
     /// Three per point (x, y, z), in the order of the results' points.
     pub points: Vec<Budget>,
@@ -92,6 +106,99 @@ pub fn point_budgets(
     out
 }
 
+/// Budgets of the error functions other than positioning. A uniform scale (tracer
+/// calibration, air index, material expansion) changes a straightness only by a constant
+/// along the axis, which the straightness's datum takes out, and changes no angle: a
+/// straightness keeps the statistical σ, the tracer's offset and the reflector (length
+/// model with L = 0), an angular error the statistical σ and the reflector over the axis
+/// travel.
+pub fn function_budgets(
+    geometric_errors: &Value,
+    declared: &UncertaintyConfig,
+) -> Result<Vec<FunctionEvaluation>, EvaluateError> {
+    let axes = geometric_errors
+        .get("axes")
+        .and_then(Value::as_object)
+        .ok_or_else(|| EvaluateError {
+            key: "axes".into(),
+            message: "expected an object of axes".into(),
+        })?;
+    let curves = positioning_curves(geometric_errors)?;
+    let mut out = Vec::new();
+    for curve in &curves {
+        let positioning = curve.error.clone();
+        let travel_m = span_m(&curve.positions_m);
+        let Some(errors) = axes
+            .get(&curve.axis)
+            .and_then(|a| a.get("errors"))
+            .and_then(Value::as_object)
+        else {
+            continue;
+        };
+        for (name, function) in errors {
+            if *name == positioning {
+                continue;
+            }
+            let key = format!("axes.{}.errors.{name}", curve.axis);
+            let unit = function.get("unit").and_then(Value::as_str).unwrap_or("m");
+            let values = super::normalise::numbers(&function["values"], &format!("{key}.values"))?;
+            let sigma = super::normalise::numbers(&function["sigma"], &format!("{key}.sigma"))?;
+            if values.len() != curve.positions_m.len() || sigma.len() != values.len() {
+                return Err(EvaluateError {
+                    key,
+                    message: format!(
+                        "expected {} values and sigmas (one per position), found {} and {}",
+                        curve.positions_m.len(),
+                        values.len(),
+                        sigma.len()
+                    ),
+                });
+            }
+            let budgets = curve
+                .positions_m
+                .iter()
+                .zip(values.iter().zip(&sigma))
+                .map(|(x, (v, s))| {
+                    let v = (*v)?;
+                    let s = s.unwrap_or(0.0);
+                    let q = format!("{name} at {} = {x:.4} m", curve.axis);
+                    Some(if unit == "rad" {
+                        angle_budget(&q, v, s, travel_m, declared)
+                    } else {
+                        let ctx = LengthContext {
+                            length_m: 0.0,
+                            material_dt_k: 0.0,
+                            scale_cte_per_k: 0.0,
+                        };
+                        length_budget(&q, v, s, &ctx, declared)
+                    })
+                })
+                .collect();
+            out.push(FunctionEvaluation {
+                axis: curve.axis.clone(),
+                error: name.clone(),
+                unit: unit.to_string(),
+                positions_m: curve.positions_m.clone(),
+                budgets,
+            });
+        }
+    }
+    Ok(out)
+}
+
+fn span_m(positions_m: &[f64]) -> f64 {
+    let lo = positions_m.iter().copied().fold(f64::INFINITY, f64::min);
+    let hi = positions_m
+        .iter()
+        .copied()
+        .fold(f64::NEG_INFINITY, f64::max);
+    if hi > lo {
+        hi - lo
+    } else {
+        0.0
+    }
+}
+
 /// Squareness budgets; the lever of the reflector's uncertainty is the shortest axis travel
 /// in the grid (the conservative choice).
 pub fn squareness_budgets(
@@ -101,15 +208,8 @@ pub fn squareness_budgets(
     let curves = positioning_curves(geometric_errors)?;
     let lever_m = curves
         .iter()
-        .filter_map(|c| {
-            let lo = c.positions_m.iter().copied().fold(f64::INFINITY, f64::min);
-            let hi = c
-                .positions_m
-                .iter()
-                .copied()
-                .fold(f64::NEG_INFINITY, f64::max);
-            (hi > lo).then_some(hi - lo)
-        })
+        .map(|c| span_m(&c.positions_m))
+        .filter(|&s| s > 0.0)
         .fold(f64::INFINITY, f64::min);
     let lever_m = if lever_m.is_finite() { lever_m } else { 0.0 };
     let Some(map) = geometric_errors
@@ -152,12 +252,14 @@ pub fn evaluate_tracer(
     }
     let mut positioning = Vec::new();
     let mut squareness = Vec::new();
+    let mut functions = Vec::new();
     if let Some(g) = geometric_errors {
         for curve in positioning_curves(g)? {
             let curve = normalise_curve(&curve, material, normalisation);
             let budgets = positioning_budgets(&curve, material, declared);
             positioning.push(PositioningEvaluation { curve, budgets });
         }
+        functions = function_budgets(g, declared)?;
         squareness = squareness_budgets(g, declared)?;
     } else {
         notes.push("no geometric errors in the results: points only".to_string());
@@ -168,6 +270,7 @@ pub fn evaluate_tracer(
         material_temperature: material.copied(),
         edlen: EdlenSensitivities::at_reference(),
         positioning,
+        functions,
         squareness,
         points: point_budgets(points, material, normalisation.scale_cte_per_k, declared),
         notes,
@@ -214,7 +317,9 @@ mod tests {
     #[test]
     fn positioning_budget_grows_with_distance_from_the_reference() {
         let g = json!({"axes": {"x": {"positions_m": [0.0, 0.5, 1.0],
-            "errors": {"EXX": {"values": [0.0, 1e-6, 2e-6], "sigma": [1e-7, 1e-7, 1e-7]}}}},
+            "errors": {"EXX": {"values": [0.0, 1e-6, 2e-6], "sigma": [1e-7, 1e-7, 1e-7]},
+                       "EYX": {"unit": "m", "values": [0.0, 1e-6, null], "sigma": [1e-7, 1e-7, null]},
+                       "EAX": {"unit": "rad", "values": [1e-6, 2e-6, 3e-6], "sigma": [1e-6, 1e-6, 1e-6]}}}},
             "squareness": {"C0Y": {"value_rad": 1e-5, "sigma_rad": 1e-6}}});
         let m = MaterialTemperature::from_values([294.15]).expect("logged");
         let e = evaluate_tracer(
@@ -233,6 +338,15 @@ mod tests {
         assert!(b[2].expanded_uncertainty > b[1].expanded_uncertainty);
         // 1 K warm: 11.5 µm taken out at 1 m.
         assert!((b[2].value - (2e-6 - 11.5e-6)).abs() < 1e-12);
+        // Straightness: σ, tracer offset (0) and reflector only; roll over the 1 m travel.
+        let named = |n: &str| e.functions.iter().find(|f| f.error == n).expect("function");
+        let eyx = named("EYX");
+        assert_eq!((eyx.error.as_str(), eyx.unit.as_str()), ("EYX", "m"));
+        assert!(eyx.budgets[2].is_none());
+        let b1 = eyx.budgets[1].as_ref().expect("budget");
+        assert!((b1.combined_standard_uncertainty - at_ref).abs() < 1e-15);
+        let eax = named("EAX").budgets[0].as_ref().expect("budget");
+        assert!((eax.combined_standard_uncertainty - (1e-12f64 + 4e-14).sqrt()).abs() < 1e-15);
         // The squareness lever is the 1 m travel: u = sqrt(1e-6² + (2e-7 / 1)²).
         let s = &e.squareness[0];
         assert!((s.combined_standard_uncertainty - (1e-12f64 + 4e-14).sqrt()).abs() < 1e-15);
