@@ -330,3 +330,30 @@ fn protocol_driver_errors_name_the_key() {
         &["hil.tracer_faults.drop_fraction", "[0, 1]"],
     );
 }
+
+#[test]
+fn uncertainty_section_is_optional_and_strict() {
+    let config = parse(DEMO).expect("demo config without [uncertainty]");
+    assert!(config.uncertainty.is_none() && config.normalisation.is_none());
+    let declared = format!(
+        "{DEMO}\n[uncertainty]\nair_temp_k = 0.05\ncte_per_k = 5e-7\n\n[normalisation]\nscale_cte_per_k = 8.5e-6\n"
+    );
+    let config = parse(&declared).expect("declared uncertainties");
+    let u = config.uncertainty.expect("section");
+    assert_eq!((u.air_temp_k, u.cte_per_k), (0.05, 5e-7));
+    assert_eq!(
+        u.pressure_pa, 20.0,
+        "a missing key takes its documented default"
+    );
+    let n = config.normalisation.expect("section");
+    assert_eq!(n.scale_cte_per_k, 8.5e-6);
+
+    let message = error_of(&format!("{DEMO}\n[uncertainty]\nair_temp = 0.05\n"));
+    assert_mentions(&message, &[FILE, "unknown field `air_temp`", "uncertainty"]);
+    let message = error_of(&format!("{DEMO}\n[uncertainty]\nhumidity_pct = -2.0\n"));
+    assert_mentions(&message, &[FILE, "uncertainty.humidity_pct", ">= 0"]);
+    let message = error_of(&format!(
+        "{DEMO}\n[normalisation]\nscale_cte_per_k = 11.5\n"
+    ));
+    assert_mentions(&message, &[FILE, "normalisation.scale_cte_per_k", "1/K"]);
+}

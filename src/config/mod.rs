@@ -8,6 +8,7 @@ pub mod operator;
 pub mod passive;
 pub(crate) mod rotary_table;
 pub mod sim;
+pub mod uncertainty;
 mod validate;
 
 use std::collections::BTreeMap;
@@ -57,6 +58,12 @@ pub struct Config {
     /// How the operator of a real run acknowledges prompts (`src/devices/operator.rs`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub operator: Option<operator::OperatorConfig>,
+    /// Declared standard uncertainties of the inputs (docs/uncertainty.md); defaults if absent.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub uncertainty: Option<uncertainty::UncertaintyConfig>,
+    /// The scales' CTE for referring positions to 20 °C (docs/uncertainty.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub normalisation: Option<uncertainty::NormalisationConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]

@@ -35,6 +35,12 @@ pub fn validate(config: &Config) -> Result<(), Invalid> {
     validate_rotary(config)?;
     validate_plan(config)?;
     super::hil::validate_drivers(config)?;
+    if let Some(u) = &config.uncertainty {
+        u.validate("uncertainty")?;
+    }
+    if let Some(n) = &config.normalisation {
+        n.validate("normalisation")?;
+    }
     validate_sim(config)
 }
 

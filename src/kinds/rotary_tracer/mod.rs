@@ -2,6 +2,7 @@
 //! the network solve, then a circle through the table stations gives the table's axis and
 //! step errors (`solve`).
 
+pub mod budget;
 pub mod report;
 pub mod solve;
 
