@@ -15,9 +15,9 @@ const LAYERS: &[&[&str]] = &[
     &["plan"],
     &["extract"],
     &["sim", "sequencer", "devices"],
-    &["method", "run"],
+    &["method", "run", "document"],
     &["kinds"],
-    &["diagnose", "replay", "monitor", "lib", "main"],
+    &["diagnose", "replay", "monitor", "report", "lib", "main"],
     &["serve"],
 ];
 
