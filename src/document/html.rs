@@ -112,7 +112,11 @@ fn plot_html(s: &mut String, plot: &Plot) {
         None => svg,
     };
     s.push_str(svg.trim());
-    let _ = writeln!(s, "\n<figcaption>{}</figcaption>\n</figure>", escape(&plot.caption));
+    let _ = writeln!(
+        s,
+        "\n<figcaption>{}</figcaption>\n</figure>",
+        escape(&plot.caption)
+    );
 }
 
 /// Text for HTML content and attribute values.

@@ -46,7 +46,12 @@ fn table_md(s: &mut String, table: &Table) {
     let _ = writeln!(
         s,
         "| {} |",
-        table.header.iter().map(|h| pipe(h)).collect::<Vec<_>>().join(" | ")
+        table
+            .header
+            .iter()
+            .map(|h| pipe(h))
+            .collect::<Vec<_>>()
+            .join(" | ")
     );
     let _ = writeln!(s, "|{}", "---|".repeat(table.header.len().max(1)));
     for row in &table.rows {
@@ -84,6 +89,9 @@ mod tests {
         let (md, files) = render(&doc, "report-");
         assert!(md.contains("| a | b\\|c |\n|---|---|\n| 1 | 2 |"));
         assert!(md.contains("![cap](report-p1.svg)"));
-        assert_eq!(files, vec![("report-p1.svg".to_string(), "<svg/>".to_string())]);
+        assert_eq!(
+            files,
+            vec![("report-p1.svg".to_string(), "<svg/>".to_string())]
+        );
     }
 }

@@ -166,7 +166,9 @@ fn draw_panel(area: &DrawingArea<SVGBackend, Shift>, panel: &Panel) -> anyhow::R
         let colour = COLOURS[n % COLOURS.len()];
         let finite: Vec<(usize, (f64, f64))> = series.finite().collect();
         if series.band.is_some() && finite.len() >= 2 {
-            let upper = finite.iter().map(|&(i, (x, y))| (x, y + band_at(series, i)));
+            let upper = finite
+                .iter()
+                .map(|&(i, (x, y))| (x, y + band_at(series, i)));
             let lower = finite
                 .iter()
                 .rev()
@@ -187,9 +189,9 @@ fn draw_panel(area: &DrawingArea<SVGBackend, Shift>, panel: &Panel) -> anyhow::R
         };
         if !series.name.is_empty() {
             labelled = true;
-            drawn
-                .label(series.name.as_str())
-                .legend(move |(x, y)| Rectangle::new([(x, y - 3), (x + 12, y + 3)], colour.filled()));
+            drawn.label(series.name.as_str()).legend(move |(x, y)| {
+                Rectangle::new([(x, y - 3), (x + 12, y + 3)], colour.filled())
+            });
         }
         if series.style == Style::LinePoints {
             chart
@@ -248,7 +250,10 @@ pub fn arrows_svg(
         anyhow::bail!("{title}: no arrows to draw");
     }
     let columns = projections.len().max(1);
-    let size = (PANEL_WIDTH_PX * columns as u32, TITLE_HEIGHT_PX + 2 * PANEL_HEIGHT_PX);
+    let size = (
+        PANEL_WIDTH_PX * columns as u32,
+        TITLE_HEIGHT_PX + 2 * PANEL_HEIGHT_PX,
+    );
     let mut document = String::new();
     {
         let root = SVGBackend::with_string(&mut document, size).into_drawing_area();
@@ -332,10 +337,8 @@ mod tests {
             title: "p".into(),
             x_label: "x [m]".into(),
             y_label: "y [µm]".into(),
-            series: vec![
-                Series::line("y", vec![(0.0, 1.0), (1.0, 2.0), (2.0, 1.5)])
-                    .with_band(vec![0.2, 0.3, 0.2]),
-            ],
+            series: vec![Series::line("y", vec![(0.0, 1.0), (1.0, 2.0), (2.0, 1.5)])
+                .with_band(vec![0.2, 0.3, 0.2])],
         };
         let svg = panels_svg("t", &[panel], 1).expect("svg");
         assert!(svg.contains("<polyline") || svg.contains("<path"), "{svg}");

@@ -48,9 +48,12 @@ fn volumetric_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
     let (rms, max) = volumetric(r);
     // Arrows drawn at a scale that makes the largest one a tenth of the measured volume.
     let span = |k: usize| {
-        let (lo, hi) = r.points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p.nominal_m[k]), hi.max(p.nominal_m[k]))
-        });
+        let (lo, hi) = r
+            .points
+            .iter()
+            .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                (lo.min(p.nominal_m[k]), hi.max(p.nominal_m[k]))
+            });
         (hi - lo).max(0.0)
     };
     let extent = span(0).max(span(1)).max(span(2));
@@ -75,8 +78,18 @@ fn volumetric_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
             scale * 1e-6 * 1e3
         ),
         &[
-            ("top view (x–y)".into(), "x [m]".into(), "y [m]".into(), projection(0, 1)),
-            ("front view (x–z)".into(), "x [m]".into(), "z [m]".into(), projection(0, 2)),
+            (
+                "top view (x–y)".into(),
+                "x [m]".into(),
+                "y [m]".into(),
+                projection(0, 1),
+            ),
+            (
+                "front view (x–z)".into(),
+                "x [m]".into(),
+                "z [m]".into(),
+                projection(0, 2),
+            ),
         ],
         scale,
     )?;
@@ -98,7 +111,15 @@ fn volumetric_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
 fn layout_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
     let mut table = Table::new(
         "Tracer stations",
-        &["station", "x [m]", "y [m]", "z [m]", "σ (x, y, z) [µm]", "lengths", "residual RMS [µm]"],
+        &[
+            "station",
+            "x [m]",
+            "y [m]",
+            "z [m]",
+            "σ (x, y, z) [µm]",
+            "lengths",
+            "residual RMS [µm]",
+        ],
     );
     for s in &r.stations {
         table.row(vec![
@@ -123,12 +144,18 @@ fn layout_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
         series: vec![
             Series::points(
                 "points",
-                r.points.iter().map(|p| (p.nominal_m[a], p.nominal_m[b])).collect(),
+                r.points
+                    .iter()
+                    .map(|p| (p.nominal_m[a], p.nominal_m[b]))
+                    .collect(),
             )
             .with_style(Style::Points),
             Series::points(
                 "stations",
-                r.stations.iter().map(|s| (s.position_m[a], s.position_m[b])).collect(),
+                r.stations
+                    .iter()
+                    .map(|s| (s.position_m[a], s.position_m[b]))
+                    .collect(),
             )
             .with_style(Style::Points),
         ],
@@ -141,9 +168,11 @@ fn layout_section(r: &MultilaterationResults) -> anyhow::Result<Section> {
         ],
         2,
     )?;
-    Ok(Section::new("stations", "Station layout").table(table).plot(Plot {
-        id: "station-layout".into(),
-        caption: "Tracer stations and measured points, machine frame.".into(),
-        svg,
-    }))
+    Ok(Section::new("stations", "Station layout")
+        .table(table)
+        .plot(Plot {
+            id: "station-layout".into(),
+            caption: "Tracer stations and measured points, machine frame.".into(),
+            svg,
+        }))
 }

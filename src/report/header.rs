@@ -47,7 +47,9 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
     if !travel.is_empty() {
         facts.insert(3, ("travel".to_string(), travel));
     }
-    let mut section = Section::new("header", "Run").facts(facts).table(instruments(session));
+    let mut section = Section::new("header", "Run")
+        .facts(facts)
+        .table(instruments(session));
     section = match environment(session) {
         Some(table) => section.table(table),
         None => section.paragraph("No environment sensor was recorded in this session."),
@@ -72,23 +74,38 @@ fn instruments(session: &Session) -> Table {
             (None, Some(ppm)) => format!("{ppm} ppm (1σ)"),
             (None, None) => "—".to_string(),
         };
-        table.row(vec![d.id.clone(), d.kind.clone(), d.driver.clone(), serial, noise]);
+        table.row(vec![
+            d.id.clone(),
+            d.kind.clone(),
+            d.driver.clone(),
+            serial,
+            noise,
+        ]);
     }
     table
 }
 
 /// min and max of finite values, or None.
 fn span(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
-    values.filter(|v| v.is_finite()).fold(None, |acc, v| match acc {
-        None => Some((v, v)),
-        Some((lo, hi)) => Some((f64::min(lo, v), f64::max(hi, v))),
-    })
+    values
+        .filter(|v| v.is_finite())
+        .fold(None, |acc, v| match acc {
+            None => Some((v, v)),
+            Some((lo, hi)) => Some((f64::min(lo, v), f64::max(hi, v))),
+        })
 }
 
 fn environment(session: &Session) -> Option<Table> {
     let mut table = Table::new(
         "Environment during the run (min … max)",
-        &["sensor", "samples", "air [°C]", "pressure [hPa]", "humidity [%]", "material [°C]"],
+        &[
+            "sensor",
+            "samples",
+            "air [°C]",
+            "pressure [hPa]",
+            "humidity [%]",
+            "material [°C]",
+        ],
     );
     let range = |s: Option<(f64, f64)>, scale: f64, offset: f64, decimals: usize| match s {
         Some((lo, hi)) => format!(
@@ -105,7 +122,11 @@ fn environment(session: &Session) -> Option<Table> {
         let air = span(samples.iter().map(|s| s.msg.air_temp_k));
         let pressure = span(samples.iter().map(|s| s.msg.pressure_pa));
         let humidity = span(samples.iter().map(|s| s.msg.humidity_pct));
-        let material = span(samples.iter().flat_map(|s| s.msg.material_temp_k.iter().copied()));
+        let material = span(
+            samples
+                .iter()
+                .flat_map(|s| s.msg.material_temp_k.iter().copied()),
+        );
         table.row(vec![
             id.clone(),
             samples.len().to_string(),

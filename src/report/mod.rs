@@ -53,7 +53,10 @@ impl Inputs {
         } else {
             path.to_path_buf()
         };
-        let dir = results_path.parent().unwrap_or(Path::new(".")).to_path_buf();
+        let dir = results_path
+            .parent()
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
         let text = std::fs::read_to_string(&results_path).with_context(|| {
             format!(
                 "reading {} (geocal report takes a run directory with results.json, or a \
@@ -62,7 +65,10 @@ impl Inputs {
             )
         })?;
         let results: serde_json::Value = serde_json::from_str(&text).with_context(|| {
-            format!("{}: not JSON (expected geocal-results/1)", results_path.display())
+            format!(
+                "{}: not JSON (expected geocal-results/1)",
+                results_path.display()
+            )
         })?;
         let format = results.get("format").and_then(|f| f.as_str());
         if format != Some("geocal-results/1") {
@@ -104,7 +110,10 @@ impl Inputs {
             .get("kind")
             .and_then(|k| k.as_str())
             .ok_or_else(|| {
-                anyhow::anyhow!("{}: key `kind` missing or not a string", self.results_path.display())
+                anyhow::anyhow!(
+                    "{}: key `kind` missing or not a string",
+                    self.results_path.display()
+                )
             })
     }
 }
@@ -119,12 +128,17 @@ pub fn build(inputs: &Inputs, registry: &Registry) -> anyhow::Result<Document> {
             registry.names()
         )
     })?;
-    let contribution = kind
-        .report(&inputs.results)
-        .with_context(|| format!("{}: the {kind_name} sections", inputs.results_path.display()))?;
+    let contribution = kind.report(&inputs.results).with_context(|| {
+        format!(
+            "{}: the {kind_name} sections",
+            inputs.results_path.display()
+        )
+    })?;
     let mut sections = Vec::new();
     for (name, builder) in SECTIONS {
-        sections.extend(builder(inputs, &contribution).with_context(|| format!("report section `{name}`"))?);
+        sections.extend(
+            builder(inputs, &contribution).with_context(|| format!("report section `{name}`"))?,
+        );
     }
     let session_id = inputs
         .results
@@ -168,7 +182,9 @@ pub fn write(doc: &Document, out: &Path, format: Format) -> anyhow::Result<Vec<P
 }
 
 fn summary(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
-    Ok(vec![Section::new("summary", "Summary").facts(kind.summary.clone())])
+    Ok(vec![
+        Section::new("summary", "Summary").facts(kind.summary.clone())
+    ])
 }
 
 fn kind_sections(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
@@ -183,7 +199,10 @@ fn diagnosis(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
     };
     let mut section = Section::new("diagnosis", "Diagnosis")
         .facts(vec![
-            ("noise floor".into(), format!("{:.3} µm", d.noise_floor_m * 1e6)),
+            (
+                "noise floor".into(),
+                format!("{:.3} µm", d.noise_floor_m * 1e6),
+            ),
             (
                 "selected effects".into(),
                 if d.selected.is_empty() {
@@ -192,12 +211,16 @@ fn diagnosis(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
                     d.selected.join(", ")
                 },
             ),
-            ("unexplained structure left".into(), d.unexplained.to_string()),
+            (
+                "unexplained structure left".into(),
+                d.unexplained.to_string(),
+            ),
         ])
         .preformatted(crate::diagnose::text(d));
     match &inputs.session_path {
         Some(path) => {
-            let (_, residuals) = crate::diagnose::diagnose_file_detailed(path, &Default::default())?;
+            let (_, residuals) =
+                crate::diagnose::diagnose_file_detailed(path, &Default::default())?;
             section = section.plot(crate::document::Plot {
                 id: "diagnosis-residuals".into(),
                 caption: crate::diagnose::plot::title(&d.session_id, &residuals),

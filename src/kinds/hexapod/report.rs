@@ -112,9 +112,15 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             x_label: "leg".into(),
             y_label: "correction [µm]".into(),
             series: vec![
-                Series::points("Δx ±2σ", cx).with_band(bx).with_style(Style::Points),
-                Series::points("Δy ±2σ", cy).with_band(by).with_style(Style::Points),
-                Series::points("Δz ±2σ", cz).with_band(bz).with_style(Style::Points),
+                Series::points("Δx ±2σ", cx)
+                    .with_band(bx)
+                    .with_style(Style::Points),
+                Series::points("Δy ±2σ", cy)
+                    .with_band(by)
+                    .with_style(Style::Points),
+                Series::points("Δz ±2σ", cz)
+                    .with_band(bz)
+                    .with_style(Style::Points),
             ],
         });
     }
@@ -130,17 +136,30 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         })
         .fold(0.0, f64::max);
     let summary = vec![
-        ("poses (leg readings)".to_string(), format!("{} ({})", r.poses, r.readings)),
+        (
+            "poses (leg readings)".to_string(),
+            format!("{} ({})", r.poses, r.readings),
+        ),
         ("poses from".to_string(), r.pose_source.clone()),
-        ("residual RMS".to_string(), format!("{:.3} µm", um(r.residual_rms_m))),
-        ("weighted χ²/dof".to_string(), format!("{:.3} ({} dof)", r.chi2_per_dof, r.dof)),
-        ("largest hinge correction".to_string(), format!("{:.2} µm", um(largest))),
+        (
+            "residual RMS".to_string(),
+            format!("{:.3} µm", um(r.residual_rms_m)),
+        ),
+        (
+            "weighted χ²/dof".to_string(),
+            format!("{:.3} ({} dof)", r.chi2_per_dof, r.dof),
+        ),
+        (
+            "largest hinge correction".to_string(),
+            format!("{:.2} µm", um(largest)),
+        ),
     ];
     let mut sections = vec![Section::new("hexapod-hinges", "Hinge corrections")
         .table(table)
         .plot(Plot {
             id: "hinge-corrections".into(),
-            caption: "Each hinge's correction per coordinate, with its ±2σ interval, by leg.".into(),
+            caption: "Each hinge's correction per coordinate, with its ±2σ interval, by leg."
+                .into(),
             svg: plot,
         })];
     if !r.note.is_empty() {

@@ -37,7 +37,8 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     }
     sections.extend(network_sections(&r)?);
     if !r.notes.is_empty() {
-        sections.push(crate::document::Section::new("notes", "Notes").preformatted(r.notes.join("\n")));
+        sections
+            .push(crate::document::Section::new("notes", "Notes").preformatted(r.notes.join("\n")));
     }
     Ok(crate::document::KindReport { summary, sections })
 }
@@ -78,21 +79,17 @@ fn geometric_error_sections(
         .and_then(|a| a.as_object())
         .ok_or_else(|| anyhow::anyhow!("results: geometric_errors.axes: expected an object"))?;
     let mut summary = Vec::new();
-    let mut section = Section::new("geometric-errors", "Geometric errors of the axes").paragraph(
-        format!(
+    let mut section =
+        Section::new("geometric-errors", "Geometric errors of the axes").paragraph(format!(
             "Structure {}; each error function with its ±2σ band (shaded). Lines: E_XX…E_ZZ \
              positioning and straightness errors (µm), E_AX…E_CZ angular errors (arcsec).",
             g.get("structure").and_then(|s| s.as_str()).unwrap_or("?")
-        ),
-    );
+        ));
     for (axis, a) in axes {
         let positions = numbers(&a["positions_m"]);
-        let errors = a
-            .get("errors")
-            .and_then(|e| e.as_object())
-            .ok_or_else(|| {
-                anyhow::anyhow!("results: geometric_errors.axes.{axis}.errors: expected an object")
-            })?;
+        let errors = a.get("errors").and_then(|e| e.as_object()).ok_or_else(|| {
+            anyhow::anyhow!("results: geometric_errors.axes.{axis}.errors: expected an object")
+        })?;
         let mut panels = Vec::new();
         for (name, f) in errors {
             let unit = f.get("unit").and_then(|u| u.as_str()).unwrap_or("m");
@@ -111,7 +108,10 @@ fn geometric_error_sections(
                 format!("max |{name}|"),
                 format!("{peak:.2} {}", display_unit(unit)),
             ));
-            let identifiable = f.get("identifiable").and_then(|i| i.as_bool()).unwrap_or(true);
+            let identifiable = f
+                .get("identifiable")
+                .and_then(|i| i.as_bool())
+                .unwrap_or(true);
             panels.push(Panel {
                 title: if identifiable {
                     name.clone()
@@ -133,7 +133,10 @@ fn geometric_error_sections(
             svg,
         });
     }
-    let mut squareness = Table::new("Squareness errors", &["error", "value [µrad]", "σ [µrad]", "value [arcsec]"]);
+    let mut squareness = Table::new(
+        "Squareness errors",
+        &["error", "value [µrad]", "σ [µrad]", "value [arcsec]"],
+    );
     if let Some(sq) = g.get("squareness").and_then(|s| s.as_object()) {
         for (name, s) in sq {
             let value = s.get("value_rad").and_then(|v| v.as_f64());

@@ -91,7 +91,15 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     let r: ProbeInstallResults = crate::document::results_of(super::config::KIND, results)?;
     let mut table = Table::new(
         "Installation parameters: before (nominal) and after (LM, with σ; GA for comparison)",
-        &["parameter", "unit", "before", "after (LM)", "σ", "after (GA)", "change / σ"],
+        &[
+            "parameter",
+            "unit",
+            "before",
+            "after (LM)",
+            "σ",
+            "after (GA)",
+            "change / σ",
+        ],
     );
     let mut standardised = Vec::new();
     for (k, p) in r.parameters.iter().enumerate() {
@@ -117,7 +125,11 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     }
     let mut radius = Table::new(
         "Sphere radius measured from every point",
-        &["", "radius [mm]", "deviation from the calibrated radius [µm]"],
+        &[
+            "",
+            "radius [mm]",
+            "deviation from the calibrated radius [µm]",
+        ],
     );
     for (label, value) in [
         ("before (nominal installation)", r.radius_before_m),
@@ -141,8 +153,14 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         1,
     )?;
     let summary = vec![
-        ("points (readings)".to_string(), format!("{} ({})", r.points, r.readings)),
-        ("residual RMS".to_string(), format!("{:.3} µm", r.residual_rms_m * 1e6)),
+        (
+            "points (readings)".to_string(),
+            format!("{} ({})", r.points, r.readings),
+        ),
+        (
+            "residual RMS".to_string(),
+            format!("{:.3} µm", r.residual_rms_m * 1e6),
+        ),
         ("χ²/dof".to_string(), format!("{:.3}", r.chi2_per_dof)),
         (
             "sphere radius before → after".to_string(),
@@ -155,13 +173,15 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         ),
         ("LM converged".to_string(), r.lm.converged.to_string()),
     ];
-    let mut sections = vec![Section::new("probe-install-parameters", "Installation parameters")
-        .table(table)
-        .plot(Plot {
-            id: "parameter-changes".into(),
-            caption: "Each parameter's change from its nominal value in units of its σ.".into(),
-            svg: plot,
-        })];
+    let mut sections = vec![
+        Section::new("probe-install-parameters", "Installation parameters")
+            .table(table)
+            .plot(Plot {
+                id: "parameter-changes".into(),
+                caption: "Each parameter's change from its nominal value in units of its σ.".into(),
+                svg: plot,
+            }),
+    ];
     sections.push(Section::new("probe-install-radius", "Sphere radius").table(radius));
     if !r.note.is_empty() {
         sections.push(Section::new("probe-install-notes", "Notes").paragraph(r.note.clone()));

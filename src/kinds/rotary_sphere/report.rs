@@ -225,7 +225,10 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
                     (f64::from(d), shown(name, value))
                 })
                 .collect();
-            series.push(Series::line(&format!("harmonic fit, order {}", h.order), curve).with_style(Style::Line));
+            series.push(
+                Series::line(&format!("harmonic fit, order {}", h.order), curve)
+                    .with_style(Style::Line),
+            );
             harmonics.row(vec![
                 name.clone(),
                 h.order.to_string(),
@@ -242,7 +245,10 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         });
     }
     let motion_svg = panels_svg(
-        &format!("table {}: motion errors against angle (±2σ band, harmonic fit)", r.table),
+        &format!(
+            "table {}: motion errors against angle (±2σ band, harmonic fit)",
+            r.table
+        ),
         &panels,
         2,
     )?;
@@ -270,7 +276,10 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             "reference sphere radius".to_string(),
             format!("{:.4} mm", r.sphere_radius_m * 1e3),
         ),
-        ("probe σ".to_string(), format!("{:.1} µm", r.probe_noise_m * 1e6)),
+        (
+            "probe σ".to_string(),
+            format!("{:.1} µm", r.probe_noise_m * 1e6),
+        ),
         ("angles measured".to_string(), r.motion.len().to_string()),
     ];
     for k in 0..r.motion_names.len().min(6) {
@@ -279,13 +288,15 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             format!("{:.2} {}", max_motion(k), unit(&r.motion_names[k])),
         ));
     }
-    let mut motion = Section::new("rotary-sphere-motion", "Motion errors against angle").plot(Plot {
-        id: "motion-errors".into(),
-        caption: "The six motion errors of the table at each commanded angle (points, shaded ±2σ) \
+    let mut motion =
+        Section::new("rotary-sphere-motion", "Motion errors against angle").plot(Plot {
+            id: "motion-errors".into(),
+            caption:
+                "The six motion errors of the table at each commanded angle (points, shaded ±2σ) \
                   and their harmonic fits (lines)."
-            .into(),
-        svg: motion_svg,
-    });
+                    .into(),
+            svg: motion_svg,
+        });
     motion = motion.table(harmonics);
     let mut sections = vec![
         Section::new("rotary-sphere-location", "Location errors (PIGE)").table(pige),
@@ -295,7 +306,8 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         sections.push(Section::new("rotary-sphere-validation", "Validation").table(validation));
     }
     if !r.notes.is_empty() {
-        sections.push(Section::new("rotary-sphere-notes", "Notes").preformatted(r.notes.join("\n")));
+        sections
+            .push(Section::new("rotary-sphere-notes", "Notes").preformatted(r.notes.join("\n")));
     }
     Ok(KindReport { summary, sections })
 }

@@ -83,7 +83,13 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     let t = &r.rotary;
     let mut table = Table::new(
         &format!("Step-angle errors (from station {})", t.reference_station),
-        &["station", "commanded [°]", "measured [°]", "error [arcsec]", "σ [arcsec]"],
+        &[
+            "station",
+            "commanded [°]",
+            "measured [°]",
+            "error [arcsec]",
+            "σ [arcsec]",
+        ],
     );
     let mut points = Vec::new();
     let mut band = Vec::new();
@@ -128,30 +134,32 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             um(t.axis_point_sigma_m[2])
         ),
     ));
-    let mut sections = vec![Section::new("rotary-steps", "Rotary table: step-angle errors")
-        .facts(vec![
-            (
-                "axis direction".into(),
-                format!(
-                    "[{:.7}, {:.7}, {:.7}]",
-                    t.axis_direction[0], t.axis_direction[1], t.axis_direction[2]
+    let mut sections = vec![
+        Section::new("rotary-steps", "Rotary table: step-angle errors")
+            .facts(vec![
+                (
+                    "axis direction".into(),
+                    format!(
+                        "[{:.7}, {:.7}, {:.7}]",
+                        t.axis_direction[0], t.axis_direction[1], t.axis_direction[2]
+                    ),
                 ),
-            ),
-            (
-                "radius of the station circle".into(),
-                format!("{:.6} m (σ {:.2} µm)", t.radius_m, um(t.radius_sigma_m)),
-            ),
-            (
-                "stations off the circle (RMS)".into(),
-                format!("{:.3} µm", um(t.circle_residual_rms_m)),
-            ),
-        ])
-        .plot(Plot {
-            id: "step-angle-errors".into(),
-            caption: "Measured minus commanded table angle at each station, shaded ±2σ.".into(),
-            svg,
-        })
-        .table(table)];
+                (
+                    "radius of the station circle".into(),
+                    format!("{:.6} m (σ {:.2} µm)", t.radius_m, um(t.radius_sigma_m)),
+                ),
+                (
+                    "stations off the circle (RMS)".into(),
+                    format!("{:.3} µm", um(t.circle_residual_rms_m)),
+                ),
+            ])
+            .plot(Plot {
+                id: "step-angle-errors".into(),
+                caption: "Measured minus commanded table angle at each station, shaded ±2σ.".into(),
+                svg,
+            })
+            .table(table),
+    ];
     if !t.note.is_empty() {
         sections[0] = sections[0].clone().paragraph(t.note.clone());
     }
