@@ -73,9 +73,9 @@ impl Inputs {
         let format = results.get("format").and_then(|f| f.as_str());
         if format != Some("geocal-results/1") {
             anyhow::bail!(
-                "{}: key `format` is {:?}, expected \"geocal-results/1\"",
+                "{}: key `format` is {}, expected \"geocal-results/1\"",
                 results_path.display(),
-                format
+                format.map_or("missing".to_string(), |f| format!("\"{f}\""))
             );
         }
         let session_path = Some(dir.join("session.mcap")).filter(|p| p.is_file());
