@@ -16,6 +16,12 @@ struct Cli {
     command: Command,
 }
 
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum ReportFormat {
+    Html,
+    Md,
+}
+
 #[derive(Subcommand)]
 enum Command {
     /// Run a calibration (live or simulated), record the session, then solve it.
@@ -60,6 +66,20 @@ enum Command {
         /// separated, e.g. reversal,station_drift) jointly with the geometry.
         #[arg(long, value_name = "EFFECT,...", value_delimiter = ',')]
         effects: Vec<String>,
+    },
+    /// The report people read (docs/report.md): one self-contained HTML file (or Markdown with
+    /// its plots as SVG files beside it) from a run directory or a results file, with the
+    /// session and diagnosis.json found beside the results.
+    Report {
+        /// A run directory (results.json, session.mcap, diagnosis.json) or a results file.
+        #[arg(value_name = "DIR|RESULTS")]
+        input: std::path::PathBuf,
+        /// The report file (default: report.html or report.md beside the results).
+        #[arg(long, value_name = "FILE")]
+        out: Option<std::path::PathBuf>,
+        /// html (one self-contained file) or md (Markdown, plots as SVG files beside it).
+        #[arg(long, value_enum, default_value = "html")]
+        format: ReportFormat,
     },
     /// Copy every readable message of a truncated or damaged session into a complete MCAP
     /// file (summary, indexes, CRCs) and print what was lost (docs/repair.md).
@@ -333,6 +353,24 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             let out = out.unwrap_or_else(|| geocal::session::repair::default_output(&session));
             let report = geocal::session::repair::repair(&session, &out)?;
             print!("{}", geocal::session::repair::text(&report));
+        }
+        Command::Report { input, out, format } => {
+            let inputs = geocal::report::Inputs::read(&input)?;
+            let document = geocal::report::build(&inputs, &kinds)?;
+            let (format, default_name) = match format {
+                ReportFormat::Html => (geocal::report::Format::Html, "report.html"),
+                ReportFormat::Md => (geocal::report::Format::Markdown, "report.md"),
+            };
+            let out = out.unwrap_or_else(|| {
+                inputs
+                    .results_path
+                    .parent()
+                    .unwrap_or(std::path::Path::new("."))
+                    .join(default_name)
+            });
+            for path in geocal::report::write(&document, &out, format)? {
+                println!("{}", path.display());
+            }
         }
         Command::Diagnose {
             session,

@@ -15,9 +15,9 @@ const LAYERS: &[&[&str]] = &[
     &["plan"],
     &["extract"],
     &["sim", "sequencer", "devices"],
-    &["method", "run", "evaluate"],
+    &["method", "run", "document", "evaluate"],
     &["kinds"],
-    &["diagnose", "replay", "monitor", "lib", "main"],
+    &["diagnose", "replay", "monitor", "report", "lib", "main"],
     &["serve"],
 ];
 

@@ -94,6 +94,12 @@ pub trait Kind: Sync {
             self.name()
         )
     }
+
+    /// The kind's summary and sections of `geocal report`, from its results.json
+    /// (docs/report.md). By default: the results JSON as it is.
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        Ok(crate::document::KindReport::raw(self.name(), results))
+    }
 }
 
 /// Every plan kind geocal knows.

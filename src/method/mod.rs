@@ -6,6 +6,7 @@ pub mod multilateration;
 pub mod plan_check;
 pub mod plan_check_kinds;
 pub mod report;
+pub mod report_document;
 
 use std::any::Any;
 

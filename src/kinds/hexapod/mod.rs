@@ -31,6 +31,10 @@ impl Kind for Hexapod {
         config::KIND
     }
 
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        report::document(results)
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         let config = config::HexapodConfig::load(path)?;
         kind_layout_check(path, check::check(&config))

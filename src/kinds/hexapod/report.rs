@@ -72,3 +72,98 @@ impl crate::method::KindResults for HexapodResults {
         text(self)
     }
 }
+
+/// The report's hexapod sections: each leg's base and platform hinge, the correction from its
+/// nominal position with σ, as a table and as a plot of |correction| with 2σ.
+pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+    use crate::document::plots::{panels_svg, Panel, Series, Style};
+    use crate::document::{cell, KindReport, Plot, Section, Table};
+    let r: HexapodResults = crate::document::results_of(super::config::KIND, results)?;
+    let mut table = Table::new(
+        "Hinge corrections (calibrated − nominal), µm, with σ",
+        &["leg", "hinge", "Δx", "Δy", "Δz", "σx", "σy", "σz", "|Δ|"],
+    );
+    let norm = |v: [f64; 3]| (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+    let mut panels = Vec::new();
+    for (hinge, pick) in [("base", 0usize), ("platform", 1)] {
+        let mut components: [Vec<(f64, f64)>; 3] = Default::default();
+        let mut bands: [Vec<f64>; 3] = Default::default();
+        for h in &r.hinges {
+            let (value, nominal, sigma) = if pick == 0 {
+                (h.base_m, h.nominal_base_m, h.base_sigma_m)
+            } else {
+                (h.platform_m, h.nominal_platform_m, h.platform_sigma_m)
+            };
+            let d = [0, 1, 2].map(|k| value[k] - nominal[k]);
+            let mut row = vec![h.leg.to_string(), hinge.to_string()];
+            row.extend(d.iter().map(|v| cell(Some(um(*v)), 2)));
+            row.extend(sigma.iter().map(|v| cell(Some(um(*v)), 2)));
+            row.push(cell(Some(um(norm(d))), 2));
+            table.row(row);
+            for k in 0..3 {
+                components[k].push((h.leg as f64, um(d[k])));
+                bands[k].push(2.0 * um(sigma[k]));
+            }
+        }
+        let [cx, cy, cz] = components;
+        let [bx, by, bz] = bands;
+        panels.push(Panel {
+            title: format!("{hinge} hinges"),
+            x_label: "leg".into(),
+            y_label: "correction [µm]".into(),
+            series: vec![
+                Series::points("Δx ±2σ", cx)
+                    .with_band(bx)
+                    .with_style(Style::Points),
+                Series::points("Δy ±2σ", cy)
+                    .with_band(by)
+                    .with_style(Style::Points),
+                Series::points("Δz ±2σ", cz)
+                    .with_band(bz)
+                    .with_style(Style::Points),
+            ],
+        });
+    }
+    let plot = panels_svg("hinge corrections (calibrated − nominal)", &panels, 2)?;
+    let largest = r
+        .hinges
+        .iter()
+        .flat_map(|h| {
+            [
+                norm([0, 1, 2].map(|k| h.base_m[k] - h.nominal_base_m[k])),
+                norm([0, 1, 2].map(|k| h.platform_m[k] - h.nominal_platform_m[k])),
+            ]
+        })
+        .fold(0.0, f64::max);
+    let summary = vec![
+        (
+            "poses (leg readings)".to_string(),
+            format!("{} ({})", r.poses, r.readings),
+        ),
+        ("poses from".to_string(), r.pose_source.clone()),
+        (
+            "residual RMS".to_string(),
+            format!("{:.3} µm", um(r.residual_rms_m)),
+        ),
+        (
+            "weighted χ²/dof".to_string(),
+            format!("{:.3} ({} dof)", r.chi2_per_dof, r.dof),
+        ),
+        (
+            "largest hinge correction".to_string(),
+            format!("{:.2} µm", um(largest)),
+        ),
+    ];
+    let mut sections = vec![Section::new("hexapod-hinges", "Hinge corrections")
+        .table(table)
+        .plot(Plot {
+            id: "hinge-corrections".into(),
+            caption: "Each hinge's correction per coordinate, with its ±2σ interval, by leg."
+                .into(),
+            svg: plot,
+        })];
+    if !r.note.is_empty() {
+        sections.push(Section::new("hexapod-notes", "Notes").paragraph(r.note.clone()));
+    }
+    Ok(KindReport { summary, sections })
+}

@@ -20,6 +20,10 @@ impl Kind for Multilateration {
         crate::config::PlanKind::Multilateration.as_str()
     }
 
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        report::document(results)
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         tracer_plan::check(path)
     }

@@ -30,6 +30,10 @@ impl Kind for ProbeInstall {
         config::KIND
     }
 
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        report::document(results)
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         let config = config::ProbeInstallConfig::load(path)?;
         kind_layout_check(path, check::check(&config))

@@ -70,3 +70,121 @@ impl crate::method::KindResults for ProbeInstallResults {
         text(self)
     }
 }
+
+/// A parameter's display scale and unit from its name: lengths (`_m`) in mm, angles (`_rad`)
+/// in arcsec, the rest (direction cosines) as they are.
+fn display(name: &str) -> (f64, &'static str) {
+    if name.ends_with("_m") {
+        (1e3, "mm")
+    } else if name.ends_with("_rad") {
+        (crate::document::arcsec(1.0), "arcsec")
+    } else {
+        (1.0, "1")
+    }
+}
+
+/// The report's probe_install sections: the 11 installation parameters before (nominal) and
+/// after calibration with σ, their changes in σ, and the sphere radius before/after.
+pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+    use crate::document::plots::{panels_svg, Panel, Series, Style};
+    use crate::document::{cell, KindReport, Plot, Section, Table};
+    let r: ProbeInstallResults = crate::document::results_of(super::config::KIND, results)?;
+    let mut table = Table::new(
+        "Installation parameters: before (nominal) and after (LM, with σ; GA for comparison)",
+        &[
+            "parameter",
+            "unit",
+            "before",
+            "after (LM)",
+            "σ",
+            "after (GA)",
+            "change / σ",
+        ],
+    );
+    let mut standardised = Vec::new();
+    for (k, p) in r.parameters.iter().enumerate() {
+        let (scale, unit) = display(&p.name);
+        let ga = r.ga.values.get(k).copied();
+        let z = if p.sigma > 0.0 {
+            Some((p.value - p.nominal) / p.sigma)
+        } else {
+            None
+        };
+        if let Some(z) = z {
+            standardised.push((k as f64, z));
+        }
+        table.row(vec![
+            p.name.clone(),
+            unit.to_string(),
+            cell(Some(p.nominal * scale), 6),
+            cell(Some(p.value * scale), 6),
+            cell(Some(p.sigma * scale), 6),
+            cell(ga.map(|v| v * scale), 6),
+            cell(z, 1),
+        ]);
+    }
+    let mut radius = Table::new(
+        "Sphere radius measured from every point",
+        &[
+            "",
+            "radius [mm]",
+            "deviation from the calibrated radius [µm]",
+        ],
+    );
+    for (label, value) in [
+        ("before (nominal installation)", r.radius_before_m),
+        ("after (LM)", r.radius_after_m),
+        ("after (GA)", r.radius_after_ga_m),
+    ] {
+        radius.row(vec![
+            label.to_string(),
+            cell(Some(value * 1e3), 4),
+            cell(Some((value - r.sphere_radius_m) * 1e6), 2),
+        ]);
+    }
+    let plot = panels_svg(
+        "installation parameters: (after − before) / σ",
+        &[Panel {
+            title: "change of each parameter in its σ".into(),
+            x_label: "parameter index (table order)".into(),
+            y_label: "(after − before) / σ".into(),
+            series: vec![Series::points("", standardised).with_style(Style::Points)],
+        }],
+        1,
+    )?;
+    let summary = vec![
+        (
+            "points (readings)".to_string(),
+            format!("{} ({})", r.points, r.readings),
+        ),
+        (
+            "residual RMS".to_string(),
+            format!("{:.3} µm", r.residual_rms_m * 1e6),
+        ),
+        ("χ²/dof".to_string(), format!("{:.3}", r.chi2_per_dof)),
+        (
+            "sphere radius before → after".to_string(),
+            format!(
+                "{:.4} mm → {:.4} mm (calibrated {:.4} mm)",
+                r.radius_before_m * 1e3,
+                r.radius_after_m * 1e3,
+                r.sphere_radius_m * 1e3
+            ),
+        ),
+        ("LM converged".to_string(), r.lm.converged.to_string()),
+    ];
+    let mut sections = vec![
+        Section::new("probe-install-parameters", "Installation parameters")
+            .table(table)
+            .plot(Plot {
+                id: "parameter-changes".into(),
+                caption: "Each parameter's change from its nominal value in units of its σ.".into(),
+                svg: plot,
+            }),
+    ];
+    sections.push(Section::new("probe-install-radius", "Sphere radius").table(radius));
+    if !r.note.is_empty() {
+        sections.push(Section::new("probe-install-notes", "Notes").paragraph(r.note.clone()));
+    }
+    Ok(KindReport { summary, sections })
+}

@@ -37,6 +37,10 @@ impl Kind for RotarySphere {
         config::KIND
     }
 
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        report::document(results)
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         let config = config::RotarySphereConfig::load(path)?;
         kind_layout_check(path, check::check(&config))

@@ -22,6 +22,10 @@ impl Kind for RotaryTracer {
         crate::config::PlanKind::RotaryTracer.as_str()
     }
 
+    fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+        report::document(results)
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         tracer_plan::check(path)
     }

@@ -72,3 +72,97 @@ fn rotary_text(r: &RotaryResult) -> String {
     }
     s
 }
+
+/// The report's rotary_tracer sections: the table's step-angle errors against angle with ±2σ,
+/// its axis, then the network's volumetric error and station layout.
+pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
+    use crate::document::plots::{panels_svg, Panel, Series};
+    use crate::document::{cell, KindReport, Plot, Section, Table};
+    use crate::method::report_document::{network_sections, network_summary};
+    let r: RotaryTracerResults = crate::document::results_of("rotary_tracer", results)?;
+    let t = &r.rotary;
+    let mut table = Table::new(
+        &format!("Step-angle errors (from station {})", t.reference_station),
+        &[
+            "station",
+            "commanded [°]",
+            "measured [°]",
+            "error [arcsec]",
+            "σ [arcsec]",
+        ],
+    );
+    let mut points = Vec::new();
+    let mut band = Vec::new();
+    for s in &t.steps {
+        table.row(vec![
+            s.station.clone(),
+            cell(Some(s.commanded_rad.to_degrees()), 4),
+            cell(Some(s.measured_rad.to_degrees()), 6),
+            cell(Some(s.error_rad * ARCSEC_PER_RAD), 3),
+            cell(Some(s.sigma_rad * ARCSEC_PER_RAD), 3),
+        ]);
+        points.push((s.commanded_rad.to_degrees(), s.error_rad * ARCSEC_PER_RAD));
+        band.push(2.0 * s.sigma_rad * ARCSEC_PER_RAD);
+    }
+    let svg = panels_svg(
+        &format!("table {}: step-angle error against angle (±2σ)", t.table),
+        &[Panel {
+            title: "angular positioning error".into(),
+            x_label: "commanded angle [°]".into(),
+            y_label: "error [arcsec]".into(),
+            series: vec![Series::line("", points).with_band(band)],
+        }],
+        1,
+    )?;
+    let peak = t
+        .steps
+        .iter()
+        .map(|s| (s.error_rad * ARCSEC_PER_RAD).abs())
+        .fold(0.0, f64::max);
+    let mut summary = network_summary(&r.multilateration);
+    summary.push(("table".into(), t.table.clone()));
+    summary.push(("max |step-angle error|".into(), format!("{peak:.3} arcsec")));
+    summary.push((
+        "axis point (σ)".into(),
+        format!(
+            "[{:.6}, {:.6}, {:.6}] m ({:.2}, {:.2}, {:.2} µm)",
+            t.axis_point_m[0],
+            t.axis_point_m[1],
+            t.axis_point_m[2],
+            um(t.axis_point_sigma_m[0]),
+            um(t.axis_point_sigma_m[1]),
+            um(t.axis_point_sigma_m[2])
+        ),
+    ));
+    let mut sections = vec![
+        Section::new("rotary-steps", "Rotary table: step-angle errors")
+            .facts(vec![
+                (
+                    "axis direction".into(),
+                    format!(
+                        "[{:.7}, {:.7}, {:.7}]",
+                        t.axis_direction[0], t.axis_direction[1], t.axis_direction[2]
+                    ),
+                ),
+                (
+                    "radius of the station circle".into(),
+                    format!("{:.6} m (σ {:.2} µm)", t.radius_m, um(t.radius_sigma_m)),
+                ),
+                (
+                    "stations off the circle (RMS)".into(),
+                    format!("{:.3} µm", um(t.circle_residual_rms_m)),
+                ),
+            ])
+            .plot(Plot {
+                id: "step-angle-errors".into(),
+                caption: "Measured minus commanded table angle at each station, shaded ±2σ.".into(),
+                svg,
+            })
+            .table(table),
+    ];
+    if !t.note.is_empty() {
+        sections[0] = sections[0].clone().paragraph(t.note.clone());
+    }
+    sections.extend(network_sections(&r.multilateration)?);
+    Ok(KindReport { summary, sections })
+}

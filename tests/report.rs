@@ -1,0 +1,261 @@
+//! `geocal report` for every example configuration in `config/`, checked in a real headless
+//! browser (Debian's `chromium`, installed by `.ci/run`): the page loads with no console
+//! error, every expected plot is an SVG with data (polylines, circles or polygons, not only
+//! axes), and printing it to PDF gives no more pages than docs/report.md states. The
+//! Markdown report of the same run carries the same sections, with each plot as an SVG file.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+/// (config, plots the report must hold, most A4 pages in print: docs/report.md).
+const CASES: &[(&str, &[&str], usize)] = &[
+    (
+        "demo-multilateration.toml",
+        &[
+            "errors-x",
+            "errors-y",
+            "errors-z",
+            "volumetric-arrows",
+            "station-layout",
+            "diagnosis-residuals",
+        ],
+        6,
+    ),
+    (
+        "rotary-tracer.toml",
+        &["step-angle-errors", "volumetric-arrows", "station-layout"],
+        4,
+    ),
+    ("rotary-sphere.toml", &["motion-errors"], 4),
+    ("probe-install.toml", &["parameter-changes"], 3),
+    ("hexapod.toml", &["hinge-corrections"], 3),
+];
+
+fn geocal(args: &[&std::ffi::OsStr]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(args)
+        .stdin(Stdio::null())
+        .output()
+        .expect("run geocal");
+    assert!(
+        out.status.success(),
+        "geocal {:?} failed: {}",
+        args,
+        String::from_utf8_lossy(&out.stderr)
+    );
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// The browser, or a failure that says how to get it: CI installs it, a silent skip would
+/// hide that the acceptance check did not run.
+fn chromium() -> PathBuf {
+    for name in ["chromium", "chromium-browser"] {
+        for dir in std::env::split_paths(&std::env::var_os("PATH").unwrap_or_default()) {
+            let candidate = dir.join(name);
+            if candidate.is_file() {
+                return candidate;
+            }
+        }
+    }
+    panic!(
+        "tests/report.rs needs a headless browser: `chromium` is not on PATH \
+         (Debian: apt-get install -y chromium; .ci/run installs it)"
+    );
+}
+
+/// Runs headless chromium on `page` with `extra` arguments; returns (stdout, stderr).
+fn browse(page: &Path, extra: &[String]) -> (String, String) {
+    let profile = tempfile::tempdir().expect("tempdir");
+    let out = Command::new(chromium())
+        .args([
+            "--headless",
+            "--no-sandbox",
+            "--disable-gpu",
+            "--disable-background-networking",
+            "--disable-component-update",
+            "--disable-sync",
+            "--no-first-run",
+            "--enable-logging=stderr",
+            "--v=0",
+        ])
+        .arg(format!("--user-data-dir={}", profile.path().display()))
+        .args(extra)
+        .arg(format!("file://{}", page.display()))
+        .stdin(Stdio::null())
+        .output()
+        .expect("run chromium");
+    assert!(
+        out.status.success(),
+        "chromium on {} failed: {}",
+        page.display(),
+        String::from_utf8_lossy(&out.stderr)
+    );
+    (
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+/// Console messages of the page as chromium logs them (`CONSOLE(n)` lines, uncaught errors).
+fn console_errors(stderr: &str) -> Vec<&str> {
+    stderr
+        .lines()
+        .filter(|l| l.contains(":CONSOLE") || l.contains("Uncaught"))
+        .collect()
+}
+
+/// The page as the browser built it: its DOM after load.
+fn dom(page: &Path) -> String {
+    let (dom, stderr) = browse(page, &["--dump-dom".to_string()]);
+    let errors = console_errors(&stderr);
+    assert!(
+        errors.is_empty(),
+        "{}: console errors {errors:#?}",
+        page.display()
+    );
+    dom
+}
+
+/// The content of `<figure data-plot="id">…</figure>` in the DOM.
+fn figure<'a>(dom: &'a str, id: &str) -> Option<&'a str> {
+    let start = dom.find(&format!("<figure data-plot=\"{id}\""))?;
+    let end = dom[start..].find("</figure>")?;
+    Some(&dom[start..start + end])
+}
+
+/// Data marks of a plotters SVG: series are polylines, circles and polygons; the axes and
+/// the mesh are lines and text.
+fn data_marks(svg: &str) -> usize {
+    ["<polyline", "<circle", "<polygon"]
+        .iter()
+        .map(|m| svg.matches(m).count())
+        .sum()
+}
+
+fn pdf_pages(pdf: &[u8]) -> usize {
+    let needle = b"/Type /Page";
+    pdf.windows(needle.len() + 1)
+        .filter(|w| &w[..needle.len()] == needle && w[needle.len()] != b's')
+        .count()
+}
+
+fn print_pages(page: &Path, dir: &Path) -> usize {
+    let pdf = dir.join("report.pdf");
+    browse(
+        page,
+        &[
+            "--no-pdf-header-footer".to_string(),
+            format!("--print-to-pdf={}", pdf.display()),
+        ],
+    );
+    pdf_pages(&std::fs::read(&pdf).expect("the printed PDF"))
+}
+
+#[test]
+fn the_console_check_sees_a_console_error() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let page = dir.path().join("bad.html");
+    std::fs::write(
+        &page,
+        "<!DOCTYPE html><html><body><script>console.error('broken');</script></body></html>",
+    )
+    .expect("write page");
+    let (_, stderr) = browse(&page, &["--dump-dom".to_string()]);
+    assert!(
+        !console_errors(&stderr).is_empty(),
+        "a page calling console.error must be caught: {stderr}"
+    );
+}
+
+#[test]
+fn reports_of_every_example_config_load_draw_and_print() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    for (config, plots, max_pages) in CASES {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let run = dir.path().join("run");
+        geocal(&[
+            "run".as_ref(),
+            root.join("config").join(config).as_os_str(),
+            "--out".as_ref(),
+            run.as_os_str(),
+        ]);
+        // Markdown first: the diagnosis section is rendered alike, and its plot is costly.
+        let md = dir.path().join("md").join("report.md");
+        std::fs::create_dir_all(md.parent().expect("dir")).expect("md dir");
+        geocal(&[
+            "report".as_ref(),
+            run.as_os_str(),
+            "--format".as_ref(),
+            "md".as_ref(),
+            "--out".as_ref(),
+            md.as_os_str(),
+        ]);
+        let text = std::fs::read_to_string(&md).expect("report.md");
+        assert!(
+            text.contains("## Summary"),
+            "{config}: Markdown without summary"
+        );
+        for plot in plots.iter().filter(|p| **p != "diagnosis-residuals") {
+            let file = format!("report-{plot}.svg");
+            assert!(
+                text.contains(&format!("]({file})")),
+                "{config}: md lacks {file}"
+            );
+            let svg = std::fs::read_to_string(md.with_file_name(&file)).expect("plot file");
+            assert!(data_marks(&svg) > 0, "{config}: {file} has no data");
+        }
+        if plots.contains(&"diagnosis-residuals") {
+            let diagnosis = geocal(&[
+                "diagnose".as_ref(),
+                run.join("session.mcap").as_os_str(),
+                "--json".as_ref(),
+            ]);
+            std::fs::write(run.join("diagnosis.json"), diagnosis).expect("diagnosis.json");
+        }
+        let page = dir.path().join("report.html");
+        geocal(&[
+            "report".as_ref(),
+            run.as_os_str(),
+            "--out".as_ref(),
+            page.as_os_str(),
+        ]);
+        let html = std::fs::read_to_string(&page).expect("report.html");
+        for fetch in ["src=\"http", "href=\"http", "url(http", "<script", "<link"] {
+            assert!(!html.contains(fetch), "{config}: the page fetches: {fetch}");
+        }
+
+        let dom = dom(&page);
+        for section in ["id=\"header\"", "id=\"summary\""] {
+            assert!(dom.contains(section), "{config}: no {section} section");
+        }
+        assert!(
+            dom.contains("<dt>machine</dt>"),
+            "{config}: header without machine"
+        );
+        assert!(
+            dom.contains("Instruments"),
+            "{config}: header without instruments"
+        );
+        for plot in *plots {
+            let svg = figure(&dom, plot)
+                .unwrap_or_else(|| panic!("{config}: plot `{plot}` missing from the page"));
+            assert!(
+                svg.contains("<svg"),
+                "{config}: plot `{plot}` is not an SVG"
+            );
+            assert!(
+                data_marks(svg) > 0,
+                "{config}: plot `{plot}` has axes but no data"
+            );
+        }
+        let pages = print_pages(&page, dir.path());
+        assert!(
+            (1..=*max_pages).contains(&pages),
+            "{config}: printed to {pages} A4 pages, docs/report.md allows {max_pages}"
+        );
+        eprintln!(
+            "{config}: {} plots, {pages} pages (≤ {max_pages})",
+            plots.len()
+        );
+    }
+}
