@@ -5,6 +5,7 @@ pub mod clock;
 pub mod config;
 pub mod devices;
 pub mod diagnose;
+pub mod evaluate;
 pub mod extract;
 pub mod kinds;
 pub mod method;

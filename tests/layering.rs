@@ -15,7 +15,7 @@ const LAYERS: &[&[&str]] = &[
     &["plan"],
     &["extract"],
     &["sim", "sequencer", "devices"],
-    &["method", "run"],
+    &["method", "run", "evaluate"],
     &["kinds"],
     &["diagnose", "replay", "monitor", "lib", "main"],
     &["serve"],
