@@ -3,6 +3,7 @@
 //! against the simulated truth, within the noise model.
 
 mod common;
+mod iso230_2_common;
 
 use common::{run_with_truth, small_demo, truth_point, xyz};
 use geocal::evaluate::of_results;
@@ -44,6 +45,8 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
         .find(|a| a.axis == "x")
         .expect("x axis evaluated");
     let e = &x.evaluation;
+    // The same curves through the independent numpy evaluation.
+    iso230_2_common::assert_agree(&x.curves);
     // Serpentine rows reach the first and last x of a row without moving x: those two
     // targets are not approached from both sides in every run and are left out.
     assert_eq!(e.targets, 5, "{:?}", x.notes);

@@ -370,8 +370,7 @@ pub fn conformance(curves: &Curves) -> Vec<String> {
             let needed = per_metre.max(MIN_TARGETS);
             if m < needed {
                 why.push(format!(
-                    "{m} target positions over {:.3} m, at least {needed} ({MIN_TARGETS} per metre, {MIN_TARGETS} overall)",
-                    span
+                    "{m} target positions over {span:.3} m, at least {needed} ({MIN_TARGETS} per metre, {MIN_TARGETS} overall)"
                 ));
             }
         }
