@@ -64,12 +64,16 @@ fn existing_configs_keep_their_plan() {
 #[test]
 fn bad_values_name_the_key() {
     let text = DEMO.replace("passes = [\"forward\", \"backward\"]", "passes = \"five\"");
-    let message = Config::parse(&text, Path::new(FILE)).unwrap_err().to_string();
+    let message = Config::parse(&text, Path::new(FILE))
+        .unwrap_err()
+        .to_string();
     for part in [FILE, "passes", "number of bidirectional runs"] {
         assert!(message.contains(part), "{message:?} lacks {part:?}");
     }
     let text = iso_demo().replace("pseudo_random", "random");
-    let message = Config::parse(&text, Path::new(FILE)).unwrap_err().to_string();
+    let message = Config::parse(&text, Path::new(FILE))
+        .unwrap_err()
+        .to_string();
     for part in [FILE, "spacing", "pseudo_random"] {
         assert!(message.contains(part), "{message:?} lacks {part:?}");
     }

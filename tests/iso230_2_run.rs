@@ -54,7 +54,9 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
     // reaches each inner target both ways: 10 runs per direction.
     assert_eq!((e.runs_up, e.runs_down), (10, 10));
     assert!(
-        !e.not_per_iso_230_2.iter().any(|w| w.contains("runs") || w.contains("equally")),
+        !e.not_per_iso_230_2
+            .iter()
+            .any(|w| w.contains("runs") || w.contains("equally")),
         "{:?}",
         e.not_per_iso_230_2
     );
@@ -73,7 +75,9 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
                 .points
                 .iter()
                 .filter(|p| p.target == "t0" && (p.nominal_m[0] - t).abs() < 1e-9)
-                .map(|p| xyz(&truth_point(&truth, &p.target, p.point)["actual_m"])[0] - p.nominal_m[0])
+                .map(|p| {
+                    xyz(&truth_point(&truth, &p.target, p.point)["actual_m"])[0] - p.nominal_m[0]
+                })
                 .collect();
             assert_eq!(devs.len(), 4, "4 lines per x target");
             devs.iter().sum::<f64>() / devs.len() as f64
@@ -93,7 +97,8 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
         .fold(0.0, f64::max);
     let sigma_dev = x.deviation_sigma_median_m.expect("σ");
     let budget = 3.0 * (joint_sigma_x.powi(2) + sigma_dev.powi(2) / 40.0).sqrt();
-    let truth_m = tru.iter().cloned().fold(f64::MIN, f64::max) - tru.iter().cloned().fold(f64::MAX, f64::min);
+    let truth_m =
+        tru.iter().cloned().fold(f64::MIN, f64::max) - tru.iter().cloned().fold(f64::MAX, f64::min);
     println!(
         "M: estimated {:.3} µm, truth {:.3} µm; budget per target {:.3} µm",
         b.mean_error * 1e6,
@@ -118,10 +123,17 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
         "B: {:.3} µm, B̄ {:.3} µm, B_i {:?} µm",
         b.reversal * 1e6,
         b.mean_reversal * 1e6,
-        b.reversal_i.iter().map(|v| (v * 1e8).round() / 100.0).collect::<Vec<_>>()
+        b.reversal_i
+            .iter()
+            .map(|v| (v * 1e8).round() / 100.0)
+            .collect::<Vec<_>>()
     );
     for bi in &b.reversal_i {
-        assert!((bi - b.mean_reversal).abs() <= s_b, "B_i {bi:e} vs B̄ {:e}", b.mean_reversal);
+        assert!(
+            (bi - b.mean_reversal).abs() <= s_b,
+            "B_i {bi:e} vs B̄ {:e}",
+            b.mean_reversal
+        );
     }
     let span = b.mean_reversal.abs();
     assert!(

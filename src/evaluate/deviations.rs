@@ -130,7 +130,10 @@ fn tracer_axes(
         );
     }
     if network.robust.is_some() {
-        general.push("the solve down-weighted outliers; the per-pass points weigh every length alike".to_owned());
+        general.push(
+            "the solve down-weighted outliers; the per-pass points weigh every length alike"
+                .to_owned(),
+        );
     }
     let mut groups: BTreeMap<(String, usize, usize), Vec<&PointMeasurement>> = BTreeMap::new();
     for m in &extraction.measurements {
@@ -174,18 +177,17 @@ fn tracer_axes(
         ));
     }
     for (target, points) in &by_target {
-        for k in 0..3 {
+        for (k, axis) in AXES.iter().enumerate() {
             match axis_curves(points, k) {
                 Ok((curves, mut notes)) => {
                     let evaluation = evaluate(&curves)?;
                     notes.extend(general.iter().cloned());
                     let mut sigmas: Vec<f64> = points.iter().map(|p| p.sigma_m[k]).collect();
                     out.axes.push(AxisIso {
-                        axis: AXES[k].to_owned(),
+                        axis: (*axis).to_owned(),
                         target: Some(target.clone()),
                         source: format!(
-                            "each pass's points estimated from its lengths with the stations and homing distances of the joint solve; deviation along {} = estimated − nominal, with the other axes' offsets of every grid line removed (a line through the grid's mean {})",
-                            AXES[k],
+                            "each pass's points estimated from its lengths with the stations and homing distances of the joint solve; deviation along {axis} = estimated − nominal, with the other axes' offsets of every grid line removed (a line through the grid's mean {})",
                             other_axes(k)
                         ),
                         deviation_sigma_median_m: Some(median(&mut sigmas)),
@@ -197,7 +199,7 @@ fn tracer_axes(
                 }
                 Err(why) => out
                     .notes
-                    .push(format!("axis {} (target {target}): {why}", AXES[k])),
+                    .push(format!("axis {axis} (target {target}): {why}")),
             }
         }
     }
@@ -286,7 +288,10 @@ fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), S
     targets.sort_by(f64::total_cmp);
     targets.dedup_by(|a, b| key(*a) == key(*b));
     if targets.len() < 2 {
-        return Err(format!("{} target position, nothing to evaluate", targets.len()));
+        return Err(format!(
+            "{} target position, nothing to evaluate",
+            targets.len()
+        ));
     }
     let target_of = |v: f64| targets.iter().position(|t| key(*t) == key(v));
     let mut lines: BTreeMap<(i64, i64), usize> = BTreeMap::new();
@@ -323,7 +328,10 @@ fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), S
             line_sum[*line].0 += v - f[cell];
             line_sum[*line].1 += 1;
         }
-        let new: Vec<f64> = line_sum.iter().map(|(s, n)| s / (*n).max(1) as f64).collect();
+        let new: Vec<f64> = line_sum
+            .iter()
+            .map(|(s, n)| s / (*n).max(1) as f64)
+            .collect();
         let mean = new.iter().sum::<f64>() / new.len().max(1) as f64;
         let change = new
             .iter()
@@ -488,12 +496,19 @@ mod tests {
         }
         let (curves, notes) = axis_curves(&points, 0).unwrap();
         assert_eq!(curves.targets, vec![0.33, 0.52]);
-        assert!(notes.iter().any(|n| n.contains("0.1000 m left out")), "{notes:?}");
+        assert!(
+            notes.iter().any(|n| n.contains("0.1000 m left out")),
+            "{notes:?}"
+        );
         let e = evaluate(&curves).unwrap();
         let b = e.figures().bidirectional.clone().unwrap();
         assert!((b.reversal - reversal).abs() < 1e-13, "{}", b.reversal);
         let want_m = g(0.52) - g(0.33);
-        assert!((b.mean_error - want_m).abs() < 1e-13, "{} vs {want_m}", b.mean_error);
+        assert!(
+            (b.mean_error - want_m).abs() < 1e-13,
+            "{} vs {want_m}",
+            b.mean_error
+        );
         assert_eq!((curves.up.len(), curves.down.len()), (2, 2));
     }
 }

@@ -316,9 +316,11 @@ fn bidirectional(up: &Unidirectional, down: &Unidirectional) -> Bidirectional {
     let reversal_i: Vec<f64> = (0..m).map(|i| xu[i] - xd[i]).collect();
     let repeatability_i: Vec<Option<f64>> = (0..m)
         .map(|i| match (up.s_i[i], down.s_i[i]) {
-            (Some(su), Some(sd)) => {
-                Some((2.0 * su + 2.0 * sd + reversal_i[i].abs()).max(4.0 * su).max(4.0 * sd))
-            }
+            (Some(su), Some(sd)) => Some(
+                (2.0 * su + 2.0 * sd + reversal_i[i].abs())
+                    .max(4.0 * su)
+                    .max(4.0 * sd),
+            ),
             _ => None,
         })
         .collect();
@@ -376,8 +378,8 @@ pub fn conformance(curves: &Curves) -> Vec<String> {
         }
         AxisType::Rotary => {
             let turns = span / std::f64::consts::TAU;
-            let needed = ((MIN_TARGETS_ROTARY_TURN as f64 * turns - 1e-9).ceil() as usize)
-                .max(MIN_TARGETS);
+            let needed =
+                ((MIN_TARGETS_ROTARY_TURN as f64 * turns - 1e-9).ceil() as usize).max(MIN_TARGETS);
             if m < needed {
                 why.push(format!(
                     "{m} target positions over {:.1}°, at least {needed} ({MIN_TARGETS_ROTARY_TURN} per turn)",
@@ -389,7 +391,10 @@ pub fn conformance(curves: &Curves) -> Vec<String> {
     if m >= 3 {
         let intervals: Vec<f64> = curves.targets.windows(2).map(|p| p[1] - p[0]).collect();
         let mean = span / (m - 1) as f64;
-        if intervals.iter().all(|d| (d - mean).abs() <= 1e-9 * span.abs().max(1.0)) {
+        if intervals
+            .iter()
+            .all(|d| (d - mean).abs() <= 1e-9 * span.abs().max(1.0))
+        {
             why.push(
                 "targets equally spaced (the standard asks for unequal intervals so that periodic errors are sampled)"
                     .to_owned(),
@@ -436,7 +441,9 @@ mod tests {
     fn hand_computed_example() {
         let um = 1e-6;
         let scale = |rows: &[[f64; 3]]| -> Vec<Vec<f64>> {
-            rows.iter().map(|r| r.iter().map(|v| v * um).collect()).collect()
+            rows.iter()
+                .map(|r| r.iter().map(|v| v * um).collect())
+                .collect()
         };
         let curves = Curves {
             axis_type: AxisType::Linear,
@@ -473,9 +480,16 @@ mod tests {
         close(b.accuracy.unwrap(), 3.0 + 4.0 * r2, "A");
         assert_eq!((e.runs_up, e.runs_down, e.targets), (2, 2, 3));
         // 2 runs, 3 targets over 0.31 m: both rules broken, and the verdict says so.
-        assert!(e.verdict().starts_with("not per ISO 230-2: "), "{}", e.verdict());
+        assert!(
+            e.verdict().starts_with("not per ISO 230-2: "),
+            "{}",
+            e.verdict()
+        );
         assert!(e.not_per_iso_230_2.iter().any(|w| w.contains("2 runs ↑")));
-        assert!(e.not_per_iso_230_2.iter().any(|w| w.contains("3 target positions")));
+        assert!(e
+            .not_per_iso_230_2
+            .iter()
+            .any(|w| w.contains("3 target positions")));
         let json = serde_json::to_value(&e).unwrap();
         assert!(json["figures_m"]["bidirectional"]["reversal"].is_number());
     }
@@ -513,7 +527,9 @@ mod tests {
         let bunched = vec![0.0, 0.01, 0.02, 0.03, 0.6];
         let why = conformance(&cycle(bunched, 5, AxisType::Linear));
         assert!(why.iter().any(|w| w.contains("not spread")), "{why:?}");
-        let turn: Vec<f64> = (0..12).map(|k| (k as f64 * 30.0 + 1.3 * (k % 3) as f64).to_radians()).collect();
+        let turn: Vec<f64> = (0..12)
+            .map(|k| (k as f64 * 30.0 + 1.3 * (k % 3) as f64).to_radians())
+            .collect();
         let rotary = cycle(turn, 5, AxisType::Rotary);
         assert_eq!(conformance(&rotary), Vec::<String>::new());
         let e = evaluate(&rotary).unwrap();
@@ -541,13 +557,19 @@ mod tests {
         let mut c = cycle(vec![0.0, 0.1, 0.2], 2, AxisType::Linear);
         c.down[1].pop();
         let err = evaluate(&c).unwrap_err().to_string();
-        assert!(err.contains("run 1 ↓ has 2 deviations") && err.contains("(3)"), "{err}");
+        assert!(
+            err.contains("run 1 ↓ has 2 deviations") && err.contains("(3)"),
+            "{err}"
+        );
         let mut c = cycle(vec![0.0, 0.1, 0.2], 2, AxisType::Linear);
         c.up[0][2] = f64::NAN;
         let err = evaluate(&c).unwrap_err().to_string();
         assert!(err.contains("run 0 ↑ at target 2"), "{err}");
         let c = cycle(vec![0.0, 0.2, 0.1], 2, AxisType::Linear);
-        assert!(evaluate(&c).unwrap_err().to_string().contains("target 2 is 0.1"));
+        assert!(evaluate(&c)
+            .unwrap_err()
+            .to_string()
+            .contains("target 2 is 0.1"));
         let c = Curves {
             axis_type: AxisType::Linear,
             targets: vec![0.0, 0.1],

@@ -168,7 +168,9 @@ fn linspace(range: &AxisRange) -> Vec<f64> {
 /// A fixed fraction in [−1/4, 1/4) for interior point `i` (SplitMix64 of i): the same plan
 /// on every platform, and neighbours never swap or meet.
 fn pseudo_random_fraction(i: usize) -> f64 {
-    let mut z = (i as u64).wrapping_add(1).wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    let mut z = (i as u64)
+        .wrapping_add(1)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15);
     z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
     z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
     z ^= z >> 31;
@@ -226,10 +228,23 @@ mod tests {
         assert_eq!(spread[6], 1.3);
         let intervals: Vec<f64> = spread.windows(2).map(|p| p[1] - p[0]).collect();
         // Within ±1/4 of the interval each: every interval between 0.5 and 1.5 of 0.2.
-        assert!(intervals.iter().all(|&d| d > 0.1 - 1e-12 && d < 0.3 + 1e-12), "{intervals:?}");
-        let distinct = intervals.windows(2).filter(|p| (p[0] - p[1]).abs() > 1e-4).count();
+        assert!(
+            intervals
+                .iter()
+                .all(|&d| d > 0.1 - 1e-12 && d < 0.3 + 1e-12),
+            "{intervals:?}"
+        );
+        let distinct = intervals
+            .windows(2)
+            .filter(|p| (p[0] - p[1]).abs() > 1e-4)
+            .count();
         assert!(distinct >= 3, "intervals barely differ: {intervals:?}");
-        assert!(equal.iter().zip(&spread).skip(1).take(5).all(|(a, b)| a != b));
+        assert!(equal
+            .iter()
+            .zip(&spread)
+            .skip(1)
+            .take(5)
+            .all(|(a, b)| a != b));
     }
 
     #[test]

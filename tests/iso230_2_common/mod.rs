@@ -18,9 +18,15 @@ pub fn numpy_figures(curves: &Curves) -> serde_json::Value {
         .arg(&script)
         .arg(&path)
         .output()
-        .unwrap_or_else(|e| panic!("cannot run python3 ({e}); install Python 3 and {INSTALL_HINT}"));
+        .unwrap_or_else(|e| {
+            panic!("cannot run python3 ({e}); install Python 3 and {INSTALL_HINT}")
+        });
     let stderr = String::from_utf8_lossy(&out.stderr);
-    assert_ne!(out.status.code(), Some(3), "numpy missing: {INSTALL_HINT}\n{stderr}");
+    assert_ne!(
+        out.status.code(),
+        Some(3),
+        "numpy missing: {INSTALL_HINT}\n{stderr}"
+    );
     assert!(out.status.success(), "iso230_2.py failed: {stderr}");
     serde_json::from_slice(&out.stdout).unwrap()
 }
@@ -65,13 +71,20 @@ pub fn assert_agree(curves: &Curves) {
     ] {
         for (i, (a, t)) in ours.iter().zip(py[name].as_array().unwrap()).enumerate() {
             let t = t.as_f64().unwrap();
-            assert!((a - t).abs() <= tol, "{name}[{i}]: geocal {a:e}, numpy {t:e}");
+            assert!(
+                (a - t).abs() <= tol,
+                "{name}[{i}]: geocal {a:e}, numpy {t:e}"
+            );
         }
     }
-    for (i, (a, t)) in up.s_i.iter().zip(py["s_up"].as_array().unwrap()).enumerate() {
+    for (i, (a, t)) in up
+        .s_i
+        .iter()
+        .zip(py["s_up"].as_array().unwrap())
+        .enumerate()
+    {
         let (a, t) = (a.unwrap(), t.as_f64().unwrap());
         assert!((a - t).abs() <= tol, "s_up[{i}]: geocal {a:e}, numpy {t:e}");
     }
     println!("{}", e.text("x"));
 }
-
