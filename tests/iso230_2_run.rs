@@ -152,7 +152,10 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
         .sum::<f64>()
         / (up.s_i.len() + down.s_i.len()) as f64)
         .sqrt();
-    let predicted = sigma_dev / 2f64.sqrt();
+    // Predicted from each target's per-pass σ: a cell is the mean over 2 lines.
+    let target_sigma = x.target_sigma_m.as_ref().expect("σ per target");
+    let predicted =
+        (target_sigma.iter().map(|s| s * s / 2.0).sum::<f64>() / target_sigma.len() as f64).sqrt();
     println!(
         "s pooled {:.4} µm, predicted {:.4} µm; R {:.3} µm",
         pooled * 1e6,

@@ -42,6 +42,10 @@ pub struct AxisIso {
     /// Median standard uncertainty of one deviation (linear axes).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub deviation_sigma_median_m: Option<f64>,
+    /// Per target of `curves`, the RMS standard uncertainty of one point's deviation in one
+    /// pass (linear axes).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub target_sigma_m: Option<Vec<f64>>,
     /// Median standard uncertainty of one deviation (rotary axes).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub deviation_sigma_median_rad: Option<f64>,
@@ -183,6 +187,18 @@ fn tracer_axes(
                     let evaluation = evaluate(&curves)?;
                     notes.extend(general.iter().cloned());
                     let mut sigmas: Vec<f64> = points.iter().map(|p| p.sigma_m[k]).collect();
+                    let target_sigma_m = curves
+                        .targets
+                        .iter()
+                        .map(|t| {
+                            let at: Vec<f64> = points
+                                .iter()
+                                .filter(|p| (p.axes_m[k] - t).abs() < 1e-9)
+                                .map(|p| p.sigma_m[k].powi(2))
+                                .collect();
+                            (at.iter().sum::<f64>() / at.len().max(1) as f64).sqrt()
+                        })
+                        .collect();
                     out.axes.push(AxisIso {
                         axis: (*axis).to_owned(),
                         target: Some(target.clone()),
@@ -191,6 +207,7 @@ fn tracer_axes(
                             other_axes(k)
                         ),
                         deviation_sigma_median_m: Some(median(&mut sigmas)),
+                        target_sigma_m: Some(target_sigma_m),
                         deviation_sigma_median_rad: None,
                         notes,
                         curves,
@@ -445,6 +462,7 @@ fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
         target: None,
         source: "the table's step errors (measured − commanded angle, relative to the first table station) from the circle through the table stations".to_owned(),
         deviation_sigma_median_m: None,
+        target_sigma_m: None,
         deviation_sigma_median_rad: Some(median(&mut sigmas)),
         notes: vec![
             "one run: the table visits each commanded angle once, in one direction".to_owned(),
