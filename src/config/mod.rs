@@ -234,7 +234,9 @@ pub struct PlanConfig {
     /// Which targets (by id) the plan measures, in order; each at every station.
     pub targets: Vec<String>,
     pub grid: GridConfig,
-    /// Pass directions, in order; every pass starts by homing at point 0.
+    /// Pass directions, in order; every pass starts by homing at point 0. A number n stands
+    /// for n bidirectional runs: forward, backward, repeated n times (ISO 230-2's cycle is 5).
+    #[serde(deserialize_with = "passes_or_runs")]
     pub passes: Vec<PassDirection>,
     /// Stations the operator places (off the table), measured after the table stations.
     #[serde(default)]
@@ -265,6 +267,49 @@ pub struct AxisRange {
     pub from: f64,
     pub to: f64,
     pub count: usize,
+    /// How the points lie between `from` and `to` (default: equally spaced).
+    #[serde(default, skip_serializing_if = "Spacing::is_equal")]
+    pub spacing: Spacing,
+}
+
+/// Target spacing along a grid axis.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]
+#[serde(rename_all = "snake_case")]
+pub enum Spacing {
+    #[default]
+    Equal,
+    /// Unequal intervals, as ISO 230-2 suggests so that periodic errors are sampled: the
+    /// interior points move by a fixed pseudo-random fraction (within ±1/4) of the interval;
+    /// the end points stay.
+    PseudoRandom,
+}
+
+impl Spacing {
+    fn is_equal(&self) -> bool {
+        *self == Spacing::Equal
+    }
+}
+
+/// `passes` as a list of directions, or as a number of bidirectional runs.
+fn passes_or_runs<'de, D>(deserializer: D) -> Result<Vec<PassDirection>, D::Error>
+where
+    D: serde::Deserializer<'de>,
+{
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Passes {
+        Runs(u32),
+        Directions(Vec<PassDirection>),
+    }
+    match Passes::deserialize(deserializer) {
+        Ok(Passes::Directions(d)) => Ok(d),
+        Ok(Passes::Runs(n)) => Ok((0..n)
+            .flat_map(|_| [PassDirection::Forward, PassDirection::Backward])
+            .collect()),
+        Err(_) => Err(serde::de::Error::custom(
+            "expected a list of pass directions (\"forward\", \"backward\") or a number of bidirectional runs (e.g. 5)",
+        )),
+    }
 }
 
 #[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq)]

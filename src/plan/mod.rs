@@ -7,7 +7,7 @@ pub mod nc;
 use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 
-use crate::config::{AxisRange, Config, GridOrder, PassDirection};
+use crate::config::{AxisRange, Config, GridOrder, PassDirection, Spacing};
 
 /// Axis names in the order of `PlanPoint::axes_m`.
 pub const AXES: [&str; 3] = ["x", "y", "z"];
@@ -153,9 +153,29 @@ fn linspace(range: &AxisRange) -> Vec<f64> {
         return vec![range.from];
     }
     let step = (range.to - range.from) / (range.count - 1) as f64;
+    let last = range.count - 1;
     (0..range.count)
-        .map(|i| range.from + step * i as f64)
+        .map(|i| {
+            let shift = match range.spacing {
+                Spacing::PseudoRandom if i > 0 && i < last => step * pseudo_random_fraction(i),
+                _ => 0.0,
+            };
+            range.from + step * i as f64 + shift
+        })
         .collect()
+}
+
+/// A fixed fraction in [−1/4, 1/4) for interior point `i` (SplitMix64 of i): the same plan
+/// on every platform, and neighbours never swap or meet.
+fn pseudo_random_fraction(i: usize) -> f64 {
+    let mut z = (i as u64)
+        .wrapping_add(1)
+        .wrapping_mul(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^= z >> 31;
+    let unit = (z >> 11) as f64 / (1u64 << 53) as f64;
+    0.5 * unit - 0.25
 }
 
 /// Grid points with z slowest and x fastest; serpentine reverses every other row and layer
@@ -189,7 +209,42 @@ mod tests {
     use super::*;
 
     fn range(from: f64, to: f64, count: usize) -> AxisRange {
-        AxisRange { from, to, count }
+        AxisRange {
+            from,
+            to,
+            count,
+            spacing: Spacing::Equal,
+        }
+    }
+
+    #[test]
+    fn pseudo_random_spacing_keeps_the_ends_and_the_order() {
+        let equal = linspace(&range(0.1, 1.3, 7));
+        let spread = linspace(&AxisRange {
+            spacing: Spacing::PseudoRandom,
+            ..range(0.1, 1.3, 7)
+        });
+        assert_eq!(spread[0], 0.1);
+        assert_eq!(spread[6], 1.3);
+        let intervals: Vec<f64> = spread.windows(2).map(|p| p[1] - p[0]).collect();
+        // Within ±1/4 of the interval each: every interval between 0.5 and 1.5 of 0.2.
+        assert!(
+            intervals
+                .iter()
+                .all(|&d| d > 0.1 - 1e-12 && d < 0.3 + 1e-12),
+            "{intervals:?}"
+        );
+        let distinct = intervals
+            .windows(2)
+            .filter(|p| (p[0] - p[1]).abs() > 1e-4)
+            .count();
+        assert!(distinct >= 3, "intervals barely differ: {intervals:?}");
+        assert!(equal
+            .iter()
+            .zip(&spread)
+            .skip(1)
+            .take(5)
+            .all(|(a, b)| a != b));
     }
 
     #[test]

@@ -1,0 +1,532 @@
+//! Where ISO 230-2 deviations come from: per-run, per-direction positioning deviations of the
+//! linear axes from a tracer network (each pass's points re-estimated with the stations
+//! fixed), and the rotary table's step errors; read from a kind's results, naming no kind.
+
+use std::collections::BTreeMap;
+
+use nalgebra::{Matrix3, Vector3};
+use serde::{Deserialize, Serialize};
+
+use super::iso230_2::{evaluate, AxisType, Curves, CurvesError, Evaluation};
+use crate::extract::{extract_points, ExtractOptions, NoiseModel, PointMeasurement};
+use crate::method::multilateration::MultilaterationResults;
+use crate::method::Results;
+use crate::session::reader::Session;
+use crate::solve::multilateration::PathSigma;
+
+const AXES: [&str; 3] = ["x", "y", "z"];
+
+#[derive(Debug, thiserror::Error)]
+pub enum DeviationError {
+    #[error("ISO 230-2: point extraction: {0}")]
+    Extract(#[from] crate::extract::points::ExtractError),
+    #[error("ISO 230-2: the session has {0} tracers, expected one")]
+    Tracers(usize),
+    #[error("ISO 230-2: results JSON: {0}")]
+    Json(#[from] serde_json::Error),
+    #[error("ISO 230-2: results key `{key}`: {what}")]
+    Results { key: String, what: String },
+    #[error(transparent)]
+    Curves(#[from] CurvesError),
+}
+
+/// The ISO 230-2 evaluation of one axis and how its deviations were obtained.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct AxisIso {
+    /// "x", "y", "z", or the rotary table's id.
+    pub axis: String,
+    /// The reflector target the linear deviations were measured with.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub target: Option<String>,
+    pub source: String,
+    /// Median standard uncertainty of one deviation (linear axes).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub deviation_sigma_median_m: Option<f64>,
+    /// Per target of `curves`, the RMS standard uncertainty of one point's deviation in one
+    /// pass (linear axes).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub target_sigma_m: Option<Vec<f64>>,
+    /// Median standard uncertainty of one deviation (rotary axes).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub deviation_sigma_median_rad: Option<f64>,
+    pub notes: Vec<String>,
+    pub curves: Curves,
+    pub evaluation: Evaluation,
+}
+
+/// Every axis a kind's results give positioning deviations for.
+#[derive(Debug, Clone, Default, Serialize, Deserialize)]
+pub struct Iso230_2 {
+    pub axes: Vec<AxisIso>,
+    /// Axes left out, and why.
+    pub notes: Vec<String>,
+}
+
+impl Iso230_2 {
+    pub fn text(&self) -> String {
+        let mut out = String::new();
+        for a in &self.axes {
+            let name = match &a.target {
+                Some(t) => format!("{} (target {t})", a.axis),
+                None => a.axis.clone(),
+            };
+            out += &a.evaluation.text(&name);
+            for n in &a.notes {
+                out += &format!("  note: {n}\n");
+            }
+        }
+        for n in &self.notes {
+            out += &format!("ISO 230-2: {n}\n");
+        }
+        out
+    }
+}
+
+/// The ISO 230-2 figures of every axis the results measured: the linear axes of a tracer
+/// network (per pass, with the stations fixed) and a rotary table's steps.
+pub fn of_results(results: &Results, session: &Session) -> Result<Iso230_2, DeviationError> {
+    let mut out = Iso230_2::default();
+    if let Some(network) = results.multilateration() {
+        tracer_axes(network, session, &mut out)?;
+    }
+    let json = results.to_json_value()?;
+    if let Some(rotary) = json.get("rotary").filter(|r| !r.is_null()) {
+        out.axes.push(rotary_axis(rotary)?);
+    }
+    if out.axes.is_empty() && out.notes.is_empty() {
+        out.notes
+            .push("these results hold no positioning deviations".to_owned());
+    }
+    Ok(out)
+}
+
+/// One pass's estimate of one point.
+#[derive(Debug, Clone)]
+struct RunPoint {
+    pass: usize,
+    axes_m: [f64; 3],
+    approach: [i8; 3],
+    deviation_m: [f64; 3],
+    sigma_m: [f64; 3],
+}
+
+fn tracer_axes(
+    network: &MultilaterationResults,
+    session: &Session,
+    out: &mut Iso230_2,
+) -> Result<(), DeviationError> {
+    if session.tracers.len() != 1 {
+        return Err(DeviationError::Tracers(session.tracers.len()));
+    }
+    let tracer_id = session.tracers.keys().next().cloned().unwrap_or_default();
+    let noise = NoiseModel::from_header(&session.header, &tracer_id);
+    let extraction = extract_points(
+        session,
+        Some(&tracer_id),
+        noise,
+        &ExtractOptions::from_header(&session.header),
+    )?;
+    let mut general = Vec::new();
+    if !network.effects.is_empty() {
+        general.push(
+            "the solve fitted unmodelled effects; the per-pass points use the raw lengths"
+                .to_owned(),
+        );
+    }
+    if network.robust.is_some() {
+        general.push(
+            "the solve down-weighted outliers; the per-pass points weigh every length alike"
+                .to_owned(),
+        );
+    }
+    let mut groups: BTreeMap<(String, usize, usize), Vec<&PointMeasurement>> = BTreeMap::new();
+    for m in &extraction.measurements {
+        groups
+            .entry((m.target.clone(), m.point, m.pass))
+            .or_default()
+            .push(m);
+    }
+    let mut by_target: BTreeMap<String, Vec<RunPoint>> = BTreeMap::new();
+    let mut unsolved = 0usize;
+    for ((target, point, pass), lengths) in &groups {
+        let Some(joint) = network
+            .points
+            .iter()
+            .find(|p| &p.target == target && p.point == *point)
+        else {
+            unsolved += 1;
+            continue;
+        };
+        let Some((p, cov)) = point_of_pass(network, lengths, Vector3::from(joint.actual_m)) else {
+            unsolved += 1;
+            continue;
+        };
+        let first = lengths[0];
+        let axes = AXES.map(|a| first.axes.get(a).copied());
+        let [Some(x), Some(y), Some(z)] = axes else {
+            unsolved += 1;
+            continue;
+        };
+        by_target.entry(target.clone()).or_default().push(RunPoint {
+            pass: *pass,
+            axes_m: [x, y, z],
+            approach: AXES.map(|a| first.approach.get(a).copied().unwrap_or(0)),
+            deviation_m: std::array::from_fn(|k| p[k] - joint.nominal_m[k]),
+            sigma_m: std::array::from_fn(|k| cov[(k, k)].max(0.0).sqrt()),
+        });
+    }
+    if unsolved > 0 {
+        general.push(format!(
+            "{unsolved} point passes left out (fewer than 3 lengths, or no joint estimate)"
+        ));
+    }
+    for (target, points) in &by_target {
+        for (k, axis) in AXES.iter().enumerate() {
+            match axis_curves(points, k) {
+                Ok((curves, mut notes)) => {
+                    let evaluation = evaluate(&curves)?;
+                    notes.extend(general.iter().cloned());
+                    let mut sigmas: Vec<f64> = points.iter().map(|p| p.sigma_m[k]).collect();
+                    let target_sigma_m = curves
+                        .targets
+                        .iter()
+                        .map(|t| {
+                            let at: Vec<f64> = points
+                                .iter()
+                                .filter(|p| (p.axes_m[k] - t).abs() < 1e-9)
+                                .map(|p| p.sigma_m[k].powi(2))
+                                .collect();
+                            (at.iter().sum::<f64>() / at.len().max(1) as f64).sqrt()
+                        })
+                        .collect();
+                    out.axes.push(AxisIso {
+                        axis: (*axis).to_owned(),
+                        target: Some(target.clone()),
+                        source: format!(
+                            "each pass's points estimated from its lengths with the stations and homing distances of the joint solve; deviation along {axis} = estimated − nominal, with the other axes' offsets of every grid line removed (a line through the grid's mean {})",
+                            other_axes(k)
+                        ),
+                        deviation_sigma_median_m: Some(median(&mut sigmas)),
+                        target_sigma_m: Some(target_sigma_m),
+                        deviation_sigma_median_rad: None,
+                        notes,
+                        curves,
+                        evaluation,
+                    });
+                }
+                Err(why) => out
+                    .notes
+                    .push(format!("axis {axis} (target {target}): {why}")),
+            }
+        }
+    }
+    Ok(())
+}
+
+fn other_axes(k: usize) -> String {
+    let o: Vec<&str> = (0..3).filter(|&j| j != k).map(|j| AXES[j]).collect();
+    o.join(", ")
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    match values.len() {
+        0 => f64::NAN,
+        n if n % 2 == 1 => values[n / 2],
+        n => 0.5 * (values[n / 2 - 1] + values[n / 2]),
+    }
+}
+
+/// Gauss–Newton on the point alone: lengths |S − P| − d with the stations S and homing
+/// distances d of the joint solve. None without 3 lengths or a regular normal matrix.
+fn point_of_pass(
+    network: &MultilaterationResults,
+    lengths: &[&PointMeasurement],
+    start: Vector3<f64>,
+) -> Option<(Vector3<f64>, Matrix3<f64>)> {
+    struct Length {
+        station_m: Vector3<f64>,
+        home_m: f64,
+        length_m: f64,
+        path: Option<PathSigma>,
+        sigma_m: f64,
+    }
+    let obs: Vec<Length> = lengths
+        .iter()
+        .filter_map(|m| {
+            let station = network.stations.iter().find(|s| s.id == m.station)?;
+            let segment = station
+                .segments
+                .iter()
+                .find(|s| s.target == m.target && s.beam_segment == m.beam_segment)?;
+            Some(Length {
+                station_m: Vector3::from(station.position_m),
+                home_m: segment.home_distance_m,
+                length_m: m.length_m,
+                path: m.path_sigma,
+                sigma_m: m.sigma_m,
+            })
+        })
+        .collect();
+    if obs.len() < 3 {
+        return None;
+    }
+    let mut p = start;
+    let mut cov = Matrix3::zeros();
+    for _ in 0..20 {
+        let mut a = Matrix3::zeros();
+        let mut b = Vector3::zeros();
+        for o in &obs {
+            let diff = p - o.station_m;
+            let beam = diff.norm();
+            let u = diff / beam;
+            let sigma = o.path.map_or(o.sigma_m, |ps| ps.sigma_m(beam));
+            let w = 1.0 / (sigma * sigma);
+            let r = beam - o.home_m - o.length_m;
+            a += w * u * u.transpose();
+            b += w * u * r;
+        }
+        cov = a.try_inverse()?;
+        let step = cov * b;
+        p -= step;
+        if step.norm() < 1e-13 {
+            break;
+        }
+    }
+    Some((p, cov))
+}
+
+/// The ISO curves of axis `k`: per pass and approach direction, the deviation at every
+/// target of the axis, the other axes' line offsets removed (backfitting of
+/// deviation = f(pass, direction, target) + c(line), the line offsets summing to zero).
+fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), String> {
+    let key = |v: f64| (v * 1e9).round() as i64;
+    let mut targets: Vec<f64> = points.iter().map(|p| p.axes_m[k]).collect();
+    targets.sort_by(f64::total_cmp);
+    targets.dedup_by(|a, b| key(*a) == key(*b));
+    if targets.len() < 2 {
+        return Err(format!(
+            "{} target position, nothing to evaluate",
+            targets.len()
+        ));
+    }
+    let target_of = |v: f64| targets.iter().position(|t| key(*t) == key(v));
+    let mut lines: BTreeMap<(i64, i64), usize> = BTreeMap::new();
+    // (cell (pass, direction, target), line, deviation)
+    let mut obs: Vec<((usize, i8, usize), usize, f64)> = Vec::new();
+    for p in points {
+        let dir = p.approach[k];
+        let Some(ti) = target_of(p.axes_m[k]) else {
+            continue;
+        };
+        if dir == 0 {
+            continue;
+        }
+        let others: Vec<f64> = (0..3).filter(|&j| j != k).map(|j| p.axes_m[j]).collect();
+        let n = lines.len();
+        let line = *lines.entry((key(others[0]), key(others[1]))).or_insert(n);
+        obs.push(((p.pass, dir, ti), line, p.deviation_m[k]));
+    }
+    let mut f: BTreeMap<(usize, i8, usize), f64> = BTreeMap::new();
+    let mut c = vec![0.0; lines.len()];
+    for _ in 0..500 {
+        let mut sum: BTreeMap<(usize, i8, usize), (f64, usize)> = BTreeMap::new();
+        for (cell, line, v) in &obs {
+            let e = sum.entry(*cell).or_default();
+            e.0 += v - c[*line];
+            e.1 += 1;
+        }
+        f = sum
+            .into_iter()
+            .map(|(cell, (s, n))| (cell, s / n as f64))
+            .collect();
+        let mut line_sum = vec![(0.0, 0usize); c.len()];
+        for (cell, line, v) in &obs {
+            line_sum[*line].0 += v - f[cell];
+            line_sum[*line].1 += 1;
+        }
+        let new: Vec<f64> = line_sum
+            .iter()
+            .map(|(s, n)| s / (*n).max(1) as f64)
+            .collect();
+        let mean = new.iter().sum::<f64>() / new.len().max(1) as f64;
+        let change = new
+            .iter()
+            .zip(&c)
+            .map(|(a, b)| (a - mean - b).abs())
+            .fold(0.0, f64::max);
+        c = new.iter().map(|v| v - mean).collect();
+        if change < 1e-16 {
+            break;
+        }
+    }
+    // A run per pass and direction; a target stays if every such run reached it.
+    let runs = |dir: i8| -> Vec<usize> {
+        let mut passes: Vec<usize> = f.keys().filter(|c| c.1 == dir).map(|c| c.0).collect();
+        passes.dedup();
+        passes
+    };
+    let (up_runs, down_runs) = (runs(1), runs(-1));
+    let mut notes = Vec::new();
+    let mut kept = Vec::new();
+    for (ti, t) in targets.iter().enumerate() {
+        let missing: Vec<&str> = [("↑", 1i8, &up_runs), ("↓", -1i8, &down_runs)]
+            .iter()
+            .filter(|(_, d, passes)| passes.iter().any(|p| !f.contains_key(&(*p, *d, ti))))
+            .map(|(name, _, _)| *name)
+            .collect();
+        if missing.is_empty() {
+            kept.push(ti);
+        } else {
+            notes.push(format!(
+                "{} = {t:.4} m left out: not approached {} in every run (the plan has no overshoot past it)",
+                AXES[k],
+                missing.join(" and ")
+            ));
+        }
+    }
+    if kept.len() < 2 {
+        return Err(format!(
+            "{} of {} targets approached alike in every run, nothing to evaluate",
+            kept.len(),
+            targets.len()
+        ));
+    }
+    let curve = |dir: i8, passes: &[usize]| -> Vec<Vec<f64>> {
+        passes
+            .iter()
+            .map(|p| kept.iter().map(|ti| f[&(*p, dir, *ti)]).collect())
+            .collect()
+    };
+    notes.push(format!(
+        "runs are passes: ↑ runs from passes {up_runs:?}, ↓ runs from passes {down_runs:?} (a pass whose rows alternate gives both)"
+    ));
+    Ok((
+        Curves {
+            axis_type: AxisType::Linear,
+            targets: kept.iter().map(|ti| targets[*ti]).collect(),
+            up: curve(1, &up_runs),
+            down: curve(-1, &down_runs),
+        },
+        notes,
+    ))
+}
+
+fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
+    let bad = |key: &str, what: &str| DeviationError::Results {
+        key: key.to_owned(),
+        what: what.to_owned(),
+    };
+    let table = rotary
+        .get("table")
+        .and_then(|t| t.as_str())
+        .ok_or_else(|| bad("rotary.table", "expected the table id"))?;
+    let steps = rotary
+        .get("steps")
+        .and_then(|s| s.as_array())
+        .ok_or_else(|| bad("rotary.steps", "expected a list of steps"))?;
+    let mut rows = Vec::new();
+    for (i, s) in steps.iter().enumerate() {
+        let num = |name: &str| {
+            s.get(name)
+                .and_then(|v| v.as_f64())
+                .ok_or_else(|| bad(&format!("rotary.steps[{i}].{name}"), "expected a number"))
+        };
+        rows.push((num("commanded_rad")?, num("error_rad")?, num("sigma_rad")?));
+    }
+    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let increasing = steps
+        .iter()
+        .filter_map(|s| s.get("commanded_rad").and_then(|v| v.as_f64()))
+        .collect::<Vec<f64>>()
+        .windows(2)
+        .all(|p| p[1] > p[0]);
+    let curves = Curves {
+        axis_type: AxisType::Rotary,
+        targets: rows.iter().map(|r| r.0).collect(),
+        up: if increasing {
+            vec![rows.iter().map(|r| r.1).collect()]
+        } else {
+            vec![]
+        },
+        down: if increasing {
+            vec![]
+        } else {
+            vec![rows.iter().map(|r| r.1).collect()]
+        },
+    };
+    let evaluation = evaluate(&curves)?;
+    let mut sigmas: Vec<f64> = rows.iter().map(|r| r.2).collect();
+    Ok(AxisIso {
+        axis: table.to_owned(),
+        target: None,
+        source: "the table's step errors (measured − commanded angle, relative to the first table station) from the circle through the table stations".to_owned(),
+        deviation_sigma_median_m: None,
+        target_sigma_m: None,
+        deviation_sigma_median_rad: Some(median(&mut sigmas)),
+        notes: vec![
+            "one run: the table visits each commanded angle once, in one direction".to_owned(),
+        ],
+        curves,
+        evaluation,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Deviation = g(target) + line offset + reversal·direction/2; rows alternate direction
+    /// (serpentine) and the first target of a row is reached without moving the axis.
+    #[test]
+    fn line_offsets_and_directions_are_separated() {
+        let xs = [0.1, 0.33, 0.52, 0.8];
+        let g = |x: f64| 3e-6 * x * x;
+        let reversal = 2e-6;
+        let mut points = Vec::new();
+        for pass in 0..2 {
+            for (row, line) in [(0.0, 0.0), (0.5, 0.0), (0.0, 0.4), (0.5, 0.4)]
+                .iter()
+                .enumerate()
+            {
+                let up = (row + pass) % 2 == 0;
+                for &x in &xs {
+                    // Interior targets by the row's direction; the ends as the sim reaches them.
+                    let dir: i8 = if x == xs[0] {
+                        -1
+                    } else if x == xs[3] {
+                        1
+                    } else if up {
+                        1
+                    } else {
+                        -1
+                    };
+                    let offset = 1e-6 * line.0 - 4e-6 * line.1;
+                    points.push(RunPoint {
+                        pass,
+                        axes_m: [x, line.0, line.1],
+                        approach: [dir, 1, 1],
+                        deviation_m: [g(x) + offset + 0.5 * reversal * dir as f64, 0.0, 0.0],
+                        sigma_m: [1e-8; 3],
+                    });
+                }
+            }
+        }
+        let (curves, notes) = axis_curves(&points, 0).unwrap();
+        assert_eq!(curves.targets, vec![0.33, 0.52]);
+        assert!(
+            notes.iter().any(|n| n.contains("0.1000 m left out")),
+            "{notes:?}"
+        );
+        let e = evaluate(&curves).unwrap();
+        let b = e.figures().bidirectional.clone().unwrap();
+        assert!((b.reversal - reversal).abs() < 1e-13, "{}", b.reversal);
+        let want_m = g(0.52) - g(0.33);
+        assert!(
+            (b.mean_error - want_m).abs() < 1e-13,
+            "{} vs {want_m}",
+            b.mean_error
+        );
+        assert_eq!((curves.up.len(), curves.down.len()), (2, 2));
+    }
+}
