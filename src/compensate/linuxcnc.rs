@@ -54,11 +54,16 @@ pub fn export(
         .into_iter()
         .map(|l| format!("# {l}"))
         .collect::<Vec<_>>();
-    ini.push("# Machine units: mm (LINEAR_UNITS = mm); joint n = axis x, y, z -> 0, 1, 2 (trivkins).".into());
-    ini.push(match comp_type {
-        CompType::Type0 => "# COMP_FILE_TYPE 0 columns: nominal, position reached moving +, moving - (mm); \
-                            LinuxCNC adds the trim nominal - actual to the commanded position."
+    ini.push(
+        "# Machine units: mm (LINEAR_UNITS = mm); joint n = axis x, y, z -> 0, 1, 2 (trivkins)."
             .into(),
+    );
+    ini.push(match comp_type {
+        CompType::Type0 => {
+            "# COMP_FILE_TYPE 0 columns: nominal, position reached moving +, moving - (mm); \
+                            LinuxCNC adds the trim nominal - actual to the commanded position."
+                .into()
+        }
         CompType::Type1 => "# COMP_FILE_TYPE 1 columns: nominal, forward trim, reverse trim (mm); \
                             the trim is added to the commanded position (trim = -deviation)."
             .into(),
@@ -81,12 +86,7 @@ pub fn export(
                 CompType::Type0 => (q + plus, q + minus),
                 CompType::Type1 => (-plus, -minus),
             };
-            text.push_str(&format!(
-                "{:.6} {:.6} {:.6}\n",
-                q * 1e3,
-                c1 * 1e3,
-                c2 * 1e3
-            ));
+            text.push_str(&format!("{:.6} {:.6} {:.6}\n", q * 1e3, c1 * 1e3, c2 * 1e3));
         }
         let r = &s.report;
         ini.push(String::new());
@@ -223,12 +223,18 @@ impl CompTable {
                 CompType::Type1 => (a, b),
             };
             if entries.len() >= MAX_ENTRIES {
-                messages.push(format!("line {}: table full ({MAX_ENTRIES} entries)", n + 1));
+                messages.push(format!(
+                    "line {}: table full ({MAX_ENTRIES} entries)",
+                    n + 1
+                ));
                 continue;
             }
             // `!(a > b)` so that a NaN nominal is dropped too, as the controller's compare does.
             if entries.last().is_some_and(|e| !(nominal > e.nominal)) {
-                messages.push(format!("line {}: nominal {nominal} does not increase", n + 1));
+                messages.push(format!(
+                    "line {}: nominal {nominal} does not increase",
+                    n + 1
+                ));
                 continue;
             }
             entries.push(Entry {
@@ -246,7 +252,11 @@ impl CompTable {
 
     /// Read a table strictly: what LinuxCNC would load, and an error naming the line where it
     /// would silently lose data (a header, a dropped line, an empty table, a non-finite value).
-    pub fn parse(text: &str, comp_type: CompType, file: &Path) -> Result<CompTable, CompensateError> {
+    pub fn parse(
+        text: &str,
+        comp_type: CompType,
+        file: &Path,
+    ) -> Result<CompTable, CompensateError> {
         let table = CompTable::read_as_linuxcnc(text, comp_type);
         let line_error = |line: usize, message: String| CompensateError::Line {
             file: file.to_path_buf(),
@@ -338,19 +348,28 @@ mod tests {
     #[test]
     fn scan_reads_like_sscanf() {
         assert_eq!(scan_three("1 2 3"), Some([1.0, 2.0, 3.0]));
-        assert_eq!(scan_three("  1.5\t-2e-3 +3. trailing"), Some([1.5, -2e-3, 3.0]));
+        assert_eq!(
+            scan_three("  1.5\t-2e-3 +3. trailing"),
+            Some([1.5, -2e-3, 3.0])
+        );
         assert_eq!(scan_three("1 2"), None);
         assert_eq!(scan_three("# nominal fwd rev"), None);
         assert_eq!(scan_three("1,5 2 3"), None);
         assert_eq!(scan_three(""), None);
-        assert_eq!(scan_three("1e 2 3"), None, "`1e` leaves `e` unread, then `e 2` fails");
+        assert_eq!(
+            scan_three("1e 2 3"),
+            None,
+            "`1e` leaves `e` unread, then `e 2` fails"
+        );
         assert_eq!(scan_three(".5 .25 -.125"), Some([0.5, 0.25, -0.125]));
     }
 
     #[test]
     fn a_header_line_gives_an_empty_table_and_a_strict_error() {
         let text = "# x compensation\n0 0 0\n100 0.001 0.002\n";
-        assert!(CompTable::read_as_linuxcnc(text, CompType::Type1).entries.is_empty());
+        assert!(CompTable::read_as_linuxcnc(text, CompType::Type1)
+            .entries
+            .is_empty());
         let e = CompTable::parse(text, CompType::Type1, Path::new("x.txt")).unwrap_err();
         assert!(e.to_string().contains("x.txt: line 1"), "{e}");
         assert!(e.to_string().contains("empty table"), "{e}");

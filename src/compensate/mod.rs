@@ -62,8 +62,13 @@ pub enum TableFormat {
 }
 
 impl TableFormat {
-    pub const NAMES: [&'static str; 5] =
-        ["linuxcnc-type0", "linuxcnc-type1", "sinumerik", "csv", "json"];
+    pub const NAMES: [&'static str; 5] = [
+        "linuxcnc-type0",
+        "linuxcnc-type1",
+        "sinumerik",
+        "csv",
+        "json",
+    ];
 
     pub fn parse(name: &str) -> Option<TableFormat> {
         match name {
@@ -106,7 +111,13 @@ impl Curve {
 
     /// RMS of the known sigmas, 0 for none (datum values have sigma 0 and are left out).
     pub fn sigma_rms(&self) -> f64 {
-        let s: Vec<f64> = self.sigma.iter().flatten().copied().filter(|s| *s > 0.0).collect();
+        let s: Vec<f64> = self
+            .sigma
+            .iter()
+            .flatten()
+            .copied()
+            .filter(|s| *s > 0.0)
+            .collect();
         if s.is_empty() {
             0.0
         } else {
@@ -236,7 +247,9 @@ impl Calibration {
                 input_error(path, format!("geometric_errors.axes has no axis `{name}`"))
             })?;
             let p = &axis.positions_m;
-            if p.is_empty() || p.windows(2).any(|w| w[1] <= w[0]) || p.iter().any(|v| !v.is_finite())
+            if p.is_empty()
+                || p.windows(2).any(|w| w[1] <= w[0])
+                || p.iter().any(|v| !v.is_finite())
             {
                 return Err(input_error(
                     path,
@@ -344,7 +357,11 @@ impl Calibration {
     /// base axis, branch-signed, plus the squareness between the two), metres on the base
     /// axis's grid; None when a part of it is not identifiable.
     pub fn cross(&self, base: usize, comp: usize) -> Option<Curve> {
-        let iso = format!("E{}{}", AXES[comp].to_uppercase(), AXES[base].to_uppercase());
+        let iso = format!(
+            "E{}{}",
+            AXES[comp].to_uppercase(),
+            AXES[base].to_uppercase()
+        );
         let curve = self.axes[base].get(&iso)?;
         let s = self.branch_sign(base);
         // Squareness (docs/kinematics.md): moving +y by L shifts x by −EC0Y·L, moving +z by
@@ -427,7 +444,12 @@ pub fn interpolation_error(curve: &Curve, nodes_m: &[f64], node_values: &[f64]) 
     // The fitted curve is linear between its grid positions: its kinks and the table's are
     // where the largest departures lie, sampled finely between them.
     let mut knots: Vec<f64> = curve.positions_m.clone();
-    knots.extend(nodes_m.iter().copied().filter(|q| *q >= *first && *q <= last));
+    knots.extend(
+        nodes_m
+            .iter()
+            .copied()
+            .filter(|q| *q >= *first && *q <= last),
+    );
     knots.sort_by(f64::total_cmp);
     for w in knots.windows(2) {
         for i in 0..=8 {
@@ -581,8 +603,12 @@ pub fn export(
     sinumerik: &sinumerik::SinumerikOptions,
 ) -> Result<Export, CompensateError> {
     match format {
-        TableFormat::LinuxcncType0 => linuxcnc::export(calibration, linuxcnc::CompType::Type0, options),
-        TableFormat::LinuxcncType1 => linuxcnc::export(calibration, linuxcnc::CompType::Type1, options),
+        TableFormat::LinuxcncType0 => {
+            linuxcnc::export(calibration, linuxcnc::CompType::Type0, options)
+        }
+        TableFormat::LinuxcncType1 => {
+            linuxcnc::export(calibration, linuxcnc::CompType::Type1, options)
+        }
         TableFormat::Sinumerik => sinumerik::export(calibration, options, sinumerik),
         TableFormat::Csv => table::export_csv(calibration, options),
         TableFormat::Json => table::export_json(calibration, options),
@@ -671,9 +697,11 @@ pub fn load_table(
         )?)),
         TableFormat::Sinumerik => {
             let program = sinumerik::Program::parse(&text, file)?;
-            Ok(AppliedTable::Sinumerik(
-                program.enc_comp(0, controller_axis, file)?,
-            ))
+            Ok(AppliedTable::Sinumerik(program.enc_comp(
+                0,
+                controller_axis,
+                file,
+            )?))
         }
         TableFormat::Csv | TableFormat::Json => Err(input_error(
             file,

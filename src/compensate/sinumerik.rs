@@ -62,11 +62,18 @@ pub fn export(
         .collect();
     let mut eec = vec!["%_N_AX_EEC_INI".to_string(), "CHANDATA(1)".to_string()];
     eec.extend(header.iter().cloned());
-    eec.push("; Linear axes in mm. Value = +deviation (tool to workpiece, carriage error with the sign".into());
+    eec.push(
+        "; Linear axes in mm. Value = +deviation (tool to workpiece, carriage error with the sign"
+            .into(),
+    );
     eec.push("; flipped on the workpiece branch): the control adds it to the actual position value, so a".into());
-    eec.push("; positive value moves the axis in -, the opposite sign of a LinuxCNC trim (K3).".into());
+    eec.push(
+        "; positive value moves the axis in -, the opposite sign of a LinuxCNC trim (K3).".into(),
+    );
     if calibration.reversal_fitted {
-        eec.push("; The reversal is not in these tables: set it as backlash (MD32450 BACKLASH).".into());
+        eec.push(
+            "; The reversal is not in these tables: set it as backlash (MD32450 BACKLASH).".into(),
+        );
     }
     let mut steps = Vec::new();
     for &axis in &options.axes {
@@ -89,10 +96,14 @@ pub fn export(
         for (n, v) in s.values_m.iter().enumerate() {
             eec.push(format!("$AA_ENC_COMP[0,{n},{name}]={:.6}", v * 1e3));
         }
-        eec.push(format!("$AA_ENC_COMP_STEP[0,{name}]={:.6}", r.step_m * 1e3));
-        eec.push(format!("$AA_ENC_COMP_MIN[0,{name}]={:.6}", s.nominals_m[0] * 1e3));
+        // STEP, MIN and MAX in full precision: MAX = MIN + (points − 1)·STEP must hold.
+        eec.push(format!("$AA_ENC_COMP_STEP[0,{name}]={}", r.step_m * 1e3));
         eec.push(format!(
-            "$AA_ENC_COMP_MAX[0,{name}]={:.6}",
+            "$AA_ENC_COMP_MIN[0,{name}]={}",
+            s.nominals_m[0] * 1e3
+        ));
+        eec.push(format!(
+            "$AA_ENC_COMP_MAX[0,{name}]={}",
             s.nominals_m.last().copied().unwrap_or(0.0) * 1e3
         ));
         eec.push(format!("$AA_ENC_COMP_IS_MODULO[0,{name}]=0"));
@@ -121,7 +132,10 @@ pub fn export(
                 continue;
             };
             let s = sample(&curve, base, options, o.max_points)?;
-            let what = format!("$AN_CEC[{table}] ({} on {})", o.axis_names[comp], o.axis_names[base]);
+            let what = format!(
+                "$AN_CEC[{table}] ({} on {})",
+                o.axis_names[comp], o.axis_names[base]
+            );
             check_values(&s.values_m, &what, o)?;
             cec.push(format!(
                 "; table {table}: {} deviation as {} moves, {} points, step {:.4} mm, interpolation error {:.4} µm",
@@ -134,12 +148,18 @@ pub fn export(
             for (n, v) in s.values_m.iter().enumerate() {
                 cec.push(format!("$AN_CEC[{table},{n}]={:.6}", v * 1e3));
             }
-            cec.push(format!("$AN_CEC_INPUT_AXIS[{table}]=({})", o.axis_names[base]));
-            cec.push(format!("$AN_CEC_OUTPUT_AXIS[{table}]=({})", o.axis_names[comp]));
-            cec.push(format!("$AN_CEC_STEP[{table}]={:.6}", s.report.step_m * 1e3));
-            cec.push(format!("$AN_CEC_MIN[{table}]={:.6}", s.nominals_m[0] * 1e3));
             cec.push(format!(
-                "$AN_CEC_MAX[{table}]={:.6}",
+                "$AN_CEC_INPUT_AXIS[{table}]=({})",
+                o.axis_names[base]
+            ));
+            cec.push(format!(
+                "$AN_CEC_OUTPUT_AXIS[{table}]=({})",
+                o.axis_names[comp]
+            ));
+            cec.push(format!("$AN_CEC_STEP[{table}]={}", s.report.step_m * 1e3));
+            cec.push(format!("$AN_CEC_MIN[{table}]={}", s.nominals_m[0] * 1e3));
+            cec.push(format!(
+                "$AN_CEC_MAX[{table}]={}",
                 s.nominals_m.last().copied().unwrap_or(0.0) * 1e3
             ));
             cec.push(format!("$AN_CEC_DIRECTION[{table}]=0"));
@@ -273,9 +293,8 @@ impl Program {
                 s.parse::<usize>()
                     .map_err(|_| err(format!("`{s}` in `{lhs}` is not an index")))
             };
-            let number = || {
-                parse_number(rhs).ok_or_else(|| err(format!("`{rhs}` is not a finite number")))
-            };
+            let number =
+                || parse_number(rhs).ok_or_else(|| err(format!("`{rhs}` is not a finite number")));
             let axis_ref = || {
                 rhs.strip_prefix('(')
                     .and_then(|r| r.strip_suffix(')'))
@@ -295,11 +314,19 @@ impl Program {
                     let key = enc_key(&idx, 3)?;
                     let point = uint(idx[1])?;
                     let v = number()?;
-                    if p.enc.entry(key).or_default().points.insert(point, v).is_some() {
+                    if p.enc
+                        .entry(key)
+                        .or_default()
+                        .points
+                        .insert(point, v)
+                        .is_some()
+                    {
                         return Err(err(format!("`{lhs}` assigned twice")));
                     }
                 }
-                "$AA_ENC_COMP_STEP" | "$AA_ENC_COMP_MIN" | "$AA_ENC_COMP_MAX"
+                "$AA_ENC_COMP_STEP"
+                | "$AA_ENC_COMP_MIN"
+                | "$AA_ENC_COMP_MAX"
                 | "$AA_ENC_COMP_IS_MODULO" => {
                     let key = enc_key(&idx, 2)?;
                     let v = number()?;
@@ -318,12 +345,23 @@ impl Program {
                     let t = uint(idx[0])? as u32;
                     let point = uint(idx[1])?;
                     let v = number()?;
-                    if p.cec.entry(t).or_default().points.insert(point, v).is_some() {
+                    if p.cec
+                        .entry(t)
+                        .or_default()
+                        .points
+                        .insert(point, v)
+                        .is_some()
+                    {
                         return Err(err(format!("`{lhs}` assigned twice")));
                     }
                 }
-                "$AN_CEC_INPUT_AXIS" | "$AN_CEC_OUTPUT_AXIS" | "$AN_CEC_STEP" | "$AN_CEC_MIN"
-                | "$AN_CEC_MAX" | "$AN_CEC_DIRECTION" | "$AN_CEC_MULT_BY_TABLE"
+                "$AN_CEC_INPUT_AXIS"
+                | "$AN_CEC_OUTPUT_AXIS"
+                | "$AN_CEC_STEP"
+                | "$AN_CEC_MIN"
+                | "$AN_CEC_MAX"
+                | "$AN_CEC_DIRECTION"
+                | "$AN_CEC_MULT_BY_TABLE"
                 | "$AN_CEC_IS_MODULO" => {
                     if idx.len() != 1 {
                         return Err(err(format!("`{lhs}`: expected 1 index")));
@@ -355,7 +393,12 @@ impl Program {
 
     /// The `$AA_ENC_COMP` table of encoder `e` of `axis`, checked as the control would
     /// need it: contiguous points from 0, step > 0, MAX = MIN + (points − 1)·STEP, no modulo.
-    pub fn enc_comp(&self, e: u32, axis: &str, file: &Path) -> Result<EncCompTable, CompensateError> {
+    pub fn enc_comp(
+        &self,
+        e: u32,
+        axis: &str,
+        file: &Path,
+    ) -> Result<EncCompTable, CompensateError> {
         let t = self.enc.get(&(e, axis.to_string())).ok_or_else(|| {
             input_error(
                 file,
@@ -368,7 +411,10 @@ impl Program {
         let what = format!("$AA_ENC_COMP[{e},…,{axis}]");
         let (values_mm, step_mm, min_mm, max_mm) = checked(t, &what, file)?;
         if t.modulo.unwrap_or(0.0) != 0.0 {
-            return Err(input_error(file, format!("{what}: modulo tables are for rotary axes")));
+            return Err(input_error(
+                file,
+                format!("{what}: modulo tables are for rotary axes"),
+            ));
         }
         Ok(EncCompTable {
             values_mm,
@@ -388,8 +434,14 @@ impl Program {
                 let missing = |k: &str| input_error(file, format!("{what}: no {k}"));
                 Ok(CecTable {
                     values_mm,
-                    input_axis: t.input.clone().ok_or_else(|| missing("$AN_CEC_INPUT_AXIS"))?,
-                    output_axis: t.output.clone().ok_or_else(|| missing("$AN_CEC_OUTPUT_AXIS"))?,
+                    input_axis: t
+                        .input
+                        .clone()
+                        .ok_or_else(|| missing("$AN_CEC_INPUT_AXIS"))?,
+                    output_axis: t
+                        .output
+                        .clone()
+                        .ok_or_else(|| missing("$AN_CEC_OUTPUT_AXIS"))?,
                     step_mm,
                     min_mm,
                     max_mm,
@@ -414,7 +466,9 @@ fn checked(
     }
     let n = t.points.len();
     if n < 2 || t.points.keys().enumerate().any(|(i, k)| i != *k) {
-        return Err(bad("expected points 0, 1, 2, … without gaps (at least 2)".into()));
+        return Err(bad(
+            "expected points 0, 1, 2, … without gaps (at least 2)".into()
+        ));
     }
     let expect_max = min + (n - 1) as f64 * step;
     if (expect_max - max).abs() > 1e-6 * step.max(1.0) {

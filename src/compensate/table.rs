@@ -121,7 +121,11 @@ fn notes(calibration: &Calibration, format: TableFormat, steps: &[StepReport]) -
             s.entries,
             s.interpolation_error_m,
             s.sigma_m,
-            if s.warning.is_some() { " WARNING: coarser than sigma" } else { "" }
+            if s.warning.is_some() {
+                " WARNING: coarser than sigma"
+            } else {
+                ""
+            }
         ));
     }
     out
@@ -131,7 +135,10 @@ fn opt(v: Option<f64>) -> String {
     v.map(|v| format!("{v:e}")).unwrap_or_default()
 }
 
-pub fn export_csv(calibration: &Calibration, options: &ExportOptions) -> Result<Export, CompensateError> {
+pub fn export_csv(
+    calibration: &Calibration,
+    options: &ExportOptions,
+) -> Result<Export, CompensateError> {
     let (rows, steps) = rows(calibration, options)?;
     let mut text: String = notes(calibration, TableFormat::Csv, &steps)
         .iter()
@@ -158,7 +165,10 @@ pub fn export_csv(calibration: &Calibration, options: &ExportOptions) -> Result<
     })
 }
 
-pub fn export_json(calibration: &Calibration, options: &ExportOptions) -> Result<Export, CompensateError> {
+pub fn export_json(
+    calibration: &Calibration,
+    options: &ExportOptions,
+) -> Result<Export, CompensateError> {
     let (rows, steps) = rows(calibration, options)?;
     let table = JsonTable {
         format: JSON_FORMAT.into(),
