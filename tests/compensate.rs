@@ -236,7 +236,7 @@ fn closed_loop_tables_remove_the_positioning_errors() {
 #[test]
 fn csv_and_json_tables_round_trip() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let results = calibrate(&common::DEMO.to_string(), dir.path());
+    let results = calibrate(common::DEMO, dir.path());
     let cal = Calibration::load(&results).expect("results");
     let options = ExportOptions {
         step_m: Some(0.05),
@@ -364,5 +364,212 @@ proptest! {
         let _ = table::parse_csv(&format!("error,axis,position_m,value,unit,sigma\n{text}"), Path::new("c"));
         let _ = table::parse_csv(&text, Path::new("c"));
         let _ = table::parse_json(&text, Path::new("j"));
+    }
+}
+
+/// Results with EXX = 10 µm/m·(x − 0.1), every other error zero, on `structure`.
+fn synthetic_results(structure: &str, reversal_bx_m: Option<f64>) -> String {
+    let names = |axis: char| -> Vec<String> {
+        let a = axis.to_ascii_uppercase();
+        ["X", "Y", "Z", "A", "B", "C"]
+            .iter()
+            .map(|e| format!("E{e}{a}"))
+            .collect()
+    };
+    let positions = [0.1, 0.5, 0.9];
+    let axes: serde_json::Map<String, serde_json::Value> = ['x', 'y', 'z']
+        .iter()
+        .map(|&axis| {
+            let errors: serde_json::Map<String, serde_json::Value> = names(axis)
+                .into_iter()
+                .map(|n| {
+                    let values: Vec<f64> = positions
+                        .iter()
+                        .map(|q| if n == "EXX" { 10e-6 * (q - 0.1) } else { 0.0 })
+                        .collect();
+                    let unit = if "XYZ".contains(&n[1..2]) { "m" } else { "rad" };
+                    (
+                        n,
+                        serde_json::json!({"unit": unit, "values": values, "sigma": [0.0, 1e-7, 1e-7]}),
+                    )
+                })
+                .collect();
+            (
+                axis.to_string(),
+                serde_json::json!({"positions_m": positions, "errors": errors}),
+            )
+        })
+        .collect();
+    let mut r = serde_json::json!({
+        "kind": "multilateration",
+        "session_id": "synthetic",
+        "geometric_errors": {
+            "structure": structure,
+            "axes": axes,
+            "squareness": {
+                "EC0Y": {"value_rad": 0.0, "sigma_rad": 1e-7},
+                "EA0Z": {"value_rad": 0.0, "sigma_rad": 1e-7},
+                "EB0Z": {"value_rad": 0.0, "sigma_rad": 1e-7}
+            }
+        }
+    });
+    if let Some(b) = reversal_bx_m {
+        r["effects"] = serde_json::json!({"reversal": {"bx_m": b, "by_m": 0.0, "bz_m": 0.0}});
+    }
+    r.to_string()
+}
+
+#[test]
+fn workpiece_branch_flips_the_sign_and_reversal_splits_the_columns() {
+    let sin = SinumerikOptions::default();
+    let last_trims = |structure: &str, b: Option<f64>| {
+        let cal = Calibration::parse(&synthetic_results(structure, b), Path::new("r.json"))
+            .expect("results");
+        let e = export(&cal, TableFormat::LinuxcncType1, &only_axis(0), &sin).expect("export");
+        let t = CompTable::parse(&e.files[0].text, CompType::Type1, Path::new("comp-x.txt"))
+            .expect("table");
+        let last = *t.entries.last().expect("entries");
+        (last.fwd_trim as f64 * 1e-3, last.rev_trim as f64 * 1e-3)
+    };
+    // EXX at 0.9 m is +8 µm: a tool-branch X is trimmed by −8 µm, a table X by +8 µm.
+    let (tool, _) = last_trims("FYXZ", None);
+    let (table, _) = last_trims("XFYZ", None);
+    assert!((tool + 8e-6).abs() < 1e-10, "{tool}");
+    assert!((table - 8e-6).abs() < 1e-10, "{table}");
+    // A reversal B = 2 µm: the + approach overshoots by B/2, so its trim is 1 µm more negative.
+    let (fwd, rev) = last_trims("FYXZ", Some(2e-6));
+    assert!(
+        (fwd + 9e-6).abs() < 1e-10 && (rev + 7e-6).abs() < 1e-10,
+        "{fwd} {rev}"
+    );
+    // The LinuxCNC file holds numbers only; the INI fragment carries the description.
+    let cal = Calibration::parse(&synthetic_results("FYXZ", None), Path::new("r.json")).unwrap();
+    let e = export(
+        &cal,
+        TableFormat::LinuxcncType0,
+        &ExportOptions::default(),
+        &sin,
+    )
+    .unwrap();
+    for f in &e.files {
+        if f.name.ends_with(".txt") {
+            assert!(f
+                .text
+                .lines()
+                .all(|l| geocal::compensate::linuxcnc::scan_three(l).is_some()));
+        } else {
+            assert!(f.text.contains("[JOINT_0]") && f.text.contains("COMP_FILE_TYPE = 0"));
+        }
+    }
+}
+
+#[test]
+fn limits_are_clear_errors() {
+    let cal = Calibration::parse(&synthetic_results("FYXZ", None), Path::new("r.json")).unwrap();
+    let sin = SinumerikOptions::default();
+    let fine = ExportOptions {
+        step_m: Some(1e-4),
+        ..only_axis(0)
+    };
+    let e = export(&cal, TableFormat::LinuxcncType1, &fine, &sin)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("axis x") && e.contains("256"), "{e}");
+    let small = SinumerikOptions {
+        max_value_m: 1e-6,
+        ..SinumerikOptions::default()
+    };
+    let e = export(&cal, TableFormat::Sinumerik, &only_axis(0), &small)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("X1") && e.contains("limit"), "{e}");
+    // A coarse step warns: a curve that kinks at 0.5 m, tabled at 0.1 and 0.9 m only.
+    let mut r: serde_json::Value = serde_json::from_str(&synthetic_results("FYXZ", None)).unwrap();
+    r["geometric_errors"]["axes"]["x"]["errors"]["EXX"]["values"] =
+        serde_json::json!([0.0, 8e-6, 0.0]);
+    let cal = Calibration::parse(&r.to_string(), Path::new("r.json")).unwrap();
+    let coarse = ExportOptions {
+        step_m: Some(0.8),
+        ..only_axis(0)
+    };
+    let e = export(&cal, TableFormat::Sinumerik, &coarse, &sin).unwrap();
+    assert!(
+        (e.steps[0].interpolation_error_m - 8e-6).abs() < 1e-12,
+        "{:?}",
+        e.steps
+    );
+    assert_eq!(e.warnings().count(), 1);
+    let fine = export(&cal, TableFormat::Sinumerik, &only_axis(0), &sin).unwrap();
+    assert!(fine.steps[0].interpolation_error_m < 1e-12 && fine.warnings().count() == 0);
+}
+
+#[test]
+fn the_simulated_controller_refuses_a_table_linuxcnc_would_load_empty() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let file = dir.path().join("comp-x.txt");
+    std::fs::write(&file, "# nominal fwd rev\n0 0 0\n100 0.001 0.001\n").expect("write");
+    let text = format!(
+        "{}compensation = [{{ format = \"linuxcnc-type1\", file = \"comp-x.txt\", axis = \"x\" }}]\n",
+        common::DEMO
+    );
+    let e = geocal::config::Config::parse(&text, &dir.path().join("c.toml"))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("sim.compensation[0].file") && e.contains("empty table"),
+        "{e}"
+    );
+    let e = geocal::config::Config::parse(
+        &text.replace("axis = \"x\"", "axis = \"u\""),
+        &dir.path().join("c.toml"),
+    )
+    .unwrap_err()
+    .to_string();
+    assert!(e.contains("sim.compensation[0].axis"), "{e}");
+}
+
+#[test]
+fn geocal_compensate_writes_the_files_and_names_bad_arguments() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let results = dir.path().join("results.json");
+    std::fs::write(&results, synthetic_results("FYXZ", Some(1e-6))).expect("write");
+    let geocal = |args: &[&str]| {
+        std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+            .arg("compensate")
+            .arg(&results)
+            .args(args)
+            .output()
+            .expect("geocal")
+    };
+    let out = dir.path().join("lcnc");
+    let o = geocal(&[
+        "--format",
+        "linuxcnc-type1",
+        "--out",
+        out.to_str().expect("path"),
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    for f in ["comp-x.txt", "comp-y.txt", "comp-z.txt", "compensation.ini"] {
+        assert!(out.join(f).is_file(), "{f}");
+    }
+    let o = geocal(&["--format", "csv"]);
+    assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("EXX,x,"));
+    for (args, expect) in [
+        (
+            &["--format", "fanuc"][..],
+            "linuxcnc-type0, linuxcnc-type1, sinumerik",
+        ),
+        (
+            &["--format", "sinumerik", "--step", "1e-4"][..],
+            "more than the controller's 200",
+        ),
+        (&["--format", "csv", "--axes", "w"][..], "--axes"),
+    ] {
+        let o = geocal(args);
+        let stderr = String::from_utf8_lossy(&o.stderr);
+        assert!(
+            !o.status.success() && stderr.contains(expect),
+            "{args:?}: {stderr}"
+        );
     }
 }

@@ -229,8 +229,11 @@ impl CompTable {
                 ));
                 continue;
             }
-            // `!(a > b)` so that a NaN nominal is dropped too, as the controller's compare does.
-            if entries.last().is_some_and(|e| !(nominal > e.nominal)) {
+            // Anything but "greater" is dropped, so a NaN nominal is dropped too, as the
+            // controller's compare does.
+            if entries.last().is_some_and(|e| {
+                nominal.partial_cmp(&e.nominal) != Some(std::cmp::Ordering::Greater)
+            }) {
                 messages.push(format!(
                     "line {}: nominal {nominal} does not increase",
                     n + 1

@@ -117,10 +117,7 @@ pub fn export(
     cec.push("; (straightness, branch-signed, plus the squareness between the pair), same sign as $AA_ENC_COMP.".into());
     let mut table = 0;
     for &base in &options.axes {
-        for comp in 0..3 {
-            if comp == base {
-                continue;
-            }
+        for comp in (0..3).filter(|&c| c != base) {
             let Some(curve) = calibration.cross(base, comp) else {
                 cec.push(format!(
                     "; E{}{} not identifiable: no table for {} on {}",
