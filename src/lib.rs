@@ -2,6 +2,7 @@
 //! See ../README.md and docs/ for the architecture; each module's top comment says what it owns.
 
 pub mod clock;
+pub mod compensate;
 pub mod config;
 pub mod devices;
 pub mod diagnose;

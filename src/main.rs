@@ -158,6 +158,35 @@ enum Command {
         #[arg(long)]
         out: Option<PathBuf>,
     },
+    /// Compensation tables from a multilateration's results (docs/compensation.md): LinuxCNC
+    /// joint compensation files with their INI fragment, SINUMERIK $AA_ENC_COMP / $AN_CEC
+    /// programs, or the 21 errors as a CSV/JSON table.
+    Compensate {
+        results: PathBuf,
+        /// linuxcnc-type0, linuxcnc-type1, sinumerik, csv or json.
+        #[arg(long, value_name = "FORMAT")]
+        format: String,
+        /// Output directory (LinuxCNC, SINUMERIK: default `compensation`), or the file of a
+        /// CSV/JSON table (default: print it).
+        #[arg(long, value_name = "PATH")]
+        out: Option<PathBuf>,
+        /// Table step in metres (e.g. 0.01 for 10 mm); default: the finest step within the
+        /// controller's entry limit that keeps the calibrated grid positions on the table.
+        #[arg(long, value_name = "METRES")]
+        step: Option<f64>,
+        /// Axes to export, comma separated.
+        #[arg(long, value_delimiter = ',', default_value = "x,y,z")]
+        axes: Vec<String>,
+        /// SINUMERIK: points per table (MD38000 $MM_ENC_COMP_MAX_POINTS).
+        #[arg(long, value_name = "N", default_value_t = 200)]
+        max_points: usize,
+        /// SINUMERIK: the largest value a table may hold, metres (MD32720 $MA_CEC_MAX_SUM).
+        #[arg(long, value_name = "METRES", default_value_t = 1e-3)]
+        max_value: f64,
+        /// SINUMERIK: machine axis names of x, y, z, comma separated.
+        #[arg(long, value_delimiter = ',', default_value = "X1,Y1,Z1")]
+        axis_names: Vec<String>,
+    },
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -508,6 +537,25 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             token_file,
             command,
         } => client(&server, token_file.as_deref(), command)?,
+        Command::Compensate {
+            results,
+            format,
+            out,
+            step,
+            axes,
+            max_points,
+            max_value,
+            axis_names,
+        } => compensate(CompensateArgs {
+            results,
+            format,
+            out,
+            step,
+            axes,
+            max_points,
+            max_value,
+            axis_names,
+        })?,
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;
             if json {
@@ -571,6 +619,95 @@ fn client(
             let out = out.unwrap_or_else(|| default_fetch_path(id, &what));
             let bytes = client.fetch(id, &what, &out)?;
             println!("{bytes} bytes to {}", out.display());
+        }
+    }
+    Ok(())
+}
+
+struct CompensateArgs {
+    results: PathBuf,
+    format: String,
+    out: Option<PathBuf>,
+    step: Option<f64>,
+    axes: Vec<String>,
+    max_points: usize,
+    max_value: f64,
+    axis_names: Vec<String>,
+}
+
+fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
+    use geocal::compensate::{self, sinumerik::SinumerikOptions, TableFormat, AXES};
+    let format = TableFormat::parse(&a.format).ok_or_else(|| {
+        anyhow::anyhow!(
+            "--format {}: expected one of {}",
+            a.format,
+            TableFormat::NAMES.join(", ")
+        )
+    })?;
+    let axes = a
+        .axes
+        .iter()
+        .map(|name| {
+            AXES.iter()
+                .position(|x| x == name)
+                .ok_or_else(|| anyhow::anyhow!("--axes: expected x, y or z, found `{name}`"))
+        })
+        .collect::<anyhow::Result<Vec<usize>>>()?;
+    let axis_names: [String; 3] = a.axis_names.clone().try_into().map_err(|_| {
+        anyhow::anyhow!(
+            "--axis-names: expected three names (x, y, z), found {}",
+            a.axis_names.len()
+        )
+    })?;
+    let calibration = compensate::Calibration::load(&a.results)?;
+    let options = compensate::ExportOptions {
+        step_m: a.step,
+        axes,
+        ..Default::default()
+    };
+    let sinumerik = SinumerikOptions {
+        axis_names,
+        max_points: a.max_points,
+        max_value_m: a.max_value,
+    };
+    let export = compensate::export(&calibration, format, &options, &sinumerik)?;
+    for s in &export.steps {
+        eprintln!(
+            "axis {}: {} entries, step {:.4} mm, interpolation error {:.4} µm (calibration σ {:.4} µm)",
+            s.axis,
+            s.entries,
+            s.step_m * 1e3,
+            s.interpolation_error_m * 1e6,
+            s.sigma_m * 1e6
+        );
+    }
+    for w in export.warnings() {
+        eprintln!("warning: {w}");
+    }
+    let write = |path: &std::path::Path, text: &str| {
+        std::fs::write(path, text).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))
+    };
+    match (format, &a.out) {
+        (TableFormat::Csv | TableFormat::Json, None) => {
+            for f in &export.files {
+                print!("{}", f.text);
+            }
+        }
+        (TableFormat::Csv | TableFormat::Json, Some(path)) => {
+            for f in &export.files {
+                write(path, &f.text)?;
+                eprintln!("wrote {}", path.display());
+            }
+        }
+        (_, out) => {
+            let dir = out.clone().unwrap_or_else(|| PathBuf::from("compensation"));
+            std::fs::create_dir_all(&dir)
+                .map_err(|e| anyhow::anyhow!("creating {}: {e}", dir.display()))?;
+            for f in &export.files {
+                let path = dir.join(&f.name);
+                write(&path, &f.text)?;
+                eprintln!("wrote {}", path.display());
+            }
         }
     }
     Ok(())

@@ -432,6 +432,9 @@ pub struct SimConfig {
     /// The simulated machine of a passive run: unplanned stops and dwell jitter.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub passive: Option<sim::SimPassiveConfig>,
+    /// Compensation tables the simulated machine applies as its controller would.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub compensation: Vec<sim::SimCompensation>,
 }
 
 /// Truth of the simulated rotary table: where its axis really is and how wrong its angles are.
@@ -505,7 +508,15 @@ impl Config {
 
     /// Parse and validate configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &Path) -> Result<Config, ConfigError> {
-        let config: Config = kind_config::parse_strict(text, file)?;
+        let mut config: Config = kind_config::parse_strict(text, file)?;
+        // Compensation tables are named relative to the configuration's folder.
+        if let (Some(sim), Some(dir)) = (config.sim.as_mut(), file.parent()) {
+            for c in &mut sim.compensation {
+                if c.file.is_relative() {
+                    c.file = dir.join(&c.file);
+                }
+            }
+        }
         validate(&config).map_err(|(key, message)| ConfigError::Invalid {
             file: file.to_path_buf(),
             key,

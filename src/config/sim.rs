@@ -253,3 +253,34 @@ impl Default for BumpSwitch {
         }
     }
 }
+
+/// `[sim] compensation = [{ format = "linuxcnc-type1", file = "comp-x.txt", axis = "x" }]`:
+/// a controller's table the simulated machine applies to one axis, as that controller does
+/// (a verification run after `geocal compensate`). A relative `file` is read from the
+/// configuration's folder.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct SimCompensation {
+    /// `linuxcnc-type0`, `linuxcnc-type1` or `sinumerik`.
+    pub format: crate::compensate::TableFormat,
+    pub file: std::path::PathBuf,
+    /// The machine axis the table acts on: x, y or z.
+    pub axis: String,
+    /// SINUMERIK: the machine axis name in `$AA_ENC_COMP[0,N,AX]` (default X1, Y1, Z1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub controller_axis: Option<String>,
+}
+
+impl SimCompensation {
+    /// The axis index (0, 1, 2), or None for a name other than x, y, z.
+    pub fn axis_index(&self) -> Option<usize> {
+        crate::compensate::AXES.iter().position(|a| *a == self.axis)
+    }
+
+    /// The name the controller's table uses for this axis.
+    pub fn controller_axis_name(&self) -> String {
+        self.controller_axis
+            .clone()
+            .unwrap_or_else(|| format!("{}1", self.axis.to_uppercase()))
+    }
+}

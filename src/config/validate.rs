@@ -469,11 +469,35 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     positive("sim.rotary.speed_rad_s", rotary.speed_rad_s)?;
     non_negative("sim.rotary.settle_s", rotary.settle_s)?;
     sim.effects.validate()?;
+    validate_compensation(&sim.compensation)?;
     if config.plan.stations.iter().any(|s| s.hint_m.is_none()) {
         return fail(
             "plan.stations",
             "the simulated world places its true stations near their hints: expected hint_m on every station",
         );
+    }
+    Ok(())
+}
+
+/// Each compensation table names an axis once and loads as its controller would read it.
+fn validate_compensation(tables: &[super::sim::SimCompensation]) -> Result<(), Invalid> {
+    let mut seen = BTreeSet::new();
+    for (i, c) in tables.iter().enumerate() {
+        let key = format!("sim.compensation[{i}]");
+        let Some(axis) = c.axis_index() else {
+            return fail(
+                &format!("{key}.axis"),
+                format!("expected x, y or z, found `{}`", c.axis),
+            );
+        };
+        if !seen.insert(axis) {
+            return fail(
+                &format!("{key}.axis"),
+                format!("axis {} has a table already: one table per axis", c.axis),
+            );
+        }
+        crate::compensate::load_table(c.format, &c.file, &c.controller_axis_name())
+            .map_err(|e| (format!("{key}.file"), e.to_string()))?;
     }
     Ok(())
 }

@@ -2,6 +2,7 @@
 //! simulated drivers behind the same traits as real ones.
 
 pub mod bump;
+pub mod compensation;
 pub mod devices;
 pub mod effects;
 pub mod hil;

@@ -15,6 +15,7 @@ use crate::config::{Config, SimEnvironmentConfig};
 use crate::extract::NoiseModel;
 use crate::model::kinematics::{actual_position, Structure};
 use crate::plan::Plan;
+use crate::sim::compensation::SimControllerCompensation;
 use crate::sim::effects::SimEffects;
 use crate::sim::rotary::{AngleError, SimTable};
 use crate::sim::truth::TruthErrors;
@@ -25,6 +26,8 @@ pub enum SimError {
     NoSimTable,
     #[error("machine.structure: {0}")]
     Structure(String),
+    #[error("sim.compensation: {0}")]
+    Compensation(#[from] crate::compensate::CompensateError),
 }
 
 /// A move in virtual time with a smooth (zero end velocity) profile.
@@ -83,6 +86,8 @@ pub struct SimWorld {
     next_env_s: f64,
     /// Unmodelled effects (`[sim.effects]`), all off by default.
     effects: SimEffects,
+    /// The controller's compensation tables (`[sim] compensation`), none by default.
+    compensation: SimControllerCompensation,
 }
 
 /// Everything the simulation knows that a solver must find: exported with `--truth`.
@@ -218,6 +223,7 @@ impl SimWorld {
             env: sim.environment.clone(),
             env_period_s: 1.0 / env_rate,
             next_env_s: 0.0,
+            compensation: SimControllerCompensation::load(&sim.compensation)?,
         })
     }
 
@@ -226,10 +232,11 @@ impl SimWorld {
     }
 
     fn target_at(&self, axes_m: [f64; 3], t_s: f64) -> Vector3<f64> {
+        let joints_m = self.compensation.joint_positions_m(axes_m);
         Vector3::from(actual_position(
             &self.structure,
             &self.truth,
-            self.effects.actual_axes_m(axes_m, t_s),
+            self.effects.actual_axes_m(joints_m, t_s),
             self.effects.actual_offset_m(self.target_offset_m),
         ))
     }
@@ -300,6 +307,7 @@ impl SimWorld {
         // The cycloidal profile peaks at twice the mean speed: keep the peak at the feed.
         let duration_s = (2.0 * distance / self.feed_m_s).max(0.1);
         self.effects.on_move(from, target, now, now + duration_s);
+        self.compensation.on_move(from, target);
         self.motion = Motion {
             from,
             to: target,

@@ -128,6 +128,15 @@ fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
     machine_device
         .extra
         .insert("feed_m_s".into(), machine.feed_m_s.into());
+    // A verification run: the controller tables the simulated machine applied.
+    if let Some(tables) = config.sim.as_ref().map(|s| &s.compensation) {
+        if !tables.is_empty() {
+            machine_device.extra.insert(
+                "compensation".into(),
+                serde_json::to_value(tables).unwrap_or_default(),
+            );
+        }
+    }
     devices.push(machine_device);
     if let Some(table) = &config.devices.rotary_table {
         devices.push(plain_device(
