@@ -7,8 +7,10 @@ pub mod catalog;
 pub mod client;
 pub mod config;
 pub mod jobs;
+pub mod live;
 pub mod metrics;
 pub mod prompts;
+pub mod schedule;
 pub mod status;
 
 use std::net::SocketAddr;
