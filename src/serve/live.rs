@@ -23,6 +23,21 @@ struct Pending {
     data: Vec<u8>,
 }
 
+/// A live view address as given on the command line or in the daemon configuration: a port
+/// alone binds loopback (`8765` is `127.0.0.1:8765`); `HOST:PORT` binds that address.
+pub fn parse_address(text: &str) -> anyhow::Result<SocketAddr> {
+    let text = text.trim();
+    if let Ok(port) = text.parse::<u16>() {
+        return Ok(SocketAddr::from(([127, 0, 0, 1], port)));
+    }
+    text.parse::<SocketAddr>().map_err(|_| {
+        anyhow::anyhow!(
+            "live view address {text:?}: expected a port (e.g. 8765, on loopback) or \
+             IP:PORT (e.g. 127.0.0.1:8765, [::1]:8765, 0.0.0.0:8765 for every interface)"
+        )
+    })
+}
+
 /// A running live view. Dropping it (or `stop`) stops the server.
 pub struct LiveView {
     address: SocketAddr,
@@ -197,6 +212,23 @@ fn live_channel(context: &Arc<Context>, recorded: &TapChannel) -> Option<Arc<Raw
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn addresses_default_to_loopback() {
+        assert_eq!(
+            parse_address("8765").unwrap(),
+            "127.0.0.1:8765".parse().unwrap()
+        );
+        assert_eq!(
+            parse_address("0.0.0.0:9000").unwrap(),
+            "0.0.0.0:9000".parse().unwrap()
+        );
+        let e = parse_address("localhost:x").unwrap_err().to_string();
+        assert!(
+            e.starts_with("live view address \"localhost:x\": expected a port"),
+            "{e}"
+        );
+    }
 
     #[test]
     fn binds_loopback_on_a_free_port_and_stops() {
