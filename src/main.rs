@@ -49,6 +49,10 @@ enum Command {
         /// is not a terminal (a supervising program's pipe).
         #[arg(long)]
         yes: bool,
+        /// Publish the run live to Foxglove while it records (docs/live-view.md): a port
+        /// (loopback) or HOST:PORT; alone, 127.0.0.1:8765.
+        #[arg(long, value_name = "ADDR", num_args = 0..=1, default_missing_value = "8765")]
+        live: Option<String>,
     },
     /// Re-solve a recorded session (replay): the same results as the live run.
     Solve {
@@ -208,6 +212,10 @@ enum Command {
         /// The bearer token's file (overrides the configuration's token_file).
         #[arg(long, value_name = "FILE")]
         token_file: Option<PathBuf>,
+        /// The Foxglove live view's address (PORT or IP:PORT; "off" to disable; default
+        /// 127.0.0.1:8765).
+        #[arg(long, value_name = "ADDR")]
+        live: Option<String>,
     },
     /// Speak to a running daemon: submit a plan, list and follow jobs, acknowledge prompts,
     /// fetch results and sessions.
@@ -327,13 +335,33 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             huber,
             yes,
             resume,
+            live,
         } => {
+            let live = match live {
+                Some(text) => {
+                    let address = geocal::serve::live::parse_address(&text)?;
+                    let view = std::sync::Arc::new(geocal::serve::live::LiveView::start(address)?);
+                    eprintln!(
+                        "live view: ws://{} (Foxglove: open connection)",
+                        view.address()
+                    );
+                    Some(view)
+                }
+                None => None,
+            };
+            let control = geocal::sequencer::control::RunControl {
+                tap: match &live {
+                    Some(view) => geocal::session::tap::Tap::new(view.clone()),
+                    None => Default::default(),
+                },
+                ..Default::default()
+            };
             let options = geocal::run::RunOptions {
                 out_dir: resume.clone().unwrap_or(out),
                 truth,
                 progress: std::io::stderr().is_terminal(),
                 settings: settings(huber),
-                control: Default::default(),
+                control,
             };
             let flags = geocal::kinds::RunFlags { assume_yes: yes };
             let output = match (resume, config) {
@@ -344,6 +372,9 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 (None, Some(config)) => kinds.of_config(&config)?.run(&config, &options, &flags)?,
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
+            if let Some(view) = &live {
+                view.stop();
+            }
             if json {
                 println!("{}", output.results.to_json_pretty());
             } else {
@@ -516,6 +547,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             data_dir,
             listen,
             token_file,
+            live,
         } => {
             let mut serve_config = match config {
                 Some(path) => geocal::serve::ServeConfig::load(&path)?,
@@ -529,6 +561,9 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             }
             if let Some(path) = token_file {
                 serve_config.token_file = Some(path);
+            }
+            if let Some(address) = live {
+                serve_config.live = address;
             }
             geocal::serve::serve(serve_config, kinds)?;
         }

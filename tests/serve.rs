@@ -23,6 +23,8 @@ struct Daemon {
     child: Child,
     url: String,
     data_dir: PathBuf,
+    /// The Foxglove live view's `ws://` address, when it runs.
+    live: Option<String>,
 }
 
 impl Daemon {
@@ -50,6 +52,12 @@ impl Daemon {
             .arg("--data-dir")
             .arg(data_dir)
             .args(["--listen", "127.0.0.1:0"])
+            // Tests run side by side: no fixed live-view port unless a test asks for one.
+            .args(if extra.contains(&"--live") {
+                &[][..]
+            } else {
+                &["--live", "off"][..]
+            })
             .args(extra)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -67,10 +75,15 @@ impl Daemon {
             .unwrap_or_else(|| panic!("no address in {line:?}"))
             .trim_end_matches(',')
             .to_owned();
+        let live = line
+            .split_whitespace()
+            .find(|w| w.starts_with("ws://"))
+            .map(str::to_owned);
         Daemon {
             child,
             url,
             data_dir: data_dir.to_owned(),
+            live,
         }
     }
 
@@ -949,4 +962,70 @@ fn schedules_submit_their_plan_and_skip_while_busy() {
     assert!(!refused.status.success());
     let stderr = String::from_utf8_lossy(&refused.stderr);
     assert!(stderr.contains("schedule[0].cron"), "{stderr}");
+}
+
+#[test]
+fn a_foxglove_client_watches_a_hil_run_live() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &["--live", "127.0.0.1:0"]);
+    let live = daemon
+        .live
+        .clone()
+        .expect("the live view's address on the first line");
+    const WANTED: usize = 300;
+    let mut watcher = Command::new("python3")
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/live_view/client.py"
+        ))
+        .arg(&live)
+        .arg("/tracer/tracer0/range")
+        .arg(WANTED.to_string())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3 with websockets (pip install websockets)");
+    // Let the client connect before the run starts publishing.
+    std::thread::sleep(Duration::from_millis(500));
+    let client = http();
+    let id = submit(&client, &daemon, &hil());
+    let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let output = watcher.wait_with_output().expect("the watcher ends");
+    assert!(
+        output.status.success(),
+        "the Foxglove client failed: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let received: Vec<(u64, Vec<u8>)> = String::from_utf8_lossy(&output.stdout)
+        .lines()
+        .filter_map(|l| serde_json::from_str::<Value>(l).ok())
+        .filter(|v| v.get("payload_hex").is_some())
+        .map(|v| {
+            let hex = v["payload_hex"].as_str().expect("hex");
+            let bytes = (0..hex.len())
+                .step_by(2)
+                .map(|i| u8::from_str_radix(&hex[i..i + 2], 16).expect("hex digit"))
+                .collect();
+            (v["log_time_ns"].as_u64().expect("log time"), bytes)
+        })
+        .collect();
+    assert_eq!(received.len(), WANTED);
+    // Every sample seen live is the recorded one: same log time, same bytes, in order.
+    let session = daemon
+        .data_dir
+        .join("jobs")
+        .join(id.to_string())
+        .join("session.mcap");
+    let (_, recorded) = geocal::session::reader::read_session_raw(&session).expect("session");
+    let recorded: Vec<(u64, Vec<u8>)> = recorded
+        .into_iter()
+        .filter(|m| m.channel.topic == "/tracer/tracer0/range")
+        .map(|m| (m.log_time_ns, m.data))
+        .collect();
+    let first = recorded
+        .iter()
+        .position(|r| *r == received[0])
+        .expect("the first live sample is in the recording");
+    assert_eq!(&recorded[first..first + WANTED], &received[..]);
 }

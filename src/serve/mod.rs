@@ -7,6 +7,7 @@ pub mod catalog;
 pub mod client;
 pub mod config;
 pub mod jobs;
+pub mod live;
 pub mod metrics;
 pub mod prompts;
 pub mod schedule;
@@ -33,6 +34,18 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         ),
         None => None,
     };
+    let live_address = match config.live.trim() {
+        "off" | "" => None,
+        text => Some(live::parse_address(text)?),
+    };
+    // The live view cannot check a token: beyond loopback only with a token-guarded daemon.
+    if let Some(address) = live_address.filter(|a| !a.ip().is_loopback()) {
+        if token.is_none() {
+            anyhow::bail!(
+                "the live view on {address} (beyond loopback) needs the daemon's token_file, as                  the API does"
+            );
+        }
+    }
     // A bad schedule refuses the start, like a bad key.
     schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
     std::fs::create_dir_all(&config.data_dir)
@@ -42,13 +55,21 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         .enable_all()
         .build()
         .context("starting the async runtime")?;
-    runtime.block_on(run(config, registry, token))
+    let live = live_address
+        .map(|address| live::LiveView::start(address).map(std::sync::Arc::new))
+        .transpose()?;
+    let result = runtime.block_on(run(config, registry, token, live.clone()));
+    if let Some(live) = live {
+        live.stop();
+    }
+    result
 }
 
 async fn run(
     config: ServeConfig,
     registry: Registry,
     token: Option<auth::Token>,
+    live: Option<std::sync::Arc<live::LiveView>>,
 ) -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(config.listen)
         .await
@@ -57,7 +78,11 @@ async fn run(
     let data_dir = config.data_dir.clone();
     let scheduler =
         schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
-    let daemon = jobs::Daemon::open(config, registry, None)?;
+    let live_line = live.as_ref().map_or(String::new(), |l| {
+        format!(", live view on ws://{}", l.address())
+    });
+    let live_tap = live.map(|l| l as std::sync::Arc<dyn crate::session::tap::MessageTap>);
+    let daemon = jobs::Daemon::open(config, registry, live_tap)?;
     let worker = tokio::spawn(daemon.clone().work());
     let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
 
@@ -65,7 +90,7 @@ async fn run(
         api::router(daemon.clone(), token).into_make_service_with_connect_info::<SocketAddr>();
     // The line tools and tests wait for: the API is up.
     println!(
-        "geocal serve: listening on http://{address}, data in {}",
+        "geocal serve: listening on http://{address}, data in {}{live_line}",
         data_dir.display()
     );
     tracing::info!(%address, data_dir = %data_dir.display(), "geocal serve ready");
