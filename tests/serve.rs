@@ -973,7 +973,7 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .clone()
         .expect("the live view's address on the first line");
     const WANTED: usize = 300;
-    let mut watcher = Command::new("python3")
+    let watcher = Command::new("python3")
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/live_view/client.py"

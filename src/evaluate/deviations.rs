@@ -492,11 +492,7 @@ mod tests {
                 let up = (row + pass) % 2 == 0;
                 for &x in &xs {
                     // Interior targets by the row's direction; the ends as the sim reaches them.
-                    let dir: i8 = if x == xs[0] {
-                        -1
-                    } else if x == xs[3] {
-                        1
-                    } else if up {
+                    let dir: i8 = if x == xs[3] || (x != xs[0] && up) {
                         1
                     } else {
                         -1
