@@ -228,6 +228,18 @@ fn reports_of_every_example_config_load_draw_and_print() {
         for section in ["id=\"header\"", "id=\"summary\""] {
             assert!(dom.contains(section), "{config}: no {section} section");
         }
+        // The standards' sections of the network kinds: the ISO 230-2 figures of each pass,
+        // and the budget with its contributors.
+        if config.contains("multilateration") {
+            for text in [
+                "id=\"iso230-2\"",
+                "ISO 230-2, axis x",
+                "id=\"uncertainty\"",
+                "material temperature sensor",
+            ] {
+                assert!(dom.contains(text), "{config}: no {text}");
+            }
+        }
         assert!(
             dom.contains("<dt>machine</dt>"),
             "{config}: header without machine"

@@ -104,6 +104,13 @@ impl Drop for Daemon {
     }
 }
 
+/// A daemon on a fresh data dir, and a client for it.
+fn started() -> (tempfile::TempDir, Daemon, Client) {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(&dir.path().join("data"), &[]);
+    (dir, daemon, http())
+}
+
 fn http() -> Client {
     Client::builder()
         .timeout(None)
@@ -224,9 +231,7 @@ fn without_time(mut results: Value) -> Value {
 
 #[test]
 fn a_hil_run_submitted_over_http_is_followed_to_the_end_and_its_results_fetched() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &[]);
-    let client = http();
+    let (dir, daemon, client) = started();
     let config = hil();
     let events = follow_events(&daemon);
     let id = submit(&client, &daemon, &config);
@@ -336,9 +341,7 @@ fn a_hil_run_submitted_over_http_is_followed_to_the_end_and_its_results_fetched(
 
 #[test]
 fn a_simulated_run_through_the_daemon_equals_geocal_run() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &[]);
-    let client = http();
+    let (dir, daemon, client) = started();
     let config = common::small_demo();
     let id = submit(&client, &daemon, &config);
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
@@ -427,9 +430,7 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
 
 #[test]
 fn jobs_wait_their_turn_and_cancel_cleanly() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &[]);
-    let client = http();
+    let (dir, daemon, client) = started();
     let paced = format!("{}{PACE}", common::small_demo());
     let first = submit(&client, &daemon, &paced);
     let second = submit(&client, &daemon, &paced);
@@ -643,9 +644,7 @@ fn a_token_guards_every_route_and_beyond_loopback_one_is_required() {
 
 #[test]
 fn the_openapi_document_health_and_metrics_describe_the_daemon() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &[]);
-    let client = http();
+    let (_dir, daemon, client) = started();
     let doc: Value = client
         .get(daemon.at("/v1/openapi.json"))
         .send()
@@ -785,9 +784,7 @@ fn an_outside_python_client_runs_a_hil_job() {
 
 #[test]
 fn operator_prompts_wait_for_an_acknowledgement_over_the_api() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &[]);
-    let client = http();
+    let (_dir, daemon, client) = started();
     let config = format!("{}\n[operator]\nrehearse = true\n", hil());
     let id = submit(&client, &daemon, &config);
     let start = Instant::now();

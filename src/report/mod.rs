@@ -3,6 +3,7 @@
 //! sections each made by its own function, rendered to HTML or Markdown (src/document).
 
 pub mod header;
+pub mod standards;
 
 use std::path::{Path, PathBuf};
 
@@ -29,12 +30,14 @@ pub struct Inputs {
 /// input is absent (no diagnosis.json, no session) returns no section or says what is missing.
 pub type SectionBuilder = fn(&Inputs, &KindReport) -> anyhow::Result<Vec<Section>>;
 
-/// The report's parts in order. Further parts (ISO 230-2 figures, uncertainty budget,
-/// compensation tables, verification before/after) join this list as builders of their own.
+/// The report's parts in order. Further parts (compensation tables, verification
+/// before/after) join this list as builders of their own.
 pub const SECTIONS: &[(&str, SectionBuilder)] = &[
     ("header", header::sections),
     ("summary", summary),
     ("kind", kind_sections),
+    ("iso230-2", standards::iso230_2),
+    ("uncertainty", standards::uncertainty),
     ("diagnosis", diagnosis),
 ];
 
