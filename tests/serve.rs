@@ -155,6 +155,22 @@ fn wait_for(client: &Client, daemon: &Daemon, id: i64, states: &[&str]) -> Value
     }
 }
 
+/// Wait until job `id` has measured at least `done` points.
+fn wait_for_progress(client: &Client, daemon: &Daemon, id: i64, done: u64) {
+    let start = Instant::now();
+    while job(client, daemon, id)["progress"]["done"]
+        .as_u64()
+        .unwrap_or(0)
+        < done
+    {
+        assert!(
+            start.elapsed() < JOB_TIMEOUT,
+            "job {id} never reached {done} points"
+        );
+        std::thread::sleep(Duration::from_millis(10));
+    }
+}
+
 fn post(client: &Client, daemon: &Daemon, path: &str) -> (StatusCode, Value) {
     let response = client.post(daemon.at(path)).send().expect("POST");
     let status = response.status();
@@ -446,15 +462,7 @@ fn jobs_wait_their_turn_and_cancel_cleanly() {
     );
 
     // A running job stops cleanly: its session is complete and readable, and it resumes.
-    let start = Instant::now();
-    while job(&client, &daemon, first)["progress"]["done"]
-        .as_u64()
-        .unwrap_or(0)
-        < 3
-    {
-        assert!(start.elapsed() < JOB_TIMEOUT);
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    wait_for_progress(&client, &daemon, first, 3);
     let (status, _) = post(&client, &daemon, &format!("/v1/jobs/{first}/cancel"));
     assert_eq!(status, StatusCode::ACCEPTED);
     let cancelled = wait_for(
@@ -724,15 +732,7 @@ fn sigterm_cancels_the_running_job_and_exits_zero() {
     let mut daemon = Daemon::start(&data, &[]);
     let client = http();
     let id = submit(&client, &daemon, &format!("{}{PACE}", common::small_demo()));
-    let start = Instant::now();
-    while job(&client, &daemon, id)["progress"]["done"]
-        .as_u64()
-        .unwrap_or(0)
-        < 2
-    {
-        assert!(start.elapsed() < JOB_TIMEOUT);
-        std::thread::sleep(Duration::from_millis(10));
-    }
+    wait_for_progress(&client, &daemon, id, 2);
     let pid = daemon.child.id().to_string();
     assert!(Command::new("kill")
         .args(["-TERM", &pid])

@@ -278,3 +278,18 @@ pub fn read_interrupted_run<C: PartialEq, P: serde::Serialize>(
     }
     Ok((config, interruption))
 }
+
+/// The first index in `0..count` that no recorded event marks finished (`finished` reads the
+/// index a finishing event names); `count` when every one is finished.
+pub(crate) fn first_unfinished(
+    count: usize,
+    session: &Session,
+    finished: impl Fn(&RunEvent) -> Option<usize>,
+) -> usize {
+    let done: std::collections::BTreeSet<usize> = session
+        .events
+        .iter()
+        .filter_map(|e| finished(&e.msg))
+        .collect();
+    (0..count).find(|i| !done.contains(i)).unwrap_or(count)
+}

@@ -50,7 +50,9 @@ pub struct DeviceStatus {
 
 struct DeviceEntry {
     kind: String,
-    last_reading: Option<serde_json::Value>,
+    /// The last reading's recorded bytes, decoded only when asked for (readings come at up to
+    /// kHz rates on the recorder's thread).
+    last_reading: Option<Vec<u8>>,
     last_at: Option<Instant>,
     last_error: Option<String>,
     readings: u64,
@@ -131,16 +133,19 @@ impl StatusBoard {
             .iter()
             .map(|(id, d)| {
                 let age = d.last_at.map(|t| t.elapsed());
+                let last_reading: Option<serde_json::Value> = d
+                    .last_reading
+                    .as_ref()
+                    .and_then(|bytes| serde_json::from_slice(bytes).ok());
                 DeviceStatus {
                     id: id.clone(),
                     kind: d.kind.clone(),
                     connected: age.is_some_and(|a| a < CONNECTED_WITHIN),
-                    signal_level: d
-                        .last_reading
+                    signal_level: last_reading
                         .as_ref()
                         .and_then(|r| r.get("signal"))
                         .and_then(|s| s.as_f64()),
-                    last_reading: d.last_reading.clone(),
+                    last_reading,
                     last_reading_age_s: age.map(|a| a.as_secs_f64()),
                     last_error: d.last_error.clone(),
                     readings: d.readings,
@@ -166,13 +171,8 @@ impl StatusBoard {
 
     /// Take in one recorded message; what changed.
     pub fn observe(&self, topic: &str, data: &[u8]) -> Option<Change> {
-        let device = device_of_topic(topic);
-        if device.is_none() && topic != crate::session::messages::TOPIC_EVENT {
-            return None;
-        }
-        let value: serde_json::Value = serde_json::from_slice(data).ok()?;
-        let mut board = self.inner.lock().ok()?;
-        if let Some((kind, id)) = device {
+        if let Some((kind, id)) = device_of_topic(topic) {
+            let mut board = self.inner.lock().ok()?;
             board.counters.samples += 1;
             let entry = board
                 .devices
@@ -184,11 +184,16 @@ impl StatusBoard {
                     last_error: None,
                     readings: 0,
                 });
-            entry.last_reading = Some(value);
+            entry.last_reading = Some(data.to_vec());
             entry.last_at = Some(Instant::now());
             entry.readings += 1;
             return None;
         }
+        if topic != crate::session::messages::TOPIC_EVENT {
+            return None;
+        }
+        let value: serde_json::Value = serde_json::from_slice(data).ok()?;
+        let mut board = self.inner.lock().ok()?;
         let text = |key: &str| value.get(key).and_then(|v| v.as_str()).map(str::to_owned);
         match value.get("kind").and_then(|k| k.as_str()) {
             Some("station_begin") => {

@@ -2,7 +2,7 @@
 //! the kind's sequencer, the recording, the truth export and the solve of the recorded file;
 //! and the continuation of an interrupted run (`geocal run --resume`).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::path::Path;
 
 use anyhow::Context;
@@ -127,17 +127,10 @@ pub fn resume(
 /// The first pose in plan order without a `pose_end`; the number of poses when every one is
 /// finished.
 fn first_unfinished_pose(plan: &HexapodPlan, session: &Session) -> usize {
-    let finished: BTreeSet<usize> = session
-        .events
-        .iter()
-        .filter_map(|e| match e.msg {
-            RunEvent::PoseEnd { pose } => Some(pose),
-            _ => None,
-        })
-        .collect();
-    (0..plan.poses.len())
-        .find(|p| !finished.contains(p))
-        .unwrap_or(plan.poses.len())
+    crate::run::resume::first_unfinished(plan.poses.len(), session, |e| match e {
+        RunEvent::PoseEnd { pose } => Some(*pose),
+        _ => None,
+    })
 }
 
 /// The commanded pose of every `pose_begin` with all six coordinates, in order.

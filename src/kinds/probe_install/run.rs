@@ -2,7 +2,7 @@
 //! ports or on `[hil]` pty emulators), sequencer, recording, truth export, solve of the file;
 //! and the continuation of an interrupted run (`geocal run --resume`).
 
-use std::collections::{BTreeMap, BTreeSet};
+use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::{Arc, Mutex};
 
@@ -132,17 +132,10 @@ pub fn resume(
 /// The first posture in plan order without a `posture_end`; the number of postures when
 /// every one is finished.
 fn first_unfinished_posture(plan: &ProbeInstallPlan, session: &Session) -> usize {
-    let finished: BTreeSet<usize> = session
-        .events
-        .iter()
-        .filter_map(|e| match e.msg {
-            RunEvent::PostureEnd { posture } => Some(posture),
-            _ => None,
-        })
-        .collect();
-    (0..plan.postures_rad.len())
-        .find(|p| !finished.contains(p))
-        .unwrap_or(plan.postures_rad.len())
+    crate::run::resume::first_unfinished(plan.postures_rad.len(), session, |e| match e {
+        RunEvent::PostureEnd { posture } => Some(*posture),
+        _ => None,
+    })
 }
 
 /// The machine position of the last `probe_begin` (where the machine stood when the run was
