@@ -1026,3 +1026,262 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .expect("the first live sample is in the recording");
     assert_eq!(&recorded[first..first + WANTED], &received[..]);
 }
+
+/// The operator's part of a real run through the daemon: every pending prompt of job `id` is
+/// carried out on `geocal simulate`'s operator channel, then acknowledged over the API.
+/// Returns what was done once the job has ended.
+fn operate_through_simulate(
+    client: &Client,
+    daemon: &Daemon,
+    id: i64,
+    sim_in: &mut impl std::io::Write,
+    sim_out: &mut impl BufRead,
+) -> (Value, Vec<String>) {
+    let start = Instant::now();
+    let mut steps = Vec::new();
+    loop {
+        let j = job(client, daemon, id);
+        if !["running", "queued"].contains(&j["state"].as_str().unwrap_or("")) {
+            return (j, steps);
+        }
+        let prompts: Value = client
+            .get(daemon.at("/v1/prompts"))
+            .send()
+            .expect("GET")
+            .json()
+            .expect("json");
+        for prompt in prompts.as_array().expect("array") {
+            let text = prompt["instruction"].as_str().unwrap_or("");
+            let word_after = |prefix: &str| {
+                text.strip_prefix(prefix)
+                    .and_then(|rest| rest.split_whitespace().next())
+                    .map(str::to_owned)
+            };
+            let command = match (
+                word_after("place the tracer on station "),
+                word_after("mount reflector "),
+            ) {
+                (Some(station), _) => format!("station {station}"),
+                (_, Some(target)) => format!("target {target}"),
+                _ => panic!("unexpected prompt {prompt}"),
+            };
+            writeln!(sim_in, "{command}").expect("to simulate");
+            let mut reply = String::new();
+            sim_out.read_line(&mut reply).expect("simulate reply");
+            assert_eq!(reply.trim(), format!("ok {command}"), "simulate refused");
+            let p = prompt["id"].as_u64().expect("prompt id");
+            let (status, _) = post(client, daemon, &format!("/v1/prompts/{p}/ack"));
+            assert_eq!(status, StatusCode::NO_CONTENT);
+            steps.push(command);
+        }
+        assert!(start.elapsed() < JOB_TIMEOUT, "job {id} never ended");
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+/// The held connection of each device id, from `/v1/devices`.
+fn connections(client: &Client, daemon: &Daemon) -> std::collections::BTreeMap<String, Value> {
+    let devices: Value = client
+        .get(daemon.at("/v1/devices"))
+        .send()
+        .expect("GET /v1/devices")
+        .json()
+        .expect("json");
+    devices
+        .as_array()
+        .expect("array")
+        .iter()
+        .filter(|d| !d["connection"].is_null())
+        .map(|d| {
+            (
+                d["id"].as_str().unwrap_or("").to_owned(),
+                d["connection"].clone(),
+            )
+        })
+        .collect()
+}
+
+#[test]
+fn real_devices_stay_connected_between_jobs_and_close_when_idle() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The devices of a machine: geocal simulate hosts the HPI-3D and GRBL emulators on ptys
+    // and the Modbus table on 127.0.0.1, outside the daemon's process.
+    let sim_cfg = dir.path().join("simulate.toml");
+    std::fs::write(&sim_cfg, common::hil_rotary_config("")).expect("write");
+    let truth_path = dir.path().join("truth.json");
+    let mut simulate = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["simulate", sim_cfg.to_str().expect("path"), "--json"])
+        .arg("--truth")
+        .arg(&truth_path)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("start geocal simulate");
+    let mut sim_in = simulate.stdin.take().expect("stdin");
+    let mut sim_out = BufReader::new(simulate.stdout.take().expect("stdout"));
+    let simulate = KilledOnDrop(simulate);
+    let mut line = String::new();
+    sim_out.read_line(&mut line).expect("device list");
+    let listed: Value = serde_json::from_str(&line).expect("device JSON");
+    let endpoint = |kind: &str| {
+        listed["devices"]
+            .as_array()
+            .expect("devices")
+            .iter()
+            .find(|d| d["kind"] == kind)
+            .and_then(|d| d["endpoint"].as_str())
+            .unwrap_or_else(|| panic!("no {kind} in {listed}"))
+            .to_string()
+    };
+    let (tracer, machine, table) = (
+        endpoint("tracer"),
+        endpoint("machine"),
+        endpoint("rotary_table"),
+    );
+    let plan = format!(
+        "{}{}",
+        common::rotary_base(),
+        common::driver_tables(
+            &tracer,
+            &machine,
+            &format!("{{ kind = \"tcp\", address = \"{table}\" }}")
+        )
+    );
+
+    // The daemon may reach those ports and that host; idle connections close after 8 s.
+    let serve_cfg = dir.path().join("serve.toml");
+    let folder = |path: &str| {
+        Path::new(path)
+            .parent()
+            .map(|p| format!("{}/*", p.display()))
+            .expect("a folder")
+    };
+    std::fs::write(
+        &serve_cfg,
+        format!(
+            "allowed_ports = [{:?}, {:?}]\nallowed_hosts = [\"127.0.0.1\"]\n\n\
+             [devices]\nrelease_idle_after_s = 8.0\n",
+            folder(&tracer),
+            folder(&machine)
+        ),
+    )
+    .expect("write");
+    let daemon = Daemon::start(
+        &dir.path().join("data"),
+        &["--config", serve_cfg.to_str().expect("path")],
+    );
+    let client = http();
+    let truth: Value = {
+        let text = std::fs::read_to_string(&truth_path).expect("simulate's truth");
+        serde_json::from_str(&text).expect("truth json")
+    };
+    let session_of = |id: i64| {
+        let session = dir.path().join(format!("job-{id}.mcap"));
+        let bytes = fetch(&client, &daemon, &format!("/v1/jobs/{id}/session"));
+        std::fs::write(&session, bytes).expect("write session");
+        session
+    };
+    let judge = |id: i64| {
+        let session = session_of(id);
+        let results = geocal::kinds::solve_file(&session, &Default::default()).expect("solve");
+        let results = results
+            .get::<geocal::kinds::rotary_tracer::solve::RotaryTracerResults>()
+            .expect("rotary_tracer results");
+        common::assert_recovers_truth(&results.multilateration, &truth);
+    };
+    let expected_steps = ["station c01", "target t0", "station s13"];
+    let held_ids = ["c", "tracer0", "vmc"];
+
+    // First job: the daemon connects the devices and keeps them.
+    let first = submit(&client, &daemon, &plan);
+    let (j, steps) = operate_through_simulate(&client, &daemon, first, &mut sim_in, &mut sim_out);
+    assert_eq!(j["state"], "succeeded", "{j}");
+    assert_eq!(steps, expected_steps);
+    judge(first);
+    let after_first = connections(&client, &daemon);
+    println!("after job {first}: {after_first:?}");
+    for id in held_ids {
+        let c = &after_first[id];
+        assert_eq!(
+            (c["opens"].as_u64(), c["leases"].as_u64()),
+            (Some(1), Some(1)),
+            "{id}: {c}"
+        );
+        assert_eq!(c["in_use"], false, "{id}: returned after the job");
+    }
+
+    // Second job on the same connections, after a pause: nothing reopened, and no sample of
+    // the idle time reaches the run (its results recover the truth as the first job's do).
+    std::thread::sleep(Duration::from_millis(1500));
+    let second = submit(&client, &daemon, &plan);
+    let (j, steps) = operate_through_simulate(&client, &daemon, second, &mut sim_in, &mut sim_out);
+    assert_eq!(j["state"], "succeeded", "{j}");
+    assert_eq!(steps, expected_steps);
+    judge(second);
+    let after_second = connections(&client, &daemon);
+    println!("after job {second}: {after_second:?}");
+    for id in held_ids {
+        let c = &after_second[id];
+        assert_eq!(
+            (c["opens"].as_u64(), c["leases"].as_u64()),
+            (Some(1), Some(2)),
+            "{id}: {c}"
+        );
+        assert!(
+            c["connected_s"].as_f64() > after_first[id]["connected_s"].as_f64(),
+            "{id}: the same connection"
+        );
+    }
+    // The tracer's device clock and the log clock both run in wall time: from the first
+    // job's last sample to the second job's first, both advance alike unless the second job
+    // was handed samples queued while the device was idle.
+    let tracer_samples = |id: i64| {
+        let session = geocal::session::reader::read_session(&session_of(id)).expect("session");
+        session.tracers["tracer0"]
+            .iter()
+            .map(|s| (s.log_time_ns, s.msg.t_s))
+            .collect::<Vec<_>>()
+    };
+    let (last, next) = (
+        *tracer_samples(first).last().expect("samples"),
+        tracer_samples(second)[0],
+    );
+    let log_gap_s = (next.0 - last.0) as f64 * 1e-9;
+    let device_gap_s = next.1 - last.1;
+    println!("between the jobs: log {log_gap_s:.3} s, device {device_gap_s:.3} s");
+    assert!(
+        log_gap_s > 1.5 && (log_gap_s - device_gap_s).abs() < 0.1,
+        "log {log_gap_s} s against device {device_gap_s} s: samples from the idle time"
+    );
+
+    // Idle: the connections close; the next job connects again.
+    let start = Instant::now();
+    while !connections(&client, &daemon).is_empty() {
+        assert!(start.elapsed() < Duration::from_secs(120), "never released");
+        std::thread::sleep(Duration::from_millis(200));
+    }
+    let third = submit(&client, &daemon, &plan);
+    let (j, _) = operate_through_simulate(&client, &daemon, third, &mut sim_in, &mut sim_out);
+    assert_eq!(j["state"], "succeeded", "{j}");
+    judge(third);
+    let after_third = connections(&client, &daemon);
+    for id in held_ids {
+        assert_eq!(
+            after_third[id]["opens"].as_u64(),
+            Some(2),
+            "{id}: reconnected"
+        );
+    }
+    drop(simulate);
+}
+
+/// A child process that does not outlive its test, even a failed one.
+struct KilledOnDrop(Child);
+
+impl Drop for KilledOnDrop {
+    fn drop(&mut self) {
+        let _ = self.0.kill();
+        let _ = self.0.wait();
+    }
+}

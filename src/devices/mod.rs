@@ -8,6 +8,7 @@
 //!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
 //!   real drivers to them; the world follows wall time.
 
+pub mod held;
 pub mod hosting;
 pub mod operator;
 pub mod rotary_table;
@@ -52,24 +53,15 @@ pub async fn build(
     config: &Config,
     plan: &Plan,
     epoch_ns: u64,
-    operator: Option<&crate::sequencer::control::OperatorSource>,
+    control: &crate::sequencer::control::RunControl,
 ) -> anyhow::Result<BuiltDevices> {
-    let all_sim = config.devices.tracer.driver == DriverKind::Sim
-        && matches!(
-            config.devices.machine.driver,
-            DriverKind::Sim | DriverKind::Passive
-        )
-        && config
-            .devices
-            .rotary_table
-            .as_ref()
-            .is_none_or(|t| t.driver == DriverKind::Sim);
+    let operator = control.operator.as_ref();
     let mut built = if config.emulated() {
         build_emulated(config, plan, epoch_ns).await?
-    } else if all_sim {
+    } else if all_simulated(config) {
         build_simulated(config, plan, epoch_ns)?
     } else {
-        return build_real(config, plan, epoch_ns, operator).await;
+        return build_real(config, epoch_ns, operator, control.devices.as_deref()).await;
     };
     let operator_config = config.operator.clone().unwrap_or_default();
     if operator_config.rehearse {
@@ -78,6 +70,25 @@ pub async fn build(
         built.devices.operator = Box::new(crate::devices::operator::Rehearsal { ask, act });
     }
     Ok(built)
+}
+
+/// Every device is simulated in this process.
+fn all_simulated(config: &Config) -> bool {
+    config.devices.tracer.driver == DriverKind::Sim
+        && matches!(
+            config.devices.machine.driver,
+            DriverKind::Sim | DriverKind::Passive
+        )
+        && config
+            .devices
+            .rotary_table
+            .as_ref()
+            .is_none_or(|t| t.driver == DriverKind::Sim)
+}
+
+/// The run talks to devices outside this process (neither simulated nor emulated here).
+pub fn uses_real_devices(config: &Config) -> bool {
+    !config.emulated() && !all_simulated(config)
 }
 
 /// The operator who answers a real run's prompts: the daemon's when given, else the console's.
@@ -302,21 +313,29 @@ async fn build_emulated(
 
 async fn build_real(
     config: &Config,
-    plan: &Plan,
     _epoch_ns: u64,
     operator: Option<&crate::sequencer::control::OperatorSource>,
+    holder: Option<&held::DeviceHolder>,
 ) -> anyhow::Result<BuiltDevices> {
-    let _ = plan;
     // First, so that a run without a console fails before it touches a device.
     let operator = real_operator(config, operator)?;
     let (tracer, environment) = match config.devices.tracer.driver {
         DriverKind::Hpi3d => {
             let cfg = hpi3d_config(config);
             let port = cfg.port.clone();
-            let tracer = Hpi3dTracer::open(cfg)
-                .await
-                .with_context(|| format!("opening the HPI-3D at {port}"))?;
-            hpi3d_devices(config, tracer)
+            let tracer = held::lend_or_open(holder, &cfg.id.clone(), &cfg.clone(), || async {
+                Hpi3dTracer::open(cfg)
+                    .await
+                    .with_context(|| format!("opening the HPI-3D at {port}"))
+            })
+            .await?;
+            let environment = config
+                .devices
+                .environment
+                .as_ref()
+                .filter(|e| e.driver == DriverKind::Hpi3d)
+                .map(|_| Box::new(tracer.environment()) as Box<dyn Environment>);
+            (tracer as Box<dyn Tracer>, environment)
         }
         kind => anyhow::bail!(
             "devices.tracer.driver = \"{}\" without [sim] or [hil]: a real run needs \"hpi3d\"",
@@ -327,7 +346,10 @@ async fn build_real(
         DriverKind::Grbl => {
             let cfg = grbl_config(config);
             let port = cfg.port.clone();
-            Box::new(GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))?)
+            held::lend_or_open(holder, &cfg.id.clone(), &cfg.clone(), || async {
+                GrblMachine::open(cfg).with_context(|| format!("opening GRBL at {port}"))
+            })
+            .await?
         }
         DriverKind::Passive => Box::new(crate::sequencer::passive::PassiveMachine {
             id: config.devices.machine.id.clone(),
@@ -339,7 +361,7 @@ async fn build_real(
     };
     let rotary = match config.devices.rotary_table.as_ref() {
         Some(table) if table.driver != DriverKind::Sim => {
-            Some(crate::devices::rotary_table::connect_real(table).await?)
+            Some(crate::devices::rotary_table::connect_real(table, holder).await?)
         }
         Some(table) => anyhow::bail!(
             "devices.rotary_table.driver = \"{}\" in a real run: expected \"modbus_tcp\" or \"modbus_rtu\"",

@@ -28,18 +28,25 @@ fn modbus_config(table: &RotaryTableConfig) -> anyhow::Result<ModbusTableConfig>
     Ok(cfg)
 }
 
-/// Connect the Modbus driver of a real table at its configured transport.
-pub async fn connect_real(table: &RotaryTableConfig) -> anyhow::Result<Box<dyn RotaryTable>> {
+/// Connect the Modbus driver of a real table at its configured transport (or lend the
+/// connection `holder` keeps).
+pub async fn connect_real(
+    table: &RotaryTableConfig,
+    holder: Option<&crate::devices::held::DeviceHolder>,
+) -> anyhow::Result<Box<dyn RotaryTable>> {
     let cfg = modbus_config(table)?;
     let at = match &cfg.transport {
         Some(ModbusTransport::Tcp { address }) => format!("Modbus TCP {address}"),
         Some(ModbusTransport::Rtu { port, baud }) => format!("Modbus RTU {port} at {baud} Bd"),
         None => String::from("(no transport configured)"),
     };
-    let driver = ModbusTable::connect(cfg)
-        .await
-        .with_context(|| format!("connecting rotary table {} over {at}", table.id))?;
-    Ok(Box::new(driver))
+    let driver = crate::devices::held::lend_or_open(holder, &table.id, &cfg.clone(), || async {
+        ModbusTable::connect(cfg)
+            .await
+            .with_context(|| format!("connecting rotary table {} over {at}", table.id))
+    })
+    .await?;
+    Ok(driver)
 }
 
 /// A Modbus table emulator hosted by this process, and where it listens.

@@ -31,11 +31,40 @@ pub struct RunOutput {
     pub results: Results,
 }
 
-/// The single-threaded runtime a run's drivers, emulators and sequencer live on.
-pub(crate) fn run_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+/// The runtime a run's drivers, emulators and sequencer live on: the run's own
+/// single-threaded one, or the device holder's when the run's real devices are held between
+/// runs (their connections outlive the run, so their tasks must too).
+pub(crate) enum RunRuntime {
+    Own(tokio::runtime::Runtime),
+    Holder(tokio::runtime::Handle),
+}
+
+impl RunRuntime {
+    pub(crate) fn block_on<F: std::future::Future>(&self, future: F) -> F::Output {
+        match self {
+            RunRuntime::Own(runtime) => runtime.block_on(future),
+            RunRuntime::Holder(handle) => handle.block_on(future),
+        }
+    }
+}
+
+/// The runtime for a run; `real_devices`: it connects to devices outside this process.
+pub(crate) fn run_runtime(
+    control: &crate::sequencer::control::RunControl,
+    real_devices: bool,
+) -> anyhow::Result<RunRuntime> {
+    if let Some(handle) = control
+        .devices
+        .as_ref()
+        .filter(|_| real_devices)
+        .and_then(|holder| holder.handle())
+    {
+        return Ok(RunRuntime::Holder(handle));
+    }
     tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
+        .map(RunRuntime::Own)
         .context("starting the async runtime")
 }
 

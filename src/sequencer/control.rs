@@ -29,6 +29,9 @@ pub struct RunControl {
     pub tap: Tap,
     pub progress: Option<ProgressSink>,
     pub operator: Option<OperatorSource>,
+    /// Connections kept open between runs; without it a run opens its devices and closes
+    /// them when it ends.
+    pub devices: Option<Arc<crate::devices::held::DeviceHolder>>,
 }
 
 impl RunControl {
@@ -58,6 +61,7 @@ impl std::fmt::Debug for RunControl {
             .field("tap", &self.tap)
             .field("progress", &self.progress.is_some())
             .field("operator", &self.operator.is_some())
+            .field("devices_held", &self.devices.is_some())
             .finish()
     }
 }

@@ -318,7 +318,7 @@ async fn job_file(daemon: &Daemon, id: i64, name: &str, content_type: &str) -> A
 /// Every device seen by the daemon's runs: connected, last reading, signal, last error.
 #[utoipa::path(get, path = "/v1/devices", responses((status = 200, body = Vec<DeviceStatus>)))]
 async fn devices(State(daemon): State<Arc<Daemon>>) -> Json<Vec<DeviceStatus>> {
-    Json(daemon.status.devices())
+    Json(daemon.devices())
 }
 
 /// Operator prompts waiting for acknowledgement.
@@ -394,7 +394,7 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
     paths(submit, list_jobs, get_job, cancel_job, resume_job, job_results, job_session,
         job_named_file, devices, prompts, ack_prompt, events, health, metrics),
     components(schemas(JobView, SessionJob, Created, StateReply, ErrorBody, Health, JobFile,
-        JobState, JobType, Progress, DeviceStatus, PendingPrompt, ServerEvent)),
+        JobState, JobType, Progress, DeviceStatus, crate::devices::held::HeldStatus, PendingPrompt, ServerEvent)),
     modifiers(&BearerAuth),
     security(("bearer" = []))
 )]

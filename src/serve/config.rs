@@ -39,6 +39,9 @@ pub struct ServeConfig {
     /// Scheduled jobs.
     #[serde(default)]
     pub schedule: Vec<super::schedule::ScheduleConfig>,
+    /// Whether real devices stay connected between jobs.
+    #[serde(default)]
+    pub devices: DeviceHolding,
     /// Where relative plan paths of the schedules start (the configuration file's folder).
     #[serde(skip)]
     pub base_dir: PathBuf,
@@ -73,8 +76,51 @@ impl Default for ServeConfig {
             allowed_ports: Vec::new(),
             allowed_hosts: Vec::new(),
             schedule: Vec::new(),
+            devices: DeviceHolding::default(),
             base_dir: PathBuf::from("."),
         }
+    }
+}
+
+/// `[devices]`: real devices are connected when a job first needs them and kept open for the
+/// next job (simulated and emulated devices belong to their job's world and are not).
+#[derive(Debug, Clone, PartialEq, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DeviceHolding {
+    /// Keep connections open between jobs (false: every job opens and closes its own).
+    #[serde(default = "keep_connections")]
+    pub hold: bool,
+    /// Close a connection no job has used for this long, seconds (absent: keep it).
+    #[serde(default)]
+    pub release_idle_after_s: Option<f64>,
+}
+
+fn keep_connections() -> bool {
+    true
+}
+
+impl Default for DeviceHolding {
+    fn default() -> Self {
+        DeviceHolding {
+            hold: keep_connections(),
+            release_idle_after_s: None,
+        }
+    }
+}
+
+impl DeviceHolding {
+    /// The idle time after which connections close.
+    pub fn release_idle_after(&self) -> anyhow::Result<Option<std::time::Duration>> {
+        self.release_idle_after_s
+            .map(|s| {
+                std::time::Duration::try_from_secs_f64(s)
+                    .ok()
+                    .filter(|d| !d.is_zero())
+                    .with_context(|| {
+                        format!("devices.release_idle_after_s = {s}: expected a positive number of seconds")
+                    })
+            })
+            .transpose()
     }
 }
 
@@ -83,6 +129,10 @@ impl ServeConfig {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("reading the daemon configuration {}", path.display()))?;
         let mut config: ServeConfig = crate::config::kind_config::parse_strict(&text, path)?;
+        config
+            .devices
+            .release_idle_after()
+            .with_context(|| path.display().to_string())?;
         config.base_dir = path
             .parent()
             .filter(|p| !p.as_os_str().is_empty())
@@ -192,6 +242,25 @@ mod tests {
             crate::config::kind_config::parse_strict(text, Path::new("deploy/serve.toml")).unwrap();
         assert!(config.listen.ip().is_loopback());
         assert!(endpoint_allowed(&config, "/dev/ttyUSB3"));
+        assert!(config.devices.hold);
+        assert_eq!(
+            config.devices.release_idle_after().unwrap(),
+            Some(std::time::Duration::from_secs(3600))
+        );
+    }
+
+    #[test]
+    fn a_bad_idle_time_names_the_key_and_file() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("serve.toml");
+        for bad in ["-1.0", "0.0", "nan"] {
+            std::fs::write(&path, format!("[devices]\nrelease_idle_after_s = {bad}\n")).unwrap();
+            let err = format!("{:#}", ServeConfig::load(&path).unwrap_err());
+            assert!(
+                err.contains("devices.release_idle_after_s") && err.contains("serve.toml"),
+                "{err}"
+            );
+        }
     }
 
     #[test]

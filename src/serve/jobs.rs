@@ -15,6 +15,7 @@ use super::catalog::{Catalog, JobRecord, JobState, JobType, NewJob};
 use super::config::ServeConfig;
 use super::prompts::{PendingPrompt, PromptBoard};
 use super::status::{Change, DaemonTap, Progress, StatusBoard};
+use crate::devices::held::DeviceHolder;
 use crate::kinds::{Registry, RunFlags};
 use crate::run::RunOptions;
 use crate::sequencer::control::RunControl;
@@ -95,6 +96,8 @@ pub struct Daemon {
     /// Stops the worker once the running job has ended.
     pub shutdown: CancellationToken,
     live: Option<Arc<dyn MessageTap>>,
+    /// Real devices' connections kept between jobs (`[devices] hold`).
+    pub devices: Option<Arc<DeviceHolder>>,
 }
 
 impl Daemon {
@@ -111,6 +114,11 @@ impl Daemon {
                 "job was running when the daemon stopped: interrupted"
             );
         }
+        let devices = if config.devices.hold {
+            Some(DeviceHolder::new(config.devices.release_idle_after()?)?)
+        } else {
+            None
+        };
         let (events, _) = broadcast::channel(1024);
         let prompt_events = events.clone();
         Ok(Arc::new(Daemon {
@@ -129,6 +137,7 @@ impl Daemon {
             accepting: AtomicBool::new(true),
             shutdown: CancellationToken::new(),
             live,
+            devices,
         }))
     }
 
@@ -151,6 +160,36 @@ impl Daemon {
     }
 
     /// The live progress of job `id` if it runs now.
+    /// The devices seen in jobs, with the connections held between jobs.
+    pub fn devices(&self) -> Vec<crate::serve::status::DeviceStatus> {
+        let mut devices = self.status.devices();
+        for held in self
+            .devices
+            .as_ref()
+            .map(|h| h.status())
+            .unwrap_or_default()
+        {
+            match devices.iter_mut().find(|d| d.id == held.id) {
+                Some(device) => {
+                    device.connected = true;
+                    device.connection = Some(held);
+                }
+                None => devices.push(crate::serve::status::DeviceStatus {
+                    id: held.id.clone(),
+                    kind: "unknown".into(),
+                    connected: true,
+                    last_reading: None,
+                    last_reading_age_s: None,
+                    signal_level: None,
+                    last_error: None,
+                    readings: 0,
+                    connection: Some(held),
+                }),
+            }
+        }
+        devices
+    }
+
     pub fn live_progress(&self, id: i64) -> Option<Progress> {
         let running = self.running.lock().ok()?;
         (running.as_ref()?.id == id).then(|| self.status.progress())
@@ -467,6 +506,7 @@ impl Daemon {
                 let _ = progress_events.send(ServerEvent::Progress { id, progress });
             })),
             operator: Some(Arc::new(move || prompts.operator(id))),
+            devices: self.devices.clone(),
         }
     }
 

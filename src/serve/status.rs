@@ -46,6 +46,8 @@ pub struct DeviceStatus {
     pub signal_level: Option<f64>,
     pub last_error: Option<String>,
     pub readings: u64,
+    /// The connection the daemon keeps open between jobs, if it holds one for this device.
+    pub connection: Option<crate::devices::held::HeldStatus>,
 }
 
 struct DeviceEntry {
@@ -149,6 +151,7 @@ impl StatusBoard {
                     last_reading_age_s: age.map(|a| a.as_secs_f64()),
                     last_error: d.last_error.clone(),
                     readings: d.readings,
+                    connection: None,
                 }
             })
             .collect()

@@ -125,6 +125,8 @@ pub struct Hpi3dTracer {
     last_flag_clear: Option<Instant>,
     /// Counters as last reported by `take_link_faults`.
     reported: Hpi3dCounters,
+    stream: Hpi3dStream,
+    meteo: bool,
 }
 
 impl Hpi3dTracer {
@@ -169,20 +171,37 @@ impl Hpi3dTracer {
             reader,
             last_flag_clear: None,
             reported: Hpi3dCounters::default(),
+            stream: config.stream,
+            meteo: config.meteo,
         };
-        // Start from a known state whatever the previous session left running.
-        tracer.command(HostCommand::StopAll).await?;
-        tracer.command(HostCommand::ClearSmallSignal).await?;
-        match config.stream {
-            Hpi3dStream::Distance => tracer.command(HostCommand::DistanceOn).await?,
+        tracer.start_streams().await?;
+        Ok(tracer)
+    }
+
+    /// Start the streams from a known state whatever the previous session left running.
+    /// Samples queued before the restart are discarded: a caller that kept the driver open
+    /// between runs gets only samples measured after this call.
+    pub async fn start_streams(&mut self) -> Result<(), DeviceError> {
+        self.command(HostCommand::StopAll).await?;
+        // Every distance frame sent before the stop was read before its acknowledgement.
+        while self.samples.try_recv().is_ok() {}
+        lock(&self.shared.meteo).clear();
+        self.last_flag_clear = None;
+        self.command(HostCommand::ClearSmallSignal).await?;
+        match self.stream {
+            Hpi3dStream::Distance => self.command(HostCommand::DistanceOn).await?,
         }
-        let meteo = if config.meteo {
+        let meteo = if self.meteo {
             HostCommand::MeteoOn
         } else {
             HostCommand::MeteoOff
         };
-        tracer.command(meteo).await?;
-        Ok(tracer)
+        self.command(meteo).await
+    }
+
+    /// Stop the streams (the device stays connected and idle).
+    pub async fn stop_streams(&mut self) -> Result<(), DeviceError> {
+        self.command(HostCommand::StopAll).await
     }
 
     /// An `Environment` fed by this driver's meteo frames (any number of handles).

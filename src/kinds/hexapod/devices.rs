@@ -151,23 +151,31 @@ pub async fn host_emulator(
     }
 }
 
-/// Connect the Modbus driver at `transport` (the configured one, or the hosted emulator's).
+/// Connect the Modbus driver at `transport` (the configured one, or the hosted emulator's),
+/// or lend the connection `holder` keeps.
 async fn connect(
     mut cfg: ModbusHexapodConfig,
     transport: ModbusTransport,
+    holder: Option<&crate::devices::held::DeviceHolder>,
 ) -> anyhow::Result<Box<dyn Hexapod>> {
     let at = transport.describe();
     cfg.transport = Some(transport);
     let id = cfg.id.clone();
-    let driver = ModbusHexapod::connect(cfg)
-        .await
-        .with_context(|| format!("connecting hexapod {id} over {at}"))?;
+    let context = format!("connecting hexapod {id} over {at}");
+    let driver = crate::devices::held::lend_or_open(holder, &id, &cfg.clone(), || async {
+        ModbusHexapod::connect(cfg).await.context(context)
+    })
+    .await?;
     tracing::info!("hexapod {id} over {at}");
-    Ok(Box::new(driver))
+    Ok(driver)
 }
 
 /// Build the run's devices. Must run inside the tokio runtime that will serve the emulator.
-pub async fn build(config: &HexapodConfig, epoch_ns: u64) -> anyhow::Result<Built> {
+pub async fn build(
+    config: &HexapodConfig,
+    epoch_ns: u64,
+    holder: Option<&crate::devices::held::DeviceHolder>,
+) -> anyhow::Result<Built> {
     let h = &config.devices.hexapod;
     let virtual_clock = Arc::new(VirtualClock::new(epoch_ns));
     let world: Option<SharedHexapodWorld> = config
@@ -209,7 +217,7 @@ pub async fn build(config: &HexapodConfig, epoch_ns: u64) -> anyhow::Result<Buil
             };
             tracing::info!("Modbus hexapod emulator on {}", host.endpoint);
             hosted = Some(host);
-            (connect(cfg, transport).await?, time as Arc<dyn Clock>)
+            (connect(cfg, transport, None).await?, time as Arc<dyn Clock>)
         }
         (_, _) => {
             let cfg = modbus_config(config)?;
@@ -217,7 +225,10 @@ pub async fn build(config: &HexapodConfig, epoch_ns: u64) -> anyhow::Result<Buil
                 .transport
                 .clone()
                 .context("devices.hexapod.modbus.transport is needed for a real hexapod")?;
-            (connect(cfg, transport).await?, Arc::new(SystemClock))
+            (
+                connect(cfg, transport, holder).await?,
+                Arc::new(SystemClock),
+            )
         }
     };
     let last: LastCommand = Arc::new(Mutex::new(None));

@@ -164,8 +164,12 @@ fn execute(
     let epoch_ns = continuation
         .as_ref()
         .map_or_else(system_now_ns, |c| c.interruption.epoch_ns(simulated));
-    let runtime = crate::run::run_runtime()?;
-    let built = runtime.block_on(super::devices::build(config, epoch_ns))?;
+    let runtime = crate::run::run_runtime(&options.control, config.sim.is_none())?;
+    let built = runtime.block_on(super::devices::build(
+        config,
+        epoch_ns,
+        options.control.devices.as_deref(),
+    ))?;
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;

@@ -161,7 +161,11 @@ struct Built {
 
 /// The devices: simulated in virtual time, or the GRBL and ASCII drivers (real, or under
 /// `[hil]` against the emulators). Must run inside the runtime that runs the sequencer.
-async fn build(config: &ProbeInstallConfig, epoch_ns: u64) -> anyhow::Result<Built> {
+async fn build(
+    config: &ProbeInstallConfig,
+    epoch_ns: u64,
+    holder: Option<&crate::devices::held::DeviceHolder>,
+) -> anyhow::Result<Built> {
     if config.all_sim() {
         let clock = Arc::new(VirtualClock::new(epoch_ns));
         let world = Arc::new(Mutex::new(ProbeInstallWorld::new(config, clock.clone())));
@@ -196,7 +200,7 @@ async fn build(config: &ProbeInstallConfig, epoch_ns: u64) -> anyhow::Result<Bui
     } else {
         Arc::new(SystemClock)
     };
-    let (devices, emulators) = connect(config, world.as_ref().map(|w| (w, &time))).await?;
+    let (devices, emulators) = connect(config, world.as_ref().map(|w| (w, &time)), holder).await?;
     Ok(Built {
         devices,
         clock,
@@ -216,8 +220,9 @@ fn execute(
     let epoch_ns = continuation
         .as_ref()
         .map_or_else(system_now_ns, |c| c.interruption.epoch_ns(simulated));
-    let runtime = crate::run::run_runtime()?;
-    let built = runtime.block_on(build(config, epoch_ns))?;
+    let real_devices = !simulated && !config.emulated();
+    let runtime = crate::run::run_runtime(&options.control, real_devices)?;
+    let built = runtime.block_on(build(config, epoch_ns, options.control.devices.as_deref()))?;
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
@@ -288,18 +293,28 @@ struct Emulated {
 async fn connect(
     config: &ProbeInstallConfig,
     hil: Option<(&SharedProbeWorld, &Arc<HilTime>)>,
+    holder: Option<&crate::devices::held::DeviceHolder>,
 ) -> anyhow::Result<(ProbeInstallDevices, Option<Emulated>)> {
     let mut grbl = config.grbl_config();
     let probe_cfg = config.probe_config();
     let Some((world, time)) = hil else {
-        let machine = GrblMachine::open(grbl.clone())
-            .with_context(|| format!("opening the GRBL controller at {}", grbl.port))?;
-        let probe = AsciiProbe::open(probe_cfg.clone())
-            .with_context(|| format!("opening the probe at {}", probe_cfg.port))?;
-        let devices = ProbeInstallDevices {
-            machine: Box::new(machine),
-            probe: Box::new(probe),
-        };
+        use crate::devices::held::lend_or_open;
+        let machine = lend_or_open(holder, &grbl.id.clone(), &grbl.clone(), || async {
+            let at = format!("opening the GRBL controller at {}", grbl.port);
+            GrblMachine::open(grbl).context(at)
+        })
+        .await?;
+        let probe = lend_or_open(
+            holder,
+            &probe_cfg.id.clone(),
+            &probe_cfg.clone(),
+            || async {
+                let at = format!("opening the probe at {}", probe_cfg.port);
+                AsciiProbe::open(probe_cfg).context(at)
+            },
+        )
+        .await?;
+        let devices = ProbeInstallDevices { machine, probe };
         return Ok((devices, None));
     };
     let (machine_faults, probe_faults) = config

@@ -86,6 +86,7 @@ async fn build(
     config: &RotarySphereConfig,
     plan: &SpherePlan,
     epoch_ns: u64,
+    holder: Option<&crate::devices::held::DeviceHolder>,
 ) -> anyhow::Result<Built> {
     let probe_cfg = &config.devices.probe;
     let table_cfg = &config.devices.rotary_table;
@@ -130,7 +131,7 @@ async fn build(
         }
         // A real table (no [sim]): the Modbus driver at its configured address.
         (DriverKind::ModbusTcp | DriverKind::ModbusRtu, None, _) => {
-            crate::devices::rotary_table::connect_real(table_cfg).await?
+            crate::devices::rotary_table::connect_real(table_cfg, holder).await?
         }
         (kind, _, _) => anyhow::bail!(
             "devices.rotary_table.driver = \"{}\": a simulated rotary_sphere run needs the \"sim\" \
@@ -164,7 +165,10 @@ async fn build(
         (ProbeDriverKind::Ascii, _) => {
             let cfg = probe_config(config);
             let port = cfg.port.clone();
-            Box::new(AsciiProbe::open(cfg).with_context(|| format!("opening the probe at {port}"))?)
+            crate::devices::held::lend_or_open(holder, &cfg.id.clone(), &cfg.clone(), || async {
+                AsciiProbe::open(cfg).with_context(|| format!("opening the probe at {port}"))
+            })
+            .await?
         }
         (ProbeDriverKind::Sim, None) => {
             anyhow::bail!("devices.probe.driver = \"sim\" needs [sim] (validation checks this)")
@@ -292,8 +296,13 @@ fn execute(
     let epoch_ns = continuation
         .as_ref()
         .map_or_else(system_now_ns, |(c, _)| c.epoch_ns(simulated));
-    let runtime = crate::run::run_runtime()?;
-    let built = runtime.block_on(build(config, &plan, epoch_ns))?;
+    let runtime = crate::run::run_runtime(&options.control, config.sim.is_none())?;
+    let built = runtime.block_on(build(
+        config,
+        &plan,
+        epoch_ns,
+        options.control.devices.as_deref(),
+    ))?;
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut first_sphere = (0, 0);

@@ -34,12 +34,12 @@ pub(crate) fn execute(
     let epoch_ns = continuation
         .as_ref()
         .map_or_else(system_now_ns, |c| c.epoch_ns(config));
-    let runtime = run_runtime()?;
+    let runtime = run_runtime(&options.control, crate::devices::uses_real_devices(config))?;
     let built = runtime.block_on(crate::devices::build(
         config,
         &plan,
         epoch_ns,
-        options.control.operator.as_ref(),
+        &options.control,
     ))?;
     if let Some(c) = continuation.as_deref() {
         c.prepare_world(config, &built)?;
