@@ -114,18 +114,37 @@ fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
     )
 }
 
-/// The verification run over the emulators: the small demo calibrated in virtual time (the
+/// The verification run over the emulators: a small plan calibrated in virtual time (the
 /// same truth machine: seed, structure, travel), its tables (x LinuxCNC type 1, y type 0, z
 /// SINUMERIK) applied by the world behind the GRBL emulator, and the HIL run's positioning
 /// errors within 2σ + the interpolation error, as the virtual-time verification's are.
 #[test]
 fn hil_verification_run_removes_the_positioning_errors() {
     let dir = tempfile::tempdir().expect("tempdir");
+    // The smallest grid of the small demo's that the 21-error decomposition takes (at most
+    // half as many unknowns as equations: 5 x 4 x 3 positions, 60 points), one pass.
+    let grid = |text: String| {
+        let text = text
+            .replace(
+                "x = { from = 0.1, to = 1.3, count = 3 }",
+                "x = { from = 0.1, to = 1.3, count = 5 }",
+            )
+            .replace(
+                "y = { from = 0.2, to = 2.2, count = 3 }",
+                "y = { from = 0.2, to = 2.2, count = 4 }",
+            )
+            .replace(
+                "z = { from = 0.15, to = 0.95, count = 2 }",
+                "z = { from = 0.15, to = 0.95, count = 3 }",
+            );
+        assert!(text.contains("count = 5 }") && text.contains("count = 4 }"), "grid set");
+        text
+    };
     let one_pass = |text: String| {
-        text.replace(
+        grid(text.replace(
             "passes = [\"forward\", \"backward\"]",
             "passes = [\"forward\"]",
-        )
+        ))
     };
     let (before, _) = run_with_truth(&one_pass(small_demo()), &dir.path().join("before"));
     let cal = Calibration::load(&before.results_path).expect("results");
@@ -167,7 +186,7 @@ fn hil_verification_run_removes_the_positioning_errors() {
     );
     let started = std::time::Instant::now();
     let (hil_after, _) = run_with_truth(
-        &with_tables(generous_timeouts(&hil_config(""))),
+        &with_tables(grid(generous_timeouts(&hil_config("")))),
         &dir.path().join("hil-after"),
     );
     println!("HIL verification run: {:.1} s", started.elapsed().as_secs_f64());
