@@ -115,7 +115,18 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
                 .into(),
             svg: panels_svg(
                 "Before and after compensation",
-                &comparisons.iter().map(panel).collect::<Vec<_>>(),
+                &comparisons.iter().map(before_after_panel).collect::<Vec<_>>(),
+                3,
+            )?,
+        })
+        .plot(Plot {
+            id: "verification-after".into(),
+            caption: "What is left after compensation, on its own scale: ±2σ shaded (before \
+                      and after combined) and the pass bound ±(2·RMS σ + interpolation error)."
+                .into(),
+            svg: panels_svg(
+                "After compensation",
+                &comparisons.iter().map(after_panel).collect::<Vec<_>>(),
                 3,
             )?,
         });
@@ -307,33 +318,61 @@ fn verdicts(comparisons: &[Comparison]) -> Table {
             format!("{:.3}", um(c.sigma_rms_m())),
             format!("{:.4}", um(c.interpolation_error_m)),
             format!("{:.3}", um(c.bound_m())),
-            if c.passes() { "pass" } else { "FAIL" }.into(),
+            verdict(c).into(),
         ]);
     }
     t
 }
 
-fn panel(c: &Comparison) -> Panel {
-    let xy = |v: &[f64]| {
-        c.positions_m
-            .iter()
-            .zip(v)
-            .map(|(q, v)| (*q, um(*v)))
-            .collect::<Vec<_>>()
-    };
-    let two_sigma = |s: &[f64]| s.iter().map(|s| 2.0 * um(*s)).collect::<Vec<_>>();
+fn xy(c: &Comparison, values_m: &[f64]) -> Vec<(f64, f64)> {
+    c.positions_m
+        .iter()
+        .zip(values_m)
+        .map(|(q, v)| (*q, um(*v)))
+        .collect()
+}
+
+fn two_sigma_um(sigma_m: &[f64]) -> Vec<f64> {
+    sigma_m.iter().map(|s| 2.0 * um(*s)).collect()
+}
+
+fn verdict(c: &Comparison) -> &'static str {
+    if c.passes() {
+        "pass"
+    } else {
+        "FAIL"
+    }
+}
+
+/// The table first, so that the before curve it follows is drawn over it.
+fn before_after_panel(c: &Comparison) -> Panel {
     Panel {
-        title: format!(
-            "{}: {}",
-            c.name,
-            if c.passes() { "pass" } else { "FAIL" }
-        ),
+        title: format!("{}: {}", c.name, verdict(c)),
         x_label: format!("{} [m]", AXES[c.base]),
         y_label: "µm".into(),
         series: vec![
-            Series::line("before", xy(&c.before_m)).with_band(two_sigma(&c.sigma_before_m)),
-            Series::line("after", xy(&c.after_m)).with_band(two_sigma(&c.sigma_m())),
-            Series::line("table", xy(&c.tables_m)).with_style(Style::Line),
+            Series::line("table", xy(c, &c.tables_m)).with_style(Style::Line),
+            Series::line("before", xy(c, &c.before_m)).with_band(two_sigma_um(&c.sigma_before_m)),
+            Series::line("after", xy(c, &c.after_m)).with_band(two_sigma_um(&c.sigma_m())),
+        ],
+    }
+}
+
+fn after_panel(c: &Comparison) -> Panel {
+    let bound = um(c.bound_m());
+    let ends = |v: f64| {
+        let first = c.positions_m.first().copied().unwrap_or(0.0);
+        let last = c.positions_m.last().copied().unwrap_or(first);
+        vec![(first, v), (last, v)]
+    };
+    Panel {
+        title: format!("{} after: RMS {:.3} µm, bound {:.3} µm", c.name, um(c.rms_after_m()), bound),
+        x_label: format!("{} [m]", AXES[c.base]),
+        y_label: "µm".into(),
+        series: vec![
+            Series::line("after", xy(c, &c.after_m)).with_band(two_sigma_um(&c.sigma_m())),
+            Series::line("bound", ends(bound)).with_style(Style::Line),
+            Series::line("", ends(-bound)).with_style(Style::Line),
         ],
     }
 }
