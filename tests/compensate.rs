@@ -250,7 +250,10 @@ fn cross_curve(cal: &Calibration, base: usize, compensated: usize) -> (Vec<f64>,
 /// shifted to zero at the first grid position, sampled finely over the calibrated travel.
 fn table_departure(cal: &Calibration, base: usize, compensated: usize, table: &CecTable) -> f64 {
     let curve = cal.cross(base, compensated).expect("identifiable");
-    let (lo, hi) = (curve.positions_m[0], *curve.positions_m.last().expect("grid"));
+    let (lo, hi) = (
+        curve.positions_m[0],
+        *curve.positions_m.last().expect("grid"),
+    );
     let zero = curve.at(lo).expect("value");
     (0..=4000)
         .map(|i| lo + (hi - lo) * f64::from(i) / 4000.0)
@@ -271,15 +274,30 @@ fn closed_loop_cross_tables_remove_straightness_and_squareness() {
     let cal = Calibration::load(&calibrate(&base, &dir.path().join("before"))).expect("results");
     let sin = SinumerikOptions::default();
     let tables = dir.path().join("sinumerik");
-    let e = export(&cal, TableFormat::Sinumerik, &ExportOptions::default(), &sin).expect("export");
+    let e = export(
+        &cal,
+        TableFormat::Sinumerik,
+        &ExportOptions::default(),
+        &sin,
+    )
+    .expect("export");
     write_all(&e, &tables);
     let cec_file = tables.join("cec.ini");
     let cec = Program::parse(&std::fs::read_to_string(&cec_file).expect("cec"), &cec_file)
         .expect("program")
         .cec_tables(&cec_file)
         .expect("tables");
-    assert_eq!(cec.len(), 6, "every straightness of the demo is identifiable");
-    let axis_of = |name: &str| ["X1", "Y1", "Z1"].iter().position(|n| *n == name).expect("axis");
+    assert_eq!(
+        cec.len(),
+        6,
+        "every straightness of the demo is identifiable"
+    );
+    let axis_of = |name: &str| {
+        ["X1", "Y1", "Z1"]
+            .iter()
+            .position(|n| *n == name)
+            .expect("axis")
+    };
     let interp: Vec<f64> = CROSS_PAIRS
         .iter()
         .map(|&(b, c)| {
@@ -331,7 +349,12 @@ fn closed_loop_cross_tables_remove_straightness_and_squareness() {
             rms(&va) * 1e6,
             bound * 1e6
         );
-        assert!(rms(&va) < 0.5 * rms(&vb), "{} on {}: no improvement", AXES[c], AXES[b]);
+        assert!(
+            rms(&va) < 0.5 * rms(&vb),
+            "{} on {}: no improvement",
+            AXES[c],
+            AXES[b]
+        );
     }
     // The encoder tables act alongside.
     let (b, a) = (positioning(&cal), positioning(&after));
@@ -349,13 +372,15 @@ fn closed_loop_cross_tables_remove_straightness_and_squareness() {
     let flipped: String = std::fs::read_to_string(&cec_file)
         .expect("cec")
         .lines()
-        .map(|l| match l.strip_prefix("$AN_CEC[").and_then(|r| r.split_once("]=")) {
-            Some((index, v)) => {
-                let v: f64 = v.parse().expect("number");
-                format!("$AN_CEC[{index}]={:.6}\n", -v)
-            }
-            None => format!("{l}\n"),
-        })
+        .map(
+            |l| match l.strip_prefix("$AN_CEC[").and_then(|r| r.split_once("]=")) {
+                Some((index, v)) => {
+                    let v: f64 = v.parse().expect("number");
+                    format!("$AN_CEC[{index}]={:.6}\n", -v)
+                }
+                None => format!("{l}\n"),
+            },
+        )
         .collect();
     let flipped_file = tables.join("cec-flipped.ini");
     std::fs::write(&flipped_file, flipped).expect("write");
@@ -369,7 +394,12 @@ fn closed_loop_cross_tables_remove_straightness_and_squareness() {
             rms(&vw) * 1e6,
             rms(&vb) * 1e6
         );
-        assert!(rms(&vw) > 1.5 * rms(&vb), "{} on {}: a wrong sign must show", AXES[c], AXES[b]);
+        assert!(
+            rms(&vw) > 1.5 * rms(&vb),
+            "{} on {}: a wrong sign must show",
+            AXES[c],
+            AXES[b]
+        );
     }
 }
 
@@ -394,8 +424,16 @@ fn cross_table_entries_are_checked_by_key() {
     parse(r#"{ format = "sinumerik", file = "cec.ini" }, { format = "sinumerik", file = "eec.ini", axis = "y" }"#)
         .expect("cross and encoder tables of one controller");
     for (entries, key, expect) in [
-        (r#"{ format = "linuxcnc-type1", file = "comp-y.txt" }"#, "sim.compensation[0].axis", "missing"),
-        (r#"{ format = "sinumerik", file = "eec.ini" }"#, "sim.compensation[0].file", "no $AN_CEC table"),
+        (
+            r#"{ format = "linuxcnc-type1", file = "comp-y.txt" }"#,
+            "sim.compensation[0].axis",
+            "missing",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "eec.ini" }"#,
+            "sim.compensation[0].file",
+            "no $AN_CEC table",
+        ),
         (
             r#"{ format = "sinumerik", file = "cec.ini", axis_names = ["A1", "B1"] }"#,
             "sim.compensation[0].axis_names",

@@ -137,7 +137,10 @@ fn hil_verification_run_removes_the_positioning_errors() {
                 "z = { from = 0.15, to = 0.95, count = 2 }",
                 "z = { from = 0.15, to = 0.95, count = 3 }",
             );
-        assert!(text.contains("count = 5 }") && text.contains("count = 4 }"), "grid set");
+        assert!(
+            text.contains("count = 5 }") && text.contains("count = 4 }"),
+            "grid set"
+        );
         text
     };
     let one_pass = |text: String| {
@@ -189,7 +192,10 @@ fn hil_verification_run_removes_the_positioning_errors() {
         &with_tables(grid(generous_timeouts(&hil_config("")))),
         &dir.path().join("hil-after"),
     );
-    println!("HIL verification run: {:.1} s", started.elapsed().as_secs_f64());
+    println!(
+        "HIL verification run: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
     let sim_cal = Calibration::load(&sim_after.results_path).expect("sim results");
     let hil_cal = Calibration::load(&hil_after.results_path).expect("HIL results");
     for k in 0..3 {
@@ -215,11 +221,17 @@ fn hil_verification_run_removes_the_positioning_errors() {
                 rms(&va) * 1e6,
                 bound * 1e6
             );
-            assert!(rms(&va) < 0.5 * rms(&vb), "{what} {}: no improvement", POSITIONING[k]);
+            assert!(
+                rms(&va) < 0.5 * rms(&vb),
+                "{what} {}: no improvement",
+                POSITIONING[k]
+            );
         }
     }
     // The HIL session records the tables the world behind the emulator applied.
-    let header = read_session(&hil_after.session_path).expect("session").header;
+    let header = read_session(&hil_after.session_path)
+        .expect("session")
+        .header;
     let machine = header
         .devices
         .iter()

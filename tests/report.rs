@@ -338,7 +338,9 @@ fn verification_report_shows_before_and_after() {
         std::fs::read_to_string(&md).expect("report.md")
     };
     let text = report_md(&[]);
-    let verification = &text[text.find("## Verification run").expect("verification section")..];
+    let verification = &text[text
+        .find("## Verification run")
+        .expect("verification section")..];
     println!("{}", &verification[..verification.len().min(4000)]);
     for expect in [
         "$AN_CEC[0]",
@@ -363,7 +365,10 @@ fn verification_report_shows_before_and_after() {
         // RMS before, max before, RMS after, max after, RMS σ, interpolation, bound.
         assert_eq!(cells.len(), 7, "{row}");
         assert!(cells[2] <= cells[6] && cells[2] < 0.5 * cells[0], "{row}");
-        assert!((cells[6] - (2.0 * cells[4] + cells[5])).abs() < 2e-3, "{row}");
+        assert!(
+            (cells[6] - (2.0 * cells[4] + cells[5])).abs() < 2e-3,
+            "{row}"
+        );
     }
     // Nine panels, each with data: before, after and the table; after and its bound.
     // Each panel's title (a line of its own in plotters' SVG) carries its verdict or bound.
@@ -372,7 +377,10 @@ fn verification_report_shows_before_and_after() {
         ("verification-after", " µm"),
     ] {
         let file = format!("report-{plot}.svg");
-        assert!(verification.contains(&format!("]({file})")), "md lacks {file}");
+        assert!(
+            verification.contains(&format!("]({file})")),
+            "md lacks {file}"
+        );
         let svg = std::fs::read_to_string(md.with_file_name(&file)).expect("plot file");
         assert!(data_marks(&svg) >= 9 * 3, "{plot}: {}", data_marks(&svg));
         let titles = svg
@@ -391,10 +399,16 @@ fn verification_report_shows_before_and_after() {
         page.as_os_str(),
     ]);
     let dom = dom(&page);
-    assert!(dom.contains("id=\"verification\""), "no verification section");
+    assert!(
+        dom.contains("id=\"verification\""),
+        "no verification section"
+    );
     for id in ["verification-before-after", "verification-after"] {
         let plot = figure(&dom, id).unwrap_or_else(|| panic!("plot {id} missing"));
-        assert!(plot.contains("<svg") && data_marks(plot) >= 9 * 3, "{id} without data");
+        assert!(
+            plot.contains("<svg") && data_marks(plot) >= 9 * 3,
+            "{id} without data"
+        );
     }
     let pages = print_pages(&page, dir.path());
     println!("verification report: {pages} pages");
@@ -404,10 +418,7 @@ fn verification_report_shows_before_and_after() {
     );
 
     // Another before file: compared, with a note that the tables did not come from it.
-    let text = report_md(&[
-        "--before".as_ref(),
-        after.join("results.json").as_os_str(),
-    ]);
+    let text = report_md(&["--before".as_ref(), after.join("results.json").as_os_str()]);
     assert!(
         text.contains("the tables did not come from") && text.contains("| EXX |"),
         "--before with another file"
@@ -419,13 +430,19 @@ fn verification_report_shows_before_and_after() {
         text.contains("are not there") && text.contains("--before RESULTS"),
         "missing before results"
     );
-    assert!(!text.contains("| EXX |"), "no comparison without before results");
+    assert!(
+        !text.contains("| EXX |"),
+        "no comparison without before results"
+    );
     // Changed since the tables were made: refused by its SHA-256.
     let mut changed = std::fs::read_to_string(dir.path().join("moved.json")).expect("moved");
     changed.push('\n');
     std::fs::write(before.join("results.json"), changed).expect("write");
     let text = report_md(&[]);
-    assert!(text.contains("changed since the tables were made"), "changed before results");
+    assert!(
+        text.contains("changed since the tables were made"),
+        "changed before results"
+    );
 }
 
 /// The most A4 pages of the demo's verification report (docs/report.md).

@@ -8,7 +8,9 @@ use serde::{Deserialize, Serialize};
 
 use super::sinumerik::{CecTable, Program};
 use super::source::{sha256_hex, Source};
-use super::{input_error, interpolate, load_table, AppliedTable, CompensateError, TableFormat, AXES};
+use super::{
+    input_error, interpolate, load_table, AppliedTable, CompensateError, TableFormat, AXES,
+};
 
 /// A `$AN_CEC` table acting between two machine axes (indices into x, y, z).
 #[derive(Debug, Clone, PartialEq)]
@@ -179,7 +181,12 @@ pub fn describe(
     })
 }
 
-fn axis_record(table: &AppliedTable, axis: usize, file: &Path, controller_axis: &str) -> TableRecord {
+fn axis_record(
+    table: &AppliedTable,
+    axis: usize,
+    file: &Path,
+    controller_axis: &str,
+) -> TableRecord {
     let name = |what: String| TableRecord {
         name: what,
         base_axis: AXES[axis].into(),
@@ -196,7 +203,11 @@ fn axis_record(table: &AppliedTable, axis: usize, file: &Path, controller_axis: 
                 .map(|f| f.to_string_lossy().into_owned())
                 .unwrap_or_default();
             let mut r = name(format!("{file_name} (joint {axis})"));
-            r.positions_m = t.entries.iter().map(|e| e.nominal / t.units_per_m).collect();
+            r.positions_m = t
+                .entries
+                .iter()
+                .map(|e| e.nominal / t.units_per_m)
+                .collect();
             r.deviation_m = t
                 .entries
                 .iter()
@@ -206,7 +217,9 @@ fn axis_record(table: &AppliedTable, axis: usize, file: &Path, controller_axis: 
                 r.half_reversal_m = Some(
                     t.entries
                         .iter()
-                        .map(|e| (f64::from(e.rev_trim) - f64::from(e.fwd_trim)) / 2.0 / t.units_per_m)
+                        .map(|e| {
+                            (f64::from(e.rev_trim) - f64::from(e.fwd_trim)) / 2.0 / t.units_per_m
+                        })
                         .collect(),
                 );
             }
@@ -264,8 +277,14 @@ mod tests {
         assert_eq!((t[0].base, t[0].compensated), (0, 1));
         let c = &t[0].table;
         assert!((c.value_m(0.35) - 1e-6).abs() < 1e-15);
-        assert!((c.value_m(0.0) - 0.0).abs() < 1e-15, "first value before MIN");
-        assert!((c.value_m(2.0) + 4e-6).abs() < 1e-15, "last value beyond MAX");
+        assert!(
+            (c.value_m(0.0) - 0.0).abs() < 1e-15,
+            "first value before MIN"
+        );
+        assert!(
+            (c.value_m(2.0) + 4e-6).abs() < 1e-15,
+            "last value beyond MAX"
+        );
         assert!(c.acts(0.0) && c.acts(-1.0));
         let record = describe(
             TableFormat::Sinumerik,

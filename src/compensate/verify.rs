@@ -172,7 +172,12 @@ fn compare_pair(
     let (lo, hi) = (grid[0], *grid.last().unwrap_or(&grid[0]));
     let mut knots: Vec<f64> = grid.clone();
     for t in tables {
-        knots.extend(t.positions_m.iter().copied().filter(|q| (lo..=hi).contains(q)));
+        knots.extend(
+            t.positions_m
+                .iter()
+                .copied()
+                .filter(|q| (lo..=hi).contains(q)),
+        );
     }
     knots.sort_by(f64::total_cmp);
     knots.dedup();
@@ -181,7 +186,8 @@ fn compare_pair(
         for i in 0..=8 {
             let q = w[0] + (w[1] - w[0]) * f64::from(i) / 8.0;
             if let Some(fitted) = before_curve.at(q) {
-                interpolation_error_m = interpolation_error_m.max((removed(q) - (fitted - zero)).abs());
+                interpolation_error_m =
+                    interpolation_error_m.max((removed(q) - (fitted - zero)).abs());
             }
         }
     }

@@ -286,7 +286,10 @@ impl SimCompensation {
     /// The name the controller's table uses for this entry's axis.
     pub fn controller_axis_name(&self) -> String {
         self.controller_axis.clone().unwrap_or_else(|| {
-            format!("{}1", self.axis.as_deref().unwrap_or_default().to_uppercase())
+            format!(
+                "{}1",
+                self.axis.as_deref().unwrap_or_default().to_uppercase()
+            )
         })
     }
 

@@ -79,7 +79,9 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
         }
     }
     if comparisons.is_empty() {
-        return Ok(vec![section.paragraph("No compensated error could be compared.")]);
+        return Ok(vec![
+            section.paragraph("No compensated error could be compared.")
+        ]);
     }
     let passed = comparisons.iter().filter(|c| c.passes()).count();
     section = section
@@ -93,7 +95,10 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
                     before.source_sha256
                 ),
             ),
-            ("after".into(), format!("this run (session {})", after.session_id)),
+            (
+                "after".into(),
+                format!("this run (session {})", after.session_id),
+            ),
             (
                 "verdict".into(),
                 format!(
@@ -115,7 +120,10 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
                 .into(),
             svg: panels_svg(
                 "Before and after compensation",
-                &comparisons.iter().map(before_after_panel).collect::<Vec<_>>(),
+                &comparisons
+                    .iter()
+                    .map(before_after_panel)
+                    .collect::<Vec<_>>(),
                 3,
             )?,
         })
@@ -142,7 +150,10 @@ fn applied_files(machine: &DeviceInfo) -> (Vec<AppliedFile>, Vec<String>) {
         .get("compensation_applied")
         .and_then(|v| v.as_array())
     else {
-        return (files, vec!["the session header has no `compensation_applied`".into()]);
+        return (
+            files,
+            vec!["the session header has no `compensation_applied`".into()],
+        );
     };
     for v in list {
         match serde_json::from_value::<AppliedFile>(v.clone()) {
@@ -366,7 +377,12 @@ fn after_panel(c: &Comparison) -> Panel {
         vec![(first, v), (last, v)]
     };
     Panel {
-        title: format!("{} after: RMS {:.3} µm, bound {:.3} µm", c.name, um(c.rms_after_m()), bound),
+        title: format!(
+            "{} after: RMS {:.3} µm, bound {:.3} µm",
+            c.name,
+            um(c.rms_after_m()),
+            bound
+        ),
         x_label: format!("{} [m]", AXES[c.base]),
         y_label: "µm".into(),
         series: vec![

@@ -119,7 +119,11 @@ mod tests {
         };
         let j = c.joint_positions_m([0.5, 0.3, 2.0]);
         // x 0.5 m: +5 µm; z beyond the table: its last value, +10 µm; encoder +2 µm.
-        assert!((j[1] - (0.3 - 5e-6 - 10e-6 - 2e-6)).abs() < 1e-12, "{}", j[1]);
+        assert!(
+            (j[1] - (0.3 - 5e-6 - 10e-6 - 2e-6)).abs() < 1e-12,
+            "{}",
+            j[1]
+        );
         assert_eq!((j[0], j[2]), (0.5, 2.0));
         // A table for the − direction of x acts only after x moved −.
         c.cross[0].table.direction = -1;
