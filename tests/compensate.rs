@@ -449,6 +449,16 @@ fn cross_table_entries_are_checked_by_key() {
             "sim.compensation[1].format",
             "one controller",
         ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini" }, { format = "sinumerik", file = "cec.ini" }"#,
+            "sim.compensation[1].file",
+            "act twice",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini", controller_axis = "Y1" }"#,
+            "sim.compensation[0].controller_axis",
+            "axis_names",
+        ),
     ] {
         let e = parse(entries).unwrap_err().to_string();
         assert!(e.contains(key) && e.contains(expect), "{entries}: {e}");
@@ -774,6 +784,23 @@ fn geocal_compensate_writes_the_files_and_names_bad_arguments() {
     for f in ["comp-x.txt", "comp-y.txt", "comp-z.txt", "compensation.ini"] {
         assert!(out.join(f).is_file(), "{f}");
     }
+    // Beside the tables and in their description: the results they came from, by SHA-256.
+    let sha = geocal::compensate::source::sha256_hex(&std::fs::read(&results).expect("results"));
+    let source =
+        geocal::compensate::source::Source::load(&out.join("geocal-source.json")).expect("sidecar");
+    assert_eq!(
+        (source.results_sha256.as_str(), source.session_id.as_str()),
+        (sha.as_str(), "synthetic")
+    );
+    assert_eq!(
+        source.results,
+        std::fs::canonicalize(&results).expect("path")
+    );
+    let ini = std::fs::read_to_string(out.join("compensation.ini")).expect("ini");
+    assert!(
+        ini.contains(&format!("# source results SHA-256: {sha}")),
+        "{ini}"
+    );
     let o = geocal(&["--format", "csv"]);
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("EXX,x,"));
     for (args, expect) in [

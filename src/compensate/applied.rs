@@ -321,6 +321,33 @@ mod tests {
     }
 
     #[test]
+    fn a_linuxcnc_record_holds_minus_the_mean_trim_and_half_the_reversal() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        let file = dir.path().join("comp-x.txt");
+        // Type 1 trims in mm: forward −0.011, reverse −0.009 at 100 mm.
+        std::fs::write(&file, "0 0 0\n100 -0.011 -0.009\n").expect("write");
+        let r = describe(
+            TableFormat::LinuxcncType1,
+            &file,
+            Selection::Axis {
+                axis: 0,
+                controller_axis: "X1",
+            },
+        )
+        .expect("record");
+        let t = &r.tables[0];
+        assert_eq!((t.base(), t.compensated()), (Some(0), Some(0)));
+        assert!(
+            (t.deviation_at(0.1) - 10e-6).abs() < 1e-12,
+            "{:?}",
+            t.deviation_m
+        );
+        let half = t.half_reversal_m.as_ref().expect("columns differ");
+        assert!((half[1] - 1e-6).abs() < 1e-12, "{half:?}");
+        assert_eq!(t.step_m(), Some(0.1));
+    }
+
+    #[test]
     fn a_direction_dependent_table_acts_in_its_direction_only() {
         let t = CecTable {
             values_mm: vec![0.0, 1.0],

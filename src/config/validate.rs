@@ -485,9 +485,25 @@ fn validate_compensation(tables: &[super::sim::SimCompensation]) -> Result<(), I
     use crate::compensate::TableFormat;
     let mut axis_tables = BTreeMap::new();
     let mut cross_targets = BTreeMap::new();
+    let mut cross_files = BTreeMap::new();
     for (i, c) in tables.iter().enumerate() {
         let key = format!("sim.compensation[{i}]");
         if c.is_cross() {
+            if c.controller_axis.is_some() {
+                return fail(
+                    &format!("{key}.controller_axis"),
+                    "only for an axis's $AA_ENC_COMP table: the $AN_CEC tables name their axes \
+                     (map them with `axis_names`)",
+                );
+            }
+            if let Some(j) = cross_files.insert(c.file.clone(), i) {
+                return fail(
+                    &format!("{key}.file"),
+                    format!(
+                        "the same $AN_CEC file as sim.compensation[{j}]: its tables would act twice"
+                    ),
+                );
+            }
             if let Some(names) = &c.axis_names {
                 if names.len() != 3 || names.iter().any(|n| n.trim().is_empty()) {
                     return fail(
