@@ -247,7 +247,8 @@ fn before_results(
                 format!(
                     "Note: the tables were made from {} (session {session}, SHA-256 {sha}); the \
                      before results given with --before are another file (SHA-256 {}): the \
-                     comparison is against a calibration the tables did not come from.",
+                     comparison is against a calibration the tables did not come from, and the \
+                     interpolation error includes their difference.",
                     p.display(),
                     calibration.source_sha256
                 )
