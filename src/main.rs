@@ -84,6 +84,10 @@ enum Command {
         /// html (one self-contained file) or md (Markdown, plots as SVG files beside it).
         #[arg(long, value_enum, default_value = "html")]
         format: ReportFormat,
+        /// A verification run: the results the tables were made from, instead of the file
+        /// named by the `geocal-source.json` beside the tables.
+        #[arg(long, value_name = "RESULTS")]
+        before: Option<std::path::PathBuf>,
     },
     /// Copy every readable message of a truncated or damaged session into a complete MCAP
     /// file (summary, indexes, CRCs) and print what was lost (docs/repair.md).
@@ -414,8 +418,14 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             let report = geocal::session::repair::repair(&session, &out)?;
             print!("{}", geocal::session::repair::text(&report));
         }
-        Command::Report { input, out, format } => {
-            let inputs = geocal::report::Inputs::read(&input)?;
+        Command::Report {
+            input,
+            out,
+            format,
+            before,
+        } => {
+            let mut inputs = geocal::report::Inputs::read(&input)?;
+            inputs.before_results = before;
             let document = geocal::report::build(&inputs, &kinds)?;
             let (format, default_name) = match format {
                 ReportFormat::Html => (geocal::report::Format::Html, "report.html"),
@@ -743,6 +753,11 @@ fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
                 write(&path, &f.text)?;
                 eprintln!("wrote {}", path.display());
             }
+            // Beside the tables: the results they came from, for a verification run's report.
+            let source = compensate::source::Source::new(&calibration, format, &export.steps);
+            let path = dir.join(compensate::source::SOURCE_FILE);
+            write(&path, &source.to_json())?;
+            eprintln!("wrote {}", path.display());
         }
     }
     Ok(())

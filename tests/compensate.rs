@@ -7,7 +7,7 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use geocal::compensate::linuxcnc::{CompTable, CompType};
-use geocal::compensate::sinumerik::{Program, SinumerikOptions};
+use geocal::compensate::sinumerik::{CecTable, Program, SinumerikOptions};
 use geocal::compensate::{
     export, table, Calibration, Export, ExportOptions, TableFormat, AXES, POSITIONING,
 };
@@ -231,6 +231,238 @@ fn closed_loop_tables_remove_the_positioning_errors() {
         rms(&b[0].0) * 1e6
     );
     assert!(rms(vw) > 1.5 * rms(&b[0].0), "a wrong sign must show");
+}
+
+/// The cross pairs (base, compensated) a SINUMERIK export tables.
+const CROSS_PAIRS: [(usize, usize); 6] = [(0, 1), (0, 2), (1, 0), (1, 2), (2, 0), (2, 1)];
+
+/// Values and sigmas of the cross deviation `compensated` on `base` (straightness with the
+/// squareness of the pair, as the `$AN_CEC` table holds it).
+fn cross_curve(cal: &Calibration, base: usize, compensated: usize) -> (Vec<f64>, Vec<f64>) {
+    let c = cal.cross(base, compensated).expect("identifiable");
+    (
+        c.values.iter().map(|v| v.expect("value")).collect(),
+        c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect(),
+    )
+}
+
+/// The largest departure of an equally spaced table (mm) from `cal`'s curve of the pair,
+/// shifted to zero at the first grid position, sampled finely over the calibrated travel.
+fn table_departure(cal: &Calibration, base: usize, compensated: usize, table: &CecTable) -> f64 {
+    let curve = cal.cross(base, compensated).expect("identifiable");
+    let (lo, hi) = (
+        curve.positions_m[0],
+        *curve.positions_m.last().expect("grid"),
+    );
+    let zero = curve.at(lo).expect("value");
+    (0..=4000)
+        .map(|i| lo + (hi - lo) * f64::from(i) / 4000.0)
+        .map(|q| {
+            let u = (q * 1e3 - table.min_mm) / table.step_mm;
+            let n = (u.floor() as usize).min(table.values_mm.len() - 2);
+            let f = u - n as f64;
+            let v = table.values_mm[n] + f * (table.values_mm[n + 1] - table.values_mm[n]);
+            (v * 1e-3 - (curve.at(q).expect("value") - zero)).abs()
+        })
+        .fold(0.0, f64::max)
+}
+
+#[test]
+fn closed_loop_cross_tables_remove_straightness_and_squareness() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let base = common::DEMO.to_string();
+    let cal = Calibration::load(&calibrate(&base, &dir.path().join("before"))).expect("results");
+    let sin = SinumerikOptions::default();
+    let tables = dir.path().join("sinumerik");
+    let e = export(
+        &cal,
+        TableFormat::Sinumerik,
+        &ExportOptions::default(),
+        &sin,
+    )
+    .expect("export");
+    write_all(&e, &tables);
+    let cec_file = tables.join("cec.ini");
+    let cec = Program::parse(&std::fs::read_to_string(&cec_file).expect("cec"), &cec_file)
+        .expect("program")
+        .cec_tables(&cec_file)
+        .expect("tables");
+    assert_eq!(
+        cec.len(),
+        6,
+        "every straightness of the demo is identifiable"
+    );
+    let axis_of = |name: &str| {
+        ["X1", "Y1", "Z1"]
+            .iter()
+            .position(|n| *n == name)
+            .expect("axis")
+    };
+    let interp: Vec<f64> = CROSS_PAIRS
+        .iter()
+        .map(|&(b, c)| {
+            let t = cec
+                .iter()
+                .find(|t| axis_of(&t.input_axis) == b && axis_of(&t.output_axis) == c)
+                .expect("a table for every pair");
+            table_departure(&cal, b, c, t)
+        })
+        .collect();
+
+    // Every SINUMERIK table: the encoder tables of x, y, z and the cross tables.
+    let verify = |cec: &Path, out: &str| {
+        let eec = tables.join("eec.ini");
+        let text = format!(
+            "{base}noise_seed = 4242\ncompensation = [\n\
+             {{ format = \"sinumerik\", file = \"{e}\", axis = \"x\" }},\n\
+             {{ format = \"sinumerik\", file = \"{e}\", axis = \"y\" }},\n\
+             {{ format = \"sinumerik\", file = \"{e}\", axis = \"z\" }},\n\
+             {{ format = \"sinumerik\", file = \"{c}\" }},\n]\n",
+            e = eec.display(),
+            c = cec.display()
+        );
+        Calibration::load(&calibrate(&text, &dir.path().join(out))).expect("results after")
+    };
+    let after = verify(&cec_file, "after");
+    for (k, &(b, c)) in CROSS_PAIRS.iter().enumerate() {
+        let ((vb, sb), (va, sa)) = (cross_curve(&cal, b, c), cross_curve(&after, b, c));
+        let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
+        let bound = 2.0 * rms(&sigma) + interp[k];
+        println!(
+            "{} on {}: RMS before {:.3} µm, after {:.3} µm; RMS σ {:.3} µm (before {:.3}, after \
+             {:.3}); interpolation error {:.4} µm; bound {:.3} µm",
+            AXES[c],
+            AXES[b],
+            rms(&vb) * 1e6,
+            rms(&va) * 1e6,
+            rms(&sigma) * 1e6,
+            rms(&sb) * 1e6,
+            rms(&sa) * 1e6,
+            interp[k] * 1e6,
+            bound * 1e6
+        );
+        assert!(
+            rms(&va) <= bound,
+            "{} on {}: RMS {:.4} µm left, bound 2σ + interpolation = {:.4} µm",
+            AXES[c],
+            AXES[b],
+            rms(&va) * 1e6,
+            bound * 1e6
+        );
+        assert!(
+            rms(&va) < 0.5 * rms(&vb),
+            "{} on {}: no improvement",
+            AXES[c],
+            AXES[b]
+        );
+    }
+    // The encoder tables act alongside.
+    let (b, a) = (positioning(&cal), positioning(&after));
+    for k in 0..3 {
+        println!(
+            "{}: RMS before {:.3} µm, after {:.3} µm",
+            POSITIONING[k],
+            rms(&b[k].0) * 1e6,
+            rms(&a[k].0) * 1e6
+        );
+        assert!(rms(&a[k].0) < 0.5 * rms(&b[k].0), "{}", POSITIONING[k]);
+    }
+
+    // Cross tables of the wrong sign double the errors instead of removing them.
+    let flipped: String = std::fs::read_to_string(&cec_file)
+        .expect("cec")
+        .lines()
+        .map(
+            |l| match l.strip_prefix("$AN_CEC[").and_then(|r| r.split_once("]=")) {
+                Some((index, v)) => {
+                    let v: f64 = v.parse().expect("number");
+                    format!("$AN_CEC[{index}]={:.6}\n", -v)
+                }
+                None => format!("{l}\n"),
+            },
+        )
+        .collect();
+    let flipped_file = tables.join("cec-flipped.ini");
+    std::fs::write(&flipped_file, flipped).expect("write");
+    let wrong = verify(&flipped_file, "wrong");
+    for &(b, c) in &CROSS_PAIRS {
+        let (vb, vw) = (cross_curve(&cal, b, c).0, cross_curve(&wrong, b, c).0);
+        println!(
+            "{} on {} with the wrong sign: RMS {:.3} µm (before {:.3} µm)",
+            AXES[c],
+            AXES[b],
+            rms(&vw) * 1e6,
+            rms(&vb) * 1e6
+        );
+        assert!(
+            rms(&vw) > 1.5 * rms(&vb),
+            "{} on {}: a wrong sign must show",
+            AXES[c],
+            AXES[b]
+        );
+    }
+}
+
+#[test]
+fn cross_table_entries_are_checked_by_key() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let cec = "$AN_CEC[0,0]=0.0\n$AN_CEC[0,1]=0.001\n$AN_CEC_INPUT_AXIS[0]=(X1)\n\
+               $AN_CEC_OUTPUT_AXIS[0]=(Y1)\n$AN_CEC_STEP[0]=100.0\n$AN_CEC_MIN[0]=0.0\n\
+               $AN_CEC_MAX[0]=100.0\nM17\n";
+    std::fs::write(dir.path().join("cec.ini"), cec).expect("write");
+    std::fs::write(
+        dir.path().join("eec.ini"),
+        "$AA_ENC_COMP[0,0,Y1]=0.0\n$AA_ENC_COMP[0,1,Y1]=0.001\n$AA_ENC_COMP_STEP[0,Y1]=100.0\n\
+         $AA_ENC_COMP_MIN[0,Y1]=0.0\n$AA_ENC_COMP_MAX[0,Y1]=100.0\nM17\n",
+    )
+    .expect("write");
+    std::fs::write(dir.path().join("comp-y.txt"), "0 0 0\n100 0.001 0.001\n").expect("write");
+    let parse = |entries: &str| {
+        let text = format!("{}compensation = [{entries}]\n", common::DEMO);
+        geocal::config::Config::parse(&text, &dir.path().join("c.toml")).map(|_| ())
+    };
+    parse(r#"{ format = "sinumerik", file = "cec.ini" }, { format = "sinumerik", file = "eec.ini", axis = "y" }"#)
+        .expect("cross and encoder tables of one controller");
+    for (entries, key, expect) in [
+        (
+            r#"{ format = "linuxcnc-type1", file = "comp-y.txt" }"#,
+            "sim.compensation[0].axis",
+            "missing",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "eec.ini" }"#,
+            "sim.compensation[0].file",
+            "no $AN_CEC table",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini", axis_names = ["A1", "B1"] }"#,
+            "sim.compensation[0].axis_names",
+            "3 machine axis names",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini", axis_names = ["X2", "Y2", "Z2"] }"#,
+            "sim.compensation[0].file",
+            "input axis `X1`",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini" }, { format = "linuxcnc-type1", file = "comp-y.txt", axis = "y" }"#,
+            "sim.compensation[1].format",
+            "one controller",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini" }, { format = "sinumerik", file = "cec.ini" }"#,
+            "sim.compensation[1].file",
+            "act twice",
+        ),
+        (
+            r#"{ format = "sinumerik", file = "cec.ini", controller_axis = "Y1" }"#,
+            "sim.compensation[0].controller_axis",
+            "axis_names",
+        ),
+    ] {
+        let e = parse(entries).unwrap_err().to_string();
+        assert!(e.contains(key) && e.contains(expect), "{entries}: {e}");
+    }
 }
 
 #[test]
@@ -552,6 +784,23 @@ fn geocal_compensate_writes_the_files_and_names_bad_arguments() {
     for f in ["comp-x.txt", "comp-y.txt", "comp-z.txt", "compensation.ini"] {
         assert!(out.join(f).is_file(), "{f}");
     }
+    // Beside the tables and in their description: the results they came from, by SHA-256.
+    let sha = geocal::compensate::source::sha256_hex(&std::fs::read(&results).expect("results"));
+    let source =
+        geocal::compensate::source::Source::load(&out.join("geocal-source.json")).expect("sidecar");
+    assert_eq!(
+        (source.results_sha256.as_str(), source.session_id.as_str()),
+        (sha.as_str(), "synthetic")
+    );
+    assert_eq!(
+        source.results,
+        std::fs::canonicalize(&results).expect("path")
+    );
+    let ini = std::fs::read_to_string(out.join("compensation.ini")).expect("ini");
+    assert!(
+        ini.contains(&format!("# source results SHA-256: {sha}")),
+        "{ini}"
+    );
     let o = geocal(&["--format", "csv"]);
     assert!(o.status.success() && String::from_utf8_lossy(&o.stdout).contains("EXX,x,"));
     for (args, expect) in [

@@ -6,8 +6,11 @@
 mod common;
 
 use common::{
-    assert_recovers_truth, faults, generous_timeouts, hil_config, run_with_truth, HIL_FAULTS,
+    assert_recovers_truth, faults, generous_timeouts, hil_config, run_with_truth, small_demo,
+    HIL_FAULTS,
 };
+use geocal::compensate::sinumerik::SinumerikOptions;
+use geocal::compensate::{export, Calibration, ExportOptions, TableFormat, POSITIONING};
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 
@@ -95,5 +98,148 @@ fn hil_run_with_faults_completes_and_recovers_truth() {
     println!(
         "windows repeated after the beam break: {}",
         results.extraction.windows_repeated
+    );
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+/// Positioning values and sigmas of axis `k`.
+fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
+    let c = cal.positioning(k).expect("positioning");
+    (
+        c.values.iter().map(|v| v.expect("value")).collect(),
+        c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect(),
+    )
+}
+
+/// The verification run over the emulators: a small plan calibrated in virtual time (the
+/// same truth machine: seed, structure, travel), its tables (x LinuxCNC type 1, y type 0, z
+/// SINUMERIK) applied by the world behind the GRBL emulator, and the HIL run's positioning
+/// errors within 2σ + the interpolation error, as the virtual-time verification's are.
+#[test]
+fn hil_verification_run_removes_the_positioning_errors() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    // The smallest grid of the small demo's that the 21-error decomposition takes (at most
+    // half as many unknowns as equations: 5 x 4 x 3 positions, 60 points), one pass.
+    let grid = |text: String| {
+        let text = text
+            .replace(
+                "x = { from = 0.1, to = 1.3, count = 3 }",
+                "x = { from = 0.1, to = 1.3, count = 5 }",
+            )
+            .replace(
+                "y = { from = 0.2, to = 2.2, count = 3 }",
+                "y = { from = 0.2, to = 2.2, count = 4 }",
+            )
+            .replace(
+                "z = { from = 0.15, to = 0.95, count = 2 }",
+                "z = { from = 0.15, to = 0.95, count = 3 }",
+            );
+        assert!(
+            text.contains("count = 5 }") && text.contains("count = 4 }"),
+            "grid set"
+        );
+        text
+    };
+    let one_pass = |text: String| {
+        grid(text.replace(
+            "passes = [\"forward\", \"backward\"]",
+            "passes = [\"forward\"]",
+        ))
+    };
+    let (before, _) = run_with_truth(&one_pass(small_demo()), &dir.path().join("before"));
+    let cal = Calibration::load(&before.results_path).expect("results");
+    let tables = dir.path().join("tables");
+    let sin = SinumerikOptions::default();
+    let mut interp = [0.0; 3];
+    for (k, format, sub) in [
+        (0, TableFormat::LinuxcncType1, "lx"),
+        (1, TableFormat::LinuxcncType0, "ly"),
+        (2, TableFormat::Sinumerik, "sz"),
+    ] {
+        let options = ExportOptions {
+            axes: vec![k],
+            ..Default::default()
+        };
+        let e = export(&cal, format, &options, &sin).expect("export");
+        interp[k] = e.steps[0].interpolation_error_m;
+        std::fs::create_dir_all(tables.join(sub)).expect("dir");
+        for f in &e.files {
+            std::fs::write(tables.join(sub).join(&f.name), &f.text).expect("write");
+        }
+    }
+    let compensation = format!(
+        "[sim]\nnoise_seed = 4242\ncompensation = [\n\
+         {{ format = \"linuxcnc-type1\", file = \"{}\", axis = \"x\" }},\n\
+         {{ format = \"linuxcnc-type0\", file = \"{}\", axis = \"y\" }},\n\
+         {{ format = \"sinumerik\", file = \"{}\", axis = \"z\" }},\n]\n",
+        tables.join("lx/comp-x.txt").display(),
+        tables.join("ly/comp-y.txt").display(),
+        tables.join("sz/eec.ini").display()
+    );
+    let with_tables = |text: String| {
+        assert_eq!(text.matches("[sim]\n").count(), 1, "one [sim] table");
+        text.replace("[sim]\n", &compensation)
+    };
+    let (sim_after, _) = run_with_truth(
+        &with_tables(one_pass(small_demo())),
+        &dir.path().join("sim-after"),
+    );
+    let started = std::time::Instant::now();
+    let (hil_after, _) = run_with_truth(
+        &with_tables(grid(generous_timeouts(&hil_config("")))),
+        &dir.path().join("hil-after"),
+    );
+    println!(
+        "HIL verification run: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    let sim_cal = Calibration::load(&sim_after.results_path).expect("sim results");
+    let hil_cal = Calibration::load(&hil_after.results_path).expect("HIL results");
+    for k in 0..3 {
+        let (vb, sb) = positioning(&cal, k);
+        for (what, after) in [("sim", &sim_cal), ("HIL", &hil_cal)] {
+            let (va, sa) = positioning(after, k);
+            let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
+            let bound = 2.0 * rms(&sigma) + interp[k];
+            println!(
+                "{what} {}: RMS before {:.3} µm, after {:.3} µm; RMS σ {:.3} µm; \
+                 interpolation error {:.2e} µm; bound {:.3} µm",
+                POSITIONING[k],
+                rms(&vb) * 1e6,
+                rms(&va) * 1e6,
+                rms(&sigma) * 1e6,
+                interp[k] * 1e6,
+                bound * 1e6
+            );
+            assert!(
+                rms(&va) <= bound,
+                "{what} {}: RMS {:.4} µm left, bound {:.4} µm",
+                POSITIONING[k],
+                rms(&va) * 1e6,
+                bound * 1e6
+            );
+            assert!(
+                rms(&va) < 0.5 * rms(&vb),
+                "{what} {}: no improvement",
+                POSITIONING[k]
+            );
+        }
+    }
+    // The HIL session records the tables the world behind the emulator applied.
+    let header = read_session(&hil_after.session_path)
+        .expect("session")
+        .header;
+    let machine = header
+        .devices
+        .iter()
+        .find(|d| d.kind == "machine")
+        .expect("machine device");
+    let applied = machine.extra["compensation_applied"].to_string();
+    assert!(
+        applied.contains("comp-x.txt") && applied.contains("$AA_ENC_COMP"),
+        "{applied}"
     );
 }

@@ -271,3 +271,179 @@ fn reports_of_every_example_config_load_draw_and_print() {
         );
     }
 }
+
+/// The closed loop through the command line: the demo calibrated, its SINUMERIK tables
+/// (encoder and cross) exported and applied, the same plan run again; the verification run's
+/// report shows the tables, before vs after with ±2σ and each verdict, in HTML and Markdown,
+/// within its page limit (docs/report.md). A before-results file that is gone or another
+/// one is a message in the report, not a failure.
+#[test]
+fn verification_report_shows_before_and_after() {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let before = dir.path().join("before");
+    let demo = root.join("config").join("demo-multilateration.toml");
+    geocal(&[
+        "run".as_ref(),
+        demo.as_os_str(),
+        "--out".as_ref(),
+        before.as_os_str(),
+    ]);
+    let tables = dir.path().join("tables");
+    geocal(&[
+        "compensate".as_ref(),
+        before.join("results.json").as_os_str(),
+        "--format".as_ref(),
+        "sinumerik".as_ref(),
+        "--out".as_ref(),
+        tables.as_os_str(),
+    ]);
+    let sidecar = std::fs::read_to_string(tables.join("geocal-source.json")).expect("sidecar");
+    assert!(sidecar.contains("results_sha256"), "{sidecar}");
+    let config = dir.path().join("verify.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "{}noise_seed = 4242\ncompensation = [\n\
+             {{ format = \"sinumerik\", file = \"tables/eec.ini\", axis = \"x\" }},\n\
+             {{ format = \"sinumerik\", file = \"tables/eec.ini\", axis = \"y\" }},\n\
+             {{ format = \"sinumerik\", file = \"tables/eec.ini\", axis = \"z\" }},\n\
+             {{ format = \"sinumerik\", file = \"tables/cec.ini\" }},\n]\n",
+            std::fs::read_to_string(&demo).expect("demo config")
+        ),
+    )
+    .expect("write config");
+    let after = dir.path().join("after");
+    geocal(&[
+        "run".as_ref(),
+        config.as_os_str(),
+        "--out".as_ref(),
+        after.as_os_str(),
+    ]);
+
+    // Markdown: the section, its tables and the plot file with data.
+    let md = dir.path().join("md").join("report.md");
+    std::fs::create_dir_all(md.parent().expect("dir")).expect("md dir");
+    let report_md = |extra: &[&std::ffi::OsStr]| {
+        let mut args: Vec<&std::ffi::OsStr> = vec![
+            "report".as_ref(),
+            after.as_os_str(),
+            "--format".as_ref(),
+            "md".as_ref(),
+            "--out".as_ref(),
+            md.as_os_str(),
+        ];
+        args.extend_from_slice(extra);
+        geocal(&args);
+        std::fs::read_to_string(&md).expect("report.md")
+    };
+    let text = report_md(&[]);
+    let verification = &text[text
+        .find("## Verification run")
+        .expect("verification section")..];
+    println!("{}", &verification[..verification.len().min(4000)]);
+    for expect in [
+        "$AN_CEC[0]",
+        "$AA_ENC_COMP[0,…,X1]",
+        "| EXX |",
+        "EXY − EC0Y·y",
+        "9 of 9 compensated errors within 2σ + interpolation error: pass",
+    ] {
+        assert!(verification.contains(expect), "Markdown lacks `{expect}`");
+    }
+    // Every compared error's row ends with its verdict; the numbers behind it are the table's.
+    let rows: Vec<&str> = verification
+        .lines()
+        .filter(|l| l.ends_with("| pass |") || l.ends_with("| FAIL |"))
+        .collect();
+    assert_eq!(rows.len(), 9, "{rows:#?}");
+    for row in &rows {
+        let cells: Vec<f64> = row
+            .split('|')
+            .filter_map(|c| c.trim().parse().ok())
+            .collect();
+        // RMS before, max before, RMS after, max after, RMS σ, interpolation, bound.
+        assert_eq!(cells.len(), 7, "{row}");
+        assert!(cells[2] <= cells[6] && cells[2] < 0.5 * cells[0], "{row}");
+        assert!(
+            (cells[6] - (2.0 * cells[4] + cells[5])).abs() < 2e-3,
+            "{row}"
+        );
+    }
+    // Nine panels, each with data: before, after and the table; after and its bound.
+    // Each panel's title (a line of its own in plotters' SVG) carries its verdict or bound.
+    for (plot, title) in [
+        ("verification-before-after", ": pass"),
+        ("verification-after", " µm"),
+    ] {
+        let file = format!("report-{plot}.svg");
+        assert!(
+            verification.contains(&format!("]({file})")),
+            "md lacks {file}"
+        );
+        let svg = std::fs::read_to_string(md.with_file_name(&file)).expect("plot file");
+        assert!(data_marks(&svg) >= 9 * 3, "{plot}: {}", data_marks(&svg));
+        let titles = svg
+            .lines()
+            .filter(|l| l.ends_with(title) && (l.starts_with('E') || l.contains(", bound ")))
+            .count();
+        assert_eq!(titles, 9, "{plot}: panel titles");
+    }
+
+    // HTML in the browser: the section, the plot with data, the page limit.
+    let page = dir.path().join("report.html");
+    geocal(&[
+        "report".as_ref(),
+        after.as_os_str(),
+        "--out".as_ref(),
+        page.as_os_str(),
+    ]);
+    let dom = dom(&page);
+    assert!(
+        dom.contains("id=\"verification\""),
+        "no verification section"
+    );
+    for id in ["verification-before-after", "verification-after"] {
+        let plot = figure(&dom, id).unwrap_or_else(|| panic!("plot {id} missing"));
+        assert!(
+            plot.contains("<svg") && data_marks(plot) >= 9 * 3,
+            "{id} without data"
+        );
+    }
+    let pages = print_pages(&page, dir.path());
+    println!("verification report: {pages} pages");
+    assert!(
+        (1..=VERIFICATION_MAX_PAGES).contains(&pages),
+        "printed to {pages} A4 pages, docs/report.md allows {VERIFICATION_MAX_PAGES}"
+    );
+
+    // Another before file: compared, with a note that the tables did not come from it.
+    let text = report_md(&["--before".as_ref(), after.join("results.json").as_os_str()]);
+    assert!(
+        text.contains("the tables did not come from") && text.contains("| EXX |"),
+        "--before with another file"
+    );
+    // The before results gone: a message in the report, no comparison.
+    std::fs::rename(before.join("results.json"), dir.path().join("moved.json")).expect("move");
+    let text = report_md(&[]);
+    assert!(
+        text.contains("are not there") && text.contains("--before RESULTS"),
+        "missing before results"
+    );
+    assert!(
+        !text.contains("| EXX |"),
+        "no comparison without before results"
+    );
+    // Changed since the tables were made: refused by its SHA-256.
+    let mut changed = std::fs::read_to_string(dir.path().join("moved.json")).expect("moved");
+    changed.push('\n');
+    std::fs::write(before.join("results.json"), changed).expect("write");
+    let text = report_md(&[]);
+    assert!(
+        text.contains("changed since the tables were made"),
+        "changed before results"
+    );
+}
+
+/// The most A4 pages of the demo's verification report (docs/report.md).
+const VERIFICATION_MAX_PAGES: usize = 7;

@@ -6,9 +6,12 @@
 //! the workpiece branch (docs/kinematics.md). Sign conventions are each format's own
 //! (docs/compensation.md).
 
+pub mod applied;
 pub mod linuxcnc;
 pub mod sinumerik;
+pub mod source;
 pub mod table;
+pub mod verify;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -151,6 +154,8 @@ pub fn interpolate(xs: &[f64], ys: &[f64], x: f64) -> f64 {
 #[derive(Debug, Clone)]
 pub struct Calibration {
     pub source: PathBuf,
+    /// SHA-256 of the results file's bytes: ties the tables to the calibration they came from.
+    pub source_sha256: String,
     pub session_id: String,
     pub structure: String,
     /// Per axis x, y, z: on the workpiece branch (left of F)?
@@ -312,6 +317,7 @@ impl Calibration {
         };
         Ok(Calibration {
             source: path.to_path_buf(),
+            source_sha256: source::sha256_hex(text.as_bytes()),
             session_id: results.session_id,
             structure: structure.as_str().to_string(),
             workpiece_branch,
@@ -355,7 +361,9 @@ impl Calibration {
 
     /// The tool-to-workpiece deviation along `comp` while `base` moves (straightness of the
     /// base axis, branch-signed, plus the squareness between the two), metres on the base
-    /// axis's grid; None when a part of it is not identifiable.
+    /// axis's grid; None when a part of it is not identifiable. Its σ combines the
+    /// straightness's and the squareness's as if independent (the results hold no covariance
+    /// between them).
     pub fn cross(&self, base: usize, comp: usize) -> Option<Curve> {
         let iso = format!(
             "E{}{}",
@@ -366,11 +374,15 @@ impl Calibration {
         let s = self.branch_sign(base);
         // Squareness (docs/kinematics.md): moving +y by L shifts x by −EC0Y·L, moving +z by
         // L shifts y by −EA0Z·L and x by +EB0Z·L; it acts alike on both branches.
-        let slope = match (base, comp) {
-            (1, 0) => -self.squareness_rad.get("EC0Y")?.0?,
-            (2, 1) => -self.squareness_rad.get("EA0Z")?.0?,
-            (2, 0) => self.squareness_rad.get("EB0Z")?.0?,
-            _ => 0.0,
+        let squareness = |name: &str, sign: f64| {
+            let (value, sigma) = self.squareness_rad.get(name)?;
+            Some((sign * (*value)?, sigma.unwrap_or(0.0)))
+        };
+        let (slope, slope_sigma) = match (base, comp) {
+            (1, 0) => squareness("EC0Y", -1.0)?,
+            (2, 1) => squareness("EA0Z", -1.0)?,
+            (2, 0) => squareness("EB0Z", 1.0)?,
+            _ => (0.0, 0.0),
         };
         let q0 = curve.positions_m[0];
         let values = curve
@@ -382,8 +394,15 @@ impl Calibration {
         if values.iter().any(Option::is_none) {
             return None;
         }
+        let sigma = curve
+            .sigma
+            .iter()
+            .zip(&curve.positions_m)
+            .map(|(sg, q)| sg.map(|sg| sg.hypot(slope_sigma * (q - q0))))
+            .collect();
         Some(Curve {
             values,
+            sigma,
             ..curve.clone()
         })
     }
@@ -461,7 +480,7 @@ pub fn interpolation_error(curve: &Curve, nodes_m: &[f64], node_values: &[f64]) 
 
 /// The statement every table carries about its step, and the warning when the step is
 /// coarser than the calibration can see.
-#[derive(Debug, Clone, Serialize, PartialEq)]
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct StepReport {
     pub axis: String,
     pub step_m: f64,
@@ -469,7 +488,7 @@ pub struct StepReport {
     pub interpolation_error_m: f64,
     /// RMS σ of the fitted curve (datum values left out).
     pub sigma_m: f64,
-    #[serde(skip_serializing_if = "Option::is_none")]
+    #[serde(default, skip_serializing_if = "Option::is_none")]
     pub warning: Option<String>,
 }
 
@@ -637,6 +656,7 @@ pub(crate) fn common_header(calibration: &Calibration, format: TableFormat) -> V
             format.name(),
             calibration.source.display()
         ),
+        format!("source results SHA-256: {}", calibration.source_sha256),
         format!(
             "source session: {}; structure {}; {}",
             calibration.session_id,

@@ -194,20 +194,7 @@ impl EncCompTable {
     /// The compensation value at actual position `p_m`: linear interpolation between points,
     /// the first and last values beyond the table (metres).
     pub fn value_m(&self, p_m: f64) -> f64 {
-        let n = self.values_mm.len();
-        if n == 0 {
-            return 0.0;
-        }
-        let u = (p_m * 1e3 - self.min_mm) / self.step_mm;
-        if u <= 0.0 {
-            return self.values_mm[0] * 1e-3;
-        }
-        if u >= (n - 1) as f64 {
-            return self.values_mm[n - 1] * 1e-3;
-        }
-        let i = u.floor() as usize;
-        let f = u - i as f64;
-        (self.values_mm[i] + f * (self.values_mm[i + 1] - self.values_mm[i])) * 1e-3
+        equally_spaced_value_m(&self.values_mm, self.min_mm, self.step_mm, p_m)
     }
 
     /// Where the axis's encoder stands when the control has it in position at `q_m`: the
@@ -222,6 +209,26 @@ impl EncCompTable {
     }
 }
 
+/// Linear interpolation in an equally spaced table (mm), the first and last values beyond it
+/// (K3: "the compensation value of interpolation point 0 is used for all positions smaller
+/// than the initial position", likewise the last beyond the end position); metres.
+fn equally_spaced_value_m(values_mm: &[f64], min_mm: f64, step_mm: f64, p_m: f64) -> f64 {
+    let n = values_mm.len();
+    if n == 0 {
+        return 0.0;
+    }
+    let u = (p_m * 1e3 - min_mm) / step_mm;
+    if u.is_nan() || u <= 0.0 {
+        return values_mm[0] * 1e-3;
+    }
+    if u >= (n - 1) as f64 {
+        return values_mm[n - 1] * 1e-3;
+    }
+    let i = u.floor() as usize;
+    let f = u - i as f64;
+    (values_mm[i] + f * (values_mm[i + 1] - values_mm[i])) * 1e-3
+}
+
 /// A cross (sag/angularity) table as read.
 #[derive(Debug, Clone, PartialEq, Default)]
 pub struct CecTable {
@@ -231,7 +238,27 @@ pub struct CecTable {
     pub step_mm: f64,
     pub min_mm: f64,
     pub max_mm: f64,
+    /// `$AN_CEC_DIRECTION`: 0 both directions of the base axis, +1 only while it moves +,
+    /// −1 only while it moves −.
     pub direction: i32,
+}
+
+impl CecTable {
+    /// The value the table gives the compensation axis at the base axis's position setpoint
+    /// `base_m` (K3: "the programmed position setpoint is always used"), metres: linear
+    /// interpolation, the end values beyond the table.
+    pub fn value_m(&self, base_m: f64) -> f64 {
+        equally_spaced_value_m(&self.values_mm, self.min_mm, self.step_mm, base_m)
+    }
+
+    /// Does the table act after a move of its base axis in direction `approach` (+1, −1, 0
+    /// before the base axis moved)? A direction-dependent table acts only in its direction.
+    pub fn acts(&self, approach: f64) -> bool {
+        match self.direction {
+            0 => true,
+            d => approach != 0.0 && approach.signum() == f64::from(d.signum()),
+        }
+    }
 }
 
 #[derive(Default)]
@@ -244,6 +271,7 @@ struct TableBuilder {
     input: Option<String>,
     output: Option<String>,
     direction: Option<f64>,
+    mult_by_table: Option<f64>,
 }
 
 /// The assignments of a compensation program, read as the control reads them.
@@ -372,9 +400,7 @@ impl Program {
                         "$AN_CEC_MAX" => t.max = Some(number()?),
                         "$AN_CEC_DIRECTION" => t.direction = Some(number()?),
                         "$AN_CEC_IS_MODULO" => t.modulo = Some(number()?),
-                        _ => {
-                            number()?;
-                        }
+                        _ => t.mult_by_table = Some(number()?),
                     }
                 }
                 _ => return Err(err(format!("unknown variable `{name}`"))),
@@ -429,6 +455,21 @@ impl Program {
                 let what = format!("$AN_CEC[{i}]");
                 let (values_mm, step_mm, min_mm, max_mm) = checked(t, &what, file)?;
                 let missing = |k: &str| input_error(file, format!("{what}: no {k}"));
+                let bad = |m: String| input_error(file, format!("{what}: {m}"));
+                let direction = t.direction.unwrap_or(0.0);
+                if ![-1.0, 0.0, 1.0].contains(&direction) {
+                    return Err(bad(format!(
+                        "$AN_CEC_DIRECTION {direction}: expected 0 (both directions), 1 or -1"
+                    )));
+                }
+                if t.modulo.unwrap_or(0.0) != 0.0 {
+                    return Err(bad("modulo tables are for rotary axes".into()));
+                }
+                if t.mult_by_table.unwrap_or(0.0) != 0.0 {
+                    return Err(bad(
+                        "$AN_CEC_MULT_BY_TABLE: table multiplication is not simulated".into(),
+                    ));
+                }
                 Ok(CecTable {
                     values_mm,
                     input_axis: t
@@ -442,7 +483,7 @@ impl Program {
                     step_mm,
                     min_mm,
                     max_mm,
-                    direction: t.direction.unwrap_or(0.0) as i32,
+                    direction: direction as i32,
                 })
             })
             .collect()

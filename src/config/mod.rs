@@ -509,11 +509,14 @@ impl Config {
     /// Parse and validate configuration text; `file` names it in errors.
     pub fn parse(text: &str, file: &Path) -> Result<Config, ConfigError> {
         let mut config: Config = kind_config::parse_strict(text, file)?;
-        // Compensation tables are named relative to the configuration's folder.
+        // Compensation tables are named relative to the configuration's folder; kept absolute,
+        // so that the stored run configuration and the session header name them wherever
+        // they are read from.
         if let (Some(sim), Some(dir)) = (config.sim.as_mut(), file.parent()) {
             for c in &mut sim.compensation {
                 if c.file.is_relative() {
-                    c.file = dir.join(&c.file);
+                    let joined = dir.join(&c.file);
+                    c.file = std::path::absolute(&joined).unwrap_or(joined);
                 }
             }
         }

@@ -256,31 +256,69 @@ impl Default for BumpSwitch {
 
 /// `[sim] compensation = [{ format = "linuxcnc-type1", file = "comp-x.txt", axis = "x" }]`:
 /// a controller's table the simulated machine applies to one axis, as that controller does
-/// (a verification run after `geocal compensate`). A relative `file` is read from the
-/// configuration's folder.
+/// (a verification run after `geocal compensate`). A `sinumerik` entry without `axis` applies
+/// the file's `$AN_CEC` cross tables, their base and compensation axes named in the file. A
+/// relative `file` is read from the configuration's folder.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 #[serde(deny_unknown_fields)]
 pub struct SimCompensation {
     /// `linuxcnc-type0`, `linuxcnc-type1` or `sinumerik`.
     pub format: crate::compensate::TableFormat,
     pub file: std::path::PathBuf,
-    /// The machine axis the table acts on: x, y or z.
-    pub axis: String,
+    /// The machine axis the table acts on: x, y or z; left out for `$AN_CEC` cross tables.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis: Option<String>,
     /// SINUMERIK: the machine axis name in `$AA_ENC_COMP[0,N,AX]` (default X1, Y1, Z1).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub controller_axis: Option<String>,
+    /// SINUMERIK cross tables: the machine axis names of x, y, z (default X1, Y1, Z1).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub axis_names: Option<Vec<String>>,
 }
 
 impl SimCompensation {
-    /// The axis index (0, 1, 2), or None for a name other than x, y, z.
+    /// The axis index (0, 1, 2), or None without an axis or for a name other than x, y, z.
     pub fn axis_index(&self) -> Option<usize> {
-        crate::compensate::AXES.iter().position(|a| *a == self.axis)
+        let axis = self.axis.as_deref()?;
+        crate::compensate::AXES.iter().position(|a| *a == axis)
     }
 
-    /// The name the controller's table uses for this axis.
+    /// The name the controller's table uses for this entry's axis.
     pub fn controller_axis_name(&self) -> String {
-        self.controller_axis
-            .clone()
-            .unwrap_or_else(|| format!("{}1", self.axis.to_uppercase()))
+        self.controller_axis.clone().unwrap_or_else(|| {
+            format!(
+                "{}1",
+                self.axis.as_deref().unwrap_or_default().to_uppercase()
+            )
+        })
+    }
+
+    /// A SINUMERIK entry without an axis: the file's `$AN_CEC` cross tables.
+    pub fn is_cross(&self) -> bool {
+        self.format == crate::compensate::TableFormat::Sinumerik && self.axis.is_none()
+    }
+
+    /// The controller's names of x, y, z for cross tables (the validation checked there are 3).
+    pub fn machine_axis_names(&self) -> [String; 3] {
+        match self.axis_names.as_deref() {
+            Some([x, y, z]) => [x.clone(), y.clone(), z.clone()],
+            _ => ["X1", "Y1", "Z1"].map(String::from),
+        }
+    }
+
+    /// The tables of this entry, for `compensate::applied::describe`.
+    pub fn selection<'a>(
+        &'a self,
+        axis_names: &'a [String; 3],
+        controller_axis: &'a str,
+    ) -> Option<crate::compensate::applied::Selection<'a>> {
+        use crate::compensate::applied::Selection;
+        if self.is_cross() {
+            return Some(Selection::Cross { axis_names });
+        }
+        Some(Selection::Axis {
+            axis: self.axis_index()?,
+            controller_axis,
+        })
     }
 }

@@ -1,7 +1,7 @@
 //! Semantic checks of a parsed configuration: what serde cannot see (ranges, counts,
 //! cross-references, identifiability of the plan). Each failure names the key.
 
-use std::collections::BTreeSet;
+use std::collections::{BTreeMap, BTreeSet};
 
 use super::{Config, DriverKind, PlanKind};
 use crate::model::kinematics::Structure;
@@ -479,25 +479,94 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     Ok(())
 }
 
-/// Each compensation table names an axis once and loads as its controller would read it.
+/// Each axis table names an axis once, cross tables name theirs in the file, one controller
+/// compensates an axis, and every file loads as its controller would read it.
 fn validate_compensation(tables: &[super::sim::SimCompensation]) -> Result<(), Invalid> {
-    let mut seen = BTreeSet::new();
+    use crate::compensate::TableFormat;
+    let mut axis_tables = BTreeMap::new();
+    let mut cross_targets = BTreeMap::new();
+    let mut cross_files = BTreeMap::new();
     for (i, c) in tables.iter().enumerate() {
         let key = format!("sim.compensation[{i}]");
+        if c.is_cross() {
+            if c.controller_axis.is_some() {
+                return fail(
+                    &format!("{key}.controller_axis"),
+                    "only for an axis's $AA_ENC_COMP table: the $AN_CEC tables name their axes \
+                     (map them with `axis_names`)",
+                );
+            }
+            if let Some(j) = cross_files.insert(c.file.clone(), i) {
+                return fail(
+                    &format!("{key}.file"),
+                    format!(
+                        "the same $AN_CEC file as sim.compensation[{j}]: its tables would act twice"
+                    ),
+                );
+            }
+            if let Some(names) = &c.axis_names {
+                if names.len() != 3 || names.iter().any(|n| n.trim().is_empty()) {
+                    return fail(
+                        &format!("{key}.axis_names"),
+                        format!("expected the 3 machine axis names of x, y, z, found {names:?}"),
+                    );
+                }
+            }
+            let cross =
+                crate::compensate::applied::load_cross_tables(&c.file, &c.machine_axis_names())
+                    .map_err(|e| (format!("{key}.file"), e.to_string()))?;
+            for t in cross {
+                cross_targets.entry(t.compensated).or_insert(i);
+            }
+            continue;
+        }
+        let Some(axis_name) = c.axis.as_deref() else {
+            return fail(
+                &format!("{key}.axis"),
+                format!(
+                    "missing: a {} table acts on one axis, expected x, y or z (only a sinumerik \
+                     entry without `axis` applies its file's $AN_CEC cross tables)",
+                    c.format.name()
+                ),
+            );
+        };
         let Some(axis) = c.axis_index() else {
             return fail(
                 &format!("{key}.axis"),
-                format!("expected x, y or z, found `{}`", c.axis),
+                format!("expected x, y or z, found `{axis_name}`"),
             );
         };
-        if !seen.insert(axis) {
+        if c.axis_names.is_some() {
+            return fail(
+                &format!("{key}.axis_names"),
+                "only for the $AN_CEC cross tables of a sinumerik entry without `axis` \
+                 (an axis table's name is `controller_axis`)",
+            );
+        }
+        if axis_tables.insert(axis, (i, c.format)).is_some() {
             return fail(
                 &format!("{key}.axis"),
-                format!("axis {} has a table already: one table per axis", c.axis),
+                format!("axis {axis_name} has a table already: one table per axis"),
             );
         }
         crate::compensate::load_table(c.format, &c.file, &c.controller_axis_name())
             .map_err(|e| (format!("{key}.file"), e.to_string()))?;
+    }
+    for (axis, cross_entry) in cross_targets {
+        if let Some((i, format)) = axis_tables.get(&axis) {
+            if *format != TableFormat::Sinumerik {
+                return fail(
+                    &format!("sim.compensation[{i}].format"),
+                    format!(
+                        "axis {} has a {} table, but the $AN_CEC tables of \
+                         sim.compensation[{cross_entry}] (SINUMERIK) compensate it too: one \
+                         controller per machine",
+                        crate::compensate::AXES[axis],
+                        format.name()
+                    ),
+                );
+            }
+        }
     }
     Ok(())
 }

@@ -312,7 +312,11 @@ pub fn arrows_svg(
 /// An axis label: few digits, no trailing noise.
 fn short(v: f64) -> String {
     let a = v.abs();
-    if a != 0.0 && !(1e-3..1e5).contains(&a) {
+    // A tick at zero computed as ±1e-17: rounding, in any display unit.
+    if a < 1e-12 {
+        return "0".into();
+    }
+    if !(1e-3..1e5).contains(&a) {
         format!("{v:.1e}")
     } else if a >= 100.0 {
         format!("{v:.0}")
@@ -343,6 +347,13 @@ mod tests {
         let svg = panels_svg("t", &[panel], 1).expect("svg");
         assert!(svg.contains("<polyline") || svg.contains("<path"), "{svg}");
         assert!(svg.contains("<polygon"), "{svg}");
+    }
+
+    #[test]
+    fn a_rounded_zero_tick_reads_zero() {
+        assert_eq!(short(-1.4e-17), "0");
+        assert_eq!(short(2e-6), "2.0e-6");
+        assert_eq!(short(0.05), "0.050");
     }
 
     #[test]

@@ -4,6 +4,7 @@
 
 pub mod header;
 pub mod standards;
+pub mod verification;
 
 use std::path::{Path, PathBuf};
 
@@ -24,20 +25,22 @@ pub struct Inputs {
     /// `diagnosis.json` beside the results (geocal-diagnosis/1), when it is there.
     pub diagnosis_path: Option<PathBuf>,
     pub diagnosis: Option<Diagnosis>,
+    /// A verification run's "before" results given by hand (`geocal report --before`).
+    pub before_results: Option<PathBuf>,
 }
 
 /// One part of the report, built from the inputs and the kind's contribution. A builder whose
 /// input is absent (no diagnosis.json, no session) returns no section or says what is missing.
 pub type SectionBuilder = fn(&Inputs, &KindReport) -> anyhow::Result<Vec<Section>>;
 
-/// The report's parts in order. Further parts (compensation tables, verification
-/// before/after) join this list as builders of their own.
+/// The report's parts in order.
 pub const SECTIONS: &[(&str, SectionBuilder)] = &[
     ("header", header::sections),
     ("summary", summary),
     ("kind", kind_sections),
     ("iso230-2", standards::iso230_2),
     ("uncertainty", standards::uncertainty),
+    ("verification", verification::sections),
     ("diagnosis", diagnosis),
 ];
 
@@ -104,6 +107,7 @@ impl Inputs {
             session,
             diagnosis_path,
             diagnosis,
+            before_results: None,
         })
     }
 

@@ -106,6 +106,30 @@ pub(crate) fn execute(
     })
 }
 
+/// What each `[sim] compensation` entry applies, recorded so that the report of a verification
+/// run needs neither the table files nor their formats. The configuration's validation loaded
+/// every file; one that became unreadable since is recorded by its error.
+fn applied_tables(tables: &[crate::config::sim::SimCompensation]) -> Vec<serde_json::Value> {
+    tables
+        .iter()
+        .map(|c| {
+            let names = c.machine_axis_names();
+            let controller_axis = c.controller_axis_name();
+            let applied = c
+                .selection(&names, &controller_axis)
+                .ok_or_else(|| format!("{}: no axis", c.file.display()))
+                .and_then(|selection| {
+                    crate::compensate::applied::describe(c.format, &c.file, selection)
+                        .map_err(|e| e.to_string())
+                });
+            match applied {
+                Ok(a) => serde_json::to_value(a).unwrap_or_default(),
+                Err(e) => serde_json::json!({ "file": c.file, "error": e }),
+            }
+        })
+        .collect()
+}
+
 fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
     let started_at = crate::session::messages::started_at(epoch_ns);
     let tracer = &config.devices.tracer;
@@ -134,6 +158,10 @@ fn session_header(config: &Config, epoch_ns: u64) -> SessionHeader {
             machine_device.extra.insert(
                 "compensation".into(),
                 serde_json::to_value(tables).unwrap_or_default(),
+            );
+            machine_device.extra.insert(
+                "compensation_applied".into(),
+                serde_json::to_value(applied_tables(tables)).unwrap_or_default(),
             );
         }
     }
