@@ -443,6 +443,75 @@ fn verification_report_shows_before_and_after() {
         text.contains("changed since the tables were made"),
         "changed before results"
     );
+    std::fs::rename(dir.path().join("moved.json"), before.join("results.json")).expect("move");
+
+    // LinuxCNC: type 1 tables on x and z, type 0 on y, from the same calibration.
+    let linuxcnc = |format: &str, out: &str| {
+        geocal(&[
+            "compensate".as_ref(),
+            before.join("results.json").as_os_str(),
+            "--format".as_ref(),
+            format.as_ref(),
+            "--out".as_ref(),
+            dir.path().join(out).as_os_str(),
+        ]);
+    };
+    linuxcnc("linuxcnc-type1", "type1");
+    linuxcnc("linuxcnc-type0", "type0");
+    let config = dir.path().join("verify-linuxcnc.toml");
+    std::fs::write(
+        &config,
+        format!(
+            "{}noise_seed = 4242\ncompensation = [\n\
+             {{ format = \"linuxcnc-type1\", file = \"type1/comp-x.txt\", axis = \"x\" }},\n\
+             {{ format = \"linuxcnc-type0\", file = \"type0/comp-y.txt\", axis = \"y\" }},\n\
+             {{ format = \"linuxcnc-type1\", file = \"type1/comp-z.txt\", axis = \"z\" }},\n]\n",
+            std::fs::read_to_string(&demo).expect("demo config")
+        ),
+    )
+    .expect("write config");
+    let after_linuxcnc = dir.path().join("after-linuxcnc");
+    geocal(&[
+        "run".as_ref(),
+        config.as_os_str(),
+        "--out".as_ref(),
+        after_linuxcnc.as_os_str(),
+    ]);
+    geocal(&[
+        "report".as_ref(),
+        after_linuxcnc.as_os_str(),
+        "--format".as_ref(),
+        "md".as_ref(),
+        "--out".as_ref(),
+        md.as_os_str(),
+    ]);
+    let text = std::fs::read_to_string(&md).expect("report.md");
+    let verification = &text[text
+        .find("## Verification run")
+        .expect("verification section")..];
+    println!("{}", &verification[..verification.len().min(3000)]);
+    for expect in [
+        "comp-x.txt",
+        "comp-y.txt",
+        "comp-z.txt",
+        "| EXX |",
+        "| EYY |",
+        "| EZZ |",
+    ] {
+        assert!(
+            verification.contains(expect),
+            "LinuxCNC report lacks `{expect}`"
+        );
+    }
+    let verdicts: Vec<&str> = verification
+        .lines()
+        .filter(|l| l.ends_with("| pass |") || l.ends_with("| FAIL |"))
+        .collect();
+    assert_eq!(verdicts.len(), 3, "{verdicts:#?}");
+    assert!(
+        verdicts.iter().all(|l| l.ends_with("| pass |")),
+        "{verdicts:#?}"
+    );
 }
 
 /// The most A4 pages of the demo's verification report (docs/report.md).
