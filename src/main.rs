@@ -353,7 +353,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 }
                 None => None,
             };
-            let control = geocal::sequencer::control::RunControl {
+            let control = geocal::run::control::RunControl {
                 tap: match &live {
                     Some(view) => geocal::session::tap::Tap::new(view.clone()),
                     None => Default::default(),

@@ -53,15 +53,15 @@ pub async fn build(
     config: &Config,
     plan: &Plan,
     epoch_ns: u64,
-    control: &crate::sequencer::control::RunControl,
+    operator: Option<&crate::sequencer::control::OperatorSource>,
+    holder: Option<&held::DeviceHolder>,
 ) -> anyhow::Result<BuiltDevices> {
-    let operator = control.operator.as_ref();
     let mut built = if config.emulated() {
         build_emulated(config, plan, epoch_ns).await?
     } else if all_simulated(config) {
         build_simulated(config, plan, epoch_ns)?
     } else {
-        return build_real(config, epoch_ns, operator, control.devices.as_deref()).await;
+        return build_real(config, epoch_ns, operator, holder).await;
     };
     let operator_config = config.operator.clone().unwrap_or_default();
     if operator_config.rehearse {

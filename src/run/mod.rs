@@ -2,6 +2,7 @@
 //! the session file it records into, the truth it writes, its progress bar, and what an
 //! interrupted run leaves (`resume`).
 
+pub mod control;
 pub mod replay;
 pub mod resume;
 
@@ -21,7 +22,7 @@ pub struct RunOptions {
     pub progress: bool,
     pub settings: SolveSettings,
     /// Cancellation, live tap, progress and operator for a run driven by the daemon.
-    pub control: crate::sequencer::control::RunControl,
+    pub control: crate::run::control::RunControl,
 }
 
 pub struct RunOutput {
@@ -50,7 +51,7 @@ impl RunRuntime {
 
 /// The runtime for a run; `real_devices`: it connects to devices outside this process.
 pub(crate) fn run_runtime(
-    control: &crate::sequencer::control::RunControl,
+    control: &crate::run::control::RunControl,
     real_devices: bool,
 ) -> anyhow::Result<RunRuntime> {
     if let Some(handle) = control

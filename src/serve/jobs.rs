@@ -17,8 +17,8 @@ use super::prompts::{PendingPrompt, PromptBoard};
 use super::status::{Change, DaemonTap, Progress, StatusBoard};
 use crate::devices::held::DeviceHolder;
 use crate::kinds::{Registry, RunFlags};
+use crate::run::control::RunControl;
 use crate::run::RunOptions;
-use crate::sequencer::control::RunControl;
 use crate::session::tap::{MessageTap, Tap};
 
 /// The plan configuration of a run job, as submitted.

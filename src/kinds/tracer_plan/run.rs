@@ -39,7 +39,8 @@ pub(crate) fn execute(
         config,
         &plan,
         epoch_ns,
-        &options.control,
+        options.control.operator.as_ref(),
+        options.control.devices.as_deref(),
     ))?;
     if let Some(c) = continuation.as_deref() {
         c.prepare_world(config, &built)?;
