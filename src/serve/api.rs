@@ -295,13 +295,17 @@ async fn job_named_file(
 /// recorded them, or as the folder lists them now) are served: no client-chosen paths.
 async fn job_file(daemon: &Daemon, id: i64, name: &str, content_type: &str) -> ApiResult<Response> {
     let job = daemon.job(id)?;
-    let listed = std::fs::read_dir(&job.dir)
-        .map(|entries| {
-            entries
-                .flatten()
-                .any(|e| e.file_name().to_str() == Some(name) && e.path().is_file())
-        })
-        .unwrap_or(false);
+    let mut listed = false;
+    if let Ok(mut entries) = tokio::fs::read_dir(&job.dir).await {
+        while let Ok(Some(entry)) = entries.next_entry().await {
+            if entry.file_name().to_str() == Some(name)
+                && entry.file_type().await.is_ok_and(|t| t.is_file())
+            {
+                listed = true;
+                break;
+            }
+        }
+    }
     if !listed {
         return Err(ApiError(
             StatusCode::NOT_FOUND,
