@@ -1,5 +1,5 @@
 //! Monte Carlo check of the rotary_sphere budget: each draw takes the probe's scale error, the
-//! sphere's radius error and its form deviation at every probed point from their declared
+//! sphere's radius error and its form deviation at every surface point from their declared
 //! distributions, and the probe's noise; the kind's world model (the true axis of
 //! `TrueAxis`, the sphere truly placed at each height, the probe travelling along its
 //! direction from the standoff until it meets the true surface) makes the readings with them,
@@ -10,9 +10,11 @@
 //! Level: readings made in memory for the plan of config/rotary-sphere.toml (36 angles, 5
 //! points, 2 fit heights and the validation height) with a better probe than the published
 //! arm (2 µm instead of 27 µm, so that the declared contributors matter beside the noise),
-//! not through the sequencer and a recording. The form is drawn independently at every
-//! probing, which is what the budget assumes (docs/uncertainty.md says where this stops
-//! holding).
+//! not through the sequencer and a recording. The form is drawn at every point of the
+//! sphere's surface that a probe meets (the sphere turns under fixed probing directions, so a
+//! point is met at several angles); at each height anew, as the budget assumes
+//! (docs/uncertainty.md: a sphere that keeps its orientation between heights makes the budget
+//! conservative).
 
 mod budget_mc;
 
@@ -22,10 +24,11 @@ use geocal::kinds::rotary_sphere::config::{RotarySphereConfig, SphereUncertainty
 use geocal::kinds::rotary_sphere::plan::SpherePlan;
 use geocal::kinds::rotary_sphere::solve::{identify, ProbedPoint, ProbedSphere};
 use geocal::solve::rotary_sphere::simulation::TrueAxis;
-use nalgebra::Vector3;
+use nalgebra::{Rotation3, Vector3};
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use rand_distr::{Distribution, Normal};
+use std::collections::BTreeMap;
 use std::path::Path;
 
 const NOISE_M: f64 = 2e-6;
@@ -70,9 +73,12 @@ fn world() -> World {
 }
 
 /// One run with drawn errors: the true sphere's radius is R + δr, its surface off by a form
-/// deviation at each probed point, and the probe reads (1 + g) times its travel, plus noise.
+/// deviation at each point of it, and the probe reads (1 + g) times its travel, plus noise.
 fn observe(w: &World, rng: &mut ChaCha8Rng, u: &SphereUncertainty) -> Vec<ProbedSphere> {
     let n = |s: Option<f64>| Normal::new(0.0, s.unwrap_or(0.0)).expect("σ >= 0");
+    // The form: a deviation at each point of the sphere's surface (its frame turns with the
+    // table), the same whenever a probe meets that point at this height.
+    let mut form_m: BTreeMap<(usize, [i64; 3]), f64> = BTreeMap::new();
     let g = 1e-6 * n(u.probe_scale_ppm).sample(rng);
     let radius = w.plan.radius_m + n(u.sphere_radius_m).sample(rng);
     let noise = n(Some(NOISE_M));
@@ -85,7 +91,12 @@ fn observe(w: &World, rng: &mut ChaCha8Rng, u: &SphereUncertainty) -> Vec<Probed
                 .map(|k| {
                     let (nominal, d) = w.plan.nominal_point(h, a, k);
                     let start = w.plan.approach_start(&nominal, &d);
-                    let surface = radius + n(u.sphere_form_m).sample(rng);
+                    let body = Rotation3::from_axis_angle(&Vector3::z_axis(), -theta) * d;
+                    let at = (h, body.map(|v| (v * 1e6).round() as i64).into());
+                    let form = *form_m
+                        .entry(at)
+                        .or_insert_with(|| n(u.sphere_form_m).sample(rng));
+                    let surface = radius + form;
                     // Travel along −d from the start until the true surface.
                     let v = start - centre;
                     let b = -d.dot(&v);

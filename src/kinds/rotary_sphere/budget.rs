@@ -1,7 +1,10 @@
 //! The uncertainty budget of the location errors (PIGE) and of the six motion errors at each
-//! angle (docs/uncertainty.md, "rotary_sphere"): systematic inputs by central differences
-//! through the centre fits and the axis identification, the sphere's form as the readings'
-//! noise propagates.
+//! angle (docs/uncertainty.md, "rotary_sphere"): every input by central differences through
+//! the centre fits and the axis identification, the sphere's form point by point of its surface.
+
+use std::collections::BTreeSet;
+
+use nalgebra::{Rotation3, Vector3};
 
 use crate::evaluate::uncertainty::{
     central_difference, kind_budgets, Declared, KindBudgets, Quantity,
@@ -11,10 +14,11 @@ use crate::model::rotary_sphere::{LOCATION_NAMES, MOTION_NAMES};
 use super::config::{SpherePlanConfig, SphereUncertainty};
 use super::solve::{identify, ProbedSphere, RotarySphereMethodError};
 
-/// Steps of the differences: the readings' scale by 0.1 %, the radius by 1 µm; both far
-/// inside the solvers' linear range and far above their convergence.
+/// Steps of the differences: the readings' scale by 0.1 %, the radius and a surface point's
+/// form by 1 µm; far inside the solvers' linear range and far above their convergence.
 const SCALE_STEP: f64 = 1e-3;
 const RADIUS_STEP_M: f64 = 1e-6;
+const FORM_STEP_M: f64 = 1e-6;
 
 /// Units of the motion errors, in `MOTION_NAMES` order, and of the location errors.
 const MOTION_UNITS: [&str; 6] = ["m", "m", "m", "rad", "rad", "rad"];
@@ -60,6 +64,50 @@ fn values(
         .collect())
 }
 
+/// A point of the sphere's surface: the height the sphere stood at and the probing direction
+/// in the sphere's frame (turned back by the commanded angle), rounded to 1e-9.
+fn surface_point(height: usize, commanded_rad: f64, direction: &Vector3<f64>) -> (usize, [i64; 3]) {
+    let body = Rotation3::from_axis_angle(&Vector3::z_axis(), -commanded_rad) * direction;
+    (height, body.map(|v| (v * 1e9).round() as i64).into())
+}
+
+/// Per quantity, √(Σ over the sphere's surface points of (∂quantity/∂form there)²): each
+/// surface point's readings moved together by central differences.
+fn form_sensitivities(
+    plan: &SpherePlanConfig,
+    noise_m: f64,
+    probed: &[ProbedSphere],
+) -> Result<Vec<f64>, RotarySphereMethodError> {
+    let surface_points: BTreeSet<(usize, [i64; 3])> = probed
+        .iter()
+        .flat_map(|s| {
+            s.points
+                .iter()
+                .map(|p| surface_point(s.height_index, s.commanded_rad, &p.direction))
+        })
+        .collect();
+    let mut sum_sq: Vec<f64> = Vec::new();
+    for point in &surface_points {
+        let c = central_difference(FORM_STEP_M, |h| {
+            let mut moved = probed.to_vec();
+            for s in moved.iter_mut() {
+                let (height, commanded_rad) = (s.height_index, s.commanded_rad);
+                for p in s.points.iter_mut() {
+                    if surface_point(height, commanded_rad, &p.direction) == *point {
+                        p.mean_m += h;
+                    }
+                }
+            }
+            values(plan, noise_m, &moved)
+        })?;
+        sum_sq.resize(c.len(), 0.0);
+        for (acc, v) in sum_sq.iter_mut().zip(&c) {
+            *acc += v * v;
+        }
+    }
+    Ok(sum_sq.iter().map(|v| v.sqrt()).collect())
+}
+
 /// The budgets of the identification from `probed` (plan `plan`, σ of one reading `noise_m`)
 /// with the contributors `declared`.
 pub fn budgets(
@@ -82,17 +130,15 @@ pub fn budgets(
         p.sphere_radius_m += h;
         values(&p, noise_m, probed)
     })?;
-    // A radial form deviation at a probed point moves its reading as the probe's noise does
-    // (the probe meets the surface along its normal); independent between points, it adds to
-    // each quantity the variance of the noise scaled by (u_form / σ_point)², σ_point the
-    // noise of the points' mean readings the fits weigh with.
-    let readings = probed
-        .iter()
-        .flat_map(|s| s.points.iter().map(|p| p.readings))
-        .min()
-        .unwrap_or(1);
-    let sigma_point = noise_m / (readings as f64).sqrt();
-    let form: Vec<f64> = quantities.iter().map(|q| q.sigma / sigma_point).collect();
+    // A radial form deviation of the sphere moves a reading that meets it by as much (the
+    // probe meets the surface along its normal). The form is a function on the sphere's
+    // surface, which turns with the table under probing directions fixed in the machine: a
+    // surface point is met at every angle that brings it under a probe (the top pole at all
+    // of them), so the readings of one surface point move together. Its variance in a
+    // quantity is u² Σ over surface points of (the quantity's change per unit move of all
+    // their readings)². The sphere's orientation at another height is not known: its surface
+    // points there count as others.
+    let form = form_sensitivities(plan, noise_m, probed)?;
     let ppm = |c: Vec<f64>| c.iter().map(|v| v * 1e-6).collect::<Vec<f64>>();
     let declared_inputs = [
         Declared {

@@ -54,7 +54,8 @@ pub struct SphereUncertainty {
     /// The reference sphere's calibrated radius, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sphere_radius_m: Option<f64>,
-    /// The reference sphere's form: radial deviation at each probed point, independent, m.
+    /// The reference sphere's form: radial deviation at each point of its surface, independent
+    /// between points, m.
     #[serde(skip_serializing_if = "Option::is_none")]
     pub sphere_form_m: Option<f64>,
 }

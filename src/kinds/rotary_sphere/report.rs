@@ -339,9 +339,9 @@ pub fn uncertainty(
         "rotary-sphere-uncertainty",
         "Expanded uncertainty U (k = 2) of the location errors and of the motion errors: the \
          solve's σ (the probe's repeatability) and the declared contributors under \
-         [uncertainty], the systematic ones through sensitivities found by re-solving with the \
-         input moved, the sphere's form as the readings' noise propagates (GUM; \
-         docs/uncertainty.md). The kind logs no temperatures: no thermal contributor.",
+         [uncertainty], each through its sensitivity found by re-solving with the input moved \
+         (the sphere's form one surface point at a time; GUM; docs/uncertainty.md). The kind \
+         logs no temperatures: no thermal contributor.",
         &groups,
         &all,
     ))
