@@ -102,6 +102,13 @@ pub fn section(id: &str, intro: &str, groups: &[BudgetGroup], all: &KindBudgets)
     }
 }
 
+/// The section when the budget could not be computed (results or session not as the kind's
+/// solver needs them): the report goes on and says why.
+pub fn unavailable(id: &str, why: &anyhow::Error) -> Section {
+    Section::new(id, "Uncertainty budget")
+        .paragraph(format!("No uncertainty budget could be computed: {why:#}."))
+}
+
 /// The contributor with the largest share, "name (share %)".
 fn dominant(b: &Budget) -> String {
     b.contributors

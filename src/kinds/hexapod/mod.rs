@@ -46,7 +46,10 @@ impl Kind for Hexapod {
             Some(path) => config::HexapodConfig::load(path)?.uncertainty,
             None => Default::default(),
         };
-        report::uncertainty(results, session, &declared).map(|s| vec![s])
+        let section = report::uncertainty(results, session, &declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("hexapod-uncertainty", &e)
+        });
+        Ok(vec![section])
     }
 
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {

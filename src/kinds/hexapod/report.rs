@@ -178,6 +178,12 @@ pub fn uncertainty(
     use crate::evaluate::budget_section::{section, BudgetGroup};
     use crate::model::hexapod::{HexapodGeometry, LEGS};
     let r: HexapodResults = crate::document::results_of(super::config::KIND, results)?;
+    if r.hinges.len() != LEGS {
+        anyhow::bail!(
+            "results key `hinges`: expected {LEGS} legs, found {}",
+            r.hinges.len()
+        );
+    }
     let prepared = super::solve::prepare(session)?;
     let mut values = Vec::with_capacity(6 * LEGS);
     let mut sigma = Vec::with_capacity(6 * LEGS);

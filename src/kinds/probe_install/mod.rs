@@ -45,7 +45,10 @@ impl Kind for ProbeInstall {
             Some(path) => config::ProbeInstallConfig::load(path)?.uncertainty,
             None => Default::default(),
         };
-        report::uncertainty(results, session, &declared).map(|s| vec![s])
+        let section = report::uncertainty(results, session, &declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("probe-install-uncertainty", &e)
+        });
+        Ok(vec![section])
     }
 
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {

@@ -199,12 +199,16 @@ pub fn uncertainty(
     use crate::evaluate::budget_section::{section, BudgetGroup};
     let r: ProbeInstallResults = crate::document::results_of(super::config::KIND, results)?;
     let (_, problem, _, _) = super::solve::problem(session)?;
-    let values: Vec<f64> = r.parameters.iter().map(|p| p.value).collect();
-    let solution =
-        crate::model::probe_install::InstallParams::from_vector(&nalgebra::SVector::<
-            f64,
-            { crate::model::probe_install::N_PARAMS },
-        >::from_iterator(values));
+    use crate::model::probe_install::{InstallParams, N_PARAMS};
+    if r.parameters.len() != N_PARAMS {
+        anyhow::bail!(
+            "results key `parameters`: expected the {N_PARAMS} installation parameters, found {}",
+            r.parameters.len()
+        );
+    }
+    let values =
+        nalgebra::SVector::<f64, N_PARAMS>::from_iterator(r.parameters.iter().map(|p| p.value));
+    let solution = InstallParams::from_vector(&values);
     let sigma: Vec<f64> = r.parameters.iter().map(|p| p.sigma).collect();
     let all = super::budget::budgets(&problem, &solution, &sigma, declared)?;
     let groups: Vec<BudgetGroup> = [

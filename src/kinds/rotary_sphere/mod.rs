@@ -52,7 +52,10 @@ impl Kind for RotarySphere {
             Some(path) => config::RotarySphereConfig::load(path)?.uncertainty,
             None => Default::default(),
         };
-        report::uncertainty(session, &declared).map(|s| vec![s])
+        let section = report::uncertainty(session, &declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("rotary-sphere-uncertainty", &e)
+        });
+        Ok(vec![section])
     }
 
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
