@@ -162,9 +162,8 @@ fn tracer_axes(
             ));
         } else {
             general.push(format!(
-                "passes {list:?} kept although homed at point 0 with another approach than \
-                 the other passes ({}): with a reversal their counter's zero sits elsewhere, \
-                 and leaving them out would leave fewer than 2 runs",
+                "passes {list:?} kept (fewer than 2 runs otherwise) though homed with another \
+                 approach ({}): with a reversal their zero differs",
                 named.join(", ")
             ));
             left_out.clear();
@@ -267,7 +266,8 @@ type StationPass = (String, String, u32, usize);
 type Approach = BTreeMap<String, i8>;
 
 /// The station passes whose homing (the dwell at point 0, where the counter is zeroed) was
-/// approached otherwise than most homings of the same station, target and beam segment. The
+/// approached otherwise than the segment's usual homing (of the same station, target and beam
+/// segment: one after every axis has moved, the most frequent of those). The
 /// joint solve holds one homing distance per segment, so every pass must be zeroed at the same
 /// place; an axis with a reversal puts the home point elsewhere when approached otherwise
 /// (the run's first homing comes before any axis moved), a zero the solve does not have.
@@ -282,12 +282,13 @@ fn homed_otherwise(measurements: &[PointMeasurement]) -> std::collections::BTree
     let mut out = std::collections::BTreeSet::new();
     for ((station, target, segment), passes) in homings {
         let count = |a: &Approach| passes.iter().filter(|(_, b)| *b == a).count();
-        // The most frequent approach (the earliest pass's on a tie) is the segment's zero.
+        // The segment's zero: a homing after every axis has moved (an approach of 0 means an
+        // axis that never moved), then the most frequent, then the earliest pass's.
         let Some(reference) = passes
             .iter()
             .map(|(_, a)| *a)
             .rev()
-            .max_by_key(|a| count(a))
+            .max_by_key(|a| (a.values().all(|&s| s != 0), count(a)))
         else {
             continue;
         };
@@ -638,6 +639,15 @@ mod tests {
         assert_eq!(
             odd.into_iter().collect::<Vec<_>>(),
             vec![("s1".to_string(), "t0".to_string(), 0, 0)]
+        );
+        // Two passes, one homing each: the one before the axes moved is the odd one.
+        let two = [homing("s1", 0, 0), homing("s1", 1, -1)];
+        assert_eq!(
+            homed_otherwise(&two)
+                .into_iter()
+                .map(|h| h.3)
+                .collect::<Vec<_>>(),
+            vec![0]
         );
     }
 }
