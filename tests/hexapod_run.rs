@@ -345,6 +345,16 @@ fn bad_configs_give_file_key_and_expectation() {
             "encoder_noise = 1.0e-6",
             "key `devices.hexapod.encoder_noise`",
         ),
+        (
+            "leg_scale_ppm = 10.0",
+            "leg_scale_ppm = -10.0",
+            "key `uncertainty.leg_scale_ppm`: expected a finite number >= 0, got -10",
+        ),
+        (
+            "pose_scale_ppm = 5.0",
+            "pose_scale_m = 5.0",
+            "key `uncertainty.pose_scale_m`",
+        ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
 }

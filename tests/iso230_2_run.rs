@@ -51,8 +51,14 @@ fn standard_cycle_figures_agree_with_the_simulated_truth() {
     // targets are not approached from both sides in every run and are left out.
     assert_eq!(e.targets, 5, "{:?}", x.notes);
     // 5 bidirectional runs are 10 passes; the rows of a pass alternate, so every pass
-    // reaches each inner target both ways: 10 runs per direction.
-    assert_eq!((e.runs_up, e.runs_down), (10, 10));
+    // reaches each inner target both ways. The first pass is left out: its first homing came
+    // before any axis had moved, at another place in the reversal (`homed_otherwise`).
+    assert!(
+        x.notes.iter().any(|n| n.contains("passes [0] left out")),
+        "{:?}",
+        x.notes
+    );
+    assert_eq!((e.runs_up, e.runs_down), (9, 9));
     assert!(
         !e.not_per_iso_230_2
             .iter()
@@ -170,8 +176,13 @@ fn pooled_and_predicted_s(x: &geocal::evaluate::AxisIso) -> (f64, f64) {
     (pooled, predicted)
 }
 
+/// The run-to-run scatter of the per-pass deviations is the declared noise's. It was 1.37×
+/// that (0.101 vs 0.073 µm) while the first pass was a run: its first homing (station s1)
+/// came before any axis had moved, so with the reversal on its home point, and the counter's
+/// zero, sat half a reversal span away on every axis from every later homing's, an offset of
+/// all of s1's lengths in that pass that no homing distance of the solve holds. The runs
+/// leave such a pass out (`deviations::homed_otherwise`).
 #[test]
-#[ignore = "the run-to-run scatter is 1.37x the per-pass sigma of the declared noise (0.101 vs 0.073 µm): cause not found yet"]
 fn repeatability_matches_the_declared_noise() {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, _) = run_with_truth(&iso_cycle(), dir.path());

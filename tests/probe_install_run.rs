@@ -230,6 +230,16 @@ fn bad_configs_give_file_key_and_expectation() {
             "sphere_centre_m = 1.0e-3\neffects = { probe_direction = { enabled = true, size = 0.5 } }",
             "key `sim.effects.probe_direction.size`: expected a non-zero relative scale error within ±0.1 when enabled, got 0.5",
         ),
+        (
+            "machine_scale_ppm = 5.0",
+            "machine_scale_ppm = nan",
+            "key `uncertainty.machine_scale_ppm`: expected a finite number >= 0",
+        ),
+        (
+            "sphere_radius_m = 0.5e-6",
+            "sphere_radius = 0.5e-6",
+            "key `uncertainty.sphere_radius`",
+        ),
     ];
     common::assert_run_rejects(env!("CARGO_BIN_EXE_geocal"), EXAMPLE, &cases);
     // Real drivers: each needs its port table (unless emulated), and the tables are strict.

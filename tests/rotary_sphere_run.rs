@@ -259,6 +259,18 @@ fn bad_configs_name_file_key_and_expectation() {
             "plan.heights",
             "at least 2",
         ),
+        (
+            "sphere_form_m = 0.25e-6",
+            "sphere_form_m = -0.25e-6",
+            "uncertainty.sphere_form_m",
+            "standard uncertainty >= 0",
+        ),
+        (
+            "probe_scale_ppm = 1000.0",
+            "probe_scale = 1000.0",
+            "uncertainty",
+            "unknown field `probe_scale`",
+        ),
     ];
     for (from, to, key, expected) in cases {
         let text = CONFIG.replacen(from, to, 1);

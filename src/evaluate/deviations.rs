@@ -139,8 +139,41 @@ fn tracer_axes(
                 .to_owned(),
         );
     }
+    // A run is a pass of every station, each zeroed at the home point; a pass in which some
+    // station was homed otherwise than in the other passes has another zero there, and is left
+    // out unless fewer than two runs would remain.
+    let homed_otherwise = homed_otherwise(&extraction.measurements);
+    let mut left_out: std::collections::BTreeSet<usize> =
+        homed_otherwise.iter().map(|h| h.3).collect();
+    if !left_out.is_empty() {
+        let named: Vec<String> = homed_otherwise
+            .iter()
+            .map(|(station, _, _, pass)| format!("{station} in pass {pass}"))
+            .collect();
+        let passes: std::collections::BTreeSet<usize> =
+            extraction.measurements.iter().map(|m| m.pass).collect();
+        let list: Vec<usize> = left_out.iter().copied().collect();
+        if passes.len() - left_out.len() >= 2 {
+            general.push(format!(
+                "passes {list:?} left out of the runs: homed at point 0 with another \
+                 approach than the other passes ({}; a first homing comes before the axes \
+                 moved), so with a reversal their counter's zero sits elsewhere",
+                named.join(", ")
+            ));
+        } else {
+            general.push(format!(
+                "passes {list:?} kept (fewer than 2 runs otherwise) though homed with another \
+                 approach ({}): with a reversal their zero differs",
+                named.join(", ")
+            ));
+            left_out.clear();
+        }
+    }
     let mut groups: BTreeMap<(String, usize, usize), Vec<&PointMeasurement>> = BTreeMap::new();
     for m in &extraction.measurements {
+        if left_out.contains(&m.pass) {
+            continue;
+        }
         groups
             .entry((m.target.clone(), m.point, m.pass))
             .or_default()
@@ -221,6 +254,51 @@ fn tracer_axes(
         }
     }
     Ok(())
+}
+
+/// A station's beam segment of one target: (station, target, beam segment).
+type Segment = (String, String, u32);
+
+/// A station's pass of one target and beam segment: (station, target, beam segment, pass).
+type StationPass = (String, String, u32, usize);
+
+/// The approach of each axis at a point: the sign of its last move.
+type Approach = BTreeMap<String, i8>;
+
+/// The station passes whose homing (the dwell at point 0, where the counter is zeroed) was
+/// approached otherwise than the segment's usual homing (of the same station, target and beam
+/// segment: one after every axis has moved, the most frequent of those). The
+/// joint solve holds one homing distance per segment, so every pass must be zeroed at the same
+/// place; an axis with a reversal puts the home point elsewhere when approached otherwise
+/// (the run's first homing comes before any axis moved), a zero the solve does not have.
+fn homed_otherwise(measurements: &[PointMeasurement]) -> std::collections::BTreeSet<StationPass> {
+    let mut homings: BTreeMap<Segment, Vec<(usize, &Approach)>> = BTreeMap::new();
+    for m in measurements.iter().filter(|m| m.point == 0) {
+        homings
+            .entry((m.station.clone(), m.target.clone(), m.beam_segment))
+            .or_default()
+            .push((m.pass, &m.approach));
+    }
+    let mut out = std::collections::BTreeSet::new();
+    for ((station, target, segment), passes) in homings {
+        let count = |a: &Approach| passes.iter().filter(|(_, b)| *b == a).count();
+        // The segment's zero: a homing after every axis has moved (an approach of 0 means an
+        // axis that never moved), then the most frequent, then the earliest pass's.
+        let Some(reference) = passes
+            .iter()
+            .map(|(_, a)| *a)
+            .rev()
+            .max_by_key(|a| (a.values().all(|&s| s != 0), count(a)))
+        else {
+            continue;
+        };
+        for (pass, approach) in &passes {
+            if *approach != reference {
+                out.insert((station.clone(), target.clone(), segment, *pass));
+            }
+        }
+    }
+    out
 }
 
 fn other_axes(k: usize) -> String {
@@ -524,5 +602,52 @@ mod tests {
             b.mean_error
         );
         assert_eq!((curves.up.len(), curves.down.len()), (2, 2));
+    }
+
+    fn homing(station: &str, pass: usize, approach: i8) -> PointMeasurement {
+        PointMeasurement {
+            station: station.into(),
+            station_index: 0,
+            point: 0,
+            pass,
+            target: "t0".into(),
+            nominal_m: [0.0; 3],
+            axes: BTreeMap::new(),
+            approach: AXES.iter().map(|a| (a.to_string(), approach)).collect(),
+            beam_segment: 0,
+            length_m: 0.0,
+            sigma_m: 1e-7,
+            path_sigma: None,
+            samples: 10,
+            settled_from_s: 0.0,
+            settled_to_s: 1.0,
+        }
+    }
+
+    /// The run's first homing, before any axis moved, is the odd one out of its station; a
+    /// station homed alike in every pass keeps every pass.
+    #[test]
+    fn a_pass_homed_from_rest_is_named() {
+        let ms = [
+            homing("s1", 0, 0),
+            homing("s1", 1, -1),
+            homing("s1", 2, -1),
+            homing("s2", 0, -1),
+            homing("s2", 1, -1),
+        ];
+        let odd = homed_otherwise(&ms);
+        assert_eq!(
+            odd.into_iter().collect::<Vec<_>>(),
+            vec![("s1".to_string(), "t0".to_string(), 0, 0)]
+        );
+        // Two passes, one homing each: the one before the axes moved is the odd one.
+        let two = [homing("s1", 0, 0), homing("s1", 1, -1)];
+        assert_eq!(
+            homed_otherwise(&two)
+                .into_iter()
+                .map(|h| h.3)
+                .collect::<Vec<_>>(),
+            vec![0]
+        );
     }
 }

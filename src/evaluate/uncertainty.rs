@@ -242,6 +242,91 @@ pub fn angle_budget(
     )
 }
 
+/// A contributor a kind declares under its `[uncertainty]` section: its name in the table,
+/// its configuration key, the unit of its standard uncertainty and the value (None: left out
+/// of the configuration, so left out of the budget and named as not declared).
+#[derive(Debug, Clone, PartialEq)]
+pub struct Declared {
+    pub name: &'static str,
+    pub key: &'static str,
+    pub unit: &'static str,
+    pub u: Option<f64>,
+}
+
+/// A reported quantity of a kind: its name, unit ("m" or "rad"), value and statistical σ.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Quantity {
+    pub name: String,
+    pub unit: &'static str,
+    pub value: f64,
+    pub sigma: f64,
+}
+
+/// The budgets of a kind's reported quantities, and the contributors its configuration left out.
+#[derive(Debug, Clone, PartialEq, Serialize)]
+pub struct KindBudgets {
+    pub budgets: Vec<Budget>,
+    /// `uncertainty.<key>` of every contributor that was not declared.
+    pub not_declared: Vec<String>,
+}
+
+/// Sensitivity coefficients of every quantity to one input by central differences through a
+/// solver: `solve(h)` re-solves with the input moved by h and returns the quantities in order.
+pub fn central_difference<E>(
+    step: f64,
+    mut solve: impl FnMut(f64) -> Result<Vec<f64>, E>,
+) -> Result<Vec<f64>, E> {
+    let plus = solve(step)?;
+    let minus = solve(-step)?;
+    Ok(plus
+        .iter()
+        .zip(&minus)
+        .map(|(p, m)| (p - m) / (2.0 * step))
+        .collect())
+}
+
+/// One budget per quantity: its statistical σ (c = 1) and every declared contributor with
+/// its sensitivity to that quantity (`sensitivities[j][q]` for `declared[j]`; entries of
+/// undeclared contributors are not read).
+pub fn kind_budgets(
+    quantities: &[Quantity],
+    declared: &[Declared],
+    sensitivities: &[Vec<f64>],
+) -> KindBudgets {
+    let budgets = quantities
+        .iter()
+        .enumerate()
+        .map(|(q, quantity)| {
+            let mut inputs = vec![Input::new(
+                "statistical (solve)",
+                quantity.sigma,
+                quantity.unit,
+                1.0,
+                "1",
+            )];
+            for (d, c) in declared.iter().zip(sensitivities) {
+                if let Some(u) = d.u {
+                    let unit = format!("{}/{}", quantity.unit, d.unit);
+                    inputs.push(Input::new(d.name, u, d.unit, c[q], &unit));
+                }
+            }
+            Budget::combine(&quantity.name, quantity.unit, quantity.value, &inputs)
+        })
+        .collect();
+    // A key may stand for several rows (one scale per axis): named once.
+    let mut not_declared: Vec<String> = Vec::new();
+    for d in declared.iter().filter(|d| d.u.is_none()) {
+        let key = format!("uncertainty.{}", d.key);
+        if !not_declared.contains(&key) {
+            not_declared.push(key);
+        }
+    }
+    KindBudgets {
+        budgets,
+        not_declared,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -320,5 +405,40 @@ mod tests {
         let v = serde_json::to_value(&b).expect("json");
         assert_eq!(v["coverage_factor"], 2.0);
         assert_eq!(v["contributors"][1]["name"], "reflector/probe");
+    }
+
+    #[test]
+    fn kind_budgets_take_declared_contributors_and_name_the_others() {
+        let quantities = [Quantity {
+            name: "q".into(),
+            unit: "m",
+            value: 0.0,
+            sigma: 3.0,
+        }];
+        let declared = [
+            Declared {
+                name: "a",
+                key: "a_m",
+                unit: "m",
+                u: Some(2.0),
+            },
+            Declared {
+                name: "b",
+                key: "b_ppm",
+                unit: "ppm",
+                u: None,
+            },
+        ];
+        let b = kind_budgets(&quantities, &declared, &[vec![2.0], vec![100.0]]);
+        // u = sqrt(3² + (2·2)²) = 5: the undeclared contributor does not enter.
+        assert!((b.budgets[0].combined_standard_uncertainty - 5.0).abs() < 1e-12);
+        assert_eq!(b.budgets[0].contributors.len(), 2);
+        assert_eq!(b.not_declared, vec!["uncertainty.b_ppm".to_string()]);
+    }
+
+    #[test]
+    fn central_differences_are_exact_on_a_line() {
+        let c = central_difference(0.5, |h| Ok::<_, ()>(vec![3.0 * h + 1.0, -h])).expect("ok");
+        assert_eq!(c, vec![3.0, -1.0]);
     }
 }

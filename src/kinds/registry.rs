@@ -100,6 +100,18 @@ pub trait Kind: Sync {
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         Ok(crate::document::KindReport::raw(self.name(), results))
     }
+
+    /// The kind's uncertainty budget in `geocal report` (docs/uncertainty.md), from its
+    /// results, the recorded session and the run's configuration (`run-config.toml` beside
+    /// the results; None when absent). By default none.
+    fn uncertainty(
+        &self,
+        _results: &serde_json::Value,
+        _session: &Session,
+        _config: Option<&Path>,
+    ) -> anyhow::Result<Vec<crate::document::Section>> {
+        Ok(Vec::new())
+    }
 }
 
 /// Every plan kind geocal knows.

@@ -35,16 +35,21 @@ pub fn uncertainty(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Sectio
     let Some(session) = &inputs.session else {
         return Ok(Vec::new());
     };
-    if inputs.kind()? != "multilateration" {
-        return Ok(Vec::new());
-    }
-    let results: MultilaterationResults =
-        crate::document::results_of("multilateration", &inputs.results)?;
     let config_path = inputs
         .results_path
         .parent()
-        .map(|d| d.join(crate::run::resume::CONFIG_FILE));
-    let config = match config_path.filter(|p| p.is_file()) {
+        .map(|d| d.join(crate::run::resume::CONFIG_FILE))
+        .filter(|p| p.is_file());
+    let kind = inputs.kind()?;
+    if kind != "multilateration" {
+        return match crate::kinds::registry::Registry::standard().named(kind) {
+            Some(k) => k.uncertainty(&inputs.results, session, config_path.as_deref()),
+            None => Ok(Vec::new()),
+        };
+    }
+    let results: MultilaterationResults =
+        crate::document::results_of("multilateration", &inputs.results)?;
+    let config = match config_path {
         Some(path) => Some(crate::config::Config::load(&path)?),
         None => None,
     };

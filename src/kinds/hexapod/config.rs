@@ -29,6 +29,37 @@ pub struct HexapodConfig {
     /// Host the hexapod's Modbus emulator backed by `[sim]` and run the real driver on it.
     #[serde(default)]
     pub hil: Option<HexapodHil>,
+    /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
+    #[serde(default)]
+    pub uncertainty: HexapodUncertainty,
+}
+
+/// `[uncertainty]` of a hexapod run: standard uncertainties (k = 1), each in the unit its key
+/// ends with; a key left out leaves its contributor out of the budget.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct HexapodUncertainty {
+    /// The pose sensor's length calibration: relative error of the measured translations, ppm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub pose_scale_ppm: Option<f64>,
+    /// The leg encoders' calibration: relative error of the measured length changes, ppm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub leg_scale_ppm: Option<f64>,
+}
+
+impl HexapodUncertainty {
+    /// Every declared value finite and >= 0; the error names `uncertainty.<key>`.
+    fn validate(&self, f: &Path) -> Result<(), ConfigError> {
+        for (key, value) in [
+            ("pose_scale_ppm", self.pose_scale_ppm),
+            ("leg_scale_ppm", self.leg_scale_ppm),
+        ] {
+            if let Some(v) = value {
+                non_negative(f, &format!("uncertainty.{key}"), v)?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// `[hil]` of a hexapod run: the Modbus hexapod emulator on 127.0.0.1 (TCP) or a pty (RTU),
@@ -246,6 +277,7 @@ impl HexapodConfig {
 
     fn validate(&self, f: &Path) -> Result<(), ConfigError> {
         expect_kind(f, &self.kind, KIND)?;
+        self.uncertainty.validate(f)?;
         for (key, hinges) in [
             ("machine.base_hinges_m", &self.machine.base_hinges_m),
             ("machine.platform_hinges_m", &self.machine.platform_hinges_m),

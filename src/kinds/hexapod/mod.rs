@@ -2,6 +2,7 @@
 //! world and HIL source, devices, run and resume, method, plan check and report, and the
 //! `Kind` the commands call.
 
+pub mod budget;
 pub mod check;
 pub mod config;
 pub mod devices;
@@ -33,6 +34,22 @@ impl Kind for Hexapod {
 
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         report::document(results)
+    }
+
+    fn uncertainty(
+        &self,
+        results: &serde_json::Value,
+        session: &Session,
+        config: Option<&Path>,
+    ) -> anyhow::Result<Vec<crate::document::Section>> {
+        let declared = match config {
+            Some(path) => config::HexapodConfig::load(path)?.uncertainty,
+            None => Default::default(),
+        };
+        let section = report::uncertainty(results, session, &declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("hexapod-uncertainty", &e)
+        });
+        Ok(vec![section])
     }
 
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {

@@ -167,3 +167,62 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     }
     Ok(KindReport { summary, sections })
 }
+
+/// The budget section: per hinge set and coordinate the largest U (k = 2) and its largest
+/// contributor, the contributor table, and the contributors the configuration did not declare.
+pub fn uncertainty(
+    results: &serde_json::Value,
+    session: &crate::session::reader::Session,
+    declared: &super::config::HexapodUncertainty,
+) -> anyhow::Result<crate::document::Section> {
+    use crate::evaluate::budget_section::{section, BudgetGroup};
+    use crate::model::hexapod::{HexapodGeometry, LEGS};
+    let r: HexapodResults = crate::document::results_of(super::config::KIND, results)?;
+    if r.hinges.len() != LEGS {
+        anyhow::bail!(
+            "results key `hinges`: expected {LEGS} legs, found {}",
+            r.hinges.len()
+        );
+    }
+    let prepared = super::solve::prepare(session)?;
+    let mut values = Vec::with_capacity(6 * LEGS);
+    let mut sigma = Vec::with_capacity(6 * LEGS);
+    for platform in [false, true] {
+        for h in &r.hinges {
+            let (v, s) = if platform {
+                (h.platform_m, h.platform_sigma_m)
+            } else {
+                (h.base_m, h.base_sigma_m)
+            };
+            values.extend(v);
+            sigma.extend(s);
+        }
+    }
+    let solution = HexapodGeometry::from_slice(&values);
+    let all = super::budget::budgets(
+        &prepared.observations,
+        &prepared.noise,
+        &solution,
+        &sigma,
+        declared,
+    )?;
+    let mut groups = Vec::new();
+    for (set, offset) in [("base hinges", 0), ("platform hinges", 3 * LEGS)] {
+        for (c, axis) in ["x", "y", "z"].iter().enumerate() {
+            groups.push(BudgetGroup {
+                label: format!("{set}, {axis}"),
+                budgets: (0..LEGS)
+                    .map(|leg| &all.budgets[offset + 3 * leg + c])
+                    .collect(),
+            });
+        }
+    }
+    Ok(section(
+        "hexapod-uncertainty",
+        "Expanded uncertainty U (k = 2) of the hinge coordinates (and so of their corrections): \
+         the weighted fit's σ and the declared contributors under [uncertainty], each through \
+         its sensitivity found by re-fitting with the input moved (GUM; docs/uncertainty.md).",
+        &groups,
+        &all,
+    ))
+}

@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::kinds::hexapod::config::{HexapodMachine, HexapodPlanConfig, KIND};
 use crate::kinds::hexapod::sim::to_pose;
-use crate::model::hexapod::{Pose, LEGS};
+use crate::model::hexapod::{HexapodGeometry, Pose, LEGS};
 use crate::session::kind_messages::{
     hexapod_legs_topic, hexapod_pose_topic, LegSample, PlatformPoseSample,
 };
@@ -233,7 +233,21 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
     Ok((out, any_measured))
 }
 
-pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
+/// What the solvers take from a session: the plan, the design geometry, each pose's data,
+/// the observations (changes from the reference pose) and their noise model.
+pub struct Prepared {
+    plan: HexapodPlanConfig,
+    pub nominal: HexapodGeometry,
+    data: Vec<PoseData>,
+    any_measured: bool,
+    sigma_change_m: f64,
+    pose_sigma_m: f64,
+    pose_sigma_rad: f64,
+    pub observations: HexapodObservations,
+    pub noise: HexapodNoise,
+}
+
+pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
     let plan: HexapodPlanConfig = serde_json::from_value(session.header.plan.clone())
         .map_err(|e| HexapodMethodError::Plan(e.to_string()))?;
     let hexapod = session
@@ -272,18 +286,6 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         sigma_m: sigma_change_m,
         search_poses: None,
     };
-    let lm = solve_lm(&obs, &nominal, &LmOptions::default())?;
-    let s = &plan.solver;
-    let two = solve_two_stage(
-        &obs,
-        &nominal,
-        &TwoStageOptions {
-            initial_step_m: s.initial_step_m,
-            min_step_m: s.min_step_m,
-            shrink: s.shrink,
-            ..TwoStageOptions::default()
-        },
-    )?;
     // The pose sensor's declared noise applies to the measured poses only.
     let sensor = session
         .header
@@ -306,6 +308,43 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
             })
             .collect(),
     };
+    Ok(Prepared {
+        plan,
+        nominal,
+        data,
+        any_measured,
+        sigma_change_m,
+        pose_sigma_m,
+        pose_sigma_rad,
+        observations: obs,
+        noise,
+    })
+}
+
+pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
+    let Prepared {
+        plan,
+        nominal,
+        data,
+        any_measured,
+        sigma_change_m,
+        pose_sigma_m,
+        pose_sigma_rad,
+        observations: obs,
+        noise,
+    } = prepare(session)?;
+    let lm = solve_lm(&obs, &nominal, &LmOptions::default())?;
+    let s = &plan.solver;
+    let two = solve_two_stage(
+        &obs,
+        &nominal,
+        &TwoStageOptions {
+            initial_step_m: s.initial_step_m,
+            min_step_m: s.min_step_m,
+            shrink: s.shrink,
+            ..TwoStageOptions::default()
+        },
+    )?;
     let fit = refine_weighted(&obs, &noise, &two.geometry)?;
     let sigmas = fit.sigmas_m();
     let coord = |v: &[f64], o: usize| -> [f64; 3] { std::array::from_fn(|k| v[o + k]) };

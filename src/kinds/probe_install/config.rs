@@ -33,6 +33,45 @@ pub struct ProbeInstallConfig {
     /// Hardware-in-the-loop: the GRBL and ASCII probe emulators on ptys, backed by `[sim]`.
     #[serde(default)]
     pub hil: Option<ProbeInstallHil>,
+    /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
+    #[serde(default)]
+    pub uncertainty: ProbeInstallUncertainty,
+}
+
+/// `[uncertainty]` of a `probe_install` run: standard uncertainties (k = 1), each in the unit
+/// its key ends with; a key left out leaves its contributor out of the budget.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct ProbeInstallUncertainty {
+    /// The probe's calibration: relative error of its readings (gain), ppm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub probe_scale_ppm: Option<f64>,
+    /// The reference sphere's calibrated radius, m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sphere_radius_m: Option<f64>,
+    /// The reference sphere's form: radial deviation at each probed point, independent, m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sphere_form_m: Option<f64>,
+    /// The CMM's linear scales: relative error of each axis's reading, independent axes, ppm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub machine_scale_ppm: Option<f64>,
+}
+
+impl ProbeInstallUncertainty {
+    /// Every declared value finite and >= 0; the error names `uncertainty.<key>`.
+    fn validate(&self, f: &Path) -> Result<(), ConfigError> {
+        for (key, value) in [
+            ("probe_scale_ppm", self.probe_scale_ppm),
+            ("sphere_radius_m", self.sphere_radius_m),
+            ("sphere_form_m", self.sphere_form_m),
+            ("machine_scale_ppm", self.machine_scale_ppm),
+        ] {
+            if let Some(v) = value {
+                non_negative(f, &format!("uncertainty.{key}"), v)?;
+            }
+        }
+        Ok(())
+    }
 }
 
 /// `[hil]` of a `probe_install` run: geocal hosts the GRBL controller emulator (5 axes) and the
@@ -460,6 +499,7 @@ impl ProbeInstallConfig {
         let m = &self.devices.machine;
         let p = &self.devices.probe;
         self.validate_drivers(f)?;
+        self.uncertainty.validate(f)?;
         positive(f, "devices.machine.feed_m_s", m.feed_m_s)?;
         positive(
             f,

@@ -188,3 +188,50 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     }
     Ok(KindReport { summary, sections })
 }
+
+/// The budget section: per parameter its U (k = 2) and largest contributor, the contributor
+/// table, and the contributors the run's configuration did not declare.
+pub fn uncertainty(
+    results: &serde_json::Value,
+    session: &crate::session::reader::Session,
+    declared: &super::config::ProbeInstallUncertainty,
+) -> anyhow::Result<crate::document::Section> {
+    use crate::evaluate::budget_section::{section, BudgetGroup};
+    let r: ProbeInstallResults = crate::document::results_of(super::config::KIND, results)?;
+    let (_, problem, _, _) = super::solve::problem(session)?;
+    use crate::model::probe_install::{InstallParams, N_PARAMS};
+    if r.parameters.len() != N_PARAMS {
+        anyhow::bail!(
+            "results key `parameters`: expected the {N_PARAMS} installation parameters, found {}",
+            r.parameters.len()
+        );
+    }
+    let values =
+        nalgebra::SVector::<f64, N_PARAMS>::from_iterator(r.parameters.iter().map(|p| p.value));
+    let solution = InstallParams::from_vector(&values);
+    let sigma: Vec<f64> = r.parameters.iter().map(|p| p.sigma).collect();
+    let all = super::budget::budgets(&problem, &solution, &sigma, declared)?;
+    let groups: Vec<BudgetGroup> = [
+        ("δB", 0..1),
+        ("y32", 1..2),
+        ("beam direction l, m, n", 2..5),
+        ("probe zero point", 5..8),
+        ("sphere centre", 8..11),
+        ("sphere radius (after LM)", 11..12),
+    ]
+    .into_iter()
+    .map(|(label, range)| BudgetGroup {
+        label: label.to_string(),
+        budgets: all.budgets[range].iter().collect(),
+    })
+    .collect();
+    Ok(section(
+        "probe-install-uncertainty",
+        "Expanded uncertainty U (k = 2) of the LM parameters and of the sphere radius measured \
+         with them: the solve's σ and the declared contributors under [uncertainty], each \
+         through its sensitivity found by re-solving with the input moved (GUM; \
+         docs/uncertainty.md). The beam direction is a unit vector: its U is shown in 1e-6.",
+        &groups,
+        &all,
+    ))
+}

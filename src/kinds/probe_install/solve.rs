@@ -246,7 +246,11 @@ pub fn observations(
     Ok((out, raw, out_of_range))
 }
 
-pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMethodError> {
+/// What the solvers take from a session: its plan, the problem (nominal installation, the
+/// calibrated radius, the observations), the valid raw readings and the out-of-range count.
+pub fn problem(
+    session: &Session,
+) -> Result<(ProbeInstallPlan, ProbeInstallProblem, usize, usize), ProbeInstallMethodError> {
     let plan: ProbeInstallPlan = serde_json::from_value(session.header.plan.clone())
         .map_err(|e| ProbeInstallMethodError::Plan(e.to_string()))?;
     let probe = session
@@ -257,12 +261,17 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
         .ok_or(ProbeInstallMethodError::NoProbe)?;
     let noise_m = probe.noise_m.ok_or(ProbeInstallMethodError::NoProbe)?;
     let (obs, readings, out_of_range) = observations(session, noise_m, &probe.id)?;
-    let nominal = plan.nominal.params();
     let problem = ProbeInstallProblem {
-        nominal,
+        nominal: plan.nominal.params(),
         sphere_radius_m: plan.sphere_radius_m,
         observations: obs,
     };
+    Ok((plan, problem, readings, out_of_range))
+}
+
+pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMethodError> {
+    let (plan, problem, readings, out_of_range) = problem(session)?;
+    let nominal = problem.nominal;
     let lm = solve_lm(&problem, &nominal, &LmOptions::default())?;
     let s = &plan.solver;
     let ga = solve_ga(

@@ -38,6 +38,45 @@ pub struct RotarySphereConfig {
     /// Hardware-in-the-loop: the probe's ASCII emulator on a pty, backed by `[sim]`.
     #[serde(default)]
     pub hil: Option<SphereHilConfig>,
+    /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
+    #[serde(default)]
+    pub uncertainty: SphereUncertainty,
+}
+
+/// `[uncertainty]` of a rotary_sphere run: standard uncertainties (k = 1), each in the unit
+/// its key ends with; a key left out leaves its contributor out of the budget.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields, default)]
+pub struct SphereUncertainty {
+    /// The probe's calibration: relative error of its readings (gain), ppm.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub probe_scale_ppm: Option<f64>,
+    /// The reference sphere's calibrated radius, m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sphere_radius_m: Option<f64>,
+    /// The reference sphere's form: radial deviation at each point of its surface, independent
+    /// between points, m.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub sphere_form_m: Option<f64>,
+}
+
+impl SphereUncertainty {
+    /// Every declared value finite and >= 0, else the key `uncertainty.<key>` and why.
+    fn validate(&self) -> Result<(), (&'static str, String)> {
+        for (key, value) in [
+            ("uncertainty.probe_scale_ppm", self.probe_scale_ppm),
+            ("uncertainty.sphere_radius_m", self.sphere_radius_m),
+            ("uncertainty.sphere_form_m", self.sphere_form_m),
+        ] {
+            if let Some(v) = value.filter(|v| !(v.is_finite() && *v >= 0.0)) {
+                return Err((
+                    key,
+                    format!("expected a standard uncertainty >= 0, found {v}"),
+                ));
+            }
+        }
+        Ok(())
+    }
 }
 
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
@@ -244,6 +283,7 @@ impl RotarySphereConfig {
                 ),
             ));
         }
+        self.uncertainty.validate()?;
         positive("plan.sphere_radius_m", plan.sphere_radius_m)?;
         positive("plan.standoff_m", plan.standoff_m)?;
         positive("plan.in_position_timeout_s", plan.in_position_timeout_s)?;

@@ -2,6 +2,7 @@
 //! simulated world and HIL table source, run and resume, method and plan check, and the
 //! `Kind` the commands call.
 
+pub mod budget;
 pub mod check;
 pub mod config;
 pub mod hil_source;
@@ -39,6 +40,22 @@ impl Kind for RotarySphere {
 
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         report::document(results)
+    }
+
+    fn uncertainty(
+        &self,
+        _results: &serde_json::Value,
+        session: &Session,
+        config: Option<&Path>,
+    ) -> anyhow::Result<Vec<crate::document::Section>> {
+        let declared = match config {
+            Some(path) => config::RotarySphereConfig::load(path)?.uncertainty,
+            None => Default::default(),
+        };
+        let section = report::uncertainty(session, &declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("rotary-sphere-uncertainty", &e)
+        });
+        Ok(vec![section])
     }
 
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {

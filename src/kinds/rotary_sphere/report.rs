@@ -311,3 +311,38 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     }
     Ok(KindReport { summary, sections })
 }
+
+/// The budget section: the location errors and, per motion error, the largest U (k = 2) over
+/// the angles with its largest contributor, the contributor tables, and the contributors the
+/// configuration did not declare.
+pub fn uncertainty(
+    session: &crate::session::reader::Session,
+    declared: &super::config::SphereUncertainty,
+) -> anyhow::Result<crate::document::Section> {
+    use crate::evaluate::budget_section::{section, BudgetGroup};
+    use crate::model::rotary_sphere::{LOCATION_NAMES, MOTION_NAMES};
+    let (plan, noise_m, probed) = super::solve::probed(session)?;
+    let all = super::budget::budgets(&plan, noise_m, &probed, declared)?;
+    let mut groups: Vec<BudgetGroup> = (0..4)
+        .map(|k| BudgetGroup {
+            label: LOCATION_NAMES[k].to_string(),
+            budgets: vec![&all.budgets[k]],
+        })
+        .collect();
+    for (k, name) in MOTION_NAMES.iter().enumerate() {
+        groups.push(BudgetGroup {
+            label: format!("{name} (over the angles)"),
+            budgets: all.budgets[4..].iter().skip(k).step_by(6).collect(),
+        });
+    }
+    Ok(section(
+        "rotary-sphere-uncertainty",
+        "Expanded uncertainty U (k = 2) of the location errors and of the motion errors: the \
+         solve's σ (the probe's repeatability) and the declared contributors under \
+         [uncertainty], each through its sensitivity found by re-solving with the input moved \
+         (the sphere's form one surface point at a time; GUM; docs/uncertainty.md). The kind \
+         logs no temperatures: no thermal contributor.",
+        &groups,
+        &all,
+    ))
+}

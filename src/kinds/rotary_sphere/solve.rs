@@ -15,7 +15,7 @@ use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
 use crate::solve::rotary_sphere::{
     fit_sphere, identify_rotary_axis, validate, CentreSeries, HarmonicFit, HarmonicOrder,
-    IdentifyOptions, RotarySphereError, SphereFit, TangentialConvention,
+    IdentifyOptions, RotaryAxisIdentification, RotarySphereError, SphereFit, TangentialConvention,
 };
 
 /// The tolerance of the published prediction check (~80 % of residuals within 10 µm).
@@ -133,9 +133,10 @@ pub struct ValidationResult {
     pub count: usize,
 }
 
-/// One probed point: its nominal surface point, direction and the mean of its readings.
+/// A probed point's window in the session: its nominal surface point, direction, the times of
+/// its events and the sum of the readings inside.
 #[derive(Debug, Clone)]
-struct ProbedPoint {
+struct PointWindow {
     nominal_m: Vector3<f64>,
     direction: Vector3<f64>,
     begin_ns: u64,
@@ -145,7 +146,7 @@ struct ProbedPoint {
 }
 
 /// The spheres of the session: (height, angle) -> (commanded angle, points by index).
-type Spheres = BTreeMap<(usize, usize), (f64, BTreeMap<usize, ProbedPoint>)>;
+type Spheres = BTreeMap<(usize, usize), (f64, BTreeMap<usize, PointWindow>)>;
 
 fn collect_points(
     session: &Session,
@@ -201,7 +202,7 @@ fn collect_points(
                 };
                 sphere.1.insert(
                     *point,
-                    ProbedPoint {
+                    PointWindow {
                         nominal_m: Vector3::from(*nominal_m),
                         direction: Vector3::from(*direction).normalize(),
                         begin_ns: e.log_time_ns,
@@ -235,7 +236,7 @@ fn collect_points(
 
 /// Attribute every reading to the point whose window (begin, end] holds its log time.
 fn attach_readings(spheres: &mut Spheres, readings: &[(u64, f64)]) {
-    let mut windows: Vec<&mut ProbedPoint> = spheres
+    let mut windows: Vec<&mut PointWindow> = spheres
         .values_mut()
         .flat_map(|s| s.1.values_mut())
         .filter(|p| p.end_ns.is_some())
@@ -259,8 +260,30 @@ fn sqrt_diag(c: &[[f64; 3]; 3]) -> [f64; 3] {
     std::array::from_fn(|k| c[k][k].max(0.0).sqrt())
 }
 
-/// Solve a rotary_sphere session.
-pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMethodError> {
+/// One probed point with readings: its nominal surface point, outward probing direction, the
+/// mean of its readings and how many there were.
+#[derive(Debug, Clone)]
+pub struct ProbedPoint {
+    pub nominal_m: Vector3<f64>,
+    pub direction: Vector3<f64>,
+    pub mean_m: f64,
+    pub readings: usize,
+}
+
+/// One probed sphere: its height, commanded angle and the points that got readings.
+#[derive(Debug, Clone)]
+pub struct ProbedSphere {
+    pub height_index: usize,
+    pub angle_index: usize,
+    pub commanded_rad: f64,
+    pub points: Vec<ProbedPoint>,
+}
+
+/// What a session holds for the solver: the plan, the probe's noise per reading and the
+/// probed spheres.
+pub fn probed(
+    session: &Session,
+) -> Result<(SpherePlanConfig, f64, Vec<ProbedSphere>), RotarySphereMethodError> {
     let plan_config: SpherePlanConfig = serde_json::from_value(session.header.plan.clone())
         .map_err(|e| RotarySphereMethodError::Plan(e.to_string()))?;
     let plan = SpherePlan::from_config(&plan_config);
@@ -286,13 +309,52 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
     }
     let mut spheres = collect_points(session, &plan)?;
     attach_readings(&mut spheres, &readings);
-    let mut notes = Vec::new();
+    let probed = spheres
+        .into_iter()
+        .map(|((h, a), (commanded_rad, points))| ProbedSphere {
+            height_index: h,
+            angle_index: a,
+            commanded_rad,
+            points: points
+                .into_values()
+                .filter(|p| p.readings > 0)
+                .map(|p| ProbedPoint {
+                    nominal_m: p.nominal_m,
+                    direction: p.direction,
+                    mean_m: p.sum_m / p.readings as f64,
+                    readings: p.readings,
+                })
+                .collect(),
+        })
+        .collect();
+    Ok((plan_config, noise_m, probed))
+}
 
-    // Sphere centres with the known radius; σ of a point = σ_reading / √(its readings).
-    let mut fits: BTreeMap<(usize, usize), (f64, SphereFit, usize)> = BTreeMap::new();
+/// The sphere fits by (height, angle): commanded angle, fit, readings used.
+pub type Fits = BTreeMap<(usize, usize), (f64, SphereFit, usize)>;
+
+/// Centres and axis of probed spheres: the fits, how many spheres lacked points, the angles
+/// probed at every fit height and the identification from them.
+pub struct Identified {
+    pub fits: Fits,
+    pub incomplete: usize,
+    pub common: Vec<usize>,
+    pub identification: RotaryAxisIdentification,
+}
+
+/// Sphere centres with the known radius (σ of a point = σ_reading / √(its readings)), then
+/// the axis from the angles probed at every fit height.
+pub fn identify(
+    plan_config: &SpherePlanConfig,
+    noise_m: f64,
+    probed: &[ProbedSphere],
+) -> Result<Identified, RotarySphereMethodError> {
+    let plan = SpherePlan::from_config(plan_config);
+    let mut fits: Fits = BTreeMap::new();
     let mut incomplete = 0;
-    for (&(h, a), (commanded_rad, points)) in &spheres {
-        let used: Vec<&ProbedPoint> = points.values().filter(|p| p.readings > 0).collect();
+    for sphere in probed {
+        let (h, a) = (sphere.height_index, sphere.angle_index);
+        let used = &sphere.points;
         if used.len() < plan.directions.len() {
             incomplete += 1;
         }
@@ -302,9 +364,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
         let fewest = used.iter().map(|p| p.readings).min().unwrap_or(1);
         let pts: Vec<Vector3<f64>> = used
             .iter()
-            .map(|p| {
-                SpherePlan::measured_point(&p.nominal_m, &p.direction, p.sum_m / p.readings as f64)
-            })
+            .map(|p| SpherePlan::measured_point(&p.nominal_m, &p.direction, p.mean_m))
             .collect();
         let fit = match fit_sphere(
             &pts,
@@ -324,13 +384,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
             }
         };
         let n_readings = used.iter().map(|p| p.readings).sum();
-        fits.insert((h, a), (*commanded_rad, fit, n_readings));
-    }
-    if incomplete > 0 {
-        notes.push(format!(
-            "{incomplete} sphere(s) lack some probed points; spheres with fewer than 4, or whose \
-             points left do not determine them, are left out"
-        ));
+        fits.insert((h, a), (sphere.commanded_rad, fit, n_readings));
     }
 
     // Angles probed at every fit height.
@@ -343,24 +397,12 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
     if common.len() < 3 {
         return Err(RotarySphereMethodError::TooFewAngles(common.len()));
     }
-    if common.len() < plan.angles_rad.len() {
-        notes.push(format!(
-            "{} of {} commanded angles were probed at every fit height; the others are left out",
-            common.len(),
-            plan.angles_rad.len()
-        ));
-    }
-    let series_of = |h: usize, angles: &[usize]| -> CentreSeries {
-        let list: Vec<(f64, SphereFit)> = angles
-            .iter()
-            .filter_map(|a| fits.get(&(h, *a)).map(|(c, f, _)| (*c, f.clone())))
-            .collect();
-        let (ang, f): (Vec<f64>, Vec<SphereFit>) = list.into_iter().unzip();
-        CentreSeries::from_fits(ang, &f)
-    };
-    let series: Vec<CentreSeries> = fit_heights.iter().map(|&h| series_of(h, &common)).collect();
+    let series: Vec<CentreSeries> = fit_heights
+        .iter()
+        .map(|&h| series_of(&fits, h, &common))
+        .collect();
     let max_order = plan_config.max_harmonic_order.min((common.len() - 1) / 2);
-    let id = identify_rotary_axis(
+    let identification = identify_rotary_axis(
         &series,
         &IdentifyOptions {
             convention: TangentialConvention::AngularPositioning,
@@ -368,7 +410,54 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
         },
     )
     .map_err(RotarySphereMethodError::Identify)?;
+    Ok(Identified {
+        fits,
+        incomplete,
+        common,
+        identification,
+    })
+}
 
+/// The centres at height `h` at the given angles (those fitted).
+fn series_of(fits: &Fits, h: usize, angles: &[usize]) -> CentreSeries {
+    let list: Vec<(f64, SphereFit)> = angles
+        .iter()
+        .filter_map(|a| fits.get(&(h, *a)).map(|(c, f, _)| (*c, f.clone())))
+        .collect();
+    let (ang, f): (Vec<f64>, Vec<SphereFit>) = list.into_iter().unzip();
+    CentreSeries::from_fits(ang, &f)
+}
+
+/// Solve a rotary_sphere session.
+pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMethodError> {
+    let (plan_config, noise_m, probed) = probed(session)?;
+    let plan = SpherePlan::from_config(&plan_config);
+    let Identified {
+        fits,
+        incomplete,
+        common,
+        identification: id,
+    } = identify(&plan_config, noise_m, &probed)?;
+    let mut notes = Vec::new();
+    if incomplete > 0 {
+        notes.push(format!(
+            "{incomplete} sphere(s) lack some probed points; spheres with fewer than 4, or whose \
+             points left do not determine them, are left out"
+        ));
+    }
+    if common.len() < plan.angles_rad.len() {
+        notes.push(format!(
+            "{} of {} commanded angles were probed at every fit height; the others are left out",
+            common.len(),
+            plan.angles_rad.len()
+        ));
+    }
+    let points_of = |h: usize, a: usize| {
+        probed
+            .iter()
+            .find(|s| (s.height_index, s.angle_index) == (h, a))
+            .map_or(0, |s| s.points.len())
+    };
     let mut validation = Vec::new();
     for h in (0..plan.heights.len()).filter(|&h| plan.heights[h].role == HeightRole::Validation) {
         let angles: Vec<usize> = (0..plan.angles_rad.len())
@@ -378,7 +467,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
             notes.push(format!("validation height {h} has no probed sphere"));
             continue;
         }
-        let s = series_of(h, &angles);
+        let s = series_of(&fits, h, &angles);
         let v = validate(&id, &s).map_err(|source| RotarySphereMethodError::Validation {
             height_index: h,
             source,
@@ -407,9 +496,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
             centre_m: fit.centre_m,
             centre_sigma_m: sqrt_diag(&fit.centre_covariance_m2),
             centre_covariance_m2: fit.centre_covariance_m2,
-            points: spheres
-                .get(&(h, a))
-                .map_or(0, |s| s.1.values().filter(|p| p.readings > 0).count()),
+            points: points_of(h, a),
             readings: *readings,
             residual_rms_m: fit.residual_rms_m,
         })
@@ -464,8 +551,8 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
 mod tests {
     use super::*;
 
-    fn point(begin_ns: u64, end_ns: Option<u64>) -> ProbedPoint {
-        ProbedPoint {
+    fn point(begin_ns: u64, end_ns: Option<u64>) -> PointWindow {
+        PointWindow {
             nominal_m: Vector3::zeros(),
             direction: Vector3::z(),
             begin_ns,
