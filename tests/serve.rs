@@ -384,7 +384,47 @@ fn a_simulated_run_through_the_daemon_equals_geocal_run() {
     let direct: Value =
         serde_json::from_slice(&std::fs::read(out.join("results.json")).expect("results"))
             .expect("json");
+    let session_id = from_daemon["session_id"]
+        .as_str()
+        .expect("session id")
+        .to_owned();
     assert_eq!(without_time(from_daemon), without_time(direct));
+
+    // The report of the run, and of a solve job of its session: geocal report's HTML page.
+    let report_of = |job: i64| {
+        let response = client
+            .get(daemon.at(&format!("/v1/jobs/{job}/report")))
+            .send()
+            .expect("GET report");
+        assert_eq!(response.status(), StatusCode::OK, "job {job}");
+        let content_type = response.headers()[reqwest::header::CONTENT_TYPE]
+            .to_str()
+            .expect("content type")
+            .to_owned();
+        assert!(content_type.starts_with("text/html"), "{content_type}");
+        response.text().expect("report")
+    };
+    let page = report_of(id);
+    assert!(
+        page.contains(&session_id) && page.contains("<svg") && page.contains("ISO 230-2"),
+        "the run's report"
+    );
+    let response = client
+        .post(daemon.at("/v1/jobs"))
+        .header("Content-Type", "application/json")
+        .body(format!("{{\"type\": \"solve\", \"session_of\": {id}}}"))
+        .send()
+        .expect("POST solve");
+    assert_eq!(response.status(), StatusCode::CREATED);
+    let solve: Value = response.json().expect("json");
+    let solve = solve["id"].as_i64().expect("id");
+    let done = wait_for(&client, &daemon, solve, &["succeeded", "failed"]);
+    assert_eq!(done["state"], "succeeded", "{done}");
+    let page = report_of(solve);
+    assert!(
+        page.contains(&session_id) && page.contains("ISO 230-2"),
+        "the solve job's report reads the session it solved"
+    );
 }
 
 #[test]

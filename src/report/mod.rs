@@ -111,6 +111,14 @@ impl Inputs {
         })
     }
 
+    /// The recorded session the results came from, when it is not beside them.
+    pub fn with_session(mut self, path: &Path) -> anyhow::Result<Inputs> {
+        self.session =
+            Some(read_session(path).with_context(|| format!("reading {}", path.display()))?);
+        self.session_path = Some(path.to_path_buf());
+        Ok(self)
+    }
+
     /// The results' plan kind (key `kind`).
     pub fn kind(&self) -> anyhow::Result<&str> {
         self.results

@@ -18,7 +18,7 @@ use utoipa::{OpenApi, ToSchema};
 
 use super::auth::{require_token, Token};
 use super::catalog::{JobFile, JobRecord, JobState, JobType};
-use super::jobs::{Daemon, JobError, ServerEvent};
+use super::jobs::{Daemon, JobError, ServerEvent, REPORT_FILE};
 use super::prompts::PendingPrompt;
 use super::status::{DeviceStatus, Progress};
 
@@ -274,6 +274,14 @@ async fn job_session(
     job_file(&daemon, id, "session.mcap", "application/octet-stream").await
 }
 
+/// The job's report (`geocal report` of its folder: one self-contained HTML page).
+#[utoipa::path(get, path = "/v1/jobs/{id}/report", params(("id" = i64, Path)),
+    responses((status = 200, content_type = "text/html", description = "the report"),
+        (status = 404, body = ErrorBody)))]
+async fn job_report(State(daemon): State<Arc<Daemon>>, Path(id): Path<i64>) -> ApiResult<Response> {
+    job_file(&daemon, id, REPORT_FILE, "text/html; charset=utf-8").await
+}
+
 /// Any file the job left (its report, diagnosis, plan, log), by the name its file list gives.
 #[utoipa::path(get, path = "/v1/jobs/{id}/files/{name}", params(("id" = i64, Path), ("name" = String, Path)),
     responses((status = 200, description = "the file"), (status = 404, body = ErrorBody)))]
@@ -395,7 +403,7 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
 #[derive(OpenApi)]
 #[openapi(
     info(title = "geocal daemon", description = "Calibration jobs, devices, prompts and live events of `geocal serve`."),
-    paths(submit, list_jobs, get_job, cancel_job, resume_job, job_results, job_session,
+    paths(submit, list_jobs, get_job, cancel_job, resume_job, job_results, job_session, job_report,
         job_named_file, devices, prompts, ack_prompt, events, health, metrics),
     components(schemas(JobView, SessionJob, Created, StateReply, ErrorBody, Health, JobFile,
         JobState, JobType, Progress, DeviceStatus, crate::devices::held::HeldStatus, PendingPrompt, ServerEvent)),
@@ -431,6 +439,7 @@ pub fn router(daemon: Arc<Daemon>, token: Option<Token>) -> Router {
         .route("/v1/jobs/{id}/resume", post(resume_job))
         .route("/v1/jobs/{id}/results", get(job_results))
         .route("/v1/jobs/{id}/session", get(job_session))
+        .route("/v1/jobs/{id}/report", get(job_report))
         .route("/v1/jobs/{id}/files/{name}", get(job_named_file))
         .route("/v1/devices", get(devices))
         .route("/v1/prompts", get(prompts))

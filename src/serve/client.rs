@@ -120,6 +120,7 @@ impl Client {
         let path = match what {
             "results" => format!("/v1/jobs/{id}/results"),
             "session" => format!("/v1/jobs/{id}/session"),
+            "report" => format!("/v1/jobs/{id}/report"),
             name => format!("/v1/jobs/{id}/files/{name}"),
         };
         let mut response = self.request(self.http.get(self.url(&path)))?;
@@ -223,6 +224,7 @@ pub fn default_fetch_path(id: i64, what: &str) -> PathBuf {
     let name = match what {
         "results" => "results.json",
         "session" => "session.mcap",
+        "report" => "report.html",
         name => name,
     };
     PathBuf::from(format!("job-{id}-{name}"))

@@ -534,17 +534,20 @@ impl Daemon {
         match job.job_type {
             JobType::Run if job.resume => {
                 kind.resume(&job.dir, Some(&job.dir.join(PLAN_FILE)), &options)?;
+                self.write_report(job, None);
             }
             JobType::Run => {
                 kind.run(&job.dir.join(PLAN_FILE), &options, &RunFlags::default())?;
+                self.write_report(job, None);
             }
             JobType::Solve => {
-                let results =
-                    crate::kinds::solve_file(&session_of(job.source_job)?, &options.settings)?;
+                let session = session_of(job.source_job)?;
+                let results = crate::kinds::solve_file(&session, &options.settings)?;
                 write(
                     &job.dir.join("results.json"),
                     results.to_json_pretty().as_bytes(),
                 )?;
+                self.write_report(job, Some(&session));
             }
             JobType::Diagnose => {
                 let (diagnosis, residuals) = crate::diagnose::diagnose_file_detailed(
@@ -579,6 +582,33 @@ impl Daemon {
         Ok(())
     }
 }
+
+impl Daemon {
+    /// `geocal report` of the job's folder as `REPORT_FILE` (its session from `session`
+    /// when it is not in the folder). The results stand without it: a report that cannot be
+    /// made is logged, and the job keeps its state.
+    fn write_report(&self, job: &JobRecord, session: Option<&Path>) {
+        let inputs = crate::report::Inputs::read(&job.dir);
+        let inputs = match session {
+            Some(path) => inputs.and_then(|i| i.with_session(path)),
+            None => inputs,
+        };
+        let made = inputs.and_then(|inputs| {
+            let document = crate::report::build(&inputs, &self.registry)?;
+            crate::report::write(
+                &document,
+                &job.dir.join(REPORT_FILE),
+                crate::report::Format::Html,
+            )
+        });
+        if let Err(e) = made {
+            tracing::warn!(job = job.id, "no report: {}", error_chain(&e));
+        }
+    }
+}
+
+/// The report a run or solve job leaves in its folder.
+pub const REPORT_FILE: &str = "report.html";
 
 fn write(path: &Path, data: &[u8]) -> anyhow::Result<()> {
     std::fs::write(path, data).with_context(|| format!("writing {}", path.display()))
