@@ -258,7 +258,7 @@ enum ClientCommand {
     Prompts,
     /// Acknowledge an operator prompt.
     Ack { prompt: u64 },
-    /// Download a job's `results`, `session`, or another file it left (by name).
+    /// Download a job's `results`, `session`, `report`, or another file it left (by name).
     Fetch {
         id: i64,
         #[arg(default_value = "results")]
