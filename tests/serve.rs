@@ -1074,8 +1074,7 @@ fn operate_through_simulate(
     client: &Client,
     daemon: &Daemon,
     id: i64,
-    sim_in: &mut impl std::io::Write,
-    sim_out: &mut impl BufRead,
+    simulate: &mut common::Simulated,
 ) -> (Value, Vec<String>) {
     let start = Instant::now();
     let mut steps = Vec::new();
@@ -1105,10 +1104,8 @@ fn operate_through_simulate(
                 (_, Some(target)) => format!("target {target}"),
                 _ => panic!("unexpected prompt {prompt}"),
             };
-            writeln!(sim_in, "{command}").expect("to simulate");
-            let mut reply = String::new();
-            sim_out.read_line(&mut reply).expect("simulate reply");
-            assert_eq!(reply.trim(), format!("ok {command}"), "simulate refused");
+            let reply = simulate.operate(&command);
+            assert_eq!(reply, format!("ok {command}"), "simulate refused");
             let p = prompt["id"].as_u64().expect("prompt id");
             let (status, _) = post(client, daemon, &format!("/v1/prompts/{p}/ack"));
             assert_eq!(status, StatusCode::NO_CONTENT);
@@ -1149,35 +1146,12 @@ fn real_devices_stay_connected_between_jobs_and_close_when_idle() {
     let sim_cfg = dir.path().join("simulate.toml");
     std::fs::write(&sim_cfg, common::hil_rotary_config("")).expect("write");
     let truth_path = dir.path().join("truth.json");
-    let mut simulate = Command::new(env!("CARGO_BIN_EXE_geocal"))
-        .args(["simulate", sim_cfg.to_str().expect("path"), "--json"])
-        .arg("--truth")
-        .arg(&truth_path)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .stderr(Stdio::null())
-        .spawn()
-        .expect("start geocal simulate");
-    let mut sim_in = simulate.stdin.take().expect("stdin");
-    let mut sim_out = BufReader::new(simulate.stdout.take().expect("stdout"));
-    let simulate = KilledOnDrop(simulate);
-    let mut line = String::new();
-    sim_out.read_line(&mut line).expect("device list");
-    let listed: Value = serde_json::from_str(&line).expect("device JSON");
-    let endpoint = |kind: &str| {
-        listed["devices"]
-            .as_array()
-            .expect("devices")
-            .iter()
-            .find(|d| d["kind"] == kind)
-            .and_then(|d| d["endpoint"].as_str())
-            .unwrap_or_else(|| panic!("no {kind} in {listed}"))
-            .to_string()
-    };
+    let mut simulate =
+        common::Simulated::start(env!("CARGO_BIN_EXE_geocal"), &sim_cfg, &truth_path);
     let (tracer, machine, table) = (
-        endpoint("tracer"),
-        endpoint("machine"),
-        endpoint("rotary_table"),
+        simulate.endpoint("tracer"),
+        simulate.endpoint("machine"),
+        simulate.endpoint("rotary_table"),
     );
     let plan = format!(
         "{}{}",
@@ -1230,47 +1204,44 @@ fn real_devices_stay_connected_between_jobs_and_close_when_idle() {
             .expect("rotary_tracer results");
         common::assert_recovers_truth(&results.multilateration, &truth);
     };
-    let expected_steps = ["station c01", "target t0", "station s13"];
     let held_ids = ["c", "tracer0", "vmc"];
+    // A job of the plan, operated through simulate, recovering the truth; then every
+    // device's held connection, returned, with the number of connections opened and of
+    // jobs served by the current one.
+    let mut job_then_connections = |opens: u64, leases: u64| {
+        let id = submit(&client, &daemon, &plan);
+        let (j, steps) = operate_through_simulate(&client, &daemon, id, &mut simulate);
+        assert_eq!(j["state"], "succeeded", "{j}");
+        assert_eq!(steps, ["station c01", "target t0", "station s13"]);
+        judge(id);
+        let held = connections(&client, &daemon);
+        println!("after job {id}: {held:?}");
+        for device in held_ids {
+            let c = &held[device];
+            assert_eq!(
+                (
+                    c["opens"].as_u64(),
+                    c["leases"].as_u64(),
+                    c["in_use"].as_bool()
+                ),
+                (Some(opens), Some(leases), Some(false)),
+                "{device}: {c}"
+            );
+        }
+        (id, held)
+    };
 
     // First job: the daemon connects the devices and keeps them.
-    let first = submit(&client, &daemon, &plan);
-    let (j, steps) = operate_through_simulate(&client, &daemon, first, &mut sim_in, &mut sim_out);
-    assert_eq!(j["state"], "succeeded", "{j}");
-    assert_eq!(steps, expected_steps);
-    judge(first);
-    let after_first = connections(&client, &daemon);
-    println!("after job {first}: {after_first:?}");
-    for id in held_ids {
-        let c = &after_first[id];
-        assert_eq!(
-            (c["opens"].as_u64(), c["leases"].as_u64()),
-            (Some(1), Some(1)),
-            "{id}: {c}"
-        );
-        assert_eq!(c["in_use"], false, "{id}: returned after the job");
-    }
-
+    let (first, after_first) = job_then_connections(1, 1);
     // Second job on the same connections, after a pause: nothing reopened, and no sample of
     // the idle time reaches the run (its results recover the truth as the first job's do).
     std::thread::sleep(Duration::from_millis(1500));
-    let second = submit(&client, &daemon, &plan);
-    let (j, steps) = operate_through_simulate(&client, &daemon, second, &mut sim_in, &mut sim_out);
-    assert_eq!(j["state"], "succeeded", "{j}");
-    assert_eq!(steps, expected_steps);
-    judge(second);
-    let after_second = connections(&client, &daemon);
-    println!("after job {second}: {after_second:?}");
-    for id in held_ids {
-        let c = &after_second[id];
-        assert_eq!(
-            (c["opens"].as_u64(), c["leases"].as_u64()),
-            (Some(1), Some(2)),
-            "{id}: {c}"
-        );
+    let (second, after_second) = job_then_connections(1, 2);
+    for device in held_ids {
         assert!(
-            c["connected_s"].as_f64() > after_first[id]["connected_s"].as_f64(),
-            "{id}: the same connection"
+            after_second[device]["connected_s"].as_f64()
+                > after_first[device]["connected_s"].as_f64(),
+            "{device}: the same connection"
         );
     }
     // The tracer's device clock and the log clock both run in wall time: from the first
@@ -1301,27 +1272,5 @@ fn real_devices_stay_connected_between_jobs_and_close_when_idle() {
         assert!(start.elapsed() < Duration::from_secs(120), "never released");
         std::thread::sleep(Duration::from_millis(200));
     }
-    let third = submit(&client, &daemon, &plan);
-    let (j, _) = operate_through_simulate(&client, &daemon, third, &mut sim_in, &mut sim_out);
-    assert_eq!(j["state"], "succeeded", "{j}");
-    judge(third);
-    let after_third = connections(&client, &daemon);
-    for id in held_ids {
-        assert_eq!(
-            after_third[id]["opens"].as_u64(),
-            Some(2),
-            "{id}: reconnected"
-        );
-    }
-    drop(simulate);
-}
-
-/// A child process that does not outlive its test, even a failed one.
-struct KilledOnDrop(Child);
-
-impl Drop for KilledOnDrop {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+    job_then_connections(2, 1);
 }

@@ -21,37 +21,11 @@ fn simulate_and_run_as_two_processes() {
     // simulate reads the in-process HIL configuration (its [hil] tables give the faults).
     std::fs::write(&sim_cfg, hil_rotary_config("")).expect("write");
     let truth_path = dir.path().join("truth.json");
-    let mut simulate = Command::new(GEOCAL)
-        .args([
-            "simulate",
-            sim_cfg.to_str().expect("path"),
-            "--json",
-            "--truth",
-        ])
-        .arg(&truth_path)
-        .stdin(Stdio::piped())
-        .stdout(Stdio::piped())
-        .spawn()
-        .expect("start geocal simulate");
-    let mut sim_in = simulate.stdin.take().expect("stdin");
-    let mut sim_out = BufReader::new(simulate.stdout.take().expect("stdout"));
-    let mut line = String::new();
-    sim_out.read_line(&mut line).expect("device list");
-    let listed: serde_json::Value = serde_json::from_str(&line).expect("device JSON");
-    let endpoint = |kind: &str| {
-        listed["devices"]
-            .as_array()
-            .expect("devices")
-            .iter()
-            .find(|d| d["kind"] == kind)
-            .and_then(|d| d["endpoint"].as_str())
-            .unwrap_or_else(|| panic!("no {kind} in {listed}"))
-            .to_string()
-    };
+    let mut simulate = common::Simulated::start(GEOCAL, &sim_cfg, &truth_path);
     let (tracer, machine, table) = (
-        endpoint("tracer"),
-        endpoint("machine"),
-        endpoint("rotary_table"),
+        simulate.endpoint("tracer"),
+        simulate.endpoint("machine"),
+        simulate.endpoint("rotary_table"),
     );
     println!("simulate: tracer {tracer}, machine {machine}, table {table}");
     assert!(table.starts_with("127.0.0.1:"), "{table}");
@@ -122,10 +96,8 @@ fn simulate_and_run_as_two_processes() {
             } else {
                 continue;
             };
-        writeln!(sim_in, "{command}").expect("to simulate");
-        let mut reply = String::new();
-        sim_out.read_line(&mut reply).expect("simulate reply");
-        assert_eq!(reply.trim(), format!("ok {command}"), "simulate refused");
+        let reply = simulate.operate(&command);
+        assert_eq!(reply, format!("ok {command}"), "simulate refused");
         writeln!(run_in,).expect("Enter");
         steps.push(command);
     }
@@ -141,19 +113,17 @@ fn simulate_and_run_as_two_processes() {
     assert_eq!(steps, ["station c01", "target t0", "station s13"]);
 
     // An unknown command is refused with a reason, then simulate stops on SIGTERM.
-    writeln!(sim_in, "station nowhere").expect("to simulate");
-    let mut reply = String::new();
-    sim_out.read_line(&mut reply).expect("reply");
+    let reply = simulate.operate("station nowhere");
     assert!(
         reply.starts_with("error: unknown station `nowhere`"),
         "{reply}"
     );
     let killed = Command::new("kill")
-        .args(["-TERM", &simulate.id().to_string()])
+        .args(["-TERM", &simulate.child.id().to_string()])
         .status()
         .expect("kill");
     assert!(killed.success());
-    assert!(simulate.wait().expect("simulate exit").success());
+    assert!(simulate.child.wait().expect("simulate exit").success());
 
     // The run's results against simulate's truth, as the in-process runs are judged.
     let truth: serde_json::Value =

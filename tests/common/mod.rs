@@ -551,3 +551,70 @@ pub fn interrupted_files_left(dir: &Path) -> Vec<std::path::PathBuf> {
         .filter(|p| p.to_string_lossy().contains("interrupted"))
         .collect()
 }
+
+/// `geocal simulate` in a process of its own: the devices of a machine outside the process
+/// under test, with its operator channel. Killed when dropped, even by a failed test.
+pub struct Simulated {
+    pub child: std::process::Child,
+    pub operator_in: std::process::ChildStdin,
+    pub operator_out: std::io::BufReader<std::process::ChildStdout>,
+    /// The device list simulate printed (`--json`).
+    pub listed: Value,
+}
+
+impl Simulated {
+    /// Host the emulators of the configuration at `config` with the `geocal` binary, writing
+    /// the truth to `truth`.
+    pub fn start(geocal: &str, config: &Path, truth: &Path) -> Simulated {
+        use std::io::BufRead;
+        let mut child = std::process::Command::new(geocal)
+            .args(["simulate", config.to_str().expect("path"), "--json"])
+            .arg("--truth")
+            .arg(truth)
+            .stdin(std::process::Stdio::piped())
+            .stdout(std::process::Stdio::piped())
+            .spawn()
+            .expect("start geocal simulate");
+        let operator_in = child.stdin.take().expect("stdin");
+        let mut operator_out = std::io::BufReader::new(child.stdout.take().expect("stdout"));
+        let mut line = String::new();
+        operator_out.read_line(&mut line).expect("device list");
+        let listed = serde_json::from_str(&line).expect("device JSON");
+        Simulated {
+            child,
+            operator_in,
+            operator_out,
+            listed,
+        }
+    }
+
+    /// Where the device of `kind` (tracer, machine, rotary_table) is reached.
+    pub fn endpoint(&self, kind: &str) -> String {
+        self.listed["devices"]
+            .as_array()
+            .expect("devices")
+            .iter()
+            .find(|d| d["kind"] == kind)
+            .and_then(|d| d["endpoint"].as_str())
+            .unwrap_or_else(|| panic!("no {kind} in {}", self.listed))
+            .to_string()
+    }
+
+    /// Carry out an operator's `command` (`station <id>`, `target <id>`); simulate's answer.
+    pub fn operate(&mut self, command: &str) -> String {
+        use std::io::{BufRead, Write};
+        writeln!(self.operator_in, "{command}").expect("to simulate");
+        let mut reply = String::new();
+        self.operator_out
+            .read_line(&mut reply)
+            .expect("simulate reply");
+        reply.trim().to_owned()
+    }
+}
+
+impl Drop for Simulated {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
