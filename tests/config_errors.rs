@@ -282,6 +282,56 @@ fn rotary_sim_speed_must_be_positive() {
 }
 
 #[test]
+fn rotary_iso_cycle_keys_are_checked_by_name() {
+    let cases = [
+        (
+            "count = 12",
+            "count = 12\nruns = 0",
+            "plan.rotary.runs",
+            "at least 1",
+        ),
+        (
+            "count = 12",
+            "count = 12\novershoot_rad = 0.05",
+            "plan.rotary.overshoot_rad",
+            "runs = N",
+        ),
+        (
+            "count = 12",
+            "count = 12\nruns = 5\novershoot_rad = -0.1",
+            "plan.rotary.overshoot_rad",
+            "positive angle",
+        ),
+        (
+            "step_rad = 0.5235987755982988           # 30°\ncount = 12",
+            "angles_rad = [0.0, 1.0, 2.0]\nspacing = \"pseudo_random\"",
+            "plan.rotary.spacing",
+            "stepped form",
+        ),
+        (
+            "axis_tilt_rad = 1e-4 }",
+            "axis_tilt_rad = 1e-4, reversal_rad = -1e-5 }",
+            "sim.rotary.reversal_rad",
+            "",
+        ),
+        (
+            "axis_tilt_rad = 1e-4 }",
+            "axis_tilt_rad = 1e-4, repeatability_rad = -1e-5 }",
+            "sim.rotary.repeatability_rad",
+            "",
+        ),
+    ];
+    for (from, to, key, what) in cases {
+        assert_mentions(&error_of(&rotary_with(from, to)), &[FILE, key, what]);
+    }
+    // The cycle itself: 5 runs over 12 angles are 120 table stations and the one off it.
+    let config = parse(&rotary_with("count = 12", "count = 12\nruns = 5")).expect("valid");
+    let plan = geocal::plan::Plan::from_config(&config);
+    assert_eq!(plan.stations.len(), 121);
+    assert_eq!(plan.stations[119].id, "c120");
+}
+
+#[test]
 fn protocol_driver_errors_name_the_key() {
     // A GRBL tracer does not exist.
     let text = DEMO.replace(

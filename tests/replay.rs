@@ -121,11 +121,9 @@ fn a_recording_without_arrivals_replays_identically() {
     );
 }
 
-/// The tracer on a rotary table: the table reports in position where the recording shows it,
-/// at the recorded encoder angle (4 table stations 90° apart and one off the table, 10 Hz).
-#[test]
-fn rotary_tracer_session_replays_identically() {
-    let config = include_str!("../config/rotary-tracer.toml")
+/// 4 table stations 90° apart and one off the table, 10 Hz.
+fn small_rotary_tracer() -> String {
+    include_str!("../config/rotary-tracer.toml")
         .replace("count = 6 }", "count = 3 }")
         .replace(
             "step_rad = 0.5235987755982988",
@@ -134,9 +132,34 @@ fn rotary_tracer_session_replays_identically() {
         .replace("count = 12", "count = 4")
         .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
         .replace("dwell_s = 2.0", "dwell_s = 1.0")
-        .replace("window_s = 0.6", "window_s = 0.4");
+        .replace("window_s = 0.6", "window_s = 0.4")
+}
+
+/// The tracer on a rotary table: the table reports in position where the recording shows it,
+/// at the recorded encoder angle.
+#[test]
+fn rotary_tracer_session_replays_identically() {
+    assert_rotary_tracer_replays(&small_rotary_tracer());
+}
+
+/// ISO 230-2's cycle for the table: each run's first station is reached through its
+/// overshoot angle, two moves under one `rotation` event, on a table with reversal and
+/// scatter.
+#[test]
+fn rotary_tracer_cycle_with_overshoots_replays_identically() {
+    let config = small_rotary_tracer()
+        .replace("count = 4", "count = 4\nruns = 2")
+        .replace(
+            "axis_tilt_rad = 1e-4 }",
+            "axis_tilt_rad = 1e-4, reversal_rad = 2e-5, repeatability_rad = 5e-6 }",
+        );
+    assert!(config.contains("runs = 2") && config.contains("reversal_rad"));
+    assert_rotary_tracer_replays(&config);
+}
+
+fn assert_rotary_tracer_replays(config: &str) {
     let dir = tempfile::tempdir().expect("tempdir");
-    let recorded = record(&config, &dir.path().join("run"));
+    let recorded = record(config, &dir.path().join("run"));
     let out = replay_into(&recorded.session_path, &dir.path().join("replay"));
     assert_identical_replay(&recorded, &out);
     let rotary = |path: &Path| {

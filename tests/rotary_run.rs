@@ -177,6 +177,7 @@ fn rotary_tracer_recovers_table_angles_axis_and_points() {
             RunEvent::Rotation {
                 table,
                 commanded_rad,
+                ..
             } => {
                 assert_eq!(table, "c");
                 Some(*commanded_rad)

@@ -1010,7 +1010,7 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .clone()
         .expect("the live view's address on the first line");
     const WANTED: usize = 300;
-    let watcher = Command::new("python3")
+    let mut watcher = Command::new("python3")
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/live_view/client.py"
@@ -1022,20 +1022,29 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .stderr(Stdio::piped())
         .spawn()
         .expect("python3 with websockets (pip install websockets)");
-    // Let the client connect before the run starts publishing.
-    std::thread::sleep(Duration::from_millis(500));
+    // The run starts publishing only once the client is connected (its first line), however
+    // long Python takes to start on a loaded machine.
+    let mut lines = BufReader::new(watcher.stdout.take().expect("watcher stdout")).lines();
+    let first = lines.next().and_then(Result::ok).unwrap_or_default();
+    assert!(
+        first.contains("connected"),
+        "the Foxglove client: {first:?}"
+    );
     let client = http();
     let id = submit(&client, &daemon, &hil());
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
+    let stdout: Vec<String> = lines.map_while(Result::ok).collect();
     let output = watcher.wait_with_output().expect("the watcher ends");
     assert!(
         output.status.success(),
-        "the Foxglove client failed: {}",
+        "the Foxglove client failed after {} lines (first: {:?}): {}",
+        stdout.len(),
+        stdout.first(),
         String::from_utf8_lossy(&output.stderr)
     );
-    let received: Vec<(u64, Vec<u8>)> = String::from_utf8_lossy(&output.stdout)
-        .lines()
+    let received: Vec<(u64, Vec<u8>)> = stdout
+        .iter()
         .filter_map(|l| serde_json::from_str::<Value>(l).ok())
         .filter(|v| v.get("payload_hex").is_some())
         .map(|v| {

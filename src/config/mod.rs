@@ -288,6 +288,23 @@ impl Spacing {
     fn is_equal(&self) -> bool {
         *self == Spacing::Equal
     }
+
+    /// The shift of target `i` of `count`, in intervals: 0 when equally spaced and at the
+    /// ends; else a fixed fraction in [−1/4, 1/4) (SplitMix64 of i), the same on every
+    /// platform, so that neighbours never swap or meet.
+    pub fn shift_fraction(&self, i: usize, count: usize) -> f64 {
+        if *self == Spacing::Equal || i == 0 || i + 1 >= count {
+            return 0.0;
+        }
+        let mut z = (i as u64)
+            .wrapping_add(1)
+            .wrapping_mul(0x9E37_79B9_7F4A_7C15);
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^= z >> 31;
+        let unit = (z >> 11) as f64 / (1u64 << 53) as f64;
+        0.5 * unit - 0.25
+    }
 }
 
 /// `passes` as a list of directions, or as a number of bidirectional runs.
@@ -360,26 +377,86 @@ pub struct RotaryPlanConfig {
     /// Number of table stations of the stepped form.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub count: Option<usize>,
+    /// How the stepped form's angles lie (default: equally spaced); `pseudo_random` moves the
+    /// interior angles as a grid axis's (ISO 230-2's unequal intervals).
+    #[serde(default, skip_serializing_if = "Spacing::is_equal")]
+    pub spacing: Spacing,
+    /// ISO 230-2's test cycle: this many bidirectional runs over the angles, each run visiting
+    /// them in increasing (↑) or decreasing (↓) order and entering from beyond its first angle
+    /// by `overshoot_rad`, so that every angle of a run is approached from the run's side.
+    /// Unset: each angle once, in the order given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub runs: Option<usize>,
+    /// How far the table turns beyond a run's first angle before approaching it, radians
+    /// (with `runs`; default 0.05 rad, about 2.9°).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub overshoot_rad: Option<f64>,
     /// Table station ids are this prefix and the 1-based step number: `c01`, `c02`, ...
     #[serde(default = "default_station_prefix")]
     pub station_prefix: String,
 }
+
+/// One visit of the table: the commanded angle a table station is measured at, and the angle
+/// the table is sent to first (the overshoot that fixes its approach direction), if any.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct TableVisit {
+    pub commanded_rad: f64,
+    pub via_rad: Option<f64>,
+}
+
+/// Default of `plan.rotary.overshoot_rad`, radians.
+pub const DEFAULT_TABLE_OVERSHOOT_RAD: f64 = 0.05;
 
 fn default_station_prefix() -> String {
     String::from("c")
 }
 
 impl RotaryPlanConfig {
-    /// The commanded angles in measuring order (listed, or expanded from the stepped form).
+    /// The target angles, distinct, in the order given (listed, or expanded from the stepped
+    /// form with its spacing).
     pub fn commanded_angles_rad(&self) -> Vec<f64> {
         match (&self.angles_rad, self.step_rad, self.count) {
             (Some(angles), _, _) => angles.clone(),
             (None, Some(step), Some(count)) => {
                 let start = self.start_rad.unwrap_or(0.0);
-                (0..count).map(|k| start + step * k as f64).collect()
+                (0..count)
+                    .map(|k| start + step * k as f64 + step * self.spacing.shift_fraction(k, count))
+                    .collect()
             }
             _ => Vec::new(),
         }
+    }
+
+    /// Every table station in measuring order: the angles once as given, or with `runs` the
+    /// ISO 230-2 cycle (↑ run, ↓ run, repeated), each run entered through its overshoot.
+    pub fn visits(&self) -> Vec<TableVisit> {
+        let angles = self.commanded_angles_rad();
+        let Some(runs) = self.runs else {
+            return angles
+                .into_iter()
+                .map(|commanded_rad| TableVisit {
+                    commanded_rad,
+                    via_rad: None,
+                })
+                .collect();
+        };
+        let mut up = angles;
+        up.sort_by(f64::total_cmp);
+        let down: Vec<f64> = up.iter().rev().copied().collect();
+        let overshoot = self.overshoot_rad.unwrap_or(DEFAULT_TABLE_OVERSHOOT_RAD);
+        let run = |angles: &[f64], via_side: f64| -> Vec<TableVisit> {
+            angles
+                .iter()
+                .enumerate()
+                .map(|(i, &commanded_rad)| TableVisit {
+                    commanded_rad,
+                    via_rad: (i == 0).then_some(commanded_rad + via_side * overshoot),
+                })
+                .collect()
+        };
+        (0..runs)
+            .flat_map(|_| run(&up, -1.0).into_iter().chain(run(&down, 1.0)))
+            .collect()
     }
 
     /// Id of the table station at step `k` (0-based).
@@ -453,6 +530,18 @@ pub struct SimRotaryConfig {
     pub speed_rad_s: f64,
     /// Time to settle in position after a rotation, seconds.
     pub settle_s: f64,
+    /// Reversal (backlash) of the table: in position it stands `reversal_rad`/2 beyond the
+    /// commanded angle in the direction of its last move (0 before it ever moved), radians.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub reversal_rad: f64,
+    /// Random scatter of the angle reached at each positioning (standard deviation), radians:
+    /// ISO 230-2's repeatability of the table.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub repeatability_rad: f64,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 impl Default for SimRotaryConfig {
@@ -464,6 +553,8 @@ impl Default for SimRotaryConfig {
             axis_tilt_rad: 1e-4,
             speed_rad_s: 0.2,
             settle_s: 2.0,
+            reversal_rad: 0.0,
+            repeatability_rad: 0.0,
         }
     }
 }

@@ -155,10 +155,7 @@ fn validate_plan(config: &Config) -> Result<(), Invalid> {
         }
     }
     let points = plan.grid.x.count * plan.grid.y.count * plan.grid.z.count;
-    let table_stations = plan
-        .rotary
-        .as_ref()
-        .map_or(0, |r| r.commanded_angles_rad().len());
+    let table_stations = plan.rotary.as_ref().map_or(0, |r| r.visits().len());
     let stations = plan.stations.len() + table_stations;
     if stations < 4 {
         return fail(
@@ -408,6 +405,32 @@ fn validate_rotary(config: &Config) -> Result<(), Invalid> {
             );
         }
     }
+    if rotary.angles_rad.is_some() && rotary.spacing != super::Spacing::Equal {
+        return fail(
+            "plan.rotary.spacing",
+            "applies to the stepped form (step_rad + count): listed angles_rad are measured as given",
+        );
+    }
+    if rotary.runs == Some(0) {
+        return fail(
+            "plan.rotary.runs",
+            "expected at least 1 bidirectional run (ISO 230-2's cycle has 5)",
+        );
+    }
+    if let Some(overshoot) = rotary.overshoot_rad {
+        if rotary.runs.is_none() {
+            return fail(
+                "plan.rotary.overshoot_rad",
+                "applies with runs (the ISO 230-2 cycle): expected runs = N too, or no overshoot_rad",
+            );
+        }
+        if !(overshoot.is_finite() && overshoot > 0.0 && overshoot < 1.0) {
+            return fail(
+                "plan.rotary.overshoot_rad",
+                format!("expected a positive angle in radians below 1, found {overshoot}"),
+            );
+        }
+    }
     // Stations on a circle lie in one plane: multilateration needs one off that plane.
     let off_plane = config.plan.stations.iter().any(|s| {
         s.hint_m.is_some_and(|h| {
@@ -468,6 +491,8 @@ fn validate_sim(config: &Config) -> Result<(), Invalid> {
     non_negative("sim.rotary.axis_tilt_rad", rotary.axis_tilt_rad)?;
     positive("sim.rotary.speed_rad_s", rotary.speed_rad_s)?;
     non_negative("sim.rotary.settle_s", rotary.settle_s)?;
+    non_negative("sim.rotary.reversal_rad", rotary.reversal_rad)?;
+    non_negative("sim.rotary.repeatability_rad", rotary.repeatability_rad)?;
     sim.effects.validate()?;
     validate_compensation(&sim.compensation)?;
     if config.plan.stations.iter().any(|s| s.hint_m.is_none()) {

@@ -49,6 +49,10 @@ pub struct AxisIso {
     /// Median standard uncertainty of one deviation (rotary axes).
     #[serde(skip_serializing_if = "Option::is_none")]
     pub deviation_sigma_median_rad: Option<f64>,
+    /// Per target of `curves`, the RMS standard uncertainty of one step's deviation (rotary
+    /// axes; the reference station's is 0).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub target_sigma_rad: Option<Vec<f64>>,
     pub notes: Vec<String>,
     pub curves: Curves,
     pub evaluation: Evaluation,
@@ -242,6 +246,7 @@ fn tracer_axes(
                         deviation_sigma_median_m: Some(median(&mut sigmas)),
                         target_sigma_m: Some(target_sigma_m),
                         deviation_sigma_median_rad: None,
+                        target_sigma_rad: None,
                         notes,
                         curves,
                         evaluation,
@@ -490,7 +495,19 @@ fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), S
     ))
 }
 
-fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
+/// One table step as the results give it.
+#[derive(Debug, Clone, Copy)]
+struct TableStep {
+    commanded_rad: f64,
+    error_rad: f64,
+    sigma_rad: f64,
+    approach: Option<i8>,
+}
+
+/// Commanded angles closer than this are one target position, radians.
+const SAME_TARGET_RAD: f64 = 1e-9;
+
+fn table_steps(rotary: &serde_json::Value) -> Result<(String, Vec<TableStep>), DeviationError> {
     let bad = |key: &str, what: &str| DeviationError::Results {
         key: key.to_owned(),
         what: what.to_owned(),
@@ -503,48 +520,141 @@ fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
         .get("steps")
         .and_then(|s| s.as_array())
         .ok_or_else(|| bad("rotary.steps", "expected a list of steps"))?;
-    let mut rows = Vec::new();
+    let mut out = Vec::new();
     for (i, s) in steps.iter().enumerate() {
         let num = |name: &str| {
             s.get(name)
                 .and_then(|v| v.as_f64())
                 .ok_or_else(|| bad(&format!("rotary.steps[{i}].{name}"), "expected a number"))
         };
-        rows.push((num("commanded_rad")?, num("error_rad")?, num("sigma_rad")?));
+        let approach = match s.get("approach") {
+            None | Some(serde_json::Value::Null) => None,
+            Some(v) => match v.as_i64() {
+                Some(1) => Some(1),
+                Some(-1) => Some(-1),
+                _ => {
+                    return Err(bad(
+                        &format!("rotary.steps[{i}].approach"),
+                        "expected 1 or -1",
+                    ))
+                }
+            },
+        };
+        out.push(TableStep {
+            commanded_rad: num("commanded_rad")?,
+            error_rad: num("error_rad")?,
+            sigma_rad: num("sigma_rad")?,
+            approach,
+        });
     }
-    rows.sort_by(|a, b| a.0.total_cmp(&b.0));
-    let increasing = steps
+    Ok((table.to_owned(), out))
+}
+
+/// The steps split into runs: consecutive steps approached from one side that visit the
+/// angles monotonically in that direction. A step whose approach is unknown (the first
+/// station of a plan without overshoot, a station where the table did not move) takes the
+/// side of the step after it, else the one before it, else the direction of the commands.
+fn table_runs(steps: &[TableStep]) -> Vec<(i8, Vec<TableStep>)> {
+    let mut side: Vec<Option<i8>> = steps.iter().map(|s| s.approach).collect();
+    for i in (0..side.len().saturating_sub(1)).rev() {
+        side[i] = side[i].or(side[i + 1]);
+    }
+    for i in 1..side.len() {
+        side[i] = side[i].or(side[i - 1]);
+    }
+    let commanded_sense = match steps {
+        [first, second, ..] if second.commanded_rad < first.commanded_rad => -1,
+        _ => 1,
+    };
+    let mut runs: Vec<(i8, Vec<TableStep>)> = Vec::new();
+    for (step, side) in steps.iter().zip(side) {
+        let side = side.unwrap_or(commanded_sense);
+        match runs.last_mut() {
+            Some((run_side, run))
+                if *run_side == side
+                    && run.last().is_some_and(|last| {
+                        f64::from(side) * (step.commanded_rad - last.commanded_rad)
+                            > SAME_TARGET_RAD
+                    }) =>
+            {
+                run.push(*step)
+            }
+            _ => runs.push((side, vec![*step])),
+        }
+    }
+    runs
+}
+
+/// The ISO 230-2 evaluation of a rotary table from the `rotary` object of a kind's results
+/// (its steps: commanded angle, error, σ, approach side).
+pub fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
+    let (table, steps) = table_steps(rotary)?;
+    let runs = table_runs(&steps);
+    let mut angles: Vec<f64> = steps.iter().map(|s| s.commanded_rad).collect();
+    angles.sort_by(f64::total_cmp);
+    angles.dedup_by(|a, b| (*a - *b).abs() <= SAME_TARGET_RAD);
+    let error_at = |run: &[TableStep], target: f64| {
+        run.iter()
+            .find(|s| (s.commanded_rad - target).abs() <= SAME_TARGET_RAD)
+            .map(|s| s.error_rad)
+    };
+    let (kept, left_out): (Vec<f64>, Vec<f64>) = angles
         .iter()
-        .filter_map(|s| s.get("commanded_rad").and_then(|v| v.as_f64()))
-        .collect::<Vec<f64>>()
-        .windows(2)
-        .all(|p| p[1] > p[0]);
+        .partition(|&&t| runs.iter().all(|(_, run)| error_at(run, t).is_some()));
+    let curve = |side: i8| -> Vec<Vec<f64>> {
+        runs.iter()
+            .filter(|(s, _)| *s == side)
+            .map(|(_, run)| kept.iter().filter_map(|&t| error_at(run, t)).collect())
+            .collect()
+    };
     let curves = Curves {
         axis_type: AxisType::Rotary,
-        targets: rows.iter().map(|r| r.0).collect(),
-        up: if increasing {
-            vec![rows.iter().map(|r| r.1).collect()]
-        } else {
-            vec![]
-        },
-        down: if increasing {
-            vec![]
-        } else {
-            vec![rows.iter().map(|r| r.1).collect()]
-        },
+        targets: kept.clone(),
+        up: curve(1),
+        down: curve(-1),
     };
     let evaluation = evaluate(&curves)?;
-    let mut sigmas: Vec<f64> = rows.iter().map(|r| r.2).collect();
+    let target_sigma_rad: Vec<f64> = kept
+        .iter()
+        .map(|&t| {
+            let sigmas: Vec<f64> = steps
+                .iter()
+                .filter(|s| (s.commanded_rad - t).abs() <= SAME_TARGET_RAD)
+                .map(|s| s.sigma_rad)
+                .collect();
+            (sigmas.iter().map(|s| s * s).sum::<f64>() / sigmas.len() as f64).sqrt()
+        })
+        .collect();
+    let mut notes = vec![if runs.len() == 1 {
+        "one run: the table visits each commanded angle once, in one direction".to_owned()
+    } else {
+        format!(
+            "{} ↑ and {} ↓ runs: consecutive table stations approached from one side, visiting the angles in that direction",
+            curves.up.len(),
+            curves.down.len()
+        )
+    }];
+    if steps.first().is_some_and(|s| s.approach.is_none()) {
+        notes.push(
+            "the first table station's approach is not recorded (no overshoot before it): counted with its run".to_owned(),
+        );
+    }
+    if !left_out.is_empty() {
+        notes.push(format!(
+            "angles {:?} rad left out: not measured in every run",
+            left_out
+        ));
+    }
+    let mut sigmas: Vec<f64> = steps.iter().map(|s| s.sigma_rad).collect();
     Ok(AxisIso {
-        axis: table.to_owned(),
+        axis: table,
         target: None,
         source: "the table's step errors (measured − commanded angle, relative to the first table station) from the circle through the table stations".to_owned(),
         deviation_sigma_median_m: None,
         target_sigma_m: None,
         deviation_sigma_median_rad: Some(median(&mut sigmas)),
-        notes: vec![
-            "one run: the table visits each commanded angle once, in one direction".to_owned(),
-        ],
+        target_sigma_rad: Some(target_sigma_rad),
+        notes,
         curves,
         evaluation,
     })
@@ -553,6 +663,79 @@ fn rotary_axis(rotary: &serde_json::Value) -> Result<AxisIso, DeviationError> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    fn step(commanded_rad: f64, approach: Option<i8>) -> TableStep {
+        TableStep {
+            commanded_rad,
+            error_rad: 1e-6 * commanded_rad + 1e-7 * f64::from(approach.unwrap_or(0)),
+            sigma_rad: 1e-7,
+            approach,
+        }
+    }
+
+    #[test]
+    fn table_runs_split_at_a_reversal_and_at_a_new_pass() {
+        // A plan without overshoot: one ↑ run, its first step's approach unknown.
+        let legacy = [step(0.0, None), step(0.5, Some(1)), step(1.0, Some(1))];
+        let runs = table_runs(&legacy);
+        assert_eq!(runs.len(), 1);
+        assert_eq!((runs[0].0, runs[0].1.len()), (1, 3));
+        // ISO cycle: ↑ ↓ ↑ ↓, every run entered through its overshoot.
+        let up = [step(0.0, Some(1)), step(0.5, Some(1)), step(1.0, Some(1))];
+        let down = [
+            step(1.0, Some(-1)),
+            step(0.5, Some(-1)),
+            step(0.0, Some(-1)),
+        ];
+        let cycle: Vec<TableStep> = [up, down, up, down].concat();
+        let sides: Vec<(i8, usize)> = table_runs(&cycle)
+            .iter()
+            .map(|(side, run)| (*side, run.len()))
+            .collect();
+        assert_eq!(sides, [(1, 3), (-1, 3), (1, 3), (-1, 3)]);
+        // Two ↑ runs in a row start again where the angles stop increasing.
+        let twice: Vec<TableStep> = [up, up].concat();
+        assert_eq!(table_runs(&twice).len(), 2);
+    }
+
+    #[test]
+    fn table_cycle_gives_both_directions_and_the_reversal() {
+        let up = [step(0.0, Some(1)), step(0.5, Some(1)), step(1.0, Some(1))];
+        let down = [
+            step(1.0, Some(-1)),
+            step(0.5, Some(-1)),
+            step(0.0, Some(-1)),
+        ];
+        let steps: Vec<serde_json::Value> = [up, down, up, down]
+            .concat()
+            .iter()
+            .map(|s| {
+                serde_json::json!({
+                    "commanded_rad": s.commanded_rad, "error_rad": s.error_rad,
+                    "sigma_rad": s.sigma_rad, "approach": s.approach,
+                })
+            })
+            .collect();
+        let axis =
+            rotary_axis(&serde_json::json!({"table": "c", "steps": steps})).expect("rotary axis");
+        assert_eq!(axis.curves.targets, [0.0, 0.5, 1.0]);
+        assert_eq!((axis.curves.up.len(), axis.curves.down.len()), (2, 2));
+        let b = axis.evaluation.figures();
+        let b = b.bidirectional.as_ref().expect("both directions");
+        assert!(
+            (b.mean_reversal - 2e-7).abs() < 1e-15,
+            "{}",
+            b.mean_reversal
+        );
+        // A bad approach is named by its key.
+        let bad = serde_json::json!({"table": "c", "steps": [
+            {"commanded_rad": 0.0, "error_rad": 0.0, "sigma_rad": 0.0, "approach": 2}]});
+        let err = rotary_axis(&bad).expect_err("approach 2");
+        assert!(
+            err.to_string().contains("rotary.steps[0].approach"),
+            "{err}"
+        );
+    }
 
     /// Deviation = g(target) + line offset + reversal·direction/2; rows alternate direction
     /// (serpentine) and the first target of a row is reached without moving the axis.

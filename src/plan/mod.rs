@@ -7,7 +7,7 @@ pub mod nc;
 use nalgebra::{Rotation3, Unit, Vector3};
 use serde::Serialize;
 
-use crate::config::{AxisRange, Config, GridOrder, PassDirection, Spacing};
+use crate::config::{AxisRange, Config, GridOrder, PassDirection};
 
 /// Axis names in the order of `PlanPoint::axes_m`.
 pub const AXES: [&str; 3] = ["x", "y", "z"];
@@ -40,6 +40,9 @@ pub struct PlanRotation {
     pub table: String,
     /// Commanded absolute table angle, radians.
     pub commanded_rad: f64,
+    /// The table is sent here first, so that it approaches `commanded_rad` from this side.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub via_rad: Option<f64>,
 }
 
 #[derive(Debug, Clone, Serialize, PartialEq)]
@@ -118,17 +121,18 @@ fn table_stations(config: &Config) -> Vec<PlanStation> {
     let direction = Vector3::from(rotary.axis_direction);
     let tracer = Vector3::from(rotary.tracer_hint_m);
     rotary
-        .commanded_angles_rad()
+        .visits()
         .into_iter()
         .enumerate()
-        .map(|(k, commanded_rad)| {
-            let hint = rotate_about_axis(&tracer, &axis_point, &direction, commanded_rad);
+        .map(|(k, visit)| {
+            let hint = rotate_about_axis(&tracer, &axis_point, &direction, visit.commanded_rad);
             PlanStation {
                 id: rotary.station_id(k),
                 hint_m: Some([hint.x, hint.y, hint.z]),
                 rotation: Some(PlanRotation {
                     table: rotary.table.clone(),
-                    commanded_rad,
+                    commanded_rad: visit.commanded_rad,
+                    via_rad: visit.via_rad,
                 }),
             }
         })
@@ -153,29 +157,9 @@ fn linspace(range: &AxisRange) -> Vec<f64> {
         return vec![range.from];
     }
     let step = (range.to - range.from) / (range.count - 1) as f64;
-    let last = range.count - 1;
     (0..range.count)
-        .map(|i| {
-            let shift = match range.spacing {
-                Spacing::PseudoRandom if i > 0 && i < last => step * pseudo_random_fraction(i),
-                _ => 0.0,
-            };
-            range.from + step * i as f64 + shift
-        })
+        .map(|i| range.from + step * i as f64 + step * range.spacing.shift_fraction(i, range.count))
         .collect()
-}
-
-/// A fixed fraction in [−1/4, 1/4) for interior point `i` (SplitMix64 of i): the same plan
-/// on every platform, and neighbours never swap or meet.
-fn pseudo_random_fraction(i: usize) -> f64 {
-    let mut z = (i as u64)
-        .wrapping_add(1)
-        .wrapping_mul(0x9E37_79B9_7F4A_7C15);
-    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-    z ^= z >> 31;
-    let unit = (z >> 11) as f64 / (1u64 << 53) as f64;
-    0.5 * unit - 0.25
 }
 
 /// Grid points with z slowest and x fastest; serpentine reverses every other row and layer
@@ -207,6 +191,55 @@ fn grid_axes(x: &AxisRange, y: &AxisRange, z: &AxisRange, order: GridOrder) -> V
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::config::{RotaryPlanConfig, Spacing, DEFAULT_TABLE_OVERSHOOT_RAD};
+
+    fn table(runs: Option<usize>, spacing: Spacing) -> RotaryPlanConfig {
+        RotaryPlanConfig {
+            table: "c".into(),
+            axis_point_m: [0.0; 3],
+            axis_direction: [0.0, 0.0, 1.0],
+            tracer_hint_m: [0.2, 0.0, 0.0],
+            angles_rad: None,
+            start_rad: Some(0.1),
+            step_rad: Some(0.5),
+            count: Some(5),
+            spacing,
+            runs,
+            overshoot_rad: None,
+            station_prefix: "c".into(),
+        }
+    }
+
+    #[test]
+    fn table_cycle_alternates_runs_each_entered_through_its_overshoot() {
+        let once = table(None, Spacing::Equal).visits();
+        assert_eq!(once.len(), 5);
+        assert!(once.iter().all(|v| v.via_rad.is_none()));
+        let plan = table(Some(2), Spacing::PseudoRandom);
+        let angles = plan.commanded_angles_rad();
+        // The stepped form's ends stay; interior angles move less than a quarter step.
+        assert_eq!((angles[0], angles[4]), (0.1, 0.1 + 4.0 * 0.5));
+        for (k, a) in angles.iter().enumerate() {
+            assert!((a - (0.1 + 0.5 * k as f64)).abs() <= 0.125, "{angles:?}");
+        }
+        assert!(angles.iter().zip(&angles[1..]).all(|(a, b)| b > a));
+        let visits = plan.visits();
+        assert_eq!(visits.len(), 20);
+        for (run, chunk) in visits.chunks(5).enumerate() {
+            let commanded: Vec<f64> = chunk.iter().map(|v| v.commanded_rad).collect();
+            let (expected, side): (Vec<f64>, f64) = if run % 2 == 0 {
+                (angles.clone(), -1.0)
+            } else {
+                (angles.iter().rev().copied().collect(), 1.0)
+            };
+            assert_eq!(commanded, expected, "run {run}");
+            assert_eq!(
+                chunk[0].via_rad,
+                Some(expected[0] + side * DEFAULT_TABLE_OVERSHOOT_RAD)
+            );
+            assert!(chunk[1..].iter().all(|v| v.via_rad.is_none()));
+        }
+    }
 
     fn range(from: f64, to: f64, count: usize) -> AxisRange {
         AxisRange {

@@ -40,6 +40,9 @@ pub struct ReplayState {
     /// Where the current move or rotation ends (cursor), and the encoder angle in position.
     machine_arrival: Option<(Arrival, AxisPositions)>,
     table_arrival: Option<(Arrival, f64)>,
+    /// A rotation through its overshoot angle: after the overshoot, the recorded in-position
+    /// states are searched from this cursor for the station's own angle.
+    table_second_leg: Option<(usize, f64)>,
     /// Cursor values at which the sequencer homed the tracer.
     pub homings: Vec<usize>,
     /// The replay's decisions in order (moves and where they end, homings): shown when the
@@ -115,6 +118,7 @@ impl ReplayState {
             env_next: 0,
             machine_arrival: None,
             table_arrival: None,
+            table_second_leg: None,
             homings: Vec::new(),
             trail: Vec::new(),
         };
@@ -398,14 +402,21 @@ impl RotaryTable for ReplayRotaryTable {
         if let Some(e) = ReplayState::due(&mut s.table_faults, cursor) {
             return Err(e);
         }
-        let rotation = s.recording.events.iter().find_map(|e| match &e.msg {
-            RunEvent::Rotation {
-                table,
-                commanded_rad: c,
-            } if e.after >= cursor && table == &self.id => Some((e.after, *c)),
-            _ => None,
-        });
-        let Some((after, recorded_rad)) = rotation else {
+        let leg = match s.table_second_leg.take() {
+            Some((from, target_rad)) => Some((from, target_rad, None)),
+            None => s.recording.events.iter().find_map(|e| match &e.msg {
+                RunEvent::Rotation {
+                    table,
+                    commanded_rad: c,
+                    via_rad,
+                } if e.after >= cursor && table == &self.id => match via_rad {
+                    Some(via) => Some((e.after + 1, *via, Some(*c))),
+                    None => Some((e.after + 1, *c, None)),
+                },
+                _ => None,
+            }),
+        };
+        let Some((search_from, recorded_rad, then_rad)) = leg else {
             return Err(s.end_of_stream());
         };
         if (recorded_rad - commanded_rad).abs() > 1e-12 {
@@ -421,13 +432,20 @@ impl RotaryTable for ReplayRotaryTable {
             .recording
             .rotary
             .iter()
-            .find(|r| r.after > after && r.msg.in_position)
+            .find(|r| {
+                r.after >= search_from
+                    && r.msg.in_position
+                    && (r.msg.commanded_rad - recorded_rad).abs() <= 1e-12
+            })
             .map_or((Arrival::Never, commanded_rad), |r| {
                 (
                     Arrival::At(r.after),
                     r.msg.encoder_rad.unwrap_or(commanded_rad),
                 )
             });
+        if let (Some(target_rad), Arrival::At(at)) = (then_rad, arrival.0) {
+            s.table_second_leg = Some((at, target_rad));
+        }
         s.table_arrival = Some(arrival);
         Ok(())
     }

@@ -752,8 +752,8 @@ impl<'a> Sequencer<'a> {
         }
     }
 
-    /// Command the table to a station's angle (a `rotation` event), then keep recording the
-    /// tracer and the table's state until the table reports in position.
+    /// Command the table to a station's angle (a `rotation` event), through its overshoot
+    /// angle if the plan gives one, recording the tracer and the table's state meanwhile.
     async fn rotate(
         &mut self,
         station: &str,
@@ -775,8 +775,22 @@ impl<'a> Sequencer<'a> {
         self.event(RunEvent::Rotation {
             table: table_id.clone(),
             commanded_rad: rotation.commanded_rad,
+            via_rad: rotation.via_rad,
         });
-        self.start_rotation(rotation.commanded_rad).await?;
+        for commanded_rad in rotation.via_rad.into_iter().chain([rotation.commanded_rad]) {
+            self.turn_table(&table_id, commanded_rad).await?;
+        }
+        Ok(())
+    }
+
+    /// Turn the table to `commanded_rad`, recording the tracer and the table's state until
+    /// the table reports in position.
+    async fn turn_table(
+        &mut self,
+        table_id: &str,
+        commanded_rad: f64,
+    ) -> Result<(), SequencerError> {
+        self.start_rotation(commanded_rad).await?;
         let started_s = self.sample().await?.t_s;
         loop {
             let state = self.table_state().await?;
@@ -787,19 +801,19 @@ impl<'a> Sequencer<'a> {
             let now_ns = self.clock.now_ns();
             let sample = RotaryStateSample {
                 t_s: now_ns.saturating_sub(self.start_ns) as f64 * 1e-9,
-                commanded_rad: rotation.commanded_rad,
+                commanded_rad,
                 encoder_rad,
                 in_position: encoder_rad.is_some(),
             };
-            self.recorder.rotary(&table_id, &sample, now_ns);
+            self.recorder.rotary(table_id, &sample, now_ns);
             if encoder_rad.is_some() {
                 return Ok(());
             }
             let t_s = self.sample().await?.t_s;
             if t_s - started_s > MAX_ROTATION_S {
                 return Err(SequencerError::NoInPosition {
-                    table: table_id,
-                    commanded_rad: rotation.commanded_rad,
+                    table: table_id.to_string(),
+                    commanded_rad,
                     waited_s: t_s - started_s,
                 });
             }

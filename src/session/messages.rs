@@ -198,6 +198,9 @@ pub enum RunEvent {
     Rotation {
         table: String,
         commanded_rad: f64,
+        /// The table was sent here first, so that it approached `commanded_rad` from this side.
+        #[serde(default, skip_serializing_if = "Option::is_none")]
+        via_rad: Option<f64>,
     },
     Fault {
         device: String,
@@ -320,6 +323,7 @@ struct WireEvent {
     beam_segment: Option<u32>,
     table: Option<String>,
     commanded_rad: Option<f64>,
+    via_rad: Option<f64>,
     device: Option<String>,
     code: Option<String>,
     message: Option<String>,
@@ -370,6 +374,7 @@ impl TryFrom<WireEvent> for RunEvent {
             "rotation" => RunEvent::Rotation {
                 table: w.table.ok_or_else(|| need("table"))?,
                 commanded_rad: w.commanded_rad.ok_or_else(|| need("commanded_rad"))?,
+                via_rad: w.via_rad,
             },
             "fault" => RunEvent::Fault {
                 device: w.device.ok_or_else(|| need("device"))?,
@@ -492,6 +497,12 @@ mod tests {
             RunEvent::Rotation {
                 table: "c".into(),
                 commanded_rad: 0.5,
+                via_rad: None,
+            },
+            RunEvent::Rotation {
+                table: "c".into(),
+                commanded_rad: 0.5,
+                via_rad: Some(0.45),
             },
             RunEvent::Fault {
                 device: "tracer0".into(),
@@ -735,6 +746,7 @@ pub mod schema {
     "beam_segment": {"type": "integer", "minimum": 0},
     "table": {"type": "string"},
     "commanded_rad": {"type": "number"},
+    "via_rad": {"type": "number"},
     "device": {"type": "string"},
     "code": {"type": "string"},
     "message": {"type": "string"},

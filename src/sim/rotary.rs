@@ -68,6 +68,16 @@ pub struct SimTable {
     /// Where the tracer stands at true table angle 0, metres.
     pub tracer_base_m: Vector3<f64>,
     pub error: AngleError,
+    /// Reversal (backlash): the table stands half of it beyond the command in the direction of
+    /// its last move, radians.
+    pub reversal_rad: f64,
+    /// Sign of the last move's direction (0 before any move).
+    approach: f64,
+    /// Scatter of each positioning, and its own random stream (a plan's true angles follow
+    /// from the commands in order: `world::table_true_angles`).
+    repeatability: Option<(Normal<f64>, ChaCha8Rng)>,
+    /// The scatter drawn for the current positioning, radians.
+    scatter_rad: f64,
     speed_rad_s: f64,
     settle_s: f64,
     commanded_rad: f64,
@@ -111,6 +121,13 @@ impl SimTable {
             axis_direction,
             tracer_base_m,
             error,
+            reversal_rad: sim.reversal_rad,
+            approach: 0.0,
+            repeatability: (sim.repeatability_rad > 0.0)
+                .then(|| Normal::new(0.0, sim.repeatability_rad).ok())
+                .flatten()
+                .map(|n| (n, ChaCha8Rng::seed_from_u64(seed ^ 0x5245_5045_4154_4142))),
+            scatter_rad: 0.0,
             speed_rad_s: sim.speed_rad_s,
             settle_s: sim.settle_s,
             commanded_rad: 0.0,
@@ -121,9 +138,26 @@ impl SimTable {
         }
     }
 
-    /// The true table angle reached when the table is in position at `commanded_rad`.
-    pub fn true_angle_rad(&self, commanded_rad: f64) -> f64 {
-        commanded_rad + self.error.at(commanded_rad)
+    /// The true table angle reached when the table is in position at `commanded_rad`, having
+    /// approached it from the side `approach` (+1, −1; 0 before any move).
+    fn true_angle_rad(&self, commanded_rad: f64, approach: f64) -> f64 {
+        commanded_rad
+            + self.error.at(commanded_rad)
+            + 0.5 * self.reversal_rad * approach
+            + self.scatter_rad
+    }
+
+    /// The scatter of each positioning (standard deviation), radians.
+    pub fn repeatability_rad(&self) -> f64 {
+        self.repeatability
+            .as_ref()
+            .map_or(0.0, |(n, _)| n.std_dev())
+    }
+
+    /// The true angle at which the table comes to rest: the tracer positions of a plan's table
+    /// stations follow from the commands alone (`start_rotation` at rest, in order).
+    pub fn rest_angle_rad(&self) -> f64 {
+        self.to_true_rad
     }
 
     /// The true table angle at `t_s` (a smooth move between rest angles).
@@ -149,7 +183,13 @@ impl SimTable {
     /// Start turning to `commanded_rad` at `now_s`; returns whether the table moves at all.
     pub fn start_rotation(&mut self, commanded_rad: f64, now_s: f64) -> bool {
         let from = self.angle_at(now_s);
-        let to = self.true_angle_rad(commanded_rad);
+        if commanded_rad != self.commanded_rad {
+            self.approach = (commanded_rad - self.commanded_rad).signum();
+            if let Some((normal, rng)) = self.repeatability.as_mut() {
+                self.scatter_rad = normal.sample(rng);
+            }
+        }
+        let to = self.true_angle_rad(commanded_rad, self.approach);
         self.commanded_rad = commanded_rad;
         self.from_true_rad = from;
         self.to_true_rad = to;
@@ -181,7 +221,10 @@ impl SimTable {
         match self.in_position_at(now_s) {
             Some(encoder_rad) => (encoder_rad, true),
             None => (
-                self.angle_at(now_s) - self.error.at(self.commanded_rad),
+                self.angle_at(now_s)
+                    - self.error.at(self.commanded_rad)
+                    - 0.5 * self.reversal_rad * self.approach
+                    - self.scatter_rad,
                 false,
             ),
         }
@@ -215,6 +258,9 @@ mod tests {
             start_rad: None,
             step_rad: Some(0.5),
             count: Some(4),
+            spacing: Default::default(),
+            runs: None,
+            overshoot_rad: None,
             station_prefix: "c".into(),
         };
         let mut table = SimTable::random(1, &plan, &SimRotaryConfig::default(), 0.01);
@@ -237,5 +283,87 @@ mod tests {
         assert!((r0.norm() - r1.norm()).abs() < 1e-12);
         assert!((h0 - h1).abs() < 1e-12);
         assert!((r0.angle(&r1) - angle).abs() < 1e-9);
+    }
+
+    #[test]
+    fn reversal_puts_the_table_beyond_the_command_in_the_direction_of_the_move() {
+        let plan = RotaryPlanConfig {
+            table: "c".into(),
+            axis_point_m: [0.3, 0.3, -0.3],
+            axis_direction: [0.0, 0.0, 1.0],
+            tracer_hint_m: [0.45, 0.3, -0.2],
+            angles_rad: Some(vec![0.0, 0.5, 1.0]),
+            start_rad: None,
+            step_rad: None,
+            count: None,
+            spacing: Default::default(),
+            runs: None,
+            overshoot_rad: None,
+            station_prefix: "c".into(),
+        };
+        let sim = SimRotaryConfig {
+            reversal_rad: 2e-5,
+            ..SimRotaryConfig::default()
+        };
+        let mut table = SimTable::random(1, &plan, &sim, 0.01);
+        // At rest before any move: no reversal; a command to where it stands is no move.
+        assert!(!table.start_rotation(0.0, 0.0));
+        assert_eq!(table.rest_angle_rad(), table.error.at(0.0));
+        let mut now = 1.0;
+        let mut go = |table: &mut SimTable, c: f64| {
+            table.start_rotation(c, now);
+            now += 100.0;
+            assert_eq!(table.in_position_at(now), Some(c));
+            table.angle_at(now)
+        };
+        let up = go(&mut table, 0.5);
+        assert!((up - (0.5 + table.error.at(0.5) + 1e-5)).abs() < 1e-15);
+        go(&mut table, 0.6);
+        let down = go(&mut table, 0.5);
+        assert!((up - down - 2e-5).abs() < 1e-15, "B = {}", up - down);
+        // The encoder holds the command in position; while moving it reads the table.
+        table.start_rotation(1.0, now);
+        let (encoder, in_position) = table.encoder_at(now + 1.0);
+        assert!(!in_position);
+        let expected = table.angle_at(now + 1.0) - table.error.at(1.0) - 1e-5;
+        assert!((encoder - expected).abs() < 1e-15);
+    }
+
+    #[test]
+    fn repeatability_scatters_each_positioning_and_a_resend_keeps_it() {
+        let plan = RotaryPlanConfig {
+            table: "c".into(),
+            axis_point_m: [0.3, 0.3, -0.3],
+            axis_direction: [0.0, 0.0, 1.0],
+            tracer_hint_m: [0.45, 0.3, -0.2],
+            angles_rad: Some(vec![0.0, 0.5, 1.0]),
+            start_rad: None,
+            step_rad: None,
+            count: None,
+            spacing: Default::default(),
+            runs: None,
+            overshoot_rad: None,
+            station_prefix: "c".into(),
+        };
+        let sim = SimRotaryConfig {
+            repeatability_rad: 1e-5,
+            ..SimRotaryConfig::default()
+        };
+        let mut table = SimTable::random(1, &plan, &sim, 0.01);
+        assert_eq!(table.repeatability_rad(), 1e-5);
+        let scatter: Vec<f64> = (0..400)
+            .map(|k| {
+                table.start_rotation(if k % 2 == 0 { 0.5 } else { 1.0 }, 0.0);
+                let c = table.commanded_rad;
+                let scatter = table.rest_angle_rad() - c - table.error.at(c);
+                // Sending the same command again is no new positioning.
+                table.start_rotation(c, 0.0);
+                assert_eq!(table.rest_angle_rad() - c - table.error.at(c), scatter);
+                scatter
+            })
+            .collect();
+        let sd = (scatter.iter().map(|s| s * s).sum::<f64>() / scatter.len() as f64).sqrt();
+        // 400 draws: the sample σ lies within ±15 % of 1e-5 with probability > 0.997.
+        assert!((sd / 1e-5 - 1.0).abs() < 0.15, "sample σ {sd:e}");
     }
 }

@@ -63,6 +63,8 @@ pub struct SimWorld {
     /// Per plan station: does the tracer stand on the rotary table there?
     table_station: Vec<bool>,
     table: Option<SimTable>,
+    /// The table as the run found it: the truth follows the plan's commands from here.
+    table_at_start: Option<SimTable>,
     /// The tracer stands on the table (and turns with it).
     on_table: bool,
     motion: Motion,
@@ -114,7 +116,19 @@ pub struct TruthRotary {
     /// The tracer's position at true table angle 0.
     pub tracer_base_m: [f64; 3],
     pub angle_error: AngleError,
+    /// The table's reversal (backlash), radians: in position it stands half of it beyond the
+    /// command in the direction of its last move.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub reversal_rad: f64,
+    /// The scatter of each positioning (standard deviation), radians; drawn into the steps'
+    /// true angles.
+    #[serde(skip_serializing_if = "is_zero")]
+    pub repeatability_rad: f64,
     pub steps: Vec<TruthStep>,
+}
+
+fn is_zero(v: &f64) -> bool {
+    *v == 0.0
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -193,6 +207,7 @@ impl SimWorld {
             stations_m,
             current_station: 0,
             table_station,
+            table_at_start: table.clone(),
             table,
             on_table: false,
             motion: Motion {
@@ -428,8 +443,25 @@ impl SimWorld {
 
     // --- truth ---
 
+    /// Per plan station, the true table angle it is measured at (None off the table): the
+    /// table as the run found it, commanded through the plan's rotations in order.
+    fn table_true_angles(&self, plan: &Plan) -> Vec<Option<f64>> {
+        let mut table = self.table_at_start.clone();
+        plan.stations
+            .iter()
+            .map(|s| {
+                let (r, table) = (s.rotation.as_ref()?, table.as_mut()?);
+                for commanded_rad in r.via_rad.into_iter().chain([r.commanded_rad]) {
+                    table.start_rotation(commanded_rad, 0.0);
+                }
+                Some(table.rest_angle_rad())
+            })
+            .collect()
+    }
+
     pub fn truth(&self, config: &Config, plan: &Plan) -> Truth {
         let home = plan.points.first().map_or([0.0; 3], |p| p.axes_m);
+        let table_true_rad = self.table_true_angles(plan);
         let at = |axes: [f64; 3], offset: [f64; 3]| {
             Vector3::from(actual_position(
                 &self.structure,
@@ -445,10 +477,9 @@ impl SimWorld {
                 .stations
                 .iter()
                 .zip(&self.stations_m)
-                .map(|(s, p)| match (&s.rotation, &self.table) {
-                    (Some(r), Some(table)) => {
-                        (s, table.tracer_at(table.true_angle_rad(r.commanded_rad)))
-                    }
+                .zip(&table_true_rad)
+                .map(|((s, p), true_rad)| match (true_rad, &self.table) {
+                    (Some(true_rad), Some(table)) => (s, table.tracer_at(*true_rad)),
                     _ => (s, *p),
                 })
                 .map(|(s, p)| TruthStation {
@@ -485,12 +516,15 @@ impl SimWorld {
                 axis_direction: table.axis_direction.into_inner().into(),
                 tracer_base_m: table.tracer_base_m.into(),
                 angle_error: table.error.clone(),
+                reversal_rad: table.reversal_rad,
+                repeatability_rad: table.repeatability_rad(),
                 steps: plan
                     .stations
                     .iter()
-                    .filter_map(|s| {
+                    .zip(&table_true_rad)
+                    .filter_map(|(s, true_rad)| {
                         let r = s.rotation.as_ref()?;
-                        let true_rad = table.true_angle_rad(r.commanded_rad);
+                        let true_rad = (*true_rad)?;
                         Some(TruthStep {
                             station: s.id.clone(),
                             commanded_rad: r.commanded_rad,

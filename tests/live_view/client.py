@@ -1,5 +1,6 @@
 """A minimal Foxglove WebSocket client (subprotocol foxglove.sdk.v1, which the foxglove 0.30 server speaks): subscribe to one topic and
-print every message data frame received on it as a JSON line {log_time_ns, payload_hex}.
+print every message data frame received on it as a JSON line {log_time_ns, payload_hex}
+(after a line {"connected": true} once the server accepted the connection).
 
 Usage: client.py ws://HOST:PORT TOPIC COUNT
 """
@@ -13,6 +14,7 @@ import websockets
 
 async def main(url, topic, count):
     async with websockets.connect(url, subprotocols=["foxglove.sdk.v1"]) as ws:
+        print(json.dumps({"connected": True}), flush=True)
         subscribed = None
         received = 0
         while received < count:

@@ -192,6 +192,7 @@ impl<'a> SphereSequencer<'a> {
         self.event(RunEvent::Rotation {
             table: table.clone(),
             commanded_rad,
+            via_rad: None,
         });
         let mut attempt = 0;
         while let Err(e) = self.devices.table.start_rotation(commanded_rad).await {

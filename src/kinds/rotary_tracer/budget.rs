@@ -42,6 +42,7 @@ mod tests {
             measured_rad: 0.5,
             error_rad: 1e-5,
             sigma_rad,
+            approach: None,
         };
         let rotary = RotaryResult {
             table: "c".into(),

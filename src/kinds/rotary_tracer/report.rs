@@ -86,6 +86,7 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         &[
             "station",
             "commanded [°]",
+            "approach",
             "measured [°]",
             "error [arcsec]",
             "σ [arcsec]",
@@ -97,6 +98,9 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         table.row(vec![
             s.station.clone(),
             cell(Some(s.commanded_rad.to_degrees()), 4),
+            s.approach.map_or_else(String::new, |a| {
+                String::from(if a > 0 { "↑" } else { "↓" })
+            }),
             cell(Some(s.measured_rad.to_degrees()), 6),
             cell(Some(s.error_rad * ARCSEC_PER_RAD), 3),
             cell(Some(s.sigma_rad * ARCSEC_PER_RAD), 3),
@@ -104,13 +108,50 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         points.push((s.commanded_rad.to_degrees(), s.error_rad * ARCSEC_PER_RAD));
         band.push(2.0 * s.sigma_rad * ARCSEC_PER_RAD);
     }
+    let runs = crate::evaluate::deviations::rotary_axis(&results["rotary"])?;
+    let curves = &runs.curves;
+    let (series, caption) = if curves.up.len() + curves.down.len() <= 1 {
+        (
+            vec![Series::line("", points).with_band(band)],
+            "Measured minus commanded table angle at each station, shaded ±2σ.",
+        )
+    } else {
+        let sigma = runs.target_sigma_rad.clone().unwrap_or_default();
+        let mut series = Vec::new();
+        for (name, direction) in [("↑", &curves.up), ("↓", &curves.down)] {
+            if direction.is_empty() {
+                continue;
+            }
+            let at = |i: usize, v: f64| (curves.targets[i].to_degrees(), v * ARCSEC_PER_RAD);
+            let each = direction
+                .iter()
+                .flat_map(|run| run.iter().enumerate().map(|(i, &v)| at(i, v)))
+                .collect();
+            let mean = (0..curves.targets.len())
+                .map(|i| {
+                    at(
+                        i,
+                        direction.iter().map(|run| run[i]).sum::<f64>() / direction.len() as f64,
+                    )
+                })
+                .collect();
+            let band = sigma.iter().map(|s| 2.0 * s * ARCSEC_PER_RAD).collect();
+            series.push(Series::line(&format!("mean {name}"), mean).with_band(band));
+            series.push(Series::points(&format!("runs {name}"), each));
+        }
+        (
+            series,
+            "Measured minus commanded table angle: every run's station as a point, the mean of \
+             each approach direction as a line, shaded ±2σ of one station.",
+        )
+    };
     let svg = panels_svg(
         &format!("table {}: step-angle error against angle (±2σ)", t.table),
         &[Panel {
             title: "angular positioning error".into(),
             x_label: "commanded angle [°]".into(),
             y_label: "error [arcsec]".into(),
-            series: vec![Series::line("", points).with_band(band)],
+            series,
         }],
         1,
     )?;
@@ -155,7 +196,7 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             ])
             .plot(Plot {
                 id: "step-angle-errors".into(),
-                caption: "Measured minus commanded table angle at each station, shaded ±2σ.".into(),
+                caption: caption.into(),
                 svg,
             })
             .table(table),

@@ -72,6 +72,10 @@ pub struct StepResult {
     pub error_rad: f64,
     /// Standard uncertainty of `measured_rad` and `error_rad` (0 for the reference station).
     pub sigma_rad: f64,
+    /// The side the table approached `commanded_rad` from: +1 turning positive, −1 negative
+    /// (from the overshoot angle, or the previous station's angle); absent when unknown.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub approach: Option<i8>,
 }
 
 /// One table station as the session's events describe it.
@@ -79,6 +83,7 @@ pub struct StepResult {
 struct TableStation {
     station: String,
     commanded_rad: f64,
+    via_rad: Option<f64>,
     /// Log times between which the table was (being) in position for this station.
     from_ns: u64,
     until_ns: u64,
@@ -105,6 +110,7 @@ fn table_stations(session: &Session) -> Result<(String, Vec<TableStation>), Rota
             RunEvent::Rotation {
                 table: t,
                 commanded_rad,
+                via_rad,
             } => {
                 match &table {
                     Some(known) if known != t => {
@@ -125,6 +131,7 @@ fn table_stations(session: &Session) -> Result<(String, Vec<TableStation>), Rota
                 out.push(TableStation {
                     station: station.clone(),
                     commanded_rad: *commanded_rad,
+                    via_rad: *via_rad,
                     from_ns: stamped.log_time_ns,
                     until_ns: u64::MAX,
                 });
@@ -143,9 +150,19 @@ fn encoder_rad(session: &Session, table: &str, s: &TableStation) -> Option<f64> 
         .get(table)?
         .iter()
         .filter(|r| r.log_time_ns >= s.from_ns && r.log_time_ns <= s.until_ns)
-        .filter(|r| r.msg.in_position)
+        .filter(|r| r.msg.in_position && r.msg.commanded_rad == s.commanded_rad)
         .filter_map(|r| r.msg.encoder_rad)
         .next_back()
+}
+
+/// The side station `k` was approached from: from its overshoot angle, else from the
+/// previous table station's angle; None when the table did not move or nothing came before.
+fn approach(on_table: &[TableStation], k: usize) -> Option<i8> {
+    let from = on_table[k]
+        .via_rad
+        .or_else(|| k.checked_sub(1).map(|p| on_table[p].commanded_rad))?;
+    let turn = on_table[k].commanded_rad - from;
+    (turn != 0.0).then_some(if turn > 0.0 { 1 } else { -1 })
 }
 
 fn wrap_pi(a: f64) -> f64 {
@@ -219,6 +236,7 @@ pub fn solve(
                 measured_rad: s.commanded_rad + error_rad,
                 error_rad,
                 sigma_rad,
+                approach: approach(&on_table, k),
             }
         })
         .collect();
@@ -302,6 +320,7 @@ mod tests {
         RunEvent::Rotation {
             table: table.into(),
             commanded_rad,
+            via_rad: None,
         }
     }
     fn state(commanded_rad: f64, encoder: Option<f64>) -> RotaryStateSample {
@@ -370,6 +389,29 @@ mod tests {
         );
         let err = table_stations(&two).expect_err("two tables");
         assert!(err.to_string().contains("`c`") && err.to_string().contains("`b`"));
+    }
+
+    #[test]
+    fn approach_comes_from_the_overshoot_or_the_previous_angle() {
+        let station = |commanded_rad, via_rad| TableStation {
+            station: "c".into(),
+            commanded_rad,
+            via_rad,
+            from_ns: 0,
+            until_ns: 0,
+        };
+        let on_table = [
+            station(0.0, None),
+            station(0.5, None),
+            station(0.5, Some(0.6)),
+            station(0.3, None),
+            station(0.3, None),
+            station(0.3, Some(0.25)),
+        ];
+        let got: Vec<Option<i8>> = (0..on_table.len())
+            .map(|k| approach(&on_table, k))
+            .collect();
+        assert_eq!(got, [None, Some(1), Some(-1), Some(-1), None, Some(1)]);
     }
 
     #[test]
