@@ -22,7 +22,8 @@ pub fn iso230_2(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
     Ok(vec![Section::new("iso230-2", "ISO 230-2 positioning")
         .paragraph(
             "Unidirectional and bidirectional positioning figures of ISO 230-2 from each pass \
-             of the plan (one pass = one run, its direction from the approach), with the \
+             of the plan (one pass = one run, its direction from the approach; for a rotary \
+             table, a run is consecutive table stations approached from one side), with the \
              standard's conformance verdict (docs/iso230-2.md).",
         )
         .preformatted(iso.text())])
