@@ -230,6 +230,17 @@ fn reports_of_every_example_config_load_draw_and_print() {
         }
         // The standards' sections of the network kinds: the ISO 230-2 figures of each pass,
         // and the budget with its contributors.
+        if config.contains("rotary-tracer") {
+            for text in [
+                "id=\"iso230-2\"",
+                "ISO 230-2, axis c",
+                "id=\"rotary-tracer-uncertainty\"",
+                "step-angle error of table c",
+                "reflector/probe",
+            ] {
+                assert!(dom.contains(text), "{config}: no {text}");
+            }
+        }
         if config.contains("multilateration") {
             for text in [
                 "id=\"iso230-2\"",

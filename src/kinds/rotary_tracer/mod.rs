@@ -26,6 +26,22 @@ impl Kind for RotaryTracer {
         report::document(results)
     }
 
+    fn uncertainty(
+        &self,
+        results: &serde_json::Value,
+        _session: &Session,
+        config: Option<&Path>,
+    ) -> anyhow::Result<Vec<crate::document::Section>> {
+        let declared = match config {
+            Some(path) => crate::config::Config::load(path)?.uncertainty,
+            None => None,
+        };
+        let section = report::uncertainty(results, declared).unwrap_or_else(|e| {
+            crate::evaluate::budget_section::unavailable("rotary-tracer-uncertainty", &e)
+        });
+        Ok(vec![section])
+    }
+
     fn check(&self, path: &Path) -> anyhow::Result<KindCheck> {
         tracer_plan::check(path)
     }

@@ -207,3 +207,41 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     sections.extend(network_sections(&r.multilateration)?);
     Ok(KindReport { summary, sections })
 }
+
+/// The uncertainty budget of every step-angle error (k = 2): the solve's σ and the reflector's
+/// own uncertainty over the lever of the two stations (docs/uncertainty.md, "Angles"), from the
+/// `[uncertainty]` of the run's configuration (the documented defaults without it).
+pub fn uncertainty(
+    results: &serde_json::Value,
+    declared: Option<crate::config::uncertainty::UncertaintyConfig>,
+) -> anyhow::Result<crate::document::Section> {
+    use crate::evaluate::budget_section::{section, BudgetGroup};
+    use crate::evaluate::uncertainty::KindBudgets;
+    let r: RotaryTracerResults = crate::document::results_of("rotary_tracer", results)?;
+    let all = KindBudgets {
+        budgets: super::budget::step_angle_budgets(&r.rotary, &declared.unwrap_or_default()),
+        not_declared: Vec::new(),
+    };
+    let groups = [BudgetGroup {
+        label: format!(
+            "step-angle error of table {} (over the steps)",
+            r.rotary.table
+        ),
+        budgets: all.budgets.iter().collect(),
+    }];
+    let mut out = section(
+        "rotary-tracer-uncertainty",
+        "Expanded uncertainty U (k = 2) of the table's step-angle errors: the solve's σ and the \
+         reflector's own uncertainty acting over the lever of the two stations an angle is \
+         taken between; a uniform scale (tracer calibration, air index, thermal expansion) \
+         changes no angle (GUM; docs/uncertainty.md).",
+        &groups,
+        &all,
+    );
+    if declared.is_none() {
+        out = out.paragraph(
+            "No [uncertainty] in the run's configuration: the documented default uncertainties are used.",
+        );
+    }
+    Ok(out)
+}
