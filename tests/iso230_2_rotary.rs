@@ -11,8 +11,6 @@ use geocal::evaluate::of_results;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 
-const ROTARY: &str = include_str!("../config/rotary-tracer.toml");
-
 /// The table's reversal span and positioning scatter in the simulated world, radians (about
 /// 4.1″ and 1.0″): both far above a step angle's measurement σ (about 0.1″ here).
 const REVERSAL_RAD: f64 = 2e-5;
@@ -20,32 +18,20 @@ const REPEATABILITY_RAD: f64 = 5e-6;
 const RUNS: usize = 5;
 const ANGLES: usize = 9;
 
-/// 9 pseudo-random table angles about 40° apart, 5 bidirectional runs (90 table stations) and
-/// the station off the table; 4 × 3 × 2 points at 10 Hz with 1 s dwells (quick).
+/// 9 pseudo-random table angles 40° apart, 5 bidirectional runs (90 table stations) and the
+/// station off the table, on a table with a reversal and a positioning scatter.
 fn iso_cycle() -> String {
-    let text = ROTARY
-        .replace(
-            "x = { from = 0.1, to = 0.7, count = 6 }",
-            "x = { from = 0.1, to = 0.7, count = 4 }",
-        )
-        .replace(
-            "y = { from = 0.1, to = 0.7, count = 6 }",
-            "y = { from = 0.1, to = 0.7, count = 3 }",
-        )
-        .replace(
-            "step_rad = 0.5235987755982988",
-            "step_rad = 0.6981317007977318\nspacing = \"pseudo_random\"\nruns = 5",
-        )
-        .replace("count = 12", "count = 9")
-        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
-        .replace("dwell_s = 2.0", "dwell_s = 1.0")
-        .replace("window_s = 0.6", "window_s = 0.4")
-        .replace(
-            "axis_tilt_rad = 1e-4 }",
-            &format!(
-                "axis_tilt_rad = 1e-4, reversal_rad = {REVERSAL_RAD:e}, repeatability_rad = {REPEATABILITY_RAD:e} }}"
-            ),
-        );
+    let text = common::reduced_rotary(
+        40f64.to_radians(),
+        ANGLES,
+        &format!("spacing = \"pseudo_random\"\nruns = {RUNS}"),
+    )
+    .replace(
+        "axis_tilt_rad = 1e-4 }",
+        &format!(
+            "axis_tilt_rad = 1e-4, reversal_rad = {REVERSAL_RAD:e}, repeatability_rad = {REPEATABILITY_RAD:e} }}"
+        ),
+    );
     assert!(text.contains("runs = 5") && text.contains("repeatability_rad"));
     text
 }

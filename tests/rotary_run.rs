@@ -10,30 +10,9 @@ use geocal::session::messages::RunEvent;
 use geocal::session::reader::read_session;
 use nalgebra::Vector3;
 
-const ROTARY: &str = include_str!("../config/rotary-tracer.toml");
-
-/// The published setup shrunk: 6 table stations 60° apart + 1 off the table, 4 x 3 x 2 points,
-/// 10 Hz and 1 s dwells.
+/// The published setup shrunk: 6 table stations 60° apart + 1 off the table.
 fn reduced() -> String {
-    let text = ROTARY
-        .replace(
-            "x = { from = 0.1, to = 0.7, count = 6 }",
-            "x = { from = 0.1, to = 0.7, count = 4 }",
-        )
-        .replace(
-            "y = { from = 0.1, to = 0.7, count = 6 }",
-            "y = { from = 0.1, to = 0.7, count = 3 }",
-        )
-        .replace(
-            "step_rad = 0.5235987755982988",
-            "step_rad = 1.0471975511965976",
-        )
-        .replace("count = 12", "count = 6")
-        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
-        .replace("dwell_s = 2.0", "dwell_s = 1.0")
-        .replace("window_s = 0.6", "window_s = 0.4");
-    assert_ne!(text, ROTARY);
-    text
+    common::reduced_rotary(60f64.to_radians(), 6, "")
 }
 
 #[test]

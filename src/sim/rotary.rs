@@ -235,6 +235,24 @@ impl SimTable {
 mod tests {
     use super::*;
 
+    /// A table plan of three listed angles, the tracer 0.15 m off the axis.
+    fn listed_angles() -> RotaryPlanConfig {
+        RotaryPlanConfig {
+            table: "c".into(),
+            axis_point_m: [0.3, 0.3, -0.3],
+            axis_direction: [0.0, 0.0, 1.0],
+            tracer_hint_m: [0.45, 0.3, -0.2],
+            angles_rad: Some(vec![0.0, 0.5, 1.0]),
+            start_rad: None,
+            step_rad: None,
+            count: None,
+            spacing: Default::default(),
+            runs: None,
+            overshoot_rad: None,
+            station_prefix: "c".into(),
+        }
+    }
+
     #[test]
     fn angle_error_has_the_configured_peak() {
         let mut rng = ChaCha8Rng::seed_from_u64(3);
@@ -250,18 +268,10 @@ mod tests {
     #[test]
     fn tracer_turns_about_the_true_axis() {
         let plan = RotaryPlanConfig {
-            table: "c".into(),
-            axis_point_m: [0.3, 0.3, -0.3],
-            axis_direction: [0.0, 0.0, 1.0],
-            tracer_hint_m: [0.45, 0.3, -0.2],
             angles_rad: None,
-            start_rad: None,
             step_rad: Some(0.5),
             count: Some(4),
-            spacing: Default::default(),
-            runs: None,
-            overshoot_rad: None,
-            station_prefix: "c".into(),
+            ..listed_angles()
         };
         let mut table = SimTable::random(1, &plan, &SimRotaryConfig::default(), 0.01);
         assert!(table.in_position_at(0.0).is_some());
@@ -287,20 +297,7 @@ mod tests {
 
     #[test]
     fn reversal_puts_the_table_beyond_the_command_in_the_direction_of_the_move() {
-        let plan = RotaryPlanConfig {
-            table: "c".into(),
-            axis_point_m: [0.3, 0.3, -0.3],
-            axis_direction: [0.0, 0.0, 1.0],
-            tracer_hint_m: [0.45, 0.3, -0.2],
-            angles_rad: Some(vec![0.0, 0.5, 1.0]),
-            start_rad: None,
-            step_rad: None,
-            count: None,
-            spacing: Default::default(),
-            runs: None,
-            overshoot_rad: None,
-            station_prefix: "c".into(),
-        };
+        let plan = listed_angles();
         let sim = SimRotaryConfig {
             reversal_rad: 2e-5,
             ..SimRotaryConfig::default()
@@ -331,20 +328,7 @@ mod tests {
 
     #[test]
     fn repeatability_scatters_each_positioning_and_a_resend_keeps_it() {
-        let plan = RotaryPlanConfig {
-            table: "c".into(),
-            axis_point_m: [0.3, 0.3, -0.3],
-            axis_direction: [0.0, 0.0, 1.0],
-            tracer_hint_m: [0.45, 0.3, -0.2],
-            angles_rad: Some(vec![0.0, 0.5, 1.0]),
-            start_rad: None,
-            step_rad: None,
-            count: None,
-            spacing: Default::default(),
-            runs: None,
-            overshoot_rad: None,
-            station_prefix: "c".into(),
-        };
+        let plan = listed_angles();
         let sim = SimRotaryConfig {
             repeatability_rad: 1e-5,
             ..SimRotaryConfig::default()

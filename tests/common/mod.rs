@@ -352,6 +352,31 @@ drop_ok_at_lines = [20]
 
 pub const ROTARY: &str = include_str!("../../config/rotary-tracer.toml");
 
+/// The four-axis setup shrunk for speed: `count` table stations `step_rad` apart (with the
+/// extra `[plan.rotary]` lines `plan_lines`) + 1 off the table, 4 x 3 x 2 points, 10 Hz and
+/// 1 s dwells.
+pub fn reduced_rotary(step_rad: f64, count: usize, plan_lines: &str) -> String {
+    let text = ROTARY
+        .replace(
+            "x = { from = 0.1, to = 0.7, count = 6 }",
+            "x = { from = 0.1, to = 0.7, count = 4 }",
+        )
+        .replace(
+            "y = { from = 0.1, to = 0.7, count = 6 }",
+            "y = { from = 0.1, to = 0.7, count = 3 }",
+        )
+        .replace(
+            "step_rad = 0.5235987755982988",
+            &format!("step_rad = {step_rad:?}\n{plan_lines}"),
+        )
+        .replace("count = 12", &format!("count = {count}"))
+        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
+        .replace("dwell_s = 2.0", "dwell_s = 1.0")
+        .replace("window_s = 0.6", "window_s = 0.4");
+    assert!(text.contains(&format!("count = {count}")) && text.contains("dwell_s = 1.0"));
+    text
+}
+
 /// The four-axis setup shrunk for real time: 4 table stations 90° apart + 1 off the table,
 /// 3 x 3 x 2 points, a 1000 Hz stream, a 20 m/s machine, 30 ms dwells and a fast table.
 pub fn rotary_base() -> String {
