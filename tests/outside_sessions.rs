@@ -170,3 +170,75 @@ fn reversal_is_found_alone_and_modelling_it_restores_the_calibration() {
     let sigma = results.effects["reversal"]["bx_m.sigma"];
     assert!(sigma > 0.0 && (fitted - backlash_m).abs() < 0.05 * backlash_m);
 }
+
+/// ISO 230-2 figures of the recording with a reversal on x: every target's reversal B_i is the
+/// truth's backlash on x and none on y and z, and the run-to-run scatter is the noise's,
+/// although the serpentine reaches a target ↑ and ↓ on other lines of the grid, whose own
+/// geometry (the axis's angular errors over their levers) differs by micrometres.
+#[test]
+fn iso_230_2_figures_of_the_reversal_session_match_its_truth() {
+    let path = session_dir("outside-reversal-8").join("session.mcap");
+    let session = geocal::session::reader::read_session(&path).expect("session");
+    let results =
+        geocal::kinds::registry::solve_session(&session, &Default::default()).expect("solve");
+    let iso = geocal::evaluate::of_results(&results, &session).expect("ISO 230-2");
+    println!("{}", iso.text());
+    let backlash_m = truth("outside-reversal-8")["effect_params"]["reversal"]["backlash_m"]
+        .as_f64()
+        .expect("backlash_m");
+    let mut evaluated = Vec::new();
+    for axis in &iso.axes {
+        let figures = axis.evaluation.figures();
+        let Some(b) = figures.bidirectional.as_ref() else {
+            continue;
+        };
+        // One point's deviation in one pass is known to σ_t; a run's value at a target is a
+        // mean over the lines the run reached it on, so no more uncertain than that.
+        let sigma_t = axis
+            .target_sigma_m
+            .as_ref()
+            .expect("σ per target")
+            .iter()
+            .cloned()
+            .fold(0.0, f64::max);
+        let expected = if axis.axis == "x" { backlash_m } else { 0.0 };
+        for (i, bi) in b.reversal_i.iter().enumerate() {
+            // B_i: the mean of n↑ runs less the mean of n↓ runs.
+            let runs = (axis.evaluation.runs_up, axis.evaluation.runs_down);
+            let sigma_b = sigma_t * (1.0 / runs.0 as f64 + 1.0 / runs.1 as f64).sqrt();
+            assert!(
+                (bi - expected).abs() <= 3.0 * sigma_b,
+                "axis {} B_{i} = {bi:e} m, truth {expected:e} m, σ {sigma_b:e} m",
+                axis.axis
+            );
+        }
+        let s: Vec<f64> = [&figures.up, &figures.down]
+            .iter()
+            .filter_map(|d| d.as_ref())
+            .flat_map(|d| d.s_i.iter().flatten().copied())
+            .collect();
+        if !s.is_empty() {
+            // The truth's machine has no random scatter: the runs differ by noise alone. With
+            // one degree of freedom per target and direction, the pooled s lies below 1.8 σ_t
+            // with probability > 0.995 (χ² with 6 or more degrees of freedom).
+            let pooled = (s.iter().map(|v| v * v).sum::<f64>() / s.len() as f64).sqrt();
+            println!(
+                "axis {}: pooled s {:.3} µm, σ_t {:.3} µm",
+                axis.axis,
+                pooled * 1e6,
+                sigma_t * 1e6
+            );
+            assert!(s.len() >= 6, "axis {}: {} values of s", axis.axis, s.len());
+            assert!(
+                pooled < 1.8 * sigma_t,
+                "axis {}: pooled s {pooled:e} m against σ {sigma_t:e} m",
+                axis.axis
+            );
+        }
+        evaluated.push(axis.axis.clone());
+    }
+    assert!(
+        evaluated.contains(&"x".to_string()) && evaluated.contains(&"y".to_string()),
+        "{evaluated:?}"
+    );
+}

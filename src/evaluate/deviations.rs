@@ -380,8 +380,15 @@ fn point_of_pass(
 }
 
 /// The ISO curves of axis `k`: per pass and approach direction, the deviation at every
-/// target of the axis, the other axes' line offsets removed (backfitting of
-/// deviation = f(pass, direction, target) + c(line), the line offsets summing to zero).
+/// target of the axis along the grid's mean line. Each point of the grid (a line of the other
+/// axes at a target) is referred to its own reference, the mean of its runs with the two
+/// approach directions weighted alike: that removes what the point keeps in every run (the
+/// other axes' errors at that line, the axis's angular errors over that line's lever), so that
+/// runs measured on different lines (a serpentine's ↑ and ↓ rows) compare alike. The mean of
+/// the references over the lines is added back: deviation(pass, direction, target) = mean over
+/// the cell's points of (deviation − reference) + the mean line's. A point seen from one side
+/// only (a row's first target, a homing) has no reference and is left out: at it, a reversal
+/// cannot be told from the point's own geometry.
 fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), String> {
     let key = |v: f64| (v * 1e9).round() as i64;
     let mut targets: Vec<f64> = points.iter().map(|p| p.axes_m[k]).collect();
@@ -410,38 +417,73 @@ fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), S
         let line = *lines.entry((key(others[0]), key(others[1]))).or_insert(n);
         obs.push(((p.pass, dir, ti), line, p.deviation_m[k]));
     }
-    let mut f: BTreeMap<(usize, i8, usize), f64> = BTreeMap::new();
-    let mut c = vec![0.0; lines.len()];
+    // Per point (line, target): the sums of its ↑ and ↓ deviations; a point seen from both
+    // sides has its reference, the mean of the two sides' means.
+    let mut by_point: BTreeMap<(usize, usize), [(f64, usize); 2]> = BTreeMap::new();
+    for ((_, dir, ti), line, v) in &obs {
+        let side = &mut by_point.entry((*line, *ti)).or_default()[usize::from(*dir < 0)];
+        side.0 += v;
+        side.1 += 1;
+    }
+    let balanced: BTreeMap<(usize, usize), f64> = by_point
+        .into_iter()
+        .filter(|(_, [up, down])| up.1 > 0 && down.1 > 0)
+        .map(|(point, [up, down])| (point, 0.5 * (up.0 / up.1 as f64 + down.0 / down.1 as f64)))
+        .collect();
+    // The mean line: the references as mean line + line offset (backfitting, the offsets
+    // summing to zero), so that a target whose points lie on fewer lines is not moved by
+    // those lines' own offsets.
+    let mut mean_line = vec![0.0; targets.len()];
+    let mut offset = vec![0.0; lines.len()];
     for _ in 0..500 {
-        let mut sum: BTreeMap<(usize, i8, usize), (f64, usize)> = BTreeMap::new();
-        for (cell, line, v) in &obs {
-            let e = sum.entry(*cell).or_default();
-            e.0 += v - c[*line];
-            e.1 += 1;
+        let mut at_target = vec![(0.0, 0usize); targets.len()];
+        for ((line, ti), r) in &balanced {
+            at_target[*ti].0 += r - offset[*line];
+            at_target[*ti].1 += 1;
         }
-        f = sum
-            .into_iter()
-            .map(|(cell, (s, n))| (cell, s / n as f64))
-            .collect();
-        let mut line_sum = vec![(0.0, 0usize); c.len()];
-        for (cell, line, v) in &obs {
-            line_sum[*line].0 += v - f[cell];
-            line_sum[*line].1 += 1;
-        }
-        let new: Vec<f64> = line_sum
+        mean_line = at_target
             .iter()
             .map(|(s, n)| s / (*n).max(1) as f64)
             .collect();
-        let mean = new.iter().sum::<f64>() / new.len().max(1) as f64;
+        let mut on_line = vec![(0.0, 0usize); lines.len()];
+        for ((line, ti), r) in &balanced {
+            on_line[*line].0 += r - mean_line[*ti];
+            on_line[*line].1 += 1;
+        }
+        let seen: Vec<f64> = on_line
+            .iter()
+            .filter(|(_, n)| *n > 0)
+            .map(|(s, n)| s / *n as f64)
+            .collect();
+        let mean = seen.iter().sum::<f64>() / seen.len().max(1) as f64;
+        let new: Vec<f64> = on_line
+            .iter()
+            .map(|(s, n)| if *n > 0 { s / *n as f64 - mean } else { 0.0 })
+            .collect();
         let change = new
             .iter()
-            .zip(&c)
-            .map(|(a, b)| (a - mean - b).abs())
+            .zip(&offset)
+            .map(|(a, b)| (a - b).abs())
             .fold(0.0, f64::max);
-        c = new.iter().map(|v| v - mean).collect();
+        offset = new;
         if change < 1e-16 {
             break;
         }
+    }
+    let mut sum: BTreeMap<(usize, i8, usize), (f64, usize)> = BTreeMap::new();
+    for (cell, line, v) in &obs {
+        if let Some(reference) = balanced.get(&(*line, cell.2)) {
+            let e = sum.entry(*cell).or_default();
+            e.0 += v - reference;
+            e.1 += 1;
+        }
+    }
+    let f: BTreeMap<(usize, i8, usize), f64> = sum
+        .into_iter()
+        .map(|(cell, (s, n))| (cell, s / n as f64 + mean_line[cell.2]))
+        .collect();
+    if f.is_empty() {
+        return Err("no point approached from both sides, nothing to evaluate".to_owned());
     }
     // A run per pass and direction; a target stays if every such run reached it.
     let runs = |dir: i8| -> Vec<usize> {
@@ -462,7 +504,7 @@ fn axis_curves(points: &[RunPoint], k: usize) -> Result<(Curves, Vec<String>), S
             kept.push(ti);
         } else {
             notes.push(format!(
-                "{} = {t:.4} m left out: not approached {} in every run (the plan has no overshoot past it)",
+                "{} = {t:.4} m left out: not every {} run reaches it at a point approached from both sides (the plan has no overshoot past it)",
                 AXES[k],
                 missing.join(" and ")
             ));
