@@ -540,7 +540,8 @@ pub struct SimRotaryConfig {
     pub repeatability_rad: f64,
 }
 
-fn is_zero(v: &f64) -> bool {
+/// Serde's `skip_serializing_if` for optional zero-defaulted values.
+pub(crate) fn is_zero(v: &f64) -> bool {
     *v == 0.0
 }
 

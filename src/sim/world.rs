@@ -118,17 +118,13 @@ pub struct TruthRotary {
     pub angle_error: AngleError,
     /// The table's reversal (backlash), radians: in position it stands half of it beyond the
     /// command in the direction of its last move.
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::config::is_zero")]
     pub reversal_rad: f64,
     /// The scatter of each positioning (standard deviation), radians; drawn into the steps'
     /// true angles.
-    #[serde(skip_serializing_if = "is_zero")]
+    #[serde(skip_serializing_if = "crate::config::is_zero")]
     pub repeatability_rad: f64,
     pub steps: Vec<TruthStep>,
-}
-
-fn is_zero(v: &f64) -> bool {
-    *v == 0.0
 }
 
 #[derive(Debug, Clone, Serialize)]
