@@ -11,9 +11,13 @@ use common::{generous_timeouts, hil_rotary_config};
 use geocal::session::messages::{RunEvent, SessionHeader};
 use geocal::session::reader::read_session;
 
-/// Run, check the truth (points, stations, home distances; step angles within 3 sigma),
-/// return the session's events and header.
-fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
+/// Run, check the truth (points, stations, home distances; step angles within 3 sigma) with
+/// `table_stations` stations on the table, return the session's events and header.
+fn run_and_check(
+    config: &str,
+    label: &str,
+    table_stations: usize,
+) -> (Vec<RunEvent>, SessionHeader) {
     let dir = tempfile::tempdir().expect("tempdir");
     let started = std::time::Instant::now();
     let (output, truth) = run_with_truth(config, dir.path());
@@ -26,7 +30,7 @@ fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
     };
     let ml = &results.multilateration;
     assert_eq!(ml.points.len(), 18);
-    assert_eq!(ml.stations.len(), 5);
+    assert_eq!(ml.stations.len(), table_stations + 1);
     println!(
         "chi2/dof {:.2} (dof {}), residual RMS {:.3e} m",
         ml.chi2_per_dof, ml.dof, ml.residual_rms_m
@@ -34,7 +38,7 @@ fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
     assert_recovers_truth(ml, &truth);
 
     let truth_steps = truth["rotary"]["steps"].as_array().expect("truth steps");
-    assert_eq!(results.rotary.steps.len(), 4);
+    assert_eq!(results.rotary.steps.len(), table_stations);
     let true_error = |k: usize| truth_steps[k]["error_rad"].as_f64().expect("error_rad");
     for (k, step) in results.rotary.steps.iter().enumerate().skip(1) {
         let want = true_error(k) - true_error(0);
@@ -57,20 +61,23 @@ fn run_and_check(config: &str, label: &str) -> (Vec<RunEvent>, SessionHeader) {
 
     let session = read_session(&output.session_path).expect("session");
     let states = &session.rotary["c"];
-    assert!(states.iter().filter(|s| s.msg.in_position).count() >= 4);
+    assert!(states.iter().filter(|s| s.msg.in_position).count() >= table_stations);
     let events: Vec<RunEvent> = session.events.into_iter().map(|e| e.msg).collect();
     let rotations = events
         .iter()
         .filter(|e| matches!(e, RunEvent::Rotation { .. }))
         .count();
-    assert_eq!(rotations, 4);
+    assert_eq!(rotations, table_stations);
     (events, session.header)
 }
 
 #[test]
 fn hil_rotary_run_over_modbus_tcp_recovers_truth() {
-    let (events, header) =
-        run_and_check(&generous_timeouts(&hil_rotary_config("")), "HIL rotary run");
+    let (events, header) = run_and_check(
+        &generous_timeouts(&hil_rotary_config("")),
+        "HIL rotary run",
+        4,
+    );
     let table = header
         .devices
         .iter()
@@ -85,6 +92,29 @@ fn hil_rotary_run_over_modbus_tcp_recovers_truth() {
         fault_list.is_empty(),
         "faults without injection: {fault_list:?}"
     );
+}
+
+/// ISO 230-2's cycle for the table over Modbus (one ↑ and one ↓ run, each entered through its
+/// overshoot) on a table with a reversal: two commands per run's first station reach the
+/// emulated table, and every step angle, reversal included, matches the truth.
+#[test]
+fn hil_rotary_cycle_with_overshoots_over_modbus_tcp_recovers_truth() {
+    let config = generous_timeouts(&hil_rotary_config(""))
+        .replace("count = 4", "count = 4\nruns = 1")
+        .replace(
+            "settle_s = 0.05 }",
+            "settle_s = 0.05, reversal_rad = 2e-5 }",
+        );
+    assert!(config.contains("runs = 1") && config.contains("reversal_rad"));
+    let (events, _) = run_and_check(&config, "HIL rotary cycle", 8);
+    let vias: Vec<f64> = events
+        .iter()
+        .filter_map(|e| match e {
+            RunEvent::Rotation { via_rad, .. } => *via_rad,
+            _ => None,
+        })
+        .collect();
+    assert_eq!(vias.len(), 2, "one overshoot per run");
 }
 
 #[test]
@@ -111,6 +141,7 @@ drop_at_requests = [12]
     let (events, _) = run_and_check(
         &hil_rotary_config(faults_toml),
         "HIL rotary run with faults",
+        4,
     );
     for e in &events {
         if let RunEvent::Fault { .. } | RunEvent::Rehome { .. } = e {
