@@ -118,22 +118,24 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     } else {
         let sigma = runs.target_sigma_rad.clone().unwrap_or_default();
         let mut series = Vec::new();
-        for (name, direction) in [("↑", &curves.up), ("↓", &curves.down)] {
-            if direction.is_empty() {
+        let figures = runs.evaluation.figures();
+        for (name, direction, means) in [
+            ("↑", &curves.up, &figures.up),
+            ("↓", &curves.down, &figures.down),
+        ] {
+            let Some(means) = means else {
                 continue;
-            }
+            };
             let at = |i: usize, v: f64| (curves.targets[i].to_degrees(), v * ARCSEC_PER_RAD);
             let each = direction
                 .iter()
                 .flat_map(|run| run.iter().enumerate().map(|(i, &v)| at(i, v)))
                 .collect();
-            let mean = (0..curves.targets.len())
-                .map(|i| {
-                    at(
-                        i,
-                        direction.iter().map(|run| run[i]).sum::<f64>() / direction.len() as f64,
-                    )
-                })
+            let mean = means
+                .mean_deviation_i
+                .iter()
+                .enumerate()
+                .map(|(i, &v)| at(i, v))
                 .collect();
             let band = sigma.iter().map(|s| 2.0 * s * ARCSEC_PER_RAD).collect();
             series.push(Series::line(&format!("mean {name}"), mean).with_band(band));
