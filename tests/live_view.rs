@@ -156,18 +156,28 @@ fn a_foreign_origin_or_a_missing_token_gets_nothing_from_the_live_view() {
         token: Some(geocal::serve::auth::Token::load(&token_file).expect("token")),
         extra_origins: vec!["http://viewer.example:8080".into()],
     };
-    let view = LiveView::start_guarded("127.0.0.1:0".parse().expect("address"), access)
-        .expect("start");
+    let view =
+        LiveView::start_guarded("127.0.0.1:0".parse().expect("address"), access).expect("start");
     let base = format!("ws://{}/", view.address());
     let with_token = format!("{base}?token={token}");
 
     // Refused before the Foxglove server sees them: no serverInfo, no data.
     let foreign = handshake(&with_token, Some("http://evil.example"), None);
     assert_eq!(foreign["status"], 403, "{foreign}");
-    assert!(foreign["body"].as_str().unwrap_or("").contains("evil.example"), "{foreign}");
+    assert!(
+        foreign["body"]
+            .as_str()
+            .unwrap_or("")
+            .contains("evil.example"),
+        "{foreign}"
+    );
     let no_token = handshake(&base, None, None);
     assert_eq!(no_token["status"], 401, "{no_token}");
-    let wrong = handshake(&format!("{base}?token=live-token-0123456789abcdee"), None, None);
+    let wrong = handshake(
+        &format!("{base}?token=live-token-0123456789abcdee"),
+        None,
+        None,
+    );
     assert_eq!(wrong["status"], 401, "{wrong}");
     let app_without_token = handshake(&base, Some("https://app.foxglove.dev"), None);
     assert_eq!(app_without_token["status"], 401, "{app_without_token}");

@@ -475,8 +475,12 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
     // job.log is the last attempt's; the interrupted one's is kept beside it.
-    let log = String::from_utf8(fetch(&client, &daemon, &format!("/v1/jobs/{id}/files/job.log")))
-        .expect("utf-8");
+    let log = String::from_utf8(fetch(
+        &client,
+        &daemon,
+        &format!("/v1/jobs/{id}/files/job.log"),
+    ))
+    .expect("utf-8");
     assert_eq!(log.trim(), "succeeded");
     let earlier = String::from_utf8(fetch(
         &client,
@@ -485,7 +489,10 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
     ))
     .expect("utf-8");
     assert!(earlier.starts_with("interrupted"), "{earlier}");
-    assert!(names(&done).iter().any(|n| n == "job.attempt-1.log"), "{done}");
+    assert!(
+        names(&done).iter().any(|n| n == "job.attempt-1.log"),
+        "{done}"
+    );
 
     // Every message flushed before the kill is in the final session, unchanged and in order.
     let (_, before) =

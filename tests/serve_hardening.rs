@@ -16,6 +16,8 @@ struct Daemon {
     child: Child,
     /// `127.0.0.1:PORT`
     address: String,
+    /// The live view's `HOST:PORT`, when it runs.
+    live: Option<String>,
 }
 
 impl Daemon {
@@ -28,7 +30,12 @@ impl Daemon {
             .arg(&config_file)
             .arg("--data-dir")
             .arg(dir.join("data"))
-            .args(["--listen", "127.0.0.1:0", "--live", "off"])
+            .args(["--listen", "127.0.0.1:0"])
+            .args(if extra.contains(&"--live") {
+                &[][..]
+            } else {
+                &["--live", "off"][..]
+            })
             .args(extra)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
@@ -45,7 +52,15 @@ impl Daemon {
             .unwrap_or_else(|| panic!("no address in {line:?}"))
             .trim_end_matches(',')
             .to_owned();
-        Daemon { child, address }
+        let live = line
+            .split_whitespace()
+            .find_map(|w| w.strip_prefix("ws://"))
+            .map(str::to_owned);
+        Daemon {
+            child,
+            address,
+            live,
+        }
     }
 
     fn port(&self) -> u16 {
@@ -131,7 +146,11 @@ fn read_answer(stream: &mut TcpStream) -> Option<Answer> {
                     data.extend_from_slice(&buffer[..n]);
                 }
                 let body = data[body_start..body_start + length].to_vec();
-                return Some(Answer { status, headers, body });
+                return Some(Answer {
+                    status,
+                    headers,
+                    body,
+                });
             }
             // No length: chunked or until close; the tests send `Connection: close`.
             loop {
@@ -141,7 +160,11 @@ fn read_answer(stream: &mut TcpStream) -> Option<Answer> {
                 }
             }
             let body = dechunk(&data[body_start..]);
-            return Some(Answer { status, headers, body });
+            return Some(Answer {
+                status,
+                headers,
+                body,
+            });
         }
         let n = stream.read(&mut buffer).ok()?;
         if n == 0 {
@@ -155,11 +178,8 @@ fn dechunk(data: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
     let mut rest = data;
     while let Some(line_end) = rest.windows(2).position(|w| w == b"\r\n") {
-        let size = usize::from_str_radix(
-            String::from_utf8_lossy(&rest[..line_end]).trim(),
-            16,
-        )
-        .unwrap_or(0);
+        let size = usize::from_str_radix(String::from_utf8_lossy(&rest[..line_end]).trim(), 16)
+            .unwrap_or(0);
         if size == 0 {
             break;
         }
@@ -251,7 +271,11 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     assert!(bad_id.error().contains("abc"), "{bad_id:?}");
     let bad_prompt = send(
         &daemon,
-        &["POST /v1/prompts/x/ack HTTP/1.1", &format!("Host: {own}"), "Content-Length: 0"],
+        &[
+            "POST /v1/prompts/x/ack HTTP/1.1",
+            &format!("Host: {own}"),
+            "Content-Length: 0",
+        ],
         b"",
     );
     assert_eq!(bad_prompt.status, 400);
@@ -261,7 +285,11 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     no_route.error();
     let wrong_method = send(
         &daemon,
-        &["PATCH /v1/jobs HTTP/1.1", &format!("Host: {own}"), "Content-Length: 0"],
+        &[
+            "PATCH /v1/jobs HTTP/1.1",
+            &format!("Host: {own}"),
+            "Content-Length: 0",
+        ],
         b"",
     );
     assert_eq!(wrong_method.status, 405);
@@ -295,14 +323,21 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     // The document as configured: no security, the Host refusal on every operation, both
     // bodies of POST /v1/jobs, the real metrics type.
     let document = get(&daemon, "/v1/openapi.json", &own, &[]).json();
-    assert!(document.get("security").is_none(), "{}", document["security"]);
+    assert!(
+        document.get("security").is_none(),
+        "{}",
+        document["security"]
+    );
     assert!(document["components"].get("securitySchemes").is_none());
     for (path, method, operation) in operations(&document) {
         let responses = &operation["responses"];
-        for status in ["400", "421", "500"] {
+        for status in ["400", "408", "413", "421", "500"] {
             assert!(responses[status].is_object(), "{method} {path}: {status}");
         }
-        assert!(responses.get("401").is_none(), "{method} {path}: 401 without a token");
+        assert!(
+            responses.get("401").is_none(),
+            "{method} {path}: 401 without a token"
+        );
     }
     let bodies = &document["paths"]["/v1/jobs"]["post"]["requestBody"]["content"];
     assert!(bodies["application/toml"].is_object(), "{bodies}");
@@ -314,7 +349,10 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     let metrics = get(&daemon, "/metrics", &own, &[]);
     let served_type = metrics.header("content-type").expect("content type");
     let media_type = served_type.split(';').next().unwrap_or("").trim();
-    assert!(metrics_doc[media_type].is_object(), "{served_type} in {metrics_doc}");
+    assert!(
+        metrics_doc[media_type].is_object(),
+        "{served_type} in {metrics_doc}"
+    );
 }
 
 #[test]
@@ -322,7 +360,16 @@ fn with_a_token_any_case_of_bearer_is_taken_and_the_document_says_so() {
     let dir = tempfile::tempdir().expect("tempdir");
     let token = "hardening-token-0123456789";
     let file = token_file(dir.path(), token);
-    let daemon = Daemon::start(dir.path(), "", &["--token-file", file.to_str().expect("utf-8")]);
+    let daemon = Daemon::start(
+        dir.path(),
+        "",
+        &[
+            "--token-file",
+            file.to_str().expect("utf-8"),
+            "--live",
+            "127.0.0.1:0",
+        ],
+    );
     let own = daemon.address.clone();
     for scheme in ["Bearer", "bearer", "BEARER"] {
         let auth = format!("Authorization: {scheme} {token}");
@@ -333,13 +380,54 @@ fn with_a_token_any_case_of_bearer_is_taken_and_the_document_says_so() {
     assert_eq!(refused.status, 401);
     refused.error();
     let good = format!("Authorization: Bearer {token}");
-    let two = get(&daemon, "/v1/health", &own, &[&good, "Authorization: Bearer wrong"]);
+    let two = get(
+        &daemon,
+        "/v1/health",
+        &own,
+        &[&good, "Authorization: Bearer wrong"],
+    );
     assert_eq!(two.status, 400, "{two:?}");
-    let two = get(&daemon, "/v1/health", &own, &["Authorization: Bearer wrong", &good]);
+    let two = get(
+        &daemon,
+        "/v1/health",
+        &own,
+        &["Authorization: Bearer wrong", &good],
+    );
     assert_eq!(two.status, 400, "{two:?}");
     // With a token the token is the guard: any Host name may be used to reach the daemon.
     let named = get(&daemon, "/v1/health", "geocal.lab.example:7878", &[&good]);
     assert_eq!(named.status, 200, "{named:?}");
+
+    // The daemon's live view takes the same token (tests/live_view.rs checks the rest).
+    let live = daemon.live.clone().expect("the live view's address");
+    let upgrade = |target: &str, extra: &str| {
+        let mut stream = TcpStream::connect(&live).expect("connect to the live view");
+        stream
+            .set_read_timeout(Some(Duration::from_secs(120)))
+            .expect("read timeout");
+        let request = format!(
+            "GET {target} HTTP/1.1\r\nHost: {live}\r\nUpgrade: websocket\r\n\
+             Connection: Upgrade\r\nSec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\n\
+             Sec-WebSocket-Version: 13\r\nSec-WebSocket-Protocol: foxglove.sdk.v1\r\n{extra}\r\n"
+        );
+        stream.write_all(request.as_bytes()).expect("write");
+        let mut head = Vec::new();
+        let mut byte = [0u8; 1];
+        while !head.ends_with(b"\r\n\r\n") && stream.read(&mut byte).unwrap_or(0) == 1 {
+            head.push(byte[0]);
+        }
+        String::from_utf8_lossy(&head).into_owned()
+    };
+    assert!(
+        upgrade("/", "").starts_with("HTTP/1.1 401"),
+        "{}",
+        upgrade("/", "")
+    );
+    let with_token = format!("/?token={token}");
+    let foreign = upgrade(&with_token, "Origin: http://evil.example\r\n");
+    assert!(foreign.starts_with("HTTP/1.1 403"), "{foreign}");
+    let admitted = upgrade(&with_token, "Origin: https://app.foxglove.dev\r\n");
+    assert!(admitted.starts_with("HTTP/1.1 101"), "{admitted}");
 
     let document = get(&daemon, "/v1/openapi.json", &own, &[&good]).json();
     assert_eq!(document["security"], serde_json::json!([{ "bearer": [] }]));
@@ -349,7 +437,10 @@ fn with_a_token_any_case_of_bearer_is_taken_and_the_document_says_so() {
     );
     for (path, method, operation) in operations(&document) {
         assert!(operation["responses"]["401"].is_object(), "{method} {path}");
-        assert!(operation["responses"].get("421").is_none(), "{method} {path}");
+        assert!(
+            operation["responses"].get("421").is_none(),
+            "{method} {path}"
+        );
     }
 }
 
@@ -392,7 +483,10 @@ fn a_slow_client_is_cut_off_after_the_time_out_while_others_are_served() {
     let body_answer = read_answer(&mut slow_body).expect("an answer to the slow body");
     assert!(opened.elapsed() >= timeout);
     assert_eq!(body_answer.status, 408, "{body_answer:?}");
-    assert!(body_answer.error().contains("did not arrive"), "{body_answer:?}");
+    assert!(
+        body_answer.error().contains("did not arrive"),
+        "{body_answer:?}"
+    );
     let mut rest = Vec::new();
     let closed = slow_headers.read_to_end(&mut rest);
     assert!(closed.is_ok(), "still open: {closed:?}");

@@ -96,7 +96,10 @@ fn fuzz(dir: &Path, extra: &[&str], token: Option<&str>) {
         "schemathesis found problems:\n{stdout}\n{stderr}"
     );
     let summary: Vec<&str> = stdout.lines().rev().take(12).collect();
-    println!("{}", summary.into_iter().rev().collect::<Vec<_>>().join("\n"));
+    println!(
+        "{}",
+        summary.into_iter().rev().collect::<Vec<_>>().join("\n")
+    );
 }
 
 #[test]
@@ -122,5 +125,9 @@ fn schemathesis_finds_nothing_with_a_token() {
         use std::os::unix::fs::PermissionsExt;
         std::fs::set_permissions(&file, std::fs::Permissions::from_mode(0o600)).expect("chmod");
     }
-    fuzz(dir.path(), &["--token-file", file.to_str().expect("utf-8")], Some(token));
+    fuzz(
+        dir.path(),
+        &["--token-file", file.to_str().expect("utf-8")],
+        Some(token),
+    );
 }

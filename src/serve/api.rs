@@ -448,7 +448,8 @@ pub struct ApiDoc;
 
 /// The OpenAPI document of this daemon as configured: bearer security only when a token is
 /// set, and on every operation the answers any request may get (a path, header or body that
-/// does not parse: 400; no or a wrong token: 401; a Host not allowed: 421; 500).
+/// does not parse: 400; no or a wrong token: 401; a body too slow: 408, or too large: 413; a
+/// Host not allowed: 421; 500).
 pub fn openapi_document(options: &ApiOptions) -> utoipa::openapi::OpenApi {
     use utoipa::openapi::path::Operation;
     use utoipa::openapi::request_body::RequestBodyBuilder;
@@ -474,6 +475,14 @@ pub fn openapi_document(options: &ApiOptions) -> utoipa::openapi::OpenApi {
         (
             "400",
             error("a path parameter, header or body that does not parse"),
+        ),
+        (
+            "408",
+            error("the body did not arrive within the daemon's time-out"),
+        ),
+        (
+            "413",
+            error("the declared or sent body is over the daemon's limit"),
         ),
         ("500", error("an internal error")),
     ];

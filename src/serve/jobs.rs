@@ -119,9 +119,10 @@ impl Daemon {
                 dir.join(JOB_LOG_FILE),
                 "interrupted: the daemon stopped while the job ran\n",
             );
-            if let Err(e) = logged.map_err(anyhow::Error::from).and_then(|()| {
-                catalog.record_files(id).map(|_| ())
-            }) {
+            if let Err(e) = logged
+                .map_err(anyhow::Error::from)
+                .and_then(|()| catalog.record_files(id).map(|_| ()))
+            {
                 tracing::warn!(job = id, "recording the interrupted job's files: {e:#}");
             }
         }
@@ -528,7 +529,10 @@ impl Daemon {
                 // far its job came.
                 if (before.done, before.total) != (done, total) {
                     if let Some(daemon) = daemon.upgrade() {
-                        if let Err(e) = daemon.catalog().and_then(|mut c| c.set_progress(id, done, total)) {
+                        if let Err(e) = daemon
+                            .catalog()
+                            .and_then(|mut c| c.set_progress(id, done, total))
+                        {
                             tracing::warn!(job = id, "recording progress: {e:#}");
                         }
                     }
@@ -651,7 +655,10 @@ fn keep_earlier_log(dir: &Path) {
         return;
     };
     if let Err(e) = std::fs::rename(&log, &kept) {
-        tracing::warn!("keeping the earlier attempt's log as {}: {e}", kept.display());
+        tracing::warn!(
+            "keeping the earlier attempt's log as {}: {e}",
+            kept.display()
+        );
     }
 }
 
