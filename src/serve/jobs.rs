@@ -439,6 +439,9 @@ impl Daemon {
         }
         if job.resume {
             keep_earlier_log(&job.dir);
+            if let Err(e) = self.catalog().and_then(|mut c| c.record_files(id)) {
+                tracing::warn!(job = id, "recording the resumed job's files: {e:#}");
+            }
         }
         if let Err(e) = self.catalog().and_then(|mut c| c.start(id)) {
             tracing::error!(job = id, "marking the job running: {e:#}");
