@@ -506,13 +506,20 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
                 format!("record at byte {pos} has no MCAP opcode ({opcode:#04x})")
             };
             if !in_data_section {
-                // Past DataEnd only the summary follows: every message has been read.
-                tracing::warn!(
-                    "{}: the summary section is damaged ({why}); every message was read \
-                     from the data section",
-                    dec.file
-                );
-                break None;
+                // Past DataEnd only the summary follows: nothing there is a message, so a
+                // damaged record costs none; a cut end is still a cut end.
+                match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
+                    Some(next) => {
+                        tracing::warn!(
+                            "{}: the summary section is damaged ({why}); every message was read \
+                             from the data section",
+                            dec.file
+                        );
+                        pos = next;
+                        continue;
+                    }
+                    None => break Some((pos, why)),
+                }
             }
             // A damaged record header, or the file's cut end: the next good record tells.
             match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
