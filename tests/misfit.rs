@@ -194,3 +194,31 @@ fn rotary_tracer_with_an_eccentric_pivot_is_flagged_everywhere() {
     );
     assert!(report.contains("geocal diagnose"));
 }
+
+/// Outside sessions (tests/data/outside, recorded by another tool's simulator): the clean one
+/// is not flagged, the one with an unmodelled reversal (backlash) on x is.
+#[test]
+fn outside_sessions_flag_the_unmodelled_reversal_only() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/outside");
+    let solve = |name: &str| {
+        let session = read_session(&dir.join(name).join("session.mcap")).expect("session");
+        let results = solve_session(&session, &SolveSettings::default()).expect("solve");
+        results.to_json_value().expect("json")
+    };
+    let clean = solve("outside-clean-7");
+    assert!(
+        misfit_of(&clean).is_none(),
+        "clean: χ²/dof {}",
+        chi2_per_dof(&clean)
+    );
+    let reversal = solve("outside-reversal-8");
+    let misfit = misfit_of(&reversal).expect("the reversal's misfit is flagged");
+    println!(
+        "outside: clean χ²/dof {:.3}; reversal χ²/dof {:.1} over {} dof, σ scale {:.1}",
+        chi2_per_dof(&clean),
+        misfit.chi2_per_dof,
+        misfit.dof,
+        misfit.sigma_scale
+    );
+    assert!(misfit.chi2_per_dof > 10.0, "{misfit:?}");
+}
