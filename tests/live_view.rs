@@ -120,3 +120,78 @@ fn a_foxglove_client_receives_the_recorded_bytes_at_their_log_times() {
         view.published()
     );
 }
+
+/// What `handshake.py` got: the HTTP status (101 when admitted) and the first message's op or
+/// the refusal's body.
+fn handshake(url: &str, origin: Option<&str>, bearer: Option<&str>) -> serde_json::Value {
+    let output = Command::new("python3")
+        .arg(concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/tests/live_view/handshake.py"
+        ))
+        .args([url, origin.unwrap_or("-"), bearer.unwrap_or("-")])
+        .output()
+        .expect("python3");
+    assert!(
+        output.status.success(),
+        "handshake.py: {}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    serde_json::from_slice(&output.stdout).expect("handshake.py's JSON line")
+}
+
+#[test]
+fn a_foreign_origin_or_a_missing_token_gets_nothing_from_the_live_view() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let token_file = dir.path().join("token");
+    let token = "live-token-0123456789abcdef";
+    std::fs::write(&token_file, token).expect("token");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(0o600))
+            .expect("chmod");
+    }
+    let access = geocal::serve::live::LiveAccess {
+        token: Some(geocal::serve::auth::Token::load(&token_file).expect("token")),
+        extra_origins: vec!["http://viewer.example:8080".into()],
+    };
+    let view =
+        LiveView::start_guarded("127.0.0.1:0".parse().expect("address"), access).expect("start");
+    let base = format!("ws://{}/", view.address());
+    let with_token = format!("{base}?token={token}");
+
+    // Refused before the Foxglove server sees them: no serverInfo, no data.
+    let foreign = handshake(&with_token, Some("http://evil.example"), None);
+    assert_eq!(foreign["status"], 403, "{foreign}");
+    assert!(
+        foreign["body"]
+            .as_str()
+            .unwrap_or("")
+            .contains("evil.example"),
+        "{foreign}"
+    );
+    let no_token = handshake(&base, None, None);
+    assert_eq!(no_token["status"], 401, "{no_token}");
+    let wrong = handshake(
+        &format!("{base}?token=live-token-0123456789abcdee"),
+        None,
+        None,
+    );
+    assert_eq!(wrong["status"], 401, "{wrong}");
+    let app_without_token = handshake(&base, Some("https://app.foxglove.dev"), None);
+    assert_eq!(app_without_token["status"], 401, "{app_without_token}");
+
+    // Admitted: the Foxglove app with the token in its URL, a configured origin, a native
+    // client with the bearer header.
+    for (url, origin, bearer) in [
+        (&with_token, Some("https://app.foxglove.dev"), None),
+        (&with_token, Some("http://viewer.example:8080"), None),
+        (&base, None, Some(token)),
+    ] {
+        let admitted = handshake(url, origin, bearer);
+        assert_eq!(admitted["status"], 101, "{origin:?} {bearer:?}: {admitted}");
+        assert_eq!(admitted["first_op"], "serverInfo", "{admitted}");
+    }
+    view.stop();
+}

@@ -454,10 +454,45 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
     let daemon = Daemon::start(&data, &[]);
     let interrupted = job(&client, &daemon, id);
     assert_eq!(interrupted["state"], "interrupted", "{interrupted}");
+    // Its record shows how far it came and what it left.
+    let done_before = interrupted["progress"]["done"].as_u64().unwrap_or(0);
+    assert!(done_before >= 4, "{interrupted}");
+    assert!(interrupted["progress"]["total"].as_u64().unwrap_or(0) > done_before);
+    let names = |j: &Value| -> Vec<String> {
+        j["files"]
+            .as_array()
+            .expect("files")
+            .iter()
+            .map(|f| f["name"].as_str().unwrap_or_default().to_owned())
+            .collect()
+    };
+    let listed = names(&interrupted);
+    for name in ["plan.toml", "session.mcap", "job.log"] {
+        assert!(listed.iter().any(|n| n == name), "{name} in {listed:?}");
+    }
     let (status, body) = post(&client, &daemon, &format!("/v1/jobs/{id}/resume"));
     assert_eq!(status, StatusCode::ACCEPTED, "{body}");
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
+    // job.log is the last attempt's; the interrupted one's is kept beside it.
+    let log = String::from_utf8(fetch(
+        &client,
+        &daemon,
+        &format!("/v1/jobs/{id}/files/job.log"),
+    ))
+    .expect("utf-8");
+    assert_eq!(log.trim(), "succeeded");
+    let earlier = String::from_utf8(fetch(
+        &client,
+        &daemon,
+        &format!("/v1/jobs/{id}/files/job.attempt-1.log"),
+    ))
+    .expect("utf-8");
+    assert!(earlier.starts_with("interrupted"), "{earlier}");
+    assert!(
+        names(&done).iter().any(|n| n == "job.attempt-1.log"),
+        "{done}"
+    );
 
     // Every message flushed before the kill is in the final session, unchanged and in order.
     let (_, before) =

@@ -63,6 +63,9 @@ where
     }
 }
 
+/// How many σ the text output lists, scaled, beside the misfit warning.
+const MISFIT_TEXT_ROWS: usize = 24;
+
 /// Results of any kind's method.
 #[derive(Debug)]
 pub struct Results(Box<dyn KindResults>);
@@ -92,8 +95,20 @@ impl Results {
         self.0.to_json_value()
     }
 
+    /// The kind's text report, and the misfit warning with the scaled σ when the fit is flagged.
     pub fn report(&self) -> String {
-        self.0.report()
+        let mut text = self.0.report();
+        if let Some((misfit, json)) = self.misfit() {
+            text.push_str(&misfit.text(&json, MISFIT_TEXT_ROWS));
+        }
+        text
+    }
+
+    /// The results' `misfit` when the fit is flagged, with the results as JSON.
+    pub fn misfit(&self) -> Option<(crate::solve::misfit::Misfit, serde_json::Value)> {
+        let json = self.to_json_value().ok()?;
+        let misfit = serde_json::from_value(json.get("misfit")?.clone()).ok()?;
+        Some((misfit, json))
     }
 
     /// The stations and points every tracer method has (None for methods without a tracer).

@@ -6,6 +6,8 @@ use std::collections::BTreeMap;
 use nalgebra::Vector3;
 use serde::{Deserialize, Serialize};
 
+use crate::solve::misfit::Misfit;
+
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
@@ -64,6 +66,10 @@ pub struct MultilaterationResults {
     /// Present when a robust loss was used: what it down-weighted.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub robust: Option<RobustReport>,
+    /// Present when χ²/dof is improbable for its degrees of freedom (p < 1e-3): the σ are
+    /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub misfit: Option<crate::solve::misfit::Misfit>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -315,6 +321,7 @@ pub fn solve_detailed(
         },
         dof,
         iterations: solution.iterations,
+        misfit: Misfit::check(solution.chi2, dof),
         converged: solution.converged,
         gauge: solution.gauge.to_string(),
         noise_model: match declared_noise {

@@ -11,9 +11,10 @@ use std::path::{Path, PathBuf};
 use anyhow::Context;
 
 use crate::diagnose::Diagnosis;
-use crate::document::{Document, KindReport, Section};
+use crate::document::{Document, KindReport, Section, Table};
 use crate::kinds::registry::Registry;
 use crate::session::reader::{read_session, Session};
+use crate::solve::misfit::{sigma_rows, Misfit};
 
 /// What the report is made from: the results, and what lies beside them.
 pub struct Inputs {
@@ -37,6 +38,7 @@ pub type SectionBuilder = fn(&Inputs, &KindReport) -> anyhow::Result<Vec<Section
 pub const SECTIONS: &[(&str, SectionBuilder)] = &[
     ("header", header::sections),
     ("summary", summary),
+    ("misfit", misfit),
     ("kind", kind_sections),
     ("iso230-2", standards::iso230_2),
     ("uncertainty", standards::uncertainty),
@@ -200,6 +202,44 @@ fn summary(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
     Ok(vec![
         Section::new("summary", "Summary").facts(kind.summary.clone())
     ])
+}
+
+/// How many σ the report lists, scaled, beside the misfit warning.
+const MISFIT_REPORT_ROWS: usize = 60;
+
+/// A warning when the fit's χ²/dof is improbable: the σ scaled by √(χ²/dof) beside the model's.
+fn misfit(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
+    let Some(misfit) = inputs.results.get("misfit") else {
+        return Ok(Vec::new());
+    };
+    let misfit: Misfit = serde_json::from_value(misfit.clone())
+        .with_context(|| format!("{}: `misfit`", inputs.results_path.display()))?;
+    let rows = sigma_rows(&inputs.results);
+    let scaled = format!("σ × {:.2}", misfit.sigma_scale);
+    let mut table = Table::new(
+        "The results' σ: the model's, and scaled by √(χ²/dof)",
+        &["quantity", "σ (model)", &scaled],
+    );
+    for (path, sigma) in rows.iter().take(MISFIT_REPORT_ROWS) {
+        table.row(vec![
+            path.clone(),
+            format!("{sigma:.4e}"),
+            format!("{:.4e}", sigma * misfit.sigma_scale),
+        ]);
+    }
+    let mut section =
+        Section::new("misfit", "Misfit: the σ are not trustworthy").paragraph(misfit.warning());
+    if rows.len() > MISFIT_REPORT_ROWS {
+        section = section.paragraph(format!(
+            "{} more σ in results.json: multiply each by {:.2}.",
+            rows.len() - MISFIT_REPORT_ROWS,
+            misfit.sigma_scale
+        ));
+    }
+    if !rows.is_empty() {
+        section = section.table(table);
+    }
+    Ok(vec![section])
 }
 
 fn kind_sections(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {

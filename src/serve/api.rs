@@ -18,6 +18,7 @@ use utoipa::{OpenApi, ToSchema};
 
 use super::auth::{require_token, Token};
 use super::catalog::{JobFile, JobRecord, JobState, JobType};
+use super::guard::{check_host, json_errors, read_body, BodyLimits, HostCheck};
 use super::jobs::{Daemon, JobError, ServerEvent, REPORT_FILE};
 use super::prompts::PendingPrompt;
 use super::status::{DeviceStatus, Progress};
@@ -135,13 +136,15 @@ fn view(daemon: &Daemon, job: JobRecord) -> JobView {
 /// Submit a job: a plan configuration as TOML (`Content-Type: application/toml`) runs it; a
 /// JSON `SessionJob` solves, diagnoses or replays an earlier job's session.
 #[utoipa::path(post, path = "/v1/jobs",
-    request_body(content = String, content_type = "application/toml",
-        description = "a plan configuration, as for `geocal run`"),
     responses(
         (status = 201, body = Created),
-        (status = 400, body = ErrorBody, description = "the configuration is invalid: the error names the key"),
-        (status = 413, description = "the body is over the daemon's limit"),
-        (status = 415, body = ErrorBody)))]
+        (status = 400, body = ErrorBody, description = "the configuration or session job is invalid: the error names the key"),
+        (status = 404, body = ErrorBody, description = "the session job names no job"),
+        (status = 408, body = ErrorBody, description = "the body did not arrive within the daemon's time-out"),
+        (status = 409, body = ErrorBody, description = "the session job's source has no session"),
+        (status = 413, body = ErrorBody, description = "the body is over the daemon's limit"),
+        (status = 415, body = ErrorBody),
+        (status = 503, body = ErrorBody, description = "the daemon is stopping")))]
 async fn submit(
     State(daemon): State<Arc<Daemon>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
@@ -236,7 +239,8 @@ async fn cancel_job(
 /// Continue an interrupted or cancelled run at its first unfinished point.
 #[utoipa::path(post, path = "/v1/jobs/{id}/resume", params(("id" = i64, Path)),
     responses((status = 202, body = StateReply), (status = 404, body = ErrorBody),
-        (status = 409, body = ErrorBody, description = "the job is not an interrupted or cancelled run")))]
+        (status = 409, body = ErrorBody, description = "the job is not an interrupted or cancelled run"),
+        (status = 503, body = ErrorBody, description = "the daemon is stopping")))]
 async fn resume_job(
     State(daemon): State<Arc<Daemon>>,
     Path(id): Path<i64>,
@@ -284,7 +288,7 @@ async fn job_report(State(daemon): State<Arc<Daemon>>, Path(id): Path<i64>) -> A
 
 /// Any file the job left (its report, diagnosis, plan, log), by the name its file list gives.
 #[utoipa::path(get, path = "/v1/jobs/{id}/files/{name}", params(("id" = i64, Path), ("name" = String, Path)),
-    responses((status = 200, description = "the file"), (status = 404, body = ErrorBody)))]
+    responses((status = 200, description = "the file (its type from its extension)"), (status = 404, body = ErrorBody)))]
 async fn job_named_file(
     State(daemon): State<Arc<Daemon>>,
     Path((id, name)): Path<(i64, String)>,
@@ -386,7 +390,7 @@ async fn health(State(daemon): State<Arc<Daemon>>) -> Json<Health> {
 
 /// Prometheus metrics: jobs by state, samples recorded, faults by kind, recorder queue depth.
 #[utoipa::path(get, path = "/metrics",
-    responses((status = 200, content_type = "text/plain", description = "Prometheus text format")))]
+    responses((status = 200, content_type = "application/openmetrics-text", description = "OpenMetrics text format (`version=1.0.0`)")))]
 async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
     let text = super::metrics::render(&daemon)
         .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
@@ -402,36 +406,204 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
 
 #[derive(OpenApi)]
 #[openapi(
-    info(title = "geocal daemon", description = "Calibration jobs, devices, prompts and live events of `geocal serve`."),
-    paths(submit, list_jobs, get_job, cancel_job, resume_job, job_results, job_session, job_report,
-        job_named_file, devices, prompts, ack_prompt, events, health, metrics),
-    components(schemas(JobView, SessionJob, Created, StateReply, ErrorBody, Health, JobFile,
-        JobState, JobType, Progress, DeviceStatus, crate::devices::held::HeldStatus, PendingPrompt, ServerEvent)),
-    modifiers(&BearerAuth),
-    security(("bearer" = []))
+    info(
+        title = "geocal daemon",
+        description = "Calibration jobs, devices, prompts and live events of `geocal serve`."
+    ),
+    paths(
+        submit,
+        list_jobs,
+        get_job,
+        cancel_job,
+        resume_job,
+        job_results,
+        job_session,
+        job_report,
+        job_named_file,
+        devices,
+        prompts,
+        ack_prompt,
+        events,
+        health,
+        metrics
+    ),
+    components(schemas(
+        JobView,
+        SessionJob,
+        Created,
+        StateReply,
+        ErrorBody,
+        Health,
+        JobFile,
+        JobState,
+        JobType,
+        Progress,
+        DeviceStatus,
+        crate::devices::held::HeldStatus,
+        PendingPrompt,
+        ServerEvent
+    ))
 )]
 pub struct ApiDoc;
 
-struct BearerAuth;
+/// The OpenAPI document of this daemon as configured: bearer security only when a token is
+/// set, and on every operation the answers any request may get (a path, header or body that
+/// does not parse: 400; no or a wrong token: 401; a body too slow: 408, or too large: 413; a
+/// Host not allowed: 421; 500).
+pub fn openapi_document(options: &ApiOptions) -> utoipa::openapi::OpenApi {
+    use utoipa::openapi::path::Operation;
+    use utoipa::openapi::request_body::RequestBodyBuilder;
+    use utoipa::openapi::schema::{ObjectBuilder, Type};
+    use utoipa::openapi::security::{
+        HttpAuthScheme, HttpBuilder, SecurityRequirement, SecurityScheme,
+    };
+    use utoipa::openapi::{ContentBuilder, Ref, Required, ResponseBuilder};
 
-impl utoipa::Modify for BearerAuth {
-    fn modify(&self, openapi: &mut utoipa::openapi::OpenApi) {
-        use utoipa::openapi::security::{HttpAuthScheme, HttpBuilder, SecurityScheme};
-        let components = openapi.components.get_or_insert_with(Default::default);
+    let mut document = ApiDoc::openapi();
+    let error = |description: &str| {
+        ResponseBuilder::new()
+            .description(description)
+            .content(
+                "application/json",
+                ContentBuilder::new()
+                    .schema(Some(Ref::from_schema_name("ErrorBody")))
+                    .build(),
+            )
+            .build()
+    };
+    let mut common = vec![
+        (
+            "400",
+            error("a path parameter, header or body that does not parse"),
+        ),
+        (
+            "408",
+            error("the body did not arrive within the daemon's time-out"),
+        ),
+        (
+            "413",
+            error("the declared or sent body is over the daemon's limit"),
+        ),
+        ("500", error("an internal error")),
+    ];
+    if options.token.is_some() {
+        common.push(("401", error("no bearer token, or another")));
+    }
+    if options.host_check.is_some() {
+        common.push((
+            "421",
+            error("the Host header is not one the daemon answers to without a token"),
+        ));
+    }
+    for item in document.paths.paths.values_mut() {
+        let operations: [&mut Option<Operation>; 8] = [
+            &mut item.get,
+            &mut item.put,
+            &mut item.post,
+            &mut item.delete,
+            &mut item.options,
+            &mut item.head,
+            &mut item.patch,
+            &mut item.trace,
+        ];
+        for operation in operations.into_iter().flatten() {
+            for (status, response) in &common {
+                operation
+                    .responses
+                    .responses
+                    .entry((*status).to_owned())
+                    .or_insert_with(|| response.clone().into());
+            }
+        }
+    }
+    if let Some(submit) = document
+        .paths
+        .paths
+        .get_mut("/v1/jobs")
+        .and_then(|item| item.post.as_mut())
+    {
+        let toml = ObjectBuilder::new()
+            .schema_type(Type::String)
+            .description(Some("a plan configuration, as for `geocal run`"))
+            .build();
+        submit.request_body = Some(
+            RequestBodyBuilder::new()
+                .description(Some(
+                    "a plan configuration as TOML runs it; a session job as JSON solves, \
+                     diagnoses or replays an earlier job's session",
+                ))
+                .content(
+                    "application/toml",
+                    ContentBuilder::new().schema(Some(toml)).build(),
+                )
+                .content(
+                    "application/json",
+                    ContentBuilder::new()
+                        .schema(Some(Ref::from_schema_name("SessionJob")))
+                        .build(),
+                )
+                .required(Some(Required::True))
+                .build(),
+        );
+    }
+    // The named files' types follow their extensions.
+    if let Some(file) = document
+        .paths
+        .paths
+        .get_mut("/v1/jobs/{id}/files/{name}")
+        .and_then(|item| item.get.as_mut())
+    {
+        let mut found =
+            ResponseBuilder::new().description("the file (its type from its extension)");
+        for content_type in [
+            "application/json",
+            "text/html",
+            "image/svg+xml",
+            "text/plain",
+            "application/octet-stream",
+        ] {
+            found = found.content(content_type, ContentBuilder::new().build());
+        }
+        file.responses
+            .responses
+            .insert("200".into(), found.build().into());
+    }
+    if options.token.is_some() {
+        let components = document.components.get_or_insert_with(Default::default);
         components.add_security_scheme(
             "bearer",
             SecurityScheme::Http(HttpBuilder::new().scheme(HttpAuthScheme::Bearer).build()),
         );
+        document.security = Some(vec![SecurityRequirement::new(
+            "bearer",
+            Vec::<String>::new(),
+        )]);
     }
+    document
 }
 
-async fn openapi() -> Json<utoipa::openapi::OpenApi> {
-    Json(ApiDoc::openapi())
+/// How the API guards itself (see `guard` and `auth`).
+#[derive(Clone)]
+pub struct ApiOptions {
+    pub token: Option<Token>,
+    /// The `Host` allow-list, used when no token guards the API.
+    pub host_check: Option<HostCheck>,
+    pub body: BodyLimits,
 }
 
-/// Every route, behind the token check and the body limit.
-pub fn router(daemon: Arc<Daemon>, token: Option<Token>) -> Router {
-    let limit = daemon.config.max_body_bytes;
+async fn not_found() -> ApiError {
+    ApiError(StatusCode::NOT_FOUND, "no such route".into())
+}
+
+/// Every route, behind the Host check, the token check and the body limits; every error
+/// answer JSON.
+pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
+    let limit = options.body.max_bytes;
+    let document = serde_json::to_string(&openapi_document(&options)).unwrap_or_default();
+    let openapi = move || {
+        let document = document.clone();
+        async move { ([(header::CONTENT_TYPE, "application/json")], document) }
+    };
     Router::new()
         .route("/v1/jobs", post(submit).get(list_jobs))
         .route("/v1/jobs/{id}", get(get_job))
@@ -448,10 +620,20 @@ pub fn router(daemon: Arc<Daemon>, token: Option<Token>) -> Router {
         .route("/v1/health", get(health))
         .route("/v1/openapi.json", get(openapi))
         .route("/metrics", get(metrics))
+        .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
         .layer(axum::middleware::from_fn_with_state(
-            Arc::new(token),
+            options.body,
+            read_body,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::new(options.token),
             require_token,
         ))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::new(options.host_check),
+            check_host,
+        ))
+        .layer(axum::middleware::from_fn(json_errors))
         .with_state(daemon)
 }

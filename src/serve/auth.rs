@@ -57,23 +57,42 @@ impl Token {
     }
 }
 
-/// The middleware: with a token configured, every request must carry `Authorization: Bearer
-/// <token>`.
+/// The credentials of an `Authorization` header value: the scheme is case-insensitive
+/// (RFC 9110, 11.1), so `bearer x` and `BEARER x` are `Bearer x`.
+pub fn bearer_credentials(value: &str) -> Option<&str> {
+    let (scheme, credentials) = value.trim().split_once(' ')?;
+    scheme
+        .eq_ignore_ascii_case("bearer")
+        .then(|| credentials.trim())
+}
+
+/// The middleware: more than one `Authorization` header is a 400 (which would count?); with a
+/// token configured, every request must carry `Authorization: Bearer <token>`.
 pub async fn require_token(
     State(token): State<Arc<Option<Token>>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
     request: Request,
     next: Next,
 ) -> Response {
+    let mut headers = request.headers().get_all(header::AUTHORIZATION).iter();
+    let first = headers.next();
+    if headers.next().is_some() {
+        tracing::warn!(peer = %peer, "refused: several Authorization headers");
+        return (
+            StatusCode::BAD_REQUEST,
+            axum::Json(super::api::ErrorBody {
+                error: "several Authorization headers: send one".into(),
+            }),
+        )
+            .into_response();
+    }
     let Some(token) = token.as_ref() else {
         return next.run(request).await;
     };
-    let presented = request
-        .headers()
-        .get(header::AUTHORIZATION)
+    let presented = first
         .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.strip_prefix("Bearer "))
-        .map(|v| v.trim().as_bytes().to_vec());
+        .and_then(bearer_credentials)
+        .map(|v| v.as_bytes().to_vec());
     match presented {
         Some(p) if token.matches(&p) => next.run(request).await,
         presented => {
@@ -117,6 +136,10 @@ mod tests {
         assert!(token.matches(b"0123456789abcdef0123"));
         assert!(!token.matches(b"0123456789abcdef012"));
         assert!(!token.matches(b"0123456789abcdef0124"));
+        assert_eq!(bearer_credentials("bearer abc"), Some("abc"));
+        assert_eq!(bearer_credentials("BEARER  abc "), Some("abc"));
+        assert_eq!(bearer_credentials("Basic abc"), None);
+        assert_eq!(bearer_credentials("Bearerabc"), None);
         std::fs::write(&path, "short").unwrap();
         assert!(Token::load(&path).is_err());
     }

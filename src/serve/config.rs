@@ -30,6 +30,20 @@ pub struct ServeConfig {
     /// The Foxglove WebSocket live view's address; "off" to disable.
     #[serde(default = "default_live")]
     pub live: String,
+    /// Web origins, beside the Foxglove app's, allowed to open the live view (e.g.
+    /// "https://viewer.example"); clients that send no `Origin` (native ones) are allowed.
+    #[serde(default)]
+    pub live_origins: Vec<String>,
+    /// `Host` names the API answers to, beside the loopback ones, when it runs without a
+    /// token (a guard against DNS rebinding; with a token every host is answered).
+    #[serde(default)]
+    pub allowed_host_names: Vec<String>,
+    /// Most API connections open at once; more wait for a free slot.
+    #[serde(default = "default_max_connections")]
+    pub max_connections: usize,
+    /// Time a client has to send a request's headers, and then its body, seconds.
+    #[serde(default = "default_request_timeout_s")]
+    pub request_timeout_s: f64,
     /// Serial ports a job's configuration may name (exact paths, or a prefix ending in `*`).
     #[serde(default)]
     pub allowed_ports: Vec<String>,
@@ -61,6 +75,14 @@ fn default_max_body_bytes() -> usize {
     1 << 20
 }
 
+fn default_max_connections() -> usize {
+    64
+}
+
+fn default_request_timeout_s() -> f64 {
+    10.0
+}
+
 fn default_live() -> String {
     DEFAULT_LIVE.into()
 }
@@ -73,6 +95,10 @@ impl Default for ServeConfig {
             token_file: None,
             max_body_bytes: default_max_body_bytes(),
             live: default_live(),
+            live_origins: Vec::new(),
+            allowed_host_names: Vec::new(),
+            max_connections: default_max_connections(),
+            request_timeout_s: default_request_timeout_s(),
             allowed_ports: Vec::new(),
             allowed_hosts: Vec::new(),
             schedule: Vec::new(),
@@ -125,6 +151,17 @@ impl DeviceHolding {
 }
 
 impl ServeConfig {
+    /// `request_timeout_s` as a duration.
+    pub fn request_timeout(&self) -> anyhow::Result<std::time::Duration> {
+        let s = self.request_timeout_s;
+        std::time::Duration::try_from_secs_f64(s)
+            .ok()
+            .filter(|d| !d.is_zero())
+            .with_context(|| {
+                format!("request_timeout_s = {s}: expected a positive number of seconds")
+            })
+    }
+
     pub fn load(path: &Path) -> anyhow::Result<ServeConfig> {
         let text = std::fs::read_to_string(path)
             .with_context(|| format!("reading the daemon configuration {}", path.display()))?;
@@ -133,6 +170,15 @@ impl ServeConfig {
             .devices
             .release_idle_after()
             .with_context(|| path.display().to_string())?;
+        config
+            .request_timeout()
+            .with_context(|| path.display().to_string())?;
+        if config.max_connections == 0 {
+            anyhow::bail!(
+                "{}: max_connections = 0: expected at least 1",
+                path.display()
+            );
+        }
         config.base_dir = path
             .parent()
             .filter(|p| !p.as_os_str().is_empty())

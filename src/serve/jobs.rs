@@ -113,6 +113,18 @@ impl Daemon {
                 job = id,
                 "job was running when the daemon stopped: interrupted"
             );
+            // Its record shows what it left: the session so far, and why it ended.
+            let dir = catalog.dir_of(id);
+            let logged = std::fs::write(
+                dir.join(JOB_LOG_FILE),
+                "interrupted: the daemon stopped while the job ran\n",
+            );
+            if let Err(e) = logged
+                .map_err(anyhow::Error::from)
+                .and_then(|()| catalog.record_files(id).map(|_| ()))
+            {
+                tracing::warn!(job = id, "recording the interrupted job's files: {e:#}");
+            }
         }
         let devices = if config.devices.hold {
             Some(DeviceHolder::new(config.devices.release_idle_after()?)?)
@@ -425,6 +437,12 @@ impl Daemon {
                 cancel: cancel.clone(),
             });
         }
+        if job.resume {
+            keep_earlier_log(&job.dir);
+            if let Err(e) = self.catalog().and_then(|mut c| c.record_files(id)) {
+                tracing::warn!(job = id, "recording the resumed job's files: {e:#}");
+            }
+        }
         if let Err(e) = self.catalog().and_then(|mut c| c.start(id)) {
             tracing::error!(job = id, "marking the job running: {e:#}");
         }
@@ -458,6 +476,14 @@ impl Daemon {
             ),
             Err(e) => (JobState::Failed, Some(error_chain(&e))),
         };
+        // Every job leaves the log of its (last) attempt: how it ended, and why.
+        let log = match &error {
+            Some(e) => format!("{}: {e}\n", state.as_str()),
+            None => format!("{}\n", state.as_str()),
+        };
+        if let Err(e) = std::fs::write(job.dir.join(JOB_LOG_FILE), log) {
+            tracing::warn!(job = id, "writing {JOB_LOG_FILE}: {e}");
+        }
         let progress = self.status.progress();
         let recorded = self.catalog().and_then(|mut c| {
             c.set_progress(id, progress.done, progress.total)?;
@@ -466,9 +492,6 @@ impl Daemon {
         });
         if let Err(e) = recorded {
             tracing::error!(job = id, "recording the job's end: {e:#}");
-        }
-        if let Some(e) = &error {
-            let _ = std::fs::write(job.dir.join(JOB_LOG_FILE), format!("{e}\n"));
         }
         self.prompts.clear_job(id);
         if let Ok(mut running) = self.running.lock() {
@@ -498,11 +521,25 @@ impl Daemon {
         let progress_events = self.events.clone();
         let board = self.status.clone();
         let prompts = self.prompts.clone();
+        let daemon = Arc::downgrade(self);
         RunControl {
             cancel,
             tap: Tap::new(Arc::new(tap)),
             progress: Some(Arc::new(move |done, total| {
+                let before = board.progress();
                 let progress = board.set_progress(done, total);
+                // Kept in the catalog as points finish, so a daemon killed mid-job shows how
+                // far its job came.
+                if (before.done, before.total) != (done, total) {
+                    if let Some(daemon) = daemon.upgrade() {
+                        if let Err(e) = daemon
+                            .catalog()
+                            .and_then(|mut c| c.set_progress(id, done, total))
+                        {
+                            tracing::warn!(job = id, "recording progress: {e:#}");
+                        }
+                    }
+                }
                 let _ = progress_events.send(ServerEvent::Progress { id, progress });
             })),
             operator: Some(Arc::new(move || prompts.operator(id))),
@@ -604,6 +641,27 @@ impl Daemon {
         if let Err(e) = made {
             tracing::warn!(job = job.id, "no report: {}", error_chain(&e));
         }
+    }
+}
+
+/// Before a resumed run starts, the log of its previous attempt becomes `job.attempt-N.log`
+/// (N: 1 for the first attempt), so `job.log` is always the last attempt's.
+fn keep_earlier_log(dir: &Path) {
+    let log = dir.join(JOB_LOG_FILE);
+    if !log.is_file() {
+        return;
+    }
+    let Some(kept) = (1..10_000)
+        .map(|n| dir.join(format!("job.attempt-{n}.log")))
+        .find(|p| !p.exists())
+    else {
+        return;
+    };
+    if let Err(e) = std::fs::rename(&log, &kept) {
+        tracing::warn!(
+            "keeping the earlier attempt's log as {}: {e}",
+            kept.display()
+        );
     }
 }
 

@@ -11,6 +11,8 @@ use std::thread::JoinHandle;
 use anyhow::Context as _;
 use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
 
+use super::live_guard::front;
+pub use super::live_guard::LiveAccess;
 use crate::session::tap::{MessageTap, TapChannel, TappedMessage};
 
 /// Messages waiting for the publisher thread; beyond this the live view drops (the recorded
@@ -49,9 +51,16 @@ pub struct LiveView {
 }
 
 impl LiveView {
-    /// Start a Foxglove WebSocket server on `address` (port 0: any free port; see `address`).
-    /// Safe to call from inside or outside an async runtime: the server has its own.
+    /// Start a Foxglove WebSocket server on `address` (port 0: any free port; see `address`)
+    /// open to native clients and the Foxglove app's origins, without a token.
     pub fn start(address: SocketAddr) -> anyhow::Result<LiveView> {
+        LiveView::start_guarded(address, LiveAccess::default())
+    }
+
+    /// Start the live view on `address`, admitting only what `access` allows: the Foxglove
+    /// server listens on an internal loopback port behind the checking front (`live_guard`).
+    /// Safe to call from inside or outside an async runtime: the server has its own.
+    pub fn start_guarded(address: SocketAddr, access: LiveAccess) -> anyhow::Result<LiveView> {
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(1)
             .thread_name("geocal-live")
@@ -63,16 +72,26 @@ impl LiveView {
         let server = context
             .websocket_server()
             .name("geocal")
-            .bind(address.ip().to_string(), address.port())
+            .bind("127.0.0.1", 0)
             .tokio_runtime(&handle);
         // `block_on` may not run on an async worker thread, so start from a plain one.
-        let started = std::thread::scope(|s| {
-            s.spawn(|| handle.block_on(server.start()))
-                .join()
-                .map_err(|_| anyhow::anyhow!("the live view's start thread panicked"))
-        })?
-        .with_context(|| format!("starting the Foxglove live view on {address}"))?;
-        let bound = SocketAddr::new(address.ip(), started.port());
+        let (started, listener) = std::thread::scope(|s| {
+            s.spawn(|| {
+                let listener = handle.block_on(tokio::net::TcpListener::bind(address));
+                (handle.block_on(server.start()), listener)
+            })
+            .join()
+            .map_err(|_| anyhow::anyhow!("the live view's start thread panicked"))
+        })?;
+        let started =
+            started.with_context(|| format!("starting the Foxglove live view on {address}"))?;
+        let listener =
+            listener.with_context(|| format!("listening for the live view on {address}"))?;
+        let bound = listener
+            .local_addr()
+            .context("reading the live view's bound address")?;
+        let inner = SocketAddr::from(([127, 0, 0, 1], started.port()));
+        handle.spawn(front(listener, inner, Arc::new(access)));
 
         let (sender, receiver) = sync_channel(QUEUE_CAPACITY);
         let published = Arc::new(AtomicU64::new(0));

@@ -6,14 +6,16 @@ pub mod auth;
 pub mod catalog;
 pub mod client;
 pub mod config;
+pub mod guard;
+pub mod http;
 pub mod jobs;
 pub mod live;
+pub mod live_guard;
 pub mod metrics;
 pub mod prompts;
 pub mod schedule;
 pub mod status;
 
-use std::net::SocketAddr;
 use std::time::Duration;
 
 use anyhow::Context;
@@ -38,13 +40,18 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         "off" | "" => None,
         text => Some(live::parse_address(text)?),
     };
-    // The live view cannot check a token: beyond loopback only with a token-guarded daemon.
+    // Beyond loopback the live view, like the API, needs the token to check.
     if let Some(address) = live_address.filter(|a| !a.ip().is_loopback()) {
         if token.is_none() {
             anyhow::bail!(
-                "the live view on {address} (beyond loopback) needs the daemon's token_file, as                  the API does"
+                "the live view on {address} (beyond loopback) needs the daemon's token_file, \
+                 as the API does"
             );
         }
+    }
+    config.request_timeout()?;
+    if config.max_connections == 0 {
+        anyhow::bail!("max_connections = 0: expected at least 1");
     }
     // A bad schedule refuses the start, like a bad key.
     schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
@@ -56,7 +63,13 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         .build()
         .context("starting the async runtime")?;
     let live = live_address
-        .map(|address| live::LiveView::start(address).map(std::sync::Arc::new))
+        .map(|address| {
+            let access = live::LiveAccess {
+                token: token.clone(),
+                extra_origins: config.live_origins.clone(),
+            };
+            live::LiveView::start_guarded(address, access).map(std::sync::Arc::new)
+        })
         .transpose()?;
     let result = runtime.block_on(run(config, registry, token, live.clone()));
     if let Some(live) = live {
@@ -82,12 +95,28 @@ async fn run(
         format!(", live view on ws://{}", l.address())
     });
     let live_tap = live.map(|l| l as std::sync::Arc<dyn crate::session::tap::MessageTap>);
+    let request_timeout = config.request_timeout()?;
+    let host_check = token.is_none().then(|| guard::HostCheck {
+        port: address.port(),
+        names: config.allowed_host_names.clone(),
+    });
+    let options = api::ApiOptions {
+        token,
+        host_check,
+        body: guard::BodyLimits {
+            max_bytes: config.max_body_bytes,
+            timeout: request_timeout,
+        },
+    };
+    let limits = http::Limits {
+        max_connections: config.max_connections,
+        request_timeout,
+    };
     let daemon = jobs::Daemon::open(config, registry, live_tap)?;
     let worker = tokio::spawn(daemon.clone().work());
     let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
 
-    let app =
-        api::router(daemon.clone(), token).into_make_service_with_connect_info::<SocketAddr>();
+    let app = api::router(daemon.clone(), options);
     // The line tools and tests wait for: the API is up.
     println!(
         "geocal serve: listening on http://{address}, data in {}{live_line}",
@@ -98,13 +127,13 @@ async fn run(
     let watchdog = tokio::spawn(watchdog());
 
     let stopping = daemon.clone();
-    let server = axum::serve(listener, app).with_graceful_shutdown(async move {
+    let server = http::serve(listener, app, limits, async move {
         wait_for_signal().await;
         tracing::info!("stopping: no new jobs; cancelling the running one");
         notify_systemd(&[sd_notify::NotifyState::Stopping]);
         stopping.stop();
     });
-    let served = server.await.context("serving the API");
+    server.await;
     // The worker ends once the cancelled job has flushed and closed its session.
     if let Err(e) = worker.await {
         tracing::error!("job worker: {e}");
@@ -112,7 +141,7 @@ async fn run(
     watchdog.abort();
     schedules.abort();
     tracing::info!("geocal serve stopped");
-    served
+    Ok(())
 }
 
 /// Submit the schedules' plans when they come due, once a second.

@@ -3,7 +3,7 @@
 
 use std::collections::BTreeMap;
 
-use mcap::records::{op, Record};
+use mcap::records::{op, ChunkIndex, Record};
 use serde::{Deserialize, Serialize};
 
 /// A chunk (or other record) that failed its CRC, decompression or parsing: skipped whole,
@@ -16,11 +16,12 @@ pub struct DamagedChunk {
     /// The lost messages' log times lie in `start_log_time_ns ..= end_log_time_ns`.
     pub start_log_time_ns: u64,
     pub end_log_time_ns: u64,
-    /// Where that range comes from: `index` (the file's message indexes: exact),
-    /// `chunk_header` (the chunk's own header, consistent with the messages around it) or
-    /// `neighbours` (from the last message before to the first after: nothing better survived).
+    /// Where that range comes from, never from the damaged bytes themselves: `chunk_index`
+    /// (the summary's chunk index, checked by the summary's CRC: exact) or `neighbours` (from
+    /// the last message read before to the first after, in the chunks that decoded).
     pub time_source: String,
-    /// Messages lost, from the file's message indexes; null when no index survived.
+    /// Messages lost, from the file's message indexes when they survived and agree with the
+    /// time range (they carry no CRC); null otherwise.
     #[serde(default)]
     pub messages: Option<u64>,
     /// Messages lost by topic (from the message indexes), when known.
@@ -35,8 +36,10 @@ pub(crate) struct Damage {
     pub offset: u64,
     pub length: u64,
     pub reason: String,
-    /// Start and end log times from the chunk's header (unverified: the CRC does not cover it).
-    pub header_times: Option<(u64, u64)>,
+    /// Start and end log times of the chunks the summary's chunk index places in this byte
+    /// range (the summary's CRC covers them; a chunk's own header and message indexes have
+    /// none, and the damage may have changed them).
+    pub chunk_index_times: Option<(u64, u64)>,
     /// From the message indexes: count, first and last log time, count by channel id.
     pub index: Option<IndexCounts>,
     /// Largest log time read before the damage, smallest after it (file order).
@@ -91,35 +94,28 @@ impl Damage {
             offset: offset as u64,
             length: length as u64,
             reason,
-            header_times: None,
+            chunk_index_times: None,
             index: None,
             before_ns: None,
             after_ns: None,
         }
     }
 
-    /// The chunk header's start and end times, if the record is a chunk long enough to hold them.
-    pub fn with_header_times(mut self, record: &[u8]) -> Damage {
-        if record.first() == Some(&op::CHUNK) && record.len() >= RECORD_PREFIX + 16 {
-            let start = le_u64(&record[RECORD_PREFIX..]);
-            let end = le_u64(&record[RECORD_PREFIX + 8..]);
-            self.header_times = (start <= end).then_some((start, end));
-        }
-        self
-    }
-
-    /// The report: the index's times when it survived, else the header's when they fit
-    /// between the neighbours, else the neighbours themselves.
+    /// The report: the summary's chunk-index times when there are some, else the neighbours'.
+    /// The message indexes only count the loss, and only when their times agree.
     pub fn finish(self, topic_of: impl Fn(u16) -> String) -> DamagedChunk {
-        let before = self.before_ns.unwrap_or(0);
-        let after = self.after_ns.unwrap_or(u64::MAX);
-        let (start, end, source) = match (&self.index, self.header_times) {
-            (Some(ix), _) if ix.messages > 0 => (ix.first_ns, ix.last_ns, "index"),
-            (_, Some((s, e))) if before <= s && e <= after => (s, e, "chunk_header"),
-            _ => (before, after, "neighbours"),
+        let (start, end, source) = match self.chunk_index_times {
+            Some((start, end)) => (start, end, "chunk_index"),
+            None => (
+                self.before_ns.unwrap_or(0),
+                self.after_ns.unwrap_or(u64::MAX),
+                "neighbours",
+            ),
         };
-        let lost_by_topic = self
+        let index = self
             .index
+            .filter(|ix| ix.messages > 0 && start <= ix.first_ns && ix.last_ns <= end);
+        let lost_by_topic = index
             .as_ref()
             .map(|ix| {
                 let mut by_topic = BTreeMap::new();
@@ -135,7 +131,7 @@ impl Damage {
             start_log_time_ns: start,
             end_log_time_ns: end,
             time_source: source.into(),
-            messages: self.index.map(|ix| ix.messages),
+            messages: index.map(|ix| ix.messages),
             lost_by_topic,
             reason: self.reason,
         }
@@ -164,6 +160,31 @@ impl DamagedChunk {
             self.reason
         )
     }
+}
+
+/// Dates each damage from the summary's chunk index: the log-time span of the chunks that
+/// start inside its byte range (a damaged record header can hide several). The index lists
+/// every chunk, so damaged bytes where no chunk starts held no message (message indexes
+/// between chunks): they are warned about and dropped from the list of losses.
+pub(crate) fn date_from_chunk_index(damages: &mut Vec<Damage>, chunks: &[ChunkIndex], file: &str) {
+    damages.retain_mut(|damage| {
+        let bytes = damage.offset..damage.offset.saturating_add(damage.length);
+        damage.chunk_index_times = chunks
+            .iter()
+            .filter(|c| bytes.contains(&c.chunk_start_offset))
+            .map(|c| (c.message_start_time, c.message_end_time))
+            .reduce(|a, b| (a.0.min(b.0), a.1.max(b.1)));
+        if damage.chunk_index_times.is_none() {
+            tracing::warn!(
+                "{file}: damaged bytes {}..{} hold no chunk by the summary's chunk index, so \
+                 no message was lost there: {}",
+                bytes.start,
+                bytes.end,
+                damage.reason
+            );
+        }
+        damage.chunk_index_times.is_some()
+    });
 }
 
 pub(crate) const RECORD_PREFIX: usize = 9; // opcode u8 + length u64

@@ -7,6 +7,7 @@ pub mod messages;
 pub mod reader;
 pub mod recorder;
 pub mod repair;
+mod summary;
 pub mod tap;
 
 pub use reader::{

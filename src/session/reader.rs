@@ -12,12 +12,14 @@ use thiserror::Error;
 
 pub use super::damage::DamagedChunk;
 use super::damage::{
-    can_follow, framed, known_opcode, le_u64, resync, Damage, IndexCounts, RECORD_PREFIX,
+    can_follow, date_from_chunk_index, framed, known_opcode, le_u64, resync, Damage, IndexCounts,
+    RECORD_PREFIX,
 };
 use super::messages::{
     EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
     TracerSample, SESSION_FORMAT, TOPIC_EVENT, TOPIC_SESSION,
 };
+use super::summary::trusted_summary;
 
 /// A message with its MCAP times.
 #[derive(Debug, Clone, PartialEq)]
@@ -148,7 +150,7 @@ pub fn read_session_raw(path: &Path) -> Result<(Session, Vec<RawMessage>), ReadE
     check_magic(&buf, &file)?;
     let mut dec = Decoder::new(&file);
     dec.raw = Some(RawLog::default());
-    let mut dec = read_linear_into(&buf, dec)?;
+    let mut dec = read_linear_dated(&buf, dec)?;
     let raw = dec.raw.take().map(|r| r.messages).unwrap_or_default();
     Ok((dec.into_session(&file, buf.len() as u64)?, raw))
 }
@@ -172,10 +174,24 @@ pub fn read_raw(path: &Path) -> Result<RawRead, ReadError> {
         source,
     })?;
     check_magic(&buf, &file)?;
-    let mut dec = Decoder::new(&file);
-    dec.raw = Some(RawLog::default());
-    dec.raw_only = true;
-    let mut dec = read_linear_into(&buf, dec)?;
+    // Through the summary when it is intact, as `geocal solve` reads: the copy then holds
+    // exactly the messages the solve of the damaged file uses.
+    let indexed = match trusted_summary(&buf, &file) {
+        Some(summary) => read_indexed_with(&buf, &file, &summary, 1, true)?.map(|mut dec| {
+            dec.date_damages(&summary.chunk_indexes);
+            dec
+        }),
+        None => None,
+    };
+    let mut dec = match indexed {
+        Some(dec) => dec,
+        None => {
+            let mut dec = Decoder::new(&file);
+            dec.raw = Some(RawLog::default());
+            dec.raw_only = true;
+            read_linear_dated(&buf, dec)?
+        }
+    };
     let damaged = dec.damaged_chunks(&file);
     let completeness = dec.completeness(&file, buf.len() as u64);
     Ok(RawRead {
@@ -208,50 +224,29 @@ fn check_magic(buf: &[u8], file: &str) -> Result<(), ReadError> {
 
 fn read_impl(buf: &[u8], file: &str) -> Result<Session, ReadError> {
     check_magic(buf, file)?;
-    let summary = if summary_crc_ok(buf) {
-        mcap::Summary::read(buf)
-    } else {
-        Ok(None)
-    };
-    let decoded = match summary {
-        Ok(Some(summary)) => match read_indexed(buf, file, &summary)? {
+    let summary = trusted_summary(buf, file);
+    let mut decoded = match &summary {
+        Some(summary) => match read_indexed(buf, file, summary)? {
             Some(d) => d,
             None => read_linear(buf, file)?,
         },
-        Ok(None) => read_linear(buf, file)?,
-        Err(err) => {
-            tracing::debug!("{file}: no usable summary ({err}); reading linearly");
-            read_linear(buf, file)?
-        }
+        None => read_linear(buf, file)?,
     };
+    if let Some(summary) = &summary {
+        decoded.date_damages(&summary.chunk_indexes);
+    }
     decoded.into_session(file, buf.len() as u64)
 }
 
-/// Whether the summary section is intact by its CRC (in the footer). Only then is it parsed:
-/// the mcap crate trusts the sizes in it, and a corrupt one can make it allocate gigabytes.
-/// A file without a summary CRC is read linearly.
-fn summary_crc_ok(buf: &[u8]) -> bool {
-    const FOOTER_RECORD: usize = RECORD_PREFIX + 20;
-    let Some(footer) = buf.len().checked_sub(mcap::MAGIC.len() + FOOTER_RECORD) else {
-        return false;
-    };
-    if !matches!(framed(buf, footer), Some((op::FOOTER, end)) if end == footer + FOOTER_RECORD) {
-        return false;
-    }
-    let summary_start = le_u64(&buf[footer + RECORD_PREFIX..]);
-    let crc_at = footer + RECORD_PREFIX + 16;
-    let saved = u32::from_le_bytes([
-        buf[crc_at],
-        buf[crc_at + 1],
-        buf[crc_at + 2],
-        buf[crc_at + 3],
-    ]);
-    match usize::try_from(summary_start) {
-        Ok(start) if start >= mcap::MAGIC.len() && start <= footer && saved != 0 => {
-            crc32fast::hash(&buf[start..crc_at]) == saved
+/// A linear read whose damages are dated from the summary's chunk index when it is intact.
+fn read_linear_dated(buf: &[u8], dec: Decoder) -> Result<Decoder, ReadError> {
+    let mut dec = read_linear_into(buf, dec)?;
+    if !dec.damages.is_empty() {
+        if let Some(summary) = trusted_summary(buf, &dec.file) {
+            dec.date_damages(&summary.chunk_indexes);
         }
-        _ => false,
     }
+    Ok(dec)
 }
 
 /// Reads the chunks the summary lists. Returns None when the summary does not account for
@@ -262,7 +257,7 @@ fn read_indexed(
     summary: &mcap::Summary,
 ) -> Result<Option<Decoder>, ReadError> {
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    read_indexed_with(buf, file, summary, threads.min(MAX_DECODE_THREADS))
+    read_indexed_with(buf, file, summary, threads.min(MAX_DECODE_THREADS), false)
 }
 
 /// Decompressing and parsing is most of the time a large session takes to read, and chunks
@@ -271,16 +266,25 @@ const MAX_DECODE_THREADS: usize = 8;
 /// Fewer chunks than this per thread are not worth a thread.
 const MIN_CHUNKS_PER_THREAD: usize = 2;
 
+/// `raw`: keep every message raw and decode none (repair); serial, channels from the summary.
 fn read_indexed_with(
     buf: &[u8],
     file: &str,
     summary: &mcap::Summary,
     threads: usize,
+    raw: bool,
 ) -> Result<Option<Decoder>, ReadError> {
     let Some(stats) = &summary.stats else {
         return Ok(None);
     };
     let mut dec = Decoder::new(file);
+    let threads = if raw {
+        dec.raw_only = true;
+        dec.raw = Some(RawLog::of_summary(summary));
+        1
+    } else {
+        threads
+    };
     for channel in summary.channels.values() {
         dec.define_channel(channel.id, &channel.topic, &channel.message_encoding);
         if let Some(&n) = stats.channel_message_counts.get(&channel.id) {
@@ -354,7 +358,7 @@ fn read_indexed_with(
     };
     if undefined {
         // A worker met a message on a channel it did not know: decode serially instead.
-        return read_indexed_with(buf, file, summary, 1);
+        return read_indexed_with(buf, file, summary, 1, raw);
     }
     if let Some(err) = failure {
         return Err(err);
@@ -368,7 +372,7 @@ fn read_indexed_with(
         else {
             continue;
         };
-        damage.header_times = Some((index.message_start_time, index.message_end_time));
+        damage.chunk_index_times = Some((index.message_start_time, index.message_end_time));
         damage.index = IndexCounts::of_chunk(buf, index);
         match &damage.index {
             Some(counts) => lost += counts.messages,
@@ -460,6 +464,22 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
             } else {
                 format!("record at byte {pos} has no MCAP opcode ({opcode:#04x})")
             };
+            if !in_data_section {
+                // Past DataEnd only the summary follows: nothing there is a message, so a
+                // damaged record costs none; a cut end is still a cut end.
+                match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
+                    Some(next) => {
+                        tracing::warn!(
+                            "{}: the summary section is damaged ({why}); every message was read \
+                             from the data section",
+                            dec.file
+                        );
+                        pos = next;
+                        continue;
+                    }
+                    None => break Some((pos, why)),
+                }
+            }
             // A damaged record header, or the file's cut end: the next good record tells.
             match resync(buf, pos + 1, saw_chunk, chunk_decodes) {
                 Some(next) => {
@@ -515,7 +535,7 @@ fn read_linear_into(buf: &[u8], mut dec: Decoder) -> Result<Decoder, ReadError> 
             Err(Failure::Damaged(err)) => {
                 sans = chunk_reader();
                 let why = format!("record (opcode {opcode:#04x}) at byte {pos}: {err}");
-                let i = dec.damage(Damage::new(pos, end - pos, why).with_header_times(record));
+                let i = dec.damage(Damage::new(pos, end - pos, why));
                 if can_follow(buf, end) {
                     indexing = (opcode == op::CHUNK).then_some(i);
                     pos = end;
@@ -639,6 +659,35 @@ struct RawLog {
     messages: Vec<RawMessage>,
 }
 
+impl RawLog {
+    /// The schemas and channels the summary defines (a chunk that held a channel's own
+    /// record may be the damaged one).
+    fn of_summary(summary: &mcap::Summary) -> RawLog {
+        let mut log = RawLog::default();
+        for (&id, schema) in &summary.schemas {
+            let text = (
+                schema.name.clone(),
+                schema.encoding.clone(),
+                schema.data.to_vec(),
+            );
+            log.schemas.insert(id, text);
+        }
+        for (&id, channel) in &summary.channels {
+            let raw = RawChannel {
+                schema: channel
+                    .schema
+                    .as_ref()
+                    .map(|s| (s.name.clone(), s.encoding.clone(), s.data.to_vec())),
+                topic: channel.topic.clone(),
+                message_encoding: channel.message_encoding.clone(),
+                metadata: channel.metadata.clone(),
+            };
+            log.channels.insert(id, std::sync::Arc::new(raw));
+        }
+        log
+    }
+}
+
 const MAX_SKIP_WARNINGS: u64 = 20;
 
 /// The streams of one message kind, by device id (from the topic), in order of definition.
@@ -753,6 +802,14 @@ impl Decoder {
         damage.before_ns = self.last_ns;
         self.damages.push(damage);
         self.damages.len() - 1
+    }
+
+    /// Dates the damages from the summary's chunk index (see `date_from_chunk_index`); the
+    /// read is over, so every neighbour is known by now.
+    fn date_damages(&mut self, chunks: &[mcap::records::ChunkIndex]) {
+        self.settle_neighbours();
+        date_from_chunk_index(&mut self.damages, chunks, &self.file);
+        self.awaiting_after = self.damages.len();
     }
 
     /// The messages read since the last call are good: they bound the damages before them.
@@ -1823,7 +1880,7 @@ mod tests {
         for bytes in [&recorded().bytes, &foreign] {
             let summary = mcap::Summary::read(bytes).unwrap().unwrap();
             assert!(summary.chunk_indexes.len() > 8);
-            let serial = read_indexed_with(bytes, "x", &summary, 1)
+            let serial = read_indexed_with(bytes, "x", &summary, 1, false)
                 .unwrap()
                 .expect("indexed")
                 .into_session("x", 0)
@@ -1834,7 +1891,7 @@ mod tests {
                 .unwrap();
             assert_eq!(serial, linear);
             for threads in 2..=7 {
-                let dec = read_indexed_with(bytes, "x", &summary, threads)
+                let dec = read_indexed_with(bytes, "x", &summary, threads, false)
                     .unwrap()
                     .expect("indexed");
                 assert_eq!(
@@ -1898,7 +1955,7 @@ mod tests {
         let bad = b"{\"format\": \"geocal-session/1\"}".to_vec();
         let read = |bytes: &[u8], threads| {
             let summary = mcap::Summary::read(bytes).unwrap().unwrap();
-            read_indexed_with(bytes, "x", &summary, threads)
+            read_indexed_with(bytes, "x", &summary, threads, false)
                 .map(|d| d.expect("indexed").into_session("x", 0).unwrap())
         };
         let bytes = write(&[&good, &bad, &good]);

@@ -89,6 +89,10 @@ pub struct HexapodResults {
     pub two_stage: TwoStageSummary,
     pub lm: PlainLmSummary,
     pub note: String,
+    /// Present when χ²/dof is improbable for its degrees of freedom (p < 1e-3): the σ are
+    /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub misfit: Option<crate::solve::misfit::Misfit>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -394,6 +398,7 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         residual_rms_m: two.residual_rms_m,
         chi2_per_dof: fit.chi2 / dof.max(1) as f64,
         dof,
+        misfit: crate::solve::misfit::Misfit::check(fit.chi2, dof),
         two_stage: TwoStageSummary {
             objective_initial_m2: two.objective_initial_m2,
             objective_stage1_m2: two.objective_stage1_m2,

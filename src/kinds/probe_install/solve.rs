@@ -71,6 +71,10 @@ pub struct ProbeInstallResults {
     pub radius_after_m: f64,
     pub radius_after_ga_m: f64,
     pub note: String,
+    /// Present when χ²/dof is improbable for its degrees of freedom (p < 1e-3): the σ are
+    /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub misfit: Option<crate::solve::misfit::Misfit>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -313,6 +317,7 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
         residual_rms_m: lm.residual_rms_m,
         chi2_per_dof: lm.chi2 / lm.dof.max(1) as f64,
         dof: lm.dof,
+        misfit: crate::solve::misfit::Misfit::check(lm.chi2, lm.dof),
         lm: LmSummary {
             objective: lm_objective,
             unit_norm_violation: lm.unit_norm_violation,

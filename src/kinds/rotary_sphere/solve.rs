@@ -81,6 +81,10 @@ pub struct RotarySphereResults {
     pub dof: usize,
     pub validation: Vec<ValidationResult>,
     pub notes: Vec<String>,
+    /// Present when χ²/dof is improbable for its degrees of freedom (p < 1e-3): the σ are
+    /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub misfit: Option<crate::solve::misfit::Misfit>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -542,6 +546,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
         harmonics: id.harmonics,
         chi2: id.chi2,
         dof: id.dof,
+        misfit: crate::solve::misfit::Misfit::check(id.chi2, id.dof),
         validation,
         notes,
     })

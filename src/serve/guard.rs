@@ -1,0 +1,234 @@
+//! What every API request passes before a handler sees it: the `Host` allow-list (against DNS
+//! rebinding, when no token guards the API), a refused oversize `Content-Length`, a body read
+//! time-out, and error answers made JSON (`ErrorBody`) whatever produced them.
+
+use std::net::IpAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Body;
+use axum::extract::{Request, State};
+use axum::http::{header, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+
+use super::api::ErrorBody;
+
+fn error(status: StatusCode, message: impl Into<String>) -> Response {
+    (
+        status,
+        axum::Json(ErrorBody {
+            error: message.into(),
+        }),
+    )
+        .into_response()
+}
+
+/// The `Host` names the API answers to without a token: loopback names and addresses with
+/// the listening port, and the configured names.
+#[derive(Debug, Clone)]
+pub struct HostCheck {
+    pub port: u16,
+    pub names: Vec<String>,
+}
+
+impl HostCheck {
+    pub fn allows(&self, host: &str) -> bool {
+        let host = host.trim().to_ascii_lowercase();
+        let (name, port) = split_host(&host);
+        // A Host without a port names the scheme's default port (80 for http).
+        let port_ok = port.map_or(self.port == 80, |p| p == self.port);
+        let configured = self.names.iter().any(|allowed| {
+            let allowed = allowed.trim().to_ascii_lowercase();
+            allowed == host || (allowed == name && port_ok)
+        });
+        if configured {
+            return true;
+        }
+        let loopback = name == "localhost"
+            || name
+                .trim_start_matches('[')
+                .trim_end_matches(']')
+                .parse::<IpAddr>()
+                .is_ok_and(|ip| ip.is_loopback());
+        loopback && port_ok
+    }
+}
+
+/// `name` and `port` of a Host header value (`[::1]:7878`, `localhost:7878`, `localhost`).
+fn split_host(host: &str) -> (&str, Option<u16>) {
+    if let Some(rest) = host.strip_prefix('[') {
+        return match rest.split_once(']') {
+            Some((ip, tail)) => (
+                &host[..ip.len() + 2],
+                tail.strip_prefix(':').and_then(|p| p.parse().ok()),
+            ),
+            None => (host, None),
+        };
+    }
+    match host.rsplit_once(':') {
+        Some((name, port)) => (name, port.parse().ok()),
+        None => (host, None),
+    }
+}
+
+pub async fn check_host(
+    State(check): State<Arc<Option<HostCheck>>>,
+    request: Request,
+    next: Next,
+) -> Response {
+    let Some(check) = check.as_ref() else {
+        return next.run(request).await;
+    };
+    let hosts: Vec<&HeaderValue> = request.headers().get_all(header::HOST).iter().collect();
+    let host = match hosts.as_slice() {
+        [one] => one.to_str().unwrap_or(""),
+        [] => "",
+        _ => return error(StatusCode::BAD_REQUEST, "several Host headers"),
+    };
+    if check.allows(host) {
+        return next.run(request).await;
+    }
+    tracing::warn!(host, path = %request.uri().path(), "refused: Host not allowed");
+    error(
+        StatusCode::MISDIRECTED_REQUEST,
+        format!(
+            "Host `{host}` is not one this daemon answers to without a token (loopback names \
+             with port {}, or the daemon's allowed_host_names)",
+            check.port
+        ),
+    )
+}
+
+/// Body limits: a `Content-Length` over the limit is refused before anything is read, and a
+/// body must arrive whole within the time-out.
+#[derive(Debug, Clone, Copy)]
+pub struct BodyLimits {
+    pub max_bytes: usize,
+    pub timeout: Duration,
+}
+
+pub async fn read_body(State(limits): State<BodyLimits>, request: Request, next: Next) -> Response {
+    let declared = request.headers().get_all(header::CONTENT_LENGTH);
+    for value in declared.iter() {
+        match value
+            .to_str()
+            .ok()
+            .and_then(|v| v.trim().parse::<u64>().ok())
+        {
+            Some(length) if length > limits.max_bytes as u64 => {
+                return error(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    format!(
+                        "the body is {length} bytes, over the daemon's limit of {} (max_body_bytes)",
+                        limits.max_bytes
+                    ),
+                );
+            }
+            Some(_) => {}
+            None => return error(StatusCode::BAD_REQUEST, "Content-Length is not a number"),
+        }
+    }
+    let (parts, body) = request.into_parts();
+    let read = axum::body::to_bytes(body, limits.max_bytes);
+    let bytes = match tokio::time::timeout(limits.timeout, read).await {
+        Ok(Ok(bytes)) => bytes,
+        Ok(Err(e)) => {
+            let too_large = std::error::Error::source(&e)
+                .is_some_and(|s| s.is::<http_body_util::LengthLimitError>());
+            return if too_large {
+                error(
+                    StatusCode::PAYLOAD_TOO_LARGE,
+                    format!(
+                        "the body is over the daemon's limit of {} bytes (max_body_bytes)",
+                        limits.max_bytes
+                    ),
+                )
+            } else {
+                error(StatusCode::BAD_REQUEST, format!("reading the body: {e}"))
+            };
+        }
+        Err(_) => {
+            tracing::warn!(path = %parts.uri.path(), "refused: body not received within {:?}", limits.timeout);
+            let mut response = error(
+                StatusCode::REQUEST_TIMEOUT,
+                format!("the body did not arrive within {:?}", limits.timeout),
+            );
+            response
+                .headers_mut()
+                .insert(header::CONNECTION, HeaderValue::from_static("close"));
+            return response;
+        }
+    };
+    next.run(Request::from_parts(parts, Body::from(bytes)))
+        .await
+}
+
+/// Error answers that are not JSON yet (the router's 404 and 405, extractor rejections such
+/// as a path id that does not parse) become `ErrorBody`, their text kept as the message.
+pub async fn json_errors(request: Request, next: Next) -> Response {
+    let response = next.run(request).await;
+    let status = response.status();
+    let is_json = response
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return response;
+    }
+    let (mut parts, body) = response.into_parts();
+    let text = axum::body::to_bytes(body, 64 * 1024)
+        .await
+        .map(|b| String::from_utf8_lossy(&b).trim().to_owned())
+        .unwrap_or_default();
+    let message = if text.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_owned()
+    } else {
+        text
+    };
+    let body = serde_json::to_vec(&ErrorBody { error: message }).unwrap_or_default();
+    parts.headers.remove(header::CONTENT_LENGTH);
+    parts.headers.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static("application/json"),
+    );
+    Response::from_parts(parts, Body::from(body))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn loopback_hosts_with_the_port_and_configured_names_are_allowed() {
+        let check = HostCheck {
+            port: 7878,
+            names: vec!["geocal.lab".into(), "other:9000".into()],
+        };
+        for ok in [
+            "127.0.0.1:7878",
+            "localhost:7878",
+            "LOCALHOST:7878",
+            "[::1]:7878",
+            "127.0.0.2:7878",
+            "geocal.lab:7878",
+            "other:9000",
+        ] {
+            assert!(check.allows(ok), "{ok}");
+        }
+        for refused in [
+            "evil.example",
+            "evil.example:7878",
+            "127.0.0.1:7879",
+            "localhost",
+            "localhost.evil.example:7878",
+            "geocal.lab:80",
+            "other:7878",
+            "",
+            "[::1]",
+        ] {
+            assert!(!check.allows(refused), "{refused}");
+        }
+    }
+}

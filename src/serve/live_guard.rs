@@ -1,0 +1,291 @@
+//! The live view's door: a WebSocket-aware TCP front on the live port that reads the HTTP
+//! upgrade request, checks its `Origin` against an allow-list and its token, and only then
+//! splices the connection to the Foxglove server listening on an internal loopback port.
+//!
+//! The `foxglove` crate (0.30) completes the WebSocket handshake itself and offers no hook to
+//! see the request's headers, so the check has to happen before it: WebSockets are not covered
+//! by the browser's same-origin policy, and any page the operator opens could otherwise read
+//! the machine's live data from 127.0.0.1.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+use super::auth::Token;
+
+/// The Foxglove app's origins (the web app, and its former name).
+pub const FOXGLOVE_ORIGINS: &[&str] = &["https://app.foxglove.dev", "https://studio.foxglove.dev"];
+
+/// The upgrade request's headers must arrive within this time and this size.
+const HANDSHAKE_TIMEOUT: Duration = Duration::from_secs(10);
+const MAX_HANDSHAKE_BYTES: usize = 16 * 1024;
+/// Live connections at once (each is one viewer).
+const MAX_CONNECTIONS: usize = 32;
+
+/// Who may open the live view.
+#[derive(Clone, Default)]
+pub struct LiveAccess {
+    /// When set, a client must present it: `?token=…` in the URL (what the Foxglove app can
+    /// pass) or `Authorization: Bearer …` (native clients).
+    pub token: Option<Token>,
+    /// Origins allowed beside the Foxglove app's (e.g. `https://viewer.example:8443`).
+    pub extra_origins: Vec<String>,
+}
+
+impl LiveAccess {
+    fn origin_allowed(&self, origin: &str) -> bool {
+        let origin = origin.trim().trim_end_matches('/');
+        FOXGLOVE_ORIGINS
+            .iter()
+            .copied()
+            .chain(self.extra_origins.iter().map(String::as_str))
+            .any(|allowed| allowed.trim_end_matches('/').eq_ignore_ascii_case(origin))
+    }
+
+    /// Why the request may not open the live view, or `None` when it may.
+    fn refusal(&self, request: &httparse::Request<'_, '_>) -> Option<(u16, String)> {
+        let header = |name: &'static str| {
+            request
+                .headers
+                .iter()
+                .filter(move |h| h.name.eq_ignore_ascii_case(name))
+                .map(|h| std::str::from_utf8(h.value).unwrap_or("\u{fffd}"))
+        };
+        // Browsers always send Origin on a WebSocket handshake; native clients need not.
+        let origins: Vec<&str> = header("origin").collect();
+        if origins.len() > 1 {
+            return Some((400, "several Origin headers".into()));
+        }
+        if let Some(origin) = origins.first() {
+            if !self.origin_allowed(origin) {
+                return Some((
+                    403,
+                    format!(
+                        "Origin `{origin}` is not allowed on the live view (allowed: the \
+                         Foxglove app and the daemon's live_origins)"
+                    ),
+                ));
+            }
+        }
+        let Some(token) = &self.token else {
+            return None;
+        };
+        let from_query = request
+            .path
+            .and_then(|p| p.split_once('?'))
+            .into_iter()
+            .flat_map(|(_, query)| form_urlencoded::parse(query.as_bytes()))
+            .filter(|(key, _)| key == "token")
+            .map(|(_, value)| value.into_owned());
+        let from_header = header("authorization").filter_map(|v| {
+            let (scheme, credentials) = v.trim().split_once(' ')?;
+            scheme
+                .eq_ignore_ascii_case("bearer")
+                .then(|| credentials.trim().to_owned())
+        });
+        let presented: Vec<String> = from_query.chain(from_header).collect();
+        match presented.as_slice() {
+            [one] if token.matches(one.as_bytes()) => None,
+            [] => Some((
+                401,
+                "the live view needs the daemon's token: ws://HOST:PORT/?token=<token>".into(),
+            )),
+            [_] => Some((401, "wrong token".into())),
+            _ => Some((400, "the token is given more than once".into())),
+        }
+    }
+}
+
+/// Accept on `listener` and splice every admitted connection to `inner` (the Foxglove
+/// server's internal loopback address). Runs until its runtime stops.
+pub async fn front(listener: TcpListener, inner: SocketAddr, access: Arc<LiveAccess>) {
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    loop {
+        let (stream, peer) = match listener.accept().await {
+            Ok(accepted) => accepted,
+            Err(e) => {
+                tracing::warn!("live view: accept failed: {e}");
+                tokio::time::sleep(Duration::from_millis(100)).await;
+                continue;
+            }
+        };
+        let Ok(slot) = slots.clone().try_acquire_owned() else {
+            tracing::warn!(%peer, "live view: refused, {MAX_CONNECTIONS} connections already open");
+            tokio::spawn(answer(stream, 503, "too many live view connections".into()));
+            continue;
+        };
+        let access = access.clone();
+        tokio::spawn(async move {
+            connection(stream, peer, inner, &access).await;
+            drop(slot);
+        });
+    }
+}
+
+async fn connection(
+    mut stream: TcpStream,
+    peer: SocketAddr,
+    inner: SocketAddr,
+    access: &LiveAccess,
+) {
+    let head = match tokio::time::timeout(HANDSHAKE_TIMEOUT, read_head(&mut stream)).await {
+        Ok(Ok(head)) => head,
+        Ok(Err(reason)) => {
+            tracing::warn!(%peer, "live view: refused: {reason}");
+            answer(stream, 400, reason).await;
+            return;
+        }
+        Err(_) => {
+            tracing::warn!(%peer, "live view: refused: no complete handshake within {HANDSHAKE_TIMEOUT:?}");
+            return;
+        }
+    };
+    let mut headers = [httparse::EMPTY_HEADER; 64];
+    let mut request = httparse::Request::new(&mut headers);
+    if let Err(e) = request.parse(&head) {
+        answer(stream, 400, format!("not an HTTP request: {e}")).await;
+        return;
+    }
+    if let Some((status, reason)) = access.refusal(&request) {
+        tracing::warn!(%peer, status, "live view: refused: {reason}");
+        answer(stream, status, reason).await;
+        return;
+    }
+    let mut upstream = match TcpStream::connect(inner).await {
+        Ok(upstream) => upstream,
+        Err(e) => {
+            tracing::error!("live view: the Foxglove server at {inner}: {e}");
+            answer(stream, 503, "the live view is not available".into()).await;
+            return;
+        }
+    };
+    if upstream.write_all(&head).await.is_err() {
+        return;
+    }
+    let _ = tokio::io::copy_bidirectional(&mut stream, &mut upstream).await;
+}
+
+/// The request's bytes up to and including the blank line ending its headers. Clients wait
+/// for the server's answer before sending frames, so nothing follows it yet.
+async fn read_head(stream: &mut TcpStream) -> Result<Vec<u8>, String> {
+    let mut head = Vec::with_capacity(1024);
+    let mut buffer = [0u8; 2048];
+    loop {
+        let n = stream
+            .read(&mut buffer)
+            .await
+            .map_err(|e| format!("reading the handshake: {e}"))?;
+        if n == 0 {
+            return Err("the connection closed during the handshake".into());
+        }
+        head.extend_from_slice(&buffer[..n]);
+        if head.windows(4).any(|w| w == b"\r\n\r\n") {
+            return Ok(head);
+        }
+        if head.len() > MAX_HANDSHAKE_BYTES {
+            return Err(format!("handshake over {MAX_HANDSHAKE_BYTES} bytes"));
+        }
+    }
+}
+
+async fn answer(mut stream: TcpStream, status: u16, reason: String) {
+    let body = serde_json::json!({ "error": reason }).to_string();
+    let phrase = match status {
+        400 => "Bad Request",
+        401 => "Unauthorized",
+        403 => "Forbidden",
+        _ => "Service Unavailable",
+    };
+    let response = format!(
+        "HTTP/1.1 {status} {phrase}\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\
+         Connection: close\r\n\r\n{body}",
+        body.len()
+    );
+    let _ = stream.write_all(response.as_bytes()).await;
+    let _ = stream.shutdown().await;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn refusal(access: &LiveAccess, head: &str) -> Option<u16> {
+        let mut headers = [httparse::EMPTY_HEADER; 16];
+        let mut request = httparse::Request::new(&mut headers);
+        request.parse(head.as_bytes()).unwrap();
+        access.refusal(&request).map(|(status, _)| status)
+    }
+
+    #[test]
+    fn origins_and_tokens_are_checked() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("token");
+        std::fs::write(&path, "0123456789abcdef0123").unwrap();
+        #[cfg(unix)]
+        {
+            use std::os::unix::fs::PermissionsExt;
+            std::fs::set_permissions(&path, std::fs::Permissions::from_mode(0o600)).unwrap();
+        }
+        let open = LiveAccess::default();
+        let guarded = LiveAccess {
+            token: Some(Token::load(&path).unwrap()),
+            extra_origins: vec!["http://viewer.example:8080".into()],
+        };
+        let get = |target: &str, headers: &str| {
+            format!("GET {target} HTTP/1.1\r\nHost: x\r\n{headers}\r\n")
+        };
+        assert_eq!(refusal(&open, &get("/", "")), None);
+        assert_eq!(
+            refusal(&open, &get("/", "Origin: https://app.foxglove.dev\r\n")),
+            None
+        );
+        assert_eq!(
+            refusal(&open, &get("/", "Origin: http://evil.example\r\n")),
+            Some(403)
+        );
+        assert_eq!(refusal(&open, &get("/", "Origin: null\r\n")), Some(403));
+        assert_eq!(refusal(&guarded, &get("/", "")), Some(401));
+        assert_eq!(
+            refusal(&guarded, &get("/?token=0123456789abcdef0123", "")),
+            None
+        );
+        assert_eq!(
+            refusal(&guarded, &get("/?token=0123456789abcdef0124", "")),
+            Some(401)
+        );
+        assert_eq!(
+            refusal(
+                &guarded,
+                &get("/", "authorization: BEARER 0123456789abcdef0123\r\n")
+            ),
+            None
+        );
+        assert_eq!(
+            refusal(
+                &guarded,
+                &get(
+                    "/?token=0123456789abcdef0123",
+                    "Origin: http://viewer.example:8080\r\n"
+                )
+            ),
+            None
+        );
+        assert_eq!(
+            refusal(
+                &guarded,
+                &get(
+                    "/?token=0123456789abcdef0123",
+                    "Origin: http://evil.example\r\n"
+                )
+            ),
+            Some(403)
+        );
+        assert_eq!(
+            refusal(&guarded, &get("/?token=a&token=0123456789abcdef0123", "")),
+            Some(400)
+        );
+    }
+}
