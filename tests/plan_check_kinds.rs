@@ -154,6 +154,7 @@ fn sphere_errors(
         &IdentifyOptions {
             convention: TangentialConvention::AngularPositioning,
             harmonics: HarmonicOrder::Fixed(0),
+            radial_azimuth_rad: Some(r.radial_azimuth_rad),
         },
     )
     .expect("noise-free identification");

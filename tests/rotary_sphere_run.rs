@@ -91,6 +91,7 @@ fn normalised_errors(r: &RotarySphereResults, truth: &Value) -> Vec<f64> {
         &IdentifyOptions {
             convention: TangentialConvention::AngularPositioning,
             harmonics: HarmonicOrder::Fixed(0),
+            radial_azimuth_rad: Some(r.radial_azimuth_rad),
         },
     )
     .expect("noise-free identification");
