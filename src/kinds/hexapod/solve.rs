@@ -333,7 +333,10 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
                 .get("noise_rad")
                 .and_then(|v| v.as_f64())
                 .filter(|v| v.is_finite() && *v >= 0.0);
-            (m.ok_or_else(|| missing("noise_m"))?, r.ok_or_else(|| missing("noise_rad"))?)
+            (
+                m.ok_or_else(|| missing("noise_m"))?,
+                r.ok_or_else(|| missing("noise_rad"))?,
+            )
         }
         None => (0.0, 0.0),
     };
@@ -367,8 +370,16 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
                 let measured = d.pose_messages > 0;
                 PoseNoise {
                     readings: d.n,
-                    translation_sigma_m: if measured { pose_sigma_m / averaged } else { 0.0 },
-                    rotation_sigma_rad: if measured { pose_sigma_rad / averaged } else { 0.0 },
+                    translation_sigma_m: if measured {
+                        pose_sigma_m / averaged
+                    } else {
+                        0.0
+                    },
+                    rotation_sigma_rad: if measured {
+                        pose_sigma_rad / averaged
+                    } else {
+                        0.0
+                    },
                 }
             })
             .collect(),
