@@ -194,3 +194,79 @@ fn hexapod_hinges_within_sigma_and_misplaced_poses_refused() {
         "{text}"
     );
 }
+
+fn hexapod_session() -> geocal::session::reader::Session {
+    geocal::session::reader::read_session(
+        &session_dir("outside-hexapod-clean-2").join("session.mcap"),
+    )
+    .expect("session")
+}
+
+/// A measuring pose sensor must declare its noise: each missing key is refused by name.
+#[test]
+fn hexapod_pose_sensor_without_its_noise_is_refused() {
+    let base = hexapod_session();
+    let sensor = base
+        .header
+        .devices
+        .iter()
+        .position(|d| d.kind == "pose_sensor")
+        .expect("a pose sensor");
+    let mut s = base.clone();
+    s.header.devices[sensor].noise_m = None;
+    let err = geocal::kinds::hexapod::solve::solve(&s).expect_err("no noise_m");
+    assert!(err.to_string().contains("`noise_m`"), "{err}");
+    let mut s = base;
+    s.header.devices[sensor].extra.remove("noise_rad");
+    let err = geocal::kinds::hexapod::solve::solve(&s).expect_err("no noise_rad");
+    assert!(err.to_string().contains("`noise_rad`"), "{err}");
+}
+
+/// Two pose messages per window, p + δ and p − δ: their mean is the one pose, so the hinges
+/// are unchanged, and that pose's σ shrinks by √2 (every hinge σ shrinks).
+#[test]
+fn hexapod_several_pose_messages_per_window_are_averaged() {
+    let base = hexapod_session();
+    let topic = "/hexapod/hex0/pose";
+    let original = geocal::kinds::hexapod::solve::solve(&base).expect("solve");
+    let mut s = base.clone();
+    let poses = s.topics.get_mut(topic).expect("pose topic");
+    let mut doubled = Vec::new();
+    for m in poses.iter() {
+        for sign in [1.0, -1.0] {
+            let mut c = m.clone();
+            for key in ["translation_m", "rotation_vector_rad"] {
+                for k in 0..3 {
+                    let v = c.msg[key][k].as_f64().expect("number");
+                    c.msg[key][k] = (v + sign * 1e-6).into();
+                }
+            }
+            c.log_time_ns += if sign > 0.0 { 0 } else { 1 };
+            doubled.push(c);
+        }
+    }
+    *poses = doubled;
+    let averaged = geocal::kinds::hexapod::solve::solve(&s).expect("solve");
+    for (a, b) in averaged.hinges.iter().zip(&original.hinges) {
+        for k in 0..3 {
+            assert!((a.base_m[k] - b.base_m[k]).abs() < 1e-9, "leg {}", a.leg);
+            assert!(a.base_sigma_m[k] < b.base_sigma_m[k], "leg {}", a.leg);
+        }
+    }
+}
+
+/// Seven poses (home and six): 36 unknowns from 36 changes, no redundancy: χ²/dof is null.
+#[test]
+fn hexapod_chi2_per_dof_is_null_without_redundancy() {
+    use geocal::session::messages::RunEvent;
+    let mut s = hexapod_session();
+    let last_kept = s
+        .events
+        .iter()
+        .position(|e| matches!(e.msg, RunEvent::PoseBegin { pose: 7, .. }))
+        .expect("pose 7");
+    s.events.truncate(last_kept);
+    let r = geocal::kinds::hexapod::solve::solve(&s).expect("solve");
+    assert_eq!((r.poses, r.dof), (7, 0));
+    assert_eq!(r.chi2_per_dof, None);
+}

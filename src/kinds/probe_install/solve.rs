@@ -292,7 +292,7 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
             .observations
             .iter()
             .map(|o| {
-                let mut d = o.clone();
+                let mut d = *o;
                 if let Some(p) = plan.postures_rad.iter().min_by(|p, q| {
                     let dist = |p: &&[f64; 2]| (p[0] - o.a_rad).hypot(p[1] - o.b_rad);
                     dist(p).total_cmp(&dist(q))
