@@ -222,13 +222,12 @@ fn hexapod_pose_sensor_without_its_noise_is_refused() {
     assert!(err.to_string().contains("`noise_rad`"), "{err}");
 }
 
-/// Two pose messages per window, p + δ and p − δ: their mean is the one pose, so the hinges
-/// are unchanged, and that pose's σ shrinks by √2 (every hinge σ shrinks).
+/// Two pose messages per window, p + δ and p − δ: their mean is the one pose with σ/√2, so
+/// the solve equals that of the one pose per window with the sensor's noise declared /√2.
 #[test]
 fn hexapod_several_pose_messages_per_window_are_averaged() {
     let base = hexapod_session();
     let topic = "/hexapod/hex0/pose";
-    let original = geocal::kinds::hexapod::solve::solve(&base).expect("solve");
     let mut s = base.clone();
     let poses = s.topics.get_mut(topic).expect("pose topic");
     let mut doubled = Vec::new();
@@ -247,10 +246,25 @@ fn hexapod_several_pose_messages_per_window_are_averaged() {
     }
     *poses = doubled;
     let averaged = geocal::kinds::hexapod::solve::solve(&s).expect("solve");
-    for (a, b) in averaged.hinges.iter().zip(&original.hinges) {
+    let mut quieter = base;
+    let sensor = quieter
+        .header
+        .devices
+        .iter_mut()
+        .find(|d| d.kind == "pose_sensor")
+        .expect("a pose sensor");
+    let root2 = 2f64.sqrt();
+    sensor.noise_m = sensor.noise_m.map(|v| v / root2);
+    let rad = sensor.extra["noise_rad"].as_f64().expect("noise_rad");
+    sensor
+        .extra
+        .insert("noise_rad".into(), (rad / root2).into());
+    let expected = geocal::kinds::hexapod::solve::solve(&quieter).expect("solve");
+    for (a, b) in averaged.hinges.iter().zip(&expected.hinges) {
         for k in 0..3 {
             assert!((a.base_m[k] - b.base_m[k]).abs() < 1e-9, "leg {}", a.leg);
-            assert!(a.base_sigma_m[k] < b.base_sigma_m[k], "leg {}", a.leg);
+            let ratio = a.base_sigma_m[k] / b.base_sigma_m[k];
+            assert!((ratio - 1.0).abs() < 1e-6, "leg {}: σ ratio {ratio}", a.leg);
         }
     }
 }
