@@ -228,7 +228,7 @@ fn execute(
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
-    let mut first = (0, 0);
+    let mut first = (0, 1);
     match continuation {
         Some(mut c) => {
             if let (Some(world), Some(sim)) = (&built.world, &config.sim) {
