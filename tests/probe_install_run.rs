@@ -106,6 +106,11 @@ fn recovers_the_true_installation_and_replays_identically() {
     let session = read_session(&output.session_path).expect("read session");
     assert_eq!(session.header.kind, "probe_install");
     assert_eq!(session.probes["laser0"].len(), 500);
+    // Readings counted from 1, as docs/session-format.md says; the machine chain as the
+    // shared session format defines it (F for the frame).
+    let seqs: Vec<u64> = session.probes["laser0"].iter().map(|r| r.msg.seq).collect();
+    assert_eq!(seqs, (1..=500).collect::<Vec<u64>>());
+    assert_eq!(session.header.machine.structure, "FXYZBA");
     assert_eq!(session.topics[TOPIC_MACHINE_POSE].len(), 100);
     let count = |f: &dyn Fn(&RunEvent) -> bool| session.events.iter().filter(|e| f(&e.msg)).count();
     assert_eq!(count(&|e| matches!(e, RunEvent::PostureBegin { .. })), 4);
