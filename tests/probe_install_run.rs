@@ -407,3 +407,70 @@ fn a_killed_run_resumes_at_its_unfinished_posture() {
         r.chi2_per_dof.expect("redundant")
     );
 }
+
+/// A plan blind to most parameters (A = 0 at every posture, as the outside session
+/// `outside-probe-a0-12`), 3 seeds: LM converges, what the postures cannot see is named
+/// (σ null), the held parameters stay at nominal, and every parameter given a σ (beam n, the
+/// sphere's x and y at least) is within 4σ of the truth (P(|z| > 4) = 6e-5 each).
+#[test]
+fn a_blind_plan_names_its_unseen_parameters_and_converges_on_the_rest() {
+    let dir = tempfile::tempdir().expect("temp dir");
+    let blind = "postures_rad = [\n    [0.0, 0.0],\n    [0.0, 1.5707963267948966],\n    \
+                 [0.0, -1.5707963267948966],\n    [0.0, 0.7853981633974483],\n]";
+    let start = EXAMPLE.find("postures_rad = [").expect("postures");
+    let end = start + EXAMPLE[start..].find("\n]").expect("list end") + 2;
+    let base = format!("{}{blind}{}", &EXAMPLE[..start], &EXAMPLE[end..])
+        .replace("ga_generations = 2000", "ga_generations = 50");
+    for seed in 0..3 {
+        let text = base.replace("seed = 20110501", &format!("seed = {}", 3000 + seed));
+        let (output, truth) = run(&text, &dir.path().join(format!("s{seed}")));
+        let r = output
+            .results
+            .get::<ProbeInstallResults>()
+            .expect("probe_install results");
+        assert!(r.lm.converged, "seed {seed}: LM did not converge");
+        // Always unseen with A = 0: δB alone at the design (with the beam and zero point
+        // turned about z at the installed one), y32 with y43, z43 with the sphere's z. The
+        // beam's l, m and x43 take part in the δB direction in proportion to the installed
+        // beam's and zero point's tilt: named when that part matters (> 1e-3 of the
+        // gradient, scaled), otherwise identifiable and judged below.
+        for name in [
+            "b_offset_rad",
+            "y_offset_m",
+            "zero_point_y_m",
+            "zero_point_z_m",
+            "sphere_centre_z_m",
+        ] {
+            assert!(
+                r.not_identifiable.iter().any(|n| n == name),
+                "seed {seed}: {name} not named in {:?}",
+                r.not_identifiable
+            );
+        }
+        for name in ["beam_n", "sphere_centre_x_m", "sphere_centre_y_m"] {
+            assert!(
+                !r.not_identifiable.iter().any(|n| n == name),
+                "seed {seed}: {name} named unseen"
+            );
+        }
+        assert_eq!(
+            r.held_at_nominal.len(),
+            3,
+            "seed {seed}: {:?}",
+            r.held_at_nominal
+        );
+        let chi2 = r.chi2_per_dof.expect("redundant");
+        assert!((0.6..=1.5).contains(&chi2), "seed {seed}: χ²/dof {chi2}");
+        let truth_params = truth["parameters"].as_array().expect("truth parameters");
+        for (p, t) in r.parameters.iter().zip(truth_params) {
+            if r.held_at_nominal.contains(&p.name) {
+                assert_eq!(p.value, p.nominal, "seed {seed}: {} held", p.name);
+            }
+            if let Some(s) = p.sigma {
+                let z = (p.value - t["value"].as_f64().expect("truth value")) / s;
+                println!("seed {seed}: {:<18} z {z:+.2}", p.name);
+                assert!(z.abs() <= 4.0, "seed {seed}: {} {z:.2} σ", p.name);
+            }
+        }
+    }
+}
