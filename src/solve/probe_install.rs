@@ -11,7 +11,6 @@ use rand::Rng;
 use rand_distr::{Distribution, StandardNormal};
 use serde::Serialize;
 
-use crate::method::plan_check_kinds::linear::{analyse, NullDirection};
 use crate::model::probe_install::{
     beam_in_base, probe_offset, sphere_residual, sphere_residual_jacobian, InstallParams,
     ProbeObservation, N_PARAMS, PARAM_NAMES,
@@ -138,7 +137,7 @@ pub struct ProbeInstallSolution {
     /// nothing and is reported as none).
     pub identifiable: [bool; N_PARAMS],
     /// The directions the postures cannot see, as combinations of the solver's free parameters.
-    pub unseen_directions: Vec<NullDirection>,
+    pub unseen_directions: Vec<String>,
     /// One free parameter per unseen direction, held at its start value (the nominal) so the
     /// unseen directions do not steer LM.
     pub held_at_start: Vec<&'static str>,
@@ -314,6 +313,53 @@ fn null_space(jw: &DMatrix<f64>) -> (Vec<f64>, Vec<DVector<f64>>) {
     (scale, null)
 }
 
+/// Components of an unseen direction smaller than this (scaled, pivot 1) are left out of its
+/// name.
+const COMPONENT_SHOWN: f64 = 1e-3;
+
+/// The unseen directions of `jw` in reduced row echelon form: each one's pivot (a free
+/// parameter no other direction involves, the largest available) and its name as a
+/// combination of free parameters in their units per unit of the pivot.
+fn unseen_directions(jw: &DMatrix<f64>) -> (Vec<usize>, Vec<String>) {
+    let (scale, null) = null_space(jw);
+    let mut basis: Vec<Vec<f64>> = null.iter().map(|v| v.iter().copied().collect()).collect();
+    let mut pivots: Vec<usize> = Vec::new();
+    for r in 0..basis.len() {
+        let Some(p) = (0..FREE_NAMES.len())
+            .filter(|c| !pivots.contains(c))
+            .max_by(|&a, &b| basis[r][a].abs().total_cmp(&basis[r][b].abs()))
+        else {
+            break;
+        };
+        let lead = basis[r][p];
+        basis[r].iter_mut().for_each(|v| *v /= lead);
+        let row = basis[r].clone();
+        for (o, other) in basis.iter_mut().enumerate() {
+            if o != r {
+                let f = other[p];
+                other.iter_mut().zip(&row).for_each(|(v, w)| *v -= f * w);
+            }
+        }
+        pivots.push(p);
+    }
+    let names = basis
+        .iter()
+        .zip(&pivots)
+        .map(|(z, &p)| {
+            let mut text = FREE_NAMES[p].to_string();
+            for (c, v) in z.iter().enumerate() {
+                if c != p && v.abs() > COMPONENT_SHOWN {
+                    let k = (v / scale[c]) / (z[p] / scale[p]);
+                    let sign = if k < 0.0 { '-' } else { '+' };
+                    text.push_str(&format!(" {sign} {:.4e} {}", k.abs(), FREE_NAMES[c]));
+                }
+            }
+            text
+        })
+        .collect();
+    (pivots, names)
+}
+
 /// Levenberg–Marquardt from `start` (usually the nominal installation); what the postures
 /// cannot see is judged on `problem` itself (see [`solve_lm_with_design`]).
 pub fn solve_lm(
@@ -348,25 +394,13 @@ pub fn solve_lm_with_design(
         z[4 + k] = start.zero_point_m[k];
         z[7 + k] = start.sphere_centre_m[k];
     }
-    let free_names: Vec<String> = FREE_NAMES.iter().map(|s| s.to_string()).collect();
-    let block = analyse(&free_names, &whitened_jacobian(design, &chart, &z));
-    // Per unseen direction, its pivot: the parameter that no other direction involves (the
-    // reduced echelon basis has one), largest first.
+    // Per unseen direction, its pivot (reduced echelon form) is held at the start.
+    let (pivots, _) = unseen_directions(&whitened_jacobian(design, &chart, &z));
     let mut held = [false; 10];
-    let mut held_at_start = Vec::new();
-    for (r, d) in block.null_directions.iter().enumerate() {
-        let pivot = d.parameters.iter().find(|name| {
-            block
-                .null_directions
-                .iter()
-                .enumerate()
-                .all(|(o, other)| o == r || !other.parameters.contains(name))
-        });
-        if let Some(k) = pivot.and_then(|name| FREE_NAMES.iter().position(|f| f == name)) {
-            held[k] = true;
-            held_at_start.push(FREE_NAMES[k]);
-        }
+    for &k in &pivots {
+        held[k] = true;
     }
+    let held_at_start: Vec<&'static str> = pivots.iter().map(|&k| FREE_NAMES[k]).collect();
     let free_count = held.iter().filter(|h| !**h).count();
     let n = problem.observations.len();
     let radius = problem.sphere_radius_m;
@@ -461,7 +495,7 @@ pub fn solve_lm_with_design(
     // What is unseen is judged again at the solution: a direction can mix in parameters whose
     // lever arm vanishes at the start (δB turns the beam and zero point about z, which does
     // nothing to the design beam on the z axis but moves the installed one).
-    let block = analyse(&free_names, &whitened_jacobian(design, &chart, &z));
+    let (_, unseen) = unseen_directions(&whitened_jacobian(design, &chart, &z));
     // A parameter is identifiable when its gradient in the free parameters has no part in the
     // unseen directions (beam_n, say, is unchanged by turning the beam about z).
     let (scale, null) = null_space(&whitened_jacobian(design, &chart, &z));
@@ -509,7 +543,7 @@ pub fn solve_lm_with_design(
         converged,
         wall_time_s: t0.elapsed().as_secs_f64(),
         identifiable,
-        unseen_directions: block.null_directions,
+        unseen_directions: unseen,
         held_at_start,
     })
 }

@@ -353,11 +353,7 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
             .map(|k| PARAM_NAMES[k].to_string())
             .collect(),
         held_at_nominal: lm.held_at_start.iter().map(|s| s.to_string()).collect(),
-        unseen_directions: lm
-            .unseen_directions
-            .iter()
-            .map(|d| d.combination.clone())
-            .collect(),
+        unseen_directions: lm.unseen_directions.clone(),
         lm: LmSummary {
             objective: lm_objective,
             unit_norm_violation: lm.unit_norm_violation,
