@@ -87,8 +87,9 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
     let mut sum_z2 = 0.0;
     for ((p, q), t) in r.parameters.iter().zip(&s.parameters).zip(truth_params) {
         assert_eq!(t["name"], p.name.as_str());
-        let z = (p.value - t["value"].as_f64().expect("truth value")) / p.sigma;
-        let d = (p.value - q.value) / p.sigma;
+        let z =
+            (p.value - t["value"].as_f64().expect("truth value")) / p.sigma.expect("identifiable");
+        let d = (p.value - q.value) / p.sigma.expect("identifiable");
         println!("{:<18} z {z:+.2}  HIL - sim {d:+.3} sigma", p.name);
         assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
         assert!(d.abs() <= 0.2, "{}: {d:.3} sigma from the sim run", p.name);
@@ -97,12 +98,16 @@ fn grbl_and_ascii_probe_over_ptys_recover_the_installation_through_faults() {
     // chi²/dof of 90 degrees of freedom: standard deviation 0.15; [0.6, 1.5] is about ±3.
     println!(
         "chi2/dof {:.3} (sim {:.3}), rms normalised error {:.2}, radius after {:.4} mm",
-        r.chi2_per_dof,
-        s.chi2_per_dof,
+        r.chi2_per_dof.expect("redundant"),
+        s.chi2_per_dof.expect("redundant"),
         (sum_z2 / 11.0).sqrt(),
         r.radius_after_m * 1e3
     );
-    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    assert!(
+        (0.6..=1.5).contains(&r.chi2_per_dof.expect("redundant")),
+        "{}",
+        r.chi2_per_dof.expect("redundant")
+    );
     assert!((r.radius_after_m - 6e-3).abs() < 1e-6);
 
     // Every fault as its event, in the order the run met them.
@@ -219,10 +224,14 @@ fn real_ports_without_hil_are_opened_by_path() {
     assert_eq!((r.points, r.readings), (100, 500));
     let truth = world.lock().expect("world").truth();
     for (p, t) in r.parameters.iter().zip(&truth.parameters) {
-        let z = (p.value - t.value) / p.sigma;
+        let z = (p.value - t.value) / p.sigma.expect("identifiable");
         assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
     }
-    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    assert!(
+        (0.6..=1.5).contains(&r.chi2_per_dof.expect("redundant")),
+        "{}",
+        r.chi2_per_dof.expect("redundant")
+    );
     let session = read_session(&output.session_path).expect("session");
     assert_eq!(session.header.devices[0].driver, "grbl");
     let faults = session
@@ -289,9 +298,17 @@ fn a_killed_emulated_run_resumes_at_its_unfinished_posture() {
     let truth_params = truth["parameters"].as_array().expect("truth parameters");
     for (p, t) in r.parameters.iter().zip(truth_params) {
         assert_eq!(t["name"], p.name.as_str());
-        let z = (p.value - t["value"].as_f64().expect("truth value")) / p.sigma;
+        let z =
+            (p.value - t["value"].as_f64().expect("truth value")) / p.sigma.expect("identifiable");
         assert!(z.abs() <= 4.0, "{}: {z:.2} sigma from the truth", p.name);
     }
-    println!("resumed emulated run: chi2/dof {:.3}", r.chi2_per_dof);
-    assert!((0.6..=1.5).contains(&r.chi2_per_dof), "{}", r.chi2_per_dof);
+    println!(
+        "resumed emulated run: chi2/dof {:.3}",
+        r.chi2_per_dof.expect("redundant")
+    );
+    assert!(
+        (0.6..=1.5).contains(&r.chi2_per_dof.expect("redundant")),
+        "{}",
+        r.chi2_per_dof.expect("redundant")
+    );
 }

@@ -132,6 +132,39 @@ pub struct ProbeInstallSolution {
     pub iterations: usize,
     pub converged: bool,
     pub wall_time_s: f64,
+    /// Per parameter ([`PARAM_NAMES`] order), whether the postures identify it: false when it
+    /// takes part in a direction the weighted Jacobian cannot see (then its `sigma` means
+    /// nothing and is reported as none).
+    pub identifiable: [bool; N_PARAMS],
+    /// The directions the postures cannot see, as combinations of the solver's free parameters.
+    pub unseen_directions: Vec<String>,
+    /// One free parameter per unseen direction, held at its start value (the nominal) so the
+    /// unseen directions do not steer LM.
+    pub held_at_start: Vec<&'static str>,
+}
+
+/// The solver's 10 free parameters: the beam as two tilts about its start direction.
+pub const FREE_NAMES: [&str; 10] = [
+    "b_offset_rad",
+    "y_offset_m",
+    "beam_tilt_e1_rad",
+    "beam_tilt_e2_rad",
+    "zero_point_x_m",
+    "zero_point_y_m",
+    "zero_point_z_m",
+    "sphere_centre_x_m",
+    "sphere_centre_y_m",
+    "sphere_centre_z_m",
+];
+
+/// An angle brought into (−π, π].
+pub fn wrap_angle(a: f64) -> f64 {
+    let w = a.rem_euclid(std::f64::consts::TAU);
+    if w > std::f64::consts::PI {
+        w - std::f64::consts::TAU
+    } else {
+        w
+    }
 }
 
 /// Orthonormal (e1, e2) completing `e3` to a right-handed basis.
@@ -217,11 +250,137 @@ fn weighted_cost(problem: &ProbeInstallProblem, p: &InstallParams, sigmas: &[f64
         .sum()
 }
 
-/// Levenberg–Marquardt from `start` (usually the nominal installation).
+/// The whitened Jacobian (rows: readings / their σ; columns: [`FREE_NAMES`]) of `problem`'s
+/// readings at `p` in `chart`.
+fn whitened_jacobian(
+    problem: &ProbeInstallProblem,
+    chart: &BeamChart,
+    z: &SVector<f64, 10>,
+) -> DMatrix<f64> {
+    let p = chart.params(z);
+    let g = chart.chain(z);
+    let sigmas = residual_sigmas(problem, &p);
+    let mut j = DMatrix::zeros(problem.observations.len(), 10);
+    for (r, (o, s)) in problem.observations.iter().zip(&sigmas).enumerate() {
+        let (_, jx) = sphere_residual_jacobian(&p, o, problem.sphere_radius_m);
+        let jz = (jx * g) / *s;
+        for c in 0..10 {
+            j[(r, c)] = jz[c];
+        }
+    }
+    j
+}
+
+/// A singular value of the column-scaled whitened Jacobian below this fraction of the largest
+/// is zero (the plan check's tolerance).
+const RANK_TOLERANCE: f64 = 1e-8;
+/// A parameter whose gradient has more than this share (scaled) in the null space is not
+/// identifiable (the plan check's).
+const NULL_SHARE: f64 = 1e-6;
+
+/// Column scales (norms) of `jw` and an orthonormal basis of the null space of the scaled
+/// Jacobian.
+fn null_space(jw: &DMatrix<f64>) -> (Vec<f64>, Vec<DVector<f64>>) {
+    let n = jw.ncols();
+    let scale: Vec<f64> = (0..n)
+        .map(|k| {
+            let s = jw.column(k).norm();
+            if s > 0.0 && s.is_finite() {
+                s
+            } else {
+                1.0
+            }
+        })
+        .collect();
+    let rows = jw.nrows().max(n);
+    let js = DMatrix::from_fn(rows, n, |r, c| {
+        if r < jw.nrows() {
+            jw[(r, c)] / scale[c]
+        } else {
+            0.0
+        }
+    });
+    let svd = js.svd(false, true);
+    let Some(v_t) = svd.v_t else {
+        return (scale, Vec::new());
+    };
+    let s = &svd.singular_values;
+    let largest = s.iter().copied().fold(0.0, f64::max);
+    let null = (0..s.len())
+        .filter(|&i| !(s[i] > largest * RANK_TOLERANCE && s[i] > 0.0))
+        .map(|i| v_t.row(i).transpose())
+        .collect();
+    (scale, null)
+}
+
+/// Components of an unseen direction smaller than this (scaled, pivot 1) are left out of its
+/// name.
+const COMPONENT_SHOWN: f64 = 1e-3;
+
+/// The unseen directions of `jw` in reduced row echelon form: each one's pivot (a free
+/// parameter no other direction involves, the largest available) and its name as a
+/// combination of free parameters in their units per unit of the pivot.
+fn unseen_directions(jw: &DMatrix<f64>) -> (Vec<usize>, Vec<String>) {
+    let (scale, null) = null_space(jw);
+    let mut basis: Vec<Vec<f64>> = null.iter().map(|v| v.iter().copied().collect()).collect();
+    let mut pivots: Vec<usize> = Vec::new();
+    for r in 0..basis.len() {
+        let Some(p) = (0..FREE_NAMES.len())
+            .filter(|c| !pivots.contains(c))
+            .max_by(|&a, &b| basis[r][a].abs().total_cmp(&basis[r][b].abs()))
+        else {
+            break;
+        };
+        let lead = basis[r][p];
+        basis[r].iter_mut().for_each(|v| *v /= lead);
+        let row = basis[r].clone();
+        for (o, other) in basis.iter_mut().enumerate() {
+            if o != r {
+                let f = other[p];
+                other.iter_mut().zip(&row).for_each(|(v, w)| *v -= f * w);
+            }
+        }
+        pivots.push(p);
+    }
+    let names = basis
+        .iter()
+        .zip(&pivots)
+        .map(|(z, &p)| {
+            let mut text = FREE_NAMES[p].to_string();
+            for (c, v) in z.iter().enumerate() {
+                if c != p && v.abs() > COMPONENT_SHOWN {
+                    let k = (v / scale[c]) / (z[p] / scale[p]);
+                    let sign = if k < 0.0 { '-' } else { '+' };
+                    text.push_str(&format!(" {sign} {:.4e} {}", k.abs(), FREE_NAMES[c]));
+                }
+            }
+            text
+        })
+        .collect();
+    (pivots, names)
+}
+
+/// Levenberg–Marquardt from `start` (usually the nominal installation); what the postures
+/// cannot see is judged on `problem` itself (see [`solve_lm_with_design`]).
 pub fn solve_lm(
     problem: &ProbeInstallProblem,
     start: &InstallParams,
     options: &LmOptions,
+) -> Result<ProbeInstallSolution, ProbeInstallError> {
+    solve_lm_with_design(problem, start, options, problem)
+}
+
+/// Levenberg–Marquardt from `start`, with an identifiability check first: the rank of the
+/// whitened Jacobian of `design` (the same points at their commanded postures: the plan's
+/// geometry, free of servo scatter that would make a blind direction look barely seen) at the
+/// start, as the plan check computes it. One free parameter per unseen direction is held at
+/// its start value; every parameter taking part in an unseen direction is reported as not
+/// identifiable.
+pub fn solve_lm_with_design(
+    problem: &ProbeInstallProblem,
+    start: &InstallParams,
+    options: &LmOptions,
+    design: &ProbeInstallProblem,
 ) -> Result<ProbeInstallSolution, ProbeInstallError> {
     validate(problem)?;
     let t0 = Instant::now();
@@ -235,6 +394,14 @@ pub fn solve_lm(
         z[4 + k] = start.zero_point_m[k];
         z[7 + k] = start.sphere_centre_m[k];
     }
+    // Per unseen direction, its pivot (reduced echelon form) is held at the start.
+    let (pivots, _) = unseen_directions(&whitened_jacobian(design, &chart, &z));
+    let mut held = [false; 10];
+    for &k in &pivots {
+        held[k] = true;
+    }
+    let held_at_start: Vec<&'static str> = pivots.iter().map(|&k| FREE_NAMES[k]).collect();
+    let free_count = held.iter().filter(|h| !**h).count();
     let n = problem.observations.len();
     let radius = problem.sphere_radius_m;
     let normal = |z: &SVector<f64, 10>, sigmas: &[f64]| {
@@ -248,6 +415,15 @@ pub fn solve_lm(
             let rw = r / *s;
             a += jz.transpose() * jz;
             b += jz.transpose() * rw;
+        }
+        // Held parameters take no step: identity rows and columns, no gradient.
+        for k in (0..10).filter(|&k| held[k]) {
+            for c in 0..10 {
+                a[(k, c)] = 0.0;
+                a[(c, k)] = 0.0;
+            }
+            a[(k, k)] = 1.0;
+            b[k] = 0.0;
         }
         (a, b)
     };
@@ -299,14 +475,45 @@ pub fn solve_lm(
     let sigmas = residual_sigmas(problem, &chart.params(&z));
     let cost = weighted_cost(problem, &chart.params(&z), &sigmas);
     let (a, _) = normal(&z, &sigmas);
-    let cov_z = a.try_inverse().ok_or_else(|| {
+    let mut cov_z = a.try_inverse().ok_or_else(|| {
         ProbeInstallError::Singular(
-            "normal matrix not invertible: the postures do not identify all 11 parameters".into(),
+            "normal matrix not invertible: the postures do not identify the parameters left \
+             free"
+                .into(),
         )
     })?;
+    for k in (0..10).filter(|&k| held[k]) {
+        for c in 0..10 {
+            cov_z[(k, c)] = 0.0;
+            cov_z[(c, k)] = 0.0;
+        }
+    }
+    z[0] = wrap_angle(z[0]);
     let g = chart.chain(&z);
     let cov = g * cov_z * g.transpose();
     let params = chart.params(&z);
+    // What is unseen is judged again at the solution: a direction can mix in parameters whose
+    // lever arm vanishes at the start (δB turns the beam and zero point about z, which does
+    // nothing to the design beam on the z axis but moves the installed one).
+    let (_, unseen) = unseen_directions(&whitened_jacobian(design, &chart, &z));
+    // A parameter is identifiable when its gradient in the free parameters has no part in the
+    // unseen directions (beam_n, say, is unchanged by turning the beam about z).
+    let (scale, null) = null_space(&whitened_jacobian(design, &chart, &z));
+    let identifiable: [bool; N_PARAMS] = std::array::from_fn(|k| {
+        let row: Vec<f64> = (0..10).map(|c| g[(k, c)] / scale[c]).collect();
+        let norm2: f64 = row.iter().map(|v| v * v).sum();
+        let unseen2: f64 = null
+            .iter()
+            .map(|v| {
+                row.iter()
+                    .zip(v.iter())
+                    .map(|(a, b)| a * b)
+                    .sum::<f64>()
+                    .powi(2)
+            })
+            .sum();
+        norm2 > 0.0 && unseen2 <= NULL_SHARE * norm2
+    });
     let residuals_m: Vec<f64> = problem
         .observations
         .iter()
@@ -331,10 +538,13 @@ pub fn solve_lm(
         residuals_m,
         residual_rms_m,
         chi2: cost,
-        dof: n.saturating_sub(10),
+        dof: n.saturating_sub(free_count),
         iterations,
         converged,
         wall_time_s: t0.elapsed().as_secs_f64(),
+        identifiable,
+        unseen_directions: unseen,
+        held_at_start,
     })
 }
 

@@ -222,6 +222,12 @@ pub enum HarmonicOrder {
 pub struct IdentifyOptions {
     pub convention: TangentialConvention,
     pub harmonics: HarmonicOrder,
+    /// Under `AngularPositioning`, the azimuth φ (at θ = 0) along which the radial translation
+    /// is written at angle θ: EXC, EYC = e_r (cos(θ + φ), sin(θ + φ)), and ECC takes up what
+    /// that direction leaves of the tangential deviation. Give the sphere's nominal azimuth
+    /// (a fixed direction, as an independent evaluation can reproduce it); None: the fitted
+    /// sphere's azimuth. Either way the centres are explained alike.
+    pub radial_azimuth_rad: Option<f64>,
 }
 
 impl Default for IdentifyOptions {
@@ -229,6 +235,7 @@ impl Default for IdentifyOptions {
         IdentifyOptions {
             convention: TangentialConvention::AngularPositioning,
             harmonics: HarmonicOrder::Bic { max_order: 8 },
+            radial_azimuth_rad: None,
         }
     }
 }
@@ -283,6 +290,12 @@ pub struct RotaryAxisIdentification {
     /// Per angle, the tangential combination the data fix: t + r·ECC (m), r = mean radius.
     pub tangential_m: Vec<f64>,
     pub reference_radius_m: f64,
+    /// Azimuth of the sphere at θ = 0 (the fitted positions' mean): at angle θ its radial
+    /// direction is (cos(θ + φ), sin(θ + φ), 0) and the tangential one (ẑ × radial) that
+    /// `tangential_m` is taken along.
+    pub sphere_azimuth_rad: f64,
+    /// The azimuth along which EXC, EYC are written (`IdentifyOptions::radial_azimuth_rad`).
+    pub radial_azimuth_rad: f64,
     pub harmonics: Vec<HarmonicFit>,
     /// χ² of the per-angle motion model (heights beyond 2 give redundancy) and its dof.
     pub chi2: f64,
@@ -377,12 +390,26 @@ pub fn identify_rotary_axis(
             c_obs.fixed_rows_mut::<3>(o).copy_from(&s.centres_m[i]);
             let cov = s.covariances_m2[i];
             sigma_c.fixed_view_mut::<3, 3>(o, o).copy_from(&cov);
-            let w = cov
-                .try_inverse()
-                .filter(|w| w.iter().all(|v| v.is_finite()))
-                .ok_or(RotarySphereError::Singular("centre weights (covariance)"))?;
+            let w = inverse_weight(&cov)?;
             weight.fixed_view_mut::<3, 3>(o, o).copy_from(&w);
         }
+    }
+    // Stage 1 weighs every centre alike (the inverse of the mean centre covariance): weights
+    // that vary with the angle (a misplaced sphere meets the fixed probing lines at other
+    // normals at each angle) would correlate with the motion errors and pull part of them
+    // into the location errors. The loss of efficiency is second order; the covariance below
+    // is propagated from each centre's own covariance, so it stays exact.
+    let mean_cov = series
+        .iter()
+        .flat_map(|s| s.covariances_m2.iter())
+        .sum::<Matrix3<f64>>()
+        / (nh * na) as f64;
+    let common_weight = inverse_weight(&mean_cov)?;
+    let mut weight1 = DMatrix::zeros(nobs, nobs);
+    for b in 0..nh * na {
+        weight1
+            .fixed_view_mut::<3, 3>(3 * b, 3 * b)
+            .copy_from(&common_weight);
     }
 
     // Stage 1: sphere positions q_h and the location errors, motion errors treated as zero.
@@ -418,7 +445,7 @@ pub fn identify_rotary_axis(
     let mut converged = false;
     for _ in 0..50 {
         let (j, r) = stage1(&q, &loc);
-        let jtw = j.transpose() * &weight;
+        let jtw = j.transpose() * &weight1;
         let Some(chol) = (&jtw * &j).cholesky() else {
             return Err(RotarySphereError::Singular("axis location"));
         };
@@ -439,20 +466,27 @@ pub fn identify_rotary_axis(
         return Err(RotarySphereError::NoConvergence(50));
     }
     let (j1, resid1) = stage1(&q, &loc);
-    let jtw = j1.transpose() * &weight;
+    let jtw = j1.transpose() * &weight1;
     let a1inv = (&jtw * &j1)
         .try_inverse()
         .ok_or(RotarySphereError::Singular("axis location"))?;
     let g1 = &a1inv * &jtw; // δx = G1 δc
     let proj = DMatrix::<f64>::identity(nobs, nobs) - &j1 * &g1; // δd = P δc
+    let g1_loc = g1.rows(3 * nh, 4).into_owned();
+    let loc_cov = &g1_loc * &sigma_c * g1_loc.transpose();
 
-    // Stage 2: per angle, the motion errors from the deviations at all heights.
+    // Stage 2: per angle, the motion errors from the deviations at all heights. Radial and
+    // tangential are those of the sphere at that angle (wherever it stands on the table): its
+    // fitted position at θ = 0, averaged over the heights, turned by θ.
     let reference_radius_m = q.iter().map(|v| v.xy().norm()).sum::<f64>() / nh as f64;
+    let mean_xy = q.iter().map(|v| v.xy()).sum::<nalgebra::Vector2<f64>>();
+    let sphere_azimuth_rad = mean_xy.y.atan2(mean_xy.x);
     let mut motion_map = DMatrix::zeros(6 * na, nobs); // motion = M d
     let mut motion = Vec::with_capacity(na);
     let mut chi2 = 0.0;
+    let radial_azimuth_rad = options.radial_azimuth_rad.unwrap_or(sphere_azimuth_rad);
     for (i, &a) in angles.iter().enumerate() {
-        let (s, c) = a.sin_cos();
+        let (s, c) = (a + radial_azimuth_rad).sin_cos();
         // Free parameters → the six motion errors.
         let t: SMatrix<f64, 6, 5> = match options.convention {
             TangentialConvention::AngularPositioning => SMatrix::<f64, 6, 5>::from_row_slice(&[
@@ -584,12 +618,11 @@ pub fn identify_rotary_axis(
         row += m.nrows();
     }
     let model_covariance = &model_map * &sigma_c * model_map.transpose();
-    let loc_cov = a1inv.view((3 * nh, 3 * nh), (4, 4)).into_owned();
     let tangential_m = motion
         .iter()
         .zip(&angles)
         .map(|(m, &a)| {
-            let (s, c) = a.sin_cos();
+            let (s, c) = (a + sphere_azimuth_rad).sin_cos();
             -s * m[0] + c * m[1] + reference_radius_m * m[5]
         })
         .collect();
@@ -606,11 +639,20 @@ pub fn identify_rotary_axis(
         convention: options.convention,
         tangential_m,
         reference_radius_m,
+        sphere_azimuth_rad,
+        radial_azimuth_rad,
         harmonics,
         chi2,
         dof: na * (3 * nh - 5),
         model_covariance,
     })
+}
+
+/// The inverse of a centre covariance, refused when it is singular or not finite.
+fn inverse_weight(cov: &Matrix3<f64>) -> Result<Matrix3<f64>, RotarySphereError> {
+    cov.try_inverse()
+        .filter(|w| w.iter().all(|v| v.is_finite()))
+        .ok_or(RotarySphereError::Singular("centre weights (covariance)"))
 }
 
 /// Prediction check on a height not used for fitting.
@@ -741,7 +783,6 @@ pub mod simulation {
     use super::*;
     use nalgebra::Rotation3;
     use rand::Rng;
-    use rand_distr::{Distribution, StandardNormal};
 
     /// True axis: location errors and harmonic motion errors (coefficients in the order of
     /// `harmonic_basis`, per error in `MOTION_NAMES` order).
@@ -757,7 +798,7 @@ pub mod simulation {
         /// to `order`.
         pub fn realistic<R: Rng>(rng: &mut R, order: usize) -> TrueAxis {
             let mut g = |s: f64| -> f64 {
-                let z: f64 = StandardNormal.sample(rng);
+                let z: f64 = rand_distr::Distribution::sample(&rand_distr::StandardNormal, rng);
                 z * s
             };
             let location = [g(25e-6), g(25e-6), g(40e-6), g(40e-6)];
@@ -827,7 +868,7 @@ pub mod simulation {
             .iter()
             .map(|d| {
                 let noise = Vector3::from_fn(|_, _| {
-                    let z: f64 = StandardNormal.sample(rng);
+                    let z: f64 = rand_distr::Distribution::sample(&rand_distr::StandardNormal, rng);
                     z * sigma_m
                 });
                 centre_m + d * radius_m + noise
@@ -1073,6 +1114,146 @@ mod tests {
         );
         let ratio = chi2 / count as f64;
         assert!((0.75..1.3).contains(&ratio), "validation χ²/n = {ratio}");
+    }
+
+    /// A truth whose motion errors hold nothing a fixed axis or the sphere positions would
+    /// absorb (no constant or co-rotating once-per-turn part at the sphere), so the physical
+    /// axis and motion are exactly what the identification must return.
+    fn unabsorbed_truth() -> TrueAxis {
+        // Per error, [c0, a1, b1, a2, b2, a3, b3] (harmonic_basis order 3).
+        let (ex, ey) = (
+            vec![0.0, 0.0, 0.0, 0.6e-6, -0.3e-6, 0.2e-6, 0.4e-6],
+            vec![0.0, 0.0, 0.0, 0.3e-6, 0.6e-6, -0.4e-6, 0.2e-6],
+        );
+        // ε_xy = a e^{3iθ} + b e^{-iθ}: at the sphere its z displacement is of order 2 and 4θ.
+        let (a, b) = (1.5e-6, -0.8e-6);
+        TrueAxis {
+            location: [-44e-6, 80e-6, -18e-6, 9e-6],
+            motion_coefficients: [
+                ex,
+                ey,
+                vec![0.0, 0.0, 0.0, -0.2e-6, 0.4e-6, 0.3e-6, -0.1e-6],
+                vec![0.0, b, 0.0, 0.0, 0.0, a, 0.0],
+                vec![0.0, 0.0, -b, 0.0, 0.0, 0.0, a],
+                vec![0.0, 0.0, 0.0, 3e-6, -2e-6, 1e-6, 1.5e-6],
+            ],
+        }
+    }
+
+    /// The truth's motion at θ under the convention: the radial translation e·u_r (u_r the
+    /// sphere's true direction) written along the nominal direction u_n, ECC taking up the
+    /// tangential rest, so that both move the sphere's centre alike.
+    fn motion_in_convention(
+        truth: &TrueAxis,
+        theta: f64,
+        q: &Vector3<f64>,
+        nominal: f64,
+    ) -> [f64; 6] {
+        let m = truth.motion(theta);
+        let p = rz(theta) * q;
+        let r = p.xy().norm();
+        let u_r = Vector3::new(p.x / r, p.y / r, 0.0);
+        let u_t = Vector3::z().cross(&u_r);
+        let u_n = Vector3::new((theta + nominal).cos(), (theta + nominal).sin(), 0.0);
+        let e = Vector3::new(m[0], m[1], m[2]);
+        let e_r = e.dot(&u_r) / u_n.dot(&u_r);
+        let ecc = m[5] + (e.dot(&u_t) - e_r * u_n.dot(&u_t)) / r;
+        [e_r * u_n.x, e_r * u_n.y, m[2], m[3], m[4], ecc]
+    }
+
+    /// The sphere at several azimuths, misplaced by 0.3 mm from nominal, its centres'
+    /// covariances varying with the angle (as a misplaced sphere's do): noise-free, the
+    /// identification returns the physical axis and motion; noisy, their errors are
+    /// consistent with the reported σ.
+    #[test]
+    fn sphere_at_any_azimuth_against_the_physical_truth() {
+        let truth = unabsorbed_truth();
+        let angles: Vec<f64> = (0..24)
+            .map(|k| (7.5 + 15.0 * k as f64).to_radians())
+            .collect();
+        let sigma = 0.4e-6;
+        let mut rng = ChaCha8Rng::seed_from_u64(41);
+        let (mut z2, mut count) = (0.0, 0usize);
+        for nominal in [0.0, 1.0, -1.4311699866353502, 2.5, std::f64::consts::PI] {
+            let placement = Vector3::new(0.26e-3, -0.29e-3, 0.04e-3);
+            let q: Vec<Vector3<f64>> = [0.178, 0.084]
+                .iter()
+                .map(|&z| Vector3::new(0.133 * nominal.cos(), 0.133 * nominal.sin(), z) + placement)
+                .collect();
+            let opts = IdentifyOptions {
+                harmonics: HarmonicOrder::Fixed(4),
+                radial_azimuth_rad: Some(nominal),
+                ..Default::default()
+            };
+            let covariance =
+                |a: f64| Matrix3::identity() * (sigma * sigma) * (1.0 + 0.3 * (2.0 * a).cos());
+            let series_of = |noisy: bool, rng: &mut ChaCha8Rng| -> Vec<CentreSeries> {
+                q.iter()
+                    .map(|qh| CentreSeries {
+                        angles_rad: angles.clone(),
+                        centres_m: angles
+                            .iter()
+                            .map(|&a| {
+                                let n = Vector3::from_fn(|_, _| {
+                                    let z: f64 = rand_distr::Distribution::sample(
+                                        &rand_distr::StandardNormal,
+                                        rng,
+                                    );
+                                    z
+                                });
+                                truth.centre(a, qh)
+                                    + if noisy {
+                                        n * (sigma * (1.0 + 0.3 * (2.0 * a).cos()).sqrt())
+                                    } else {
+                                        Vector3::zeros()
+                                    }
+                            })
+                            .collect(),
+                        covariances_m2: angles.iter().map(|&a| covariance(a)).collect(),
+                    })
+                    .collect()
+            };
+            let exact = identify_rotary_axis(&series_of(false, &mut rng), &opts).unwrap();
+            for k in 0..4 {
+                let tol = if k < 2 { 2e-9 } else { 2e-8 };
+                let e = exact.location[k] - truth.location[k];
+                assert!(e.abs() < tol, "azimuth {nominal}: location {k} off by {e}");
+            }
+            for (i, &a) in angles.iter().enumerate() {
+                let want = motion_in_convention(&truth, a, &q[0], nominal);
+                for k in 0..6 {
+                    let tol = if k < 3 { 2e-9 } else { 2e-8 };
+                    let e = exact.motion[i][k] - want[k];
+                    assert!(
+                        e.abs() < tol,
+                        "azimuth {nominal}, angle {i}: {} off by {e}",
+                        MOTION_NAMES[k]
+                    );
+                }
+            }
+            for _ in 0..4 {
+                let id = identify_rotary_axis(&series_of(true, &mut rng), &opts).unwrap();
+                for k in 0..4 {
+                    z2 += ((id.location[k] - truth.location[k]) / id.location_sigma[k]).powi(2);
+                    count += 1;
+                }
+                for (i, &a) in angles.iter().enumerate() {
+                    let want = motion_in_convention(&truth, a, &q[0], nominal);
+                    // EXC, EYC are one radial value: count it once, by the larger component.
+                    let k_radial = if id.motion_sigma[i][0] > id.motion_sigma[i][1] {
+                        0
+                    } else {
+                        1
+                    };
+                    for k in [k_radial, 2, 3, 4, 5] {
+                        z2 += ((id.motion[i][k] - want[k]) / id.motion_sigma[i][k]).powi(2);
+                        count += 1;
+                    }
+                }
+            }
+        }
+        let mean = z2 / count as f64;
+        assert!((0.85..1.15).contains(&mean), "mean z² {mean} over {count}");
     }
 
     #[test]

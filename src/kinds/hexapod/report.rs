@@ -5,6 +5,11 @@ use std::fmt::Write;
 use super::solve::HexapodResults;
 use crate::method::report::um;
 
+/// χ²/dof to 3 decimals, or why there is none.
+fn chi2_text(v: Option<f64>) -> String {
+    v.map_or("none (no redundancy)".into(), |v| format!("{v:.3}"))
+}
+
 pub fn text(r: &HexapodResults) -> String {
     let mut s = String::new();
     let _ = writeln!(
@@ -24,12 +29,12 @@ pub fn text(r: &HexapodResults) -> String {
     let _ = writeln!(
         s,
         "  two-stage: objective {:.4e} m² (start {:.4e}, stage 1 {:.4e}), residual rms {:.3} µm, \
-         weighted chi²/dof {:.3} ({} dof), {} grid rounds, {} leg solves",
+         weighted chi²/dof {} ({} dof), {} grid rounds, {} leg solves",
         r.two_stage.objective_m2,
         r.two_stage.objective_initial_m2,
         r.two_stage.objective_stage1_m2,
         um(r.residual_rms_m),
-        r.chi2_per_dof,
+        chi2_text(r.chi2_per_dof),
         r.dof,
         r.two_stage.rounds.len(),
         r.two_stage.leg_solves
@@ -147,7 +152,7 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
         ),
         (
             "weighted χ²/dof".to_string(),
-            format!("{:.3} ({} dof)", r.chi2_per_dof, r.dof),
+            format!("{} ({} dof)", chi2_text(r.chi2_per_dof), r.dof),
         ),
         (
             "largest hinge correction".to_string(),

@@ -47,6 +47,25 @@ pub enum HexapodMethodError {
          (`geocal repair` cannot bring it back; measure again)"
     )]
     ReferenceLost,
+    #[error(
+        "session header: pose sensor `{sensor}` (driver `{driver}`) declares no `{key}`: its \
+         measured poses have no noise model (give 0 for a noise-free sensor)"
+    )]
+    PoseSensorNoise {
+        sensor: String,
+        driver: String,
+        key: &'static str,
+    },
+    #[error(
+        "poses published on {found}: the contract (docs/session-format.md) is \
+         `/hexapod/<hexapod id>/pose`, here {expected}; no pose is taken from another topic"
+    )]
+    MisplacedPoses { found: String, expected: String },
+    #[error(
+        "session header: pose sensor `{sensor}` measures the poses but {topic} holds no pose in \
+         any pose window: commanded poses would be used as exact"
+    )]
+    NoMeasuredPoses { sensor: String, topic: String },
     #[error(transparent)]
     Solve(#[from] HexapodError),
 }
@@ -81,10 +100,10 @@ pub struct HexapodResults {
     #[serde(default)]
     pub weighted_iterations: usize,
     /// Σ of squared residuals over every pose change and leg, two-stage result (m²); the
-    /// chi²/dof below is the weighted one of `hinges` (rᵀC⁻¹r over `dof`).
+    /// chi²/dof below is the weighted one of `hinges` (rᵀC⁻¹r over `dof`), null at 0 dof.
     pub objective_m2: f64,
     pub residual_rms_m: f64,
-    pub chi2_per_dof: f64,
+    pub chi2_per_dof: Option<f64>,
     pub dof: usize,
     pub two_stage: TwoStageSummary,
     pub lm: PlainLmSummary,
@@ -145,13 +164,13 @@ fn parse<T: serde::de::DeserializeOwned>(
     })
 }
 
-/// One pose's data: the pose, the mean leg reading, how many readings made it and whether the
-/// pose is measured (else commanded, taken as exact).
+/// One pose's data: the pose, the mean leg reading, how many readings made it and how many
+/// pose messages the measured pose averages (0: commanded, taken as exact).
 struct PoseData {
     pose: Pose,
     mean_m: [f64; LEGS],
     n: usize,
-    measured: bool,
+    pose_messages: usize,
 }
 
 fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
@@ -212,23 +231,33 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                 if n == 0 {
                     return Err(HexapodMethodError::NoReadings { pose: p });
                 }
-                let (pose, is_measured) = match measured.iter().rfind(|m| within(m.log_time_ns)) {
-                    Some(m) => {
-                        let s: PlatformPoseSample = parse(&pose_topic, m.log_time_ns, &m.msg)?;
-                        any_measured = true;
-                        let p = to_pose(&geocal_drivers::PlatformPose {
-                            translation_m: s.translation_m,
-                            rotation_vector_rad: s.rotation_vector_rad,
-                        });
-                        (p, true)
+                // Several pose messages in one window (the platform at rest) are averaged:
+                // their mean has σ / √k per coordinate.
+                let mut t_sum = [0.0; 3];
+                let mut w_sum = [0.0; 3];
+                let mut k = 0usize;
+                for m in measured.iter().filter(|m| within(m.log_time_ns)) {
+                    let s: PlatformPoseSample = parse(&pose_topic, m.log_time_ns, &m.msg)?;
+                    for c in 0..3 {
+                        t_sum[c] += s.translation_m[c];
+                        w_sum[c] += s.rotation_vector_rad[c];
                     }
-                    None => (commanded, false),
+                    k += 1;
+                }
+                let pose = if k > 0 {
+                    any_measured = true;
+                    to_pose(&geocal_drivers::PlatformPose {
+                        translation_m: t_sum.map(|v| v / k as f64),
+                        rotation_vector_rad: w_sum.map(|v| v / k as f64),
+                    })
+                } else {
+                    commanded
                 };
                 out.push(PoseData {
                     pose,
                     mean_m: sum.map(|s| s / n as f64),
                     n,
-                    measured: is_measured,
+                    pose_messages: k,
                 });
             }
             _ => {}
@@ -275,7 +304,53 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
         )));
     }
     let nominal = machine.nominal();
+    let expected_topic = hexapod_pose_topic(&hexapod.id);
+    // Poses anywhere else (e.g. under the pose sensor's own id) are refused, not ignored.
+    if let Some(found) = session
+        .topics
+        .keys()
+        .find(|t| t.starts_with("/hexapod/") && t.ends_with("/pose") && **t != expected_topic)
+    {
+        return Err(HexapodMethodError::MisplacedPoses {
+            found: found.clone(),
+            expected: expected_topic,
+        });
+    }
+    // The pose sensor's declared noise applies to the measured poses; a sensor that measures
+    // (any driver but `given`, which takes the commanded poses as exact) must declare it.
+    let sensor = session
+        .header
+        .devices
+        .iter()
+        .find(|d| d.kind == "pose_sensor");
+    let measuring = sensor.filter(|d| d.driver != "given");
+    let (pose_sigma_m, pose_sigma_rad) = match measuring {
+        Some(d) => {
+            let missing = |key| HexapodMethodError::PoseSensorNoise {
+                sensor: d.id.clone(),
+                driver: d.driver.clone(),
+                key,
+            };
+            let m = d.noise_m.filter(|v| v.is_finite() && *v >= 0.0);
+            let r = d
+                .extra
+                .get("noise_rad")
+                .and_then(|v| v.as_f64())
+                .filter(|v| v.is_finite() && *v >= 0.0);
+            (
+                m.ok_or_else(|| missing("noise_m"))?,
+                r.ok_or_else(|| missing("noise_rad"))?,
+            )
+        }
+        None => (0.0, 0.0),
+    };
     let (data, any_measured) = pose_data(session, &hexapod.id)?;
+    if let (Some(d), false) = (measuring, any_measured) {
+        return Err(HexapodMethodError::NoMeasuredPoses {
+            sensor: d.id.clone(),
+            topic: expected_topic,
+        });
+    }
     let Some(reference) = data.first() else {
         return Err(HexapodMethodError::NoReadings { pose: 0 });
     };
@@ -290,25 +365,26 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
         sigma_m: sigma_change_m,
         search_poses: None,
     };
-    // The pose sensor's declared noise applies to the measured poses only.
-    let sensor = session
-        .header
-        .devices
-        .iter()
-        .find(|d| d.kind == "pose_sensor");
-    let pose_sigma_m = sensor.and_then(|d| d.noise_m).unwrap_or(0.0);
-    let pose_sigma_rad = sensor
-        .and_then(|d| d.extra.get("noise_rad"))
-        .and_then(|v| v.as_f64())
-        .unwrap_or(0.0);
     let noise = HexapodNoise {
         encoder_sigma_m: noise_m,
         poses: data
             .iter()
-            .map(|d| PoseNoise {
-                readings: d.n,
-                translation_sigma_m: if d.measured { pose_sigma_m } else { 0.0 },
-                rotation_sigma_rad: if d.measured { pose_sigma_rad } else { 0.0 },
+            .map(|d| {
+                let averaged = (d.pose_messages.max(1) as f64).sqrt();
+                let measured = d.pose_messages > 0;
+                PoseNoise {
+                    readings: d.n,
+                    translation_sigma_m: if measured {
+                        pose_sigma_m / averaged
+                    } else {
+                        0.0
+                    },
+                    rotation_sigma_rad: if measured {
+                        pose_sigma_rad / averaged
+                    } else {
+                        0.0
+                    },
+                }
             })
             .collect(),
     };
@@ -396,7 +472,7 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         weighted_iterations: fit.iterations,
         objective_m2: two.objective_m2,
         residual_rms_m: two.residual_rms_m,
-        chi2_per_dof: fit.chi2 / dof.max(1) as f64,
+        chi2_per_dof: (dof > 0).then(|| fit.chi2 / dof as f64),
         dof,
         misfit: crate::solve::misfit::Misfit::check(fit.chi2, dof),
         two_stage: TwoStageSummary {

@@ -20,9 +20,9 @@ pub fn text(r: &ProbeInstallResults) -> String {
     );
     let _ = writeln!(
         s,
-        "  LM: residual rms {:.3} µm, chi²/dof {:.3} ({} dof), {} iterations{}",
+        "  LM: residual rms {:.3} µm, chi²/dof {} ({} dof), {} iterations{}",
         um(r.residual_rms_m),
-        r.chi2_per_dof,
+        chi2_text(r.chi2_per_dof),
         r.dof,
         r.lm.iterations,
         if r.lm.converged {
@@ -31,6 +31,15 @@ pub fn text(r: &ProbeInstallResults) -> String {
             " (NOT converged)"
         }
     );
+    if !r.not_identifiable.is_empty() {
+        let _ = writeln!(
+            s,
+            "  NOT identifiable by these postures (no σ): {}; held at nominal: {}; unseen: {}",
+            r.not_identifiable.join(", "),
+            r.held_at_nominal.join(", "),
+            r.unseen_directions.join("; ")
+        );
+    }
     let _ = writeln!(
         s,
         "  {:<20} {:>16} {:>12} {:>16} {:>16}",
@@ -40,8 +49,13 @@ pub fn text(r: &ProbeInstallResults) -> String {
         let ga = r.ga.values.get(k).copied().unwrap_or(f64::NAN);
         let _ = writeln!(
             s,
-            "  {:<20} {:>16.9e} {:>12.3e} {:>16.9e} {:>16.9e}",
-            p.name, p.value, p.sigma, ga, p.nominal
+            "  {:<20} {:>16.9e} {:>12} {:>16.9e} {:>16.9e}",
+            p.name,
+            p.value,
+            p.sigma
+                .map_or("not seen".to_string(), |v| format!("{v:.3e}")),
+            ga,
+            p.nominal
         );
     }
     let _ = writeln!(
@@ -105,11 +119,10 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
     for (k, p) in r.parameters.iter().enumerate() {
         let (scale, unit) = display(&p.name);
         let ga = r.ga.values.get(k).copied();
-        let z = if p.sigma > 0.0 {
-            Some((p.value - p.nominal) / p.sigma)
-        } else {
-            None
-        };
+        let z = p
+            .sigma
+            .filter(|s| *s > 0.0)
+            .map(|s| (p.value - p.nominal) / s);
         if let Some(z) = z {
             standardised.push((k as f64, z));
         }
@@ -118,7 +131,7 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             unit.to_string(),
             cell(Some(p.nominal * scale), 6),
             cell(Some(p.value * scale), 6),
-            cell(Some(p.sigma * scale), 6),
+            cell(p.sigma.map(|v| v * scale), 6),
             cell(ga.map(|v| v * scale), 6),
             cell(z, 1),
         ]);
@@ -161,7 +174,7 @@ pub fn document(results: &serde_json::Value) -> anyhow::Result<crate::document::
             "residual RMS".to_string(),
             format!("{:.3} µm", r.residual_rms_m * 1e6),
         ),
-        ("χ²/dof".to_string(), format!("{:.3}", r.chi2_per_dof)),
+        ("χ²/dof".to_string(), chi2_text(r.chi2_per_dof)),
         (
             "sphere radius before → after".to_string(),
             format!(
@@ -209,7 +222,12 @@ pub fn uncertainty(
     let values =
         nalgebra::SVector::<f64, N_PARAMS>::from_iterator(r.parameters.iter().map(|p| p.value));
     let solution = InstallParams::from_vector(&values);
-    let sigma: Vec<f64> = r.parameters.iter().map(|p| p.sigma).collect();
+    // A parameter the postures cannot see has no σ to budget.
+    let sigma: Vec<f64> = r
+        .parameters
+        .iter()
+        .map(|p| p.sigma.unwrap_or(f64::NAN))
+        .collect();
     let all = super::budget::budgets(&problem, &solution, &sigma, declared)?;
     let groups: Vec<BudgetGroup> = [
         ("δB", 0..1),
@@ -234,4 +252,9 @@ pub fn uncertainty(
         &groups,
         &all,
     ))
+}
+
+/// χ²/dof to 3 decimals, or why there is none.
+fn chi2_text(v: Option<f64>) -> String {
+    v.map_or("none (no redundancy)".into(), |v| format!("{v:.3}"))
 }

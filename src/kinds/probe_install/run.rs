@@ -39,7 +39,9 @@ pub fn session_header(config: &ProbeInstallConfig, epoch_ns: u64) -> SessionHead
         kind: KIND.into(),
         machine: MachineInfo {
             name: config.machine.name.clone(),
-            structure: "XYZAB".into(),
+            // ISO 230-1 chain as the shared session format defines it: every axis on the tool
+            // branch, from the frame outward (B carries A).
+            structure: "FXYZBA".into(),
             axes: CMM_AXES.iter().map(|a| a.to_string()).collect(),
             travel_m: config.machine.travel_m.clone(),
             targets: Vec::new(),
@@ -112,7 +114,7 @@ pub fn resume(
         .flatten()
         .map(|r| r.msg.seq + 1)
         .max()
-        .unwrap_or(0);
+        .unwrap_or(1);
     let machine_at = last_commanded(session);
     interruption.set_aside()?;
     tracing::info!(
@@ -226,7 +228,7 @@ fn execute(
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
-    let mut first = (0, 0);
+    let mut first = (0, 1);
     match continuation {
         Some(mut c) => {
             if let (Some(world), Some(sim)) = (&built.world, &config.sim) {

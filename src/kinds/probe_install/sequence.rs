@@ -51,7 +51,8 @@ impl<'a> ProbeInstallSequencer<'a> {
             plan,
             devices,
             log: EventLog::new(recorder, clock),
-            seq: 0,
+            // Readings are counted from 1 (docs/session-format.md), as the other kinds do.
+            seq: 1,
             summary: RunSummary::default(),
             first_posture: 0,
         }

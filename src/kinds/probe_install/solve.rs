@@ -13,9 +13,13 @@ use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
 use crate::solve::genetic::GeneticOptions;
 use crate::solve::probe_install::{
-    measured_radius_m, solve_ga, solve_lm, LmOptions, ProbeInstallError, ProbeInstallProblem,
-    SearchBox,
+    measured_radius_m, solve_ga, solve_lm_with_design, LmOptions, ProbeInstallError,
+    ProbeInstallProblem, SearchBox,
 };
+
+/// A reported posture within this of a planned one (servo and encoder scatter) is that
+/// posture for the identifiability check.
+const POSTURE_SNAP_RAD: f64 = 1e-3;
 
 #[derive(Debug, thiserror::Error)]
 pub enum ProbeInstallMethodError {
@@ -61,8 +65,16 @@ pub struct ProbeInstallResults {
     /// The exterior-penalty objective of the reported (LM) parameters (M = penalty).
     pub objective: f64,
     pub residual_rms_m: f64,
-    pub chi2_per_dof: f64,
+    /// Null at 0 degrees of freedom.
+    pub chi2_per_dof: Option<f64>,
     pub dof: usize,
+    /// Parameters the postures cannot see (σ null): each takes part in a direction along which
+    /// no reading changes. Their values are conditional on `held_at_nominal`.
+    pub not_identifiable: Vec<String>,
+    /// One free parameter per unseen direction, held at its nominal value during LM.
+    pub held_at_nominal: Vec<String>,
+    /// The unseen directions as combinations of the solver's free parameters.
+    pub unseen_directions: Vec<String>,
     pub lm: LmSummary,
     pub ga: GaSummary,
     /// Sphere radius measured from all points with the nominal installation (before) and with
@@ -81,7 +93,8 @@ pub struct ProbeInstallResults {
 pub struct ParameterResult {
     pub name: String,
     pub value: f64,
-    pub sigma: f64,
+    /// Null when the postures cannot see the parameter.
+    pub sigma: Option<f64>,
     pub nominal: f64,
 }
 
@@ -276,7 +289,29 @@ pub fn problem(
 pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMethodError> {
     let (plan, problem, readings, out_of_range) = problem(session)?;
     let nominal = problem.nominal;
-    let lm = solve_lm(&problem, &nominal, &LmOptions::default())?;
+    // Identifiability is judged on the plan's postures (the commanded ones), not on the
+    // encoders' scatter around them.
+    let design = ProbeInstallProblem {
+        observations: problem
+            .observations
+            .iter()
+            .map(|o| {
+                let mut d = *o;
+                if let Some(p) = plan.postures_rad.iter().min_by(|p, q| {
+                    let dist = |p: &&[f64; 2]| (p[0] - o.a_rad).hypot(p[1] - o.b_rad);
+                    dist(p).total_cmp(&dist(q))
+                }) {
+                    if (p[0] - o.a_rad).hypot(p[1] - o.b_rad) < POSTURE_SNAP_RAD {
+                        d.a_rad = p[0];
+                        d.b_rad = p[1];
+                    }
+                }
+                d
+            })
+            .collect(),
+        ..problem.clone()
+    };
+    let lm = solve_lm_with_design(&problem, &nominal, &LmOptions::default(), &design)?;
     let s = &plan.solver;
     let ga = solve_ga(
         &problem,
@@ -299,7 +334,7 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
         .map(|k| ParameterResult {
             name: PARAM_NAMES[k].to_string(),
             value: values[k],
-            sigma: lm.sigma[k],
+            sigma: lm.identifiable[k].then_some(lm.sigma[k]),
             nominal: nominal_values[k],
         })
         .collect();
@@ -315,9 +350,15 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
         parameters,
         objective: lm_objective,
         residual_rms_m: lm.residual_rms_m,
-        chi2_per_dof: lm.chi2 / lm.dof.max(1) as f64,
+        chi2_per_dof: (lm.dof > 0).then(|| lm.chi2 / lm.dof as f64),
         dof: lm.dof,
         misfit: crate::solve::misfit::Misfit::check(lm.chi2, lm.dof),
+        not_identifiable: (0..N_PARAMS)
+            .filter(|&k| !lm.identifiable[k])
+            .map(|k| PARAM_NAMES[k].to_string())
+            .collect(),
+        held_at_nominal: lm.held_at_start.iter().map(|s| s.to_string()).collect(),
+        unseen_directions: lm.unseen_directions.clone(),
         lm: LmSummary {
             objective: lm_objective,
             unit_norm_violation: lm.unit_norm_violation,

@@ -6,6 +6,7 @@ use nalgebra::{DMatrix, Matrix3, SMatrix};
 
 use crate::kinds::rotary_sphere::config::{HeightRole, RotarySphereConfig, KIND};
 use crate::kinds::rotary_sphere::plan::SpherePlan;
+use crate::kinds::rotary_sphere::solve::nominal_azimuth_rad;
 use crate::method::plan_check_kinds::linear::{analyse, BlockAnalysis};
 use crate::method::plan_check_kinds::{merge, summarise, KindPlanCheck, PredictedSigma};
 use crate::model::rotary_sphere::{
@@ -35,7 +36,8 @@ fn unit_of_motion(k: usize) -> &'static str {
 }
 
 /// The free motion parameters per angle under the solver's convention (tangential deviation in
-/// ECC, translation radial only): [radial, EZC, EAC, EBC, ECC] → the six motion errors.
+/// ECC, translation radial only): [radial, EZC, EAC, EBC, ECC] → the six motion errors; the
+/// radial direction at θ is the nominal sphere's, (cos(θ + φ), sin(θ + φ)).
 fn convention(theta_rad: f64) -> SMatrix<f64, 6, 5> {
     let (s, c) = theta_rad.sin_cos();
     let mut t = SMatrix::<f64, 6, 5>::zeros();
@@ -60,6 +62,7 @@ fn whiten(cov: &Matrix3<f64>, j: DMatrix<f64>) -> Result<DMatrix<f64>, String> {
 
 pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
     let plan = SpherePlan::from_config(&config.plan);
+    let azimuth_rad = nominal_azimuth_rad(&config.plan);
     let noise_m = config.devices.probe.noise_m;
     let sigma_point_m = noise_m / (plan.readings_per_point.max(1) as f64).sqrt();
     let (nh, na) = (plan.heights.len(), plan.angles_rad.len());
@@ -114,7 +117,7 @@ pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
             .iter()
             .map(|n| format!("{n}@{}", deg(theta)))
             .collect();
-        let t = convention(theta);
+        let t = convention(theta + azimuth_rad);
         let mut j = DMatrix::zeros(3 * nf, 5);
         for (i, &h) in fit_heights.iter().enumerate() {
             let p = rz(theta) * plan.heights[h].sphere_m;
@@ -175,6 +178,7 @@ pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
             &IdentifyOptions {
                 convention: TangentialConvention::AngularPositioning,
                 harmonics: HarmonicOrder::Fixed(max_order),
+                radial_azimuth_rad: Some(azimuth_rad),
             },
         ) {
             Ok(id) => Some(id),
@@ -199,7 +203,7 @@ pub fn check(config: &RotarySphereConfig) -> Result<KindPlanCheck, String> {
         });
     }
     for (a, &theta) in plan.angles_rad.iter().enumerate() {
-        let (s, c) = theta.sin_cos();
+        let (s, c) = (theta + azimuth_rad).sin_cos();
         for (k, name) in MOTION_NAMES.iter().enumerate() {
             let sigma = match &solver {
                 Some(id) => Some(id.motion_sigma[a][k]),

@@ -72,6 +72,9 @@ pub struct RotarySphereResults {
     /// How the tangential combination t + r·ECC is split (one sphere radius cannot split it).
     pub convention: TangentialConvention,
     pub reference_radius_m: f64,
+    /// The sphere's nominal azimuth φ at θ = 0 (the plan's fit heights): at angle θ, EXC and
+    /// EYC are the radial translation written along (cos(θ + φ), sin(θ + φ)).
+    pub radial_azimuth_rad: f64,
     pub motion_names: [&'static str; 6],
     pub motion: Vec<MotionAtAngle>,
     /// Per motion error, its harmonic model value(θ) = c0 + Σ a_k cos kθ + b_k sin kθ.
@@ -334,6 +337,19 @@ pub fn probed(
     Ok((plan_config, noise_m, probed))
 }
 
+/// The sphere's nominal azimuth at θ = 0: that of the mean of the fit heights' nominal
+/// positions (the direction EXC, EYC are written along, turned by each angle).
+pub fn nominal_azimuth_rad(plan: &SpherePlanConfig) -> f64 {
+    let (x, y) = plan
+        .heights
+        .iter()
+        .filter(|h| h.role == HeightRole::Fit)
+        .fold((0.0, 0.0), |(x, y), h| {
+            (x + h.sphere_m[0], y + h.sphere_m[1])
+        });
+    y.atan2(x)
+}
+
 /// The sphere fits by (height, angle): commanded angle, fit, readings used.
 pub type Fits = BTreeMap<(usize, usize), (f64, SphereFit, usize)>;
 
@@ -411,6 +427,7 @@ pub fn identify(
         &IdentifyOptions {
             convention: TangentialConvention::AngularPositioning,
             harmonics: HarmonicOrder::Bic { max_order },
+            radial_azimuth_rad: Some(nominal_azimuth_rad(plan_config)),
         },
     )
     .map_err(RotarySphereMethodError::Identify)?;
@@ -541,6 +558,7 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
         location_covariance: id.location_covariance,
         convention: id.convention,
         reference_radius_m: id.reference_radius_m,
+        radial_azimuth_rad: id.radial_azimuth_rad,
         motion_names: MOTION_NAMES,
         motion,
         harmonics: id.harmonics,
