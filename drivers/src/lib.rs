@@ -3,6 +3,7 @@
 
 pub mod grbl;
 pub mod hpi3d;
+pub mod linuxcnc;
 pub mod modbus;
 pub mod modbus_hexapod;
 pub mod modbus_table;
