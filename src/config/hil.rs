@@ -78,12 +78,12 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             )
         }
     };
-    use DriverKind::{Grbl, Hpi3d, ModbusRtu, ModbusTcp, Passive, Sim};
+    use DriverKind::{Grbl, Hpi3d, Linuxcnc, ModbusRtu, ModbusTcp, Passive, Sim};
     check("devices.tracer.driver", d.tracer.driver, &[Sim, Hpi3d])?;
     check(
         "devices.machine.driver",
         d.machine.driver,
-        &[Sim, Grbl, Passive],
+        &[Sim, Grbl, Linuxcnc, Passive],
     )?;
     if d.machine.driver == Passive && config.plan.rotary.is_some() {
         return fail(
@@ -146,7 +146,30 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             "driver settings for \"grbl\", but devices.machine.driver is not \"grbl\"",
         );
     }
+    if let Some(lc) = &d.machine.linuxcnc {
+        if d.machine.driver != Linuxcnc {
+            return fail(
+                "devices.machine.linuxcnc",
+                "driver settings for \"linuxcnc\", but devices.machine.driver is not \"linuxcnc\"",
+            );
+        }
+        let mut checked = lc.clone();
+        checked.feed_m_s = d.machine.feed_m_s;
+        if let Err(e) = checked.validate() {
+            let message = match e {
+                geocal_drivers::DeviceError::Protocol { message, .. } => message,
+                other => other.to_string(),
+            };
+            return fail("devices.machine.linuxcnc", message);
+        }
+    }
     let emulated = config.emulated();
+    if d.machine.driver == Linuxcnc && emulated {
+        return fail(
+            "devices.machine.driver",
+            "\"linuxcnc\" is a real controller, not emulated: use it without [hil] emulate = true",
+        );
+    }
     if !emulated {
         if d.tracer.driver == Hpi3d && d.tracer.hpi3d.as_ref().is_none_or(|c| c.port.is_empty()) {
             return fail(
@@ -158,6 +181,17 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             return fail(
                 "devices.machine.grbl.port",
                 "missing: a real GRBL controller needs its serial port (or set [hil] emulate = true)",
+            );
+        }
+        if d.machine.driver == Linuxcnc
+            && d.machine
+                .linuxcnc
+                .as_ref()
+                .is_none_or(|c| c.host.is_empty())
+        {
+            return fail(
+                "devices.machine.linuxcnc.host",
+                "missing: geocal connects to linuxcncrsh at host (and port, 5007 by default)",
             );
         }
     }

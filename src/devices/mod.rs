@@ -2,7 +2,8 @@
 //! stamps them and, for simulated and emulated runs, the world behind them:
 //! - every device `sim`: the simulated drivers in virtual time (the tracer stream advances
 //!   the clock, so runs take seconds whatever the dwell times);
-//! - protocol drivers (`hpi3d`, `grbl`) without `[hil]`: the real devices at their ports,
+//! - protocol drivers (`hpi3d`, `grbl`, `linuxcnc`) without `[hil]`: the real devices at their
+//!   ports (LinuxCNC at its linuxcncrsh host and port),
 //!   stamped by the system clock;
 //! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys (and the
 //!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
@@ -18,6 +19,7 @@ use std::sync::{Arc, Mutex};
 use anyhow::Context;
 use geocal_drivers::grbl::{GrblConfig, GrblMachine};
 use geocal_drivers::hpi3d::{Hpi3dConfig, Hpi3dTracer};
+use geocal_drivers::linuxcnc::{LinuxCncConfig, LinuxCncMachine};
 use geocal_drivers::{Environment, Machine, Operator, RotaryTable, Tracer};
 
 use crate::clock::{Clock, SystemClock, VirtualClock};
@@ -143,6 +145,15 @@ fn hpi3d_config(config: &Config) -> Hpi3dConfig {
 fn grbl_config(config: &Config) -> GrblConfig {
     let machine = &config.devices.machine;
     let mut c = machine.grbl.clone().unwrap_or_default();
+    c.id = machine.id.clone();
+    c.feed_m_s = machine.feed_m_s;
+    c
+}
+
+/// The LinuxCNC driver's settings: `[devices.machine.linuxcnc]` with the machine's id and feed.
+pub fn linuxcnc_config(config: &Config) -> LinuxCncConfig {
+    let machine = &config.devices.machine;
+    let mut c = machine.linuxcnc.clone().unwrap_or_default();
     c.id = machine.id.clone();
     c.feed_m_s = machine.feed_m_s;
     c
@@ -351,11 +362,21 @@ async fn build_real(
             })
             .await?
         }
+        DriverKind::Linuxcnc => {
+            let cfg = linuxcnc_config(config);
+            let at = format!("{}:{}", cfg.host, cfg.port);
+            held::lend_or_open(holder, &cfg.id.clone(), &cfg.clone(), || async {
+                LinuxCncMachine::connect(cfg)
+                    .await
+                    .with_context(|| format!("connecting to LinuxCNC (linuxcncrsh) at {at}"))
+            })
+            .await?
+        }
         DriverKind::Passive => Box::new(crate::sequencer::passive::PassiveMachine {
             id: config.devices.machine.id.clone(),
         }),
         kind => anyhow::bail!(
-            "devices.machine.driver = \"{}\" in a real run: expected \"grbl\"",
+            "devices.machine.driver = \"{}\" in a real run: expected \"grbl\" or \"linuxcnc\"",
             kind.as_str()
         ),
     };
