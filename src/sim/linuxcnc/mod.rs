@@ -13,6 +13,7 @@
 //!   removes LinuxCNC's shared memory and its lock file when geocal is done with it or dies.
 
 pub mod hal;
+pub mod host;
 pub mod ini;
 
 use std::fs::File;
