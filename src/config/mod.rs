@@ -619,6 +619,15 @@ impl Config {
                 *pw = std::path::absolute(&joined).unwrap_or(joined);
             }
         }
+        if let (Some(lc), Some(dir)) = (
+            config.hil.as_mut().and_then(|h| h.linuxcnc.as_mut()),
+            file.parent(),
+        ) {
+            for c in lc.comp_files.iter_mut().filter(|c| c.file.is_relative()) {
+                let joined = dir.join(&c.file);
+                c.file = std::path::absolute(&joined).unwrap_or(joined);
+            }
+        }
         if let (Some(sim), Some(dir)) = (config.sim.as_mut(), file.parent()) {
             for c in &mut sim.compensation {
                 if c.file.is_relative() {

@@ -283,14 +283,24 @@ async fn build_emulated(
 
     // The machine: the GRBL driver opens the emulator's link path (and reopens it after
     // an injected disconnect), or the simulated machine.
-    let machine: Box<dyn Machine> = match &hosted.machine_path {
-        Some(path) => {
+    let machine: Box<dyn Machine> = match (&hosted.machine_path, &hosted.linuxcnc) {
+        (_, Some(linuxcnc)) => {
+            // The driver homes the joints where they stand, as the INI geocal wrote allows.
+            let mut cfg = linuxcnc_config(config);
+            cfg.home = geocal_drivers::linuxcnc::HomePolicy::Allow;
+            Box::new(
+                LinuxCncMachine::connect_with(cfg, linuxcnc.stream_connector())
+                    .await
+                    .context("connecting the LinuxCNC driver to the LinuxCNC geocal started")?,
+            )
+        }
+        (Some(path), None) => {
             let mut grbl = grbl_config(config);
             grbl.port = path.clone();
             tracing::info!("GRBL emulator on {}", grbl.port);
             Box::new(GrblMachine::open(grbl).context("opening the GRBL emulator's pty")?)
         }
-        None => Box::new(SimMachine {
+        (None, None) => Box::new(SimMachine {
             id: config.devices.machine.id.clone(),
             world: world.clone(),
         }),

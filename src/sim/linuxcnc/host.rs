@@ -121,12 +121,7 @@ impl HostedLinuxCnc {
 
     /// Close the HAL reader, then shut LinuxCNC down and check nothing is left.
     pub fn shutdown(&mut self) -> anyhow::Result<()> {
-        if let Some(mut reader) = self
-            .reader
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .take()
-        {
+        if let Some(mut reader) = self.reader.lock().unwrap_or_else(|e| e.into_inner()).take() {
             reader.close();
         }
         match self.instance.take() {
