@@ -383,6 +383,19 @@ pub struct LinuxCncMachine {
     requests: u64,
     status_polls: u64,
     link_faults: Vec<LinkFault>,
+    /// Connected for watching only (no `set enable`).
+    observer: bool,
+}
+
+/// What linuxcncrsh reports of the machine (`LinuxCncMachine::status`).
+#[derive(Debug, Clone, PartialEq)]
+pub struct ControllerStatus {
+    pub estop: bool,
+    pub machine_on: bool,
+    pub program: ProgramStatus,
+    /// Actual position of X, Y, Z in machine coordinates, metres (nominal: without a
+    /// compensation table's trim).
+    pub position_m: [f64; 3],
 }
 
 impl LinuxCncMachine {
@@ -419,6 +432,32 @@ impl LinuxCncMachine {
         connector: StreamConnector,
         passwords: Passwords,
     ) -> Result<Self, DeviceError> {
+        let mut machine = Self::open(cfg, connector, passwords, false).await?;
+        machine.power_up().await?;
+        Ok(machine)
+    }
+
+    /// Connect for watching only (`geocal monitor`): `hello` with the connect password, no
+    /// enable, nothing commanded; `status` reads the machine. Commands are refused by
+    /// linuxcncrsh (`SET ... NAK`).
+    pub async fn observe_with(
+        cfg: LinuxCncConfig,
+        connector: StreamConnector,
+    ) -> Result<Self, DeviceError> {
+        cfg.validate()?;
+        let passwords = match &cfg.password_file {
+            Some(path) => Passwords::load(&cfg.id, path)?,
+            None => Passwords::linuxcnc_defaults(),
+        };
+        Self::open(cfg, connector, passwords, true).await
+    }
+
+    async fn open(
+        cfg: LinuxCncConfig,
+        connector: StreamConnector,
+        passwords: Passwords,
+        observer: bool,
+    ) -> Result<Self, DeviceError> {
         cfg.validate()?;
         let axis_index = axis_index(&cfg)?;
         let io = open_stream(&cfg, &connector).await?;
@@ -440,9 +479,9 @@ impl LinuxCncMachine {
             requests: 0,
             status_polls: 0,
             link_faults: Vec::new(),
+            observer,
         };
         machine.handshake().await?;
-        machine.power_up().await?;
         Ok(machine)
     }
 
@@ -511,6 +550,19 @@ impl LinuxCncMachine {
         }
         self.set(&Request::Verbose(true)).await?;
         self.set(&Request::Echo(false)).await?;
+        if !self.observer {
+            self.enable().await?;
+        }
+        let units = self.get(Query::UserLinearUnits).await?;
+        self.mm_per_unit = decode_linear_units_mm(&units)
+            .map_err(|e| self.protocol(format!("`get user_linear_units`: {e}")))?;
+        self.drain_errors().await?;
+        Ok(())
+    }
+
+    /// `set enable <password>`: this connection commands the machine (taking control from
+    /// any other linuxcncrsh client).
+    async fn enable(&mut self) -> Result<(), DeviceError> {
         let enable = Request::Enable {
             password: self.passwords.enable.clone(),
         };
@@ -525,10 +577,6 @@ impl LinuxCncMachine {
             }
             other => return Err(self.unexpected(&enable, &other)),
         }
-        let units = self.get(Query::UserLinearUnits).await?;
-        self.mm_per_unit = decode_linear_units_mm(&units)
-            .map_err(|e| self.protocol(format!("`get user_linear_units`: {e}")))?;
-        self.drain_errors().await?;
         Ok(())
     }
 
@@ -536,7 +584,7 @@ impl LinuxCncMachine {
     async fn power_up(&mut self) -> Result<(), DeviceError> {
         if self.get_on_off(Query::Estop).await? {
             self.set(&Request::Estop(false)).await?;
-            if self.get_on_off(Query::Estop).await? {
+            if self.settle_on_off(Query::Estop, false).await? {
                 let why = self.error_text().await?.unwrap_or_default();
                 return Err(self.rejected(format!(
                     "LinuxCNC stays in E-stop after `set estop off` (an external E-stop chain is \
@@ -546,7 +594,7 @@ impl LinuxCncMachine {
         }
         if !self.get_on_off(Query::Machine).await? {
             self.set(&Request::Machine(true)).await?;
-            if !self.get_on_off(Query::Machine).await? {
+            if !self.settle_on_off(Query::Machine, true).await? {
                 let why = self.error_text().await?.unwrap_or_default();
                 return Err(self.rejected(format!(
                     "LinuxCNC's machine stays off after `set machine on` {why}"
@@ -569,7 +617,7 @@ impl LinuxCncMachine {
                  machine at its console, or set home = \"allow\" to let geocal home all joints"
             )));
         }
-        self.set(&Request::SetMode(Mode::Manual)).await?;
+        self.ensure_mode(Mode::Manual).await?;
         self.set(&Request::Home(-1)).await?;
         let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.home_timeout_s);
         loop {
@@ -606,12 +654,35 @@ impl LinuxCncMachine {
     }
 
     async fn ensure_mdi(&mut self) -> Result<(), DeviceError> {
-        let value = self.get(Query::Mode).await?;
-        let mode = decode_mode(&value).map_err(|e| self.protocol(format!("`get mode`: {e}")))?;
-        if mode != Mode::Mdi {
-            self.set(&Request::SetMode(Mode::Mdi)).await?;
+        self.ensure_mode(Mode::Mdi).await
+    }
+
+    /// Switch the task mode if needed and wait until LinuxCNC reports it (a command sent
+    /// before would be refused in the old mode).
+    async fn ensure_mode(&mut self, want: Mode) -> Result<(), DeviceError> {
+        if self.mode().await? == want {
+            return Ok(());
         }
-        Ok(())
+        self.set(&Request::SetMode(want)).await?;
+        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
+        loop {
+            let mode = self.mode().await?;
+            if mode == want {
+                return Ok(());
+            }
+            if Instant::now() >= deadline {
+                return Err(self.rejected(format!(
+                    "LinuxCNC stays in mode {mode:?} after `{}`",
+                    Request::SetMode(want)
+                )));
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
+    }
+
+    async fn mode(&mut self) -> Result<Mode, DeviceError> {
+        let value = self.get(Query::Mode).await?;
+        decode_mode(&value).map_err(|e| self.protocol(format!("`get mode`: {e}")))
     }
 
     /// Read `get error` until LinuxCNC says OK (it queues its messages); at most a few.
@@ -629,6 +700,20 @@ impl LinuxCncMachine {
     /// The next queued LinuxCNC error message, if any.
     async fn error_text(&mut self) -> Result<Option<String>, DeviceError> {
         Ok(decode_error(&self.get(Query::Error).await?))
+    }
+
+    /// Poll an on/off state until it is `want` (a `set` is acknowledged once LinuxCNC's task
+    /// received it; its status follows a few cycles later), at most `reply_timeout_s`;
+    /// returns the last value.
+    async fn settle_on_off(&mut self, q: Query, want: bool) -> Result<bool, DeviceError> {
+        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
+        loop {
+            let v = self.get_on_off(q).await?;
+            if v == want || Instant::now() >= deadline {
+                return Ok(v);
+            }
+            tokio::time::sleep(Duration::from_millis(20)).await;
+        }
     }
 
     async fn get_on_off(&mut self, q: Query) -> Result<bool, DeviceError> {
@@ -784,7 +869,16 @@ impl LinuxCncMachine {
                 ),
             }));
         }
-        Ok((!errors.is_empty()).then(|| self.rejected(format!("{context}:{said}"))))
+        if !errors.is_empty() {
+            return Ok(Some(self.rejected(format!("{context}:{said}"))));
+        }
+        if !self.get_on_off(Query::Enable).await? {
+            return Ok(Some(self.rejected(format!(
+                "{context}: another linuxcncrsh client took control of LinuxCNC (`get enable` \
+                 says OFF); geocal does not take it back during a move"
+            ))));
+        }
+        Ok(None)
     }
 
     /// Positions of the configured axes (metres) from `get abs_act_pos`.
@@ -799,6 +893,11 @@ impl LinuxCncMachine {
     }
 
     async fn start_move_once(&mut self, target: &AxisPositions) -> Result<(), DeviceError> {
+        if self.observer {
+            return Err(self.rejected(
+                "connected for watching only (`observe_with`): it commands nothing".into(),
+            ));
+        }
         let mut next = self.commanded;
         let mut words = Vec::new();
         for (name, &pos_m) in target {
@@ -966,6 +1065,34 @@ impl LinuxCncMachine {
         Ok(())
     }
 
+    /// E-stop, machine power, interpreter state and position, queried now (reconnects after
+    /// a lost connection).
+    pub async fn status(&mut self) -> Result<ControllerStatus, DeviceError> {
+        match self.status_once().await {
+            Err(e @ DeviceError::Disconnected { .. }) => {
+                self.reconnect(e).await?;
+                self.status_once().await
+            }
+            r => r,
+        }
+    }
+
+    async fn status_once(&mut self) -> Result<ControllerStatus, DeviceError> {
+        self.status_polls += 1;
+        let estop = self.get_on_off(Query::Estop).await?;
+        let machine_on = self.get_on_off(Query::Machine).await?;
+        let value = self.get(Query::ProgramStatus).await?;
+        let program = decode_program_status(&value)
+            .map_err(|e| self.protocol(format!("`get program_status`: {e}")))?;
+        let p = self.actual_position().await?;
+        Ok(ControllerStatus {
+            estop,
+            machine_on,
+            program,
+            position_m: [0, 1, 2].map(|k| p[k].unwrap_or(f64::NAN)),
+        })
+    }
+
     /// A cheap request that shows whether the connection still works (reconnects if not).
     pub async fn ping(&mut self) -> Result<(), DeviceError> {
         match self.get(Query::Enable).await {
@@ -1079,10 +1206,15 @@ impl Machine for LinuxCncMachine {
         }
     }
 
-    /// Leave E-stop or machine-off: estop off, machine on, home if needed (as `home`
+    /// Leave E-stop or machine-off: enable this connection again, estop off, machine on, home if needed (as `home`
     /// allows), MDI mode. The interrupted move must be commanded again.
     async fn unlock(&mut self) -> Result<(), DeviceError> {
-        let r = match self.power_up().await {
+        // Another client may have taken control (and pressed E-stop): take it back first.
+        let r = match self.enable().await {
+            Ok(()) => self.power_up().await,
+            Err(e) => Err(e),
+        };
+        let r = match r {
             Err(e @ DeviceError::Disconnected { .. }) => {
                 self.reconnect(e).await?;
                 self.power_up().await

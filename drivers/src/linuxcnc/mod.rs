@@ -4,7 +4,8 @@
 pub mod codec;
 pub mod driver;
 
+pub use codec::ProgramStatus;
 pub use driver::{
-    tcp_connector, HomePolicy, LinuxCncConfig, LinuxCncMachine, MoveMode, Passwords,
-    StreamConnector, ALARM_ESTOP, ALARM_MACHINE_OFF,
+    tcp_connector, ControllerStatus, HomePolicy, LinuxCncConfig, LinuxCncMachine, MoveMode,
+    Passwords, StreamConnector, ALARM_ESTOP, ALARM_MACHINE_OFF,
 };
