@@ -101,6 +101,8 @@ fn press_estop_elsewhere(lcnc: &LinuxCnc) {
         "hello EMC operator 1.0",
         "set verbose on",
         "set enable EMCTOO",
+        // Global to linuxcncrsh: a move would then be answered only when done.
+        "set set_wait done",
         "set estop on",
     ] {
         s.write_all(format!("{line}\r\n").as_bytes()).unwrap();
@@ -314,8 +316,7 @@ fn linuxcnc_configuration_is_checked() {
     let text = std::fs::read_to_string(&path).expect("read");
     let fails = |edited: String, says: &[&str]| {
         let e = Config::parse(&edited, &path)
-            .err()
-            .expect("refused")
+            .expect_err("refused")
             .to_string();
         for s in says {
             assert!(e.contains(s), "{e}");

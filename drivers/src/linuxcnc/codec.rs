@@ -95,6 +95,9 @@ pub enum Request {
     Mdi(String),
     /// `set abort`: stop MDI execution and motion.
     Abort,
+    /// `set set_wait received`: a `set` is answered once LinuxCNC's task received it, not
+    /// when it is done (the setting is global to linuxcncrsh: another client may change it).
+    WaitReceived,
     Get(Query),
     Quit,
 }
@@ -161,6 +164,7 @@ impl Request {
                 format!("set mdi {line}")
             }
             Request::Abort => "set abort".into(),
+            Request::WaitReceived => "set set_wait received".into(),
             Request::Get(q) => format!("get {}", q.key().to_ascii_lowercase()),
             Request::Quit => "quit".into(),
         })
@@ -178,6 +182,7 @@ impl Request {
             Request::Home(_) => "HOME",
             Request::Mdi(_) => "MDI",
             Request::Abort => "ABORT",
+            Request::WaitReceived => "SET_WAIT",
             Request::Hello { .. } | Request::Get(_) | Request::Quit => return None,
         })
     }

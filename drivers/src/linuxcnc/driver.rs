@@ -530,7 +530,8 @@ impl LinuxCncMachine {
         }
     }
 
-    /// `hello`, verbose on (every `set` is answered), echo off, enable, units; then the
+    /// `hello`, verbose on (every `set` is answered), echo off, enable, `set_wait received`,
+    /// units; then the
     /// error queue is emptied (old errors are not this run's).
     async fn handshake(&mut self) -> Result<(), DeviceError> {
         let hello = Request::Hello {
@@ -561,7 +562,7 @@ impl LinuxCncMachine {
     }
 
     /// `set enable <password>`: this connection commands the machine (taking control from
-    /// any other linuxcncrsh client).
+    /// any other linuxcncrsh client); then `set set_wait received`.
     async fn enable(&mut self) -> Result<(), DeviceError> {
         let enable = Request::Enable {
             password: self.passwords.enable.clone(),
@@ -577,7 +578,9 @@ impl LinuxCncMachine {
             }
             other => return Err(self.unexpected(&enable, &other)),
         }
-        Ok(())
+        // `start_move` must return once the move is accepted, not when it ends; the setting
+        // is linuxcncrsh's, shared by all clients.
+        self.set(&Request::WaitReceived).await
     }
 
     /// Out of E-stop, machine on, joints homed (or a refusal), MDI mode.
