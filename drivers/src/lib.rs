@@ -11,6 +11,7 @@ pub mod probe;
 pub mod serial;
 pub mod traits;
 
+pub use traits::ControllerTrim;
 pub use traits::{
     AxisPositions, DeviceError, EnvReading, Environment, LinkFault, Machine, MachineState,
     Operator, Probe, ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,

@@ -288,11 +288,14 @@ async fn build_emulated(
             // The driver homes the joints where they stand, as the INI geocal wrote allows.
             let mut cfg = linuxcnc_config(config);
             cfg.home = geocal_drivers::linuxcnc::HomePolicy::Allow;
-            Box::new(
-                LinuxCncMachine::connect_with(cfg, linuxcnc.stream_connector())
-                    .await
-                    .context("connecting the LinuxCNC driver to the LinuxCNC geocal started")?,
-            )
+            let driver = LinuxCncMachine::connect_with(cfg, linuxcnc.stream_connector())
+                .await
+                .context("connecting the LinuxCNC driver to the LinuxCNC geocal started")?;
+            // Each point's trims go into the session (`controller_trims` events).
+            Box::new(crate::sim::linuxcnc::host::TrimReportingMachine {
+                inner: Box::new(driver),
+                latest: linuxcnc.trims_handle(),
+            })
         }
         (Some(path), None) => {
             let mut grbl = grbl_config(config);

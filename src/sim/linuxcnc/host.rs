@@ -131,6 +131,54 @@ impl HostedLinuxCnc {
     }
 }
 
+/// The run's machine (the `linuxcnc` driver) with the trims LinuxCNC applies, as the world
+/// last read them: at the end of a dwell the carriages stand still, so these are the trims
+/// at the point.
+pub struct TrimReportingMachine {
+    pub inner: Box<dyn geocal_drivers::Machine>,
+    pub latest: Arc<Mutex<Trims>>,
+}
+
+#[async_trait::async_trait]
+impl geocal_drivers::Machine for TrimReportingMachine {
+    fn id(&self) -> &str {
+        self.inner.id()
+    }
+
+    async fn start_move(
+        &mut self,
+        target: &geocal_drivers::AxisPositions,
+    ) -> Result<(), geocal_drivers::DeviceError> {
+        self.inner.start_move(target).await
+    }
+
+    async fn state(&mut self) -> Result<geocal_drivers::MachineState, geocal_drivers::DeviceError> {
+        self.inner.state().await
+    }
+
+    async fn unlock(&mut self) -> Result<(), geocal_drivers::DeviceError> {
+        self.inner.unlock().await
+    }
+
+    fn take_link_faults(&mut self) -> Vec<geocal_drivers::LinkFault> {
+        self.inner.take_link_faults()
+    }
+
+    fn controller_trims(&mut self) -> Vec<geocal_drivers::ControllerTrim> {
+        let latest = *self.latest.lock().unwrap_or_else(|e| e.into_inner());
+        latest
+            .iter()
+            .enumerate()
+            .map(|(joint, t)| geocal_drivers::ControllerTrim {
+                joint,
+                motor_pos_cmd_m: t.motor_pos_cmd_m,
+                table_m: t.table_m,
+                applied_m: t.applied_m,
+            })
+            .collect()
+    }
+}
+
 impl Drop for HostedLinuxCnc {
     fn drop(&mut self) {
         if let Err(e) = self.shutdown() {
