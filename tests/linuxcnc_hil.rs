@@ -185,6 +185,53 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         );
     }
 
+    // The session holds the trims LinuxCNC applied at every point, and the verification
+    // report shows them: with tables without a reversal, applied = table at every point.
+    let session = geocal::session::reader::read_session(&after.session_path).expect("session");
+    let mut trims: u64 = 0;
+    let mut largest_gap_m: f64 = 0.0;
+    let mut largest_applied_m: f64 = 0.0;
+    for e in &session.events {
+        if let geocal::session::messages::RunEvent::ControllerTrims { joints, .. } = &e.msg {
+            trims += 1;
+            assert_eq!(joints.len(), 3);
+            for j in joints {
+                largest_gap_m = largest_gap_m.max((j.table_m - j.applied_m).abs());
+                largest_applied_m = largest_applied_m.max(j.applied_m.abs());
+            }
+        }
+    }
+    println!(
+        "trims at {trims} points: largest applied {:.3} µm, largest |table − applied| {:.2e} µm",
+        largest_applied_m * 1e6,
+        largest_gap_m * 1e6
+    );
+    assert_eq!(
+        trims, after.summary.points_measured,
+        "one trims event per point"
+    );
+    assert!(largest_applied_m > 1e-6, "LinuxCNC applied the tables");
+    let md = dir.path().join("md").join("report.md");
+    std::fs::create_dir_all(dir.path().join("md")).expect("md dir");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["report".as_ref(), dir.path().join("after").as_os_str()])
+        .args(["--format", "md", "--out"])
+        .arg(&md)
+        .status()
+        .expect("geocal report");
+    assert!(status.success());
+    let report = std::fs::read_to_string(&md).expect("report.md");
+    let verification = &report[report.find("## Verification run").expect("section")..];
+    assert!(
+        verification.contains("Trims the controller applied at the points"),
+        "{verification}"
+    );
+    if largest_gap_m <= 1e-9 {
+        assert!(verification.contains(&format!("At all {trims} points the controller applied")));
+    } else {
+        assert!(verification.contains("LinuxCNC's dead band"));
+    }
+
     // x with the sign flipped (type 1: the trims negated), y with a header line (LinuxCNC
     // loads an empty table, silently), handed to LinuxCNC as written.
     let flipped: String = texts[0]
