@@ -285,3 +285,48 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         "the flipped table doubles EXX"
     );
 }
+
+/// The real-controller HIL's configuration errors name their keys (no LinuxCNC needed).
+#[test]
+fn linuxcnc_hil_configuration_errors_name_their_keys() {
+    let parse = |text: &str| {
+        geocal::config::Config::parse(text, std::path::Path::new("test.toml"))
+            .err()
+            .map(|e| e.to_string())
+    };
+    let ok = linuxcnc_config("");
+    assert_eq!(parse(&ok), None, "the test configuration is valid");
+    let e = parse(&ok.replace("x = [0.0, 1.4]", "x = [0.1, 1.4]")).expect("travel without 0");
+    assert!(
+        e.contains("machine.travel_m.x") && e.contains("contain 0"),
+        "{e}"
+    );
+    let e = parse(&ok.replace(
+        "[sim]\n",
+        "[sim]\ncompensation = [{ format = \"sinumerik\", file = \"Cargo.toml\", axis = \"x\" }]\n",
+    ))
+    .expect("a SINUMERIK table for LinuxCNC");
+    assert!(e.contains("sim.compensation[0]"), "{e}");
+    let e = parse(&ok.replace(
+        "servo_period_s = 0.00025",
+        "servo_period_s = 0.00025\ncomp_files = [{ axis = \"w\", file = \"Cargo.toml\", type = 1 }]",
+    ))
+    .expect("axis w");
+    assert!(e.contains("hil.linuxcnc.comp_files[0].axis"), "{e}");
+    let e = parse(&ok.replace(
+        "servo_period_s = 0.00025",
+        "servo_period_s = 0.00025\ncomp_files = [{ axis = \"x\", file = \"/nonexistent/comp-x.txt\", type = 1 }]",
+    ))
+    .expect("missing file");
+    assert!(e.contains("hil.linuxcnc.comp_files[0].file"), "{e}");
+    let without_linuxcnc = ok
+        .replace("driver = \"linuxcnc\"", "driver = \"sim\"")
+        .replace(
+            "[devices.machine.linuxcnc]\nmotion = \"rapid\"\nstatus_interval_s = 0.005\n\
+             reply_timeout_s = 30.0\nstall_timeout_s = 30.0\n",
+            "",
+        );
+    assert!(!without_linuxcnc.contains("[devices.machine.linuxcnc]"));
+    let e = parse(&without_linuxcnc).expect("[hil.linuxcnc] without LinuxCNC");
+    assert!(e.contains("hil.linuxcnc"), "{e}");
+}
