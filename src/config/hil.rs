@@ -50,7 +50,8 @@ pub struct LinuxCncHil {
     /// `SERVO_PERIOD`, seconds.
     #[serde(default = "default_servo_period")]
     pub servo_period_s: f64,
-    /// Longest wait for LinuxCNC to come up (and for the lock another instance holds), s.
+    /// Longest wait for LinuxCNC to come up once geocal holds the lock (another instance
+    /// holding it is waited for without limit: tests run one LinuxCNC at a time), s.
     #[serde(default = "default_start_timeout")]
     pub start_timeout_s: f64,
     /// Tables handed to LinuxCNC exactly as written, unchecked by geocal (what a user loads by
