@@ -1224,7 +1224,13 @@ impl Machine for LinuxCncMachine {
             }
             r => r,
         };
-        r?;
+        r.map_err(|e| match e {
+            DeviceError::Rejected { device, message } => DeviceError::Rejected {
+                device,
+                message: format!("clearing LinuxCNC's E-stop/machine-off alarm: {message}"),
+            },
+            e => e,
+        })?;
         self.drain_errors().await?;
         self.last_state = None;
         self.last_poll = None;
