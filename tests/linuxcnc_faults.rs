@@ -377,3 +377,50 @@ fn resume_and_check_prefix(dir: &Path) -> geocal::method::Results {
     );
     geocal::kinds::solve_file(&session_path, &Default::default()).expect("solve")
 }
+
+/// linuxcncrsh killed at point 6: it never comes back (the driver has no other way in), so
+/// the run stops with a message naming the lost connection, the session kept; `geocal run
+/// --resume DIR` starts a fresh LinuxCNC and finishes the plan with every message kept, and
+/// the results recover the truth.
+#[test]
+fn linuxcnc_run_stopped_by_a_killed_linuxcncrsh_resumes() {
+    if !available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let kill = |pid: u32| -> Result<(), String> {
+        // SAFETY: kill(2) of the linuxcncrsh this test started (found by ancestry).
+        if unsafe { libc::kill(pid as i32, libc::SIGKILL) } != 0 {
+            return Err(std::io::Error::last_os_error().to_string());
+        }
+        Ok(())
+    };
+    let started = std::time::Instant::now();
+    let (result, outcomes) =
+        run_with_injections(&config_text(), dir.path(), vec![(6, Box::new(kill))]);
+    println!(
+        "LinuxCNC run with linuxcncrsh killed: {:.1} s, injections {outcomes:?}",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(
+        outcomes[0].starts_with("done"),
+        "injection: {}",
+        outcomes[0]
+    );
+    let error = match result {
+        Ok(_) => panic!("the run cannot complete without linuxcncrsh"),
+        Err(e) => format!("{e:#}"),
+    };
+    println!("the run stopped: {error}");
+    assert!(
+        error.contains("linuxcncrsh") && error.contains("session recorded so far is kept"),
+        "the message names the lost linuxcncrsh: {error}"
+    );
+    let results = resume_and_check_prefix(dir.path());
+    let ml = results.multilateration().expect("tracer results");
+    assert_eq!(ml.points.len(), 18);
+    let truth: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(dir.path().join("truth.json")).expect("truth"))
+            .expect("truth json");
+    assert_recovers_truth(ml, &truth);
+}

@@ -34,6 +34,8 @@ const N_AXES: usize = LETTERS.len();
 pub const ALARM_ESTOP: u16 = 1;
 /// The machine was turned off (a following error, an amplifier fault, the operator).
 pub const ALARM_MACHINE_OFF: u16 = 2;
+/// How long `set machine on` may take to show before the E-stop is cycled.
+const MACHINE_ON_SETTLE: Duration = Duration::from_secs(3);
 
 /// Opens a new connection to linuxcncrsh: by host and port (`tcp_connector`), or by whatever
 /// the caller needs (e.g. a socket opened inside another network namespace).
@@ -597,6 +599,27 @@ impl LinuxCncMachine {
         }
         if !self.get_on_off(Query::Machine).await? {
             self.set(&Request::Machine(true)).await?;
+            // After an E-stop in the middle of a fast move LinuxCNC 2.9 enables motion and
+            // drops it at once ("Motion enabled after reaching a coordinate soft limit with
+            // active external offsets"), every time; an E-stop cycle clears that.
+            if !self
+                .settle_on_off_within(Query::Machine, true, MACHINE_ON_SETTLE)
+                .await?
+            {
+                let why = self.error_text().await?.unwrap_or_default();
+                self.link_faults.push(LinkFault {
+                    code: "machine_on".into(),
+                    message: format!(
+                        "LinuxCNC's machine stayed off after `set machine on` {why}; cycling \
+                         E-stop (on, off) and turning it on again"
+                    ),
+                });
+                self.set(&Request::Estop(true)).await?;
+                self.settle_on_off(Query::Estop, true).await?;
+                self.set(&Request::Estop(false)).await?;
+                self.settle_on_off(Query::Estop, false).await?;
+                self.set(&Request::Machine(true)).await?;
+            }
             if !self.settle_on_off(Query::Machine, true).await? {
                 let why = self.error_text().await?.unwrap_or_default();
                 return Err(self.rejected(format!(
@@ -709,7 +732,18 @@ impl LinuxCncMachine {
     /// received it; its status follows a few cycles later), at most `reply_timeout_s`;
     /// returns the last value.
     async fn settle_on_off(&mut self, q: Query, want: bool) -> Result<bool, DeviceError> {
-        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
+        let within = Duration::from_secs_f64(self.cfg.reply_timeout_s);
+        self.settle_on_off_within(q, want, within).await
+    }
+
+    /// `q` once it reads `want`, or as it reads after `within`.
+    async fn settle_on_off_within(
+        &mut self,
+        q: Query,
+        want: bool,
+        within: Duration,
+    ) -> Result<bool, DeviceError> {
+        let deadline = Instant::now() + within;
         loop {
             let v = self.get_on_off(q).await?;
             if v == want || Instant::now() >= deadline {
