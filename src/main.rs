@@ -145,7 +145,8 @@ enum Command {
     /// Connect to one device with its real driver, print its live readings and optionally
     /// record them as a session (kind `monitor`).
     Monitor {
-        /// hpi3d:PORT, grbl:PORT, probe:PORT, modbus-rtu:PORT or modbus-tcp:HOST:PORT.
+        /// hpi3d:PORT, grbl:PORT, probe:PORT, modbus-rtu:PORT, modbus-tcp:HOST:PORT or
+        /// linuxcnc:HOST[:PORT].
         #[arg(long, value_name = "SPEC")]
         device: String,
         /// Stop after this many seconds (default: run until Ctrl-C).
@@ -154,8 +155,9 @@ enum Command {
         /// Record the readings to this session file (MCAP).
         #[arg(long, value_name = "FILE")]
         out: Option<PathBuf>,
-        /// Driver settings: a TOML file with [hpi3d], [grbl], [rotary] or [probe] (or a run
-        /// config's [devices.tracer.hpi3d] / [devices.machine.grbl]).
+        /// Driver settings: a TOML file with [hpi3d], [grbl], [linuxcnc], [rotary] or [probe]
+        /// (or a run config's [devices.tracer.hpi3d] / [devices.machine.grbl] /
+        /// [devices.machine.linuxcnc]).
         #[arg(long, value_name = "FILE")]
         config: Option<PathBuf>,
     },

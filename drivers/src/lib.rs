@@ -3,6 +3,7 @@
 
 pub mod grbl;
 pub mod hpi3d;
+pub mod linuxcnc;
 pub mod modbus;
 pub mod modbus_hexapod;
 pub mod modbus_table;
@@ -10,6 +11,7 @@ pub mod probe;
 pub mod serial;
 pub mod traits;
 
+pub use traits::ControllerTrim;
 pub use traits::{
     AxisPositions, DeviceError, EnvReading, Environment, LinkFault, Machine, MachineState,
     Operator, Probe, ProbeReading, RotaryState, RotaryTable, Tracer, TracerReading,

@@ -122,6 +122,23 @@ pub trait Machine: Send {
     fn take_link_faults(&mut self) -> Vec<LinkFault> {
         Vec::new()
     }
+    /// The compensation trims the controller applies now, per joint, where they can be read
+    /// (LinuxCNC's HAL pins in a real-controller HIL run); none by default.
+    fn controller_trims(&mut self) -> Vec<ControllerTrim> {
+        Vec::new()
+    }
+}
+
+/// One joint's compensation as the controller applies it, metres.
+#[derive(Debug, Clone, Copy, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct ControllerTrim {
+    pub joint: usize,
+    /// The position commanded to the drive: the nominal position plus the applied trim.
+    pub motor_pos_cmd_m: f64,
+    /// The table's value at the position (LinuxCNC `joint.N.backlash-corr`).
+    pub table_m: f64,
+    /// The trim applied (LinuxCNC `joint.N.backlash-filt`, after its rate limiter).
+    pub applied_m: f64,
 }
 
 /// Whoever changes the set-up between measurements: puts the tracer on the next station (an

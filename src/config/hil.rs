@@ -31,6 +31,64 @@ pub struct HilConfig {
     /// (`geocal_drivers::modbus_table::ModbusTableFaults`; requests counted from 1).
     #[serde(default)]
     pub table_faults: ModbusTableFaults,
+    /// Real-controller HIL (`devices.machine.driver = "linuxcnc"`): the LinuxCNC geocal
+    /// starts (docs/linuxcnc.md "Real-controller HIL").
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub linuxcnc: Option<LinuxCncHil>,
+}
+
+/// `[hil.linuxcnc]`: the LinuxCNC that geocal starts headless for a real-controller HIL run
+/// (driver `linuxcnc` with `[hil] emulate = true`). Travel and velocity come from
+/// `[machine] travel_m` and `devices.machine.feed_m_s`; the `[sim] compensation` entries of
+/// format `linuxcnc-type0`/`linuxcnc-type1` become the joints' `COMP_FILE`s.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LinuxCncHil {
+    /// `MAX_ACCELERATION` of every joint and axis, m/s² (its dead band scales with it).
+    #[serde(default = "default_acceleration")]
+    pub max_acceleration_m_s2: f64,
+    /// `SERVO_PERIOD`, seconds.
+    #[serde(default = "default_servo_period")]
+    pub servo_period_s: f64,
+    /// Longest wait for LinuxCNC to come up once geocal holds the lock (another instance
+    /// holding it is waited for without limit: tests run one LinuxCNC at a time), s.
+    #[serde(default = "default_start_timeout")]
+    pub start_timeout_s: f64,
+    /// Tables handed to LinuxCNC exactly as written, unchecked by geocal (what a user loads by
+    /// hand; LinuxCNC reads them its own way): `{ axis = "x", file = "...", type = 0 | 1 }`.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub comp_files: Vec<LinuxCncCompFile>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+#[serde(deny_unknown_fields)]
+pub struct LinuxCncCompFile {
+    pub axis: String,
+    pub file: std::path::PathBuf,
+    /// `COMP_FILE_TYPE`.
+    #[serde(rename = "type")]
+    pub comp_type: u8,
+}
+
+fn default_acceleration() -> f64 {
+    1.0
+}
+fn default_servo_period() -> f64 {
+    1e-3
+}
+fn default_start_timeout() -> f64 {
+    180.0
+}
+
+impl Default for LinuxCncHil {
+    fn default() -> Self {
+        Self {
+            max_acceleration_m_s2: default_acceleration(),
+            servo_period_s: default_servo_period(),
+            start_timeout_s: default_start_timeout(),
+            comp_files: Vec::new(),
+        }
+    }
 }
 
 fn yes() -> bool {
@@ -42,6 +100,146 @@ impl Config {
     pub fn emulated(&self) -> bool {
         self.hil.as_ref().is_some_and(|h| h.emulate)
     }
+
+    /// A real-controller HIL run: geocal starts LinuxCNC and drives it with the `linuxcnc`
+    /// driver; the simulated world follows LinuxCNC's joints.
+    pub fn linuxcnc_in_the_loop(&self) -> bool {
+        self.emulated() && self.devices.machine.driver == DriverKind::Linuxcnc
+    }
+
+    /// The LinuxCNC set-up of a real-controller HIL run, from the configuration.
+    pub fn linuxcnc_setup(&self) -> crate::sim::linuxcnc::MachineSetup {
+        use crate::sim::linuxcnc::{CompFile, MachineSetup};
+        let lc = self
+            .hil
+            .as_ref()
+            .and_then(|h| h.linuxcnc.clone())
+            .unwrap_or_default();
+        let travel = |k: usize| {
+            self.machine
+                .travel_m
+                .get(crate::plan::AXES[k])
+                .copied()
+                .unwrap_or([-1.0, 1.0])
+        };
+        let axis_index = |a: &str| crate::plan::AXES.iter().position(|x| *x == a);
+        let mut comp_files: Vec<CompFile> = self
+            .sim
+            .iter()
+            .flat_map(|s| &s.compensation)
+            .filter_map(|c| {
+                let comp_type = match c.format {
+                    crate::compensate::TableFormat::LinuxcncType0 => 0,
+                    crate::compensate::TableFormat::LinuxcncType1 => 1,
+                    _ => return None,
+                };
+                Some(CompFile {
+                    joint: c.axis_index()?,
+                    file: c.file.clone(),
+                    comp_type,
+                })
+            })
+            .collect();
+        comp_files.extend(lc.comp_files.iter().filter_map(|c| {
+            Some(CompFile {
+                joint: axis_index(&c.axis)?,
+                file: c.file.clone(),
+                comp_type: c.comp_type,
+            })
+        }));
+        MachineSetup {
+            travel_m: std::array::from_fn(travel),
+            max_velocity_m_s: self.devices.machine.feed_m_s,
+            max_acceleration_m_s2: lc.max_acceleration_m_s2,
+            servo_period_s: lc.servo_period_s,
+            comp_files,
+        }
+    }
+}
+
+/// `[hil.linuxcnc]` and the `[sim]` it goes with, for a real-controller HIL run.
+fn validate_linuxcnc_hil(config: &Config) -> Result<(), Invalid> {
+    let hil = config.hil.as_ref();
+    let lc = hil.and_then(|h| h.linuxcnc.as_ref());
+    if !config.linuxcnc_in_the_loop() {
+        if lc.is_some() {
+            return fail(
+                "hil.linuxcnc",
+                "settings for a LinuxCNC geocal starts, but the run does not start one \
+                 (devices.machine.driver = \"linuxcnc\" with [hil] emulate = true)",
+            );
+        }
+        return Ok(());
+    }
+    for (k, axis) in crate::plan::AXES.iter().enumerate() {
+        if let Some([lo, hi]) = config.machine.travel_m.get(*axis) {
+            if !(*lo <= 0.0 && 0.0 <= *hi) {
+                return fail(
+                    &format!("machine.travel_m.{axis}"),
+                    format!(
+                        "LinuxCNC homes joint {k} where it stands, at 0, so the travel must \
+                         contain 0; found [{lo}, {hi}]"
+                    ),
+                );
+            }
+        }
+    }
+    if let Some(sim) = &config.sim {
+        for (i, c) in sim.compensation.iter().enumerate() {
+            if !matches!(
+                c.format,
+                crate::compensate::TableFormat::LinuxcncType0
+                    | crate::compensate::TableFormat::LinuxcncType1
+            ) {
+                return fail(
+                    &format!("sim.compensation[{i}].format"),
+                    format!(
+                        "LinuxCNC applies its own tables in a real-controller HIL run: expected \
+                         \"linuxcnc-type0\" or \"linuxcnc-type1\", found \"{}\"",
+                        c.format.name()
+                    ),
+                );
+            }
+        }
+    }
+    let Some(lc) = lc else {
+        return Ok(());
+    };
+    let positive = |key: &str, v: f64| {
+        if v.is_finite() && v > 0.0 {
+            Ok(())
+        } else {
+            fail(key, format!("expected a positive number, found {v}"))
+        }
+    };
+    positive(
+        "hil.linuxcnc.max_acceleration_m_s2",
+        lc.max_acceleration_m_s2,
+    )?;
+    positive("hil.linuxcnc.servo_period_s", lc.servo_period_s)?;
+    positive("hil.linuxcnc.start_timeout_s", lc.start_timeout_s)?;
+    for (i, c) in lc.comp_files.iter().enumerate() {
+        let key = format!("hil.linuxcnc.comp_files[{i}]");
+        if !crate::plan::AXES.contains(&c.axis.as_str()) {
+            return fail(
+                &format!("{key}.axis"),
+                format!("expected x, y or z, found {:?}", c.axis),
+            );
+        }
+        if c.comp_type > 1 {
+            return fail(
+                &format!("{key}.type"),
+                format!("expected 0 or 1 (COMP_FILE_TYPE), found {}", c.comp_type),
+            );
+        }
+        if !c.file.is_file() {
+            return fail(
+                &format!("{key}.file"),
+                format!("{} does not exist", c.file.display()),
+            );
+        }
+    }
+    Ok(())
 }
 
 type Invalid = (String, String);
@@ -78,12 +276,12 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             )
         }
     };
-    use DriverKind::{Grbl, Hpi3d, ModbusRtu, ModbusTcp, Passive, Sim};
+    use DriverKind::{Grbl, Hpi3d, Linuxcnc, ModbusRtu, ModbusTcp, Passive, Sim};
     check("devices.tracer.driver", d.tracer.driver, &[Sim, Hpi3d])?;
     check(
         "devices.machine.driver",
         d.machine.driver,
-        &[Sim, Grbl, Passive],
+        &[Sim, Grbl, Linuxcnc, Passive],
     )?;
     if d.machine.driver == Passive && config.plan.rotary.is_some() {
         return fail(
@@ -146,7 +344,27 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             "driver settings for \"grbl\", but devices.machine.driver is not \"grbl\"",
         );
     }
+    if let Some(lc) = &d.machine.linuxcnc {
+        if d.machine.driver != Linuxcnc {
+            return fail(
+                "devices.machine.linuxcnc",
+                "driver settings for \"linuxcnc\", but devices.machine.driver is not \"linuxcnc\"",
+            );
+        }
+        let mut checked = lc.clone();
+        checked.feed_m_s = d.machine.feed_m_s;
+        if let Err(e) = checked.validate() {
+            let message = match e {
+                geocal_drivers::DeviceError::Protocol { message, .. } => message,
+                other => other.to_string(),
+            };
+            return fail("devices.machine.linuxcnc", message);
+        }
+    }
     let emulated = config.emulated();
+    // "linuxcnc" with [hil] emulate = true: geocal starts a real LinuxCNC headless and the
+    // simulated world follows its joints (real-controller HIL).
+    validate_linuxcnc_hil(config)?;
     if !emulated {
         if d.tracer.driver == Hpi3d && d.tracer.hpi3d.as_ref().is_none_or(|c| c.port.is_empty()) {
             return fail(
@@ -158,6 +376,17 @@ pub(super) fn validate_drivers(config: &Config) -> Result<(), Invalid> {
             return fail(
                 "devices.machine.grbl.port",
                 "missing: a real GRBL controller needs its serial port (or set [hil] emulate = true)",
+            );
+        }
+        if d.machine.driver == Linuxcnc
+            && d.machine
+                .linuxcnc
+                .as_ref()
+                .is_none_or(|c| c.host.is_empty())
+        {
+            return fail(
+                "devices.machine.linuxcnc.host",
+                "missing: geocal connects to linuxcncrsh at host (and port, 5007 by default)",
             );
         }
     }

@@ -136,6 +136,8 @@ pub enum DriverKind {
     Hpi3d,
     /// GRBL-style G-code streaming (machine).
     Grbl,
+    /// LinuxCNC over linuxcncrsh, its TCP text interface (machine; `[devices.machine.linuxcnc]`).
+    Linuxcnc,
     /// Modbus TCP rotary table (register map in `[devices.rotary_table.modbus]`).
     ModbusTcp,
     /// Modbus RTU rotary table on a serial port.
@@ -151,6 +153,7 @@ impl DriverKind {
             DriverKind::Sim => "sim",
             DriverKind::Hpi3d => "hpi3d",
             DriverKind::Grbl => "grbl",
+            DriverKind::Linuxcnc => "linuxcnc",
             DriverKind::ModbusTcp => "modbus_tcp",
             DriverKind::ModbusRtu => "modbus_rtu",
             DriverKind::Passive => "passive",
@@ -223,6 +226,11 @@ pub struct MachineDeviceConfig {
     /// come from here).
     #[serde(default)]
     pub grbl: Option<geocal_drivers::grbl::GrblConfig>,
+    /// `[devices.machine.linuxcnc]`: the LinuxCNC driver's settings (driver `linuxcnc`;
+    /// `geocal_drivers::linuxcnc::LinuxCncConfig`: `host`, `port`, `password_file`, `home`,
+    /// ...; `id` and `feed_m_s` come from here). Passwords are refused inline.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub linuxcnc: Option<geocal_drivers::linuxcnc::LinuxCncConfig>,
     /// `[devices.machine.passive]`: NC program and stop matching settings (driver `passive`).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub passive: Option<passive::PassiveConfig>,
@@ -604,6 +612,22 @@ impl Config {
         // Compensation tables are named relative to the configuration's folder; kept absolute,
         // so that the stored run configuration and the session header name them wherever
         // they are read from.
+        // The LinuxCNC password file likewise.
+        if let (Some(lc), Some(dir)) = (config.devices.machine.linuxcnc.as_mut(), file.parent()) {
+            if let Some(pw) = lc.password_file.as_mut().filter(|p| p.is_relative()) {
+                let joined = dir.join(&*pw);
+                *pw = std::path::absolute(&joined).unwrap_or(joined);
+            }
+        }
+        if let (Some(lc), Some(dir)) = (
+            config.hil.as_mut().and_then(|h| h.linuxcnc.as_mut()),
+            file.parent(),
+        ) {
+            for c in lc.comp_files.iter_mut().filter(|c| c.file.is_relative()) {
+                let joined = dir.join(&c.file);
+                c.file = std::path::absolute(&joined).unwrap_or(joined);
+            }
+        }
         if let (Some(sim), Some(dir)) = (config.sim.as_mut(), file.parent()) {
             for c in &mut sim.compensation {
                 if c.file.is_relative() {

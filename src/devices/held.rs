@@ -39,6 +39,14 @@ impl Holdable for geocal_drivers::hpi3d::Hpi3dTracer {
 }
 
 impl<S: Send + 'static> Holdable for geocal_drivers::grbl::GrblMachine<S> {}
+
+#[async_trait]
+impl Holdable for geocal_drivers::linuxcnc::LinuxCncMachine {
+    /// The connection may have been closed while idle: a query shows it (and reconnects).
+    async fn reuse(&mut self) -> Result<(), DeviceError> {
+        self.ping().await
+    }
+}
 impl<S: Send + 'static> Holdable for geocal_drivers::probe::AsciiProbe<S> {}
 impl Holdable for geocal_drivers::modbus_table::ModbusTable {}
 impl Holdable for geocal_drivers::modbus_hexapod::ModbusHexapod {}

@@ -27,6 +27,9 @@ pub struct Hosted {
     pub machine_path: Option<String>,
     /// The Modbus table emulator (table driver `modbus_tcp` / `modbus_rtu`).
     pub table: Option<HostedTable>,
+    /// A real LinuxCNC (machine driver `linuxcnc`, real-controller HIL) whose joints the
+    /// world follows.
+    pub linuxcnc: Option<crate::sim::linuxcnc::host::HostedLinuxCnc>,
     /// Holds the links; removed on drop (declared last: dropped after the emulators).
     pub link_dir: LinkDir,
 }
@@ -117,6 +120,27 @@ pub async fn host(
         .as_ref()
         .and_then(|m| m.slave_path().map(str::to_string));
 
+    // The machine: a real LinuxCNC started headless; the world's carriages follow its joints.
+    let linuxcnc = if config.linuxcnc_in_the_loop() {
+        let setup = config.linuxcnc_setup();
+        let timeout = std::time::Duration::from_secs_f64(
+            hil.linuxcnc.as_ref().map_or(180.0, |l| l.start_timeout_s),
+        );
+        let hosted = tokio::task::spawn_blocking(move || {
+            crate::sim::linuxcnc::host::HostedLinuxCnc::start(&setup, timeout)
+        })
+        .await
+        .context("starting LinuxCNC")?
+        .context("starting LinuxCNC for the real-controller HIL run")?;
+        world
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .follow_joints(hosted.joint_source());
+        Some(hosted)
+    } else {
+        None
+    };
+
     // The rotary table: the Modbus table emulator.
     let table = match config.devices.rotary_table.as_ref() {
         Some(table) if table.driver != DriverKind::Sim => Some(
@@ -137,6 +161,7 @@ pub async fn host(
         machine,
         machine_path,
         table,
+        linuxcnc,
         link_dir,
     })
 }

@@ -2,7 +2,8 @@
 //! stamps them and, for simulated and emulated runs, the world behind them:
 //! - every device `sim`: the simulated drivers in virtual time (the tracer stream advances
 //!   the clock, so runs take seconds whatever the dwell times);
-//! - protocol drivers (`hpi3d`, `grbl`) without `[hil]`: the real devices at their ports,
+//! - protocol drivers (`hpi3d`, `grbl`, `linuxcnc`) without `[hil]`: the real devices at their
+//!   ports (LinuxCNC at its linuxcncrsh host and port),
 //!   stamped by the system clock;
 //! - `[hil] emulate = true`: geocal hosts the HPI-3D and GRBL emulators on ptys (and the
 //!   Modbus table emulator, `rotary_table.rs`) backed by the simulated world and connects the
@@ -18,6 +19,7 @@ use std::sync::{Arc, Mutex};
 use anyhow::Context;
 use geocal_drivers::grbl::{GrblConfig, GrblMachine};
 use geocal_drivers::hpi3d::{Hpi3dConfig, Hpi3dTracer};
+use geocal_drivers::linuxcnc::{LinuxCncConfig, LinuxCncMachine};
 use geocal_drivers::{Environment, Machine, Operator, RotaryTable, Tracer};
 
 use crate::clock::{Clock, SystemClock, VirtualClock};
@@ -148,6 +150,15 @@ fn grbl_config(config: &Config) -> GrblConfig {
     c
 }
 
+/// The LinuxCNC driver's settings: `[devices.machine.linuxcnc]` with the machine's id and feed.
+pub fn linuxcnc_config(config: &Config) -> LinuxCncConfig {
+    let machine = &config.devices.machine;
+    let mut c = machine.linuxcnc.clone().unwrap_or_default();
+    c.id = machine.id.clone();
+    c.feed_m_s = machine.feed_m_s;
+    c
+}
+
 pub(crate) fn sim_environment(
     config: &Config,
     world: &SharedWorld,
@@ -272,14 +283,27 @@ async fn build_emulated(
 
     // The machine: the GRBL driver opens the emulator's link path (and reopens it after
     // an injected disconnect), or the simulated machine.
-    let machine: Box<dyn Machine> = match &hosted.machine_path {
-        Some(path) => {
+    let machine: Box<dyn Machine> = match (&hosted.machine_path, &hosted.linuxcnc) {
+        (_, Some(linuxcnc)) => {
+            // The driver homes the joints where they stand, as the INI geocal wrote allows.
+            let mut cfg = linuxcnc_config(config);
+            cfg.home = geocal_drivers::linuxcnc::HomePolicy::Allow;
+            let driver = LinuxCncMachine::connect_with(cfg, linuxcnc.stream_connector())
+                .await
+                .context("connecting the LinuxCNC driver to the LinuxCNC geocal started")?;
+            // Each point's trims go into the session (`controller_trims` events).
+            Box::new(crate::sim::linuxcnc::host::TrimReportingMachine {
+                inner: Box::new(driver),
+                latest: linuxcnc.trims_handle(),
+            })
+        }
+        (Some(path), None) => {
             let mut grbl = grbl_config(config);
             grbl.port = path.clone();
             tracing::info!("GRBL emulator on {}", grbl.port);
             Box::new(GrblMachine::open(grbl).context("opening the GRBL emulator's pty")?)
         }
-        None => Box::new(SimMachine {
+        (None, None) => Box::new(SimMachine {
             id: config.devices.machine.id.clone(),
             world: world.clone(),
         }),
@@ -351,11 +375,21 @@ async fn build_real(
             })
             .await?
         }
+        DriverKind::Linuxcnc => {
+            let cfg = linuxcnc_config(config);
+            let at = format!("{}:{}", cfg.host, cfg.port);
+            held::lend_or_open(holder, &cfg.id.clone(), &cfg.clone(), || async {
+                LinuxCncMachine::connect(cfg)
+                    .await
+                    .with_context(|| format!("connecting to LinuxCNC (linuxcncrsh) at {at}"))
+            })
+            .await?
+        }
         DriverKind::Passive => Box::new(crate::sequencer::passive::PassiveMachine {
             id: config.devices.machine.id.clone(),
         }),
         kind => anyhow::bail!(
-            "devices.machine.driver = \"{}\" in a real run: expected \"grbl\"",
+            "devices.machine.driver = \"{}\" in a real run: expected \"grbl\" or \"linuxcnc\"",
             kind.as_str()
         ),
     };

@@ -15,6 +15,7 @@ use anyhow::{bail, Context};
 use geocal_drivers::grbl::codec::PosFrame;
 use geocal_drivers::grbl::{GrblConfig, GrblMachine};
 use geocal_drivers::hpi3d::{Hpi3dConfig, Hpi3dTracer};
+use geocal_drivers::linuxcnc::{LinuxCncConfig, LinuxCncMachine, ProgramStatus};
 use geocal_drivers::modbus_table::{ModbusTable, ModbusTableConfig, RegisterMap};
 use geocal_drivers::probe::{AsciiProbe, ProbeConfig};
 use geocal_drivers::{DeviceError, Environment, Machine, Probe, RotaryState, RotaryTable, Tracer};
@@ -32,16 +33,31 @@ pub const KIND: &str = "monitor";
 /// Which device, and where: `KIND:PORT`.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub enum DeviceSpec {
-    Hpi3d { port: String },
-    Grbl { port: String },
-    ModbusTcp { address: SocketAddr },
-    ModbusRtu { port: String },
-    Probe { port: String },
+    Hpi3d {
+        port: String,
+    },
+    Grbl {
+        port: String,
+    },
+    /// LinuxCNC's linuxcncrsh at `host:port` (port 5007 when left out).
+    Linuxcnc {
+        host: String,
+        port: u16,
+    },
+    ModbusTcp {
+        address: SocketAddr,
+    },
+    ModbusRtu {
+        port: String,
+    },
+    Probe {
+        port: String,
+    },
 }
 
 const SPEC_HELP: &str = "expected KIND:WHERE with KIND one of hpi3d, grbl, probe, modbus-rtu \
-    (WHERE a serial port, e.g. hpi3d:/dev/ttyUSB0) or modbus-tcp (WHERE host:port, e.g. \
-    modbus-tcp:127.0.0.1:502)";
+    (WHERE a serial port, e.g. hpi3d:/dev/ttyUSB0), modbus-tcp (WHERE host:port, e.g. \
+    modbus-tcp:127.0.0.1:502) or linuxcnc (WHERE host[:port], e.g. linuxcnc:127.0.0.1:5007)";
 
 impl FromStr for DeviceSpec {
     type Err = anyhow::Error;
@@ -59,6 +75,27 @@ impl FromStr for DeviceSpec {
             "grbl" => DeviceSpec::Grbl { port },
             "probe" => DeviceSpec::Probe { port },
             "modbus-rtu" => DeviceSpec::ModbusRtu { port },
+            "linuxcnc" => {
+                let (host, port) = match place.rsplit_once(':') {
+                    Some((host, port)) => (
+                        host,
+                        port.parse().map_err(|e| {
+                            anyhow::anyhow!(
+                                "device spec `{spec}`: `{port}` is not a port number ({e}); \
+                                 {SPEC_HELP}"
+                            )
+                        })?,
+                    ),
+                    None => (place, 5007),
+                };
+                if host.is_empty() {
+                    bail!("device spec `{spec}`: no host; {SPEC_HELP}");
+                }
+                DeviceSpec::Linuxcnc {
+                    host: host.to_string(),
+                    port,
+                }
+            }
             "modbus-tcp" => DeviceSpec::ModbusTcp {
                 address: place.parse().map_err(|e| {
                     anyhow::anyhow!(
@@ -77,6 +114,7 @@ impl DeviceSpec {
         match self {
             DeviceSpec::Hpi3d { .. } => "hpi3d",
             DeviceSpec::Grbl { .. } => "grbl",
+            DeviceSpec::Linuxcnc { .. } => "linuxcnc",
             DeviceSpec::ModbusTcp { .. } => "modbus-tcp",
             DeviceSpec::ModbusRtu { .. } => "modbus-rtu",
             DeviceSpec::Probe { .. } => "probe",
@@ -90,6 +128,7 @@ impl DeviceSpec {
             | DeviceSpec::ModbusRtu { port }
             | DeviceSpec::Probe { port } => port.clone(),
             DeviceSpec::ModbusTcp { address } => address.to_string(),
+            DeviceSpec::Linuxcnc { host, port } => format!("{host}:{port}"),
         }
     }
 }
@@ -223,7 +262,7 @@ fn header(spec: &DeviceSpec, id: &str, device_kind: &str, axes: Vec<String>) -> 
         })
         .unwrap_or_default();
     let place_key = match spec {
-        DeviceSpec::ModbusTcp { .. } => "address",
+        DeviceSpec::ModbusTcp { .. } | DeviceSpec::Linuxcnc { .. } => "address",
         _ => "port",
     };
     SessionHeader {
@@ -445,6 +484,67 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                 tokio::time::sleep(interval).await;
             }
         }
+        DeviceSpec::Linuxcnc { host, port } => {
+            let mut cfg: LinuxCncConfig =
+                settings(file, &["linuxcnc", "devices.machine.linuxcnc"])?.unwrap_or_default();
+            cfg.host = host.clone();
+            cfg.port = *port;
+            let interval = Duration::from_secs_f64(cfg.status_interval_s.max(0.001));
+            let connector = geocal_drivers::linuxcnc::tcp_connector(host, *port);
+            let mut machine = LinuxCncMachine::observe_with(cfg, connector).await?;
+            let id = machine.id().to_string();
+            if let Some(r) = &sink.recorder {
+                let axes = ["x", "y", "z"].map(String::from).to_vec();
+                r.session(
+                    &header(&options.device, &id, "machine", axes),
+                    system_now_ns(),
+                );
+            }
+            loop {
+                match machine.status().await {
+                    Err(e) => sink.error(e)?,
+                    Ok(s) => {
+                        let state = if s.estop {
+                            "Estop"
+                        } else if !s.machine_on {
+                            "Off"
+                        } else {
+                            match s.program {
+                                ProgramStatus::Idle => "Idle",
+                                ProgramStatus::Running => "Run",
+                                ProgramStatus::Paused => "Hold",
+                            }
+                        };
+                        let sample = MachineStateSample {
+                            t_s: sink.t_s(),
+                            state: state.into(),
+                            position_m: s.position_m,
+                            frame: "machine".into(),
+                            feed_m_s: None,
+                        };
+                        if let Some(r) = &sink.recorder {
+                            r.machine_state(&id, &sample, system_now_ns());
+                        }
+                        sink.count("machine");
+                        sink.print(|| {
+                            let p = sample.position_m;
+                            format!(
+                                "t {:9.3} s  {id}  {}  machine position [{:.6}, {:.6}, {:.6}] m ([{:.3}, {:.3}, {:.3}] mm)",
+                                sample.t_s,
+                                sample.state,
+                                p[0],
+                                p[1],
+                                p[2],
+                                p[0] * 1e3,
+                                p[1] * 1e3,
+                                p[2] * 1e3
+                            )
+                        });
+                    }
+                }
+                tokio::time::sleep(interval).await;
+            }
+        }
         DeviceSpec::ModbusTcp { .. } | DeviceSpec::ModbusRtu { .. } => {
             let mut cfg: ModbusTableConfig = settings(file, &["rotary", "modbus"])?
                 .unwrap_or_else(|| ModbusTableConfig::new(default_register_map()));
@@ -575,7 +675,30 @@ mod tests {
                 address: "127.0.0.1:502".parse().expect("addr")
             }
         );
-        for bad in ["hpi3d", "laser:/dev/x", "grbl:", "modbus-tcp:localhost"] {
+        assert_eq!(
+            "linuxcnc:cnc-pc".parse::<DeviceSpec>().expect("spec"),
+            DeviceSpec::Linuxcnc {
+                host: "cnc-pc".into(),
+                port: 5007
+            }
+        );
+        assert_eq!(
+            "linuxcnc:127.0.0.1:5008"
+                .parse::<DeviceSpec>()
+                .expect("spec"),
+            DeviceSpec::Linuxcnc {
+                host: "127.0.0.1".into(),
+                port: 5008
+            }
+        );
+        for bad in [
+            "hpi3d",
+            "laser:/dev/x",
+            "grbl:",
+            "modbus-tcp:localhost",
+            "linuxcnc:host:port",
+            "linuxcnc::5007",
+        ] {
             let err = bad.parse::<DeviceSpec>().expect_err(bad).to_string();
             assert!(
                 err.contains(bad) && err.contains("expected KIND:WHERE"),

@@ -50,6 +50,9 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
         ))]);
     }
     let mut section = section.table(tables_applied(&applied));
+    if let Some(session) = inputs.session.as_ref() {
+        section = controller_trims(session, section);
+    }
     for e in &unreadable {
         section = section.paragraph(format!("A table could not be recorded: {e}."));
     }
@@ -139,6 +142,98 @@ pub fn sections(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>>
             )?,
         });
     Ok(vec![section])
+}
+
+/// A point where the trim the controller applied differs from its table's value by more than
+/// this was not compensated as the table says (LinuxCNC's dead band, docs/linuxcnc.md).
+const TRIM_MISMATCH_M: f64 = 1e-9;
+
+/// The trims the controller applied at each point (`controller_trims` events, a real
+/// controller in the loop): per joint, how far the applied trim stood from the table's value,
+/// and the points where the controller's dead band kept a correction from being applied.
+fn controller_trims(session: &crate::session::reader::Session, section: Section) -> Section {
+    use crate::session::messages::RunEvent;
+    let mut per_joint: Vec<(usize, f64, f64, Vec<String>)> = Vec::new();
+    let mut points = 0usize;
+    for e in &session.events {
+        let RunEvent::ControllerTrims {
+            station,
+            point,
+            pass,
+            joints,
+        } = &e.msg
+        else {
+            continue;
+        };
+        points += 1;
+        for j in joints {
+            if per_joint.len() <= j.joint {
+                per_joint.resize(j.joint + 1, (0, 0.0, 0.0, Vec::new()));
+            }
+            let entry = &mut per_joint[j.joint];
+            let gap = (j.table_m - j.applied_m).abs();
+            entry.0 += 1;
+            entry.1 = entry.1.max(j.applied_m.abs());
+            if gap > entry.2 {
+                entry.2 = gap;
+            }
+            if gap > TRIM_MISMATCH_M {
+                entry.3.push(format!(
+                    "{station} point {point} pass {pass}: table {:.3} µm, applied {:.3} µm",
+                    um(j.table_m),
+                    um(j.applied_m)
+                ));
+            }
+        }
+    }
+    if points == 0 {
+        return section;
+    }
+    let mut t = Table::new(
+        "Trims the controller applied at the points (read at the end of each dwell: LinuxCNC's \
+         joint.N.backlash-corr, the table's value, and joint.N.backlash-filt, the trim applied)",
+        &[
+            "joint",
+            "points",
+            "largest trim applied [µm]",
+            "largest |table − applied| [µm]",
+            "points not compensated as the table says",
+        ],
+    );
+    let mut missed = Vec::new();
+    for (k, (n, largest, gap, list)) in per_joint.iter().enumerate() {
+        t.row(vec![
+            AXES.get(k).map_or(k.to_string(), |a| format!("{k} ({a})")),
+            n.to_string(),
+            format!("{:.3}", um(*largest)),
+            format!("{:.4}", um(*gap)),
+            list.len().to_string(),
+        ]);
+        missed.extend(list.iter().map(|l| format!("joint {k}: {l}")));
+    }
+    let section = section.table(t);
+    if missed.is_empty() {
+        section.paragraph(format!(
+            "At all {points} points the controller applied its tables' values (to 1 nm): what is \
+             left after compensation is not its dead band's."
+        ))
+    } else {
+        let shown: Vec<String> = missed.iter().take(20).cloned().collect();
+        section.paragraph(format!(
+            "At {} joint positions the trim the controller applied differs from its table's \
+             value by more than 1 nm: LinuxCNC's dead band (its compensation follows the table \
+             through a rate limiter and never follows a small jump from rest; docs/linuxcnc.md) \
+             kept the correction from being applied there. Those points' residuals are the \
+             controller's, not the calibration's: {}{}.",
+            missed.len(),
+            shown.join("; "),
+            if missed.len() > shown.len() {
+                "; …"
+            } else {
+                ""
+            }
+        ))
+    }
 }
 
 /// The machine device's record of what it applied, and the entries that could not be read.

@@ -887,6 +887,15 @@ impl<'a> Sequencer<'a> {
             point,
             pass,
         });
+        let joints = self.devices.machine.controller_trims();
+        if !joints.is_empty() {
+            self.event(RunEvent::ControllerTrims {
+                station: station.to_string(),
+                point,
+                pass,
+                joints,
+            });
+        }
         // Checkpoint: the finished point is on disk before the next one starts.
         self.recorder.checkpoint();
         self.summary.points_measured += 1;

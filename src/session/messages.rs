@@ -301,6 +301,14 @@ pub enum RunEvent {
     PoseEnd {
         pose: usize,
     },
+    /// The controller's compensation trims at the end of a point's dwell (a real controller
+    /// that exposes them: LinuxCNC in a real-controller HIL run), after its `point_end`.
+    ControllerTrims {
+        station: String,
+        point: usize,
+        pass: usize,
+        joints: Vec<geocal_drivers::ControllerTrim>,
+    },
     #[serde(other)]
     Other,
 }
@@ -336,6 +344,7 @@ struct WireEvent {
     a_rad: Option<f64>,
     b_rad: Option<f64>,
     pose: Option<usize>,
+    joints: Option<Vec<geocal_drivers::ControllerTrim>>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -363,6 +372,12 @@ impl TryFrom<WireEvent> for RunEvent {
                 station: w.station.ok_or_else(|| need("station"))?,
                 point: w.point.ok_or_else(|| need("point"))?,
                 pass: w.pass.ok_or_else(|| need("pass"))?,
+            },
+            "controller_trims" => RunEvent::ControllerTrims {
+                station: w.station.ok_or_else(|| need("station"))?,
+                point: w.point.ok_or_else(|| need("point"))?,
+                pass: w.pass.ok_or_else(|| need("pass"))?,
+                joints: w.joints.ok_or_else(|| need("joints"))?,
             },
             "station_end" => RunEvent::StationEnd {
                 station: w.station.ok_or_else(|| need("station"))?,

@@ -6,6 +6,7 @@ pub mod compensation;
 pub mod devices;
 pub mod effects;
 pub mod hil;
+pub mod linuxcnc;
 pub mod pace;
 pub mod passive_machine;
 pub mod rotary;

@@ -90,6 +90,16 @@ pub struct SimWorld {
     effects: SimEffects,
     /// The controller's compensation tables (`[sim] compensation`), none by default.
     compensation: SimControllerCompensation,
+    /// A real controller's joint positions (real-controller HIL): the carriage stands where
+    /// the controller commands it, its compensation trim included, instead of following the
+    /// world's own motion and tables.
+    external_joints: Option<Box<dyn JointSource>>,
+}
+
+/// The commanded joint positions of a controller outside the world (metres), e.g. LinuxCNC's
+/// `joint.N.motor-pos-cmd`.
+pub trait JointSource: Send {
+    fn joints_m(&self) -> [f64; 3];
 }
 
 /// Everything the simulation knows that a solver must find: exported with `--truth`.
@@ -235,6 +245,7 @@ impl SimWorld {
             env_period_s: 1.0 / env_rate,
             next_env_s: 0.0,
             compensation: SimControllerCompensation::load(&sim.compensation)?,
+            external_joints: None,
         })
     }
 
@@ -243,7 +254,11 @@ impl SimWorld {
     }
 
     fn target_at(&self, axes_m: [f64; 3], t_s: f64) -> Vector3<f64> {
-        let joints_m = self.compensation.joint_positions_m(axes_m);
+        self.target_at_joints(self.compensation.joint_positions_m(axes_m), t_s)
+    }
+
+    /// The target's true position with the carriages at `joints_m`.
+    fn target_at_joints(&self, joints_m: [f64; 3], t_s: f64) -> Vector3<f64> {
         Vector3::from(actual_position(
             &self.structure,
             &self.truth,
@@ -261,7 +276,10 @@ impl SimWorld {
     }
 
     fn true_distance_m(&self, t_s: f64) -> f64 {
-        let target = self.target_at(self.motion.at(t_s), t_s);
+        let target = match &self.external_joints {
+            Some(source) => self.target_at_joints(source.joints_m(), t_s),
+            None => self.target_at(self.motion.at(t_s), t_s),
+        };
         let station = self.station_at(t_s);
         self.effects
             .distance_m(self.current_station, &station, &target, t_s)
@@ -418,6 +436,12 @@ impl SimWorld {
     }
 
     // --- hardware-in-the-loop (src/sim/hil.rs): the emulators read the world directly ---
+
+    /// The carriages follow `source` from now on (a real controller in the loop); the
+    /// world's own compensation tables are not applied then (the controller applies its own).
+    pub fn follow_joints(&mut self, source: Box<dyn JointSource>) {
+        self.external_joints = Some(source);
+    }
 
     /// True tracer-to-target distance now (the emulator keeps its own origin).
     pub(crate) fn hil_distance_m(&self) -> f64 {

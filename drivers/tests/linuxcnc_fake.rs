@@ -1,0 +1,372 @@
+//! The LinuxCNC driver against a small fake linuxcncrsh on 127.0.0.1 (the fault cases the
+//! real LinuxCNC does not produce on demand): a refused enable password, garbage and
+//! mismatched replies, a connection dropped right after a move was accepted, and a server
+//! that does not come back. The real LinuxCNC is exercised in tests/linuxcnc_driver.rs.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use geocal_drivers::linuxcnc::{
+    tcp_connector, HomePolicy, LinuxCncConfig, LinuxCncMachine, StreamConnector,
+};
+use geocal_drivers::{AxisPositions, DeviceError, Machine, MachineState};
+use tokio::io::{AsyncBufReadExt, AsyncWriteExt, BufReader};
+use tokio::net::TcpListener;
+
+#[derive(Clone, Default)]
+struct Faults {
+    nak_enable: bool,
+    /// Answer `get <key>` with this line instead.
+    replace: Option<(&'static str, &'static str)>,
+    /// Close the first connection right after acknowledging its first `set mdi`.
+    drop_after_first_mdi: bool,
+}
+
+#[derive(Default)]
+struct Machine3 {
+    pos: [f64; 3],
+    target: [f64; 3],
+    polls_left: u32,
+    estop: bool,
+    machine_on: bool,
+    homed: bool,
+    connections: u32,
+    mdi_seen: u32,
+    mode: String,
+}
+
+/// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
+async fn fake(faults: Faults) -> (u16, Arc<Mutex<Machine3>>) {
+    let listener = TcpListener::bind("127.0.0.1:0").await.expect("bind");
+    let port = listener.local_addr().expect("addr").port();
+    let state = Arc::new(Mutex::new(Machine3 {
+        estop: true,
+        mode: "MANUAL".into(),
+        ..Machine3::default()
+    }));
+    let shared = state.clone();
+    tokio::spawn(async move {
+        while let Ok((sock, _)) = listener.accept().await {
+            let state = shared.clone();
+            let faults = faults.clone();
+            tokio::spawn(async move {
+                let first = {
+                    let mut s = state.lock().unwrap();
+                    s.connections += 1;
+                    s.connections == 1
+                };
+                let (rd, mut wr) = sock.into_split();
+                let mut lines = BufReader::new(rd).lines();
+                let mut echo = true;
+                while let Ok(Some(line)) = lines.next_line().await {
+                    let line = line.trim().to_string();
+                    if line.is_empty() {
+                        continue;
+                    }
+                    let words: Vec<String> = line
+                        .split_whitespace()
+                        .map(|w| w.to_ascii_lowercase())
+                        .collect();
+                    let (reply, close) = answer(&words, &line, &state, &faults, first);
+                    let mut out = String::new();
+                    if echo && words[0] != "hello" {
+                        out.push_str(&format!("{line}\r\n"));
+                    }
+                    if words.len() >= 3 && words[0] == "set" && words[1] == "echo" {
+                        echo = words[2] == "on";
+                    }
+                    out.push_str(&reply);
+                    if wr.write_all(out.as_bytes()).await.is_err() || close {
+                        return;
+                    }
+                }
+            });
+        }
+    });
+    (port, state)
+}
+
+fn answer(
+    words: &[String],
+    line: &str,
+    state: &Arc<Mutex<Machine3>>,
+    faults: &Faults,
+    first: bool,
+) -> (String, bool) {
+    let mut s = state.lock().unwrap();
+    let on_off = |b: bool| if b { "ON" } else { "OFF" };
+    let ack = |k: &str| format!("SET {} ACK\n\r", k.to_ascii_uppercase());
+    let nak = |k: &str| format!("SET {} NAK\n\r", k.to_ascii_uppercase());
+    let w = |i: usize| words.get(i).map(String::as_str).unwrap_or("");
+    match (w(0), w(1)) {
+        ("hello", _) if w(1) == "emc" => ("HELLO ACK FAKE 1.1\r\n".into(), false),
+        ("hello", _) => ("HELLO NAK\r\n".into(), false),
+        ("set", "enable") if faults.nak_enable => (nak("enable"), false),
+        ("set", "estop") => {
+            s.estop = w(2) == "on";
+            if s.estop {
+                s.machine_on = false;
+            }
+            (ack("estop"), false)
+        }
+        ("set", "machine") if s.estop => (nak("machine"), false),
+        ("set", "machine") => {
+            s.machine_on = w(2) == "on";
+            (ack("machine"), false)
+        }
+        ("set", "mode") => {
+            s.mode = w(2).to_ascii_uppercase();
+            (ack("mode"), false)
+        }
+        ("set", "home") if s.mode != "MANUAL" => (ack("home"), false),
+        ("set", "home") => {
+            s.homed = true;
+            (ack("home"), false)
+        }
+        ("set", "mdi") if s.mode != "MDI" => (nak("mdi"), false),
+        ("set", "mdi") => {
+            for word in &words[2..] {
+                let (letter, num) = word.split_at(1);
+                let k = match letter {
+                    "x" => 0,
+                    "y" => 1,
+                    "z" => 2,
+                    _ => continue,
+                };
+                s.target[k] = num.parse().unwrap_or(f64::NAN);
+            }
+            s.polls_left = 3;
+            s.mdi_seen += 1;
+            let close = faults.drop_after_first_mdi && first && s.mdi_seen == 1;
+            (ack("mdi"), close)
+        }
+        ("set", sub) => (ack(sub), false),
+        ("get", key) => {
+            if let Some((k, r)) = faults.replace {
+                if k == key {
+                    return (format!("{r}\r\n"), false);
+                }
+            }
+            let value = match key {
+                "estop" => format!("ESTOP {}", on_off(s.estop)),
+                "machine" => format!("MACHINE {}", on_off(s.machine_on)),
+                "mode" => format!("MODE {}", s.mode),
+                "enable" => "ENABLE ON".into(),
+                "joint_homed" => {
+                    let h = if s.homed { "YES" } else { "NO" };
+                    format!("JOINT_HOMED {h} {h} {h} NO NO NO")
+                }
+                "user_linear_units" => "USER_LINEAR_UNITS MM".into(),
+                "error" => "ERROR OK".into(),
+                "program_status" => {
+                    if s.polls_left > 0 {
+                        s.polls_left -= 1;
+                        "PROGRAM_STATUS RUNNING".into()
+                    } else {
+                        s.pos = s.target;
+                        "PROGRAM_STATUS IDLE".into()
+                    }
+                }
+                "abs_act_pos" => format!(
+                    "ABS_ACT_POS {:.6} {:.6} {:.6} 0.000000 0.000000 0.000000",
+                    s.pos[0], s.pos[1], s.pos[2]
+                ),
+                other => return (format!("GET {} NAK\r\n\r\n", other.to_uppercase()), false),
+            };
+            (format!("{value}\r\n"), false)
+        }
+        _ => (format!("unknown {line}\r\n"), false),
+    }
+}
+
+fn config(port: u16) -> LinuxCncConfig {
+    LinuxCncConfig {
+        host: "127.0.0.1".into(),
+        port,
+        home: HomePolicy::Allow,
+        status_interval_s: 0.0,
+        reply_timeout_s: 2.0,
+        reconnect_timeout_s: 2.0,
+        ..LinuxCncConfig::default()
+    }
+}
+
+fn target(x: f64, y: f64, z: f64) -> AxisPositions {
+    [("x", x), ("y", y), ("z", z)]
+        .into_iter()
+        .map(|(a, v)| (a.to_string(), v))
+        .collect()
+}
+
+async fn wait_idle(m: &mut LinuxCncMachine) -> Result<AxisPositions, DeviceError> {
+    for _ in 0..200 {
+        if let MachineState::Idle { position } = m.state().await? {
+            return Ok(position);
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    panic!("no arrival");
+}
+
+#[tokio::test]
+async fn connects_homes_moves_and_converts_units() {
+    let (port, state) = fake(Faults::default()).await;
+    let mut m = LinuxCncMachine::connect(config(port))
+        .await
+        .expect("connects");
+    {
+        let s = state.lock().unwrap();
+        assert!(!s.estop && s.machine_on && s.homed, "powered up and homed");
+    }
+    let t = target(0.25, 0.5, 0.125);
+    m.start_move(&t).await.expect("accepted");
+    assert_eq!(m.state().await.unwrap(), MachineState::Moving);
+    let at = wait_idle(&mut m).await.expect("arrives");
+    assert_eq!(state.lock().unwrap().target, [250.0, 500.0, 125.0], "mm");
+    for (a, v) in &t {
+        assert!((at[a] - v).abs() < 1e-12, "{a}");
+    }
+}
+
+#[tokio::test]
+async fn refusals_are_clear_errors() {
+    let (port, _) = fake(Faults {
+        nak_enable: true,
+        ..Faults::default()
+    })
+    .await;
+    let e = LinuxCncMachine::connect(config(port))
+        .await
+        .err()
+        .expect("refused");
+    assert!(
+        matches!(e, DeviceError::Rejected { .. }) && e.to_string().contains("enable password"),
+        "{e}"
+    );
+    let (port, _) = fake(Faults::default()).await;
+    let e = LinuxCncMachine::connect(LinuxCncConfig {
+        home: HomePolicy::Refuse,
+        ..config(port)
+    })
+    .await
+    .err()
+    .expect("not homed");
+    assert!(e.to_string().contains("[0, 1, 2] are not homed"), "{e}");
+}
+
+#[tokio::test]
+async fn garbage_and_mismatched_replies_are_protocol_errors() {
+    for (key, reply, says) in [
+        (
+            "program_status",
+            "PROGRAM_STATUS W#@!",
+            "get program_status",
+        ),
+        (
+            "program_status",
+            "ESTOP OFF",
+            "unexpected reply to `get program_status`",
+        ),
+        ("abs_act_pos", "ABS_ACT_POS 1.0 banana 2", "banana"),
+        ("abs_act_pos", "ABS_ACT_POS 1.0", "at least 3"),
+        ("program_status", "\u{1}\u{2}\u{3}", "unexpected reply"),
+    ] {
+        let (port, _) = fake(Faults {
+            replace: Some((key, reply)),
+            ..Faults::default()
+        })
+        .await;
+        let mut m = LinuxCncMachine::connect(config(port))
+            .await
+            .expect("connects");
+        m.start_move(&target(0.1, 0.1, 0.1))
+            .await
+            .expect("accepted");
+        let e = wait_idle(&mut m).await.expect_err("garbage is an error");
+        assert!(
+            matches!(e, DeviceError::Protocol { .. }) && e.to_string().contains(says),
+            "{reply:?}: {e}"
+        );
+    }
+    // A garbled unit reply fails the connection, naming it.
+    let (port, _) = fake(Faults {
+        replace: Some(("user_linear_units", "USER_LINEAR_UNITS FURLONG")),
+        ..Faults::default()
+    })
+    .await;
+    let e = LinuxCncMachine::connect(config(port))
+        .await
+        .err()
+        .expect("refused");
+    assert!(e.to_string().contains("user_linear_units"), "{e}");
+}
+
+#[tokio::test]
+async fn a_connection_dropped_after_a_move_reconnects_and_arrives() {
+    let (port, state) = fake(Faults {
+        drop_after_first_mdi: true,
+        ..Faults::default()
+    })
+    .await;
+    let mut m = LinuxCncMachine::connect(config(port))
+        .await
+        .expect("connects");
+    let t = target(0.3, 0.2, 0.1);
+    m.start_move(&t).await.expect("accepted before the drop");
+    let at = wait_idle(&mut m)
+        .await
+        .expect("arrives after the reconnect");
+    assert!((at["x"] - 0.3).abs() < 1e-12);
+    let codes: Vec<String> = m.take_link_faults().into_iter().map(|f| f.code).collect();
+    assert_eq!(codes, ["disconnect", "reconnect"]);
+    assert_eq!(state.lock().unwrap().connections, 2);
+}
+
+#[tokio::test]
+async fn a_server_that_does_not_come_back_is_a_disconnection() {
+    // A connector that works once, then finds nobody listening.
+    let (port, _) = fake(Faults {
+        drop_after_first_mdi: true,
+        ..Faults::default()
+    })
+    .await;
+    let calls = Arc::new(Mutex::new(0u32));
+    let inner = tcp_connector("127.0.0.1", port);
+    let counted = calls.clone();
+    let connector: StreamConnector = Arc::new(move || {
+        let n = {
+            let mut c = counted.lock().unwrap();
+            *c += 1;
+            *c
+        };
+        if n == 1 {
+            inner()
+        } else {
+            Box::pin(async {
+                Err(std::io::Error::new(
+                    std::io::ErrorKind::ConnectionRefused,
+                    "refused",
+                ))
+            })
+        }
+    });
+    let mut m = LinuxCncMachine::connect_with(
+        LinuxCncConfig {
+            reconnect_timeout_s: 0.5,
+            ..config(port)
+        },
+        connector,
+    )
+    .await
+    .expect("connects");
+    m.start_move(&target(0.1, 0.1, 0.1))
+        .await
+        .expect("accepted");
+    let e = wait_idle(&mut m).await.expect_err("gone");
+    assert!(
+        matches!(e, DeviceError::Disconnected { .. })
+            && e.to_string().contains("could not reconnect"),
+        "{e}"
+    );
+    assert!(*calls.lock().unwrap() >= 2);
+}

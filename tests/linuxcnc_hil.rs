@@ -1,0 +1,332 @@
+//! Real-controller HIL: geocal starts LinuxCNC headless (its own namespace, under the global
+//! lock), drives it with the `linuxcnc` driver over linuxcncrsh, and the simulated world's
+//! carriages follow LinuxCNC's `joint.N.motor-pos-cmd`, its compensation trim included; the
+//! emulated HPI-3D measures the result. Skips without LinuxCNC (saying why), fails when `CI`
+//! is set.
+
+mod common;
+
+use common::{assert_recovers_truth, generous_timeouts, hil_config, run_with_truth, small_demo};
+use geocal::compensate::{export, Calibration, ExportOptions, TableFormat, POSITIONING};
+
+fn available() -> bool {
+    match geocal::sim::linuxcnc::unavailable() {
+        None => true,
+        Some(why) if std::env::var_os("CI").is_some() => {
+            panic!("CI must run the LinuxCNC tests, but {why}")
+        }
+        Some(why) => {
+            eprintln!("skipping the LinuxCNC tests: {why}");
+            false
+        }
+    }
+}
+
+/// The HIL configuration with LinuxCNC as the machine: velocity and acceleration such that
+/// a run stays short (G0 moves at `feed_m_s`, MAX_ACCELERATION 40 m/s²; the 0.25 ms servo
+/// period keeps the dead band from rest at 0.6–1.3 µm: tables without a reversal change
+/// only while a joint moves, where the trim follows).
+pub fn linuxcnc_config(extra: &str) -> String {
+    let text = generous_timeouts(&hil_config(extra))
+        .replace(
+            "driver = \"grbl\"\nfeed_m_s = 20.0",
+            "driver = \"linuxcnc\"\nfeed_m_s = 4.0",
+        )
+        .replace(
+            "[devices.machine.grbl]\nport = \"\"\nack_timeout_s = 2.0\nstatus_interval_s = 0.005\n",
+            "[devices.machine.linuxcnc]\nmotion = \"rapid\"\nstatus_interval_s = 0.005\n\
+             reply_timeout_s = 30.0\nstall_timeout_s = 30.0\n",
+        );
+    assert!(
+        text.contains("driver = \"linuxcnc\"") && !text.contains("[devices.machine.grbl]"),
+        "{text}"
+    );
+    format!("{text}\n[hil.linuxcnc]\nmax_acceleration_m_s2 = 40.0\nservo_period_s = 0.00025\n")
+}
+
+#[test]
+fn linuxcnc_hil_run_recovers_truth() {
+    if !available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let started = std::time::Instant::now();
+    let (output, truth) = run_with_truth(&linuxcnc_config(""), dir.path());
+    println!("LinuxCNC HIL run: {:.1} s", started.elapsed().as_secs_f64());
+    let results = output.results.multilateration().expect("tracer results");
+    assert_eq!(results.points.len(), 18);
+    println!(
+        "chi2/dof {:.2} (dof {}), residual RMS {:.3e} m",
+        results.chi2_per_dof, results.dof, results.residual_rms_m
+    );
+    assert_recovers_truth(results, &truth);
+}
+
+fn rms(v: &[f64]) -> f64 {
+    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
+}
+
+fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
+    let c = cal.positioning(k).expect("positioning");
+    (
+        c.values.iter().map(|v| v.expect("value")).collect(),
+        c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect(),
+    )
+}
+
+/// The smallest grid of the small demo's that the 21-error decomposition takes (5 x 4 x 3).
+fn verification_grid(text: String) -> String {
+    let text = text
+        .replace(
+            "x = { from = 0.1, to = 1.3, count = 3 }",
+            "x = { from = 0.1, to = 1.3, count = 5 }",
+        )
+        .replace(
+            "y = { from = 0.2, to = 2.2, count = 3 }",
+            "y = { from = 0.2, to = 2.2, count = 4 }",
+        )
+        .replace(
+            "z = { from = 0.15, to = 0.95, count = 2 }",
+            "z = { from = 0.15, to = 0.95, count = 3 }",
+        );
+    assert!(text.contains("count = 5 }") && text.contains("count = 4 }"));
+    text
+}
+
+/// (RMS after, bound 2·RMS(σ) + interpolation error, RMS before) of axis `k`'s positioning.
+fn judge(before: &Calibration, after: &Calibration, k: usize, interp_m: f64) -> (f64, f64, f64) {
+    let (vb, sb) = positioning(before, k);
+    let (va, sa) = positioning(after, k);
+    let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
+    let bound = 2.0 * rms(&sigma) + interp_m;
+    (rms(&va), bound, rms(&vb))
+}
+
+/// The closed loop through LinuxCNC: the plan calibrated (virtual time, same truth machine),
+/// `geocal compensate` tables loaded by LinuxCNC as `[JOINT_n] COMP_FILE` (x type 1, y type
+/// 0, z type 1), the same plan run again through LinuxCNC: every positioning error passes
+/// the rule RMS(after) ≤ 2·RMS(σ) + interpolation error by LinuxCNC's own application. Then
+/// the x table with its sign flipped and the y table with a header line: both fail it.
+#[test]
+fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
+    if !available() {
+        return;
+    }
+    let dir = tempfile::tempdir().expect("tempdir");
+    let one_pass = |text: String| {
+        verification_grid(text.replace(
+            "passes = [\"forward\", \"backward\"]",
+            "passes = [\"forward\"]",
+        ))
+    };
+    let (before, _) = run_with_truth(&one_pass(small_demo()), &dir.path().join("before"));
+    let cal = Calibration::load(&before.results_path).expect("results");
+    let tables = dir.path().join("tables");
+    let mut interp = [0.0; 3];
+    let mut texts: Vec<String> = Vec::new();
+    for (k, format, sub) in [
+        (0, TableFormat::LinuxcncType1, "x1"),
+        (1, TableFormat::LinuxcncType0, "y0"),
+        (2, TableFormat::LinuxcncType1, "z1"),
+    ] {
+        let options = ExportOptions {
+            axes: vec![k],
+            ..Default::default()
+        };
+        let e = export(&cal, format, &options, &Default::default()).expect("export");
+        interp[k] = e.steps[0].interpolation_error_m;
+        std::fs::create_dir_all(tables.join(sub)).expect("dir");
+        for f in &e.files {
+            std::fs::write(tables.join(sub).join(&f.name), &f.text).expect("write");
+        }
+        let table = e
+            .files
+            .iter()
+            .find(|f| f.name.starts_with("comp-"))
+            .expect("joint table");
+        texts.push(table.text.clone());
+    }
+    let good = format!(
+        "[sim]\nnoise_seed = 4242\ncompensation = [\n\
+         {{ format = \"linuxcnc-type1\", file = \"{}\", axis = \"x\" }},\n\
+         {{ format = \"linuxcnc-type0\", file = \"{}\", axis = \"y\" }},\n\
+         {{ format = \"linuxcnc-type1\", file = \"{}\", axis = \"z\" }},\n]\n",
+        tables.join("x1/comp-x.txt").display(),
+        tables.join("y0/comp-y.txt").display(),
+        tables.join("z1/comp-z.txt").display()
+    );
+    let config = |sim: &str| {
+        let text = verification_grid(linuxcnc_config(""));
+        assert_eq!(text.matches("[sim]\n").count(), 1, "one [sim] table");
+        text.replace("[sim]\n", sim)
+    };
+    let started = std::time::Instant::now();
+    let (after, _) = run_with_truth(&config(&good), &dir.path().join("after"));
+    println!(
+        "LinuxCNC verification run: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    let after_cal = Calibration::load(&after.results_path).expect("after results");
+    for k in 0..3 {
+        let (rms_after, bound, rms_before) = judge(&cal, &after_cal, k, interp[k]);
+        println!(
+            "{}: RMS before {:.3} µm, after {:.3} µm, bound {:.3} µm",
+            POSITIONING[k],
+            rms_before * 1e6,
+            rms_after * 1e6,
+            bound * 1e6
+        );
+        assert!(
+            rms_after <= bound && rms_after < 0.5 * rms_before,
+            "{}: {:.4} µm left, bound {:.4} µm",
+            POSITIONING[k],
+            rms_after * 1e6,
+            bound * 1e6
+        );
+    }
+
+    // The session holds the trims LinuxCNC applied at every point, and the verification
+    // report shows them: with tables without a reversal, applied = table at every point.
+    let session = geocal::session::reader::read_session(&after.session_path).expect("session");
+    let mut trims: u64 = 0;
+    let mut largest_gap_m: f64 = 0.0;
+    let mut largest_applied_m: f64 = 0.0;
+    for e in &session.events {
+        if let geocal::session::messages::RunEvent::ControllerTrims { joints, .. } = &e.msg {
+            trims += 1;
+            assert_eq!(joints.len(), 3);
+            for j in joints {
+                largest_gap_m = largest_gap_m.max((j.table_m - j.applied_m).abs());
+                largest_applied_m = largest_applied_m.max(j.applied_m.abs());
+            }
+        }
+    }
+    println!(
+        "trims at {trims} points: largest applied {:.3} µm, largest |table − applied| {:.2e} µm",
+        largest_applied_m * 1e6,
+        largest_gap_m * 1e6
+    );
+    assert_eq!(
+        trims, after.summary.points_measured,
+        "one trims event per point"
+    );
+    assert!(largest_applied_m > 1e-6, "LinuxCNC applied the tables");
+    let md = dir.path().join("md").join("report.md");
+    std::fs::create_dir_all(dir.path().join("md")).expect("md dir");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["report".as_ref(), dir.path().join("after").as_os_str()])
+        .args(["--format", "md", "--out"])
+        .arg(&md)
+        .status()
+        .expect("geocal report");
+    assert!(status.success());
+    let report = std::fs::read_to_string(&md).expect("report.md");
+    let verification = &report[report.find("## Verification run").expect("section")..];
+    assert!(
+        verification.contains("Trims the controller applied at the points"),
+        "{verification}"
+    );
+    if largest_gap_m <= 1e-9 {
+        assert!(verification.contains(&format!("At all {trims} points the controller applied")));
+    } else {
+        assert!(verification.contains("LinuxCNC's dead band"));
+    }
+
+    // x with the sign flipped (type 1: the trims negated), y with a header line (LinuxCNC
+    // loads an empty table, silently), handed to LinuxCNC as written.
+    let flipped: String = texts[0]
+        .lines()
+        .map(|line| {
+            let v: Vec<f64> = line
+                .split_whitespace()
+                .map(|w| w.parse().expect("number"))
+                .collect();
+            format!("{} {} {}\n", v[0], -v[1], -v[2])
+        })
+        .collect();
+    let bad = dir.path().join("bad");
+    std::fs::create_dir_all(&bad).expect("dir");
+    std::fs::write(bad.join("comp-x.txt"), flipped).expect("write");
+    std::fs::write(
+        bad.join("comp-y.txt"),
+        format!("# nominal forward reverse (mm)\n{}", texts[1]),
+    )
+    .expect("write");
+    let raw = format!(
+        "[hil.linuxcnc]\ncomp_files = [\n\
+         {{ axis = \"x\", file = \"{}\", type = 1 }},\n\
+         {{ axis = \"y\", file = \"{}\", type = 0 }},\n]\n",
+        bad.join("comp-x.txt").display(),
+        bad.join("comp-y.txt").display()
+    );
+    let wrong_config = config("[sim]\nnoise_seed = 4243\n").replace("[hil.linuxcnc]\n", &raw);
+    assert!(wrong_config.contains("comp_files"));
+    let started = std::time::Instant::now();
+    let (wrong, _) = run_with_truth(&wrong_config, &dir.path().join("wrong"));
+    println!(
+        "LinuxCNC run with bad tables: {:.1} s",
+        started.elapsed().as_secs_f64()
+    );
+    let wrong_cal = Calibration::load(&wrong.results_path).expect("results");
+    for (k, what) in [(0, "flipped sign"), (1, "header line")] {
+        let (rms_after, bound, rms_before) = judge(&cal, &wrong_cal, k, interp[k]);
+        println!(
+            "{} ({what}): RMS before {:.3} µm, after {:.3} µm, bound {:.3} µm",
+            POSITIONING[k],
+            rms_before * 1e6,
+            rms_after * 1e6,
+            bound * 1e6
+        );
+        assert!(rms_after > bound, "{} with a {what} passed", POSITIONING[k]);
+    }
+    let (flipped_after, _, before_x) = judge(&cal, &wrong_cal, 0, interp[0]);
+    assert!(
+        flipped_after > 1.5 * before_x,
+        "the flipped table doubles EXX"
+    );
+}
+
+/// The real-controller HIL's configuration errors name their keys (no LinuxCNC needed).
+#[test]
+fn linuxcnc_hil_configuration_errors_name_their_keys() {
+    let parse = |text: &str| {
+        geocal::config::Config::parse(text, std::path::Path::new("test.toml"))
+            .err()
+            .map(|e| e.to_string())
+    };
+    let ok = linuxcnc_config("");
+    assert_eq!(parse(&ok), None, "the test configuration is valid");
+    let e = parse(&ok.replace("x = [0.0, 1.4]", "x = [0.1, 1.4]")).expect("travel without 0");
+    assert!(
+        e.contains("machine.travel_m.x") && e.contains("contain 0"),
+        "{e}"
+    );
+    let e = parse(&ok.replace(
+        "[sim]\n",
+        "[sim]\ncompensation = [{ format = \"sinumerik\", file = \"Cargo.toml\", axis = \"x\" }]\n",
+    ))
+    .expect("a SINUMERIK table for LinuxCNC");
+    assert!(e.contains("sim.compensation[0]"), "{e}");
+    let e = parse(&ok.replace(
+        "servo_period_s = 0.00025",
+        "servo_period_s = 0.00025\ncomp_files = [{ axis = \"w\", file = \"Cargo.toml\", type = 1 }]",
+    ))
+    .expect("axis w");
+    assert!(e.contains("hil.linuxcnc.comp_files[0].axis"), "{e}");
+    let e = parse(&ok.replace(
+        "servo_period_s = 0.00025",
+        "servo_period_s = 0.00025\ncomp_files = [{ axis = \"x\", file = \"/nonexistent/comp-x.txt\", type = 1 }]",
+    ))
+    .expect("missing file");
+    assert!(e.contains("hil.linuxcnc.comp_files[0].file"), "{e}");
+    let without_linuxcnc = ok
+        .replace("driver = \"linuxcnc\"", "driver = \"sim\"")
+        .replace(
+            "[devices.machine.linuxcnc]\nmotion = \"rapid\"\nstatus_interval_s = 0.005\n\
+             reply_timeout_s = 30.0\nstall_timeout_s = 30.0\n",
+            "",
+        );
+    assert!(!without_linuxcnc.contains("[devices.machine.linuxcnc]"));
+    let e = parse(&without_linuxcnc).expect("[hil.linuxcnc] without LinuxCNC");
+    assert!(e.contains("hil.linuxcnc"), "{e}");
+}
