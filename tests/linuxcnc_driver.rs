@@ -5,6 +5,8 @@
 //! LinuxCNC instance for all of it (starting one takes seconds and holds a global lock).
 //! Skips without LinuxCNC (with the reason); fails instead when `CI` is set.
 
+mod common;
+
 use std::net::Shutdown;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -15,19 +17,6 @@ use geocal_drivers::linuxcnc::{
     StreamConnector, ALARM_ESTOP,
 };
 use geocal_drivers::{AxisPositions, DeviceError, Machine, MachineState};
-
-fn available() -> bool {
-    match linuxcnc::unavailable() {
-        None => true,
-        Some(why) if std::env::var_os("CI").is_some() => {
-            panic!("CI must run the LinuxCNC tests, but {why}")
-        }
-        Some(why) => {
-            eprintln!("skipping the LinuxCNC driver tests: {why}");
-            false
-        }
-    }
-}
 
 /// Connects inside LinuxCNC's namespace and keeps a handle on the latest connection, so that
 /// the test can cut it as a pulled cable would.
@@ -117,7 +106,7 @@ fn press_estop_elsewhere(lcnc: &LinuxCnc) {
 
 #[test]
 fn drives_the_real_linuxcnc_through_faults() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let setup = MachineSetup {

@@ -22,19 +22,6 @@ use geocal::run::RunOptions;
 use geocal::session::messages::RunEvent;
 use geocal::session::reader::{read_session, read_session_raw, Session};
 
-fn available() -> bool {
-    match geocal::sim::linuxcnc::unavailable() {
-        None => true,
-        Some(why) if std::env::var_os("CI").is_some() => {
-            panic!("CI must run the LinuxCNC tests, but {why}")
-        }
-        Some(why) => {
-            eprintln!("skipping the LinuxCNC fault tests: {why}");
-            false
-        }
-    }
-}
-
 /// The example real-controller HIL configuration (the small demo, 4 stations x 18 points),
 /// with a short reconnect window so that a linuxcncrsh that is gone stops the run soon.
 fn config_text() -> String {
@@ -224,7 +211,7 @@ fn assert_tracer_streams_whole(session: &Session) {
 /// recorded and the results recover the truth.
 #[test]
 fn linuxcnc_run_reconnects_after_a_cut_connection() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -276,7 +263,7 @@ fn linuxcnc_run_reconnects_after_a_cut_connection() {
 /// recover the truth.
 #[test]
 fn linuxcnc_run_through_an_estop_recovers_or_resumes() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -384,7 +371,7 @@ fn resume_and_check_prefix(dir: &Path) -> geocal::method::Results {
 /// the results recover the truth.
 #[test]
 fn linuxcnc_run_stopped_by_a_killed_linuxcncrsh_resumes() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");

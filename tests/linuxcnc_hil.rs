@@ -9,19 +9,6 @@ mod common;
 use common::{assert_recovers_truth, generous_timeouts, hil_config, run_with_truth, small_demo};
 use geocal::compensate::{export, Calibration, ExportOptions, TableFormat, POSITIONING};
 
-fn available() -> bool {
-    match geocal::sim::linuxcnc::unavailable() {
-        None => true,
-        Some(why) if std::env::var_os("CI").is_some() => {
-            panic!("CI must run the LinuxCNC tests, but {why}")
-        }
-        Some(why) => {
-            eprintln!("skipping the LinuxCNC tests: {why}");
-            false
-        }
-    }
-}
-
 /// The HIL configuration with LinuxCNC as the machine: velocity and acceleration such that
 /// a run stays short (G0 moves at `feed_m_s`, MAX_ACCELERATION 40 m/s²; the 0.25 ms servo
 /// period keeps the dead band from rest at 0.6–1.3 µm: tables without a reversal change
@@ -46,7 +33,7 @@ pub fn linuxcnc_config(extra: &str) -> String {
 
 #[test]
 fn linuxcnc_hil_run_recovers_truth() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -109,7 +96,7 @@ fn judge(before: &Calibration, after: &Calibration, k: usize, interp_m: f64) -> 
 /// the x table with its sign flipped and the y table with a header line: both fail it.
 #[test]
 fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");

@@ -3,24 +3,13 @@
 //! leave no process, shared memory or lock behind, also when the test never calls shutdown.
 //! Skips without LinuxCNC (with the reason), fails instead when `CI` is set.
 
+mod common;
+
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
 use std::time::Duration;
 
 use geocal::sim::linuxcnc::{self, LinuxCnc, MachineSetup};
-
-fn available() -> bool {
-    match linuxcnc::unavailable() {
-        None => true,
-        Some(why) if std::env::var_os("CI").is_some() => {
-            panic!("CI must run the LinuxCNC tests, but {why}")
-        }
-        Some(why) => {
-            eprintln!("skipping the LinuxCNC tests: {why}");
-            false
-        }
-    }
-}
 
 /// Send one linuxcncrsh command and read its one-line reply (verbose on: every set is acked).
 fn ask(stream: &mut TcpStream, reader: &mut BufReader<TcpStream>, line: &str) -> String {
@@ -57,7 +46,7 @@ fn nothing_left() {
 
 #[test]
 fn linuxcnc_starts_moves_reports_trim_pins_and_shuts_down_clean() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     let setup = MachineSetup {
@@ -126,7 +115,7 @@ fn linuxcnc_starts_moves_reports_trim_pins_and_shuts_down_clean() {
 
 #[test]
 fn a_missing_comp_file_fails_fast_and_a_dropped_instance_leaves_nothing() {
-    if !available() {
+    if !common::linuxcnc_available() {
         return;
     }
     // The launcher refuses a table that is not there, before starting anything.

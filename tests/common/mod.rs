@@ -643,3 +643,18 @@ impl Drop for Simulated {
         let _ = self.child.wait();
     }
 }
+
+/// Whether the real LinuxCNC can run here; without it the caller skips, saying why, except
+/// in CI, which must run the LinuxCNC tests and fails instead.
+pub fn linuxcnc_available() -> bool {
+    match geocal::sim::linuxcnc::unavailable() {
+        None => true,
+        Some(why) if std::env::var_os("CI").is_some() => {
+            panic!("CI must run the LinuxCNC tests, but {why}")
+        }
+        Some(why) => {
+            eprintln!("skipping the LinuxCNC tests: {why}");
+            false
+        }
+    }
+}
