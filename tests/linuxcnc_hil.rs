@@ -246,7 +246,22 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         bad.join("comp-x.txt").display(),
         bad.join("comp-y.txt").display()
     );
-    let wrong_config = config("[sim]\nnoise_seed = 4243\n").replace("[hil.linuxcnc]\n", &raw);
+    // z with a reversal of 0.9 µm, inside the dead band from rest at this acceleration and
+    // servo period (¼·A·dt² … ½·A·dt² = 0.625 … 1.25 µm): LinuxCNC never follows the jump
+    // at a reversal, and the verification must say so instead of blaming the table.
+    std::fs::write(
+        bad.join("comp-z.txt"),
+        format!(
+            "-2000 0 {DEAD_BAND_JUMP_MM}\n0 0 {DEAD_BAND_JUMP_MM}\n2000 0 {DEAD_BAND_JUMP_MM}\n"
+        ),
+    )
+    .expect("write");
+    let wrong_sim = format!(
+        "[sim]\nnoise_seed = 4243\ncompensation = [\n\
+         {{ format = \"linuxcnc-type1\", file = \"{}\", axis = \"z\" }},\n]\n",
+        bad.join("comp-z.txt").display()
+    );
+    let wrong_config = config(&wrong_sim).replace("[hil.linuxcnc]\n", &raw);
     assert!(wrong_config.contains("comp_files"));
     let started = std::time::Instant::now();
     let (wrong, _) = run_with_truth(&wrong_config, &dir.path().join("wrong"));
@@ -271,7 +286,47 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         flipped_after > 1.5 * before_x,
         "the flipped table doubles EXX"
     );
+
+    // The reversal trim of z: the table's value changes from rest at every reversal, and
+    // LinuxCNC's applied trim stays where it was.
+    let session = geocal::session::reader::read_session(&wrong.session_path).expect("session");
+    let (mut reversed, mut not_applied) = (0, 0);
+    for e in &session.events {
+        if let geocal::session::messages::RunEvent::ControllerTrims { joints, .. } = &e.msg {
+            let z = &joints[2];
+            if (z.table_m - DEAD_BAND_JUMP_MM * 1e-3).abs() < 1e-12 {
+                reversed += 1;
+            }
+            if (z.table_m - z.applied_m).abs() > 1e-9 {
+                not_applied += 1;
+            }
+        }
+    }
+    println!("z reversal trim: table at it at {reversed} points, not applied at {not_applied}");
+    assert!(reversed > 0, "the plan reverses z");
+    assert_eq!(
+        not_applied, reversed,
+        "LinuxCNC never follows a jump inside its dead band"
+    );
+    let md = dir.path().join("md").join("wrong.md");
+    let status = std::process::Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["report".as_ref(), dir.path().join("wrong").as_os_str()])
+        .args(["--format", "md", "--out"])
+        .arg(&md)
+        .status()
+        .expect("geocal report");
+    assert!(status.success());
+    let report = std::fs::read_to_string(&md).expect("wrong.md");
+    let verification = &report[report.find("## Verification run").expect("section")..];
+    assert!(
+        verification.contains("LinuxCNC's dead band") && verification.contains("joint 2: "),
+        "{verification}"
+    );
 }
+
+/// A reversal trim inside LinuxCNC's dead band from rest at 40 m/s² and a 0.25 ms servo
+/// period, mm.
+const DEAD_BAND_JUMP_MM: f64 = 0.0009;
 
 /// The real-controller HIL's configuration errors name their keys (no LinuxCNC needed).
 #[test]
