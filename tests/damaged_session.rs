@@ -302,13 +302,13 @@ fn solve_file(path: &Path) -> Result<usize, String> {
     Ok(results.extraction.windows_used)
 }
 
-/// The windows of the damaged file (or its error) and how many fewer than its repaired copy
-/// (only at log-time ties, see below); an error when they differ otherwise.
+/// The windows of the damaged file (or its error), equal to its repaired copy's; an error
+/// when they differ.
 fn damaged_and_repaired(
     bytes: &[u8],
     dir: &Path,
     name: &str,
-) -> Result<(Result<usize, String>, usize), String> {
+) -> Result<Result<usize, String>, String> {
     let damaged = dir.join(format!("{name}.mcap"));
     let repaired = dir.join(format!("{name}.repaired.mcap"));
     std::fs::write(&damaged, bytes).expect("write");
@@ -319,16 +319,9 @@ fn damaged_and_repaired(
         Err(e) => Err(e.to_string()),
     };
     match (&from_damaged, &repaired_windows) {
-        (Ok(a), Ok(b)) if a == b => Ok((from_damaged, 0)),
-        // Messages with one log time can straddle two chunks: a window that ends (or starts) at
-        // the time a damaged chunk starts (ends) lost a sample at that very time. The damaged
-        // file drops it; its repaired copy cannot know and uses it, one sample short.
-        (Ok(a), Ok(b)) if a < b && straddled_ties(&damaged) >= b - a => {
-            let fewer = b - a;
-            Ok((from_damaged, fewer))
-        }
+        (Ok(a), Ok(b)) if a == b => Ok(from_damaged),
         // Neither solves (the session header, or every window, was lost): the same either way.
-        (Err(_), Err(_)) => Ok((from_damaged, 0)),
+        (Err(_), Err(_)) => Ok(from_damaged),
         _ => {
             let damage: Vec<String> = read_session(&damaged)
                 .map(|s| s.damaged.iter().map(|d| d.describe()).collect())
@@ -338,29 +331,6 @@ fn damaged_and_repaired(
             ))
         }
     }
-}
-
-/// How many damaged spans share their first or last log time with a message of an intact
-/// chunk beside them (by the intact file's chunk index): where a window can touch a loss.
-fn straddled_ties(damaged: &Path) -> usize {
-    let chunks = &recorded().chunks;
-    let session = read_session(damaged).expect("damaged file reads");
-    let lost = |c: &ChunkIndex| {
-        session.damaged.iter().any(|d| {
-            d.byte_offset <= c.chunk_start_offset
-                && c.chunk_start_offset < d.byte_offset + d.byte_length
-        })
-    };
-    session
-        .damaged
-        .iter()
-        .filter(|d| {
-            chunks.iter().filter(|c| !lost(c)).any(|c| {
-                c.message_end_time == d.start_log_time_ns
-                    || c.message_start_time == d.end_log_time_ns
-            })
-        })
-        .count()
 }
 
 /// Random damage anywhere, the summary and footer included: a few to 200 bytes set at random
@@ -377,7 +347,7 @@ fn random_damage_solves_like_the_repaired_copy() {
         .last()
         .map_or(n, |c| (c.chunk_start_offset + c.chunk_length) as usize);
     let intact = solve_file(&r.path).expect("intact solve");
-    let (mut solved, mut fewer, mut ties, mut differ) = (0, 0, 0, Vec::new());
+    let (mut solved, mut fewer, mut differ) = (0, 0, Vec::new());
     for seed in 0..60u64 {
         let mut rng = rand::rngs::StdRng::seed_from_u64(seed);
         // Every sixth seed damages only the summary section (indexes, statistics, footer).
@@ -393,17 +363,15 @@ fn random_damage_solves_like_the_repaired_copy() {
             bytes[rng.random_range(from..to)] = rng.random();
         }
         match damaged_and_repaired(&bytes, dir.path(), &format!("seed{seed}")) {
-            Ok((Ok(w), at_ties)) => {
+            Ok(Ok(w)) => {
                 solved += 1;
                 fewer += usize::from(w < intact);
-                ties += at_ties;
             }
-            Ok((Err(_), _)) => {}
+            Ok(Err(_)) => {}
             Err(why) => differ.push(why),
         }
     }
     assert!(differ.is_empty(), "{differ:#?}");
-    println!("{ties} windows fewer than the repaired copies, each touching a loss at one log time");
     println!("random damage: {solved} of 60 solved, {fewer} with fewer windows than {intact}");
     assert!(
         solved >= 40 && fewer >= 20,
@@ -425,13 +393,9 @@ fn demo_session_with_a_damaged_middle_fifth() {
     for _ in 0..200 {
         bytes[rng.random_range(2 * n / 5..3 * n / 5)] = rng.random();
     }
-    let (windows, at_ties) =
-        damaged_and_repaired(&bytes, dir.path(), "demo").expect("the same windows");
-    let windows = windows.expect("the damaged demo solves");
-    assert_eq!(
-        at_ties, 0,
-        "the demo's windows differ from its repaired copy's"
-    );
+    let windows = damaged_and_repaired(&bytes, dir.path(), "demo")
+        .expect("the same windows")
+        .expect("the damaged demo solves");
     println!("damaged demo: {windows} of 1000 windows used");
     assert!((700..1000).contains(&windows), "{windows} windows");
 }
@@ -539,10 +503,22 @@ fn repair_of_a_damaged_file_keeps_every_readable_message() {
         );
     }
     let expected = chunk_messages(&r.bytes, |c| !lost.contains(&c.chunk_start_offset));
-    assert_eq!(python_messages(&output), expected);
-    // And geocal reads it as complete and undamaged.
+    // Every readable message, and one `data_lost` event per lost chunk.
+    let (losses, copied): (Vec<Message>, Vec<Message>) = python_messages(&output)
+        .into_iter()
+        .partition(|(topic, _, _, data)| {
+            topic == "/run/event" && String::from_utf8_lossy(data).contains("\"data_lost\"")
+        });
+    assert_eq!(copied, expected);
+    assert_eq!(losses.len(), lost.len());
+    // And geocal reads it as complete and undamaged, with what its original lost recorded.
     let s = read_session(&output).expect("repaired session");
     assert!(s.completeness.is_complete() && s.damaged.is_empty());
+    let mut recorded: Vec<u64> = s.lost_before_repair.iter().map(|d| d.byte_offset).collect();
+    recorded.sort_unstable();
+    let mut lost = lost.to_vec();
+    lost.sort_unstable();
+    assert_eq!(recorded, lost);
 }
 
 #[test]

@@ -556,6 +556,7 @@ mod tests {
             events: Vec::new(),
             completeness: Completeness::Complete,
             damaged: Vec::new(),
+            lost_before_repair: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

@@ -535,6 +535,7 @@ mod tests {
             events: vec![begin(0, 62), begin(1, 150)],
             completeness: Completeness::Complete,
             damaged: Vec::new(),
+            lost_before_repair: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

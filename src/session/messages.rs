@@ -309,6 +309,11 @@ pub enum RunEvent {
         pass: usize,
         joints: Vec<geocal_drivers::ControllerTrim>,
     },
+    /// A span of the original recording that `geocal repair` could not copy (a damaged or
+    /// truncated part): a window that touches it is dropped, as in the damaged file.
+    DataLost {
+        lost: super::damage::DamagedChunk,
+    },
     #[serde(other)]
     Other,
 }
@@ -345,6 +350,7 @@ struct WireEvent {
     b_rad: Option<f64>,
     pose: Option<usize>,
     joints: Option<Vec<geocal_drivers::ControllerTrim>>,
+    lost: Option<super::damage::DamagedChunk>,
 }
 
 impl TryFrom<WireEvent> for RunEvent {
@@ -378,6 +384,9 @@ impl TryFrom<WireEvent> for RunEvent {
                 point: w.point.ok_or_else(|| need("point"))?,
                 pass: w.pass.ok_or_else(|| need("pass"))?,
                 joints: w.joints.ok_or_else(|| need("joints"))?,
+            },
+            "data_lost" => RunEvent::DataLost {
+                lost: w.lost.ok_or_else(|| need("lost"))?,
             },
             "station_end" => RunEvent::StationEnd {
                 station: w.station.ok_or_else(|| need("station"))?,

@@ -69,6 +69,9 @@ pub struct Session {
     pub completeness: Completeness,
     /// Chunks that failed their CRC, decompression or parsing: skipped, in file order.
     pub damaged: Vec<DamagedChunk>,
+    /// Spans a repaired copy's original had lost (`data_lost` events written by `geocal
+    /// repair`): its windows there are dropped as in the damaged original.
+    pub lost_before_repair: Vec<DamagedChunk>,
     /// Messages on known topics that did not parse (each one is warned about).
     pub skipped: u64,
     /// Messages on topics this reader does not know (other plan kinds, other tools).
@@ -79,7 +82,10 @@ impl Session {
     /// Whether messages with a log time in `from_ns ..= to_ns` may have been lost in a
     /// damaged chunk: a window there must be dropped, never half-used.
     pub fn lost_between(&self, from_ns: u64, to_ns: u64) -> bool {
-        self.damaged.iter().any(|d| d.overlaps(from_ns, to_ns))
+        self.damaged
+            .iter()
+            .chain(&self.lost_before_repair)
+            .any(|d| d.overlaps(from_ns, to_ns))
     }
 }
 
@@ -1278,6 +1284,13 @@ impl Decoder {
         let topics = self.json.into_sorted_map();
         let mut events = self.events;
         events.sort_by_key(|s| s.log_time_ns);
+        let lost_before_repair = events
+            .iter()
+            .filter_map(|e| match &e.msg {
+                RunEvent::DataLost { lost } => Some(lost.clone()),
+                _ => None,
+            })
+            .collect();
         Ok(Session {
             header: header.msg,
             tracers,
@@ -1289,6 +1302,7 @@ impl Decoder {
             topics,
             completeness,
             damaged,
+            lost_before_repair,
             skipped: self.skipped,
             ignored: self.ignored,
         })

@@ -5,7 +5,8 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use super::reader::{read_raw, Completeness, DamagedChunk, RawRead, ReadError};
+use super::messages::{RunEvent, TOPIC_EVENT};
+use super::reader::{read_raw, Completeness, DamagedChunk, RawMessage, RawRead, ReadError};
 use super::recorder::{Recorder, RecorderError, RecorderOptions};
 
 #[derive(Debug, Clone)]
@@ -106,11 +107,33 @@ fn write_copy(raw: &RawRead, path: &Path) -> Result<(), RepairError> {
     };
     let recorder = Recorder::create(path, options)?;
     let handle = recorder.handle();
+    // The copy is complete, but what its original lost must still cost the windows it cost
+    // there: each loss goes into the copy as an event, in log-time order.
+    let mut losses: Vec<&DamagedChunk> = raw.damaged.iter().collect();
+    losses.sort_by_key(|d| d.start_log_time_ns);
+    let mut losses = losses.into_iter().peekable();
+    let record_loss = |lost: &DamagedChunk| {
+        handle.event(
+            &RunEvent::DataLost { lost: lost.clone() },
+            lost.start_log_time_ns,
+        )
+    };
     for message in &raw.messages {
+        while let Some(lost) = losses.next_if(|d| d.start_log_time_ns < message.log_time_ns) {
+            record_loss(lost);
+        }
         handle.raw(message.clone());
     }
+    losses.for_each(record_loss);
     recorder.finish()?;
     Ok(())
+}
+
+/// A `data_lost` event: what a repair records of its original's losses.
+fn is_loss_record(message: &RawMessage) -> bool {
+    message.channel.topic == TOPIC_EVENT
+        && serde_json::from_slice::<RunEvent>(&message.data)
+            .is_ok_and(|e| matches!(e, RunEvent::DataLost { .. }))
 }
 
 /// The copy must read complete and undamaged, with the same messages in the same order.
@@ -124,14 +147,25 @@ fn verify(raw: &RawRead, path: &Path, input: &Path) -> Result<(), RepairError> {
     if !back.completeness.is_complete() || !back.damaged.is_empty() {
         return Err(fail("it is incomplete or damaged".into()));
     }
-    if back.messages.len() != raw.messages.len() {
+    let (back_losses, back_copied): (Vec<&RawMessage>, Vec<&RawMessage>) =
+        back.messages.iter().partition(|m| is_loss_record(m));
+    let (raw_losses, raw_copied): (Vec<&RawMessage>, Vec<&RawMessage>) =
+        raw.messages.iter().partition(|m| is_loss_record(m));
+    if back_copied.len() != raw_copied.len() {
         return Err(fail(format!(
             "{} messages instead of {}",
-            back.messages.len(),
-            raw.messages.len()
+            back_copied.len(),
+            raw_copied.len()
         )));
     }
-    let differs = back.messages.iter().zip(&raw.messages).position(|(a, b)| {
+    if back_losses.len() != raw_losses.len() + raw.damaged.len() {
+        return Err(fail(format!(
+            "{} records of lost data instead of {}",
+            back_losses.len(),
+            raw_losses.len() + raw.damaged.len()
+        )));
+    }
+    let differs = back_copied.iter().zip(&raw_copied).position(|(a, b)| {
         (a.log_time_ns, a.publish_time_ns, &a.data, &a.channel.topic)
             != (b.log_time_ns, b.publish_time_ns, &b.data, &b.channel.topic)
     });

@@ -299,6 +299,7 @@ mod tests {
             topics: BTreeMap::new(),
             completeness: Completeness::Complete,
             damaged: Vec::new(),
+            lost_before_repair: Vec::new(),
             skipped: 0,
             ignored: 0,
         }

@@ -330,6 +330,7 @@ mod tests {
             events,
             completeness: crate::session::reader::Completeness::Complete,
             damaged: Vec::new(),
+            lost_before_repair: Vec::new(),
             skipped: 0,
             ignored: 0,
         };
