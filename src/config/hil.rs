@@ -106,55 +106,6 @@ impl Config {
     pub fn linuxcnc_in_the_loop(&self) -> bool {
         self.emulated() && self.devices.machine.driver == DriverKind::Linuxcnc
     }
-
-    /// The LinuxCNC set-up of a real-controller HIL run, from the configuration.
-    pub fn linuxcnc_setup(&self) -> crate::sim::linuxcnc::MachineSetup {
-        use crate::sim::linuxcnc::{CompFile, MachineSetup};
-        let lc = self
-            .hil
-            .as_ref()
-            .and_then(|h| h.linuxcnc.clone())
-            .unwrap_or_default();
-        let travel = |k: usize| {
-            self.machine
-                .travel_m
-                .get(crate::plan::AXES[k])
-                .copied()
-                .unwrap_or([-1.0, 1.0])
-        };
-        let axis_index = |a: &str| crate::plan::AXES.iter().position(|x| *x == a);
-        let mut comp_files: Vec<CompFile> = self
-            .sim
-            .iter()
-            .flat_map(|s| &s.compensation)
-            .filter_map(|c| {
-                let comp_type = match c.format {
-                    crate::compensate::TableFormat::LinuxcncType0 => 0,
-                    crate::compensate::TableFormat::LinuxcncType1 => 1,
-                    _ => return None,
-                };
-                Some(CompFile {
-                    joint: c.axis_index()?,
-                    file: c.file.clone(),
-                    comp_type,
-                })
-            })
-            .collect();
-        comp_files.extend(lc.comp_files.iter().filter_map(|c| {
-            Some(CompFile {
-                joint: axis_index(&c.axis)?,
-                file: c.file.clone(),
-                comp_type: c.comp_type,
-            })
-        }));
-        MachineSetup {
-            travel_m: std::array::from_fn(travel),
-            max_velocity_m_s: self.devices.machine.feed_m_s,
-            max_acceleration_m_s2: lc.max_acceleration_m_s2,
-            servo_period_s: lc.servo_period_s,
-            comp_files,
-        }
-    }
 }
 
 /// `[hil.linuxcnc]` and the `[sim]` it goes with, for a real-controller HIL run.
@@ -171,7 +122,7 @@ fn validate_linuxcnc_hil(config: &Config) -> Result<(), Invalid> {
         }
         return Ok(());
     }
-    for (k, axis) in crate::plan::AXES.iter().enumerate() {
+    for (k, axis) in crate::compensate::AXES.iter().enumerate() {
         if let Some([lo, hi]) = config.machine.travel_m.get(*axis) {
             if !(*lo <= 0.0 && 0.0 <= *hi) {
                 return fail(
@@ -220,7 +171,7 @@ fn validate_linuxcnc_hil(config: &Config) -> Result<(), Invalid> {
     positive("hil.linuxcnc.start_timeout_s", lc.start_timeout_s)?;
     for (i, c) in lc.comp_files.iter().enumerate() {
         let key = format!("hil.linuxcnc.comp_files[{i}]");
-        if !crate::plan::AXES.contains(&c.axis.as_str()) {
+        if !crate::compensate::AXES.contains(&c.axis.as_str()) {
             return fail(
                 &format!("{key}.axis"),
                 format!("expected x, y or z, found {:?}", c.axis),

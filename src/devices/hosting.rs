@@ -122,7 +122,7 @@ pub async fn host(
 
     // The machine: a real LinuxCNC started headless; the world's carriages follow its joints.
     let linuxcnc = if config.linuxcnc_in_the_loop() {
-        let setup = config.linuxcnc_setup();
+        let setup = crate::sim::linuxcnc::MachineSetup::from_config(config);
         let timeout = std::time::Duration::from_secs_f64(
             hil.linuxcnc.as_ref().map_or(180.0, |l| l.start_timeout_s),
         );

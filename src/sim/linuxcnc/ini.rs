@@ -7,6 +7,8 @@
 use std::fmt::Write as _;
 use std::path::PathBuf;
 
+use crate::config::Config;
+
 /// A joint's compensation table as LinuxCNC loads it (`[JOINT_n] COMP_FILE`).
 #[derive(Debug, Clone, PartialEq)]
 pub struct CompFile {
@@ -38,6 +40,57 @@ impl Default for MachineSetup {
             max_acceleration_m_s2: 1.0,
             servo_period_s: 1e-3,
             comp_files: Vec::new(),
+        }
+    }
+}
+
+impl MachineSetup {
+    /// The LinuxCNC set-up of a real-controller HIL run, from the configuration.
+    pub fn from_config(config: &Config) -> MachineSetup {
+        let lc = config
+            .hil
+            .as_ref()
+            .and_then(|h| h.linuxcnc.clone())
+            .unwrap_or_default();
+        let travel = |k: usize| {
+            config
+                .machine
+                .travel_m
+                .get(crate::compensate::AXES[k])
+                .copied()
+                .unwrap_or([-1.0, 1.0])
+        };
+        let axis_index = |a: &str| crate::compensate::AXES.iter().position(|x| *x == a);
+        let mut comp_files: Vec<CompFile> = config
+            .sim
+            .iter()
+            .flat_map(|s| &s.compensation)
+            .filter_map(|c| {
+                let comp_type = match c.format {
+                    crate::compensate::TableFormat::LinuxcncType0 => 0,
+                    crate::compensate::TableFormat::LinuxcncType1 => 1,
+                    _ => return None,
+                };
+                Some(CompFile {
+                    joint: c.axis_index()?,
+                    file: c.file.clone(),
+                    comp_type,
+                })
+            })
+            .collect();
+        comp_files.extend(lc.comp_files.iter().filter_map(|c| {
+            Some(CompFile {
+                joint: axis_index(&c.axis)?,
+                file: c.file.clone(),
+                comp_type: c.comp_type,
+            })
+        }));
+        MachineSetup {
+            travel_m: std::array::from_fn(travel),
+            max_velocity_m_s: config.devices.machine.feed_m_s,
+            max_acceleration_m_s2: lc.max_acceleration_m_s2,
+            servo_period_s: lc.servo_period_s,
+            comp_files,
         }
     }
 }
