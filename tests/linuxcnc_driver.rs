@@ -290,13 +290,13 @@ async fn exercise(lcnc: &LinuxCnc) {
 fn linuxcnc_configuration_is_checked() {
     use geocal::config::{Config, DriverKind};
     let path =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/linuxcnc-machine.toml");
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("config/linuxcnc/machine.toml");
     let c = Config::load(&path).expect("the example is valid");
     assert_eq!(c.devices.machine.driver, DriverKind::Linuxcnc);
     let lc = c.devices.machine.linuxcnc.as_ref().expect("settings");
     let pw = lc.password_file.as_ref().expect("password file");
     assert!(
-        pw.is_absolute() && pw.ends_with("config/linuxcnc-passwords.toml"),
+        pw.is_absolute() && pw.ends_with("config/linuxcnc/linuxcnc-passwords.toml"),
         "{pw:?}"
     );
     let stored = toml::to_string(&c).expect("serialises");

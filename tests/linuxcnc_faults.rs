@@ -25,7 +25,7 @@ use geocal::session::reader::{read_session, read_session_raw, Session};
 /// The example real-controller HIL configuration (the small demo, 4 stations x 18 points),
 /// with a short reconnect window so that a linuxcncrsh that is gone stops the run soon.
 fn config_text() -> String {
-    let text = include_str!("../config/linuxcnc-hil.toml");
+    let text = include_str!("../config/linuxcnc/hil.toml");
     let table = "[devices.machine.linuxcnc]\n";
     assert!(text.contains("driver = \"linuxcnc\"") && text.contains(table));
     text.replace(table, &format!("{table}reconnect_timeout_s = 5.0\n"))

@@ -1,4 +1,6 @@
-//! Every example config in `config/`, run with `--truth` at its seed, gives the results and
+//! Every example config in `config/` (the simulated plans of every kind; the controller
+//! examples in its subfolders need real devices or run in real time), run with `--truth` at
+//! its seed, gives the results and
 //! truth it gave when the digests in `tests/data/results_digests.json` were stored: a change
 //! that should not change behaviour (a refactor) is shown not to, byte for byte.
 //!
