@@ -6,8 +6,8 @@
 mod common;
 
 use common::{
-    assert_recovers_truth, faults, generous_timeouts, hil_config, run_with_truth, small_demo,
-    HIL_FAULTS,
+    assert_recovers_truth, faults, generous_timeouts, hil_config, pass_rule, run_with_truth,
+    small_demo, verification_grid, HIL_FAULTS,
 };
 use geocal::compensate::sinumerik::SinumerikOptions;
 use geocal::compensate::{export, Calibration, ExportOptions, TableFormat, POSITIONING};
@@ -101,19 +101,6 @@ fn hil_run_with_faults_completes_and_recovers_truth() {
     );
 }
 
-fn rms(v: &[f64]) -> f64 {
-    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
-}
-
-/// Positioning values and sigmas of axis `k`.
-fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
-    let c = cal.positioning(k).expect("positioning");
-    (
-        c.values.iter().map(|v| v.expect("value")).collect(),
-        c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect(),
-    )
-}
-
 /// The verification run over the emulators: a small plan calibrated in virtual time (the
 /// same truth machine: seed, structure, travel), its tables (x LinuxCNC type 1, y type 0, z
 /// SINUMERIK) applied by the world behind the GRBL emulator, and the HIL run's positioning
@@ -121,30 +108,8 @@ fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
 #[test]
 fn hil_verification_run_removes_the_positioning_errors() {
     let dir = tempfile::tempdir().expect("tempdir");
-    // The smallest grid of the small demo's that the 21-error decomposition takes (at most
-    // half as many unknowns as equations: 5 x 4 x 3 positions, 60 points), one pass.
-    let grid = |text: String| {
-        let text = text
-            .replace(
-                "x = { from = 0.1, to = 1.3, count = 3 }",
-                "x = { from = 0.1, to = 1.3, count = 5 }",
-            )
-            .replace(
-                "y = { from = 0.2, to = 2.2, count = 3 }",
-                "y = { from = 0.2, to = 2.2, count = 4 }",
-            )
-            .replace(
-                "z = { from = 0.15, to = 0.95, count = 2 }",
-                "z = { from = 0.15, to = 0.95, count = 3 }",
-            );
-        assert!(
-            text.contains("count = 5 }") && text.contains("count = 4 }"),
-            "grid set"
-        );
-        text
-    };
     let one_pass = |text: String| {
-        grid(text.replace(
+        verification_grid(text.replace(
             "passes = [\"forward\", \"backward\"]",
             "passes = [\"forward\"]",
         ))
@@ -189,7 +154,7 @@ fn hil_verification_run_removes_the_positioning_errors() {
     );
     let started = std::time::Instant::now();
     let (hil_after, _) = run_with_truth(
-        &with_tables(grid(generous_timeouts(&hil_config("")))),
+        &with_tables(verification_grid(generous_timeouts(&hil_config("")))),
         &dir.path().join("hil-after"),
     );
     println!(
@@ -199,30 +164,27 @@ fn hil_verification_run_removes_the_positioning_errors() {
     let sim_cal = Calibration::load(&sim_after.results_path).expect("sim results");
     let hil_cal = Calibration::load(&hil_after.results_path).expect("HIL results");
     for k in 0..3 {
-        let (vb, sb) = positioning(&cal, k);
         for (what, after) in [("sim", &sim_cal), ("HIL", &hil_cal)] {
-            let (va, sa) = positioning(after, k);
-            let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
-            let bound = 2.0 * rms(&sigma) + interp[k];
+            let r = pass_rule(&cal, after, k, interp[k]);
             println!(
                 "{what} {}: RMS before {:.3} µm, after {:.3} µm; RMS σ {:.3} µm; \
                  interpolation error {:.2e} µm; bound {:.3} µm",
                 POSITIONING[k],
-                rms(&vb) * 1e6,
-                rms(&va) * 1e6,
-                rms(&sigma) * 1e6,
+                r.rms_before_m * 1e6,
+                r.rms_after_m * 1e6,
+                r.rms_sigma_m * 1e6,
                 interp[k] * 1e6,
-                bound * 1e6
+                r.bound_m * 1e6
             );
             assert!(
-                rms(&va) <= bound,
+                r.rms_after_m <= r.bound_m,
                 "{what} {}: RMS {:.4} µm left, bound {:.4} µm",
                 POSITIONING[k],
-                rms(&va) * 1e6,
-                bound * 1e6
+                r.rms_after_m * 1e6,
+                r.bound_m * 1e6
             );
             assert!(
-                rms(&va) < 0.5 * rms(&vb),
+                r.rms_after_m < 0.5 * r.rms_before_m,
                 "{what} {}: no improvement",
                 POSITIONING[k]
             );

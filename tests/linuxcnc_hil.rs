@@ -6,7 +6,10 @@
 
 mod common;
 
-use common::{assert_recovers_truth, generous_timeouts, hil_config, run_with_truth, small_demo};
+use common::{
+    assert_recovers_truth, generous_timeouts, hil_config, pass_rule, run_with_truth, small_demo,
+    verification_grid,
+};
 use geocal::compensate::{export, Calibration, ExportOptions, TableFormat, POSITIONING};
 
 /// The HIL configuration with LinuxCNC as the machine: velocity and acceleration such that
@@ -47,46 +50,6 @@ fn linuxcnc_hil_run_recovers_truth() {
         results.chi2_per_dof, results.dof, results.residual_rms_m
     );
     assert_recovers_truth(results, &truth);
-}
-
-fn rms(v: &[f64]) -> f64 {
-    (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt()
-}
-
-fn positioning(cal: &Calibration, k: usize) -> (Vec<f64>, Vec<f64>) {
-    let c = cal.positioning(k).expect("positioning");
-    (
-        c.values.iter().map(|v| v.expect("value")).collect(),
-        c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect(),
-    )
-}
-
-/// The smallest grid of the small demo's that the 21-error decomposition takes (5 x 4 x 3).
-fn verification_grid(text: String) -> String {
-    let text = text
-        .replace(
-            "x = { from = 0.1, to = 1.3, count = 3 }",
-            "x = { from = 0.1, to = 1.3, count = 5 }",
-        )
-        .replace(
-            "y = { from = 0.2, to = 2.2, count = 3 }",
-            "y = { from = 0.2, to = 2.2, count = 4 }",
-        )
-        .replace(
-            "z = { from = 0.15, to = 0.95, count = 2 }",
-            "z = { from = 0.15, to = 0.95, count = 3 }",
-        );
-    assert!(text.contains("count = 5 }") && text.contains("count = 4 }"));
-    text
-}
-
-/// (RMS after, bound 2·RMS(σ) + interpolation error, RMS before) of axis `k`'s positioning.
-fn judge(before: &Calibration, after: &Calibration, k: usize, interp_m: f64) -> (f64, f64, f64) {
-    let (vb, sb) = positioning(before, k);
-    let (va, sa) = positioning(after, k);
-    let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
-    let bound = 2.0 * rms(&sigma) + interp_m;
-    (rms(&va), bound, rms(&vb))
 }
 
 /// The closed loop through LinuxCNC: the plan calibrated (virtual time, same truth machine),
@@ -155,7 +118,8 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
     );
     let after_cal = Calibration::load(&after.results_path).expect("after results");
     for k in 0..3 {
-        let (rms_after, bound, rms_before) = judge(&cal, &after_cal, k, interp[k]);
+        let r = pass_rule(&cal, &after_cal, k, interp[k]);
+        let (rms_after, bound, rms_before) = (r.rms_after_m, r.bound_m, r.rms_before_m);
         println!(
             "{}: RMS before {:.3} µm, after {:.3} µm, bound {:.3} µm",
             POSITIONING[k],
@@ -271,7 +235,8 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
     );
     let wrong_cal = Calibration::load(&wrong.results_path).expect("results");
     for (k, what) in [(0, "flipped sign"), (1, "header line")] {
-        let (rms_after, bound, rms_before) = judge(&cal, &wrong_cal, k, interp[k]);
+        let r = pass_rule(&cal, &wrong_cal, k, interp[k]);
+        let (rms_after, bound, rms_before) = (r.rms_after_m, r.bound_m, r.rms_before_m);
         println!(
             "{} ({what}): RMS before {:.3} µm, after {:.3} µm, bound {:.3} µm",
             POSITIONING[k],
@@ -281,7 +246,8 @@ fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         );
         assert!(rms_after > bound, "{} with a {what} passed", POSITIONING[k]);
     }
-    let (flipped_after, _, before_x) = judge(&cal, &wrong_cal, 0, interp[0]);
+    let flipped = pass_rule(&cal, &wrong_cal, 0, interp[0]);
+    let (flipped_after, before_x) = (flipped.rms_after_m, flipped.rms_before_m);
     assert!(
         flipped_after > 1.5 * before_x,
         "the flipped table doubles EXX"

@@ -658,3 +658,63 @@ pub fn linuxcnc_available() -> bool {
         }
     }
 }
+
+/// The smallest grid of the small demo's that the 21-error decomposition takes (at most half
+/// as many unknowns as equations: 5 x 4 x 3 positions, 60 points).
+pub fn verification_grid(text: String) -> String {
+    let text = text
+        .replace(
+            "x = { from = 0.1, to = 1.3, count = 3 }",
+            "x = { from = 0.1, to = 1.3, count = 5 }",
+        )
+        .replace(
+            "y = { from = 0.2, to = 2.2, count = 3 }",
+            "y = { from = 0.2, to = 2.2, count = 4 }",
+        )
+        .replace(
+            "z = { from = 0.15, to = 0.95, count = 2 }",
+            "z = { from = 0.15, to = 0.95, count = 3 }",
+        );
+    assert!(
+        text.contains("count = 5 }") && text.contains("count = 4 }"),
+        "grid set"
+    );
+    text
+}
+
+/// A verification run's positioning error of one axis against the pass rule.
+pub struct PassRule {
+    pub rms_before_m: f64,
+    pub rms_after_m: f64,
+    /// RMS of the before and after σ combined at each position.
+    pub rms_sigma_m: f64,
+    /// 2·RMS(σ) + the tables' interpolation error.
+    pub bound_m: f64,
+}
+
+/// Axis `k`'s positioning error before and after compensation against the pass rule
+/// RMS(after) ≤ 2·RMS(σ) + interpolation error (docs/compensation.md).
+pub fn pass_rule(
+    before: &geocal::compensate::Calibration,
+    after: &geocal::compensate::Calibration,
+    k: usize,
+    interpolation_m: f64,
+) -> PassRule {
+    let positioning = |cal: &geocal::compensate::Calibration| {
+        let c = cal.positioning(k).expect("positioning");
+        let values: Vec<f64> = c.values.iter().map(|v| v.expect("value")).collect();
+        let sigma: Vec<f64> = c.sigma.iter().map(|s| s.unwrap_or(0.0)).collect();
+        (values, sigma)
+    };
+    let rms = |v: &[f64]| (v.iter().map(|x| x * x).sum::<f64>() / v.len().max(1) as f64).sqrt();
+    let (vb, sb) = positioning(before);
+    let (va, sa) = positioning(after);
+    let sigma: Vec<f64> = sb.iter().zip(&sa).map(|(b, a)| b.hypot(*a)).collect();
+    let rms_sigma_m = rms(&sigma);
+    PassRule {
+        rms_before_m: rms(&vb),
+        rms_after_m: rms(&va),
+        rms_sigma_m,
+        bound_m: 2.0 * rms_sigma_m + interpolation_m,
+    }
+}
