@@ -318,7 +318,7 @@ fn damaged_and_repaired(
         Ok(_) => Err("no header".into()),
         Err(e) => Err(e.to_string()),
     };
-    match (&from_damaged, &repaired_windows) {
+    let verdict = match (&from_damaged, &repaired_windows) {
         (Ok(a), Ok(b)) if a == b => Ok(from_damaged),
         // Neither solves (the session header, or every window, was lost): the same either way.
         (Err(_), Err(_)) => Ok(from_damaged),
@@ -330,7 +330,11 @@ fn damaged_and_repaired(
                 "{name}: damaged {from_damaged:?}, repaired {repaired_windows:?}: {damage:#?}"
             ))
         }
-    }
+    };
+    // Sixty seeds' copies would otherwise pile up in the temporary folder.
+    let _ = std::fs::remove_file(&damaged);
+    let _ = std::fs::remove_file(&repaired);
+    verdict
 }
 
 /// Random damage anywhere, the summary and footer included: a few to 200 bytes set at random
