@@ -25,7 +25,9 @@ impl Drop for Daemon {
     }
 }
 
-fn daemon(data_dir: &Path) -> Daemon {
+/// A daemon on `data_dir`, its log (JSON lines: stderr is not a terminal) into `log`.
+fn daemon(data_dir: &Path, log: &Path) -> Daemon {
+    let log = std::fs::File::create(log).expect("daemon log");
     let mut child = Command::new(env!("CARGO_BIN_EXE_geocal"))
         .arg("serve")
         .arg("--data-dir")
@@ -33,7 +35,7 @@ fn daemon(data_dir: &Path) -> Daemon {
         .args(["--listen", "127.0.0.1:0", "--live", "off"])
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
-        .stderr(Stdio::null())
+        .stderr(log)
         .spawn()
         .expect("spawn geocal serve");
     let mut line = String::new();
@@ -90,7 +92,8 @@ fn submit(daemon: &Daemon, config: &Path, stderr: Stdio) -> Child {
 #[test]
 fn a_followed_demo_shows_one_line_in_a_terminal_and_few_on_a_pipe() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = daemon(&dir.path().join("data"));
+    let log = dir.path().join("daemon.log");
+    let daemon = daemon(&dir.path().join("data"), &log);
     let config = Path::new(env!("CARGO_MANIFEST_DIR")).join("config/demo-multilateration.toml");
 
     // In a terminal.
@@ -113,8 +116,16 @@ fn a_followed_demo_shows_one_line_in_a_terminal_and_few_on_a_pipe() {
     let redraws = text.matches('\r').count() - text.matches("\r\n").count();
     let line_feeds = text.matches('\n').count();
     let drawn = text.matches(&format!("/{DEMO_POINTS} points")).count();
+    let tail: String = text
+        .chars()
+        .rev()
+        .take(300)
+        .collect::<Vec<_>>()
+        .into_iter()
+        .rev()
+        .collect();
     eprintln!(
-        "terminal: {redraws} redraws, {line_feeds} line feeds, {} bytes",
+        "terminal: {redraws} redraws, {line_feeds} line feeds, {} bytes, ending {tail:?}",
         seen.len()
     );
     assert!(
@@ -161,4 +172,20 @@ fn a_followed_demo_shows_one_line_in_a_terminal_and_few_on_a_pipe() {
     assert!(quiet.status.success());
     let text = String::from_utf8_lossy(&quiet.stderr);
     assert!(text.trim().is_empty(), "--quiet writes to stderr: {text}");
+
+    // The daemon's log: per job a record per tenth and per station, never per point.
+    let log = std::fs::read_to_string(&log).expect("daemon log");
+    for job in 1..=3 {
+        let records: Vec<&str> = log
+            .lines()
+            .filter(|l| l.contains(&format!("\"job\":{job},")))
+            .filter(|l| l.contains("\"progress\"") || l.contains("station begins"))
+            .collect();
+        let tenths = records
+            .iter()
+            .filter(|l| l.contains("\"progress\""))
+            .count();
+        assert_eq!(tenths, 10, "job {job}: {records:#?}");
+        assert!(records.len() <= PIPED_MAX_LINES, "job {job}: {records:#?}");
+    }
 }

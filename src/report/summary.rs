@@ -104,7 +104,23 @@ pub fn section(inputs: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section
     let tolerances = declared_tolerances(inputs)?;
     let functions = error_functions(inputs)?;
     let mut section = Section::new("summary", "Summary");
-    let (tone, verdict) = tolerance_verdict(&functions, &tolerances);
+    let (tone, verdict) = match &functions {
+        None if inputs.kind()? == "multilateration" => (
+            Tone::Neutral,
+            "tolerances: not checked (the error functions and the session.mcap beside the \
+             results are needed for their uncertainty budget)"
+                .to_owned(),
+        ),
+        None => (
+            Tone::Neutral,
+            format!(
+                "tolerances: not checked for {} results (a multilateration's error functions \
+                 are, against [report] tolerance_um and tolerance_arcsec)",
+                inputs.kind()?
+            ),
+        ),
+        Some(_) => tolerance_verdict(&functions, &tolerances),
+    };
     section = section.badge(tone, verdict);
     let mut facts = kind.summary.clone();
     if let Some(functions) = &functions {

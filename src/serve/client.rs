@@ -207,6 +207,7 @@ fn describe(event: &str, value: &serde_json::Value) -> String {
     let text = |pointer: &str| {
         value
             .pointer(pointer)
+            .filter(|v| !v.is_null())
             .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_owned))
             .unwrap_or_default()
     };
