@@ -345,7 +345,6 @@ fn progress_unit(kind: &str) -> &'static str {
 }
 
 fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Result<()> {
-    use std::io::IsTerminal;
     let kinds = geocal::kinds::Registry::standard();
     match command {
         Command::Run {
@@ -536,7 +535,7 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                     out_dir,
                     realtime,
                     settings: settings(None),
-                    progress: std::io::stderr().is_terminal(),
+                    progress: progress == geocal::progress::Mode::Bar,
                 },
             )?;
             if json {
