@@ -158,6 +158,9 @@ impl State {
 
     fn redraw(&self) {
         if let Some(bar) = &self.bar {
+            if bar.is_hidden() && self.total > 0 {
+                bar.set_draw_target(ProgressDrawTarget::stderr());
+            }
             bar.set_length(self.total);
             bar.set_position(self.done);
             bar.set_message(self.status());
@@ -176,7 +179,8 @@ impl Progress {
     /// `prefix` names the work ("run", "job 3"), `unit` what is counted.
     pub fn new(mode: Mode, prefix: &str, unit: &str) -> Progress {
         let bar = (mode == Mode::Bar).then(|| {
-            let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::stderr());
+            // Drawn from the first count on (an empty bar of 0/0 says nothing).
+            let bar = ProgressBar::with_draw_target(Some(0), ProgressDrawTarget::hidden());
             let template = format!("{{prefix}} {{bar:24}} {{pos}}/{{len}} {unit} {{wide_msg}}");
             if let Ok(style) = ProgressStyle::with_template(&template) {
                 bar.set_style(style.progress_chars("█▌ "));
