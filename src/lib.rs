@@ -14,6 +14,7 @@ pub mod method;
 pub mod model;
 pub mod monitor;
 pub mod plan;
+pub mod progress;
 pub mod replay;
 pub mod report;
 pub mod run;

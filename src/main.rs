@@ -12,6 +12,10 @@ use clap::{Parser, Subcommand};
     about = "Geometric calibration of machine tools, CMMs, rotary tables and hexapods"
 )]
 struct Cli {
+    /// Show no progress (in a terminal one line updated in place; on a pipe a line per
+    /// station or per tenth of the work).
+    #[arg(long, short, global = true)]
+    quiet: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -289,7 +293,8 @@ fn main() -> ExitCode {
     } else {
         logger.init();
     }
-    match dispatch(cli.command) {
+    let progress = geocal::progress::Mode::for_stderr(cli.quiet);
+    match dispatch(cli.command, progress) {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
             eprint!("{}", error_text(&e));
@@ -329,8 +334,17 @@ fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     }
 }
 
-fn dispatch(command: Command) -> anyhow::Result<()> {
-    use std::io::IsTerminal;
+/// What `geocal run` counts, by kind.
+fn progress_unit(kind: &str) -> &'static str {
+    match kind {
+        "rotary_sphere" => "probed points",
+        "probe_install" => "postures",
+        "hexapod" => "poses",
+        _ => "points",
+    }
+}
+
+fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Result<()> {
     let kinds = geocal::kinds::Registry::standard();
     match command {
         Command::Run {
@@ -355,29 +369,38 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 }
                 None => None,
             };
+            let kind = match (&resume, &config) {
+                (Some(dir), config) => kinds.of_run_dir(dir, config.as_deref())?,
+                (None, Some(config)) => kinds.of_config(config)?,
+                (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
+            };
+            let shown =
+                geocal::progress::Progress::new(progress, "run", progress_unit(kind.name()));
+            let live_tap = match &live {
+                Some(view) => geocal::session::tap::Tap::new(view.clone()),
+                None => Default::default(),
+            };
             let control = geocal::run::control::RunControl {
-                tap: match &live {
-                    Some(view) => geocal::session::tap::Tap::new(view.clone()),
-                    None => Default::default(),
-                },
+                tap: shown.tap(live_tap),
+                progress: Some(shown.sink()),
                 ..Default::default()
             };
             let options = geocal::run::RunOptions {
                 out_dir: resume.clone().unwrap_or(out),
                 truth,
-                progress: std::io::stderr().is_terminal(),
+                // The kinds' own bars stay off: `shown` draws every kind's progress.
+                progress: false,
                 settings: settings(huber),
                 control,
             };
             let flags = geocal::kinds::RunFlags { assume_yes: yes };
             let output = match (resume, config) {
-                (Some(dir), config) => {
-                    let kind = kinds.of_run_dir(&dir, config.as_deref())?;
-                    kind.resume(&dir, config.as_deref(), &options)?
-                }
-                (None, Some(config)) => kinds.of_config(&config)?.run(&config, &options, &flags)?,
+                (Some(dir), config) => kind.resume(&dir, config.as_deref(), &options),
+                (None, Some(config)) => kind.run(&config, &options, &flags),
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
+            shown.finish();
+            let output = output?;
             if let Some(view) = &live {
                 view.stop();
             }
@@ -404,7 +427,13 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                 effects: geocal::diagnose::correct::parse_effects(&effects)?,
                 ..settings(huber)
             };
-            let results = geocal::kinds::solve_file(&session, &settings)?;
+            let spinner = geocal::progress::spinner(
+                progress,
+                &format!("solve: reading and solving {}", session.display()),
+            );
+            let results = geocal::kinds::solve_file(&session, &settings);
+            spinner.finish_and_clear();
+            let results = results?;
             if let Some(path) = out {
                 std::fs::write(&path, results.to_json_pretty())
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
@@ -451,15 +480,24 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             twin_out,
             plot,
         } => {
-            let (diagnosis, residuals) = match twin {
-                None => geocal::diagnose::diagnose_file_detailed(&session, &Default::default())?,
+            let spinner = geocal::progress::spinner(
+                progress,
+                &format!(
+                    "diagnose: fitting the candidate effects to {}",
+                    session.display()
+                ),
+            );
+            let diagnosed = match twin {
+                None => geocal::diagnose::diagnose_file_detailed(&session, &Default::default()),
                 Some(twin) => geocal::diagnose::twin::diagnose_file_with_twin_detailed(
                     &session,
                     &twin,
                     twin_out.as_deref(),
                     &Default::default(),
-                )?,
+                ),
             };
+            spinner.finish_and_clear();
+            let (diagnosis, residuals) = diagnosed?;
             if let Some(path) = plot {
                 geocal::diagnose::plot::write_svg(&path, &diagnosis.session_id, &residuals)?;
             }
@@ -497,7 +535,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
                     out_dir,
                     realtime,
                     settings: settings(None),
-                    progress: std::io::stderr().is_terminal(),
+                    progress: progress == geocal::progress::Mode::Bar,
                 },
             )?;
             if json {
@@ -583,7 +621,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             server,
             token_file,
             command,
-        } => client(&server, token_file.as_deref(), command)?,
+        } => client(&server, token_file.as_deref(), command, progress)?,
         Command::Compensate {
             results,
             format,
@@ -620,11 +658,17 @@ fn client(
     server: &str,
     token_file: Option<&std::path::Path>,
     command: ClientCommand,
+    progress: geocal::progress::Mode,
 ) -> anyhow::Result<()> {
     use geocal::serve::client::{default_fetch_path, job_line, Client};
     let client = Client::new(server, token_file)?;
     let follow = |id: i64| -> anyhow::Result<()> {
-        let job = client.follow(id, |line| eprintln!("{line}"))?;
+        let shown = geocal::progress::Progress::new(progress, &format!("job {id}"), "points");
+        let job = client.follow_events(id, |event, value| {
+            geocal::serve::client::show_event(&shown, event, value)
+        });
+        shown.finish();
+        let job = job?;
         println!("{}", serde_json::to_string_pretty(&job)?);
         if job.state != geocal::serve::catalog::JobState::Succeeded {
             anyhow::bail!("job {id} ended {}", job.state.as_str());

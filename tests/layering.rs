@@ -15,7 +15,7 @@ const LAYERS: &[&[&str]] = &[
     &["plan"],
     &["extract"],
     &["sim", "sequencer", "devices"],
-    &["method", "run", "document", "evaluate"],
+    &["method", "run", "document", "evaluate", "progress"],
     &["kinds"],
     &["diagnose", "replay", "monitor", "report", "lib", "main"],
     &["serve"],

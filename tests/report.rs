@@ -233,7 +233,7 @@ fn reports_of_every_example_config_load_draw_and_print() {
         if config.contains("rotary-tracer") {
             for text in [
                 "id=\"iso230-2\"",
-                "ISO 230-2, axis c",
+                "axis c: ",
                 "id=\"rotary-tracer-uncertainty\"",
                 "step-angle error of table c",
                 "reflector/probe",
@@ -244,7 +244,7 @@ fn reports_of_every_example_config_load_draw_and_print() {
         if config.contains("multilateration") {
             for text in [
                 "id=\"iso230-2\"",
-                "ISO 230-2, axis x",
+                "axis x (target ",
                 "id=\"uncertainty\"",
                 "material temperature sensor",
             ] {
@@ -271,6 +271,15 @@ fn reports_of_every_example_config_load_draw_and_print() {
                 "{config}: plot `{plot}` has axes but no data"
             );
         }
+        if config.contains("multilateration") || config.contains("rotary-tracer") {
+            iso_tables_hold_the_figures(&dom, &run);
+        }
+        if config.contains("multilateration") {
+            summary_holds_the_largest_errors(&dom, &run);
+            diagnosis_table_holds_the_candidates(&dom, &run);
+            unidentifiable_functions_are_named_not_drawn(&dom, &run);
+        }
+        screenshot(&page, config);
         let pages = print_pages(&page, dir.path());
         assert!(
             (1..=*max_pages).contains(&pages),
@@ -281,6 +290,295 @@ fn reports_of_every_example_config_load_draw_and_print() {
             plots.len()
         );
     }
+}
+
+/// Where the screenshots of the reports' first screens go (docs/report.md: the one of the
+/// demo is `docs/report-first-page.png`).
+fn screenshot_dir() -> PathBuf {
+    Path::new(env!("CARGO_TARGET_TMPDIR")).join("report-screenshots")
+}
+
+/// A screenshot of the page's first A4 screen (794 × 1123 CSS px) as PNG.
+fn screenshot(page: &Path, config: &str) {
+    let dir = screenshot_dir();
+    std::fs::create_dir_all(&dir).expect("screenshot dir");
+    let png = dir.join(config.replace(".toml", ".png"));
+    browse(
+        page,
+        &[
+            format!("--screenshot={}", png.display()),
+            "--window-size=794,1123".to_string(),
+            "--hide-scrollbars".to_string(),
+        ],
+    );
+    let bytes = std::fs::read(&png).expect("the screenshot");
+    assert!(
+        bytes.starts_with(b"\x89PNG") && bytes.len() > 10_000,
+        "{}: not a PNG of a page ({} bytes)",
+        png.display(),
+        bytes.len()
+    );
+    eprintln!("screenshot: {}", png.display());
+}
+
+/// The `<section id="id">…</section>` of the DOM.
+fn section<'a>(dom: &'a str, id: &str) -> &'a str {
+    let start = dom
+        .find(&format!("<section id=\"{id}\">"))
+        .unwrap_or_else(|| panic!("no section {id}"));
+    let end = dom[start..].find("</section>").expect("section end");
+    &dom[start..start + end]
+}
+
+/// Every table row of `html` as its cells' text (`<td>` and `<th>`).
+fn rows(html: &str) -> Vec<Vec<String>> {
+    html.split("<tr>")
+        .skip(1)
+        .map(|row| {
+            let row = row.split("</tr>").next().unwrap_or("");
+            row.split("<t")
+                .skip(1)
+                .filter_map(|cell| {
+                    let text = cell.split_once('>')?.1;
+                    let text = text.split("</t").next().unwrap_or("");
+                    Some(
+                        text.replace("&lt;", "<")
+                            .replace("&gt;", ">")
+                            .replace("&quot;", "\"")
+                            .replace("&#39;", "'")
+                            .replace("&amp;", "&"),
+                    )
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The ISO 230-2 section is a table per axis, no `<pre>`, its cells the figures the
+/// evaluation of the results and the session gives (docs/iso230-2.md).
+fn iso_tables_hold_the_figures(dom: &str, run: &Path) {
+    let html = section(dom, "iso230-2");
+    assert!(!html.contains("<pre"), "ISO 230-2 section with <pre>");
+    let session =
+        geocal::session::reader::read_session(&run.join("session.mcap")).expect("session");
+    let results = geocal::kinds::registry::solve_session(&session, &Default::default())
+        .expect("solve the session");
+    let iso = geocal::evaluate::of_results(&results, &session).expect("ISO 230-2");
+    assert_eq!(
+        html.matches("<table").count(),
+        iso.axes.len(),
+        "a table per axis"
+    );
+    assert_eq!(
+        html.matches("class=\"badge ").count(),
+        iso.axes.len(),
+        "a badge per axis"
+    );
+    let cells = rows(html);
+    for axis in &iso.axes {
+        let scale = match axis.evaluation.axis_type {
+            geocal::evaluate::iso230_2::AxisType::Linear => 1e6,
+            geocal::evaluate::iso230_2::AxisType::Rotary => 180.0 / std::f64::consts::PI * 3600.0,
+        };
+        let v = |x: Option<f64>| x.map_or("—".to_string(), |x| format!("{:.3}", x * scale));
+        let f = axis.evaluation.figures();
+        let mut want = Vec::new();
+        if let Some(u) = &f.up {
+            want.push([
+                "↑".into(),
+                v(Some(u.systematic_error)),
+                v(None),
+                v(u.repeatability),
+                v(None),
+                v(u.accuracy),
+            ]);
+        }
+        if let Some(b) = &f.bidirectional {
+            want.push([
+                "↕".into(),
+                v(Some(b.systematic_error)),
+                v(Some(b.mean_error)),
+                v(b.repeatability),
+                v(Some(b.reversal)),
+                v(b.accuracy),
+            ]);
+        }
+        assert!(!want.is_empty(), "axis {} without figures", axis.axis);
+        for row in want {
+            assert!(
+                cells.iter().any(|c| c[..] == row[..]),
+                "axis {}: no row {row:?} in {cells:?}",
+                axis.axis
+            );
+        }
+        // Each departure from the standard is a footnote, given once.
+        for why in &axis.evaluation.not_per_iso_230_2 {
+            assert_eq!(
+                html.matches(&format!("<li>not per ISO 230-2: {why}"))
+                    .count(),
+                1,
+                "footnote `{why}`"
+            );
+        }
+    }
+}
+
+/// The diagnosis: a verdict badge first, a table whose rows hold each effect's figures from
+/// diagnosis.json, then the residual plot; no `<pre>`.
+fn diagnosis_table_holds_the_candidates(dom: &str, run: &Path) {
+    let html = section(dom, "diagnosis");
+    assert!(!html.contains("<pre"), "diagnosis section with <pre>");
+    let d: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("diagnosis.json")).expect("json"))
+            .expect("diagnosis.json");
+    let badge = html.find("class=\"badge ").expect("a verdict badge");
+    let table = html.find("<table").expect("the candidates table");
+    let plot = html
+        .find("<figure data-plot=\"diagnosis-residuals\"")
+        .expect("the residual plot");
+    assert!(
+        badge < table && table < plot,
+        "verdict, table, plot in that order"
+    );
+    let verdict = &html[badge..badge + html[badge..].find("</span>").expect("badge end")];
+    for effect in d["selected"].as_array().expect("selected") {
+        let effect = effect.as_str().expect("name");
+        assert!(
+            verdict.contains(effect),
+            "verdict without {effect}: {verdict}"
+        );
+    }
+    if d["selected"].as_array().is_some_and(|s| s.is_empty()) && d["unexplained"] == false {
+        assert!(
+            verdict.contains("consistent with the noise model") || verdict.contains("no effect"),
+            "{verdict}"
+        );
+    }
+    let cells = rows(&html[table..plot]);
+    let candidates = d["candidates"].as_array().expect("candidates");
+    assert!(!candidates.is_empty());
+    for c in candidates {
+        let effect = c["effect"].as_str().expect("effect");
+        let figures = |c: &serde_json::Value| {
+            let n = |k: &str| c[k].as_f64().expect("number");
+            vec![
+                format!("{:.1}", n("chi2_drop")),
+                format!("{:.1e}", n("p_value")),
+                format!("{:.1}", n("bic_delta")),
+                format!("{:.1}", n("heldout_rms_after_m") * 1e9),
+            ]
+        };
+        let row = cells
+            .iter()
+            .find(|r| r.first().map(String::as_str) == Some(effect))
+            .unwrap_or_else(|| panic!("no row of {effect}"));
+        assert!(
+            candidates
+                .iter()
+                .filter(|o| o["effect"] == c["effect"])
+                .any(|o| row[3..7] == figures(o)[..]
+                    && row[7].starts_with(o["status"].as_str().unwrap_or("?"))),
+            "{effect}: row {row:?} holds none of its candidates' figures and outcome"
+        );
+    }
+}
+
+/// The summary box: a tolerance verdict, the diagnosis's, and the largest errors, each the
+/// largest |value| of its function in results.json (those the 20 °C normalisation does not
+/// change: straightness and angles), lengths in decreasing order.
+fn summary_holds_the_largest_errors(dom: &str, run: &Path) {
+    let html = section(dom, "summary");
+    assert!(
+        html.matches("class=\"badge ").count() >= 2,
+        "tolerance and diagnosis badges"
+    );
+    assert!(
+        html.contains("diagnosis: "),
+        "no diagnosis verdict in the summary"
+    );
+    let results: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("results.json")).expect("json"))
+            .expect("results.json");
+    let rows: Vec<Vec<String>> = rows(html)
+        .into_iter()
+        .filter(|r| r.len() == 6 && r[1].contains(" = "))
+        .collect();
+    assert!(rows.len() >= 3, "fewer than three largest errors: {rows:?}");
+    let mut lengths = Vec::new();
+    let mut checked = 0;
+    for row in &rows {
+        let (name, axis) = (&row[0], row[1].split(" = ").next().expect("axis"));
+        let f = &results["geometric_errors"]["axes"][axis]["errors"][name.as_str()];
+        let unit = f["unit"].as_str().expect("unit");
+        let (scale, shown) = if unit == "rad" {
+            (180.0 / std::f64::consts::PI * 3600.0, "″")
+        } else {
+            (1e6, "µm")
+        };
+        let value: f64 = row[2]
+            .split(' ')
+            .next()
+            .expect("value")
+            .parse()
+            .expect("number");
+        if shown == "µm" {
+            lengths.push(value.abs());
+        }
+        assert!(row[2].ends_with(shown), "{row:?}");
+        let positioning =
+            name.as_str() == format!("E{}{}", axis.to_uppercase(), axis.to_uppercase());
+        if positioning {
+            continue;
+        }
+        let largest = f["values"]
+            .as_array()
+            .expect("values")
+            .iter()
+            .filter_map(|v| v.as_f64())
+            .max_by(|a, b| a.abs().total_cmp(&b.abs()))
+            .expect("a value");
+        assert_eq!(
+            row[2],
+            format!("{:.3} {shown}", largest * scale),
+            "{name} along {axis}"
+        );
+        checked += 1;
+    }
+    assert!(checked > 0, "no row checked against results.json: {rows:?}");
+    assert!(
+        lengths.windows(2).all(|w| w[0] >= w[1]),
+        "lengths not in order: {lengths:?}"
+    );
+}
+
+/// The error functions the plan cannot identify: named in one line, not drawn.
+fn unidentifiable_functions_are_named_not_drawn(dom: &str, run: &Path) {
+    let results: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(run.join("results.json")).expect("json"))
+            .expect("results.json");
+    let mut names = Vec::new();
+    for (_, axis) in results["geometric_errors"]["axes"]
+        .as_object()
+        .expect("axes")
+    {
+        for (name, f) in axis["errors"].as_object().expect("errors") {
+            if f["identifiable"] == false && !names.contains(name) {
+                names.push(name.clone());
+            }
+        }
+    }
+    if names.is_empty() {
+        return;
+    }
+    let line = format!(
+        "not identifiable from this plan: {} — see docs/kinematics.md",
+        names.join(", ")
+    );
+    assert!(dom.contains(&line), "no line `{line}`");
+    assert!(
+        !dom.contains("(not identifiable)"),
+        "a non-identifiable function is drawn"
+    );
 }
 
 /// The closed loop through the command line: the demo calibrated, its SINUMERIK tables
@@ -429,14 +727,27 @@ fn verification_report_shows_before_and_after() {
     );
 
     // Another before file: compared, with a note that the tables did not come from it.
-    let text = report_md(&["--before".as_ref(), after.join("results.json").as_os_str()]);
+    // (The summary lists EXX among the largest errors: the comparison's rows are looked for in
+    // the verification section.)
+    let section = |text: &str| -> String {
+        let start = text
+            .find("## Verification run")
+            .expect("verification section");
+        let rest = &text[start..];
+        let end = rest[3..].find("\n## ").map_or(rest.len(), |e| e + 3);
+        rest[..end].to_string()
+    };
+    let text = section(&report_md(&[
+        "--before".as_ref(),
+        after.join("results.json").as_os_str(),
+    ]));
     assert!(
         text.contains("the tables did not come from") && text.contains("| EXX |"),
         "--before with another file"
     );
     // The before results gone: a message in the report, no comparison.
     std::fs::rename(before.join("results.json"), dir.path().join("moved.json")).expect("move");
-    let text = report_md(&[]);
+    let text = section(&report_md(&[]));
     assert!(
         text.contains("are not there") && text.contains("--before RESULTS"),
         "missing before results"

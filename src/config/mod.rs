@@ -6,6 +6,7 @@ pub mod kind_config;
 pub mod noise;
 pub mod operator;
 pub mod passive;
+pub mod report;
 pub(crate) mod rotary_table;
 pub mod sim;
 pub mod uncertainty;
@@ -64,6 +65,9 @@ pub struct Config {
     /// The scales' CTE for referring positions to 20 °C (docs/uncertainty.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub normalisation: Option<uncertainty::NormalisationConfig>,
+    /// The tolerances the report checks the errors against (docs/report.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<report::ReportConfig>,
 }
 
 #[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, Eq)]

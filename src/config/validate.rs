@@ -41,6 +41,16 @@ pub fn validate(config: &Config) -> Result<(), Invalid> {
     if let Some(n) = &config.normalisation {
         n.validate("normalisation")?;
     }
+    if let Some(r) = &config.report {
+        for (key, value) in [
+            ("report.tolerance_um", r.tolerance_um),
+            ("report.tolerance_arcsec", r.tolerance_arcsec),
+        ] {
+            if let Some(v) = value {
+                positive(key, v)?;
+            }
+        }
+    }
     validate_sim(config)
 }
 

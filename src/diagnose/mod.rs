@@ -13,7 +13,9 @@ pub mod stats;
 mod text;
 pub mod twin;
 
-pub use text::{details, summary, text, SUMMARY_MAX_LINES, TABLE_MAX_ROWS};
+pub use text::{
+    details, key_parameters, summary, text, verdict, SUMMARY_MAX_LINES, TABLE_MAX_ROWS,
+};
 
 use std::collections::BTreeMap;
 use std::path::Path;

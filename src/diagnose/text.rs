@@ -60,7 +60,7 @@ pub fn summary(d: &Diagnosis) -> Vec<String> {
     head
 }
 
-fn verdict(d: &Diagnosis) -> String {
+pub fn verdict(d: &Diagnosis) -> String {
     let confounded = confounded_names(d);
     if d.unexplained {
         if d.selected.is_empty() {
@@ -219,7 +219,7 @@ struct Param {
 
 /// The effect's fitted parameters in readable units with their σ; for per-station effects
 /// the station with the largest values.
-fn key_parameters(c: &Candidate, d: &Diagnosis) -> String {
+pub fn key_parameters(c: &Candidate, d: &Diagnosis) -> String {
     let mut params = Vec::new();
     for (name, v) in &c.params {
         if name.ends_with(".sigma") {

@@ -22,6 +22,13 @@ figure svg{width:100%;height:auto}
 figcaption{font-size:9pt;color:#444}
 pre{font-size:8pt;white-space:pre-wrap;background:#f6f6f6;padding:.4em}
 nav ol{columns:2;font-size:10pt}
+.badge{display:inline-block;font-weight:bold;font-size:9pt;padding:1px 8px;border-radius:8px;margin:.2em 0}
+.badge.good{background:#d8f0d8;color:#185018;border:1px solid #4a4}
+.badge.bad{background:#f8dada;color:#701818;border:1px solid #c44}
+.badge.neutral{background:#eee;color:#333;border:1px solid #999}
+ol.notes{font-size:8.5pt;color:#444;margin:.3em 0;padding-left:1.6em}
+section#summary{border:2px solid #555;border-radius:4px;padding:0 .8em .4em;margin:.8em 0}
+section#summary h2{border:none}
 @page{size:A4;margin:12mm}
 @media print{body{max-width:none;margin:0;padding:0;font-size:10pt}nav{display:none}
 figure,table,dl{break-inside:avoid}h2{break-after:avoid}}
@@ -79,6 +86,21 @@ fn block_html(s: &mut String, block: &Block) {
         Block::Plot(plot) => plot_html(s, plot),
         Block::Preformatted(text) => {
             let _ = writeln!(s, "<pre>{}</pre>", escape(text));
+        }
+        Block::Badge(tone, text) => {
+            let _ = writeln!(
+                s,
+                "<p><span class=\"badge {}\">{}</span></p>",
+                tone.class(),
+                escape(text)
+            );
+        }
+        Block::Notes(notes) => {
+            s.push_str("<ol class=\"notes\">\n");
+            for note in notes {
+                let _ = writeln!(s, "<li>{}</li>", escape(note));
+            }
+            s.push_str("</ol>\n");
         }
     }
 }

@@ -33,6 +33,15 @@ pub fn render(doc: &Document, plot_prefix: &str) -> (String, Vec<(String, String
                 Block::Preformatted(text) => {
                     let _ = writeln!(s, "```\n{}\n```\n", text.trim_end());
                 }
+                Block::Badge(_, text) => {
+                    let _ = writeln!(s, "**[{text}]**\n");
+                }
+                Block::Notes(notes) => {
+                    for (k, note) in notes.iter().enumerate() {
+                        let _ = writeln!(s, "{}. {note}", k + 1);
+                    }
+                    s.push('\n');
+                }
             }
         }
     }

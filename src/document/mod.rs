@@ -50,6 +50,20 @@ impl Section {
         self
     }
 
+    /// A verdict shown as a coloured badge (a bold bracketed word in Markdown).
+    pub fn badge(mut self, tone: Tone, text: impl Into<String>) -> Section {
+        self.blocks.push(Block::Badge(tone, text.into()));
+        self
+    }
+
+    /// Numbered notes, each shown once (a small ordered list).
+    pub fn notes(mut self, notes: Vec<String>) -> Section {
+        if !notes.is_empty() {
+            self.blocks.push(Block::Notes(notes));
+        }
+        self
+    }
+
     pub fn preformatted(mut self, text: impl Into<String>) -> Section {
         self.blocks.push(Block::Preformatted(text.into()));
         self
@@ -73,6 +87,37 @@ pub enum Block {
     Plot(Plot),
     /// Text shown as is, in a fixed-width font.
     Preformatted(String),
+    /// A verdict: its tone colours it.
+    Badge(Tone, String),
+    /// Numbered footnotes; cells and paragraphs refer to them as ¹, ², …
+    Notes(Vec<String>),
+}
+
+/// How a verdict reads: met, not met, or neither (not decided, not applicable).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Tone {
+    Good,
+    Bad,
+    Neutral,
+}
+
+impl Tone {
+    pub fn class(self) -> &'static str {
+        match self {
+            Tone::Good => "good",
+            Tone::Bad => "bad",
+            Tone::Neutral => "neutral",
+        }
+    }
+}
+
+/// The footnote mark of note `n` (1-based): ¹, ², … then [n].
+pub fn note_mark(n: usize) -> String {
+    const SUPERSCRIPTS: [char; 10] = ['⁰', '¹', '²', '³', '⁴', '⁵', '⁶', '⁷', '⁸', '⁹'];
+    n.to_string()
+        .chars()
+        .map(|c| c.to_digit(10).map_or(c, |d| SUPERSCRIPTS[d as usize]))
+        .collect()
 }
 
 /// A table of already formatted cells (units in the header).

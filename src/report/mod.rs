@@ -2,8 +2,11 @@
 //! beside it (the one session reader) and, when present, its diagnosis.json, as a list of
 //! sections each made by its own function, rendered to HTML or Markdown (src/document).
 
+pub mod diagnosis;
 pub mod header;
+pub mod iso230;
 pub mod standards;
+pub mod summary;
 pub mod verification;
 
 use std::path::{Path, PathBuf};
@@ -36,14 +39,14 @@ pub type SectionBuilder = fn(&Inputs, &KindReport) -> anyhow::Result<Vec<Section
 
 /// The report's parts in order.
 pub const SECTIONS: &[(&str, SectionBuilder)] = &[
+    ("summary", summary::section),
     ("header", header::sections),
-    ("summary", summary),
     ("misfit", misfit),
     ("kind", kind_sections),
-    ("iso230-2", standards::iso230_2),
+    ("iso230-2", iso230::section),
     ("uncertainty", standards::uncertainty),
     ("verification", verification::sections),
-    ("diagnosis", diagnosis),
+    ("diagnosis", diagnosis::section),
 ];
 
 /// Output formats of `geocal report`.
@@ -198,12 +201,6 @@ pub fn write(doc: &Document, out: &Path, format: Format) -> anyhow::Result<Vec<P
     }
 }
 
-fn summary(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
-    Ok(vec![
-        Section::new("summary", "Summary").facts(kind.summary.clone())
-    ])
-}
-
 /// How many σ the report lists, scaled, beside the misfit warning.
 const MISFIT_REPORT_ROWS: usize = 60;
 
@@ -244,47 +241,4 @@ fn misfit(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
 
 fn kind_sections(_: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
     Ok(kind.sections.clone())
-}
-
-/// The diagnosis (when diagnosis.json is beside the results): its text and the residual plot
-/// of `geocal diagnose --plot`, recomputed from the session with the default options.
-fn diagnosis(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
-    let Some(d) = &inputs.diagnosis else {
-        return Ok(Vec::new());
-    };
-    let mut section = Section::new("diagnosis", "Diagnosis")
-        .facts(vec![
-            (
-                "noise floor".into(),
-                format!("{:.3} µm", d.noise_floor_m * 1e6),
-            ),
-            (
-                "selected effects".into(),
-                if d.selected.is_empty() {
-                    "none".into()
-                } else {
-                    d.selected.join(", ")
-                },
-            ),
-            (
-                "unexplained structure left".into(),
-                d.unexplained.to_string(),
-            ),
-        ])
-        .preformatted(crate::diagnose::text(d));
-    match &inputs.session_path {
-        Some(path) => {
-            let (_, residuals) =
-                crate::diagnose::diagnose_file_detailed(path, &Default::default())?;
-            section = section.plot(crate::document::Plot {
-                id: "diagnosis-residuals".into(),
-                caption: crate::diagnose::plot::title(&d.session_id, &residuals),
-                svg: crate::diagnose::plot::svg(&d.session_id, &residuals)?,
-            });
-        }
-        None => {
-            section = section.paragraph("No session.mcap beside the results: no residual plot.");
-        }
-    }
-    Ok(vec![section])
 }

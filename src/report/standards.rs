@@ -1,33 +1,10 @@
-//! The report's sections against the standards, for the tracer kinds: the ISO 230-2
-//! positioning figures, and the uncertainty budget (GUM) with the normalisation to 20 °C.
+//! The report's uncertainty budget (GUM) with the normalisation to 20 °C, for the tracer
+//! kinds (the ISO 230-2 figures: `iso230`).
 
 use crate::document::{cell, um, KindReport, Section, Table};
 use crate::method::multilateration::MultilaterationResults;
 
 use super::Inputs;
-
-/// ISO 230-2 figures of every positioning curve the session holds (docs/iso230-2.md). The
-/// per-run deviations need the network solve: the session is solved again with the default
-/// settings (as `geocal solve` does).
-pub fn iso230_2(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> {
-    let Some(session) = &inputs.session else {
-        return Ok(Vec::new());
-    };
-    let kind = inputs.kind()?;
-    if kind != "multilateration" && kind != "rotary_tracer" {
-        return Ok(Vec::new());
-    }
-    let results = crate::kinds::registry::solve_session(session, &Default::default())?;
-    let iso = crate::evaluate::of_results(&results, session)?;
-    Ok(vec![Section::new("iso230-2", "ISO 230-2 positioning")
-        .paragraph(
-            "Unidirectional and bidirectional positioning figures of ISO 230-2 from each pass \
-             of the plan (one pass = one run, its direction from the approach; for a rotary \
-             table, a run is consecutive table stations approached from one side), with the \
-             standard's conformance verdict (docs/iso230-2.md).",
-        )
-        .preformatted(iso.text())])
-}
 
 /// The uncertainty budget of the positioning errors (k = 2) and their values referred to
 /// 20 °C, from the declared uncertainties of the run's configuration (`run-config.toml`

@@ -134,6 +134,16 @@ impl Client {
     /// Follow job `id` on the event stream until it ends, calling `line` with each change;
     /// its final state.
     pub fn follow(&self, id: i64, mut line: impl FnMut(&str)) -> anyhow::Result<JobView> {
+        self.follow_events(id, |event, value| line(&describe(event, value)))
+    }
+
+    /// Follow job `id` until it ends, calling `on_event` with each of its events (name and
+    /// data); its final state.
+    pub fn follow_events(
+        &self,
+        id: i64,
+        mut on_event: impl FnMut(&str, &serde_json::Value),
+    ) -> anyhow::Result<JobView> {
         let response = self.request(self.http.get(self.url("/v1/events")))?;
         // The job may have ended before the stream opened.
         let job = self.job(id)?;
@@ -153,7 +163,7 @@ impl Client {
                 if !of_job {
                     continue;
                 }
-                line(&describe(&event, &value));
+                on_event(&event, &value);
                 if event == "job" {
                     let state = value.get("state").and_then(|s| s.as_str()).unwrap_or("");
                     if ["succeeded", "failed", "cancelled", "interrupted"].contains(&state) {
@@ -171,10 +181,33 @@ fn ended(state: JobState) -> bool {
     !matches!(state, JobState::Queued | JobState::Running)
 }
 
+/// An event of a followed job on the progress line: counts and stations update it, every
+/// other event (state, fault, prompt) is a line of its own.
+pub fn show_event(shown: &crate::progress::Progress, event: &str, value: &serde_json::Value) {
+    match event {
+        "progress" => {
+            let count = |key: &str| value.pointer(key).and_then(|v| v.as_u64());
+            if let Some(station) = value.pointer("/progress/station").and_then(|s| s.as_str()) {
+                shown.station(station);
+            }
+            if let (Some(done), Some(total)) = (count("/progress/done"), count("/progress/total")) {
+                shown.update(done, total);
+            }
+        }
+        "station" => {
+            if let Some(station) = value.get("station").and_then(|s| s.as_str()) {
+                shown.station(station);
+            }
+        }
+        _ => shown.println(&describe(event, value)),
+    }
+}
+
 fn describe(event: &str, value: &serde_json::Value) -> String {
     let text = |pointer: &str| {
         value
             .pointer(pointer)
+            .filter(|v| !v.is_null())
             .map(|v| v.as_str().map_or_else(|| v.to_string(), str::to_owned))
             .unwrap_or_default()
     };

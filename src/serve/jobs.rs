@@ -503,11 +503,22 @@ impl Daemon {
 
     fn control(self: &Arc<Self>, id: i64, cancel: CancellationToken) -> RunControl {
         let events = self.events.clone();
+        // The log tells a job's progress per station and per tenth, never per point.
+        let cadence = Arc::new(Mutex::new(crate::progress::Cadence::for_log()));
+        let station_cadence = cadence.clone();
         let tap = DaemonTap {
             board: self.status.clone(),
             on_change: Box::new(move |change| {
                 let event = match change {
-                    Change::Station(station) => ServerEvent::Station { id, station },
+                    Change::Station(station) => {
+                        if station_cadence
+                            .lock()
+                            .is_ok_and(|mut c| c.station(&station))
+                        {
+                            tracing::info!(job = id, station = %station, "station begins");
+                        }
+                        ServerEvent::Station { id, station }
+                    }
                     Change::Fault { device, message } => ServerEvent::Fault {
                         id,
                         device,
@@ -528,6 +539,16 @@ impl Daemon {
             progress: Some(Arc::new(move |done, total| {
                 let before = board.progress();
                 let progress = board.set_progress(done, total);
+                if cadence.lock().is_ok_and(|mut c| c.progress(done, total)) {
+                    tracing::info!(
+                        job = id,
+                        done,
+                        total,
+                        station = progress.station.as_deref().unwrap_or(""),
+                        eta_s = progress.eta_s.map_or(-1.0, |e| e.round()),
+                        "progress"
+                    );
+                }
                 // Kept in the catalog as points finish, so a daemon killed mid-job shows how
                 // far its job came.
                 if (before.done, before.total) != (done, total) {

@@ -32,6 +32,10 @@ pub struct HexapodConfig {
     /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
     #[serde(default)]
     pub uncertainty: HexapodUncertainty,
+    /// The tolerances the report checks against (`[report]`, docs/report.md); the report
+    /// reads them from the stored run configuration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<crate::config::report::ReportConfig>,
 }
 
 /// `[uncertainty]` of a hexapod run: standard uncertainties (k = 1), each in the unit its key

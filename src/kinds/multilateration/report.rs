@@ -85,6 +85,8 @@ fn geometric_error_sections(
              positioning and straightness errors (µm), E_AX…E_CZ angular errors (arcsec).",
             g.get("structure").and_then(|s| s.as_str()).unwrap_or("?")
         ));
+    let mut not_identifiable: Vec<String> = Vec::new();
+    let mut plots = Vec::new();
     for (axis, a) in axes {
         let positions = numbers(&a["positions_m"]);
         let errors = a.get("errors").and_then(|e| e.as_object()).ok_or_else(|| {
@@ -103,21 +105,25 @@ fn geometric_error_sections(
                     band.push(2.0 * shown(unit, sigma.get(k).copied().flatten().unwrap_or(0.0)));
                 }
             }
+            let identifiable = f
+                .get("identifiable")
+                .and_then(|i| i.as_bool())
+                .unwrap_or(true);
+            // A function the plan cannot identify is named, not drawn: its zeros are no
+            // measurement.
+            if !identifiable {
+                if !not_identifiable.contains(name) {
+                    not_identifiable.push(name.clone());
+                }
+                continue;
+            }
             let peak = points.iter().map(|p| p.1.abs()).fold(0.0, f64::max);
             summary.push((
                 format!("max |{name}|"),
                 format!("{peak:.2} {}", display_unit(unit)),
             ));
-            let identifiable = f
-                .get("identifiable")
-                .and_then(|i| i.as_bool())
-                .unwrap_or(true);
             panels.push(Panel {
-                title: if identifiable {
-                    name.clone()
-                } else {
-                    format!("{name} (not identifiable)")
-                },
+                title: name.clone(),
                 x_label: format!("{axis} position [m]"),
                 y_label: format!("{name} [{}]", display_unit(unit)),
                 series: vec![Series::line("", points).with_band(band)],
@@ -127,11 +133,19 @@ fn geometric_error_sections(
             continue;
         }
         let svg = panels_svg(&format!("{axis} axis: error functions (±2σ)"), &panels, 3)?;
-        section = section.plot(Plot {
+        plots.push(Plot {
             id: format!("errors-{axis}"),
             caption: format!("The {} error functions of the {axis} axis.", panels.len()),
             svg,
         });
+    }
+    if !not_identifiable.is_empty() {
+        let line = not_identifiable_line(&not_identifiable);
+        summary.push(("not identifiable".into(), not_identifiable.join(", ")));
+        section = section.paragraph(line);
+    }
+    for plot in plots {
+        section = section.plot(plot);
     }
     let mut squareness = Table::new(
         "Squareness errors",
@@ -162,4 +176,12 @@ fn geometric_error_sections(
         sections.push(Section::new("squareness", "Squareness").table(squareness));
     }
     Ok((summary, sections))
+}
+
+/// The one line naming the error functions a plan cannot identify.
+pub fn not_identifiable_line(names: &[String]) -> String {
+    format!(
+        "not identifiable from this plan: {} — see docs/kinematics.md",
+        names.join(", ")
+    )
 }

@@ -36,6 +36,10 @@ pub struct ProbeInstallConfig {
     /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
     #[serde(default)]
     pub uncertainty: ProbeInstallUncertainty,
+    /// The tolerances the report checks against (`[report]`, docs/report.md); the report
+    /// reads them from the stored run configuration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<crate::config::report::ReportConfig>,
 }
 
 /// `[uncertainty]` of a `probe_install` run: standard uncertainties (k = 1), each in the unit

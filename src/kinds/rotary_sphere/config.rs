@@ -41,6 +41,10 @@ pub struct RotarySphereConfig {
     /// Declared standard uncertainties of the budget's contributors (docs/uncertainty.md).
     #[serde(default)]
     pub uncertainty: SphereUncertainty,
+    /// The tolerances the report checks against (`[report]`, docs/report.md); the report
+    /// reads them from the stored run configuration.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub report: Option<crate::config::report::ReportConfig>,
 }
 
 /// `[uncertainty]` of a rotary_sphere run: standard uncertainties (k = 1), each in the unit
