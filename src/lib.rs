@@ -9,6 +9,7 @@ pub mod diagnose;
 pub mod document;
 pub mod evaluate;
 pub mod extract;
+pub mod history;
 pub mod kinds;
 pub mod method;
 pub mod model;
