@@ -8,6 +8,7 @@ pub mod devices;
 pub mod diagnose;
 pub mod document;
 pub mod evaluate;
+pub mod export;
 pub mod extract;
 pub mod history;
 pub mod kinds;

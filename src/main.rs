@@ -197,6 +197,9 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "X1,Y1,Z1")]
         axis_names: Vec<String>,
     },
+    /// Every run's results (and with --raw its tracer samples) as Parquet tables partitioned
+    /// by machine and date, for DuckDB, Spark or pandas (docs/fleet.md).
+    Export(geocal::export::ExportArgs),
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -603,6 +606,7 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             max_value,
             axis_names,
         })?,
+        Command::Export(args) => geocal::export::command(&args)?,
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;
             if json {

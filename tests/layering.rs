@@ -18,7 +18,7 @@ const LAYERS: &[&[&str]] = &[
     &["method", "run", "document", "evaluate"],
     &["kinds"],
     &["diagnose", "replay", "monitor", "report", "lib", "main"],
-    &["serve"],
+    &["serve", "export"],
 ];
 
 /// The plan kinds: a path segment with one of these names belongs to that kind.
