@@ -197,6 +197,13 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "X1,Y1,Z1")]
         axis_names: Vec<String>,
     },
+    /// Has the machine changed between two of its runs? Per parameter the difference, its
+    /// combined σ, z and significance after the Holm–Bonferroni correction, and tolerance
+    /// exceedance (docs/history.md).
+    Compare(geocal::history::cli::CompareArgs),
+    /// A machine's parameters over a series of its runs, with steps, drifts and values outside
+    /// their tolerance band (docs/history.md).
+    Trend(geocal::history::cli::TrendArgs),
     /// Every run's results (and with --raw its tracer samples) as Parquet tables partitioned
     /// by machine and date, for DuckDB, Spark or pandas (docs/fleet.md).
     Export(geocal::export::ExportArgs),
@@ -606,6 +613,10 @@ fn dispatch(command: Command) -> anyhow::Result<()> {
             max_value,
             axis_names,
         })?,
+        Command::Compare(args) => geocal::history::cli::compare(args)?,
+        Command::Trend(args) => {
+            geocal::history::cli::trend(args, geocal::serve::machines::catalog_runs)?
+        }
         Command::Export(args) => geocal::export::command(&args)?,
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;

@@ -17,7 +17,9 @@ const LAYERS: &[&[&str]] = &[
     &["sim", "sequencer", "devices"],
     &["method", "run", "document", "evaluate"],
     &["kinds"],
-    &["diagnose", "replay", "monitor", "report", "lib", "main"],
+    &[
+        "diagnose", "replay", "monitor", "report", "history", "lib", "main",
+    ],
     &["serve", "export"],
 ];
 

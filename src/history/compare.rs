@@ -438,11 +438,17 @@ pub fn document(c: &Comparison) -> anyhow::Result<crate::document::Document> {
         ("kind".into(), c.kind.clone()),
         (
             "A (before)".into(),
-            format!("{} — session {}, {}", c.a.label, c.a.session_id, c.a.started_at),
+            format!(
+                "{} — session {}, {}",
+                c.a.label, c.a.session_id, c.a.started_at
+            ),
         ),
         (
             "B (after)".into(),
-            format!("{} — session {}, {}", c.b.label, c.b.session_id, c.b.started_at),
+            format!(
+                "{} — session {}, {}",
+                c.b.label, c.b.session_id, c.b.started_at
+            ),
         ),
         ("parameters compared".into(), c.compared.to_string()),
         (
@@ -642,7 +648,10 @@ mod tests {
         let b = run("b", "M", 9e-6, [1.05e-6, 2.02e-6]);
         let c = compare(&a, &b, &CompareOptions::default()).expect("compare");
         assert_eq!(c.compared, 3);
-        assert_eq!(c.significant, ["geometric_errors.squareness.EB0Z.value_rad"]);
+        assert_eq!(
+            c.significant,
+            ["geometric_errors.squareness.EB0Z.value_rad"]
+        );
         let sq = &c.parameters[2];
         assert!((sq.z - 8e-6 / 2f64.sqrt() / 1e-6).abs() < 1e-9, "{sq:?}");
         assert!(text(&c).contains("EB0Z"));
@@ -684,7 +693,8 @@ mod tests {
     fn refuses_a_plan_with_other_positions() {
         let a = run("a", "M", 1e-6, [1e-6, 2e-6]);
         let mut b = run("b", "M", 1e-6, [1e-6, 2e-6]);
-        b.results["geometric_errors"]["axes"]["x"]["positions_m"] = serde_json::json!([0.1, 0.6, 0.9]);
+        b.results["geometric_errors"]["axes"]["x"]["positions_m"] =
+            serde_json::json!([0.1, 0.6, 0.9]);
         let e = compare(&a, &b, &CompareOptions::default()).expect_err("refused");
         assert!(e.to_string().contains("incompatible plans"), "{e}");
     }

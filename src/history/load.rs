@@ -160,12 +160,10 @@ impl Run {
                 source: FingerprintSource::Config,
                 sha256: fingerprint(&serde_json::to_value(c.get("plan")).unwrap_or_default()),
             }),
-            (_, Some(h)) if h.get("plan").is_some_and(|p| !p.is_null()) => {
-                Some(PlanFingerprint {
-                    source: FingerprintSource::Session,
-                    sha256: fingerprint(&h["plan"]),
-                })
-            }
+            (_, Some(h)) if h.get("plan").is_some_and(|p| !p.is_null()) => Some(PlanFingerprint {
+                source: FingerprintSource::Session,
+                sha256: fingerprint(&h["plan"]),
+            }),
             _ => None,
         };
         let started_at = header
@@ -190,7 +188,10 @@ impl Run {
         Ok(Run {
             label,
             kind: results["kind"].as_str().unwrap_or_default().to_owned(),
-            session_id: results["session_id"].as_str().unwrap_or_default().to_owned(),
+            session_id: results["session_id"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned(),
             results_path,
             results,
             machine,
@@ -213,7 +214,10 @@ impl Run {
             label: label.to_owned(),
             results_path: PathBuf::from(label),
             kind: results["kind"].as_str().unwrap_or_default().to_owned(),
-            session_id: results["session_id"].as_str().unwrap_or_default().to_owned(),
+            session_id: results["session_id"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned(),
             results,
             machine,
             plan: None,
@@ -224,9 +228,8 @@ impl Run {
     }
 
     fn parse_results(path: &Path, text: &str) -> anyhow::Result<serde_json::Value> {
-        let results: serde_json::Value = serde_json::from_str(text).with_context(|| {
-            format!("{}: not JSON (expected geocal-results/1)", path.display())
-        })?;
+        let results: serde_json::Value = serde_json::from_str(text)
+            .with_context(|| format!("{}: not JSON (expected geocal-results/1)", path.display()))?;
         Self::check_results(path, results)
     }
 
@@ -257,8 +260,12 @@ impl Run {
 /// start time, then name). Folders without results are left out; a results file that cannot
 /// be read is an error naming it.
 pub fn load_series(dir: &Path) -> anyhow::Result<Vec<Run>> {
-    let entries = std::fs::read_dir(dir)
-        .with_context(|| format!("reading {} (expected a folder of run folders)", dir.display()))?;
+    let entries = std::fs::read_dir(dir).with_context(|| {
+        format!(
+            "reading {} (expected a folder of run folders)",
+            dir.display()
+        )
+    })?;
     let mut runs = Vec::new();
     for entry in entries {
         let entry = entry.with_context(|| format!("reading {}", dir.display()))?;
@@ -292,16 +299,16 @@ pub fn read_header(path: &Path) -> anyhow::Result<serde_json::Value> {
     for message in stream {
         let message = message.with_context(|| format!("{}: reading messages", path.display()))?;
         if message.channel.topic == crate::session::messages::TOPIC_SESSION {
-            return serde_json::from_slice(&message.data).with_context(|| {
-                format!("{}: the session header is not JSON", path.display())
-            });
+            return serde_json::from_slice(&message.data)
+                .with_context(|| format!("{}: the session header is not JSON", path.display()));
         }
     }
     anyhow::bail!("{}: no /geocal/session message", path.display())
 }
 
 fn read_config(path: &Path) -> anyhow::Result<toml::Table> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
     text.parse()
         .with_context(|| format!("{}: not TOML", path.display()))
 }

@@ -143,11 +143,9 @@ impl Path {
                 curve: None,
             };
         }
-        let x = ABSCISSA_KEYS.iter().find_map(|(k, unit)| {
-            item.get(*k)
-                .and_then(|v| v.as_f64())
-                .map(|x| (x, *unit))
-        });
+        let x = ABSCISSA_KEYS
+            .iter()
+            .find_map(|(k, unit)| item.get(*k).and_then(|v| v.as_f64()).map(|x| (x, *unit)));
         Path {
             text: format!("{}[{i}]", self.text),
             curve: Some((
@@ -241,7 +239,11 @@ impl Walker<'_> {
             let unit = unit_of(&value_key, fields);
             self.pair(value, sigma, &path.key(&value_key), &unit, false);
             paired.push(key.as_str());
-            paired.push(fields.get_key_value(&value_key).map_or("", |(k, _)| k.as_str()));
+            paired.push(
+                fields
+                    .get_key_value(&value_key)
+                    .map_or("", |(k, _)| k.as_str()),
+            );
         }
         for (key, item) in fields {
             if paired.contains(&key.as_str())
@@ -362,7 +364,10 @@ mod tests {
         let step = found.get("rotary.steps[1].error_rad").expect("step");
         assert_eq!(step.curve, "rotary.steps[*].error_rad");
         assert_eq!((step.x, step.x_unit.as_str()), (Some(0.5), "rad"));
-        assert_eq!(found.get("hinges[0].base_m[1]").map(|p| p.curve.as_str()), Some("hinges[*].base_m[1]"));
+        assert_eq!(
+            found.get("hinges[0].base_m[1]").map(|p| p.curve.as_str()),
+            Some("hinges[*].base_m[1]")
+        );
         // EXX at 0.1 (σ 0), at 0.9 (null) and the reference step are not estimates.
         assert_eq!(found.without_sigma, 3);
     }

@@ -181,7 +181,11 @@ pub fn trend(runs: &[Run], options: &TrendOptions) -> anyhow::Result<Trend> {
             }
         }
     }
-    let t_days: Vec<f64> = match runs.iter().map(|r| r.started_at).collect::<Option<Vec<_>>>() {
+    let t_days: Vec<f64> = match runs
+        .iter()
+        .map(|r| r.started_at)
+        .collect::<Option<Vec<_>>>()
+    {
         Some(times) => times
             .iter()
             .map(|t| (*t - times[0]).num_milliseconds() as f64 / 1e3 / SECONDS_PER_DAY)
@@ -271,8 +275,8 @@ pub fn trend(runs: &[Run], options: &TrendOptions) -> anyhow::Result<Trend> {
             None if enough_for_baseline && banded_checks > 0 => {
                 // A prediction interval for one later run: the baseline's scatter, never
                 // below what the runs' own σ say, Bonferroni over every check of the series.
-                let scatter = base.iter().map(|(v, _)| (v - centre).powi(2)).sum::<f64>()
-                    / (n - 1.0);
+                let scatter =
+                    base.iter().map(|(v, _)| (v - centre).powi(2)).sum::<f64>() / (n - 1.0);
                 let noise = base.iter().map(|(_, s)| s * s).sum::<f64>() / n;
                 let spread = (scatter.max(noise) * (1.0 + 1.0 / n)).sqrt();
                 let q = two_sided_quantile(options.alpha / 2.0 / banded_checks as f64);
@@ -390,7 +394,11 @@ pub fn trend(runs: &[Run], options: &TrendOptions) -> anyhow::Result<Trend> {
             });
         }
         if let Some(band) = &t.band {
-            let from = if band.source == "baseline" { baseline } else { 0 };
+            let from = if band.source == "baseline" {
+                baseline
+            } else {
+                0
+            };
             for (i, v) in t.values.iter().enumerate().skip(from) {
                 let Some(v) = v else { continue };
                 let departure = v - band.centre;
@@ -519,7 +527,10 @@ pub fn document(t: &Trend) -> anyhow::Result<crate::document::Document> {
         ("kind".into(), t.kind.clone()),
         ("runs".into(), t.runs.len().to_string()),
         ("parameters".into(), t.parameters.len().to_string()),
-        ("false-alarm level".into(), format!("{} ({})", t.alpha, t.correction)),
+        (
+            "false-alarm level".into(),
+            format!("{} ({})", t.alpha, t.correction),
+        ),
         ("events".into(), t.events.len().to_string()),
     ]);
     for note in &t.notes {
@@ -600,16 +611,15 @@ pub fn document(t: &Trend) -> anyhow::Result<crate::document::Document> {
     if !panels.is_empty() {
         let svg = panels_svg("Parameters over time (±2σ, tolerance band)", &panels, 3)?;
         let shown = panels.len();
-        let mut section = Section::new("parameters", "Parameters over time").plot(
-            crate::document::Plot {
+        let mut section =
+            Section::new("parameters", "Parameters over time").plot(crate::document::Plot {
                 id: "trend-parameters".into(),
                 caption: format!(
                     "{shown} of {} parameters, those with events first",
                     t.parameters.len()
                 ),
                 svg,
-            },
-        );
+            });
         if t.parameters.len() > shown {
             section = section.paragraph(format!(
                 "{} more parameters in the JSON (geocal trend --json).",
@@ -658,7 +668,11 @@ mod tests {
         let values = [0.1, -0.2, 0.0, 0.1, -0.1, 0.2, 5.1, 4.9, 5.0, 5.2, 4.8, 5.0];
         let runs = series(&values.map(|v| v * 1e-6), 1e-6);
         let t = trend(&runs, &TrendOptions::default()).expect("trend");
-        let steps: Vec<&Event> = t.events.iter().filter(|e| e.kind == EventKind::Step).collect();
+        let steps: Vec<&Event> = t
+            .events
+            .iter()
+            .filter(|e| e.kind == EventKind::Step)
+            .collect();
         assert_eq!(steps.len(), 1, "{:#?}", t.events);
         assert_eq!(steps[0].run, 6);
         assert!(text(&t).contains("step"));
