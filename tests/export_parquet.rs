@@ -251,8 +251,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
             "runs",
             format!(
                 "SELECT session_id, machine, kind, schema_version, chi2_per_dof, dof, \
-                 residual_rms_m, raw_samples, iso230_2_note, date = CAST(timezone('UTC', started_at) AS DATE) \
-                 FROM {} ORDER BY session_id",
+                 residual_rms_m, raw_samples, iso230_2_note, date = CAST(timezone('UTC', started_at) AS DATE), \
+                 machine_serial, structure FROM {} ORDER BY session_id",
                 table(&dest, "runs")
             ),
         ),
@@ -354,6 +354,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
         same(&row[6], &r.results["residual_rms_m"], "residual_rms_m");
         assert!(row[8].is_null(), "ISO 230-2 of {id}: {}", row[8]);
         assert_eq!(row[9], json!(true), "date partition is the start's date");
+        assert!(row[10].is_null(), "no serial declared");
+        assert_eq!(row[11], json!("FYXZ"));
     }
 
     // parameters: every station coordinate and squareness with its σ, from results.json.
@@ -603,6 +605,13 @@ fn duckdb_reads_the_export_as_the_results_say() {
             std::fs::copy(run.dir.join(file), dir.join(file)).expect("copy");
         }
     }
+    // A run without its session: exported without ISO 230-2 figures, the machine from its
+    // configuration.
+    let alone = bad.join("results-only");
+    std::fs::create_dir_all(&alone).expect("mkdir");
+    for file in ["results.json", "run-config.toml"] {
+        std::fs::copy(runs[2].dir.join(file), alone.join(file)).expect("copy");
+    }
     let damaged = bad.join("damaged/results.json");
     let text = std::fs::read(&damaged).expect("read");
     std::fs::write(&damaged, &text[..text.len() / 2]).expect("truncate");
@@ -619,7 +628,31 @@ fn duckdb_reads_the_export_as_the_results_say() {
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stdout}\n{stderr}");
-    assert!(stdout.contains("1 runs exported, 1 skipped"), "{stdout}");
+    assert!(stdout.contains("2 runs exported, 1 skipped"), "{stdout}");
+    let answers = duckdb(
+        &[],
+        &[q(
+            "runs",
+            format!(
+                "SELECT machine, session_id, iso230_2_note, structure FROM {} ORDER BY session_id",
+                table(&bad_dest, "runs")
+            ),
+        )]
+        .into_iter()
+        .collect(),
+    );
+    let alone_row = answers["runs"]
+        .iter()
+        .find(|row| row[1] == json!(session_of(&runs[2])))
+        .expect("the run without a session is exported");
+    assert_eq!(alone_row[0], json!(BRIDGE));
+    assert!(
+        alone_row[2]
+            .as_str()
+            .is_some_and(|n| n.contains("no session"))
+            && alone_row[3].is_null(),
+        "{alone_row:?}"
+    );
     assert!(
         stderr.contains(&format!("warning: skipped {}", damaged.display()))
             && stderr.contains("not JSON"),

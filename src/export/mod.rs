@@ -24,7 +24,6 @@ use table::{Cell, Table};
 
 pub const RESULTS_FILE: &str = "results.json";
 pub const DIAGNOSIS_FILE: &str = "diagnosis.json";
-const RESULTS_FORMAT: &str = "geocal-results/1";
 /// Raw samples per record batch (and so at most per row group).
 const RAW_BATCH_ROWS: usize = 65_536;
 
@@ -222,47 +221,6 @@ pub fn export_runs(
     Ok(summary)
 }
 
-fn read_results(path: &Path) -> anyhow::Result<Value> {
-    let text =
-        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
-    let results: Value = serde_json::from_str(&text)
-        .with_context(|| format!("{}: not JSON (expected {RESULTS_FORMAT})", path.display()))?;
-    let format = results.get("format").and_then(Value::as_str);
-    if format != Some(RESULTS_FORMAT) {
-        anyhow::bail!(
-            "{}: key `format` is {}, expected \"{RESULTS_FORMAT}\"",
-            path.display(),
-            format.map_or("missing".to_owned(), |f| format!("\"{f}\""))
-        );
-    }
-    Ok(results)
-}
-
-fn text_key<'a>(results: &'a Value, key: &str, path: &Path) -> anyhow::Result<&'a str> {
-    results
-        .get(key)
-        .and_then(Value::as_str)
-        .ok_or_else(|| anyhow::anyhow!("{}: key `{key}` missing or not a string", path.display()))
-}
-
-/// The run's start as ns since the epoch and its UTC date.
-fn start_of(started_at: &str, session: &Path) -> anyhow::Result<(i64, String)> {
-    let t = chrono::DateTime::parse_from_rfc3339(started_at).map_err(|e| {
-        anyhow::anyhow!(
-            "{}: header `started_at` is {started_at:?}, expected an RFC 3339 time: {e}",
-            session.display()
-        )
-    })?;
-    let utc = t.with_timezone(&chrono::Utc);
-    let ns = utc.timestamp_nanos_opt().ok_or_else(|| {
-        anyhow::anyhow!(
-            "{}: `started_at` {started_at} out of range",
-            session.display()
-        )
-    })?;
-    Ok((ns, utc.format("%Y-%m-%d").to_string()))
-}
-
 /// The ISO 230-2 figures the results and their session give, or why there are none.
 fn iso_of(
     results: &Value,
@@ -299,31 +257,52 @@ fn export_run(
     options: &ExportOptions,
     warnings: &mut Vec<String>,
 ) -> anyhow::Result<RunExported> {
-    let results = read_results(&run.results)?;
-    let session_id = text_key(&results, "session_id", &run.results)?.to_owned();
-    let kind = text_key(&results, "kind", &run.results)?.to_owned();
-    if !run.session.is_file() {
+    // The run as the machine's history loads it: results, kind, machine identity (the
+    // configured name and serial), start time.
+    let loaded = crate::history::load::Run::load(&run.results)?;
+    let results = &loaded.results;
+    let session_id = loaded.session_id.clone();
+    if session_id.is_empty() {
         anyhow::bail!(
-            "{}: no session beside it ({} missing): the machine and the date come from its header",
-            run.results.display(),
-            run.session.display()
+            "{}: key `session_id` missing or not a string",
+            run.results.display()
         );
     }
-    let header = stream::read_header(&run.session)?;
-    if header.session_id != session_id {
-        anyhow::bail!(
-            "{}: session_id {session_id:?}, but the session beside it ({}) is {:?}",
-            run.results.display(),
-            run.session.display(),
-            header.session_id
-        );
-    }
-    let machine = if header.machine.name.trim().is_empty() {
-        "unnamed".to_owned()
-    } else {
-        header.machine.name.clone()
+    let kind = loaded.kind.clone();
+    let machine = loaded
+        .machine
+        .name
+        .clone()
+        .unwrap_or_else(|| loaded.machine.label());
+    let started = loaded.started_at.ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: no start time (no session header beside it, no file time)",
+            run.results.display()
+        )
+    })?;
+    let started_ns = started.timestamp_nanos_opt().ok_or_else(|| {
+        anyhow::anyhow!(
+            "{}: start time {started} out of range",
+            run.results.display()
+        )
+    })?;
+    let date = started.format("%Y-%m-%d").to_string();
+    let session = run.session.is_file().then_some(run.session.as_path());
+    let structure = match session {
+        Some(path) => {
+            let header = stream::read_header(path)?;
+            if header.session_id != session_id {
+                anyhow::bail!(
+                    "{}: session_id {session_id:?}, but the session beside it ({}) is {:?}",
+                    run.results.display(),
+                    path.display(),
+                    header.session_id
+                );
+            }
+            Some(header.machine.structure)
+        }
+        None => None,
     };
-    let (started_ns, date) = start_of(&header.started_at, &run.session)?;
     let diagnosis = match &run.diagnosis {
         Some(path) => {
             let text = std::fs::read_to_string(path)
@@ -344,12 +323,19 @@ fn export_run(
     };
 
     let mut tables: Vec<Table> = vec![
-        rows::parameters(&results, &session_id),
-        rows::error_functions(&results, &session_id),
-        rows::points(&results, &session_id),
+        rows::parameters(results, &session_id),
+        rows::error_functions(results, &session_id),
+        rows::points(results, &session_id),
     ];
     let mut iso_note = None;
-    match iso_of(&results, &run.session) {
+    let iso = match session {
+        Some(path) => iso_of(results, path),
+        None => Err(format!(
+            "no session beside the results ({} missing)",
+            run.session.display()
+        )),
+    };
+    match iso {
         Ok(iso) => tables.push(rows::iso230_2(&iso, &session_id)),
         Err(why) => {
             iso_note = Some(why);
@@ -363,9 +349,9 @@ fn export_run(
 
     let mut files = Vec::new();
     let mut row_counts = Vec::new();
-    let raw_samples = if options.raw {
+    let raw_samples = if let (true, Some(session)) = (options.raw, session) {
         let path = write::run_file(dest, &TRACER_SAMPLES, &machine, &date, &session_id);
-        let (n, end, skipped) = write_raw(&run.session, &path, &session_id)?;
+        let (n, end, skipped) = write_raw(session, &path, &session_id)?;
         if let StreamEnd::Cut { bytes_read, reason } = end {
             warnings.push(format!(
                 "{}: raw samples exported up to byte {bytes_read} only ({reason}); `geocal \
@@ -385,6 +371,12 @@ fn export_run(
         row_counts.push((TRACER_SAMPLES.name, n));
         Some(n)
     } else {
+        if options.raw {
+            warnings.push(format!(
+                "{}: no session beside it: no raw samples",
+                run.results.display()
+            ));
+        }
         None
     };
 
@@ -396,7 +388,8 @@ fn export_run(
         ("session_id", session_id.as_str().into()),
         ("kind", kind.as_str().into()),
         ("started_at", Cell::TimeNs(started_ns)),
-        ("structure", header.machine.structure.as_str().into()),
+        ("machine_serial", loaded.machine.serial.clone().into()),
+        ("structure", structure.into()),
         ("source", run.results.display().to_string().into()),
         ("job_id", run.job_id.map_or(Cell::Null, Cell::Int)),
         ("chi2_per_dof", results["chi2_per_dof"].as_f64().into()),

@@ -151,11 +151,18 @@ pub const RUNS: TableDef = TableDef {
             "when the run started (session header), UTC",
         ),
         col(
+            "machine_serial",
+            Utf8,
+            true,
+            "",
+            "the machine's serial where its configuration declares one",
+        ),
+        col(
             "structure",
             Utf8,
-            false,
+            true,
             "",
-            "the machine's kinematic chain (session header), e.g. FYXZ",
+            "the machine's kinematic chain (session header), e.g. FYXZ; null without a session",
         ),
         col(
             "source",
