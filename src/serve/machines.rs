@@ -403,12 +403,9 @@ pub fn check_scheduled_run(
         );
         return Ok(None);
     };
-    let previous = succeeded_runs(jobs)
-        .into_iter()
-        .filter(|r| {
-            r.job.id < job.id && r.run.kind == run.kind && r.run.machine.same_machine(&run.machine)
-        })
-        .next_back();
+    let previous = succeeded_runs(jobs).into_iter().rfind(|r| {
+        r.job.id < job.id && r.run.kind == run.kind && r.run.machine.same_machine(&run.machine)
+    });
     let Some(previous) = previous else {
         tracing::info!(
             job = job.id,
