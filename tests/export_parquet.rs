@@ -595,26 +595,135 @@ fn duckdb_reads_the_export_as_the_results_say() {
         ]]
     );
 
-    // A damaged results file: that run is skipped with a warning naming the file; --strict
-    // makes it an error naming the file.
+    // The daemon's catalog: a succeeded run job and a diagnose job of it (the diagnosis in
+    // the diagnose job's folder); a failed run job is left out.
+    let data = work.path().join("daemon");
+    {
+        use geocal::serve::catalog::{Catalog, JobState, JobType, NewJob};
+        let mut catalog = Catalog::open(&data).expect("catalog");
+        let mut add = |job_type, source_job, state| {
+            let id = catalog
+                .add(&NewJob {
+                    job_type,
+                    kind: "multilateration",
+                    submitted_by: "test",
+                    config_sha256: None,
+                    source_job,
+                })
+                .expect("add job");
+            catalog.start(id).expect("start");
+            catalog.finish(id, state, None).expect("finish");
+            id
+        };
+        let run_job = add(JobType::Run, None, JobState::Succeeded);
+        let diagnose_job = add(JobType::Diagnose, Some(run_job), JobState::Succeeded);
+        let failed_job = add(JobType::Run, None, JobState::Failed);
+        let catalog = Catalog::open(&data).expect("catalog");
+        for file in ["results.json", "session.mcap", "run-config.toml"] {
+            std::fs::create_dir_all(catalog.dir_of(run_job)).expect("mkdir");
+            std::fs::copy(bridge.dir.join(file), catalog.dir_of(run_job).join(file)).expect("copy");
+        }
+        std::fs::create_dir_all(catalog.dir_of(diagnose_job)).expect("mkdir");
+        std::fs::copy(
+            bridge.dir.join("diagnosis.json"),
+            catalog.dir_of(diagnose_job).join("diagnosis.json"),
+        )
+        .expect("copy");
+        // The failed job's folder holds results a reader must not take as a run.
+        std::fs::create_dir_all(catalog.dir_of(failed_job)).expect("mkdir");
+        std::fs::copy(
+            runs[0].dir.join("results.json"),
+            catalog.dir_of(failed_job).join("results.json"),
+        )
+        .expect("copy");
+        let catalog_dest = work.path().join("catalog-fleet");
+        let out = geocal(&[
+            "export",
+            "--format",
+            "parquet",
+            "--catalog",
+            data.to_str().expect("path"),
+            "--out",
+            catalog_dest.to_str().expect("path"),
+        ]);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{stdout}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(stdout.contains("1 runs exported, 0 skipped"), "{stdout}");
+        let answers = duckdb(
+            &[],
+            &[
+                q(
+                    "runs",
+                    format!(
+                        "SELECT session_id, job_id, machine FROM {}",
+                        table(&catalog_dest, "runs")
+                    ),
+                ),
+                q(
+                    "diagnoses",
+                    format!(
+                        "SELECT session_id, verdict FROM {}",
+                        table(&catalog_dest, "diagnoses")
+                    ),
+                ),
+            ]
+            .into_iter()
+            .collect(),
+        );
+        assert_eq!(
+            answers["runs"],
+            vec![vec![
+                json!(session_of(bridge)),
+                json!(run_job),
+                json!(BRIDGE)
+            ]]
+        );
+        assert_eq!(
+            answers["diagnoses"],
+            vec![vec![
+                json!(session_of(bridge)),
+                json!(geocal::export::rows::verdict(&diagnosis))
+            ]]
+        );
+    }
+
+    // Bad input. A damaged results file: that run is skipped with a warning naming the file
+    // (--strict: an error naming it). A run without its session: exported without ISO 230-2
+    // figures or raw samples, the machine from its configuration. A session cut short (a
+    // crash): its raw samples up to the cut, every one the session reader reads, and a warning.
     let bad = work.path().join("bad");
-    for (name, run) in [("good", &runs[0]), ("damaged", &runs[1])] {
+    for (name, run, files) in [
+        ("good", &runs[0], &["results.json", "session.mcap"][..]),
+        ("damaged", &runs[1], &["results.json", "session.mcap"][..]),
+        (
+            "results-only",
+            &runs[1],
+            &["results.json", "run-config.toml"][..],
+        ),
+        (
+            "truncated",
+            &runs[2],
+            &["results.json", "session.mcap", "run-config.toml"][..],
+        ),
+    ] {
         let dir = bad.join(name);
         std::fs::create_dir_all(&dir).expect("mkdir");
-        for file in ["results.json", "session.mcap"] {
+        for file in files {
             std::fs::copy(run.dir.join(file), dir.join(file)).expect("copy");
         }
-    }
-    // A run without its session: exported without ISO 230-2 figures, the machine from its
-    // configuration.
-    let alone = bad.join("results-only");
-    std::fs::create_dir_all(&alone).expect("mkdir");
-    for file in ["results.json", "run-config.toml"] {
-        std::fs::copy(runs[2].dir.join(file), alone.join(file)).expect("copy");
     }
     let damaged = bad.join("damaged/results.json");
     let text = std::fs::read(&damaged).expect("read");
     std::fs::write(&damaged, &text[..text.len() / 2]).expect("truncate");
+    let cut = bad.join("truncated/session.mcap");
+    let bytes = std::fs::read(&cut).expect("read");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).expect("cut");
+    let cut_session = read_session(&cut).expect("a cut session reads up to its last chunk");
+    let cut_samples: usize = cut_session.tracers.values().map(Vec::len).sum();
     let bad_dest = work.path().join("bad-fleet");
     let args = [
         "export",
@@ -623,40 +732,65 @@ fn duckdb_reads_the_export_as_the_results_say() {
         bad.to_str().expect("path"),
         "--out",
         bad_dest.to_str().expect("path"),
+        "--raw",
     ];
     let out = geocal(&args);
     let stdout = String::from_utf8_lossy(&out.stdout);
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stdout}\n{stderr}");
-    assert!(stdout.contains("2 runs exported, 1 skipped"), "{stdout}");
+    assert!(stdout.contains("3 runs exported, 1 skipped"), "{stdout}");
+    assert!(
+        stderr.contains(&format!("warning: skipped {}", damaged.display()))
+            && stderr.contains("not JSON"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains(&format!(
+            "warning: {}: raw samples exported up to byte",
+            cut.display()
+        )),
+        "{stderr}"
+    );
     let answers = duckdb(
         &[],
-        &[q(
-            "runs",
-            format!(
-                "SELECT machine, session_id, iso230_2_note, structure FROM {} ORDER BY session_id",
-                table(&bad_dest, "runs")
+        &[
+            q(
+                "runs",
+                format!(
+                    "SELECT machine, session_id, iso230_2_note, structure, raw_samples FROM {} \
+                     ORDER BY session_id",
+                    table(&bad_dest, "runs")
+                ),
             ),
-        )]
+            q(
+                "raw",
+                format!(
+                    "SELECT session_id, count(*) FROM {} GROUP BY session_id",
+                    table(&bad_dest, "tracer_samples")
+                ),
+            ),
+        ]
         .into_iter()
         .collect(),
     );
     let alone_row = answers["runs"]
         .iter()
-        .find(|row| row[1] == json!(session_of(&runs[2])))
+        .find(|row| row[1] == json!(session_of(&runs[1])))
         .expect("the run without a session is exported");
-    assert_eq!(alone_row[0], json!(BRIDGE));
+    assert_eq!(alone_row[0], json!(MILL));
     assert!(
         alone_row[2]
             .as_str()
             .is_some_and(|n| n.contains("no session"))
-            && alone_row[3].is_null(),
+            && alone_row[3].is_null()
+            && alone_row[4].is_null(),
         "{alone_row:?}"
     );
+    assert!(cut_samples > 0, "the cut session keeps some samples");
     assert!(
-        stderr.contains(&format!("warning: skipped {}", damaged.display()))
-            && stderr.contains("not JSON"),
-        "{stderr}"
+        answers["raw"].contains(&vec![json!(session_of(&runs[2])), json!(cut_samples)]),
+        "{:?}, {cut_samples} in the cut session",
+        answers["raw"]
     );
     let mut strict = args.to_vec();
     strict.push("--strict");
