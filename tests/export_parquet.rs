@@ -802,3 +802,146 @@ fn duckdb_reads_the_export_as_the_results_say() {
         "{stderr}"
     );
 }
+
+/// Every other plan kind's example run exported: its parameters and error functions as its
+/// results file holds them (found by the results' shape, docs/fleet.md).
+#[test]
+fn every_kind_exports_what_its_results_hold() {
+    let work = tempfile::tempdir().expect("tempdir");
+    let runs = work.path().join("runs");
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    let mut results = BTreeMap::new();
+    for kind in ["rotary-sphere", "probe-install", "hexapod", "rotary-tracer"] {
+        let dir = runs.join(kind);
+        let config = configs.join(format!("{kind}.toml"));
+        let out = geocal(&[
+            "run",
+            config.to_str().expect("path"),
+            "--out",
+            dir.to_str().expect("path"),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let json: Value =
+            serde_json::from_slice(&std::fs::read(dir.join("results.json")).expect("results"))
+                .expect("results JSON");
+        results.insert(kind, json);
+    }
+    let dest = work.path().join("fleet");
+    let out = geocal(&[
+        "export",
+        "--format",
+        "parquet",
+        runs.to_str().expect("path"),
+        "--out",
+        dest.to_str().expect("path"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let answers = duckdb(
+        &[],
+        &[
+            q(
+                "parameters",
+                format!(
+                    "SELECT session_id, name, value, sigma, unit FROM {}",
+                    table(&dest, "parameters")
+                ),
+            ),
+            q(
+                "error_functions",
+                format!(
+                    "SELECT session_id, axis, error_function, position, value, sigma, unit FROM {}",
+                    table(&dest, "error_functions")
+                ),
+            ),
+        ]
+        .into_iter()
+        .collect(),
+    );
+    let parameter = |r: &Value, name: &str| -> Vec<Value> {
+        answers["parameters"]
+            .iter()
+            .find(|row| row[0] == r["session_id"] && row[1] == json!(name))
+            .unwrap_or_else(|| panic!("parameter {name} of {}", r["kind"]))
+            .clone()
+    };
+    let function = |r: &Value, axis: &Value, name: &str, position: &Value| -> Vec<Value> {
+        answers["error_functions"]
+            .iter()
+            .find(|row| {
+                row[0] == r["session_id"]
+                    && row[1] == *axis
+                    && row[2] == json!(name)
+                    && row[3] == *position
+            })
+            .unwrap_or_else(|| panic!("{name} at {position} of {}", r["kind"]))
+            .clone()
+    };
+
+    let probe = &results["probe-install"];
+    for p in probe["parameters"].as_array().expect("parameters") {
+        let row = parameter(
+            probe,
+            &format!("parameter.{}", p["name"].as_str().expect("name")),
+        );
+        same(&row[2], &p["value"], "probe parameter");
+        same(&row[3], &p["sigma"], "probe parameter σ");
+    }
+
+    let sphere = &results["rotary-sphere"];
+    for l in sphere["location"].as_array().expect("location") {
+        let name = l["name"].as_str().expect("name");
+        let row = parameter(sphere, &format!("location.{name}"));
+        same(&row[2], &l["value"], name);
+        same(&row[3], &l["sigma"], name);
+        let unit = if name.starts_with("EA") || name.starts_with("EB") {
+            "rad"
+        } else {
+            "m"
+        };
+        assert_eq!(row[4], json!(unit), "{name}");
+    }
+    let names = sphere["motion_names"].as_array().expect("motion names");
+    for m in sphere["motion"].as_array().expect("motion") {
+        for (k, name) in names.iter().enumerate() {
+            let row = function(
+                sphere,
+                &sphere["table"],
+                name.as_str().expect("name"),
+                &m["commanded_rad"],
+            );
+            same(&row[4], &m["errors"][k], "motion error");
+            same(&row[5], &m["sigma"][k], "motion error σ");
+        }
+    }
+
+    let hexapod = &results["hexapod"];
+    for h in hexapod["hinges"].as_array().expect("hinges") {
+        for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+            let row = parameter(hexapod, &format!("hinge.{}.base.{axis}", h["leg"]));
+            same(&row[2], &h["base_m"][k], "base hinge");
+            same(&row[3], &h["base_sigma_m"][k], "base hinge σ");
+            let row = parameter(hexapod, &format!("hinge.{}.platform.{axis}", h["leg"]));
+            same(&row[2], &h["platform_m"][k], "platform hinge");
+        }
+    }
+
+    let tracer = &results["rotary-tracer"];
+    let rotary = &tracer["rotary"];
+    let table_id = rotary["table"].as_str().expect("table");
+    let row = parameter(tracer, &format!("rotary_axis.{table_id}.radius_m"));
+    same(&row[2], &rotary["radius_m"], "radius");
+    same(&row[3], &rotary["radius_sigma_m"], "radius σ");
+    for s in rotary["steps"].as_array().expect("steps") {
+        let row = function(tracer, &rotary["table"], "step_error", &s["commanded_rad"]);
+        same(&row[4], &s["error_rad"], "step error");
+        same(&row[5], &s["sigma_rad"], "step error σ");
+    }
+}
