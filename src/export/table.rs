@@ -178,3 +178,41 @@ impl Table {
         Ok(RecordBatch::try_new(self.def.schema(), arrays)?)
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::export::schema::DIAGNOSES;
+
+    #[test]
+    fn a_missing_required_value_is_an_error_naming_the_column() {
+        let mut table = Table::new(&DIAGNOSES);
+        table.push(vec![
+            ("session_id", "s".into()),
+            ("verdict", "consistent".into()),
+        ]);
+        let e = table.to_batch().expect_err("columns left null");
+        assert!(e.to_string().contains("column `selected`"), "{e}");
+    }
+
+    #[test]
+    fn rows_become_a_batch_of_the_table_schema() {
+        let mut table = Table::new(&DIAGNOSES);
+        table.push(vec![
+            ("session_id", "s".into()),
+            ("verdict", "explained".into()),
+            ("selected", vec!["reversal".to_owned()].into()),
+            ("unexplained", false.into()),
+            ("noise_floor_m", 1e-8.into()),
+            ("gap_rms_m", 2e-8.into()),
+            ("gap_heldout_ratio", 1.0.into()),
+            ("gap_after_rms_m", 1e-8.into()),
+            ("gap_after_heldout_ratio", 1.0.into()),
+            ("observations", 100usize.into()),
+        ]);
+        let batch = table.to_batch().expect("batch");
+        assert_eq!(batch.num_rows(), 1);
+        assert_eq!(batch.schema(), DIAGNOSES.schema());
+        assert_eq!(batch.column(4).null_count(), 1, "noise_scale_k left null");
+    }
+}

@@ -126,3 +126,31 @@ pub fn write_batch(path: &Path, table: &TableDef, batch: &RecordBatch) -> anyhow
     file.finish()?;
     Ok(true)
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn partition_values_are_escaped_as_hive_does() {
+        assert_eq!(escape("Mill 3/A (é)"), "Mill%203%2FA%20%28%C3%A9%29");
+        assert_eq!(escape("plain-name_1.2"), "plain-name_1.2");
+        assert_eq!(escape("a=b"), "a%3Db");
+        assert_eq!(escape(".."), "%2E%2E");
+    }
+
+    #[test]
+    fn a_run_file_sits_in_its_partition() {
+        let path = run_file(
+            Path::new("out"),
+            &super::super::schema::RUNS,
+            "M 1",
+            "2026-11-26",
+            "s/1",
+        );
+        assert_eq!(
+            path,
+            Path::new("out/runs/machine=M%201/date=2026-11-26/s%2F1.parquet")
+        );
+    }
+}
