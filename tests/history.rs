@@ -411,3 +411,54 @@ fn compare_of_demo_runs_sees_noise_as_noise_and_a_squareness_change_as_that() {
     let stderr = String::from_utf8_lossy(&output.stderr);
     assert!(stderr.contains("different machines"), "{stderr}");
 }
+
+#[test]
+fn every_kinds_parameters_are_compared() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    for (example, expected) in [
+        (
+            "rotary-sphere.toml",
+            &["location[EXOC].value", "motion[*].errors[5]"][..],
+        ),
+        (
+            "probe-install.toml",
+            &["parameters[b_offset_rad].value", "parameters[beam_l].value"][..],
+        ),
+        (
+            "hexapod.toml",
+            &["hinges[*].base_m[2]", "hinges[*].platform_m[0]"][..],
+        ),
+        (
+            "rotary-tracer.toml",
+            &[
+                "rotary.steps[*].error_rad",
+                "rotary.axis_point_m[0]",
+                "geometric_errors.squareness.EB0Z.value_rad",
+            ][..],
+        ),
+    ] {
+        let text = std::fs::read_to_string(root.join(example)).expect("example");
+        let out = small_demo_run(dir.path(), example.trim_end_matches(".toml"), &text);
+        // A run compared with itself: every parameter found, none changed.
+        let c = compare_json(&out, &out, &[]);
+        let curves: Vec<&str> = c["parameters"]
+            .as_array()
+            .expect("parameters")
+            .iter()
+            .filter_map(|p| p["curve"].as_str())
+            .collect();
+        for curve in expected {
+            assert!(
+                curves.contains(curve),
+                "{example}: no {curve} in {curves:?}"
+            );
+        }
+        assert_eq!(
+            c["significant"].as_array().map(Vec::len),
+            Some(0),
+            "{example}"
+        );
+        eprintln!("{example}: {} parameters", c["compared"]);
+    }
+}

@@ -253,4 +253,22 @@ fn a_scheduled_run_of_a_changed_machine_raises_the_event() {
         .json::<Value>()
         .expect("json");
     assert_eq!(comparison["format"], "geocal-compare/1");
+    // The same history from the command line, read from the daemon's catalog.
+    let output = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["trend", "--json", "--catalog"])
+        .arg(dir.path().join("data"))
+        .output()
+        .expect("geocal trend --catalog");
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let trend: Value = serde_json::from_slice(&output.stdout).expect("trend JSON");
+    assert_eq!(trend["machine"]["name"], MACHINE);
+    assert!(
+        trend["runs"].as_array().map(Vec::len) >= Some(2),
+        "{}",
+        trend["runs"]
+    );
 }

@@ -137,22 +137,22 @@ impl Path {
         let name = NAME_KEYS
             .iter()
             .find_map(|k| item.get(*k).and_then(|v| v.as_str()));
-        if let Some(name) = name {
-            return Path {
-                text: format!("{}[{name}]", self.text),
-                curve: None,
-            };
-        }
         let x = ABSCISSA_KEYS
             .iter()
             .find_map(|(k, unit)| item.get(*k).and_then(|v| v.as_f64()).map(|x| (x, *unit)));
-        Path {
-            text: format!("{}[{i}]", self.text),
-            curve: Some((
+        let text = match name {
+            Some(name) => format!("{}[{name}]", self.text),
+            None => format!("{}[{i}]", self.text),
+        };
+        // Named objects without a position (a named figure) are each their own curve.
+        let curve = match (name, x) {
+            (Some(_), None) => None,
+            (_, x) => Some((
                 format!("{}[*]", self.text),
                 Some(x.unwrap_or((i as f64, ""))),
             )),
-        }
+        };
+        Path { text, curve }
     }
 }
 
@@ -337,8 +337,8 @@ mod tests {
             },
             "location": [{"name": "EXOC", "value": 1e-5, "sigma": 1e-6}],
             "rotary": {"steps": [
-                {"commanded_rad": 0.0, "error_rad": 0.0, "sigma_rad": 0.0},
-                {"commanded_rad": 0.5, "error_rad": 2e-6, "sigma_rad": 1e-6}]},
+                {"station": "c01", "commanded_rad": 0.0, "error_rad": 0.0, "sigma_rad": 0.0},
+                {"station": "c02", "commanded_rad": 0.5, "error_rad": 2e-6, "sigma_rad": 1e-6}]},
             "hinges": [{"leg": 0, "base_m": [1.0, 2.0, 3.0], "base_sigma_m": [1e-5, 1e-5, 1e-5]}],
         });
         let found = parameters(&results);
@@ -353,7 +353,7 @@ mod tests {
                 "hinges[0].base_m[1]",
                 "hinges[0].base_m[2]",
                 "location[EXOC].value",
-                "rotary.steps[1].error_rad",
+                "rotary.steps[c02].error_rad",
             ]
         );
         let exx = found
@@ -361,7 +361,7 @@ mod tests {
             .expect("EXX");
         assert_eq!(exx.curve, "geometric_errors.axes.x.errors.EXX.values");
         assert_eq!((exx.x, exx.unit.as_str()), (Some(0.5), "m"));
-        let step = found.get("rotary.steps[1].error_rad").expect("step");
+        let step = found.get("rotary.steps[c02].error_rad").expect("step");
         assert_eq!(step.curve, "rotary.steps[*].error_rad");
         assert_eq!((step.x, step.x_unit.as_str()), (Some(0.5), "rad"));
         assert_eq!(
