@@ -152,7 +152,6 @@ fn fleet_doc_lists_every_column() {
         ColumnType::Utf8 => "string",
         ColumnType::Utf8List => "list<string>",
         ColumnType::TimestampUs => "timestamp (µs, UTC)",
-        ColumnType::TimestampNs => "timestamp (ns, UTC)",
     };
     for def in TABLES {
         let heading = format!("### `{}`", def.name);
@@ -299,7 +298,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
         q(
             "raw",
             format!(
-                "SELECT session_id, tracer, count(*), sum(length_m), min(seq), max(seq) FROM {} \
+                "SELECT session_id, tracer, count(*), sum(length_m), min(seq), max(seq), \
+                 min(log_time_ns), bool_and(epoch_us(log_time) = log_time_ns // 1000) FROM {} \
                  GROUP BY session_id, tracer ORDER BY session_id, tracer",
                 table(&dest, "tracer_samples")
             ),
@@ -514,6 +514,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
             );
             assert_eq!(row[4], json!(samples.iter().map(|s| s.msg.seq).min()));
             assert_eq!(row[5], json!(samples.iter().map(|s| s.msg.seq).max()));
+            assert_eq!(row[6], json!(samples.iter().map(|s| s.log_time_ns).min()));
+            assert_eq!(row[7], json!(true), "log_time is log_time_ns to the µs");
         }
     }
 

@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use arrow_array::builder::{
-    BooleanBuilder, Float64Builder, Int64Builder, StringBuilder, TimestampNanosecondBuilder,
+    BooleanBuilder, Float64Builder, Int64Builder, StringBuilder, TimestampMicrosecondBuilder,
 };
 use arrow_array::{ArrayRef, RecordBatch};
 use serde_json::Value;
@@ -455,7 +455,8 @@ fn export_run(
 struct RawBatch {
     session_id: String,
     tracer: StringBuilder,
-    log_time: TimestampNanosecondBuilder,
+    log_time: TimestampMicrosecondBuilder,
+    log_time_ns: Int64Builder,
     seq: Int64Builder,
     t_s: Float64Builder,
     length_m: Float64Builder,
@@ -470,7 +471,8 @@ impl RawBatch {
         RawBatch {
             session_id: session_id.to_owned(),
             tracer: StringBuilder::new(),
-            log_time: TimestampNanosecondBuilder::new().with_timezone("UTC"),
+            log_time: TimestampMicrosecondBuilder::new().with_timezone("UTC"),
+            log_time_ns: Int64Builder::new(),
             seq: Int64Builder::new(),
             t_s: Float64Builder::new(),
             length_m: Float64Builder::new(),
@@ -483,8 +485,9 @@ impl RawBatch {
 
     fn push(&mut self, tracer: &str, log_time_ns: u64, s: &crate::session::messages::TracerSample) {
         self.tracer.append_value(tracer);
-        self.log_time
-            .append_value(i64::try_from(log_time_ns).unwrap_or(i64::MAX));
+        let log_time_ns = i64::try_from(log_time_ns).unwrap_or(i64::MAX);
+        self.log_time.append_value(log_time_ns.div_euclid(1000));
+        self.log_time_ns.append_value(log_time_ns);
         self.seq
             .append_value(i64::try_from(s.seq).unwrap_or(i64::MAX));
         self.t_s.append_value(s.t_s);
@@ -505,6 +508,7 @@ impl RawBatch {
             Arc::new(session.finish()),
             Arc::new(self.tracer.finish()),
             Arc::new(self.log_time.finish()),
+            Arc::new(self.log_time_ns.finish()),
             Arc::new(self.seq.finish()),
             Arc::new(self.t_s.finish()),
             Arc::new(self.length_m.finish()),

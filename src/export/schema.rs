@@ -27,8 +27,6 @@ pub enum ColumnType {
     Utf8List,
     /// UTC timestamp, microseconds.
     TimestampUs,
-    /// UTC timestamp, nanoseconds.
-    TimestampNs,
 }
 
 impl ColumnType {
@@ -44,9 +42,6 @@ impl ColumnType {
             }
             ColumnType::TimestampUs => {
                 DataType::Timestamp(TimeUnit::Microsecond, Some("UTC".into()))
-            }
-            ColumnType::TimestampNs => {
-                DataType::Timestamp(TimeUnit::Nanosecond, Some("UTC".into()))
             }
         }
     }
@@ -609,10 +604,17 @@ pub const TRACER_SAMPLES: TableDef = TableDef {
         ),
         col(
             "log_time",
-            TimestampNs,
+            TimestampUs,
             false,
             "s",
-            "host time of reception, UTC",
+            "host time of reception, UTC (to the microsecond: Spark reads no nanoseconds)",
+        ),
+        col(
+            "log_time_ns",
+            Int64,
+            false,
+            "ns",
+            "host time of reception, ns since the Unix epoch (exact, as recorded)",
         ),
         col("seq", Int64, false, "", "the sample's sequence number"),
         col("t_s", Float64, false, "s", "device time"),

@@ -7,7 +7,7 @@ use arrow_array::builder::{ListBuilder, StringBuilder};
 use arrow_array::Array;
 use arrow_array::{
     ArrayRef, BooleanArray, Float64Array, Int32Array, Int64Array, RecordBatch, StringArray,
-    TimestampMicrosecondArray, TimestampNanosecondArray,
+    TimestampMicrosecondArray,
 };
 
 use super::schema::{ColumnType, TableDef};
@@ -153,13 +153,6 @@ impl Table {
                 ColumnType::TimestampUs => Arc::new(
                     TimestampMicrosecondArray::from_iter(cells.map(|c| match c {
                         Cell::TimeNs(ns) => Some(ns.div_euclid(1000)),
-                        _ => None,
-                    }))
-                    .with_timezone("UTC"),
-                ),
-                ColumnType::TimestampNs => Arc::new(
-                    TimestampNanosecondArray::from_iter(cells.map(|c| match c {
-                        Cell::TimeNs(ns) => Some(*ns),
                         _ => None,
                     }))
                     .with_timezone("UTC"),
