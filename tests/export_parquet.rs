@@ -24,6 +24,7 @@ const FLEET_DOC: &str = include_str!("../docs/fleet.md");
 /// and a non-ASCII letter check the partition escaping.
 const MILL: &str = "Mill 3/A (simulated) é";
 const BRIDGE: &str = "Bridge CMM 9";
+const BRIDGE_SERIAL: &str = "SN 0042";
 
 /// The demo (5 stations, 5 × 5 × 4 points: enough for the 21 errors, and a serpentine pass
 /// reaches 3 x targets both ways for ISO 230-2), named and sized as asked.
@@ -39,7 +40,15 @@ fn config(machine: &str, seed: u64, positioning_m: f64) -> String {
             &format!("positioning_m = {positioning_m:e}"),
         );
     assert!(text.contains(&format!("seed = {seed}")) && text.contains(&format!("{machine:?}")));
-    text
+    // The bridge declares its serial (the mill does not).
+    if machine == BRIDGE {
+        text.replace(
+            &format!("name = {machine:?}"),
+            &format!("name = {machine:?}\nserial = {BRIDGE_SERIAL:?}"),
+        )
+    } else {
+        text
+    }
 }
 
 struct Run {
@@ -354,7 +363,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
         same(&row[6], &r.results["residual_rms_m"], "residual_rms_m");
         assert!(row[8].is_null(), "ISO 230-2 of {id}: {}", row[8]);
         assert_eq!(row[9], json!(true), "date partition is the start's date");
-        assert!(row[10].is_null(), "no serial declared");
+        let serial = (r.machine == BRIDGE).then_some(BRIDGE_SERIAL);
+        assert_eq!(row[10], json!(serial), "the declared serial");
         assert_eq!(row[11], json!("FYXZ"));
     }
 

@@ -32,9 +32,14 @@ pub fn for_each_message(
 ) -> anyhow::Result<StreamEnd> {
     let mut file =
         std::fs::File::open(path).with_context(|| format!("opening {}", path.display()))?;
-    // A file cut by a crash has no end magic: read what it has.
-    let mut reader =
-        LinearReader::new_with_options(LinearReaderOptions::default().with_skip_end_magic(true));
+    // A file cut by a crash has no end magic: read what it has. A chunk's messages come only
+    // once the whole chunk is read and its CRC checks, so a chunk cut short or damaged gives
+    // none (as the session reader: up to the last complete chunk), never unchecked bytes.
+    let mut reader = LinearReader::new_with_options(
+        LinearReaderOptions::default()
+            .with_skip_end_magic(true)
+            .with_prevalidate_chunk_crcs(true),
+    );
     let mut topics: HashMap<u16, String> = HashMap::new();
     let mut bytes_read = 0u64;
     while let Some(event) = reader.next_event() {
