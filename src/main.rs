@@ -201,6 +201,16 @@ enum Command {
         #[arg(long, value_delimiter = ',', default_value = "X1,Y1,Z1")]
         axis_names: Vec<String>,
     },
+    /// Has the machine changed between two of its runs? Per parameter the difference, its
+    /// combined σ, z and significance after the Holm–Bonferroni correction, and tolerance
+    /// exceedance (docs/history.md).
+    Compare(geocal::history::cli::CompareArgs),
+    /// A machine's parameters over a series of its runs, with steps, drifts and values outside
+    /// their tolerance band (docs/history.md).
+    Trend(geocal::history::cli::TrendArgs),
+    /// Every run's results (and with --raw its tracer samples) as Parquet tables partitioned
+    /// by machine and date, for DuckDB, Spark or pandas (docs/fleet.md).
+    Export(geocal::export::ExportArgs),
     /// Validate a configuration and predict the uncertainties its plan allows.
     Check {
         config: PathBuf,
@@ -641,6 +651,11 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
             max_value,
             axis_names,
         })?,
+        Command::Compare(args) => geocal::history::cli::compare(args)?,
+        Command::Trend(args) => {
+            geocal::history::cli::trend(args, geocal::serve::machines::catalog_runs)?
+        }
+        Command::Export(args) => geocal::export::command(&args)?,
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;
             if json {

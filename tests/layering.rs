@@ -17,8 +17,10 @@ const LAYERS: &[&[&str]] = &[
     &["sim", "sequencer", "devices"],
     &["method", "run", "document", "evaluate", "progress"],
     &["kinds"],
-    &["diagnose", "replay", "monitor", "report", "lib", "main"],
-    &["serve"],
+    &[
+        "diagnose", "replay", "monitor", "report", "history", "lib", "main",
+    ],
+    &["serve", "export"],
 ];
 
 /// The plan kinds: a path segment with one of these names belongs to that kind.

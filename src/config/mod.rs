@@ -93,6 +93,10 @@ impl PlanKind {
 pub struct MachineConfig {
     #[serde(default)]
     pub name: String,
+    /// The machine's serial number, where declared: with the name, it tells the machine's
+    /// runs apart in its history (docs/history.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
     /// ISO 230-1 style chain, e.g. `FYXZ` (letters left of F carry the workpiece).
     pub structure: String,
     /// Travel of each axis `x`, `y`, `z`: [low, high], metres.

@@ -20,6 +20,9 @@ use super::auth::{require_token, Token};
 use super::catalog::{JobFile, JobRecord, JobState, JobType};
 use super::guard::{check_host, json_errors, read_body, BodyLimits, HostCheck};
 use super::jobs::{Daemon, JobError, ServerEvent, REPORT_FILE};
+use super::machines::{
+    ComparisonSummary, HistoryEntry, MachineChange, MachineHistory, MachineView,
+};
 use super::prompts::PendingPrompt;
 use super::status::{DeviceStatus, Progress};
 
@@ -378,6 +381,71 @@ async fn events(
     Sse::new(stream).keep_alive(KeepAlive::default())
 }
 
+/// Every machine with a succeeded run (by configured name): its kinds, runs and last run.
+#[utoipa::path(get, path = "/v1/machines", responses((status = 200, body = Vec<MachineView>)))]
+async fn list_machines(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<MachineView>>> {
+    let d = daemon.clone();
+    blocking(move || Ok(super::machines::machines(d.jobs()?)))
+        .await
+        .map(Json)
+}
+
+/// A machine's succeeded runs, oldest first, each with its comparison with the run before
+/// (scheduled runs).
+#[utoipa::path(get, path = "/v1/machines/{name}/history", params(("name" = String, Path)),
+    responses((status = 200, body = MachineHistory), (status = 404, body = ErrorBody)))]
+async fn machine_history(
+    State(daemon): State<Arc<Daemon>>,
+    Path(name): Path<String>,
+) -> ApiResult<Json<MachineHistory>> {
+    let d = daemon.clone();
+    let key = name.clone();
+    blocking(move || Ok(super::machines::history(d.jobs()?, &key)))
+        .await?
+        .map(Json)
+        .ok_or_else(|| {
+            ApiError(
+                StatusCode::NOT_FOUND,
+                format!("no machine \"{name}\" has a succeeded run"),
+            )
+        })
+}
+
+/// A machine's trend over its runs of the kind of its last run (geocal-trend/1): each
+/// parameter over time with its σ and band, and the events found (step, drift, outside
+/// tolerance).
+#[utoipa::path(get, path = "/v1/machines/{name}/trend", params(("name" = String, Path)),
+    responses((status = 200, content_type = "application/json", description = "geocal-trend/1"),
+        (status = 404, body = ErrorBody),
+        (status = 409, body = ErrorBody, description = "fewer than 2 runs of its last kind")))]
+async fn machine_trend(
+    State(daemon): State<Arc<Daemon>>,
+    Path(name): Path<String>,
+) -> ApiResult<Json<serde_json::Value>> {
+    use super::machines::TrendError;
+    let d = daemon.clone();
+    let trend = tokio::task::spawn_blocking(move || {
+        let jobs = d
+            .jobs()
+            .map_err(|e| TrendError::Internal(anyhow::anyhow!("{e}")))?;
+        super::machines::trend(jobs, &name, &d.config.history)
+    })
+    .await
+    .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
+    match trend {
+        Ok(value) => Ok(Json(value)),
+        Err(e @ TrendError::NoMachine(_)) => Err(ApiError(StatusCode::NOT_FOUND, e.to_string())),
+        Err(e @ TrendError::NotEnough(_)) => Err(ApiError(StatusCode::CONFLICT, e.to_string())),
+        Err(TrendError::Internal(e)) => {
+            tracing::error!("internal error: {e:#}");
+            Err(ApiError(
+                StatusCode::INTERNAL_SERVER_ERROR,
+                super::jobs::error_chain(&e),
+            ))
+        }
+    }
+}
+
 #[utoipa::path(get, path = "/v1/health", responses((status = 200, body = Health)))]
 async fn health(State(daemon): State<Arc<Daemon>>) -> Json<Health> {
     Json(Health {
@@ -425,7 +493,10 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         ack_prompt,
         events,
         health,
-        metrics
+        metrics,
+        list_machines,
+        machine_history,
+        machine_trend
     ),
     components(schemas(
         JobView,
@@ -441,7 +512,12 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         DeviceStatus,
         crate::devices::held::HeldStatus,
         PendingPrompt,
-        ServerEvent
+        ServerEvent,
+        MachineView,
+        MachineHistory,
+        HistoryEntry,
+        ComparisonSummary,
+        MachineChange
     ))
 )]
 pub struct ApiDoc;
@@ -617,6 +693,9 @@ pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
         .route("/v1/prompts", get(prompts))
         .route("/v1/prompts/{id}/ack", post(ack_prompt))
         .route("/v1/events", get(events))
+        .route("/v1/machines", get(list_machines))
+        .route("/v1/machines/{name}/history", get(machine_history))
+        .route("/v1/machines/{name}/trend", get(machine_trend))
         .route("/v1/health", get(health))
         .route("/v1/openapi.json", get(openapi))
         .route("/metrics", get(metrics))

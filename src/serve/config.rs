@@ -56,6 +56,9 @@ pub struct ServeConfig {
     /// Whether real devices stay connected between jobs.
     #[serde(default)]
     pub devices: DeviceHolding,
+    /// The machines' history: comparison after scheduled runs, trends, notifications.
+    #[serde(default)]
+    pub history: super::machines::HistoryConfig,
     /// Where relative plan paths of the schedules start (the configuration file's folder).
     #[serde(skip)]
     pub base_dir: PathBuf,
@@ -103,6 +106,7 @@ impl Default for ServeConfig {
             allowed_hosts: Vec::new(),
             schedule: Vec::new(),
             devices: DeviceHolding::default(),
+            history: Default::default(),
             base_dir: PathBuf::from("."),
         }
     }
@@ -179,6 +183,10 @@ impl ServeConfig {
                 path.display()
             );
         }
+        config
+            .history
+            .check()
+            .with_context(|| path.display().to_string())?;
         config.base_dir = path
             .parent()
             .filter(|p| !p.as_os_str().is_empty())

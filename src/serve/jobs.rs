@@ -48,6 +48,11 @@ pub enum ServerEvent {
     },
     /// An operator prompt waits for acknowledgement.
     Prompt { prompt: PendingPrompt },
+    /// A scheduled run, compared with the machine's previous run, changed significantly or
+    /// beyond a tolerance.
+    MachineChange {
+        change: super::machines::MachineChange,
+    },
 }
 
 impl ServerEvent {
@@ -58,6 +63,7 @@ impl ServerEvent {
             ServerEvent::Station { .. } => "station",
             ServerEvent::Fault { .. } => "fault",
             ServerEvent::Prompt { .. } => "prompt",
+            ServerEvent::MachineChange { .. } => "machine_change",
         }
     }
 }
@@ -98,6 +104,8 @@ pub struct Daemon {
     live: Option<Arc<dyn MessageTap>>,
     /// Real devices' connections kept between jobs (`[devices] hold`).
     pub devices: Option<Arc<DeviceHolder>>,
+    /// What the machines' history checks counted (for the metrics).
+    pub machines: super::machines::MachineWatch,
 }
 
 impl Daemon {
@@ -150,6 +158,7 @@ impl Daemon {
             shutdown: CancellationToken::new(),
             live,
             devices,
+            machines: Default::default(),
         }))
     }
 
@@ -483,6 +492,9 @@ impl Daemon {
         };
         if let Err(e) = std::fs::write(job.dir.join(JOB_LOG_FILE), log) {
             tracing::warn!(job = id, "writing {JOB_LOG_FILE}: {e}");
+        }
+        if state == JobState::Succeeded {
+            self.check_machine(&job);
         }
         let progress = self.status.progress();
         let recorded = self.catalog().and_then(|mut c| {

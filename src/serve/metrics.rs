@@ -52,6 +52,7 @@ pub fn render(daemon: &Daemon) -> anyhow::Result<String> {
         "The most messages ever waiting for the session recorder",
         depth_max,
     );
+    super::machines::register_metrics(&mut registry, &daemon.machines);
     let mut text = String::new();
     encode(&mut text, &registry)?;
     Ok(text)

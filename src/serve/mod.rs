@@ -11,6 +11,7 @@ pub mod http;
 pub mod jobs;
 pub mod live;
 pub mod live_guard;
+pub mod machines;
 pub mod metrics;
 pub mod prompts;
 pub mod schedule;
@@ -50,6 +51,7 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         }
     }
     config.request_timeout()?;
+    config.history.check()?;
     if config.max_connections == 0 {
         anyhow::bail!("max_connections = 0: expected at least 1");
     }

@@ -130,6 +130,10 @@ impl PoseSensorDriver {
 pub struct HexapodMachine {
     #[serde(default)]
     pub name: String,
+    /// The machine's serial number, where declared: with the name, it tells the machine's
+    /// runs apart in its history (docs/history.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
     /// Design fixed-platform hinges B_i, fixed frame, metres.
     pub base_hinges_m: Vec<[f64; 3]>,
     /// Design moving-platform hinges P_i, platform frame, metres.

@@ -105,6 +105,10 @@ fn yes() -> bool {
 pub struct CmmConfig {
     #[serde(default)]
     pub name: String,
+    /// The machine's serial number, where declared: with the name, it tells the machine's
+    /// runs apart in its history (docs/history.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
     /// Travel of the linear axes `x`, `y`, `z`: [low, high], metres.
     pub travel_m: BTreeMap<String, [f64; 2]>,
 }

@@ -88,6 +88,10 @@ impl SphereUncertainty {
 pub struct SphereMachineConfig {
     #[serde(default)]
     pub name: String,
+    /// The machine's serial number, where declared: with the name, it tells the machine's
+    /// runs apart in its history (docs/history.md).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]

@@ -1,0 +1,398 @@
+//! A calibration run as the machine's history sees it: its results (geocal-results/1), the
+//! machine it calibrated (configured name and serial), its kind, its plan's fingerprint and
+//! when it started, loaded from a run folder or a results file and what lies beside it.
+
+use std::path::{Path, PathBuf};
+
+use anyhow::Context;
+use sha2::{Digest, Sha256};
+
+/// The results file inside a run folder.
+pub const RESULTS_FILE: &str = "results.json";
+/// Configurations a run folder may hold, the run's own first (`geocal run` stores it at
+/// start; a daemon job keeps the plan it was submitted).
+pub const CONFIG_FILES: &[&str] = &["run-config.toml", "plan.toml"];
+/// The recorded session beside the results.
+pub const SESSION_FILE: &str = "session.mcap";
+
+/// Which machine a run calibrated: the configured `[machine] name`, and its `serial` where
+/// the configuration declares one.
+#[derive(Debug, Clone, Default, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
+pub struct MachineIdentity {
+    pub name: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub serial: Option<String>,
+}
+
+impl MachineIdentity {
+    /// The name people see: `name (serial S)`, or `unknown machine`.
+    pub fn label(&self) -> String {
+        match (&self.name, &self.serial) {
+            (Some(n), Some(s)) => format!("{n} (serial {s})"),
+            (Some(n), None) => n.clone(),
+            (None, Some(s)) => format!("serial {s}"),
+            (None, None) => "unknown machine".into(),
+        }
+    }
+
+    pub fn is_known(&self) -> bool {
+        self.name.is_some() || self.serial.is_some()
+    }
+
+    /// Whether two runs are of one machine: the same name, and the same serial when both
+    /// declare one. Unknown identities match nothing.
+    pub fn same_machine(&self, other: &MachineIdentity) -> bool {
+        if !self.is_known() || !other.is_known() {
+            return false;
+        }
+        let serials_agree = match (&self.serial, &other.serial) {
+            (Some(a), Some(b)) => a == b,
+            _ => true,
+        };
+        self.name == other.name && serials_agree
+    }
+
+    /// Whether this identity names the machine `key` (a name, or a serial).
+    pub fn answers_to(&self, key: &str) -> bool {
+        self.name.as_deref() == Some(key) || self.serial.as_deref() == Some(key)
+    }
+}
+
+/// Where a plan fingerprint came from: fingerprints of different sources are not compared.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum FingerprintSource {
+    /// The `[plan]` table of the run's configuration.
+    Config,
+    /// The `plan` of the session header.
+    Session,
+}
+
+/// A SHA-256 of the plan in canonical JSON (keys sorted), and where the plan came from.
+#[derive(Debug, Clone, PartialEq, Eq, serde::Serialize)]
+pub struct PlanFingerprint {
+    pub source: FingerprintSource,
+    pub sha256: String,
+}
+
+/// One loaded calibration run.
+#[derive(Debug, Clone)]
+pub struct Run {
+    /// How the run is named to people: its folder's name, or the results file.
+    pub label: String,
+    pub results_path: PathBuf,
+    pub results: serde_json::Value,
+    pub kind: String,
+    pub session_id: String,
+    pub machine: MachineIdentity,
+    pub plan: Option<PlanFingerprint>,
+    /// The session header's `started_at`, else the results file's modification time.
+    pub started_at: Option<chrono::DateTime<chrono::Utc>>,
+    /// The session beside the results, when there is one.
+    pub session_path: Option<PathBuf>,
+    /// The configuration beside the results, when there is one.
+    pub config_path: Option<PathBuf>,
+}
+
+impl Run {
+    /// Load a run folder (results.json inside) or a results file, with the configuration and
+    /// session found beside it.
+    pub fn load(path: &Path) -> anyhow::Result<Run> {
+        let results_path = if path.is_dir() {
+            path.join(RESULTS_FILE)
+        } else {
+            path.to_path_buf()
+        };
+        let dir = results_path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."))
+            .to_path_buf();
+        let text = std::fs::read_to_string(&results_path).with_context(|| {
+            format!(
+                "reading {} (expected a run folder with {RESULTS_FILE}, or a results file)",
+                results_path.display()
+            )
+        })?;
+        let results = Self::parse_results(&results_path, &text)?;
+        let config_path = CONFIG_FILES
+            .iter()
+            .map(|name| dir.join(name))
+            .find(|p| p.is_file());
+        let session_path = Some(dir.join(SESSION_FILE)).filter(|p| p.is_file());
+        let header = match &session_path {
+            Some(p) => match read_header(p) {
+                Ok(h) => Some(h),
+                Err(e) => {
+                    tracing::warn!("{}: no session header: {e:#}", p.display());
+                    None
+                }
+            },
+            None => None,
+        };
+        let config = match &config_path {
+            Some(p) => Some(read_config(p)?),
+            None => None,
+        };
+        let from_header = |key: &str| {
+            header
+                .as_ref()
+                .and_then(|h| h.pointer(&format!("/machine/{key}")))
+                .and_then(text_of)
+        };
+        let from_config = |key: &str| {
+            config
+                .as_ref()
+                .and_then(|c| c.get("machine"))
+                .and_then(|m| m.get(key))
+                .and_then(|v| v.as_str())
+                .map(str::trim)
+                .filter(|s| !s.is_empty())
+                .map(str::to_owned)
+        };
+        // The configuration is what the user wrote; the header records it.
+        let machine = MachineIdentity {
+            name: from_config("name").or_else(|| from_header("name")),
+            serial: from_config("serial").or_else(|| from_header("serial")),
+        };
+        let plan = match (&config, &header) {
+            (Some(c), _) if c.get("plan").is_some() => Some(PlanFingerprint {
+                source: FingerprintSource::Config,
+                sha256: fingerprint(&serde_json::to_value(c.get("plan")).unwrap_or_default()),
+            }),
+            (_, Some(h)) if h.get("plan").is_some_and(|p| !p.is_null()) => Some(PlanFingerprint {
+                source: FingerprintSource::Session,
+                sha256: fingerprint(&h["plan"]),
+            }),
+            _ => None,
+        };
+        let started_at = header
+            .as_ref()
+            .and_then(|h| h.get("started_at"))
+            .and_then(|s| s.as_str())
+            .and_then(|s| chrono::DateTime::parse_from_rfc3339(s).ok())
+            .map(|t| t.with_timezone(&chrono::Utc))
+            .or_else(|| {
+                std::fs::metadata(&results_path)
+                    .and_then(|m| m.modified())
+                    .ok()
+                    .map(chrono::DateTime::<chrono::Utc>::from)
+            });
+        let label = if path.is_dir() {
+            path.file_name()
+                .map(|n| n.to_string_lossy().into_owned())
+                .unwrap_or_else(|| path.display().to_string())
+        } else {
+            results_path.display().to_string()
+        };
+        Ok(Run {
+            label,
+            kind: results["kind"].as_str().unwrap_or_default().to_owned(),
+            session_id: results["session_id"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned(),
+            results_path,
+            results,
+            machine,
+            plan,
+            started_at,
+            session_path,
+            config_path,
+        })
+    }
+
+    /// A run from results already in memory (tests, generated histories).
+    pub fn from_results(
+        label: &str,
+        results: serde_json::Value,
+        machine: MachineIdentity,
+        started_at: Option<chrono::DateTime<chrono::Utc>>,
+    ) -> anyhow::Result<Run> {
+        let results = Self::check_results(Path::new(label), results)?;
+        Ok(Run {
+            label: label.to_owned(),
+            results_path: PathBuf::from(label),
+            kind: results["kind"].as_str().unwrap_or_default().to_owned(),
+            session_id: results["session_id"]
+                .as_str()
+                .unwrap_or_default()
+                .to_owned(),
+            results,
+            machine,
+            plan: None,
+            started_at,
+            session_path: None,
+            config_path: None,
+        })
+    }
+
+    fn parse_results(path: &Path, text: &str) -> anyhow::Result<serde_json::Value> {
+        let results: serde_json::Value = serde_json::from_str(text)
+            .with_context(|| format!("{}: not JSON (expected geocal-results/1)", path.display()))?;
+        Self::check_results(path, results)
+    }
+
+    fn check_results(path: &Path, results: serde_json::Value) -> anyhow::Result<serde_json::Value> {
+        let format = results.get("format").and_then(|f| f.as_str());
+        if format != Some("geocal-results/1") {
+            anyhow::bail!(
+                "{}: key `format` is {}, expected \"geocal-results/1\"",
+                path.display(),
+                format.map_or("missing".to_string(), |f| format!("\"{f}\""))
+            );
+        }
+        if !results.get("kind").is_some_and(|k| k.is_string()) {
+            anyhow::bail!("{}: key `kind` missing or not a string", path.display());
+        }
+        Ok(results)
+    }
+
+    /// When the run started, as RFC 3339 (or "unknown").
+    pub fn started_text(&self) -> String {
+        self.started_at
+            .map(|t| t.to_rfc3339_opts(chrono::SecondsFormat::Secs, true))
+            .unwrap_or_else(|| "unknown".into())
+    }
+}
+
+/// Every run folder directly under `dir` (a folder holding results.json), oldest first (by
+/// start time, then name). Folders without results are left out; a results file that cannot
+/// be read is an error naming it.
+pub fn load_series(dir: &Path) -> anyhow::Result<Vec<Run>> {
+    let entries = std::fs::read_dir(dir).with_context(|| {
+        format!(
+            "reading {} (expected a folder of run folders)",
+            dir.display()
+        )
+    })?;
+    let mut runs = Vec::new();
+    for entry in entries {
+        let entry = entry.with_context(|| format!("reading {}", dir.display()))?;
+        let path = entry.path();
+        if path.is_dir() && path.join(RESULTS_FILE).is_file() {
+            runs.push(Run::load(&path)?);
+        }
+    }
+    if runs.is_empty() {
+        anyhow::bail!(
+            "{}: no run folder (a folder with {RESULTS_FILE}) inside",
+            dir.display()
+        );
+    }
+    sort_by_time(&mut runs);
+    Ok(runs)
+}
+
+/// Oldest first: by start time, then label.
+pub fn sort_by_time(runs: &mut [Run]) {
+    runs.sort_by(|a, b| (a.started_at, &a.label).cmp(&(b.started_at, &b.label)));
+}
+
+/// The session header (the first `/geocal/session` message) as JSON, without reading the
+/// rest of the file.
+pub fn read_header(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
+    let stream =
+        mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into())
+            .with_context(|| format!("{}: not an MCAP file", path.display()))?;
+    for message in stream {
+        let message = message.with_context(|| format!("{}: reading messages", path.display()))?;
+        if message.channel.topic == crate::session::messages::TOPIC_SESSION {
+            return serde_json::from_slice(&message.data)
+                .with_context(|| format!("{}: the session header is not JSON", path.display()));
+        }
+    }
+    anyhow::bail!("{}: no /geocal/session message", path.display())
+}
+
+fn read_config(path: &Path) -> anyhow::Result<toml::Table> {
+    let text =
+        std::fs::read_to_string(path).with_context(|| format!("reading {}", path.display()))?;
+    text.parse()
+        .with_context(|| format!("{}: not TOML", path.display()))
+}
+
+fn text_of(value: &serde_json::Value) -> Option<String> {
+    value
+        .as_str()
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(str::to_owned)
+}
+
+/// SHA-256 of the value as JSON with every object's keys sorted.
+pub fn fingerprint(value: &serde_json::Value) -> String {
+    fn canonical(value: &serde_json::Value) -> serde_json::Value {
+        match value {
+            serde_json::Value::Object(fields) => {
+                let mut sorted: Vec<_> = fields.iter().collect();
+                sorted.sort_by(|a, b| a.0.cmp(b.0));
+                serde_json::Value::Object(
+                    sorted
+                        .into_iter()
+                        .map(|(k, v)| (k.clone(), canonical(v)))
+                        .collect(),
+                )
+            }
+            serde_json::Value::Array(items) => {
+                serde_json::Value::Array(items.iter().map(canonical).collect())
+            }
+            other => other.clone(),
+        }
+    }
+    let text = serde_json::to_string(&canonical(value)).unwrap_or_default();
+    format!("{:x}", Sha256::digest(text.as_bytes()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fingerprint_ignores_key_order() {
+        let a = serde_json::json!({"a": 1, "b": {"c": [1, 2], "d": "x"}});
+        let b = serde_json::json!({"b": {"d": "x", "c": [1, 2]}, "a": 1});
+        assert_eq!(fingerprint(&a), fingerprint(&b));
+        assert_ne!(fingerprint(&a), fingerprint(&serde_json::json!({"a": 2})));
+    }
+
+    #[test]
+    fn identity_matches_by_name_and_serial() {
+        let m = |n: &str, s: Option<&str>| MachineIdentity {
+            name: Some(n.into()),
+            serial: s.map(Into::into),
+        };
+        assert!(m("a", None).same_machine(&m("a", Some("1"))));
+        assert!(!m("a", Some("1")).same_machine(&m("a", Some("2"))));
+        assert!(!m("a", None).same_machine(&m("b", None)));
+        assert!(!MachineIdentity::default().same_machine(&MachineIdentity::default()));
+    }
+
+    #[test]
+    fn loads_a_run_folder_with_its_config() {
+        let dir = tempfile::tempdir().expect("tempdir");
+        std::fs::write(
+            dir.path().join(RESULTS_FILE),
+            r#"{"format": "geocal-results/1", "kind": "hexapod", "session_id": "s1"}"#,
+        )
+        .expect("write");
+        std::fs::write(
+            dir.path().join("run-config.toml"),
+            "kind = \"hexapod\"\n[machine]\nname = \"M1\"\nserial = \"SN-7\"\n[plan]\nposes = 3\n",
+        )
+        .expect("write");
+        let run = Run::load(dir.path()).expect("load");
+        assert_eq!(run.kind, "hexapod");
+        assert_eq!(run.machine.label(), "M1 (serial SN-7)");
+        assert_eq!(
+            run.plan.as_ref().map(|p| p.source),
+            Some(FingerprintSource::Config)
+        );
+        assert!(run.started_at.is_some());
+        let bad = dir.path().join("bad.json");
+        std::fs::write(&bad, r#"{"format": "other"}"#).expect("write");
+        let e = format!("{:#}", Run::load(&bad).expect_err("refused"));
+        assert!(e.contains("format") && e.contains("bad.json"), "{e}");
+    }
+}

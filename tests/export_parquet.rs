@@ -1,0 +1,959 @@
+//! `geocal export --format parquet` read by an outside engine: DuckDB (PyPI) reads the export
+//! of three small simulated runs of two machines, and its numbers are checked against the
+//! results files, the ISO 230-2 figures computed from the live results, the diagnosis and the
+//! sessions' raw samples; the DuckDB queries of docs/fleet.md run against it; docs/fleet.md
+//! lists every column of every table; a damaged results file is skipped with a warning.
+
+mod common;
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::process::{Command, Stdio};
+
+use geocal::evaluate::iso230_2::UnitFigures;
+use geocal::evaluate::of_results;
+use geocal::export::schema::{ColumnType, TABLES};
+use geocal::session::reader::read_session;
+use serde_json::{json, Value};
+
+const FLEET_DOC: &str = include_str!("../docs/fleet.md");
+
+/// Two machines: the mill's two runs differ in their simulated machine (another seed: other
+/// squareness), with small positioning errors; the bridge's one run has large ones (it fails
+/// the docs' 6 µm ISO 230-2 E query) and a diagnosis. Names with a space, `/`, parentheses
+/// and a non-ASCII letter check the partition escaping.
+const MILL: &str = "Mill 3/A (simulated) é";
+const BRIDGE: &str = "Bridge CMM 9";
+const BRIDGE_SERIAL: &str = "SN 0042";
+
+/// The demo (5 stations, 5 × 5 × 4 points: enough for the 21 errors, and a serpentine pass
+/// reaches 3 x targets both ways for ISO 230-2), named and sized as asked.
+fn config(machine: &str, seed: u64, positioning_m: f64) -> String {
+    let text = common::DEMO
+        .replace(
+            "name = \"Bridge CMM 14-24-10 (simulated)\"",
+            &format!("name = {machine:?}"),
+        )
+        .replace("seed = 20261121", &format!("seed = {seed}"))
+        .replace(
+            "positioning_m = 5e-6",
+            &format!("positioning_m = {positioning_m:e}"),
+        );
+    assert!(text.contains(&format!("seed = {seed}")) && text.contains(&format!("{machine:?}")));
+    // The bridge declares its serial (the mill does not).
+    if machine == BRIDGE {
+        text.replace(
+            &format!("name = {machine:?}"),
+            &format!("name = {machine:?}\nserial = {BRIDGE_SERIAL:?}"),
+        )
+    } else {
+        text
+    }
+}
+
+struct Run {
+    dir: PathBuf,
+    machine: &'static str,
+    results: Value,
+    iso: geocal::evaluate::deviations::Iso230_2,
+}
+
+fn geocal(args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(args)
+        .output()
+        .expect("run geocal")
+}
+
+/// Run `queries` (name → SQL) after `setup` with DuckDB; name → rows.
+fn duckdb(
+    setup: &[String],
+    queries: &BTreeMap<String, String>,
+) -> BTreeMap<String, Vec<Vec<Value>>> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/duckdb_query.py");
+    let mut child = Command::new("python3")
+        .arg(&script)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3");
+    let request = json!({"setup": setup, "queries": queries});
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().expect("stdin");
+        stdin
+            .write_all(request.to_string().as_bytes())
+            .expect("write request");
+    }
+    let output = child.wait_with_output().expect("python3 output");
+    assert!(
+        output.status.success(),
+        "DuckDB failed (pip install duckdb?):\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let answer: Value = serde_json::from_slice(&output.stdout).expect("DuckDB answer JSON");
+    answer
+        .as_object()
+        .expect("object")
+        .iter()
+        .map(|(name, a)| {
+            let rows = a["rows"]
+                .as_array()
+                .expect("rows")
+                .iter()
+                .map(|r| r.as_array().expect("row").clone())
+                .collect();
+            (name.clone(), rows)
+        })
+        .collect()
+}
+
+fn q(name: &str, sql: String) -> (String, String) {
+    (name.to_owned(), sql)
+}
+
+fn table(dest: &Path, name: &str) -> String {
+    format!(
+        "read_parquet('{}/{name}/**/*.parquet', hive_partitioning = true)",
+        dest.display()
+    )
+}
+
+fn f(v: &Value) -> Option<f64> {
+    v.as_f64()
+}
+
+/// Equal to the last bit, or both null: the export carries the results' numbers unchanged.
+fn same(got: &Value, want: &Value, what: &str) {
+    assert_eq!(f(got), f(want), "{what}: DuckDB {got}, results {want}");
+}
+
+/// The DuckDB blocks of docs/fleet.md (`-- duckdb: <name>` first), `fleet/` pointing at `dest`.
+fn doc_queries(dest: &Path) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    for block in FLEET_DOC.split("```sql\n").skip(1) {
+        let body = block.split("```").next().unwrap_or_default();
+        let Some(name) = body
+            .lines()
+            .next()
+            .and_then(|l| l.strip_prefix("-- duckdb: "))
+        else {
+            continue;
+        };
+        out.insert(
+            name.trim().to_owned(),
+            body.replace("'fleet/", &format!("'{}/", dest.display())),
+        );
+    }
+    out
+}
+
+/// docs/fleet.md lists every column of every table, with its type and nullability as the code
+/// writes them, in order.
+#[test]
+fn fleet_doc_lists_every_column() {
+    let type_name = |t: ColumnType| match t {
+        ColumnType::Int32 => "int32",
+        ColumnType::Int64 => "int64",
+        ColumnType::Float64 => "double",
+        ColumnType::Bool => "boolean",
+        ColumnType::Utf8 => "string",
+        ColumnType::Utf8List => "list<string>",
+        ColumnType::TimestampUs => "timestamp (µs, UTC)",
+    };
+    for def in TABLES {
+        let heading = format!("### `{}`", def.name);
+        let section = FLEET_DOC
+            .split(&heading)
+            .nth(1)
+            .unwrap_or_else(|| panic!("docs/fleet.md has no section {heading}"));
+        let section = section.split("\n### ").next().unwrap_or_default();
+        let documented: Vec<(String, String, String)> = section
+            .lines()
+            .filter(|l| l.starts_with("| `"))
+            .map(|l| {
+                let cells: Vec<&str> = l.split('|').map(str::trim).collect();
+                (
+                    cells[1].trim_matches('`').to_owned(),
+                    cells[2].to_owned(),
+                    cells[3].to_owned(),
+                )
+            })
+            .collect();
+        let code: Vec<(String, String, String)> = def
+            .columns
+            .iter()
+            .map(|c| {
+                (
+                    c.name.to_owned(),
+                    type_name(c.kind).to_owned(),
+                    if c.nullable { "yes" } else { "no" }.to_owned(),
+                )
+            })
+            .collect();
+        assert_eq!(documented, code, "docs/fleet.md, table {}", def.name);
+    }
+}
+
+#[test]
+fn duckdb_reads_the_export_as_the_results_say() {
+    let work = tempfile::tempdir().expect("tempdir");
+    let fleet = work.path().join("runs");
+    let mut runs = Vec::new();
+    for (name, machine, text) in [
+        ("mill-1", MILL, config(MILL, 11, 1e-6)),
+        ("mill-2", MILL, config(MILL, 12, 1e-6)),
+        ("bridge-1", BRIDGE, config(BRIDGE, 13, 3e-5)),
+    ] {
+        let dir = fleet.join(name);
+        let (output, _) = common::run_with_truth(&text, &dir);
+        let session = read_session(&output.session_path).expect("session");
+        let iso = of_results(&output.results, &session).expect("ISO 230-2");
+        let results: Value =
+            serde_json::from_slice(&std::fs::read(&output.results_path).expect("results"))
+                .expect("results JSON");
+        runs.push(Run {
+            dir,
+            machine,
+            results,
+            iso,
+        });
+    }
+    let bridge = &runs[2];
+    let (diagnosis, _) = geocal::diagnose::diagnose_file_detailed(
+        &bridge.dir.join("session.mcap"),
+        &Default::default(),
+    )
+    .expect("diagnosis");
+    std::fs::write(
+        bridge.dir.join("diagnosis.json"),
+        serde_json::to_string_pretty(&diagnosis).expect("diagnosis JSON"),
+    )
+    .expect("write diagnosis");
+
+    let dest = work.path().join("fleet");
+    let out = geocal(&[
+        "export",
+        "--format",
+        "parquet",
+        fleet.to_str().expect("path"),
+        "--out",
+        dest.to_str().expect("path"),
+        "--raw",
+    ]);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("3 runs exported, 0 skipped"), "{stdout}");
+    // Hive partitions, escaped as DuckDB and Spark unescape them.
+    assert!(
+        dest.join("runs/machine=Mill%203%2FA%20%28simulated%29%20%C3%A9")
+            .is_dir(),
+        "{stdout}"
+    );
+
+    let session_of = |r: &Run| r.results["session_id"].as_str().expect("id").to_owned();
+    let mut queries: BTreeMap<String, String> = [
+        q(
+            "runs",
+            format!(
+                "SELECT session_id, machine, kind, schema_version, chi2_per_dof, dof, \
+                 residual_rms_m, raw_samples, iso230_2_note, date = CAST(timezone('UTC', started_at) AS DATE), \
+                 machine_serial, structure FROM {} ORDER BY session_id",
+                table(&dest, "runs")
+            ),
+        ),
+        q(
+            "parameters",
+            format!(
+                "SELECT session_id, name, value, sigma, unit, identifiable, machine FROM {} \
+                 ORDER BY session_id, name",
+                table(&dest, "parameters")
+            ),
+        ),
+        q(
+            "error_functions",
+            format!(
+                "SELECT session_id, axis, error_function, position, value, sigma, unit FROM {} \
+                 ORDER BY session_id, axis, error_function, position",
+                table(&dest, "error_functions")
+            ),
+        ),
+        q(
+            "points",
+            format!(
+                "SELECT session_id, target, point, error_x_m, error_y_m, error_z_m, sigma_x_m, \
+                 sigma_y_m, sigma_z_m, nominal_x_m FROM {} ORDER BY session_id, target, point",
+                table(&dest, "points")
+            ),
+        ),
+        q(
+            "iso",
+            format!(
+                "SELECT session_id, axis, unit, systematic_error, reversal, mean_error, \
+                 systematic_error_up, runs_up, runs_down, targets FROM {} \
+                 ORDER BY session_id, axis",
+                table(&dest, "iso230_2")
+            ),
+        ),
+        q(
+            "diagnoses",
+            format!(
+                "SELECT session_id, verdict, selected, noise_floor_m, gap_rms_m, machine FROM {}",
+                table(&dest, "diagnoses")
+            ),
+        ),
+        q(
+            "raw",
+            format!(
+                "SELECT session_id, tracer, count(*), sum(length_m), min(seq), max(seq), \
+                 min(log_time_ns), bool_and(epoch_us(log_time) = log_time_ns // 1000) FROM {} \
+                 GROUP BY session_id, tracer ORDER BY session_id, tracer",
+                table(&dest, "tracer_samples")
+            ),
+        ),
+        q(
+            "metadata",
+            format!(
+                "SELECT DISTINCT decode(key), decode(value) FROM parquet_kv_metadata('{}/*/*/*/*.parquet') \
+                 WHERE decode(key) LIKE 'geocal.%' ORDER BY 1, 2",
+                dest.display()
+            ),
+        ),
+    ]
+    .into_iter()
+    .collect();
+    let docs = doc_queries(&dest);
+    for name in ["squareness_drift", "iso_e_failed", "verdicts"] {
+        let sql = docs
+            .get(name)
+            .unwrap_or_else(|| panic!("docs/fleet.md has no `-- duckdb: {name}` query"));
+        queries.insert(format!("doc_{name}"), sql.clone());
+    }
+    let setup_block: String = docs
+        .get("setup")
+        .expect("docs/fleet.md has a `-- duckdb: setup` block")
+        .lines()
+        .filter(|l| !l.starts_with("--"))
+        .collect::<Vec<_>>()
+        .join("\n");
+    let setup: Vec<String> = setup_block
+        .split(';')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(str::to_owned)
+        .collect();
+    let answers = duckdb(&setup, &queries);
+
+    // runs: one per run, with the results' fit figures.
+    let runs_rows = &answers["runs"];
+    assert_eq!(runs_rows.len(), 3);
+    for r in &runs {
+        let id = session_of(r);
+        let row = runs_rows
+            .iter()
+            .find(|row| row[0] == json!(id))
+            .unwrap_or_else(|| panic!("run {id} exported"));
+        assert_eq!(row[1], json!(r.machine));
+        assert_eq!(row[2], r.results["kind"]);
+        assert_eq!(row[3], json!(1));
+        same(&row[4], &r.results["chi2_per_dof"], "chi2_per_dof");
+        assert_eq!(row[5], r.results["dof"]);
+        same(&row[6], &r.results["residual_rms_m"], "residual_rms_m");
+        assert!(row[8].is_null(), "ISO 230-2 of {id}: {}", row[8]);
+        assert_eq!(row[9], json!(true), "date partition is the start's date");
+        let serial = (r.machine == BRIDGE).then_some(BRIDGE_SERIAL);
+        assert_eq!(row[10], json!(serial), "the declared serial");
+        assert_eq!(row[11], json!("FYXZ"));
+    }
+
+    // parameters: every station coordinate and squareness with its σ, from results.json.
+    let params = &answers["parameters"];
+    for r in &runs {
+        let id = session_of(r);
+        let find = |name: &str| {
+            params
+                .iter()
+                .find(|p| p[0] == json!(id) && p[1] == json!(name))
+                .unwrap_or_else(|| panic!("parameter {name} of {id}"))
+        };
+        for (name, s) in r.results["geometric_errors"]["squareness"]
+            .as_object()
+            .expect("squareness")
+        {
+            let row = find(&format!("squareness.{name}"));
+            same(&row[2], &s["value_rad"], name);
+            same(&row[3], &s["sigma_rad"], name);
+            assert_eq!(row[4], json!("rad"));
+            assert_eq!(row[5], s["identifiable"]);
+            assert_eq!(row[6], json!(r.machine));
+        }
+        for station in r.results["stations"].as_array().expect("stations") {
+            for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+                let row = find(&format!(
+                    "station.{}.{axis}",
+                    station["id"].as_str().expect("id")
+                ));
+                same(&row[2], &station["position_m"][k], "station");
+                same(&row[3], &station["sigma_m"][k], "station σ");
+            }
+        }
+    }
+
+    // error_functions: every value of every function at every grid position.
+    let functions = &answers["error_functions"];
+    let mut expected_functions = 0;
+    for r in &runs {
+        let id = session_of(r);
+        for (axis, a) in r.results["geometric_errors"]["axes"]
+            .as_object()
+            .expect("axes")
+        {
+            let positions = a["positions_m"].as_array().expect("positions");
+            for (name, e) in a["errors"].as_object().expect("errors") {
+                for (i, position) in positions.iter().enumerate() {
+                    expected_functions += 1;
+                    let row = functions
+                        .iter()
+                        .find(|row| {
+                            row[0] == json!(id)
+                                && row[1] == json!(axis)
+                                && row[2] == json!(name)
+                                && row[3] == *position
+                        })
+                        .unwrap_or_else(|| panic!("{name} of {id} at {position}"));
+                    same(&row[4], &e["values"][i], name);
+                    same(&row[5], &e["sigma"][i], name);
+                    assert_eq!(row[6], e["unit"]);
+                }
+            }
+        }
+    }
+    assert_eq!(functions.len(), expected_functions);
+
+    // points: the volumetric errors and their σ.
+    let points = &answers["points"];
+    let mut expected_points = 0;
+    for r in &runs {
+        let id = session_of(r);
+        for p in r.results["points"].as_array().expect("points") {
+            expected_points += 1;
+            let row = points
+                .iter()
+                .find(|row| row[0] == json!(id) && row[1] == p["target"] && row[2] == p["point"])
+                .expect("point exported");
+            for k in 0..3 {
+                same(&row[3 + k], &p["error_m"][k], "error_m");
+                same(&row[6 + k], &p["sigma_m"][k], "sigma_m");
+            }
+            same(&row[9], &p["nominal_m"][0], "nominal_m");
+        }
+    }
+    assert_eq!(points.len(), expected_points);
+
+    // iso230_2: the figures of the live results (not through the results file).
+    let iso_rows = &answers["iso"];
+    let mut expected_iso = 0;
+    let mut failed_e: Vec<(String, String)> = Vec::new();
+    let mut passed_e = 0;
+    for r in &runs {
+        let id = session_of(r);
+        for a in &r.iso.axes {
+            expected_iso += 1;
+            let row = iso_rows
+                .iter()
+                .find(|row| row[0] == json!(id) && row[1] == json!(a.axis))
+                .unwrap_or_else(|| panic!("ISO 230-2 {} of {id}", a.axis));
+            let UnitFigures::Metres(figures) = &a.evaluation.figures else {
+                panic!("a linear axis");
+            };
+            let bi = figures.bidirectional.as_ref().expect("both directions");
+            assert_eq!(row[2], json!("m"));
+            assert_eq!(f(&row[3]), Some(bi.systematic_error), "E of {}", a.axis);
+            assert_eq!(f(&row[4]), Some(bi.reversal));
+            assert_eq!(f(&row[5]), Some(bi.mean_error));
+            assert_eq!(f(&row[6]), figures.up.as_ref().map(|u| u.systematic_error));
+            assert_eq!(row[7], json!(a.evaluation.runs_up));
+            assert_eq!(row[8], json!(a.evaluation.runs_down));
+            assert_eq!(row[9], json!(a.evaluation.targets));
+            if bi.systematic_error > 6e-6 {
+                failed_e.push((id.clone(), a.axis.clone()));
+            } else {
+                passed_e += 1;
+            }
+        }
+    }
+    assert_eq!(iso_rows.len(), expected_iso);
+    println!("ISO 230-2 E > 6 µm: {failed_e:?}; {passed_e} axes within");
+    assert!(
+        !failed_e.is_empty() && passed_e > 0,
+        "the docs' E query should split these runs: {failed_e:?}, {passed_e} within"
+    );
+
+    // diagnoses: the bridge's verdict.
+    let diagnoses = &answers["diagnoses"];
+    assert_eq!(diagnoses.len(), 1);
+    assert_eq!(diagnoses[0][0], json!(diagnosis.session_id));
+    assert_eq!(
+        diagnoses[0][1],
+        json!(geocal::export::rows::verdict(&diagnosis))
+    );
+    assert_eq!(diagnoses[0][2], json!(diagnosis.selected));
+    assert_eq!(f(&diagnoses[0][3]), Some(diagnosis.noise_floor_m));
+    assert_eq!(f(&diagnoses[0][4]), Some(diagnosis.gap.rms_m));
+    assert_eq!(diagnoses[0][5], json!(BRIDGE));
+
+    // tracer_samples: every raw sample of every session, as the session reader reads them.
+    let raw = &answers["raw"];
+    assert_eq!(raw.len(), 3, "{raw:?}");
+    for r in &runs {
+        let id = session_of(r);
+        let session = read_session(&r.dir.join("session.mcap")).expect("session");
+        for (tracer, samples) in &session.tracers {
+            let row = raw
+                .iter()
+                .find(|row| row[0] == json!(id) && row[1] == json!(tracer))
+                .expect("raw samples exported");
+            assert_eq!(row[2], json!(samples.len()));
+            let sum: f64 = samples.iter().map(|s| s.msg.length_m).sum();
+            let got = f(&row[3]).expect("sum");
+            assert!(
+                (got - sum).abs() <= 1e-9 * sum.abs().max(1.0),
+                "{got} vs {sum}"
+            );
+            assert_eq!(row[4], json!(samples.iter().map(|s| s.msg.seq).min()));
+            assert_eq!(row[5], json!(samples.iter().map(|s| s.msg.seq).max()));
+            assert_eq!(row[6], json!(samples.iter().map(|s| s.log_time_ns).min()));
+            assert_eq!(row[7], json!(true), "log_time is log_time_ns to the µs");
+        }
+    }
+
+    // Every file says its schema version and table.
+    let metadata = &answers["metadata"];
+    assert!(metadata.contains(&vec![json!("geocal.schema_version"), json!("1")]));
+    for name in [
+        "runs",
+        "parameters",
+        "error_functions",
+        "points",
+        "iso230_2",
+        "diagnoses",
+        "tracer_samples",
+    ] {
+        assert!(
+            metadata.contains(&vec![json!("geocal.table"), json!(name)]),
+            "{metadata:?}"
+        );
+    }
+
+    // docs/fleet.md: squareness drift this quarter: the mill's two runs, change = last − first.
+    let drift = &answers["doc_squareness_drift"];
+    println!("squareness drift: {drift:?}");
+    let (first, last) = (&runs[0].results, &runs[1].results);
+    let identifiable: Vec<(&String, &Value)> = last["geometric_errors"]["squareness"]
+        .as_object()
+        .expect("squareness")
+        .iter()
+        .filter(|(_, s)| s["identifiable"] == json!(true))
+        .collect();
+    assert_eq!(drift.len(), identifiable.len(), "{drift:?}");
+    for row in drift {
+        assert_eq!(row[0], json!(MILL), "only the mill has two runs: {row:?}");
+        assert_eq!(row[2], json!(2));
+        let name = row[1]
+            .as_str()
+            .expect("name")
+            .trim_start_matches("squareness.");
+        let want = last["geometric_errors"]["squareness"][name]["value_rad"]
+            .as_f64()
+            .expect("value")
+            - first["geometric_errors"]["squareness"][name]["value_rad"]
+                .as_f64()
+                .expect("value");
+        assert_eq!(f(&row[3]), Some(want), "{name}");
+    }
+    let largest = drift
+        .iter()
+        .map(|row| f(&row[3]).expect("change").abs())
+        .fold(0.0, f64::max);
+    assert_eq!(
+        f(&drift[0][3]).map(f64::abs),
+        Some(largest),
+        "ordered by |change|"
+    );
+
+    // docs/fleet.md: ISO 230-2 E beyond 6 µm: exactly the axes the live figures put there.
+    let mut got: Vec<(String, String)> = answers["doc_iso_e_failed"]
+        .iter()
+        .map(|row| {
+            (
+                row[2].as_str().expect("session").to_owned(),
+                row[3].as_str().expect("axis").to_owned(),
+            )
+        })
+        .collect();
+    got.sort();
+    failed_e.sort();
+    assert_eq!(got, failed_e);
+
+    // docs/fleet.md: verdicts per machine.
+    assert_eq!(
+        answers["doc_verdicts"],
+        vec![vec![
+            json!(BRIDGE),
+            json!(geocal::export::rows::verdict(&diagnosis)),
+            json!(1)
+        ]]
+    );
+
+    // The daemon's catalog: a succeeded run job and a diagnose job of it (the diagnosis in
+    // the diagnose job's folder); a failed run job is left out.
+    let data = work.path().join("daemon");
+    {
+        use geocal::serve::catalog::{Catalog, JobState, JobType, NewJob};
+        let mut catalog = Catalog::open(&data).expect("catalog");
+        let mut add = |job_type, source_job, state| {
+            let id = catalog
+                .add(&NewJob {
+                    job_type,
+                    kind: "multilateration",
+                    submitted_by: "test",
+                    config_sha256: None,
+                    source_job,
+                })
+                .expect("add job");
+            catalog.start(id).expect("start");
+            catalog.finish(id, state, None).expect("finish");
+            id
+        };
+        let run_job = add(JobType::Run, None, JobState::Succeeded);
+        let diagnose_job = add(JobType::Diagnose, Some(run_job), JobState::Succeeded);
+        let failed_job = add(JobType::Run, None, JobState::Failed);
+        let catalog = Catalog::open(&data).expect("catalog");
+        for file in ["results.json", "session.mcap", "run-config.toml"] {
+            std::fs::create_dir_all(catalog.dir_of(run_job)).expect("mkdir");
+            std::fs::copy(bridge.dir.join(file), catalog.dir_of(run_job).join(file)).expect("copy");
+        }
+        std::fs::create_dir_all(catalog.dir_of(diagnose_job)).expect("mkdir");
+        std::fs::copy(
+            bridge.dir.join("diagnosis.json"),
+            catalog.dir_of(diagnose_job).join("diagnosis.json"),
+        )
+        .expect("copy");
+        // The failed job's folder holds results a reader must not take as a run.
+        std::fs::create_dir_all(catalog.dir_of(failed_job)).expect("mkdir");
+        std::fs::copy(
+            runs[0].dir.join("results.json"),
+            catalog.dir_of(failed_job).join("results.json"),
+        )
+        .expect("copy");
+        let catalog_dest = work.path().join("catalog-fleet");
+        let out = geocal(&[
+            "export",
+            "--format",
+            "parquet",
+            "--catalog",
+            data.to_str().expect("path"),
+            "--out",
+            catalog_dest.to_str().expect("path"),
+        ]);
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(
+            out.status.success(),
+            "{stdout}\n{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        assert!(stdout.contains("1 runs exported, 0 skipped"), "{stdout}");
+        let answers = duckdb(
+            &[],
+            &[
+                q(
+                    "runs",
+                    format!(
+                        "SELECT session_id, job_id, machine FROM {}",
+                        table(&catalog_dest, "runs")
+                    ),
+                ),
+                q(
+                    "diagnoses",
+                    format!(
+                        "SELECT session_id, verdict FROM {}",
+                        table(&catalog_dest, "diagnoses")
+                    ),
+                ),
+            ]
+            .into_iter()
+            .collect(),
+        );
+        assert_eq!(
+            answers["runs"],
+            vec![vec![
+                json!(session_of(bridge)),
+                json!(run_job),
+                json!(BRIDGE)
+            ]]
+        );
+        assert_eq!(
+            answers["diagnoses"],
+            vec![vec![
+                json!(session_of(bridge)),
+                json!(geocal::export::rows::verdict(&diagnosis))
+            ]]
+        );
+    }
+
+    // Bad input. A damaged results file: that run is skipped with a warning naming the file
+    // (--strict: an error naming it). A run without its session: exported without ISO 230-2
+    // figures or raw samples, the machine from its configuration. A session cut short (a
+    // crash): its raw samples up to the cut, every one the session reader reads, and a warning.
+    let bad = work.path().join("bad");
+    for (name, run, files) in [
+        ("good", &runs[0], &["results.json", "session.mcap"][..]),
+        ("damaged", &runs[1], &["results.json", "session.mcap"][..]),
+        (
+            "results-only",
+            &runs[1],
+            &["results.json", "run-config.toml"][..],
+        ),
+        (
+            "truncated",
+            &runs[2],
+            &["results.json", "session.mcap", "run-config.toml"][..],
+        ),
+    ] {
+        let dir = bad.join(name);
+        std::fs::create_dir_all(&dir).expect("mkdir");
+        for file in files {
+            std::fs::copy(run.dir.join(file), dir.join(file)).expect("copy");
+        }
+    }
+    let damaged = bad.join("damaged/results.json");
+    let text = std::fs::read(&damaged).expect("read");
+    std::fs::write(&damaged, &text[..text.len() / 2]).expect("truncate");
+    let cut = bad.join("truncated/session.mcap");
+    let bytes = std::fs::read(&cut).expect("read");
+    std::fs::write(&cut, &bytes[..bytes.len() * 2 / 3]).expect("cut");
+    let cut_session = read_session(&cut).expect("a cut session reads up to its last chunk");
+    let cut_samples: usize = cut_session.tracers.values().map(Vec::len).sum();
+    let bad_dest = work.path().join("bad-fleet");
+    let args = [
+        "export",
+        "--format",
+        "parquet",
+        bad.to_str().expect("path"),
+        "--out",
+        bad_dest.to_str().expect("path"),
+        "--raw",
+    ];
+    let out = geocal(&args);
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{stdout}\n{stderr}");
+    assert!(stdout.contains("3 runs exported, 1 skipped"), "{stdout}");
+    assert!(
+        stderr.contains(&format!("warning: skipped {}", damaged.display()))
+            && stderr.contains("not JSON"),
+        "{stderr}"
+    );
+    assert!(
+        stderr.contains(&format!(
+            "warning: {}: raw samples exported up to byte",
+            cut.display()
+        )),
+        "{stderr}"
+    );
+    let answers = duckdb(
+        &[],
+        &[
+            q(
+                "runs",
+                format!(
+                    "SELECT machine, session_id, iso230_2_note, structure, raw_samples FROM {} \
+                     ORDER BY session_id",
+                    table(&bad_dest, "runs")
+                ),
+            ),
+            q(
+                "raw",
+                format!(
+                    "SELECT session_id, count(*) FROM {} GROUP BY session_id",
+                    table(&bad_dest, "tracer_samples")
+                ),
+            ),
+        ]
+        .into_iter()
+        .collect(),
+    );
+    let alone_row = answers["runs"]
+        .iter()
+        .find(|row| row[1] == json!(session_of(&runs[1])))
+        .expect("the run without a session is exported");
+    assert_eq!(alone_row[0], json!(MILL));
+    assert!(
+        alone_row[2]
+            .as_str()
+            .is_some_and(|n| n.contains("no session"))
+            && alone_row[3].is_null()
+            && alone_row[4].is_null(),
+        "{alone_row:?}"
+    );
+    assert!(cut_samples > 0, "the cut session keeps some samples");
+    assert!(
+        answers["raw"].contains(&vec![json!(session_of(&runs[2])), json!(cut_samples)]),
+        "{:?}, {cut_samples} in the cut session",
+        answers["raw"]
+    );
+    let mut strict = args.to_vec();
+    strict.push("--strict");
+    let out = geocal(&strict);
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success());
+    assert!(
+        stderr.contains(&damaged.display().to_string()) && stderr.contains("not JSON"),
+        "{stderr}"
+    );
+}
+
+/// Every other plan kind's example run exported: its parameters and error functions as its
+/// results file holds them (found by the results' shape, docs/fleet.md).
+#[test]
+fn every_kind_exports_what_its_results_hold() {
+    let work = tempfile::tempdir().expect("tempdir");
+    let runs = work.path().join("runs");
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    let mut results = BTreeMap::new();
+    for kind in ["rotary-sphere", "probe-install", "hexapod", "rotary-tracer"] {
+        let dir = runs.join(kind);
+        let config = configs.join(format!("{kind}.toml"));
+        let out = geocal(&[
+            "run",
+            config.to_str().expect("path"),
+            "--out",
+            dir.to_str().expect("path"),
+        ]);
+        assert!(
+            out.status.success(),
+            "{}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        let json: Value =
+            serde_json::from_slice(&std::fs::read(dir.join("results.json")).expect("results"))
+                .expect("results JSON");
+        results.insert(kind, json);
+    }
+    let dest = work.path().join("fleet");
+    let out = geocal(&[
+        "export",
+        "--format",
+        "parquet",
+        runs.to_str().expect("path"),
+        "--out",
+        dest.to_str().expect("path"),
+    ]);
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let answers = duckdb(
+        &[],
+        &[
+            q(
+                "parameters",
+                format!(
+                    "SELECT session_id, name, value, sigma, unit FROM {}",
+                    table(&dest, "parameters")
+                ),
+            ),
+            q(
+                "error_functions",
+                format!(
+                    "SELECT session_id, axis, error_function, position, value, sigma, unit FROM {}",
+                    table(&dest, "error_functions")
+                ),
+            ),
+        ]
+        .into_iter()
+        .collect(),
+    );
+    let parameter = |r: &Value, name: &str| -> Vec<Value> {
+        answers["parameters"]
+            .iter()
+            .find(|row| row[0] == r["session_id"] && row[1] == json!(name))
+            .unwrap_or_else(|| panic!("parameter {name} of {}", r["kind"]))
+            .clone()
+    };
+    let function = |r: &Value, axis: &Value, name: &str, position: &Value| -> Vec<Value> {
+        answers["error_functions"]
+            .iter()
+            .find(|row| {
+                row[0] == r["session_id"]
+                    && row[1] == *axis
+                    && row[2] == json!(name)
+                    && row[3] == *position
+            })
+            .unwrap_or_else(|| panic!("{name} at {position} of {}", r["kind"]))
+            .clone()
+    };
+
+    let probe = &results["probe-install"];
+    for p in probe["parameters"].as_array().expect("parameters") {
+        let row = parameter(
+            probe,
+            &format!("parameter.{}", p["name"].as_str().expect("name")),
+        );
+        same(&row[2], &p["value"], "probe parameter");
+        same(&row[3], &p["sigma"], "probe parameter σ");
+    }
+
+    let sphere = &results["rotary-sphere"];
+    for l in sphere["location"].as_array().expect("location") {
+        let name = l["name"].as_str().expect("name");
+        let row = parameter(sphere, &format!("location.{name}"));
+        same(&row[2], &l["value"], name);
+        same(&row[3], &l["sigma"], name);
+        let unit = if name.starts_with("EA") || name.starts_with("EB") {
+            "rad"
+        } else {
+            "m"
+        };
+        assert_eq!(row[4], json!(unit), "{name}");
+    }
+    let names = sphere["motion_names"].as_array().expect("motion names");
+    for m in sphere["motion"].as_array().expect("motion") {
+        for (k, name) in names.iter().enumerate() {
+            let row = function(
+                sphere,
+                &sphere["table"],
+                name.as_str().expect("name"),
+                &m["commanded_rad"],
+            );
+            same(&row[4], &m["errors"][k], "motion error");
+            same(&row[5], &m["sigma"][k], "motion error σ");
+        }
+    }
+
+    let hexapod = &results["hexapod"];
+    for h in hexapod["hinges"].as_array().expect("hinges") {
+        for (k, axis) in ["x", "y", "z"].iter().enumerate() {
+            let row = parameter(hexapod, &format!("hinge.{}.base.{axis}", h["leg"]));
+            same(&row[2], &h["base_m"][k], "base hinge");
+            same(&row[3], &h["base_sigma_m"][k], "base hinge σ");
+            let row = parameter(hexapod, &format!("hinge.{}.platform.{axis}", h["leg"]));
+            same(&row[2], &h["platform_m"][k], "platform hinge");
+        }
+    }
+
+    let tracer = &results["rotary-tracer"];
+    let rotary = &tracer["rotary"];
+    let table_id = rotary["table"].as_str().expect("table");
+    let row = parameter(tracer, &format!("rotary_axis.{table_id}.radius_m"));
+    same(&row[2], &rotary["radius_m"], "radius");
+    same(&row[3], &rotary["radius_sigma_m"], "radius σ");
+    for s in rotary["steps"].as_array().expect("steps") {
+        let row = function(tracer, &rotary["table"], "step_error", &s["commanded_rad"]);
+        same(&row[4], &s["error_rad"], "step error");
+        same(&row[5], &s["sigma_rad"], "step error σ");
+    }
+}
