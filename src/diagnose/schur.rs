@@ -459,11 +459,35 @@ impl Schur {
 
     /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
     pub fn solve(&self, y: &DVector<f64>) -> DVector<f64> {
-        self.normal_solve(&self.xt(y))
+        let mut x = self.normal_solve(&self.xt(y));
+        // One step of iterative refinement: the normal equations square the condition number.
+        let r = y - self.times(&x);
+        x += self.normal_solve(&self.xt(&r));
+        x
+    }
+
+    /// X x over the fit's rows (whitened, by position).
+    fn times(&self, x: &DVector<f64>) -> DVector<f64> {
+        let d = &self.design;
+        let offset = 3 * d.n_points;
+        let mut entries = Vec::new();
+        DVector::from_fn(self.rows.len(), |pos, _| {
+            let i = self.rows[pos];
+            let p = d.rows[i].point;
+            let xp = Vector3::new(x[3 * p], x[3 * p + 1], x[3 * p + 2]);
+            d.global_entries(i, &mut entries);
+            d.a(i).dot(&xp) + entries.iter().map(|&(c, v)| v * x[offset + c]).sum::<f64>()
+        })
     }
 
     /// y minus its projection on the design's column space (over the fit's rows).
     pub fn project_off_vec(&self, y: &DVector<f64>) -> DVector<f64> {
+        // Twice: the second pass removes what rounding in the first left in the column space.
+        let once = self.project_off_once(y);
+        self.project_off_once(&once)
+    }
+
+    fn project_off_once(&self, y: &DVector<f64>) -> DVector<f64> {
         let d = &self.design;
         // Off the points' columns, point by point.
         let mut tilde = y.clone();
