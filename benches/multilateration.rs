@@ -127,42 +127,6 @@ fn start_distances(p: &MultilaterationProblem) -> Vec<f64> {
     num.iter().zip(&den).map(|(a, b)| a / b).collect()
 }
 
-/// Six coordinates of three well-spread points to hold for SciPy (its problem has the 6-dof
-/// gauge freedom too). The choice moves no cost: chi2 is gauge invariant.
-fn gauge_coordinates(points: &[Vector3<f64>]) -> [(usize, usize); 6] {
-    let centroid = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
-    let farthest = |from: Vector3<f64>| {
-        (0..points.len())
-            .max_by(|&a, &b| {
-                (points[a] - from)
-                    .norm_squared()
-                    .total_cmp(&(points[b] - from).norm_squared())
-            })
-            .unwrap_or(0)
-    };
-    let a = farthest(centroid);
-    let b = farthest(points[a]);
-    let ab = points[b] - points[a];
-    let c = (0..points.len())
-        .max_by(|&x, &y| {
-            ab.cross(&(points[x] - points[a]))
-                .norm()
-                .total_cmp(&ab.cross(&(points[y] - points[a])).norm())
-        })
-        .unwrap_or(0);
-    let b_axis = ab.iamax();
-    let b_free: Vec<usize> = (0..3).filter(|&k| k != b_axis).collect();
-    let c_axis = ab.cross(&(points[c] - points[a])).iamax();
-    [
-        (a, 0),
-        (a, 1),
-        (a, 2),
-        (b, b_free[0]),
-        (b, b_free[1]),
-        (c, c_axis),
-    ]
-}
-
 fn write_problem_json(p: &MultilaterationProblem, path: &Path) -> std::io::Result<()> {
     let flat = |v: &[Vector3<f64>]| v.iter().flat_map(|p| [p.x, p.y, p.z]).collect::<Vec<_>>();
     let stations: Vec<Vector3<f64>> = p.station_hints.iter().map(|h| h.expect("hint")).collect();
@@ -176,7 +140,7 @@ fn write_problem_json(p: &MultilaterationProblem, path: &Path) -> std::io::Resul
         "obs_segment": p.observations.iter().map(|o| o.segment).collect::<Vec<_>>(),
         "obs_length_m": p.observations.iter().map(|o| o.length_m).collect::<Vec<_>>(),
         "obs_sigma_m": p.observations.iter().map(|o| o.sigma_m).collect::<Vec<_>>(),
-        "fixed": gauge_coordinates(&p.nominal_points).iter().map(|&(i, a)| [i, a]).collect::<Vec<_>>(),
+        "fixed": common::gauge_coordinates(&p.nominal_points).iter().map(|&(i, a)| [i, a]).collect::<Vec<_>>(),
     });
     std::fs::write(path, serde_json::to_vec(&json)?)
 }

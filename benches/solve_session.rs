@@ -1,10 +1,17 @@
 //! Whole-pipeline benchmark: a recorded 10 000-point x 16-station session (~1.7 M raw tracer
-//! samples) solved as `geocal solve` does it, timed phase by phase with the heap peak of each.
+//! samples) solved as `geocal solve` does it, timed phase by phase with the heap peak of each;
+//! then `geocal solve` end to end (wall time, peak RSS) on 1k, 10k and 100k points x 16
+//! stations and on a 10x denser recording of the 10k plan, side by side with the Ceres Solver
+//! peer (bench/ceres_multilateration.cc, optional) on the same extracted problem.
+//!
+//! `cargo bench --bench solve_session [-- NAME...]`: only the cases whose name contains one of
+//! the NAMEs (`phases`, `1k`, `10k`, `10k-dense`, `100k`).
 
 mod common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::process::Command;
 use std::time::{Duration, Instant};
 
 use geocal::extract::{extract_points, ExtractOptions, NoiseModel};
@@ -13,7 +20,9 @@ use geocal::session::messages::{
 };
 use geocal::session::reader::{read_session, read_session_bytes, Session};
 use geocal::session::recorder::{Recorder, RecorderOptions};
-use geocal::solve::multilateration::{solve, SolveOptions};
+use geocal::solve::multilateration::{
+    best_fit_rigid, initial_stations, solve, MultilaterationProblem, SolveOptions,
+};
 use nalgebra::Vector3;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -21,6 +30,7 @@ use rand_distr::StandardNormal;
 
 use common::{fmt_time, measure, median, mib};
 
+/// The phase table's session: 10 000 points.
 const GRID: [usize; 3] = [20, 25, 20];
 const STATIONS: usize = 16;
 const TRACER: &str = "tracer0";
@@ -39,27 +49,33 @@ const TOLERANCE_M: f64 = 2e-6;
 /// Bump when the generator changes, so a stale cached file is not reused.
 const DATA_VERSION: u32 = 2;
 
-fn data_path() -> PathBuf {
+/// `rate`: the tracer's rate over the base 20 Hz (the same plan, `rate` times the samples).
+fn data_path(grid: [usize; 3], rate: usize) -> PathBuf {
+    let dense = if rate == 1 {
+        String::new()
+    } else {
+        format!("-r{rate}")
+    };
     Path::new(env!("CARGO_MANIFEST_DIR")).join(format!(
-        "target/bench-data/session-{}x{STATIONS}-v{DATA_VERSION}.mcap",
-        GRID.iter().product::<usize>()
+        "target/bench-data/session-{}x{STATIONS}{dense}-v{DATA_VERSION}.mcap",
+        grid.iter().product::<usize>()
     ))
 }
 
 /// Grid points in serpentine visiting order (x fastest, rows and layers alternating), so every
 /// move is one grid step; the index in this order is the plan point index, 0 = homing point.
-fn plan_points() -> Vec<[f64; 3]> {
+fn plan_points(grid: [usize; 3]) -> Vec<[f64; 3]> {
     let size = [1.4, 2.4, 1.0];
-    let coord = |k: usize, i: usize| size[k] * i as f64 / (GRID[k] - 1) as f64;
-    let mut points = Vec::with_capacity(GRID.iter().product());
-    for iz in 0..GRID[2] {
-        for row in 0..GRID[1] {
-            let iy = if iz % 2 == 0 { row } else { GRID[1] - 1 - row };
-            for col in 0..GRID[0] {
-                let ix = if (iz * GRID[1] + row) % 2 == 0 {
+    let coord = |k: usize, i: usize| size[k] * i as f64 / (grid[k] - 1) as f64;
+    let mut points = Vec::with_capacity(grid.iter().product());
+    for iz in 0..grid[2] {
+        for row in 0..grid[1] {
+            let iy = if iz % 2 == 0 { row } else { grid[1] - 1 - row };
+            for col in 0..grid[0] {
+                let ix = if (iz * grid[1] + row) % 2 == 0 {
                     col
                 } else {
-                    GRID[0] - 1 - col
+                    grid[0] - 1 - col
                 };
                 points.push([coord(0, ix), coord(1, iy), coord(2, iz)]);
             }
@@ -81,7 +97,8 @@ fn true_stations() -> Vec<Vector3<f64>> {
         .collect()
 }
 
-fn header() -> SessionHeader {
+fn header(grid: [usize; 3], rate: usize) -> SessionHeader {
+    let dt_s = DT_S / rate as f64;
     SessionHeader {
         format: SESSION_FORMAT.into(),
         session_id: format!("bench-multilateration-{DATA_VERSION}"),
@@ -110,28 +127,40 @@ fn header() -> SessionHeader {
             dead_path_m: Some(0.0),
             wavelength_m: Some(6.33e-7),
             compensated: Some(true),
-            extra: BTreeMap::from([("sample_rate_hz".into(), (1.0 / DT_S).into())]),
+            extra: BTreeMap::from([("sample_rate_hz".into(), (1.0 / dt_s).into())]),
         }],
         plan: serde_json::json!({
             "target": "t0",
             "passes": ["forward"],
             "dwell_s": DWELL_SAMPLES as f64 * DT_S,
             "stillstand": {"window_s": WINDOW_S, "tolerance_m": TOLERANCE_M},
-            "grid": {"count": GRID, "order": "serpentine"},
+            "grid": {"count": grid, "order": "serpentine"},
         }),
     }
 }
 
-/// Writes the session as the sequencer would record it: per station a `station_begin`, then
-/// per point the motion samples, `point_begin`, the dwell samples, `point_end`.
-fn generate(path: &Path) {
-    let t0 = Instant::now();
-    let mut rng = ChaCha8Rng::seed_from_u64(20260101);
-    let nominal = plan_points();
-    let truth: Vec<Vector3<f64>> = nominal
+/// The true points: the plan's plus uniform deviations, the first draws of the generator's
+/// random stream (so the truth is known again without the session).
+fn truth_points(grid: [usize; 3], rng: &mut ChaCha8Rng) -> Vec<Vector3<f64>> {
+    plan_points(grid)
         .iter()
         .map(|p| Vector3::from(*p) + Vector3::from_fn(|_, _| rng.random_range(-4e-6..4e-6)))
-        .collect();
+        .collect()
+}
+
+fn generator_rng() -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(20260101)
+}
+
+/// Writes the session as the sequencer would record it: per station a `station_begin`, then
+/// per point the motion samples, `point_begin`, the dwell samples, `point_end`.
+fn generate(path: &Path, grid: [usize; 3], rate: usize) {
+    let t0 = Instant::now();
+    let mut rng = generator_rng();
+    let nominal = plan_points(grid);
+    let truth = truth_points(grid, &mut rng);
+    let dt_s = DT_S / rate as f64;
+    let dwell_samples = DWELL_SAMPLES * rate;
     let stations = true_stations();
     std::fs::create_dir_all(path.parent().expect("parent")).expect("bench-data dir");
     // Written under another name first: an interrupted run never leaves a cached half file.
@@ -142,7 +171,7 @@ fn generate(path: &Path) {
     let epoch_ns: u64 = 1_767_225_600_000_000_000;
     // Host reception lags the device clock by a couple of milliseconds.
     let log_ns = |t_s: f64| epoch_ns + (t_s * 1e9).round() as u64 + 2_000_000;
-    h.session(&header(), epoch_ns);
+    h.session(&header(grid, rate), epoch_ns);
     let mut seq = 0u64;
     let mut t_s = 0.0;
     let mut samples = 0u64;
@@ -187,9 +216,9 @@ fn generate(path: &Path) {
         for (i, nom) in nominal.iter().enumerate() {
             if i > 0 {
                 let from = truth[i - 1];
-                let steps = ((truth[i] - from).norm() / FEED_M_S / DT_S).ceil().max(1.0) as usize;
+                let steps = ((truth[i] - from).norm() / FEED_M_S / dt_s).ceil().max(1.0) as usize;
                 for k in 0..steps {
-                    t_s += DT_S;
+                    t_s += dt_s;
                     let x = from + (truth[i] - from) * (k as f64 / steps as f64);
                     sample(t_s, length(&x), (station - x).norm(), &mut rng);
                 }
@@ -200,7 +229,7 @@ fn generate(path: &Path) {
                     }
                 }
             }
-            t_s += DT_S;
+            t_s += dt_s;
             h.event(
                 &RunEvent::PointBegin {
                     station: id.clone(),
@@ -215,9 +244,9 @@ fn generate(path: &Path) {
             );
             let at = length(&truth[i]);
             let beam = (station - truth[i]).norm();
-            for k in 0..DWELL_SAMPLES {
+            for k in 0..dwell_samples {
                 if k > 0 {
-                    t_s += DT_S;
+                    t_s += dt_s;
                 }
                 sample(t_s, at, beam, &mut rng);
             }
@@ -283,12 +312,34 @@ impl Phase {
     }
 }
 
-fn main() {
-    let path = data_path();
+/// The cached session of this plan and rate, generated on first use.
+fn session_file(grid: [usize; 3], rate: usize) -> PathBuf {
+    let path = data_path(grid, rate);
     if !path.exists() {
         println!("no cached session at {}: generating it", path.display());
-        generate(&path);
+        generate(&path, grid, rate);
     }
+    path
+}
+
+fn main() {
+    let filters: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with('-'))
+        .collect();
+    let wanted = |name: &str| filters.is_empty() || filters.iter().any(|f| name.contains(f));
+    if wanted("phases") {
+        phases();
+    }
+    let cases: Vec<Case> = CASES.iter().copied().filter(|c| wanted(c.name)).collect();
+    if !cases.is_empty() {
+        compare_with_ceres(&cases);
+    }
+}
+
+/// The 10k session's phases, each timed with its heap peak.
+fn phases() {
+    let path = session_file(GRID, 1);
     let file_bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
     let repeats = 3;
     let mut file_read = Phase::new("file read (std::fs::read)");
@@ -384,4 +435,309 @@ fn main() {
          the extracted problem alone)",
         fmt_time(sum)
     );
+}
+
+#[derive(Clone, Copy)]
+struct Case {
+    name: &'static str,
+    grid: [usize; 3],
+    rate: usize,
+}
+
+const CASES: [Case; 4] = [
+    Case {
+        name: "1k",
+        grid: [10, 10, 10],
+        rate: 1,
+    },
+    Case {
+        name: "10k",
+        grid: GRID,
+        rate: 1,
+    },
+    Case {
+        name: "10k-dense",
+        grid: GRID,
+        rate: 10,
+    },
+    Case {
+        name: "100k",
+        grid: [50, 50, 40],
+        rate: 1,
+    },
+];
+
+/// One end-to-end `geocal solve` as a user runs it: wall time and peak resident memory (from
+/// `/usr/bin/time`, the child's maximum RSS).
+struct EndToEnd {
+    wall: Duration,
+    cpu: Duration,
+    peak_rss_kib: u64,
+}
+
+fn run_geocal_solve(session: &Path, out: &Path) -> Result<EndToEnd, String> {
+    let time_file = out.with_extension("time");
+    let status = Command::new("/usr/bin/time")
+        .arg("-f")
+        .arg("%e %U %S %M")
+        .arg("-o")
+        .arg(&time_file)
+        .arg(env!("CARGO_BIN_EXE_geocal"))
+        .arg("solve")
+        .arg(session)
+        .arg("--out")
+        .arg(out)
+        .stdout(std::process::Stdio::null())
+        .status()
+        .map_err(|e| format!("cannot run /usr/bin/time: {e}"))?;
+    if !status.success() {
+        return Err(format!(
+            "geocal solve {} failed: {status}",
+            session.display()
+        ));
+    }
+    let text = std::fs::read_to_string(&time_file).map_err(|e| e.to_string())?;
+    let fields: Vec<f64> = text
+        .lines()
+        .last()
+        .unwrap_or_default()
+        .split_whitespace()
+        .filter_map(|f| f.parse().ok())
+        .collect();
+    let [wall, user, system, rss] = fields[..] else {
+        return Err(format!("unexpected /usr/bin/time output: {text}"));
+    };
+    Ok(EndToEnd {
+        wall: Duration::from_secs_f64(wall),
+        cpu: Duration::from_secs_f64(user + system),
+        peak_rss_kib: rss as u64,
+    })
+}
+
+/// The Ceres peer, built by bench/build_ceres_peer.sh; Err says why it is skipped.
+fn ceres_peer() -> Result<PathBuf, String> {
+    let root = Path::new(env!("CARGO_MANIFEST_DIR"));
+    let exe = root.join("target/bench-data/ceres_multilateration");
+    let output = Command::new("sh")
+        .arg(root.join("bench/build_ceres_peer.sh"))
+        .arg(&exe)
+        .output()
+        .map_err(|e| format!("cannot run bench/build_ceres_peer.sh: {e}"))?;
+    if !output.status.success() {
+        return Err(String::from_utf8_lossy(&output.stderr).trim().to_string());
+    }
+    Ok(exe)
+}
+
+struct CeresRun {
+    solve_time: Duration,
+    iterations: u64,
+    chi2: f64,
+    chi2_start: f64,
+    points: Vec<Vector3<f64>>,
+}
+
+/// Writes the extracted problem as the peer reads it: the same start as geocal's (points at
+/// nominal, stations at their hints, homing distances fitted), the σ geocal weighed each
+/// length with at its solution (fixed for Ceres), six point coordinates held as the gauge.
+fn write_peer_problem(
+    problem: &MultilaterationProblem,
+    sigmas_m: &[f64],
+    path: &Path,
+) -> std::io::Result<()> {
+    use std::fmt::Write as _;
+    let stations = initial_stations(problem).expect("start stations");
+    let mut num = vec![0.0; problem.segments.len()];
+    let mut den = vec![0.0; problem.segments.len()];
+    for (o, sigma) in problem.observations.iter().zip(sigmas_m) {
+        let j = problem.segments[o.segment].station;
+        let w = 1.0 / (sigma * sigma);
+        num[o.segment] += w * ((stations[j] - problem.nominal_points[o.point]).norm() - o.length_m);
+        den[o.segment] += w;
+    }
+    let mut text = String::new();
+    let p = problem;
+    let _ = writeln!(
+        text,
+        "{} {} {} {}",
+        p.nominal_points.len(),
+        stations.len(),
+        p.segments.len(),
+        p.observations.len()
+    );
+    for x in &p.nominal_points {
+        let _ = writeln!(text, "{:e} {:e} {:e}", x.x, x.y, x.z);
+    }
+    for x in &stations {
+        let _ = writeln!(text, "{:e} {:e} {:e}", x.x, x.y, x.z);
+    }
+    for (s, seg) in p.segments.iter().enumerate() {
+        let _ = writeln!(text, "{:e} {}", num[s] / den[s], seg.station);
+    }
+    for (o, sigma) in p.observations.iter().zip(sigmas_m) {
+        let _ = writeln!(
+            text,
+            "{} {} {:e} {:e}",
+            o.point, o.segment, o.length_m, sigma
+        );
+    }
+    for (i, a) in common::gauge_coordinates(&p.nominal_points) {
+        let _ = writeln!(text, "{i} {a}");
+    }
+    std::fs::write(path, text)
+}
+
+fn run_ceres(exe: &Path, problem_file: &Path) -> Result<CeresRun, String> {
+    let points_file = problem_file.with_extension("points");
+    let output = Command::new(exe)
+        .arg(problem_file)
+        .arg(&points_file)
+        .arg("2")
+        .output()
+        .map_err(|e| format!("cannot run {}: {e}", exe.display()))?;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let line = stdout.lines().last().unwrap_or_default();
+    let v: serde_json::Value = serde_json::from_str(line).map_err(|e| {
+        format!(
+            "Ceres peer printed {line:?} ({e}); stderr {}",
+            String::from_utf8_lossy(&output.stderr)
+        )
+    })?;
+    let points = std::fs::read_to_string(&points_file)
+        .map_err(|e| e.to_string())?
+        .lines()
+        .map(|l| {
+            let c: Vec<f64> = l
+                .split_whitespace()
+                .filter_map(|f| f.parse().ok())
+                .collect();
+            Vector3::new(c[0], c[1], c[2])
+        })
+        .collect();
+    Ok(CeresRun {
+        solve_time: Duration::from_secs_f64(v["time_s"].as_f64().unwrap_or(f64::NAN)),
+        iterations: v["iterations"].as_u64().unwrap_or(0),
+        chi2: v["chi2"].as_f64().unwrap_or(f64::NAN),
+        chi2_start: v["chi2_start"].as_f64().unwrap_or(f64::NAN),
+        points,
+    })
+}
+
+/// RMS distance of the points from the truth after the best rigid fit onto it.
+fn rms_error(points: &[Vector3<f64>], truth: &[Vector3<f64>]) -> f64 {
+    let Some((r, t)) = best_fit_rigid(points, truth) else {
+        return f64::NAN;
+    };
+    let sum: f64 = points
+        .iter()
+        .zip(truth)
+        .map(|(p, q)| (r * p + t - q).norm_squared())
+        .sum();
+    (sum / points.len() as f64).sqrt()
+}
+
+fn compare_with_ceres(cases: &[Case]) {
+    let peer = ceres_peer();
+    if let Err(why) = &peer {
+        println!("Ceres comparison skipped: {why}");
+    }
+    let repeats = 3;
+    let mut rows = Vec::new();
+    for case in cases {
+        let path = session_file(case.grid, case.rate);
+        let file_mb = std::fs::metadata(&path).map_or(0.0, |m| m.len() as f64 / 1e6);
+        // The extracted problem, as `geocal solve` builds it.
+        let session = read_session(&path).expect("read_session");
+        let tracer = session.tracers.keys().next().expect("tracer").clone();
+        let samples = session.tracers[&tracer].len();
+        let noise = NoiseModel::from_header(&session.header, &tracer);
+        let options = ExtractOptions::from_header(&session.header);
+        let extraction = extract_points(&session, Some(&tracer), noise, &options).expect("extract");
+        drop(session);
+        let problem = geocal::method::multilateration::Problem::build(&extraction).problem;
+        drop(extraction);
+        let solution = solve(&problem, &SolveOptions::default()).expect("solve");
+        let truth = truth_points(case.grid, &mut generator_rng());
+        let geocal_rms = rms_error(&solution.points, &truth);
+        let problem_file = path.with_extension("ceres.txt");
+        if peer.is_ok() {
+            write_peer_problem(&problem, &solution.sigmas_m, &problem_file).expect("problem file");
+        }
+        let out = path.with_extension("results.json");
+        // Side by side: each repeat runs geocal end to end, then Ceres on the same problem.
+        let mut geocal_runs = Vec::new();
+        let mut ceres_runs = Vec::new();
+        for _ in 0..repeats {
+            match run_geocal_solve(&path, &out) {
+                Ok(run) => geocal_runs.push(run),
+                Err(e) => println!("{}: {e}", case.name),
+            }
+            if let Ok(exe) = &peer {
+                match run_ceres(exe, &problem_file) {
+                    Ok(run) => ceres_runs.push(run),
+                    Err(e) => println!("{}: Ceres failed: {e}", case.name),
+                }
+            }
+        }
+        let best_geocal = geocal_runs.iter().min_by_key(|r| r.wall);
+        let best_ceres = ceres_runs.iter().min_by_key(|r| r.solve_time);
+        rows.push((
+            case.name,
+            samples,
+            problem.observations.len(),
+            file_mb,
+            best_geocal.map(|r| (r.wall, r.cpu, r.peak_rss_kib)),
+            solution.iterations,
+            solution.chi2,
+            geocal_rms,
+            best_ceres.map(|c| {
+                (
+                    c.solve_time,
+                    c.iterations,
+                    c.chi2,
+                    c.chi2_start,
+                    rms_error(&c.points, &truth),
+                )
+            }),
+        ));
+    }
+    println!();
+    println!(
+        "geocal solve end to end (read, extract, solve, covariance, results; best of {repeats}, \
+         /usr/bin/time) vs the Ceres peer's solve alone (DENSE_SCHUR, 2 threads, best of \
+         {repeats}), side by side; point error = RMS vs the truth after a rigid fit"
+    );
+    println!(
+        "| case | tracer samples | lengths | file | geocal wall | geocal CPU | peak RSS | \
+         iterations | Ceres solve | ratio geocal/Ceres | Ceres iterations | point error geocal | \
+         point error Ceres | chi2 geocal | chi2 Ceres |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for (name, samples, lengths, mb, g, iters, chi2, rms, c) in rows {
+        let (wall, cpu, rss) = match g {
+            Some((w, c, r)) => (
+                fmt_time(w),
+                fmt_time(c),
+                format!("{:.0} MiB", r as f64 / 1024.0),
+            ),
+            None => ("-".into(), "-".into(), "-".into()),
+        };
+        let (ctime, ratio, citers, crms, cchi2) = match (c, g) {
+            (Some((t, it, chi2c, _start, crms)), g) => (
+                fmt_time(t),
+                g.map_or("-".into(), |(w, _, _)| {
+                    format!("{:.2}", w.as_secs_f64() / t.as_secs_f64())
+                }),
+                it.to_string(),
+                format!("{:.3} µm", crms * 1e6),
+                format!("{chi2c:.1}"),
+            ),
+            (None, _) => ("-".into(), "-".into(), "-".into(), "-".into(), "-".into()),
+        };
+        println!(
+            "| {name} | {samples} | {lengths} | {mb:.0} MB | {wall} | {cpu} | {rss} | {iters} | \
+             {ctime} | {ratio} | {citers} | {:.3} µm | {crms} | {chi2:.1} | {cchi2} |",
+            rms * 1e6
+        );
+    }
 }

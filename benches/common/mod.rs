@@ -6,6 +6,8 @@ use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::time::{Duration, Instant};
 
+use nalgebra::Vector3;
+
 /// Wraps the system allocator and keeps the live heap size and its high-water mark, so a bench
 /// can report the peak memory of one phase without an external profiler.
 pub struct Counting;
@@ -119,4 +121,40 @@ pub fn cpu_time() -> Option<Duration> {
     let stime: u64 = fields.get(12)?.parse().ok()?;
     // USER_HZ is 100 on every mainstream Linux configuration.
     Some(Duration::from_millis((utime + stime) * 10))
+}
+
+/// Six coordinates of three well-spread points to hold for SciPy and Ceres (their problems
+/// have the 6-dof gauge freedom too). The choice moves no cost: chi2 is gauge invariant.
+pub fn gauge_coordinates(points: &[Vector3<f64>]) -> [(usize, usize); 6] {
+    let centroid = points.iter().sum::<Vector3<f64>>() / points.len() as f64;
+    let farthest = |from: Vector3<f64>| {
+        (0..points.len())
+            .max_by(|&a, &b| {
+                (points[a] - from)
+                    .norm_squared()
+                    .total_cmp(&(points[b] - from).norm_squared())
+            })
+            .unwrap_or(0)
+    };
+    let a = farthest(centroid);
+    let b = farthest(points[a]);
+    let ab = points[b] - points[a];
+    let c = (0..points.len())
+        .max_by(|&x, &y| {
+            ab.cross(&(points[x] - points[a]))
+                .norm()
+                .total_cmp(&ab.cross(&(points[y] - points[a])).norm())
+        })
+        .unwrap_or(0);
+    let b_axis = ab.iamax();
+    let b_free: Vec<usize> = (0..3).filter(|&k| k != b_axis).collect();
+    let c_axis = ab.cross(&(points[c] - points[a])).iamax();
+    [
+        (a, 0),
+        (a, 1),
+        (a, 2),
+        (b, b_free[0]),
+        (b, b_free[1]),
+        (c, c_axis),
+    ]
 }

@@ -672,7 +672,9 @@ impl Normal {
         Ok(true)
     }
 
-    /// Y_i = U_i⁻¹ W_i, then A −= W_iᵀ Y_i and b −= W_iᵀ U_i⁻¹ g_i (uses `uinv`, `yg`).
+    /// Y_i = U_i⁻¹ W_i, then A −= W_iᵀ Y_i (its lower triangle only: `a`'s upper triangle is
+    /// left stale, and only the Cholesky factorisation reads `a`) and b −= W_iᵀ U_i⁻¹ g_i
+    /// (uses `uinv`, `yg`).
     fn eliminate_point(&mut self, layout: &Layout, i: usize) {
         let k = layout.k(i);
         let off = layout.w_offset(i);
@@ -694,7 +696,12 @@ impl Normal {
                 continue;
             }
             for (c, &gc) in cols.iter().enumerate() {
-                // The update is symmetric; writing (gc, gr) walks the column-major storage.
+                // The update is symmetric and the Cholesky factorisation reads only the lower
+                // triangle: half the work, the same factor. Writing (gc, gr) walks the
+                // column-major storage.
+                if gc < gr {
+                    continue;
+                }
                 self.a[(gc, gr)] -=
                     w0 * self.y[off + c] + w1 * self.y[off + k + c] + w2 * self.y[off + 2 * k + c];
             }
