@@ -3,7 +3,9 @@
 //! terminal the progress is one line redrawn in place (carriage returns, a handful of line
 //! feeds, not one per point); on the pipe a line per station or per tenth, at most 15.
 
-use std::io::{BufRead, BufReader, Read};
+mod common;
+
+use std::io::Read;
 use std::os::fd::{FromRawFd, OwnedFd};
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -38,16 +40,7 @@ fn daemon(data_dir: &Path, log: &Path) -> Daemon {
         .stderr(log)
         .spawn()
         .expect("spawn geocal serve");
-    let mut line = String::new();
-    BufReader::new(child.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("the daemon's first line");
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .trim_end_matches(',')
-        .to_owned();
+    let (url, _) = common::daemon_banner(&mut child);
     Daemon { child, url }
 }
 

@@ -64,21 +64,7 @@ impl Daemon {
             .stderr(Stdio::null())
             .spawn()
             .expect("spawn geocal serve");
-        let stdout = child.stdout.take().expect("stdout");
-        let mut line = String::new();
-        BufReader::new(stdout)
-            .read_line(&mut line)
-            .expect("the daemon's first line");
-        let url = line
-            .split_whitespace()
-            .find(|w| w.starts_with("http://"))
-            .unwrap_or_else(|| panic!("no address in {line:?}"))
-            .trim_end_matches(',')
-            .to_owned();
-        let live = line
-            .split_whitespace()
-            .find(|w| w.starts_with("ws://"))
-            .map(str::to_owned);
+        let (url, live) = common::daemon_banner(&mut child);
         Daemon {
             child,
             url,

@@ -4,7 +4,9 @@
 //! case-insensitive and two `Authorization` headers are refused, every error answer is JSON,
 //! and the OpenAPI document says what the daemon as configured does.
 
-use std::io::{BufRead, BufReader, Read, Write};
+mod common;
+
+use std::io::{Read, Write};
 use std::net::TcpStream;
 use std::path::Path;
 use std::process::{Child, Command, Stdio};
@@ -42,20 +44,9 @@ impl Daemon {
             .stderr(Stdio::null())
             .spawn()
             .expect("spawn geocal serve");
-        let mut line = String::new();
-        BufReader::new(child.stdout.take().expect("stdout"))
-            .read_line(&mut line)
-            .expect("the daemon's first line");
-        let address = line
-            .split_whitespace()
-            .find_map(|w| w.strip_prefix("http://"))
-            .unwrap_or_else(|| panic!("no address in {line:?}"))
-            .trim_end_matches(',')
-            .to_owned();
-        let live = line
-            .split_whitespace()
-            .find_map(|w| w.strip_prefix("ws://"))
-            .map(str::to_owned);
+        let (url, live) = common::daemon_banner(&mut child);
+        let address = url.trim_start_matches("http://").to_owned();
+        let live = live.map(|ws| ws.trim_start_matches("ws://").to_owned());
         Daemon {
             child,
             address,

@@ -6,7 +6,8 @@
 //! move a machine; generated TOML is no valid plan and is refused before any job starts.
 //! `/v1/events` is left out: it is an endless stream, which a per-request check cannot end.
 
-use std::io::{BufRead, BufReader};
+mod common;
+
 use std::path::Path;
 use std::process::{Command, Stdio};
 
@@ -48,16 +49,7 @@ fn fuzz(dir: &Path, extra: &[&str], token: Option<&str>) {
         .stderr(Stdio::null())
         .spawn()
         .expect("spawn geocal serve");
-    let mut line = String::new();
-    BufReader::new(daemon.stdout.take().expect("stdout"))
-        .read_line(&mut line)
-        .expect("the daemon's first line");
-    let url = line
-        .split_whitespace()
-        .find(|w| w.starts_with("http://"))
-        .unwrap_or_else(|| panic!("no address in {line:?}"))
-        .trim_end_matches(',')
-        .to_owned();
+    let (url, _) = common::daemon_banner(&mut daemon);
 
     let here = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/schemathesis");
     let mut command = Command::new("python3");

@@ -730,3 +730,66 @@ pub fn pass_rule(
         real_time_bound_m: REAL_TIME_SIGMAS * rms_sigma_m + interpolation_m,
     }
 }
+
+/// The addresses `geocal serve` prints on its first line of stdout (piped): the API's
+/// `http://…` URL and, when the live view is on, its `ws://…` URL.
+pub fn daemon_banner(child: &mut std::process::Child) -> (String, Option<String>) {
+    use std::io::BufRead;
+    let mut line = String::new();
+    std::io::BufReader::new(child.stdout.take().expect("stdout"))
+        .read_line(&mut line)
+        .expect("the daemon's first line");
+    let url = line
+        .split_whitespace()
+        .find(|w| w.starts_with("http://"))
+        .unwrap_or_else(|| panic!("no address in {line:?}"))
+        .trim_end_matches(',')
+        .to_owned();
+    let live = line
+        .split_whitespace()
+        .find(|w| w.starts_with("ws://"))
+        .map(str::to_owned);
+    (url, live)
+}
+
+/// A verification's first half: the small demo on the verification grid, one pass,
+/// calibrated in virtual time under `dir/before`, and each axis's table exported in its
+/// format into `dir/tables/SUB/`. Returns the calibration, each axis's interpolation error
+/// and the export's files per listed axis.
+pub fn calibrate_and_export(
+    dir: &Path,
+    axes: &[(usize, geocal::compensate::TableFormat, &str)],
+) -> (
+    geocal::compensate::Calibration,
+    [f64; 3],
+    Vec<Vec<geocal::compensate::OutputFile>>,
+) {
+    use geocal::compensate::{export, Calibration, ExportOptions};
+    let (before, _) = run_with_truth(&one_pass_verification(small_demo()), &dir.join("before"));
+    let cal = Calibration::load(&before.results_path).expect("results");
+    let mut interp = [0.0; 3];
+    let mut files = Vec::new();
+    for &(k, format, sub) in axes {
+        let options = ExportOptions {
+            axes: vec![k],
+            ..Default::default()
+        };
+        let e = export(&cal, format, &options, &Default::default()).expect("export");
+        interp[k] = e.steps[0].interpolation_error_m;
+        let folder = dir.join("tables").join(sub);
+        std::fs::create_dir_all(&folder).expect("dir");
+        for f in &e.files {
+            std::fs::write(folder.join(&f.name), &f.text).expect("write");
+        }
+        files.push(e.files);
+    }
+    (cal, interp, files)
+}
+
+/// A configuration on the verification grid with one forward pass.
+pub fn one_pass_verification(text: String) -> String {
+    verification_grid(text.replace(
+        "passes = [\"forward\", \"backward\"]",
+        "passes = [\"forward\"]",
+    ))
+}
