@@ -4,7 +4,6 @@
 
 pub mod rows;
 pub mod schema;
-pub mod stream;
 pub mod table;
 pub mod write;
 
@@ -18,8 +17,8 @@ use arrow_array::builder::{
 use arrow_array::{ArrayRef, RecordBatch};
 use serde_json::Value;
 
+use crate::session::file_stream::{self as stream, StreamEnd};
 use schema::{DIAGNOSES, ISO230_2, RUNS, TRACER_SAMPLES};
-use stream::StreamEnd;
 use table::{Cell, Table};
 
 pub const RESULTS_FILE: &str = "results.json";

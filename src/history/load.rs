@@ -121,7 +121,7 @@ impl Run {
             .find(|p| p.is_file());
         let session_path = Some(dir.join(SESSION_FILE)).filter(|p| p.is_file());
         let header = match &session_path {
-            Some(p) => match read_header(p) {
+            Some(p) => match crate::session::file_stream::read_header_json(p) {
                 Ok(h) => Some(h),
                 Err(e) => {
                     tracing::warn!("{}: no session header: {e:#}", p.display());
@@ -287,23 +287,6 @@ pub fn load_series(dir: &Path) -> anyhow::Result<Vec<Run>> {
 /// Oldest first: by start time, then label.
 pub fn sort_by_time(runs: &mut [Run]) {
     runs.sort_by(|a, b| (a.started_at, &a.label).cmp(&(b.started_at, &b.label)));
-}
-
-/// The session header (the first `/geocal/session` message) as JSON, without reading the
-/// rest of the file.
-pub fn read_header(path: &Path) -> anyhow::Result<serde_json::Value> {
-    let bytes = std::fs::read(path).with_context(|| format!("reading {}", path.display()))?;
-    let stream =
-        mcap::MessageStream::new_with_options(&bytes, mcap::read::Options::IgnoreEndMagic.into())
-            .with_context(|| format!("{}: not an MCAP file", path.display()))?;
-    for message in stream {
-        let message = message.with_context(|| format!("{}: reading messages", path.display()))?;
-        if message.channel.topic == crate::session::messages::TOPIC_SESSION {
-            return serde_json::from_slice(&message.data)
-                .with_context(|| format!("{}: the session header is not JSON", path.display()));
-        }
-    }
-    anyhow::bail!("{}: no /geocal/session message", path.display())
 }
 
 fn read_config(path: &Path) -> anyhow::Result<toml::Table> {

@@ -2,6 +2,7 @@
 //! and the one session reader that solve, replay, diagnose and report share.
 
 pub mod damage;
+pub mod file_stream;
 pub mod kind_messages;
 pub mod messages;
 pub mod reader;

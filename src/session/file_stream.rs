@@ -88,7 +88,26 @@ pub fn for_each_message(
 
 /// The session header (`/geocal/session`), read without reading the rest of the file.
 pub fn read_header(path: &Path) -> anyhow::Result<SessionHeader> {
-    let mut header: Option<anyhow::Result<SessionHeader>> = None;
+    let header: SessionHeader =
+        serde_json::from_value(read_header_json(path)?).with_context(|| {
+            format!(
+                "{}: the {TOPIC_SESSION} message is not a session header",
+                path.display()
+            )
+        })?;
+    if header.format != SESSION_FORMAT {
+        anyhow::bail!(
+            "{}: session format is {:?}, expected {SESSION_FORMAT:?}",
+            path.display(),
+            header.format
+        );
+    }
+    Ok(header)
+}
+
+/// The session header as JSON (any format version), read without reading the rest of the file.
+pub fn read_header_json(path: &Path) -> anyhow::Result<serde_json::Value> {
+    let mut header: Option<anyhow::Result<serde_json::Value>> = None;
     let end = for_each_message(path, |topic, log_time, data| {
         if topic != TOPIC_SESSION {
             return Ok(ControlFlow::Continue(()));
@@ -101,8 +120,8 @@ pub fn read_header(path: &Path) -> anyhow::Result<SessionHeader> {
         }));
         Ok(ControlFlow::Break(()))
     })?;
-    let header = match (header, end) {
-        (Some(h), _) => h?,
+    match (header, end) {
+        (Some(h), _) => h,
         (None, StreamEnd::Complete) => {
             anyhow::bail!("{}: no {TOPIC_SESSION} message", path.display())
         }
@@ -110,15 +129,7 @@ pub fn read_header(path: &Path) -> anyhow::Result<SessionHeader> {
             "{}: no {TOPIC_SESSION} message in its first {bytes_read} bytes ({reason})",
             path.display()
         ),
-    };
-    if header.format != SESSION_FORMAT {
-        anyhow::bail!(
-            "{}: session format is {:?}, expected {SESSION_FORMAT:?}",
-            path.display(),
-            header.format
-        );
     }
-    Ok(header)
 }
 
 /// Every tracer sample of the file in file order, as (tracer id, log time ns, sample). A
