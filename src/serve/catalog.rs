@@ -261,10 +261,29 @@ impl Catalog {
 
     /// The oldest queued job.
     pub fn next_queued(&self) -> anyhow::Result<Option<JobRecord>> {
+        self.first_queued("state = 'queued'")
+    }
+
+    /// The oldest queued run (a job on the machine's devices).
+    pub fn next_queued_run(&self) -> anyhow::Result<Option<JobRecord>> {
+        self.first_queued("state = 'queued' AND job_type = 'run'")
+    }
+
+    /// The oldest queued solve, diagnosis or replay whose session is complete: one whose
+    /// source job is still queued or running waits for it (its file is still being written).
+    pub fn next_queued_on_session(&self) -> anyhow::Result<Option<JobRecord>> {
+        self.first_queued(
+            "state = 'queued' AND job_type != 'run' AND NOT EXISTS (
+                 SELECT 1 FROM jobs AS source WHERE source.id = jobs.source_job
+                     AND source.state IN ('queued', 'running'))",
+        )
+    }
+
+    fn first_queued(&self, condition: &str) -> anyhow::Result<Option<JobRecord>> {
         let job = self
             .connection
             .query_row(
-                &format!("{SELECT_JOB} WHERE state = 'queued' ORDER BY id LIMIT 1"),
+                &format!("{SELECT_JOB} WHERE {condition} ORDER BY id LIMIT 1"),
                 [],
                 |row| self.record(row),
             )
@@ -475,5 +494,46 @@ mod tests {
         assert_eq!(catalog.next_queued().unwrap().unwrap().id, first);
         assert!(catalog.get(first).unwrap().unwrap().resume);
         assert!(catalog.get(999).unwrap().is_none());
+    }
+
+    #[test]
+    fn runs_and_session_jobs_are_taken_in_their_own_lanes() {
+        let dir = tempfile::tempdir().unwrap();
+        let mut catalog = Catalog::open(dir.path()).unwrap();
+        let new = |job_type, source_job| NewJob {
+            job_type,
+            kind: "multilateration",
+            submitted_by: "test",
+            config_sha256: None,
+            source_job,
+        };
+        let recorded = catalog.add(&new(JobType::Run, None)).unwrap();
+        let recording = catalog.add(&new(JobType::Run, None)).unwrap();
+        let later_run = catalog.add(&new(JobType::Run, None)).unwrap();
+        let on_recording = catalog.add(&new(JobType::Solve, Some(recording))).unwrap();
+        let on_recorded = catalog
+            .add(&new(JobType::Diagnose, Some(recorded)))
+            .unwrap();
+        catalog.start(recorded).unwrap();
+        catalog.finish(recorded, JobState::Succeeded, None).unwrap();
+        catalog.start(recording).unwrap();
+
+        // The runs queue behind each other; a session job does not queue behind them, but
+        // one on a session still being recorded waits for its run.
+        assert_eq!(catalog.next_queued_run().unwrap().unwrap().id, later_run);
+        assert_eq!(
+            catalog.next_queued_on_session().unwrap().unwrap().id,
+            on_recorded
+        );
+        catalog.start(on_recorded).unwrap();
+        assert!(catalog.next_queued_on_session().unwrap().is_none());
+        catalog
+            .finish(recording, JobState::Succeeded, None)
+            .unwrap();
+        assert_eq!(
+            catalog.next_queued_on_session().unwrap().unwrap().id,
+            on_recording
+        );
+        assert_eq!(catalog.next_queued().unwrap().unwrap().id, later_run);
     }
 }

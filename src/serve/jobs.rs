@@ -1,5 +1,6 @@
 //! The daemon's jobs: submission (validated with the strict parsers, stored under the data
-//! dir), one worker that runs them one at a time, cancel and resume.
+//! dir), two workers — runs one at a time on the machine's devices, and beside them solves,
+//! diagnoses and replays of recorded sessions one at a time — cancel and resume.
 
 use std::path::{Path, PathBuf};
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -85,7 +86,26 @@ pub enum JobError {
 
 struct Running {
     id: i64,
+    lane: Lane,
     cancel: CancellationToken,
+}
+
+/// Which worker runs a job. A run holds the machine's devices, so runs go one at a time; a
+/// solve, diagnosis or replay reads a recorded session and touches no device, so it runs
+/// beside the run (one at a time too: each may take the memory and cores of a whole solve).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum Lane {
+    Runs,
+    Sessions,
+}
+
+impl Lane {
+    fn of(job_type: JobType) -> Lane {
+        match job_type {
+            JobType::Run => Lane::Runs,
+            JobType::Solve | JobType::Diagnose | JobType::Replay => Lane::Sessions,
+        }
+    }
 }
 
 /// Everything the API and the worker share.
@@ -93,8 +113,11 @@ pub struct Daemon {
     pub config: ServeConfig,
     catalog: Mutex<Catalog>,
     registry: Registry,
-    wake: Notify,
-    running: Mutex<Option<Running>>,
+    /// Wakes the worker of runs / of session jobs when one is queued.
+    wake_runs: Notify,
+    wake_sessions: Notify,
+    /// The jobs running now: at most one per lane.
+    running: Mutex<Vec<Running>>,
     pub events: broadcast::Sender<ServerEvent>,
     pub status: StatusBoard,
     pub prompts: PromptBoard,
@@ -145,8 +168,9 @@ impl Daemon {
             config,
             catalog: Mutex::new(catalog),
             registry,
-            wake: Notify::new(),
-            running: Mutex::new(None),
+            wake_runs: Notify::new(),
+            wake_sessions: Notify::new(),
+            running: Mutex::new(Vec::new()),
             status: StatusBoard::default(),
             prompts: PromptBoard::new(Arc::new(move |prompt: &PendingPrompt| {
                 let _ = prompt_events.send(ServerEvent::Prompt {
@@ -213,7 +237,11 @@ impl Daemon {
 
     pub fn live_progress(&self, id: i64) -> Option<Progress> {
         let running = self.running.lock().ok()?;
-        (running.as_ref()?.id == id).then(|| self.status.progress())
+        // The status board follows the run; a session job reports no progress of its own.
+        running
+            .iter()
+            .any(|r| r.id == id && r.lane == Lane::Runs)
+            .then(|| self.status.progress())
     }
 
     fn check_accepting(&self) -> Result<(), JobError> {
@@ -279,7 +307,7 @@ impl Daemon {
             "run queued"
         );
         self.announce(id, JobState::Queued, None);
-        self.wake.notify_one();
+        self.wake_runs.notify_one();
         Ok(id)
     }
 
@@ -317,7 +345,7 @@ impl Daemon {
             id
         };
         self.announce(id, JobState::Queued, None);
-        self.wake.notify_one();
+        self.wake_sessions.notify_one();
         Ok(id)
     }
 
@@ -337,7 +365,7 @@ impl Daemon {
             }
             JobState::Running => {
                 if let Ok(running) = self.running.lock() {
-                    if let Some(r) = running.as_ref().filter(|r| r.id == id) {
+                    if let Some(r) = running.iter().find(|r| r.id == id) {
                         r.cancel.cancel();
                     }
                 }
@@ -365,7 +393,7 @@ impl Daemon {
         }
         self.catalog()?.queue_resume(id)?;
         self.announce(id, JobState::Queued, None);
-        self.wake.notify_one();
+        self.wake_runs.notify_one();
         Ok(())
     }
 
@@ -373,14 +401,15 @@ impl Daemon {
     pub fn stop(&self) {
         self.accepting.store(false, Ordering::SeqCst);
         if let Ok(running) = self.running.lock() {
-            if let Some(r) = running.as_ref() {
+            for r in running.iter() {
                 tracing::info!(job = r.id, "shutting down: cancelling the running job");
                 r.cancel.cancel();
                 self.prompts.clear_job(r.id);
             }
         }
         self.shutdown.cancel();
-        self.wake.notify_one();
+        self.wake_runs.notify_one();
+        self.wake_sessions.notify_one();
     }
 
     /// What makes the daemon busy (a job running or waiting), for a schedule that skips.
@@ -389,7 +418,7 @@ impl Daemon {
             .running
             .lock()
             .ok()
-            .and_then(|r| r.as_ref().map(|r| r.id))
+            .and_then(|r| r.first().map(|r| r.id))
         {
             return Some(format!("job {id} is running"));
         }
@@ -398,20 +427,35 @@ impl Daemon {
     }
 
     pub fn is_busy(&self) -> bool {
-        self.running.lock().map(|r| r.is_some()).unwrap_or(true)
+        self.running.lock().map(|r| !r.is_empty()).unwrap_or(true)
     }
 
     fn announce(&self, id: i64, state: JobState, error: Option<String>) {
         let _ = self.events.send(ServerEvent::Job { id, state, error });
     }
 
-    /// Run queued jobs one at a time until `stop`.
+    /// Run queued jobs until `stop`: runs one at a time, and session jobs one at a time
+    /// beside them. Returns once both workers have ended their jobs.
     pub async fn work(self: Arc<Self>) {
+        tokio::join!(
+            self.clone().work_lane(Lane::Runs),
+            self.work_lane(Lane::Sessions)
+        );
+    }
+
+    async fn work_lane(self: Arc<Self>, lane: Lane) {
+        let wake = match lane {
+            Lane::Runs => &self.wake_runs,
+            Lane::Sessions => &self.wake_sessions,
+        };
         loop {
             if self.shutdown.is_cancelled() {
                 return;
             }
-            let next = match self.catalog().and_then(|c| c.next_queued()) {
+            let next = match self.catalog().and_then(|c| match lane {
+                Lane::Runs => c.next_queued_run(),
+                Lane::Sessions => c.next_queued_on_session(),
+            }) {
                 Ok(next) => next,
                 Err(e) => {
                     tracing::error!("reading the job catalog: {e:#}");
@@ -420,7 +464,7 @@ impl Daemon {
             };
             let Some(job) = next else {
                 tokio::select! {
-                    _ = self.wake.notified() => {}
+                    _ = wake.notified() => {}
                     _ = self.shutdown.cancelled() => return,
                     // A submission between the query and the wait is not missed.
                     _ = tokio::time::sleep(std::time::Duration::from_secs(1)) => {}
@@ -439,10 +483,12 @@ impl Daemon {
     /// Run one job to its end on this (blocking) thread and record how it ended.
     fn run_job(self: &Arc<Self>, job: JobRecord) {
         let id = job.id;
+        let lane = Lane::of(job.job_type);
         let cancel = CancellationToken::new();
         if let Ok(mut running) = self.running.lock() {
-            *running = Some(Running {
+            running.push(Running {
                 id,
+                lane,
                 cancel: cancel.clone(),
             });
         }
@@ -455,7 +501,9 @@ impl Daemon {
         if let Err(e) = self.catalog().and_then(|mut c| c.start(id)) {
             tracing::error!(job = id, "marking the job running: {e:#}");
         }
-        self.status.job_started();
+        if lane == Lane::Runs {
+            self.status.job_started();
+        }
         self.announce(id, JobState::Running, None);
         tracing::info!(
             job = id,
@@ -496,9 +544,11 @@ impl Daemon {
         if state == JobState::Succeeded {
             self.check_machine(&job);
         }
-        let progress = self.status.progress();
+        let progress = (lane == Lane::Runs).then(|| self.status.progress());
         let recorded = self.catalog().and_then(|mut c| {
-            c.set_progress(id, progress.done, progress.total)?;
+            if let Some(progress) = progress {
+                c.set_progress(id, progress.done, progress.total)?;
+            }
             c.record_files(id)?;
             c.finish(id, state, error.as_deref())
         });
@@ -507,10 +557,14 @@ impl Daemon {
         }
         self.prompts.clear_job(id);
         if let Ok(mut running) = self.running.lock() {
-            *running = None;
+            running.retain(|r| r.id != id);
         }
         tracing::info!(job = id, state = state.as_str(), "job ended");
         self.announce(id, state, error);
+        if lane == Lane::Runs {
+            // Session jobs on this run's session waited for it to end.
+            self.wake_sessions.notify_one();
+        }
     }
 
     fn control(self: &Arc<Self>, id: i64, cancel: CancellationToken) -> RunControl {

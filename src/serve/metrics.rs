@@ -1,5 +1,5 @@
 //! Prometheus metrics in the OpenMetrics text format: jobs by state, samples recorded, faults
-//! by kind, the recorder's queue depth.
+//! by kind, the recorder's queue depth, the heap in use.
 
 use prometheus_client::encoding::text::encode;
 use prometheus_client::metrics::counter::Counter;
@@ -52,8 +52,34 @@ pub fn render(daemon: &Daemon) -> anyhow::Result<String> {
         "The most messages ever waiting for the session recorder",
         depth_max,
     );
+    if let Some(bytes) = heap_in_use_bytes() {
+        let heap = Gauge::<i64>::default();
+        heap.set(i64::try_from(bytes).unwrap_or(i64::MAX));
+        registry.register(
+            "heap_in_use_bytes",
+            "Bytes the daemon has allocated and not freed (glibc's malloc, every arena)",
+            heap,
+        );
+    }
     super::machines::register_metrics(&mut registry, &daemon.machines);
     let mut text = String::new();
     encode(&mut text, &registry)?;
     Ok(text)
+}
+
+/// Bytes allocated and not yet freed, from glibc's allocator statistics over all its arenas.
+/// Unlike the resident memory, which keeps pages the allocator holds free for reuse, this
+/// moves with what the daemon holds: memory that grows with a recording shows here at once.
+#[cfg(all(target_os = "linux", target_env = "gnu"))]
+pub fn heap_in_use_bytes() -> Option<u64> {
+    // SAFETY: mallinfo2 takes no arguments, only reads the allocator's statistics under its
+    // arenas' locks, and returns a plain struct by value (glibc 2.33 and later).
+    let info = unsafe { libc::mallinfo2() };
+    // Small and large (mmap-ed) allocations in use.
+    Some((info.uordblks + info.hblkhd) as u64)
+}
+
+#[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+pub fn heap_in_use_bytes() -> Option<u64> {
+    None
 }

@@ -1,5 +1,6 @@
-//! `geocal serve`: the acquisition daemon — a job catalog that survives crashes, one worker
-//! that runs jobs, the HTTP control API, and a client that speaks to it.
+//! `geocal serve`: the acquisition daemon — a job catalog that survives crashes, workers
+//! that run jobs (runs one at a time, session jobs beside them), the HTTP control API, and a
+//! client that speaks to it.
 
 pub mod api;
 pub mod auth;
@@ -136,7 +137,7 @@ async fn run(
         stopping.stop();
     });
     server.await;
-    // The worker ends once the cancelled job has flushed and closed its session.
+    // The workers end once the cancelled jobs have ended (a run's session flushed and closed).
     if let Err(e) = worker.await {
         tracing::error!("job worker: {e}");
     }
