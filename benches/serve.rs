@@ -35,8 +35,6 @@ fn start(data: &std::path::Path) -> Daemon {
         .arg("--data-dir")
         .arg(data)
         .args(["--listen", "127.0.0.1:0", "--live", "127.0.0.1:0"])
-        // As deploy/geocal.service runs it.
-        .env("MALLOC_ARENA_MAX", "2")
         .stdout(Stdio::piped())
         .stderr(Stdio::null())
         .spawn()

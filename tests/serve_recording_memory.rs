@@ -35,7 +35,7 @@ const HEAP_GROWTH_BOUND: f64 = 1.5 * MIB;
 /// How much more the resident memory may reach in the recording's last third than in its
 /// first (the first third takes the allocator's warm-up: its arenas taking the solves' and the
 /// recorder's working sets): the recorder's own buffers once more (~4 MiB). Measured: 0.2–2.4
-/// MiB with `MALLOC_ARENA_MAX=2` (the allocator's free pages creep while the heap stays
+/// MiB with the daemon's two allocator arenas (the allocator's free pages creep while the heap stays
 /// flat), 2.2 MiB once with glibc's default arenas. The resident memory hides a small leak in
 /// the pages the allocator keeps free for reuse (a solve's tens of MiB); the heap bound above
 /// does not.
@@ -59,8 +59,6 @@ fn start(data_dir: &Path, log: &Path) -> Daemon {
         .arg("--data-dir")
         .arg(data_dir)
         .args(["--listen", "127.0.0.1:0", "--live", "off"])
-        // As deploy/geocal.service runs it.
-        .env("MALLOC_ARENA_MAX", "2")
         .stdin(Stdio::null())
         .stdout(Stdio::piped())
         .stderr(std::fs::File::create(log).expect("daemon log"))
