@@ -111,6 +111,18 @@ impl Basis {
                 vt: DMatrix::zeros(0, p),
             };
         }
+        // A tall matrix (many lengths, few columns): QR first, then the SVD of the small R,
+        // U = Q U_R. The same factorisation, without rotating the long columns.
+        if n > 2 * p {
+            let qr = a.clone().qr();
+            let q = qr.q();
+            let small = Basis::new(&qr.r(), tol, reference);
+            return Basis {
+                u: q * small.u,
+                s: small.s,
+                vt: small.vt,
+            };
+        }
         let svd = a.clone().svd(true, true);
         let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
             return Basis {
@@ -165,6 +177,25 @@ impl Basis {
             .map(|i| self.u.row(i).norm_squared())
             .collect()
     }
+}
+
+/// The minimum-norm least-squares x of a x ≈ b on the directions `Basis::new(a, tol,
+/// reference)` keeps, without forming its U (a tall a: QR, Qᵀb by the reflections).
+pub fn min_norm_solve(
+    a: &DMatrix<f64>,
+    b: &DVector<f64>,
+    tol: f64,
+    reference: f64,
+) -> DVector<f64> {
+    let (n, p) = a.shape();
+    if n > 2 * p && p > 0 {
+        let qr = a.clone().qr();
+        let mut qtb = b.clone();
+        qr.q_tr_mul(&mut qtb);
+        let small = Basis::new(&qr.r(), tol, reference);
+        return small.solve(&qtb.rows(0, p).into_owned());
+    }
+    Basis::new(a, tol, reference).solve(b)
 }
 
 /// Largest cosine of the principal angles between span(a) and span(b) (orthonormal columns).
