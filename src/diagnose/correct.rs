@@ -9,8 +9,9 @@ use nalgebra::{DMatrix, DVector, Matrix6, Vector3, Vector6};
 
 use super::data::Data;
 use super::effects::{effect_by_name, EffectKind, EffectModel, Geometry};
+use super::fit::Fit;
 use super::locate::best_step;
-use super::schur::{Design, Schur};
+use super::schur::Design;
 use super::{joint_fit, DiagnoseError};
 pub use crate::method::effects::EffectCorrection;
 use crate::method::effects::EffectsFit;
@@ -72,7 +73,7 @@ pub fn correction(
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
-    let nominal_basis = Schur::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
+    let nominal_basis = Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
     let models: Vec<EffectModel> = kinds
         .iter()
         .map(|&kind| {
@@ -122,7 +123,7 @@ pub fn correction(
         joined.columns_mut(d.ncols(), a.ncols()).copy_from(&a);
         joined
     });
-    let geometry_basis = Schur::new(
+    let geometry_basis = Fit::new(
         Arc::new(Design::nominal(&data, &fit.geom)),
         (0..nobs).collect(),
     );

@@ -4,8 +4,9 @@
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
+use super::dense;
 use super::effects::Geometry;
-use super::schur::Schur;
+use super::fit::Fit;
 use super::stats::chi2_sf;
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -28,10 +29,14 @@ const TIME_BLOCKS: usize = 8;
 /// score χ²(1) statistic, number of positions tried). `res_w` is orthogonal to span(basis).
 pub fn best_step(
     data: &Data,
-    basis: &Schur,
+    basis: &Fit,
     res_w: &nalgebra::DVector<f64>,
     station: Option<usize>,
 ) -> Option<(usize, usize, f64, usize)> {
+    let basis = match basis {
+        Fit::Structured(s) => s,
+        Fit::Dense(d) => return dense::best_step(data, d.basis(), res_w, station),
+    };
     let w: Vec<f64> = data.obs.iter().map(|o| 1.0 / o.sigma_m).collect();
     let reduced = basis.reduced();
     let mut best: Option<(usize, usize, f64)> = None;
@@ -86,7 +91,7 @@ pub fn locate(
     data: &Data,
     geom: &Geometry,
     resid_m: &[f64],
-    basis: &Schur,
+    basis: &Fit,
     alpha: f64,
 ) -> Vec<WhereEntry> {
     let nobs = data.obs.len();

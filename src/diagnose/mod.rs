@@ -4,7 +4,9 @@
 pub mod budget;
 pub mod correct;
 pub mod data;
+pub mod dense;
 pub mod effects;
+pub mod fit;
 pub mod locate;
 pub mod loso;
 #[cfg(test)]
@@ -34,13 +36,12 @@ use crate::session::reader::{read_session, Session};
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
+use fit::Fit;
 use locate::{best_step, locate, WhereEntry};
-use loso::{leave_one_station_out, HeldOutStation};
+use loso::HeldOutStation;
 use points::{points_level, PointsGap, PointsLevel};
-use schur::{Design, Schur};
-use stats::{
-    chi2_isf, chi2_sf, f_sf, max_principal_cosine, min_norm_solve, Basis, EFFECT_RANK_TOL,
-};
+use schur::Design;
+use stats::{chi2_isf, chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -285,7 +286,7 @@ struct BaseFit {
     held: Vec<usize>,
     /// Variance of each held-out row's prediction (m², the noise not included).
     held_var: Vec<f64>,
-    basis: Schur,
+    basis: Fit,
     /// Whitened residual of the base fit on `rows` (orthogonal to the basis).
     res_w: DVector<f64>,
 }
@@ -304,6 +305,10 @@ struct Eval {
     df: usize,
     theta: DVector<f64>,
     theta_sigma: DVector<f64>,
+    /// Per parameter: whether the lengths determine it. One whose every direction the model
+    /// absorbs (e.g. the vertical eccentricity: the station's height) has an estimate and σ
+    /// that are rounding (~1e-21 m), reported as null rather than as a figure.
+    identifiable: Vec<bool>,
     rms_after_m: f64,
     heldout_ms_m2: f64,
     /// Mean of the held-out residuals squared, each in units of the base model's predicted
@@ -322,7 +327,7 @@ impl Engine {
     }
 
     fn fit_base(&self, design: &Arc<Design>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
-        let basis = Schur::new(design.clone(), rows.clone());
+        let basis = Fit::new(design.clone(), rows.clone());
         let rw = DVector::from_fn(rows.len(), |k, _| self.r[rows[k]] * self.w[rows[k]]);
         let res_w = basis.project_off_vec(&rw);
         let held: Vec<usize> = held
@@ -351,12 +356,8 @@ impl Engine {
             Some(a) => {
                 let aw = self.rows_of(a, &fit.rows, true);
                 let reference = column_norm_max(&aw);
-                let theta = min_norm_solve(
-                    &fit.basis.project_off(&aw),
-                    &fit.res_w,
-                    EFFECT_RANK_TOL,
-                    reference,
-                );
+                let perp = Basis::new(&fit.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
+                let theta = perp.solve(&fit.res_w);
                 let beta = fit.basis.solve(&(rw - &aw * &theta));
                 (beta, Some(theta))
             }
@@ -444,6 +445,16 @@ impl Engine {
                 .sum::<f64>()
                 .sqrt()
         });
+        // The parameter's unit direction inside the identified row space (1 when fully
+        // determined), against the same cut as the directions'.
+        let identifiable = (0..a.ncols())
+            .map(|c| {
+                (0..perp.rank())
+                    .map(|k| perp.vt[(k, c)].powi(2))
+                    .sum::<f64>()
+                    > EFFECT_RANK_TOL * EFFECT_RANK_TOL
+            })
+            .collect();
         let (mut ss, mut zz) = (0.0, 0.0);
         let mut count = 0;
         for fit in fold_fits {
@@ -457,6 +468,7 @@ impl Engine {
             df: perp.rank(),
             theta,
             theta_sigma,
+            identifiable,
             rms_after_m,
             heldout_ms_m2: ss / count.max(1) as f64,
             heldout_z2: zz / count.max(1) as f64,
@@ -841,7 +853,7 @@ pub(crate) fn diagnose_data(
         }
         None => (data, fit_data.as_ref(), chi2),
     };
-    let nominal_basis = Schur::new(nominal_design.clone(), (0..nobs).collect());
+    let nominal_basis = Fit::new(nominal_design.clone(), (0..nobs).collect());
     let where_ = locate(
         data,
         &geom,
@@ -857,7 +869,8 @@ pub(crate) fn diagnose_data(
         alpha_part,
     );
     let mut where_ = where_;
-    let (held_out, skipped) = leave_one_station_out(data, &nominal_design, &solution.residuals_m);
+    let (held_out, skipped) =
+        fit::leave_one_station_out(data, &nominal_design, &solution.residuals_m);
     if !skipped.is_empty() {
         notes.push(format!(
             "leave-one-station-out: without {} the other stations do not determine the points; not predicted",
@@ -1122,15 +1135,21 @@ fn candidate_record(
     confounded_with: Vec<String>,
 ) -> Candidate {
     let mut params: BTreeMap<String, Value> = BTreeMap::new();
-    for ((name, v), s) in trial
+    for (((name, v), s), identifiable) in trial
         .model
         .param_names(data)
         .into_iter()
         .zip(trial.eval.theta.iter())
         .zip(trial.eval.theta_sigma.iter())
+        .zip(&trial.eval.identifiable)
     {
-        params.insert(name.clone(), (*v).into());
-        params.insert(format!("{name}.sigma"), (*s).into());
+        let (v, s) = if *identifiable {
+            ((*v).into(), (*s).into())
+        } else {
+            (Value::Null, Value::Null)
+        };
+        params.insert(name.clone(), v);
+        params.insert(format!("{name}.sigma"), s);
     }
     if let Some((g, k)) = trial.model.step {
         params.insert("pass".into(), data.pass_names[g].clone().into());
@@ -1191,7 +1210,7 @@ pub(crate) struct JointFit {
     /// The effects' parameters (in the models' column order).
     pub theta: DVector<f64>,
     /// The whitened joint design's fit (geometry, then the effects' columns), all lengths.
-    pub basis: Schur,
+    pub basis: Fit,
 }
 
 /// Gauss–Newton on the geometry and the effects' parameters together, relinearising the
@@ -1221,7 +1240,7 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     for _ in 0..10 {
         let a = design(&geom);
         let r = residual(&geom, &a, &theta);
-        let basis = Schur::new(a, all_rows.clone());
+        let basis = Fit::new(a, all_rows.clone());
         let step = basis.solve(&r.component_mul(&w));
         let np = geom.len();
         geom.apply(&step.as_slice()[..np]);
@@ -1241,7 +1260,7 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     let effect_m = (0..nobs).map(|i| a.predict(i, &x)).collect();
     JointFit {
         effect_m,
-        basis: Schur::new(a, all_rows),
+        basis: Fit::new(a, all_rows),
         geom,
         resid_m: r.iter().copied().collect(),
         theta,

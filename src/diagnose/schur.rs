@@ -269,6 +269,9 @@ impl Schur {
         let mut point_null = Vec::new();
         let mut point_rank = 0;
         let mut s = DMatrix::<f64>::zeros(g, g);
+        // Squared norm of each global column before the elimination: the scale of the
+        // reduced system's equilibration.
+        let mut column_norm2 = vec![0.0; g];
         let mut entries = Vec::new();
         // Local column slots of the current point's touched global columns.
         let mut slot = vec![usize::MAX; g];
@@ -285,6 +288,7 @@ impl Schur {
                 m += a * a.transpose();
                 design.global_entries(i, &mut entries);
                 for (x, &(cx, vx)) in entries.iter().enumerate() {
+                    column_norm2[cx] += vx * vx;
                     // D = Σ b bᵀ (its entries summed per pair of the row's columns).
                     for &(cy, vy) in &entries[x..] {
                         s[(cx, cy)] += vx * vy;
@@ -315,16 +319,29 @@ impl Schur {
             }
             m_pinv.push(inv);
         }
-        // Symmetrise against the rounding of the two triangles' sums.
-        let s = (&s + s.transpose()) * 0.5;
+        // Symmetrise against the rounding of the two triangles' sums, and equilibrate: Ŝ =
+        // D⁻¹ S D⁻¹ with D the columns' norms, so that the rank cut does not depend on the
+        // columns' units. An effect column whose whitened entries are ~1e-7 of a station's
+        // (air refraction: dn·L ≈ 1e-7 m per unit) has an eigenvalue ~1e-14 of the stations'
+        // in S, under any cut that the normal equations' rounding allows, while the dense SVD
+        // (cut 1e-9 in singular value) keeps it. Columns no row touches keep the scale 1.
+        let scale: Vec<f64> = column_norm2
+            .iter()
+            .map(|&n2| if n2 > 0.0 { n2.sqrt() } else { 1.0 })
+            .collect();
+        let s = DMatrix::from_fn(g, g, |r, c| {
+            0.5 * (s[(r, c)] + s[(c, r)]) / (scale[r] * scale[c])
+        });
         let eig = s.symmetric_eigen();
         let top = eig.eigenvalues.amax();
         let keep: Vec<usize> = (0..g)
             .filter(|&k| eig.eigenvalues[k] > EIGEN_TOL * top && eig.eigenvalues[k] > 0.0)
             .collect();
         let null_red: Vec<usize> = (0..g).filter(|k| !keep.contains(k)).collect();
+        // S's generalised inverse D⁻¹ Ŝ⁺ D⁻¹ = W Wᵀ: every use (projections, estimable
+        // predictions, solves whose null part is removed) is the same for any of them.
         let w_red = DMatrix::from_fn(g, keep.len(), |r, k| {
-            eig.eigenvectors[(r, keep[k])] / eig.eigenvalues[keep[k]].sqrt()
+            eig.eigenvectors[(r, keep[k])] / eig.eigenvalues[keep[k]].sqrt() / scale[r]
         });
         let mut fit = Schur {
             design,
@@ -341,7 +358,8 @@ impl Schur {
         let offset = 3 * n;
         let mut null = DMatrix::zeros(offset + g, null_red.len());
         for (z, &k) in null_red.iter().enumerate() {
-            let v = eig.eigenvectors.column(k).into_owned();
+            // Ŝ v̂ = 0 ⇔ S D⁻¹ v̂ = 0.
+            let v = DVector::from_fn(g, |r, _| eig.eigenvectors[(r, k)] / scale[r]);
             let cv = fit.c_times(&v);
             for p in 0..n {
                 let x = -(fit.m_pinv[p] * cv[p]);

@@ -111,19 +111,7 @@ impl Basis {
                 vt: DMatrix::zeros(0, p),
             };
         }
-        // A tall matrix (many lengths, few columns): QR first, then the SVD of the small R,
-        // U = Q U_R. The same factorisation, without rotating the long columns.
-        if n > 2 * p {
-            let qr = a.clone().qr();
-            let q = qr.q();
-            let small = Basis::new(&qr.r(), tol, reference);
-            return Basis {
-                u: q * small.u,
-                s: small.s,
-                vt: small.vt,
-            };
-        }
-        let svd = a.clone().svd(true, true);
+        let svd = accurate_svd(a);
         let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
             return Basis {
                 u: DMatrix::zeros(n, 0),
@@ -179,23 +167,20 @@ impl Basis {
     }
 }
 
-/// The minimum-norm least-squares x of a x ≈ b on the directions `Basis::new(a, tol,
-/// reference)` keeps, without forming its U (a tall a: QR, Qᵀb by the reflections).
-pub fn min_norm_solve(
-    a: &DMatrix<f64>,
-    b: &DVector<f64>,
-    tol: f64,
-    reference: f64,
-) -> DVector<f64> {
-    let (n, p) = a.shape();
-    if n > 2 * p && p > 0 {
-        let qr = a.clone().qr();
-        let mut qtb = b.clone();
-        qr.q_tr_mul(&mut qtb);
-        let small = Basis::new(&qr.r(), tol, reference);
-        return small.solve(&qtb.rows(0, p).into_owned());
-    }
-    Basis::new(a, tol, reference).solve(b)
+/// Convergence tolerance of the SVD's bidiagonal iteration. nalgebra's default (5 ε, an
+/// absolute test on the bidiagonal scaled to its largest entry) stops early on rank-deficient
+/// designs (the gauge's null directions): U S Vᵀ then misses the matrix by ~1e-8 of its largest
+/// entry and least-squares solutions by up to ~1e-4 (nalgebra issue #1172). Below ε the
+/// iteration runs to rounding (reconstruction ~1e-14).
+const SVD_EPS: f64 = 1e-17;
+
+/// The thin SVD converged to rounding (`SVD_EPS`); nalgebra's default one should the tighter
+/// iteration not converge within its bound (never seen).
+pub fn accurate_svd(a: &DMatrix<f64>) -> nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn> {
+    let max_iterations = 1000 + 100 * a.nrows().min(a.ncols());
+    a.clone()
+        .try_svd(true, true, SVD_EPS, max_iterations)
+        .unwrap_or_else(|| a.clone().svd(true, true))
 }
 
 /// Largest cosine of the principal angles between span(a) and span(b) (orthonormal columns).
