@@ -21,8 +21,9 @@ use super::effects::Geometry;
 /// system is not identifiable. Eigenvalues are squared singular values: 1e-12 is a singular
 /// value 1e-6 of the largest, far above the rounding that the gauge directions are left with
 /// after the elimination (eigenvalues ~1e-16 of the largest) and far below the real directions
-/// (condition < 1e4 in singular value, eigenvalues above 1e-8 of the largest): the same rank
-/// as the dense SVD's cut (`stats::RANK_TOL`) on these designs.
+/// (condition < 1e4 in singular value, eigenvalues above 1e-8 of the largest) once the reduced
+/// system is equilibrated (columns of unit norm, whatever their units): the same rank as the
+/// dense SVD's cut (`stats::RANK_TOL`) on these designs (`tests/diagnose_oracle.rs`).
 pub const EIGEN_TOL: f64 = 1e-12;
 
 /// One length's place in the linearised model.
@@ -737,8 +738,9 @@ mod tests {
     use crate::diagnose::stats::{Basis, RANK_TOL};
 
     /// A small multilateration design: 6 stations around 30 points, one segment per station,
-    /// one effect column, and a point seen from one station only (a rank-deficient block).
-    fn small() -> Design {
+    /// one effect column, and a point seen from one station only (a rank-deficient block); with
+    /// `tiny_effect` a second effect column ~1e-7 of the first.
+    fn small(tiny_effect: bool) -> Design {
         let stations = [
             Vector3::new(-1.0, -1.0, 0.2),
             Vector3::new(2.5, -0.8, 0.6),
@@ -772,8 +774,9 @@ mod tests {
                 });
             }
         }
-        let effects = DMatrix::from_fn(rows.len(), 1, |i, _| {
-            0.5 * rows[i].u.x * ((i % 7) as f64 - 3.0) / 3.0
+        let effects = DMatrix::from_fn(rows.len(), 1 + usize::from(tiny_effect), |i, c| match c {
+            0 => 0.5 * rows[i].u.x * ((i % 7) as f64 - 3.0) / 3.0,
+            _ => 1e-7 * ((i * 13 % 17) as f64 - 8.0) / 8.0,
         });
         Design {
             n_points: points.len(),
@@ -786,7 +789,25 @@ mod tests {
 
     #[test]
     fn blocks_match_the_dense_svd() {
-        let design = Arc::new(small());
+        let design = Arc::new(small(false));
+        // The pseudo-inverse block of the effect column and a station coordinate.
+        let cols = [design.n_params() - 1, 3 * 30 + 4];
+        check_against_the_dense_svd(design, true, &cols);
+    }
+
+    /// An effect column ~1e-7 of the stations' in the whitened design, like air refraction's
+    /// (dn·L): a rank cut that depends on the columns' units drops it. With parameters whose
+    /// units differ by 1e7 the minimum-norm solution's gauge part is fixed only to ~1e-8 of its
+    /// largest entry by either algebra, so the solve is compared on its fitted values and the
+    /// pseudo-inverse on the effects' (estimable) block.
+    #[test]
+    fn blocks_match_the_dense_svd_with_a_tiny_effect_column() {
+        let design = Arc::new(small(true));
+        let cols = [design.n_params() - 2, design.n_params() - 1];
+        check_against_the_dense_svd(design, false, &cols);
+    }
+
+    fn check_against_the_dense_svd(design: Arc<Design>, min_norm: bool, pinv_cols: &[usize]) {
         let n = design.lengths();
         let w = DVector::from_fn(n, |i, _| design.weight(i));
         let dense = design.to_dense();
@@ -809,7 +830,11 @@ mod tests {
             &basis.project_off_vec(&y),
             "projection",
         );
-        close(&fit.solve(&y), &basis.solve(&y), "minimum-norm solve");
+        let (x, dense_x) = (fit.solve(&y), basis.solve(&y));
+        if min_norm {
+            close(&x, &dense_x, "minimum-norm solve");
+        }
+        close(&fit.times(&x), &(&xw * &dense_x), "fitted values");
         let lev = DVector::from_vec(fit.leverages());
         close(&lev, &DVector::from_vec(basis.leverages()), "leverages");
         for &h in &held {
@@ -827,9 +852,8 @@ mod tests {
                 );
             }
         }
-        // The pseudo-inverse block of the effect column and a station coordinate.
-        let cols = [design.n_params() - 1, 3 * 30 + 4];
-        let block = fit.pinv_block(&cols);
+        let cols = pinv_cols;
+        let block = fit.pinv_block(cols);
         for (a, &ca) in cols.iter().enumerate() {
             for (b, &cb) in cols.iter().enumerate() {
                 let d: f64 = (0..basis.rank())
