@@ -9,8 +9,9 @@ use nalgebra::{DMatrix, DVector, Matrix6, Vector3, Vector6};
 
 use super::data::Data;
 use super::effects::{effect_by_name, EffectKind, EffectModel, Geometry};
+use super::fit::Fit;
 use super::locate::best_step;
-use super::stats::{Basis, RANK_TOL};
+use super::schur::Design;
 use super::{joint_fit, DiagnoseError};
 pub use crate::method::effects::EffectCorrection;
 use crate::method::effects::EffectsFit;
@@ -72,7 +73,7 @@ pub fn correction(
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
-    let nominal_basis = whitened_basis(&geom.jacobian(&data), &w);
+    let nominal_basis = Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
     let models: Vec<EffectModel> = kinds
         .iter()
         .map(|&kind| {
@@ -95,11 +96,8 @@ pub fn correction(
     let np = fit.geom.len();
     let parameters = fit.theta.len();
     // Covariance of the effects' parameters: their block of the joint pseudo-inverse.
-    let theta_cov = DMatrix::from_fn(parameters, parameters, |a, b| {
-        (0..fit.basis.rank())
-            .map(|k| fit.basis.vt[(k, np + a)] * fit.basis.vt[(k, np + b)] / fit.basis.s[k].powi(2))
-            .sum::<f64>()
-    });
+    let effect_cols: Vec<usize> = (np..np + parameters).collect();
+    let theta_cov = fit.basis.pinv_block(&effect_cols);
     if (0..parameters).any(|c| theta_cov[(c, c)] <= 0.0) {
         return Err(CorrectionError::Fit(
             "an effect parameter is not identifiable from these lengths (the geometry absorbs it)"
@@ -125,7 +123,10 @@ pub fn correction(
         joined.columns_mut(d.ncols(), a.ncols()).copy_from(&a);
         joined
     });
-    let geometry_basis = whitened_basis(&fit.geom.jacobian(&data), &w);
+    let geometry_basis = Fit::new(
+        Arc::new(Design::nominal(&data, &fit.geom)),
+        (0..nobs).collect(),
+    );
     let n = fit.geom.points.len();
     let mut response = DMatrix::zeros(3 * n, parameters);
     for c in 0..parameters {
@@ -141,11 +142,6 @@ pub fn correction(
         parameters,
         point_covariance_m2,
     })
-}
-
-fn whitened_basis(design: &DMatrix<f64>, w: &DVector<f64>) -> Basis {
-    let dw = DMatrix::from_fn(design.nrows(), design.ncols(), |i, c| design[(i, c)] * w[i]);
-    Basis::new(&dw, RANK_TOL, 0.0)
 }
 
 /// Point displacements (3n, point-major) with their best-fit rigid motion about the nominal

@@ -4,8 +4,10 @@
 use serde::{Deserialize, Serialize};
 
 use super::data::Data;
+use super::dense;
 use super::effects::Geometry;
-use super::stats::{chi2_sf, Basis};
+use super::fit::Fit;
+use super::stats::chi2_sf;
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct WhereEntry {
@@ -27,30 +29,47 @@ const TIME_BLOCKS: usize = 8;
 /// score χ²(1) statistic, number of positions tried). `res_w` is orthogonal to span(basis).
 pub fn best_step(
     data: &Data,
-    basis: &Basis,
+    basis: &Fit,
     res_w: &nalgebra::DVector<f64>,
     station: Option<usize>,
 ) -> Option<(usize, usize, f64, usize)> {
+    let basis = match basis {
+        Fit::Structured(s) => s,
+        Fit::Dense(d) => return dense::best_step(data, d.basis(), res_w, station),
+    };
     let w: Vec<f64> = data.obs.iter().map(|o| 1.0 / o.sigma_m).collect();
-    let r = basis.rank();
+    let reduced = basis.reduced();
     let mut best: Option<(usize, usize, f64)> = None;
     let mut tried = 0;
+    // The suffix indicator's projection on the model, |P v|², in the split form of the
+    // column space: per point q_pᵀ M_p⁺ q_p (q_p = Σ v_i a_i over its rows) plus |Σ v_i ρ_i|².
+    let mut q: Vec<nalgebra::Vector3<f64>> =
+        vec![nalgebra::Vector3::zeros(); basis.design().n_points()];
     for (g, members) in data.passes.iter().enumerate() {
         if station.is_some_and(|s| data.obs[members[0]].station != s) {
             continue;
         }
         // Walk the split from the end: the step column is the suffix indicator (whitened).
-        let mut proj = nalgebra::DVector::<f64>::zeros(r);
+        let mut rho_sum: Option<nalgebra::DVector<f64>> = None;
+        let mut point_part = 0.0;
         let (mut cc, mut cr) = (0.0, 0.0);
         for k in (1..members.len()).rev() {
             let i = members[k];
-            for c in 0..r {
-                proj[c] += w[i] * basis.u[(i, c)];
+            let (p, a, rho) = basis.row_parts(&reduced, i);
+            let m = basis.m_pinv(p);
+            let old = q[p];
+            let new = old + a * w[i];
+            point_part += new.dot(&(m * new)) - old.dot(&(m * old));
+            q[p] = new;
+            match rho_sum.as_mut() {
+                Some(sum) => sum.axpy(w[i], &rho, 1.0),
+                None => rho_sum = Some(rho * w[i]),
             }
             cc += w[i] * w[i];
             cr += w[i] * res_w[i];
             tried += 1;
-            let perp = cc - proj.norm_squared();
+            let proj = point_part + rho_sum.as_ref().map_or(0.0, |s| s.norm_squared());
+            let perp = cc - proj;
             // A step that the nominal model absorbs (e.g. the whole pass) is not a candidate.
             if perp <= 1e-6 * cc {
                 continue;
@@ -59,6 +78,9 @@ pub fn best_step(
             if best.is_none_or(|b| stat > b.2) {
                 best = Some((g, k, stat));
             }
+        }
+        for &i in members {
+            q[data.obs[i].point] = nalgebra::Vector3::zeros();
         }
     }
     best.map(|(g, k, s)| (g, k, s, tried))
@@ -69,7 +91,7 @@ pub fn locate(
     data: &Data,
     geom: &Geometry,
     resid_m: &[f64],
-    basis: &Basis,
+    basis: &Fit,
     alpha: f64,
 ) -> Vec<WhereEntry> {
     let nobs = data.obs.len();

@@ -1,13 +1,19 @@
 //! Sim-to-real gap diagnosis (`geocal diagnose`): where the lengths depart from the nominal
 //! multilateration model, which unmodelled effect explains it, and how far the gap shrinks.
 
+pub mod budget;
 pub mod correct;
 pub mod data;
+pub mod dense;
 pub mod effects;
+pub mod fit;
 pub mod locate;
 pub mod loso;
+#[cfg(test)]
+mod oracle;
 pub mod plot;
 pub mod points;
+pub mod schur;
 pub mod settling;
 pub mod stats;
 mod text;
@@ -19,6 +25,7 @@ pub use text::{
 
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::Arc;
 
 use anyhow::Context;
 use nalgebra::{DMatrix, DVector};
@@ -29,10 +36,12 @@ use crate::session::reader::{read_session, Session};
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
+use fit::Fit;
 use locate::{best_step, locate, WhereEntry};
-use loso::{leave_one_station_out, HeldOutStation};
+use loso::HeldOutStation;
 use points::{points_level, PointsGap, PointsLevel};
-use stats::{chi2_isf, chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
+use schur::Design;
+use stats::{chi2_isf, chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -43,6 +52,10 @@ pub struct DiagnoseOptions {
     pub alpha: f64,
     /// Minimum number of cross-validation folds (at least the number of stations is used).
     pub folds: usize,
+    /// Memory the diagnosis may use (bytes); None: the machine's available memory
+    /// (`MemAvailable` in /proc/meminfo). A diagnosis estimated to need more is refused
+    /// before any work (`budget`).
+    pub memory_limit_bytes: Option<u64>,
 }
 
 impl Default for DiagnoseOptions {
@@ -50,6 +63,7 @@ impl Default for DiagnoseOptions {
         Self {
             alpha: 0.01,
             folds: 5,
+            memory_limit_bytes: None,
         }
     }
 }
@@ -166,6 +180,8 @@ pub enum DiagnoseError {
     Data(#[from] data::DataError),
     #[error("nominal multilateration fit: {0}")]
     Solve(#[from] crate::solve::multilateration::SolveError),
+    #[error(transparent)]
+    TooLarge(#[from] budget::TooLarge),
 }
 
 /// Each length's residual in units of its σ, before (nominal model) and after the final model
@@ -268,7 +284,9 @@ struct BaseFit {
     /// of the training design); a length whose point or station the training rows leave
     /// undetermined cannot be predicted, only guessed by the minimum-norm solution.
     held: Vec<usize>,
-    basis: Basis,
+    /// Variance of each held-out row's prediction (m², the noise not included).
+    held_var: Vec<f64>,
+    basis: Fit,
     /// Whitened residual of the base fit on `rows` (orthogonal to the basis).
     res_w: DVector<f64>,
 }
@@ -287,6 +305,10 @@ struct Eval {
     df: usize,
     theta: DVector<f64>,
     theta_sigma: DVector<f64>,
+    /// Per parameter: whether the lengths determine it. One whose every direction the model
+    /// absorbs (e.g. the vertical eccentricity: the station's height) has an estimate and σ
+    /// that are rounding (~1e-21 m), reported as null rather than as a figure.
+    identifiable: Vec<bool>,
     rms_after_m: f64,
     heldout_ms_m2: f64,
     /// Mean of the held-out residuals squared, each in units of the base model's predicted
@@ -304,24 +326,20 @@ impl Engine {
         })
     }
 
-    fn fit_base(&self, design: &DMatrix<f64>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
-        let bw = self.rows_of(design, &rows, true);
-        let basis = Basis::new(&bw, RANK_TOL, 0.0);
+    fn fit_base(&self, design: &Arc<Design>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
+        let basis = Fit::new(design.clone(), rows.clone());
         let rw = DVector::from_fn(rows.len(), |k, _| self.r[rows[k]] * self.w[rows[k]]);
         let res_w = basis.project_off_vec(&rw);
-        let held = held
+        let held: Vec<usize> = held
             .iter()
             .copied()
-            .filter(|&h| {
-                let row = design.row(h).transpose();
-                let inside = &basis.vt * &row;
-                // Relative part outside the row space; rounding leaves ~1e-12.
-                row.norm_squared() - inside.norm_squared() <= 1e-12 * row.norm_squared()
-            })
+            .filter(|&h| basis.in_row_space(h))
             .collect();
+        let held_var = basis.prediction_variances(&held);
         BaseFit {
             rows,
             held,
+            held_var,
             basis,
             res_w,
         }
@@ -329,12 +347,7 @@ impl Engine {
 
     /// Held-out residuals of a base fit with an optional extra effect (`a`: unwhitened columns
     /// of all rows) on the fold's held-out rows: returns (Σ r², Σ (σ² + prediction variance)).
-    fn heldout(
-        &self,
-        design: &DMatrix<f64>,
-        fit: &BaseFit,
-        a: Option<&DMatrix<f64>>,
-    ) -> (f64, f64, f64) {
+    fn heldout(&self, design: &Design, fit: &BaseFit, a: Option<&DMatrix<f64>>) -> (f64, f64, f64) {
         let rw = DVector::from_fn(fit.rows.len(), |k, _| {
             self.r[fit.rows[k]] * self.w[fit.rows[k]]
         });
@@ -350,14 +363,13 @@ impl Engine {
             }
         };
         let (mut ss, mut floor, mut zz) = (0.0, 0.0, 0.0);
-        for &h in &fit.held {
-            let row: Vec<f64> = design.row(h).iter().copied().collect();
-            let mut pred: f64 = row.iter().zip(beta.iter()).map(|(b, x)| b * x).sum();
+        for (&h, prediction_var) in fit.held.iter().zip(&fit.held_var) {
+            let mut pred = design.predict(h, &beta);
             if let (Some(a), Some(theta)) = (a, &theta) {
                 pred += (0..a.ncols()).map(|c| a[(h, c)] * theta[c]).sum::<f64>();
             }
             let sigma = 1.0 / self.w[h];
-            let var = sigma * sigma + fit.basis.prediction_variance(&row);
+            let var = sigma * sigma + prediction_var;
             ss += (self.r[h] - pred).powi(2);
             floor += var;
             zz += (self.r[h] - pred).powi(2) / var;
@@ -369,7 +381,7 @@ impl Engine {
     /// scored.
     fn base(
         &self,
-        design: &DMatrix<f64>,
+        design: &Arc<Design>,
         all_rows: &[usize],
     ) -> (BaseFit, Vec<BaseFit>, Gap, usize) {
         let nobs = all_rows.len();
@@ -407,7 +419,7 @@ impl Engine {
 
     fn evaluate(
         &self,
-        design: &DMatrix<f64>,
+        design: &Design,
         full: &BaseFit,
         fold_fits: &[BaseFit],
         a: &DMatrix<f64>,
@@ -433,6 +445,16 @@ impl Engine {
                 .sum::<f64>()
                 .sqrt()
         });
+        // The parameter's unit direction inside the identified row space (1 when fully
+        // determined), against the same cut as the directions'.
+        let identifiable = (0..a.ncols())
+            .map(|c| {
+                (0..perp.rank())
+                    .map(|k| perp.vt[(k, c)].powi(2))
+                    .sum::<f64>()
+                    > EFFECT_RANK_TOL * EFFECT_RANK_TOL
+            })
+            .collect();
         let (mut ss, mut zz) = (0.0, 0.0);
         let mut count = 0;
         for fit in fold_fits {
@@ -446,6 +468,7 @@ impl Engine {
             df: perp.rank(),
             theta,
             theta_sigma,
+            identifiable,
             rms_after_m,
             heldout_ms_m2: ss / count.max(1) as f64,
             heldout_z2: zz / count.max(1) as f64,
@@ -501,10 +524,11 @@ pub(crate) fn diagnose_data(
     data: &Data,
     options: &DiagnoseOptions,
 ) -> Result<DataDiagnosis, DiagnoseError> {
+    let k_folds = options.folds.max(data.station_ids.len());
+    budget::check(data, k_folds, options.memory_limit_bytes)?;
     let solution = solve(&data.problem, &SolveOptions::default())?;
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
-    let k_folds = options.folds.max(data.station_ids.len());
     // Fold of a length: (point + station) mod K, so every held-out length has its point seen
     // from the other stations and its station from the other points (K ≥ stations: a point
     // loses at most one station per fold).
@@ -541,7 +565,7 @@ pub(crate) fn diagnose_data(
         available.retain(|k| *k != EffectKind::ThermalExpansion);
         notes.push("no material temperature in the log: thermal_expansion cannot be tested".into());
     }
-    let nominal_j = geom.jacobian(data);
+    let nominal_design = Arc::new(Design::nominal(data, &geom));
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
 
@@ -579,7 +603,7 @@ pub(crate) fn diagnose_data(
             };
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
-                gap_before = Some(engine.base(&nominal_j, &all_rows).2);
+                gap_before = Some(engine.base(&nominal_design, &all_rows).2);
                 for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
                     *r -= b;
                 }
@@ -597,9 +621,11 @@ pub(crate) fn diagnose_data(
     let mut final_round = 0;
     for round in 0..=LIBRARY.len() {
         final_round = round;
-        let design = accepted
-            .iter()
-            .fold(nominal_j.clone(), |d, m| hcat(&d, &m.columns(data, &geom)));
+        let design = Arc::new(nominal_design.with_effects(
+            accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+                hcat(&d, &m.columns(data, &geom))
+            }),
+        ));
         let (full, fold_fits, base_gap, count) = engine.base(&design, &all_rows);
         let base_heldout_z2 = base_gap.heldout_ratio.powi(2);
         if round == 0 {
@@ -827,12 +853,7 @@ pub(crate) fn diagnose_data(
         }
         None => (data, fit_data.as_ref(), chi2),
     };
-    let nominal_basis = {
-        let jw = DMatrix::from_fn(nobs, nominal_j.ncols(), |i, c| {
-            nominal_j[(i, c)] * engine.w[i]
-        });
-        Basis::new(&jw, RANK_TOL, 0.0)
-    };
+    let nominal_basis = Fit::new(nominal_design.clone(), (0..nobs).collect());
     let where_ = locate(
         data,
         &geom,
@@ -848,7 +869,8 @@ pub(crate) fn diagnose_data(
         alpha_part,
     );
     let mut where_ = where_;
-    let (held_out, skipped) = leave_one_station_out(data, &nominal_j, &solution.residuals_m);
+    let (held_out, skipped) =
+        fit::leave_one_station_out(data, &nominal_design, &solution.residuals_m);
     if !skipped.is_empty() {
         notes.push(format!(
             "leave-one-station-out: without {} the other stations do not determine the points; not predicted",
@@ -1113,15 +1135,21 @@ fn candidate_record(
     confounded_with: Vec<String>,
 ) -> Candidate {
     let mut params: BTreeMap<String, Value> = BTreeMap::new();
-    for ((name, v), s) in trial
+    for (((name, v), s), identifiable) in trial
         .model
         .param_names(data)
         .into_iter()
         .zip(trial.eval.theta.iter())
         .zip(trial.eval.theta_sigma.iter())
+        .zip(&trial.eval.identifiable)
     {
-        params.insert(name.clone(), (*v).into());
-        params.insert(format!("{name}.sigma"), (*s).into());
+        let (v, s) = if *identifiable {
+            ((*v).into(), (*s).into())
+        } else {
+            (Value::Null, Value::Null)
+        };
+        params.insert(name.clone(), v);
+        params.insert(format!("{name}.sigma"), s);
     }
     if let Some((g, k)) = trial.model.step {
         params.insert("pass".into(), data.pass_names[g].clone().into());
@@ -1181,8 +1209,8 @@ pub(crate) struct JointFit {
     pub effect_m: Vec<f64>,
     /// The effects' parameters (in the models' column order).
     pub theta: DVector<f64>,
-    /// Basis of the whitened joint design (geometry, then the effects' columns).
-    pub basis: Basis,
+    /// The whitened joint design's fit (geometry, then the effects' columns), all lengths.
+    pub basis: Fit,
 }
 
 /// Gauss–Newton on the geometry and the effects' parameters together, relinearising the
@@ -1194,22 +1222,25 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     let mut theta = DVector::zeros(widths.iter().sum());
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let design = |geom: &Geometry| {
-        models
-            .iter()
-            .fold(geom.jacobian(data), |d, m| hcat(&d, &m.columns(data, geom)))
+        let effects = models.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+            hcat(&d, &m.columns(data, geom))
+        });
+        Arc::new(Design::nominal(data, geom).with_effects(effects))
     };
-    let residual = |geom: &Geometry, a: &DMatrix<f64>, theta: &DVector<f64>| {
+    let residual = |geom: &Geometry, a: &Design, theta: &DVector<f64>| {
         let np = geom.len();
+        let mut x = DVector::zeros(np + theta.len());
+        x.rows_mut(np, theta.len()).copy_from(theta);
+        // Only the effects' part of the linear prediction: the geometry's is nonlinear.
         DVector::from_fn(nobs, |i, _| {
-            let effect: f64 = (0..theta.len()).map(|c| a[(i, np + c)] * theta[c]).sum();
-            data.obs[i].length_m - geom.predicted_m(data, i) - effect
+            data.obs[i].length_m - geom.predicted_m(data, i) - a.predict(i, &x)
         })
     };
+    let all_rows: Vec<usize> = (0..nobs).collect();
     for _ in 0..10 {
         let a = design(&geom);
         let r = residual(&geom, &a, &theta);
-        let aw = DMatrix::from_fn(nobs, a.ncols(), |i, c| a[(i, c)] * w[i]);
-        let basis = Basis::new(&aw, RANK_TOL, 0.0);
+        let basis = Fit::new(a, all_rows.clone());
         let step = basis.solve(&r.component_mul(&w));
         let np = geom.len();
         geom.apply(&step.as_slice()[..np]);
@@ -1223,14 +1254,13 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     }
     let a = design(&geom);
     let r = residual(&geom, &a, &theta);
-    let aw = DMatrix::from_fn(nobs, a.ncols(), |i, c| a[(i, c)] * w[i]);
     let np = geom.len();
-    let effect_m = (0..nobs)
-        .map(|i| (0..theta.len()).map(|c| a[(i, np + c)] * theta[c]).sum())
-        .collect();
+    let mut x = DVector::zeros(np + theta.len());
+    x.rows_mut(np, theta.len()).copy_from(&theta);
+    let effect_m = (0..nobs).map(|i| a.predict(i, &x)).collect();
     JointFit {
         effect_m,
-        basis: Basis::new(&aw, RANK_TOL, 0.0),
+        basis: Fit::new(a, all_rows),
         geom,
         resid_m: r.iter().copied().collect(),
         theta,

@@ -111,7 +111,7 @@ impl Basis {
                 vt: DMatrix::zeros(0, p),
             };
         }
-        let svd = a.clone().svd(true, true);
+        let svd = accurate_svd(a);
         let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
             return Basis {
                 u: DMatrix::zeros(n, 0),
@@ -165,6 +165,47 @@ impl Basis {
             .map(|i| self.u.row(i).norm_squared())
             .collect()
     }
+}
+
+/// Convergence tolerances of the SVD's bidiagonal iteration, tried in turn. nalgebra's
+/// default (5 ε, with an absolute test on the bidiagonal scaled to its largest entry) stops
+/// early on rank-deficient designs (the gauge's null directions): U S Vᵀ then misses the matrix
+/// by ~1e-8 of its largest entry and least-squares solutions by up to 1e-4 (nalgebra issue
+/// #1172). A tolerance below ε runs to rounding, but no single one is safe: on one 270-length
+/// design 1e-17 returned U S Vᵀ off by 6e5 of 2e8 while 1e-16 and 1e-18 were exact.
+const SVD_TOLERANCES: [f64; 5] = [1e-18, 1e-16, 1e-20, 1e-15, 1e-17];
+/// Largest entry of U S Vᵀ − A, relative to A's largest, of an SVD taken as converged
+/// (rounding leaves ~1e-14; nalgebra's early stop ~1e-8).
+const SVD_RECONSTRUCTION: f64 = 1e-12;
+
+/// The thin SVD, checked: the first of `SVD_TOLERANCES` whose U S Vᵀ reproduces `a` to
+/// `SVD_RECONSTRUCTION`; the best of them should none (never seen).
+pub fn accurate_svd(a: &DMatrix<f64>) -> nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn> {
+    let max_iterations = 1000 + 100 * a.nrows().min(a.ncols());
+    let scale = a.amax();
+    let mut best: Option<(f64, nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn>)> = None;
+    for eps in SVD_TOLERANCES {
+        let Some(svd) = a.clone().try_svd(true, true, eps, max_iterations) else {
+            continue;
+        };
+        let error = match (&svd.u, &svd.v_t) {
+            (Some(u), Some(vt)) => {
+                let mut us = u.clone();
+                for (k, mut column) in us.column_iter_mut().enumerate() {
+                    column *= svd.singular_values[k];
+                }
+                (us * vt - a).amax()
+            }
+            _ => f64::INFINITY,
+        };
+        if error <= SVD_RECONSTRUCTION * scale {
+            return svd;
+        }
+        if best.as_ref().is_none_or(|(e, _)| error < *e) {
+            best = Some((error, svd));
+        }
+    }
+    best.map_or_else(|| a.clone().svd(true, true), |(_, svd)| svd)
 }
 
 /// Largest cosine of the principal angles between span(a) and span(b) (orthonormal columns).

@@ -1,0 +1,94 @@
+//! The memory a diagnosis needs, estimated from the session's size before any of its work, and
+//! a clear refusal of a request the machine cannot hold (rather than an allocation failure).
+
+use super::data::Data;
+use super::effects::{EffectModel, LIBRARY};
+
+const F64: u64 = 8;
+/// Margin over the estimate for the allocator and what the sum leaves out (vectors of single
+/// lengths, the points level's bounded dense blocks).
+const MARGIN: f64 = 1.5;
+
+#[derive(Debug, thiserror::Error)]
+#[error(
+    "diagnosing {lengths} lengths ({points} points, {stations} stations) needs about \
+     {needed_mib} MiB, more than the {available_mib} MiB available ({available_from}); diagnose a \
+     shorter session, or on a machine with more free memory"
+)]
+pub struct TooLarge {
+    pub lengths: usize,
+    pub points: usize,
+    pub stations: usize,
+    pub needed_mib: u64,
+    pub available_mib: u64,
+    /// Where the available figure comes from (`MemAvailable` in /proc/meminfo, or the option).
+    pub available_from: String,
+}
+
+/// Bytes the diagnosis of `data` with `folds` cross-validation folds allocates at its peak
+/// (beyond the session and its extracted data, already in memory): the fits of every fold
+/// (points eliminated: a 3 × 3 block per point and the reduced system of stations, segments
+/// and effects), the candidates' effect columns and their projections, and the
+/// leave-one-station-out blocks.
+pub fn estimate_bytes(data: &Data, folds: usize) -> u64 {
+    let n = data.obs.len() as u64;
+    let points = data.problem.nominal_points.len() as u64;
+    let segments = data.problem.segments.len() as u64;
+    let widths: Vec<u64> = LIBRARY
+        .iter()
+        .map(|&k| EffectModel::plain(k).param_names(data).len() as u64)
+        .collect();
+    let all_effects: u64 = widths.iter().sum();
+    let widest = widths.iter().copied().max().unwrap_or(0);
+    let stations = data.station_ids.len() as u64;
+    let global = 3 * stations + segments + all_effects;
+    // One fit: row lists (3 words per row), the points' blocks, the reduced system and its
+    // eigen-decomposition, the null-space basis.
+    let fit = 3 * n * F64
+        + 9 * points * F64
+        + 4 * global * global * F64
+        + 8 * (3 * points + global) * F64;
+    let fits = (folds as u64 + 3) * fit;
+    // Designs alive at once (rows and effect columns) and every candidate's projected basis.
+    let designs = 3 * n * (8 * F64 + all_effects * F64);
+    let candidates = n * all_effects * F64 + 6 * n * widest * F64;
+    // The change-point search's and leverages' per-point rows of the reduced system.
+    let reduced = 3 * points * global * F64;
+    // Leave one station out: its held lengths against the reduced system.
+    let held = n.div_ceil(stations.max(1));
+    let loso = 4 * held * global * F64;
+    ((fits + designs + candidates + reduced + loso) as f64 * MARGIN) as u64
+}
+
+/// `MemAvailable` of /proc/meminfo in bytes, when the system reports it.
+pub fn available_bytes() -> Option<u64> {
+    let text = std::fs::read_to_string("/proc/meminfo").ok()?;
+    text.lines()
+        .find_map(|l| l.strip_prefix("MemAvailable:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<u64>().ok())
+        .map(|kib| kib * 1024)
+}
+
+/// Refuse, before any work, a diagnosis estimated to need more than `limit` bytes (None: the
+/// machine's available memory; no check where the system does not report it).
+pub fn check(data: &Data, folds: usize, limit: Option<u64>) -> Result<(), TooLarge> {
+    let (available, source) = match limit {
+        Some(l) => (l, "the memory limit of the options".to_string()),
+        None => match available_bytes() {
+            Some(a) => (a, "MemAvailable in /proc/meminfo".to_string()),
+            None => return Ok(()),
+        },
+    };
+    let needed = estimate_bytes(data, folds);
+    if needed <= available {
+        return Ok(());
+    }
+    Err(TooLarge {
+        lengths: data.obs.len(),
+        points: data.problem.nominal_points.len(),
+        stations: data.station_ids.len(),
+        needed_mib: needed.div_ceil(1 << 20),
+        available_mib: available >> 20,
+        available_from: source,
+    })
+}

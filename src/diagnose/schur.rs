@@ -1,0 +1,870 @@
+//! The diagnosis's linear algebra on the structure of the multilateration design, as the solve
+//! exploits it: each length sees one point (3 columns), its station (3) and its beam segment
+//! (1), plus a few dense effect columns. The points are eliminated block by block (3 × 3); what
+//! remains is the reduced (Schur complement) system of the stations, segments and effects,
+//! whose size does not grow with the points. Every projection, least-squares solve, leverage,
+//! prediction variance and null-space test the diagnosis needs comes from these blocks; the
+//! dense design (lengths × parameters) is never built.
+//!
+//! With A the points' columns and B the rest (whitened), the column space of [A B] is
+//! col(A) ⊕ col(B̃), B̃ = (I − P_A) B, and the reduced matrix S = B̃ᵀB̃ = Σ_p (B_pᵀB_p −
+//! C_pᵀ M_p⁺ C_p) with M_p = A_pᵀA_p and C_p = A_pᵀB_p summed over point p's rows.
+
+use std::sync::Arc;
+
+use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
+
+use super::data::Data;
+use super::effects::Geometry;
+
+/// Relative eigenvalue below which a direction of a point's 3 × 3 block or of the reduced
+/// system is not identifiable. Eigenvalues are squared singular values: 1e-12 is a singular
+/// value 1e-6 of the largest, far above the rounding that the gauge directions are left with
+/// after the elimination (eigenvalues ~1e-16 of the largest) and far below the real directions
+/// (condition < 1e4 in singular value, eigenvalues above 1e-8 of the largest) once the reduced
+/// system is equilibrated (columns of unit norm, whatever their units): the same rank as the
+/// dense SVD's cut (`stats::RANK_TOL`) on these designs (`tests/diagnose_oracle.rs`).
+pub const EIGEN_TOL: f64 = 1e-12;
+
+/// One length's place in the linearised model.
+#[derive(Debug, Clone, Copy)]
+struct Row {
+    point: usize,
+    station: usize,
+    segment: usize,
+    /// Unit vector from the point to the station.
+    u: Vector3<f64>,
+    /// Whitening weight 1/σ.
+    w: f64,
+}
+
+/// The linearised design around a geometry, columns in the order of
+/// `Geometry::jacobian` (points, stations, segments) followed by the effect columns.
+#[derive(Debug, Clone)]
+pub struct Design {
+    n_points: usize,
+    n_stations: usize,
+    n_segments: usize,
+    rows: Vec<Row>,
+    /// Unwhitened effect columns (metres per unit parameter, one row per length).
+    effects: DMatrix<f64>,
+}
+
+impl Design {
+    /// The nominal model's design at `geom`, weighted by the lengths' declared σ.
+    pub fn nominal(data: &Data, geom: &Geometry) -> Design {
+        let rows = data
+            .obs
+            .iter()
+            .enumerate()
+            .map(|(i, o)| Row {
+                point: o.point,
+                station: o.station,
+                segment: o.segment,
+                u: geom.beam(data, i).0,
+                w: 1.0 / o.sigma_m,
+            })
+            .collect();
+        Design {
+            n_points: geom.points.len(),
+            n_stations: geom.stations.len(),
+            n_segments: geom.distances_m.len(),
+            rows,
+            effects: DMatrix::zeros(data.obs.len(), 0),
+        }
+    }
+
+    /// The same design with `effects` (unwhitened, one row per length) as its extra columns.
+    pub fn with_effects(&self, effects: DMatrix<f64>) -> Design {
+        Design {
+            effects,
+            ..self.clone()
+        }
+    }
+
+    pub fn n_points(&self) -> usize {
+        self.n_points
+    }
+
+    pub fn lengths(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Columns of the geometry: 3 per point, 3 per station, 1 per segment.
+    pub fn geometry_params(&self) -> usize {
+        3 * self.n_points + 3 * self.n_stations + self.n_segments
+    }
+
+    pub fn n_params(&self) -> usize {
+        3 * self.n_points + self.n_global()
+    }
+
+    /// Columns after the points': stations, segments, effects.
+    pub fn n_global(&self) -> usize {
+        3 * self.n_stations + self.n_segments + self.effects.ncols()
+    }
+
+    pub fn effect_columns(&self) -> usize {
+        self.effects.ncols()
+    }
+
+    pub fn point_of(&self, i: usize) -> usize {
+        self.rows[i].point
+    }
+
+    pub fn station_of(&self, i: usize) -> usize {
+        self.rows[i].station
+    }
+
+    /// Global columns (index after the points') of row i's station and segment.
+    pub fn own_columns(&self, station: usize, segments: &[usize]) -> Vec<usize> {
+        let mut own: Vec<usize> = (0..3).map(|a| 3 * station + a).collect();
+        own.extend(segments.iter().map(|s| 3 * self.n_stations + s));
+        own
+    }
+
+    /// Whitened coefficients of row i on its point's columns.
+    pub fn point_coefficients(&self, i: usize) -> Vector3<f64> {
+        self.a(i)
+    }
+
+    fn a(&self, i: usize) -> Vector3<f64> {
+        let r = &self.rows[i];
+        -r.u * r.w
+    }
+
+    /// Whitened station and segment entries of row i (global column, value).
+    fn sparse(&self, i: usize) -> [(usize, f64); 4] {
+        let r = &self.rows[i];
+        let s = 3 * r.station;
+        [
+            (s, r.u.x * r.w),
+            (s + 1, r.u.y * r.w),
+            (s + 2, r.u.z * r.w),
+            (3 * self.n_stations + r.segment, -r.w),
+        ]
+    }
+
+    /// Row i's whitened global entries (stations, segment, then every effect column).
+    fn global_entries(&self, i: usize, out: &mut Vec<(usize, f64)>) {
+        out.clear();
+        out.extend_from_slice(&self.sparse(i));
+        let first = 3 * self.n_stations + self.n_segments;
+        let w = self.rows[i].w;
+        for c in 0..self.effects.ncols() {
+            out.push((first + c, self.effects[(i, c)] * w));
+        }
+    }
+
+    /// Whitened row i's global part as a dense vector.
+    fn global_dense(&self, i: usize) -> DVector<f64> {
+        let mut v = DVector::zeros(self.n_global());
+        let mut entries = Vec::new();
+        self.global_entries(i, &mut entries);
+        for (c, x) in entries {
+            v[c] += x;
+        }
+        v
+    }
+
+    pub fn weight(&self, i: usize) -> f64 {
+        self.rows[i].w
+    }
+
+    /// Unwhitened row i times x (full parameter order): the linearised predicted length.
+    pub fn predict(&self, i: usize, x: &DVector<f64>) -> f64 {
+        let r = &self.rows[i];
+        let g = 3 * self.n_points;
+        let mut sum = 0.0;
+        for a in 0..3 {
+            sum += -r.u[a] * x[3 * r.point + a] + r.u[a] * x[g + 3 * r.station + a];
+        }
+        sum -= x[g + 3 * self.n_stations + r.segment];
+        let first = g + 3 * self.n_stations + self.n_segments;
+        for c in 0..self.effects.ncols() {
+            sum += self.effects[(i, c)] * x[first + c];
+        }
+        sum
+    }
+
+    /// The dense unwhitened design (test oracle on small problems).
+    pub fn to_dense(&self) -> DMatrix<f64> {
+        let mut x = DMatrix::zeros(self.rows.len(), self.n_params());
+        let g = 3 * self.n_points;
+        for (i, r) in self.rows.iter().enumerate() {
+            for a in 0..3 {
+                x[(i, 3 * r.point + a)] = -r.u[a];
+            }
+            for (c, v) in self.sparse(i) {
+                x[(i, g + c)] = v / r.w;
+            }
+            for c in 0..self.effects.ncols() {
+                x[(i, g + 3 * self.n_stations + self.n_segments + c)] = self.effects[(i, c)];
+            }
+        }
+        x
+    }
+}
+
+/// Pseudo-inverse of a symmetric 3 × 3 block with the relative eigenvalue cut, and the
+/// directions cut.
+fn pinv3(m: &Matrix3<f64>) -> (Matrix3<f64>, Vec<Vector3<f64>>) {
+    let eig = m.symmetric_eigen();
+    let top = eig.eigenvalues.amax();
+    let mut inv = Matrix3::zeros();
+    let mut null = Vec::new();
+    for k in 0..3 {
+        let v = eig.eigenvectors.column(k).into_owned();
+        let l = eig.eigenvalues[k];
+        if l > EIGEN_TOL * top && l > 0.0 {
+            inv += v * v.transpose() / l;
+        } else {
+            null.push(v);
+        }
+    }
+    (inv, null)
+}
+
+/// The least-squares fit of a design on a set of its rows, points eliminated: what the dense
+/// `stats::Basis` (thin SVD) gave, from the blocks.
+pub struct Schur {
+    design: Arc<Design>,
+    /// The fit's rows; vectors "over the rows" are indexed by position in this list.
+    rows: Vec<usize>,
+    /// Positions of each point's rows (CSR: point p's are `point_rows[point_start[p]..point_start[p + 1]]`).
+    point_start: Vec<usize>,
+    point_rows: Vec<usize>,
+    /// M_p⁺ per point.
+    m_pinv: Vec<Matrix3<f64>>,
+    point_rank: usize,
+    /// The reduced system's kept eigenvectors over √eigenvalue: S⁺ = W Wᵀ.
+    w_red: DMatrix<f64>,
+    /// Orthonormal basis of the design's null space over these rows (full parameter order):
+    /// the reduced system's null directions with the points' response, and the points' own
+    /// null directions (a point no row of the fit sees, or sees from one line only).
+    null_dense: DMatrix<f64>,
+    point_null: Vec<(usize, Vector3<f64>)>,
+}
+
+/// Per point of a fit: C_pᵀ y for a 3-vector y is Σ_rows b_i (a_i · y); these helpers walk a
+/// point's rows once.
+impl Schur {
+    pub fn new(design: Arc<Design>, rows: Vec<usize>) -> Schur {
+        let n = design.n_points;
+        let g = design.n_global();
+        let mut point_start = vec![0usize; n + 1];
+        for &i in &rows {
+            point_start[design.rows[i].point + 1] += 1;
+        }
+        for p in 0..n {
+            point_start[p + 1] += point_start[p];
+        }
+        let mut fill = point_start.clone();
+        let mut point_rows = vec![0usize; rows.len()];
+        for (pos, &i) in rows.iter().enumerate() {
+            let p = design.rows[i].point;
+            point_rows[fill[p]] = pos;
+            fill[p] += 1;
+        }
+        let mut m_pinv = Vec::with_capacity(n);
+        let mut point_null = Vec::new();
+        let mut point_rank = 0;
+        let mut s = DMatrix::<f64>::zeros(g, g);
+        // Squared norm of each global column before the elimination: the scale of the
+        // reduced system's equilibration.
+        let mut column_norm2 = vec![0.0; g];
+        let mut entries = Vec::new();
+        // Local column slots of the current point's touched global columns.
+        let mut slot = vec![usize::MAX; g];
+        let mut cols: Vec<usize> = Vec::new();
+        let mut c_local: Vec<Vector3<f64>> = Vec::new();
+        for p in 0..n {
+            let members = &point_rows[point_start[p]..point_start[p + 1]];
+            let mut m = Matrix3::zeros();
+            cols.clear();
+            c_local.clear();
+            for &pos in members {
+                let i = rows[pos];
+                let a = design.a(i);
+                m += a * a.transpose();
+                design.global_entries(i, &mut entries);
+                for (x, &(cx, vx)) in entries.iter().enumerate() {
+                    column_norm2[cx] += vx * vx;
+                    // D = Σ b bᵀ (its entries summed per pair of the row's columns).
+                    for &(cy, vy) in &entries[x..] {
+                        s[(cx, cy)] += vx * vy;
+                        if cx != cy {
+                            s[(cy, cx)] += vx * vy;
+                        }
+                    }
+                    if slot[cx] == usize::MAX {
+                        slot[cx] = cols.len();
+                        cols.push(cx);
+                        c_local.push(Vector3::zeros());
+                    }
+                    c_local[slot[cx]] += a * vx;
+                }
+            }
+            let (inv, null) = pinv3(&m);
+            point_rank += 3 - null.len();
+            point_null.extend(null.into_iter().map(|v| (p, v)));
+            // S −= C_pᵀ M_p⁺ C_p on the touched columns.
+            let h: Vec<Vector3<f64>> = c_local.iter().map(|c| inv * c).collect();
+            for (x, &cx) in cols.iter().enumerate() {
+                for (y, &cy) in cols.iter().enumerate() {
+                    s[(cx, cy)] -= c_local[x].dot(&h[y]);
+                }
+            }
+            for &c in &cols {
+                slot[c] = usize::MAX;
+            }
+            m_pinv.push(inv);
+        }
+        // Symmetrise against the rounding of the two triangles' sums, and equilibrate: Ŝ =
+        // D⁻¹ S D⁻¹ with D the columns' norms, so that the rank cut does not depend on the
+        // columns' units. An effect column whose whitened entries are ~1e-7 of a station's
+        // (air refraction: dn·L ≈ 1e-7 m per unit) has an eigenvalue ~1e-14 of the stations'
+        // in S, under any cut that the normal equations' rounding allows, while the dense SVD
+        // (cut 1e-9 in singular value) keeps it. Columns no row touches keep the scale 1.
+        let scale: Vec<f64> = column_norm2
+            .iter()
+            .map(|&n2| if n2 > 0.0 { n2.sqrt() } else { 1.0 })
+            .collect();
+        let s = DMatrix::from_fn(g, g, |r, c| {
+            0.5 * (s[(r, c)] + s[(c, r)]) / (scale[r] * scale[c])
+        });
+        let eig = s.symmetric_eigen();
+        let top = eig.eigenvalues.amax();
+        let keep: Vec<usize> = (0..g)
+            .filter(|&k| eig.eigenvalues[k] > EIGEN_TOL * top && eig.eigenvalues[k] > 0.0)
+            .collect();
+        let null_red: Vec<usize> = (0..g).filter(|k| !keep.contains(k)).collect();
+        // S's generalised inverse D⁻¹ Ŝ⁺ D⁻¹ = W Wᵀ: every use (projections, estimable
+        // predictions, solves whose null part is removed) is the same for any of them.
+        let w_red = DMatrix::from_fn(g, keep.len(), |r, k| {
+            eig.eigenvectors[(r, keep[k])] / eig.eigenvalues[keep[k]].sqrt() / scale[r]
+        });
+        let mut fit = Schur {
+            design,
+            rows,
+            point_start,
+            point_rows,
+            m_pinv,
+            point_rank,
+            w_red,
+            null_dense: DMatrix::zeros(0, 0),
+            point_null,
+        };
+        // Null directions of the whole design: (−M_p⁺ C_p v, v) for each null v of S.
+        let offset = 3 * n;
+        let mut null = DMatrix::zeros(offset + g, null_red.len());
+        for (z, &k) in null_red.iter().enumerate() {
+            // Ŝ v̂ = 0 ⇔ S D⁻¹ v̂ = 0.
+            let v = DVector::from_fn(g, |r, _| eig.eigenvectors[(r, k)] / scale[r]);
+            let cv = fit.c_times(&v);
+            for p in 0..n {
+                let x = -(fit.m_pinv[p] * cv[p]);
+                for a in 0..3 {
+                    null[(3 * p + a, z)] = x[a];
+                }
+            }
+            null.view_mut((offset, z), (g, 1)).copy_from(&v);
+        }
+        fit.null_dense = orthonormal_columns(null);
+        fit
+    }
+
+    /// Identifiable directions: the points' kept directions plus the reduced system's.
+    pub fn rank(&self) -> usize {
+        self.point_rank + self.w_red.ncols()
+    }
+
+    pub fn rows(&self) -> &[usize] {
+        &self.rows
+    }
+
+    pub fn design(&self) -> &Design {
+        &self.design
+    }
+
+    fn members(&self, p: usize) -> &[usize] {
+        &self.point_rows[self.point_start[p]..self.point_start[p + 1]]
+    }
+
+    /// C_p v for every point (v over the global columns).
+    fn c_times(&self, v: &DVector<f64>) -> Vec<Vector3<f64>> {
+        let d = &self.design;
+        let mut entries = Vec::new();
+        let mut out = vec![Vector3::zeros(); d.n_points];
+        for &i in &self.rows {
+            d.global_entries(i, &mut entries);
+            let bv: f64 = entries.iter().map(|&(c, x)| x * v[c]).sum();
+            out[d.rows[i].point] += d.a(i) * bv;
+        }
+        out
+    }
+
+    /// Σ_p C_pᵀ t_p (t per point): Σ over the rows of b_i (a_i · t_p).
+    fn ct_times(&self, t: &[Vector3<f64>]) -> DVector<f64> {
+        let d = &self.design;
+        let mut out = DVector::zeros(d.n_global());
+        let mut entries = Vec::new();
+        for &i in &self.rows {
+            let at = d.a(i).dot(&t[d.rows[i].point]);
+            if at == 0.0 {
+                continue;
+            }
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                out[c] += x * at;
+            }
+        }
+        out
+    }
+
+    /// Xᵀ y over the fit's rows (y by position): the normal equations' right-hand side.
+    fn xt(&self, y: &DVector<f64>) -> DVector<f64> {
+        let d = &self.design;
+        let offset = 3 * d.n_points;
+        let mut out = DVector::zeros(d.n_params());
+        let mut entries = Vec::new();
+        for (pos, &i) in self.rows.iter().enumerate() {
+            let a = d.a(i) * y[pos];
+            let p = d.rows[i].point;
+            for k in 0..3 {
+                out[3 * p + k] += a[k];
+            }
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                out[offset + c] += x * y[pos];
+            }
+        }
+        out
+    }
+
+    /// The minimum-norm x with N x = v, N = XᵀX over the fit's rows (v in its range).
+    pub fn normal_solve(&self, v: &DVector<f64>) -> DVector<f64> {
+        let d = &self.design;
+        let n = d.n_points;
+        let offset = 3 * n;
+        let vp: Vec<Vector3<f64>> = (0..n)
+            .map(|p| self.m_pinv[p] * Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]))
+            .collect();
+        let reduced = v.rows(offset, d.n_global()) - self.ct_times(&vp);
+        let xg = &self.w_red * (self.w_red.transpose() * reduced);
+        let cx = self.c_times(&xg);
+        let mut x = DVector::zeros(d.n_params());
+        for p in 0..n {
+            let xp = self.m_pinv[p] * (Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]) - cx[p]);
+            x.fixed_rows_mut::<3>(3 * p).copy_from(&xp);
+        }
+        x.rows_mut(offset, d.n_global()).copy_from(&xg);
+        self.remove_null(&mut x);
+        x
+    }
+
+    /// x minus its part in the null space (the minimum-norm representative).
+    fn remove_null(&self, x: &mut DVector<f64>) {
+        if self.null_dense.ncols() > 0 {
+            let coeff = self.null_dense.transpose() * &*x;
+            *x -= &self.null_dense * coeff;
+        }
+        for (p, v) in &self.point_null {
+            let mut xp = x.fixed_rows_mut::<3>(3 * p);
+            let c = v.dot(&xp.clone_owned());
+            xp -= v * c;
+        }
+    }
+
+    /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
+    pub fn solve(&self, y: &DVector<f64>) -> DVector<f64> {
+        let mut x = self.normal_solve(&self.xt(y));
+        // One step of iterative refinement: the normal equations square the condition number.
+        let r = y - self.times(&x);
+        x += self.normal_solve(&self.xt(&r));
+        x
+    }
+
+    /// X x over the fit's rows (whitened, by position).
+    fn times(&self, x: &DVector<f64>) -> DVector<f64> {
+        let d = &self.design;
+        let offset = 3 * d.n_points;
+        let mut entries = Vec::new();
+        DVector::from_fn(self.rows.len(), |pos, _| {
+            let i = self.rows[pos];
+            let p = d.rows[i].point;
+            let xp = Vector3::new(x[3 * p], x[3 * p + 1], x[3 * p + 2]);
+            d.global_entries(i, &mut entries);
+            d.a(i).dot(&xp) + entries.iter().map(|&(c, v)| v * x[offset + c]).sum::<f64>()
+        })
+    }
+
+    /// y minus its projection on the design's column space (over the fit's rows).
+    pub fn project_off_vec(&self, y: &DVector<f64>) -> DVector<f64> {
+        // Twice: the second pass removes what rounding in the first left in the column space.
+        let once = self.project_off_once(y);
+        self.project_off_once(&once)
+    }
+
+    fn project_off_once(&self, y: &DVector<f64>) -> DVector<f64> {
+        let d = &self.design;
+        // Off the points' columns, point by point.
+        let mut tilde = y.clone();
+        self.project_off_points(&mut tilde);
+        // Off B̃ = (I − P_A) B: B̃ᵀ y = Bᵀ ỹ.
+        let mut entries = Vec::new();
+        let mut t = DVector::zeros(d.n_global());
+        for (pos, &i) in self.rows.iter().enumerate() {
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                t[c] += x * tilde[pos];
+            }
+        }
+        let z = &self.w_red * (self.w_red.transpose() * t);
+        let mut v = DVector::from_fn(self.rows.len(), |pos, _| {
+            d.global_entries(self.rows[pos], &mut entries);
+            entries.iter().map(|&(c, x)| x * z[c]).sum()
+        });
+        self.project_off_points(&mut v);
+        tilde - v
+    }
+
+    /// y ← (I − P_A) y, A the points' columns over the fit's rows.
+    fn project_off_points(&self, y: &mut DVector<f64>) {
+        let d = &self.design;
+        for p in 0..d.n_points {
+            let members = self.members(p);
+            let q: Vector3<f64> = members
+                .iter()
+                .map(|&pos| d.a(self.rows[pos]) * y[pos])
+                .sum();
+            let t = self.m_pinv[p] * q;
+            for &pos in members {
+                y[pos] -= d.a(self.rows[pos]).dot(&t);
+            }
+        }
+    }
+
+    /// Each column of m (rows by position) minus its projection on the column space.
+    pub fn project_off(&self, m: &DMatrix<f64>) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(m.nrows(), m.ncols());
+        for c in 0..m.ncols() {
+            out.set_column(c, &self.project_off_vec(&m.column(c).into_owned()));
+        }
+        out
+    }
+
+    /// Whether design row i (any row, unwhitened) lies in the row space of the fit: its part in
+    /// the null space is at most 1e-12 of its squared norm (rounding leaves ~1e-12), as the
+    /// dense test `|row|² − |Vᵀrow|²` did.
+    pub fn in_row_space(&self, i: usize) -> bool {
+        let d = &self.design;
+        let r = &d.rows[i];
+        let offset = 3 * d.n_points;
+        let w = r.w;
+        let mut entries = Vec::new();
+        d.global_entries(i, &mut entries);
+        let point = -r.u;
+        let mut norm2 = point.norm_squared();
+        for &(_, x) in &entries {
+            norm2 += (x / w).powi(2);
+        }
+        let mut outside = 0.0;
+        for z in 0..self.null_dense.ncols() {
+            let col = self.null_dense.column(z);
+            let mut dot = (0..3).map(|a| col[3 * r.point + a] * point[a]).sum::<f64>();
+            for &(c, x) in &entries {
+                dot += col[offset + c] * x / w;
+            }
+            outside += dot * dot;
+        }
+        for (p, v) in &self.point_null {
+            if *p == r.point {
+                outside += v.dot(&point).powi(2);
+            }
+        }
+        outside <= 1e-12 * norm2
+    }
+
+    /// Σ_j b_j (a_j · t) over point p's rows of the fit: C_pᵀ t, dense over the global columns.
+    fn ct_point(&self, p: usize, t: &Vector3<f64>, out: &mut DVector<f64>) {
+        let d = &self.design;
+        out.fill(0.0);
+        let mut entries = Vec::new();
+        for &pos in self.members(p) {
+            let i = self.rows[pos];
+            let at = d.a(i).dot(t);
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                out[c] += x * at;
+            }
+        }
+    }
+
+    /// Variance of the prediction row_i · x̂ (unwhitened rows, estimable ones: in the row
+    /// space) under unit whitened noise: row N⁺ rowᵀ, by the blocks.
+    pub fn prediction_variances(&self, held: &[usize]) -> Vec<f64> {
+        let d = &self.design;
+        let mut ct = DVector::zeros(d.n_global());
+        held.iter()
+            .map(|&i| {
+                let r = &d.rows[i];
+                let xp = -r.u;
+                let t = self.m_pinv[r.point] * xp;
+                self.ct_point(r.point, &t, &mut ct);
+                let mut xg = d.global_dense(i) / r.w;
+                xg -= &ct;
+                xp.dot(&t) + (self.w_red.transpose() * xg).norm_squared()
+            })
+            .collect()
+    }
+
+    /// The rows of U (the column space's orthonormal basis) in split form, for leverages and
+    /// the change-point search: per point F_p = Wᵀ C_pᵀ M_p⁺ (reduced × 3).
+    pub fn reduced(&self) -> Reduced {
+        let d = &self.design;
+        let r = self.w_red.ncols();
+        let mut f = Vec::with_capacity(d.n_points);
+        let mut ct = DVector::zeros(d.n_global());
+        for p in 0..d.n_points {
+            let mut fp = DMatrix::zeros(r, 3);
+            if !self.members(p).is_empty() {
+                for k in 0..3 {
+                    let t = self.m_pinv[p].column(k).into_owned();
+                    self.ct_point(p, &t, &mut ct);
+                    fp.set_column(k, &(self.w_red.transpose() * &ct));
+                }
+            }
+            f.push(fp);
+        }
+        Reduced { f, dim: r }
+    }
+
+    /// Row i's coordinates in the column space: (point, a_i, M_p⁺, ρ_i) with
+    /// |P_X v|² = Σ_p q_pᵀ M_p⁺ q_p + |Σ v_i ρ_i|², q_p = Σ_{i of p} v_i a_i.
+    pub fn row_parts(&self, red: &Reduced, i: usize) -> (usize, Vector3<f64>, DVector<f64>) {
+        let d = &self.design;
+        let p = d.rows[i].point;
+        let a = d.a(i);
+        let mut entries = Vec::new();
+        d.global_entries(i, &mut entries);
+        let mut rho = -(&red.f[p] * a);
+        for &(c, x) in &entries {
+            rho += self.w_red.row(c).transpose() * x;
+        }
+        (p, a, rho)
+    }
+
+    pub fn m_pinv(&self, p: usize) -> &Matrix3<f64> {
+        &self.m_pinv[p]
+    }
+
+    /// Diagonal of the hat matrix over the fit's rows (by position).
+    pub fn leverages(&self) -> Vec<f64> {
+        let red = self.reduced();
+        self.rows
+            .iter()
+            .map(|&i| {
+                let (p, a, rho) = self.row_parts(&red, i);
+                a.dot(&(self.m_pinv[p] * a)) + rho.norm_squared()
+            })
+            .collect()
+    }
+
+    /// Entries (cols × cols, full parameter order) of the pseudo-inverse of the normal matrix:
+    /// the covariance of those parameters under unit whitened noise.
+    pub fn pinv_block(&self, cols: &[usize]) -> DMatrix<f64> {
+        let np = self.design.n_params();
+        let mut out = DMatrix::zeros(cols.len(), cols.len());
+        for (k, &c) in cols.iter().enumerate() {
+            let mut e = DVector::zeros(np);
+            e[c] = 1.0;
+            self.remove_null(&mut e);
+            let x = self.normal_solve(&e);
+            for (l, &c2) in cols.iter().enumerate() {
+                out[(l, k)] = x[c2];
+            }
+        }
+        out
+    }
+
+    /// For leave-one-station-out: the point parts of the held rows' prediction covariance,
+    /// X_H N⁺ X_Hᵀ = blockdiag(A_H M⁺ A_Hᵀ) + F Fᵀ with F_i = Wᵀ C_pᵀ M_p⁺ a_i (whitened held
+    /// rows restricted to their points' columns).
+    pub fn held_point_covariance(&self, red: &Reduced, i: usize) -> (Vector3<f64>, DVector<f64>) {
+        let d = &self.design;
+        let p = d.rows[i].point;
+        let a = d.a(i);
+        (self.m_pinv[p] * a, &red.f[p] * a)
+    }
+}
+
+/// Per point F_p = Wᵀ C_pᵀ M_p⁺ of a fit.
+pub struct Reduced {
+    f: Vec<DMatrix<f64>>,
+    dim: usize,
+}
+
+impl Reduced {
+    /// Rank of the reduced system (rows of each F_p).
+    pub fn dim(&self) -> usize {
+        self.dim
+    }
+}
+
+/// Gram–Schmidt (twice) of the columns; columns that vanish are dropped.
+fn orthonormal_columns(m: DMatrix<f64>) -> DMatrix<f64> {
+    let mut kept: Vec<DVector<f64>> = Vec::new();
+    for c in 0..m.ncols() {
+        let mut v = m.column(c).into_owned();
+        let norm0 = v.norm();
+        for _ in 0..2 {
+            for q in &kept {
+                let d = q.dot(&v);
+                v -= q * d;
+            }
+        }
+        let norm = v.norm();
+        if norm > 1e-8 * norm0 && norm > 0.0 {
+            kept.push(v / norm);
+        }
+    }
+    DMatrix::from_fn(m.nrows(), kept.len(), |r, c| kept[c][r])
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::diagnose::stats::{Basis, RANK_TOL};
+
+    /// A small multilateration design: 6 stations around 30 points, one segment per station,
+    /// one effect column, and a point seen from one station only (a rank-deficient block); with
+    /// `tiny_effect` a second effect column ~1e-7 of the first.
+    fn small(tiny_effect: bool) -> Design {
+        let stations = [
+            Vector3::new(-1.0, -1.0, 0.2),
+            Vector3::new(2.5, -0.8, 0.6),
+            Vector3::new(2.2, 3.1, -0.3),
+            Vector3::new(-0.9, 2.8, 1.1),
+            Vector3::new(0.6, -1.5, 1.6),
+            Vector3::new(0.7, 3.6, 0.9),
+        ];
+        let points: Vec<Vector3<f64>> = (0..30)
+            .map(|k| {
+                Vector3::new(
+                    0.05 * k as f64,
+                    0.3 + 0.17 * (k % 5) as f64,
+                    0.2 * (k % 3) as f64 + 0.03 * (k % 7) as f64,
+                )
+            })
+            .collect();
+        let mut rows = Vec::new();
+        for (p, x) in points.iter().enumerate() {
+            for (s, st) in stations.iter().enumerate() {
+                if p == 29 && s > 0 {
+                    continue;
+                }
+                let v = st - x;
+                rows.push(Row {
+                    point: p,
+                    station: s,
+                    segment: s,
+                    u: v / v.norm(),
+                    w: 1.0 / (5e-8 * (1.0 + 0.1 * ((p + s) % 3) as f64)),
+                });
+            }
+        }
+        let effects = DMatrix::from_fn(rows.len(), 1 + usize::from(tiny_effect), |i, c| match c {
+            0 => 0.5 * rows[i].u.x * ((i % 7) as f64 - 3.0) / 3.0,
+            _ => 1e-7 * ((i * 13 % 17) as f64 - 8.0) / 8.0,
+        });
+        Design {
+            n_points: points.len(),
+            n_stations: stations.len(),
+            n_segments: stations.len(),
+            rows,
+            effects,
+        }
+    }
+
+    #[test]
+    fn blocks_match_the_dense_svd() {
+        let design = Arc::new(small(false));
+        // The pseudo-inverse block of the effect column and a station coordinate.
+        let cols = [design.n_params() - 1, 3 * 30 + 4];
+        check_against_the_dense_svd(design, true, &cols);
+    }
+
+    /// An effect column ~1e-7 of the stations' in the whitened design, like air refraction's
+    /// (dn·L): a rank cut that depends on the columns' units drops it. With parameters whose
+    /// units differ by 1e7 the minimum-norm solution's gauge part is fixed only to ~1e-8 of its
+    /// largest entry by either algebra, so the solve is compared on its fitted values and the
+    /// pseudo-inverse on the effects' (estimable) block.
+    #[test]
+    fn blocks_match_the_dense_svd_with_a_tiny_effect_column() {
+        let design = Arc::new(small(true));
+        let cols = [design.n_params() - 2, design.n_params() - 1];
+        check_against_the_dense_svd(design, false, &cols);
+    }
+
+    fn check_against_the_dense_svd(design: Arc<Design>, min_norm: bool, pinv_cols: &[usize]) {
+        let n = design.lengths();
+        let w = DVector::from_fn(n, |i, _| design.weight(i));
+        let dense = design.to_dense();
+        // Train on all rows but every fifth; check projections, solves, leverages, variances.
+        let train: Vec<usize> = (0..n).filter(|i| i % 5 != 2).collect();
+        let held: Vec<usize> = (0..n).filter(|i| i % 5 == 2).collect();
+        let xw = DMatrix::from_fn(train.len(), dense.ncols(), |r, c| {
+            dense[(train[r], c)] * w[train[r]]
+        });
+        let basis = Basis::new(&xw, RANK_TOL, 0.0);
+        let fit = Schur::new(design.clone(), train.clone());
+        assert_eq!(fit.rank(), basis.rank());
+        let y = DVector::from_fn(train.len(), |k, _| ((k * 37 % 11) as f64 - 5.0) * 0.3);
+        let close = |a: &DVector<f64>, b: &DVector<f64>, what: &str| {
+            let scale = a.amax().max(b.amax());
+            assert!((a - b).amax() <= 1e-9 * scale, "{what}: {a} vs {b}");
+        };
+        close(
+            &fit.project_off_vec(&y),
+            &basis.project_off_vec(&y),
+            "projection",
+        );
+        let (x, dense_x) = (fit.solve(&y), basis.solve(&y));
+        if min_norm {
+            close(&x, &dense_x, "minimum-norm solve");
+        }
+        close(&fit.times(&x), &(&xw * &dense_x), "fitted values");
+        let lev = DVector::from_vec(fit.leverages());
+        close(&lev, &DVector::from_vec(basis.leverages()), "leverages");
+        for &h in &held {
+            let row: Vec<f64> = dense.row(h).iter().copied().collect();
+            let r = DVector::from_vec(row.clone());
+            let inside = &basis.vt * &r;
+            let dense_in = r.norm_squared() - inside.norm_squared() <= 1e-12 * r.norm_squared();
+            assert_eq!(fit.in_row_space(h), dense_in, "row {h}");
+            if dense_in {
+                let v = fit.prediction_variances(&[h])[0];
+                let dv = basis.prediction_variance(&row);
+                assert!(
+                    (v - dv).abs() <= 1e-9 * dv,
+                    "variance of row {h}: {v} vs {dv}"
+                );
+            }
+        }
+        let cols = pinv_cols;
+        let block = fit.pinv_block(cols);
+        for (a, &ca) in cols.iter().enumerate() {
+            for (b, &cb) in cols.iter().enumerate() {
+                let d: f64 = (0..basis.rank())
+                    .map(|k| basis.vt[(k, ca)] * basis.vt[(k, cb)] / basis.s[k].powi(2))
+                    .sum();
+                assert!(
+                    (block[(a, b)] - d).abs() <= 1e-9 * d.abs().max(block[(a, a)]),
+                    "pinv {ca},{cb}: {} vs {d}",
+                    block[(a, b)]
+                );
+            }
+        }
+    }
+}
