@@ -229,3 +229,25 @@ fn damaged_other_kinds_and_repaired_copies_are_not_streamed() {
     std::fs::write(&path, &bytes[..bytes.len() / 2]).expect("write");
     assert!(stream_session(&path, &mut LengthStream::new("multilateration")).is_none());
 }
+
+/// Another recorder's sessions (tests/data/outside, copies of ../shared/sessions) stream to
+/// exactly the whole read's extraction.
+#[test]
+fn outside_sessions_stream_as_read_whole() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/outside");
+    for name in ["outside-clean-7", "outside-reversal-8"] {
+        let path = dir.join(name).join("session.mcap");
+        let session = read_session(&path).expect("session");
+        let tracer = session.tracers.keys().next().expect("tracer").clone();
+        let noise = NoiseModel::from_header(&session.header, &tracer);
+        let options = ExtractOptions::from_header(&session.header);
+        let whole = extract_points(&session, Some(&tracer), noise, &options).expect("extract");
+        let mut sink = LengthStream::new(&session.header.kind);
+        let streamed =
+            stream_session(&path, &mut sink).unwrap_or_else(|| panic!("{name} does not stream"));
+        let (lengths, streamed_tracer, _) = sink.finish().expect("begun");
+        assert_eq!(streamed_tracer, tracer);
+        assert_eq!(lengths, Lengths::of_extraction(&whole), "{name}");
+        assert_eq!(streamed.session.header, session.header);
+    }
+}
