@@ -171,7 +171,7 @@ impl LengthStream {
 }
 
 impl SessionSink for LengthStream {
-    fn begin(&mut self, header: &SessionHeader, tracers: &[String]) -> bool {
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
         let [tracer_id] = tracers else {
             return false;
         };
@@ -180,10 +180,13 @@ impl SessionSink for LengthStream {
         }
         let noise = NoiseModel::from_header(header, tracer_id);
         let options = ExtractOptions::from_header(header);
+        let mut pairing = Pairing::new(noise, options);
+        // A window takes two events (point_begin, point_end): no regrowth of the lengths.
+        pairing.measurements.reserve(run_events / 2);
         self.started = Some(Started {
             tracer_id: tracer_id.clone(),
             noise,
-            pairing: Pairing::new(noise, options),
+            pairing,
         });
         true
     }

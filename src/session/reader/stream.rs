@@ -14,13 +14,14 @@ use std::path::Path;
 
 use super::decoder::Decoder;
 use super::Stamped;
-use crate::session::messages::{RunEvent, SessionHeader, TracerSample};
+use crate::session::messages::{RunEvent, SessionHeader, TracerSample, TOPIC_EVENT};
 
 /// What consumes a streamed session.
 pub trait SessionSink {
-    /// The session header and the tracer ids the file defines (indices of `batch`'s
-    /// `tracers`). False: this sink does not take this session (the stream stops).
-    fn begin(&mut self, header: &SessionHeader, tracers: &[String]) -> bool;
+    /// The session header, the tracer ids the file defines (indices of `batch`'s `tracers`)
+    /// and how many run events the file's summary counts (a hint, bounded by the file's
+    /// size). False: this sink does not take this session (the stream stops).
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool;
     /// The next messages in log-time order: every message of the file whose log time lies
     /// between the previous batch's and this one's bound, each stream sorted. The sink takes
     /// what it keeps (the rest is dropped). False: stop the stream.
@@ -44,7 +45,7 @@ pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streame
         return None;
     }
     let summary = crate::session::summary::trusted_summary_of_file(&file, len, &name)?;
-    let mut reorder = Reorder::new(sink, &summary);
+    let mut reorder = Reorder::new(sink, &summary, len);
     let decoded = super::indexed::stream_indexed_file(&file, len, &name, &summary, &mut reorder);
     let mut dec = decoded.ok().flatten()?;
     if !dec.damages.is_empty() || !reorder.finish(&mut dec) {
@@ -81,6 +82,8 @@ pub(super) struct Reorder<'s> {
     later_start_ns: Vec<u128>,
     /// Each chunk's claimed earliest log time, in file order.
     start_ns: Vec<u64>,
+    /// The summary's count of run events, at most one per 16 bytes of the file.
+    run_events: usize,
     begun: bool,
     stopped: bool,
     tracers: Vec<Vec<Stamped<TracerSample>>>,
@@ -92,7 +95,16 @@ pub(super) struct Reorder<'s> {
 }
 
 impl<'s> Reorder<'s> {
-    fn new(sink: &'s mut dyn SessionSink, summary: &mcap::Summary) -> Self {
+    fn new(sink: &'s mut dyn SessionSink, summary: &mcap::Summary, file_bytes: u64) -> Self {
+        let run_events = summary.stats.as_ref().map_or(0, |stats| {
+            let counted: u64 = summary
+                .channels
+                .values()
+                .filter(|c| c.topic == TOPIC_EVENT)
+                .filter_map(|c| stats.channel_message_counts.get(&c.id))
+                .sum();
+            counted.min(file_bytes / 16)
+        });
         let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
         chunks.sort_by_key(|c| c.chunk_start_offset);
         let start_ns: Vec<u64> = chunks.iter().map(|c| c.message_start_time).collect();
@@ -104,6 +116,7 @@ impl<'s> Reorder<'s> {
             sink,
             later_start_ns,
             start_ns,
+            run_events: usize::try_from(run_events).unwrap_or(0),
             begun: false,
             stopped: false,
             tracers: Vec::new(),
@@ -162,7 +175,7 @@ impl<'s> Reorder<'s> {
                 .map(|(id, _)| id.clone())
                 .collect();
             self.begun = true;
-            if !self.sink.begin(&header.msg, &ids) {
+            if !self.sink.begin(&header.msg, &ids, self.run_events) {
                 self.stopped = true;
                 return false;
             }
@@ -186,7 +199,7 @@ impl<'s> Reorder<'s> {
                 return false;
             };
             self.begun = true;
-            if !self.sink.begin(&header.msg, &ids) {
+            if !self.sink.begin(&header.msg, &ids, self.run_events) {
                 return false;
             }
         }
