@@ -14,11 +14,11 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::{Duration, Instant};
 
-use geocal::extract::{extract_points, ExtractOptions, NoiseModel};
+use geocal::extract::{extract_points, ExtractOptions, LengthStream, NoiseModel};
 use geocal::session::messages::{
     DeviceInfo, MachineInfo, RunEvent, SessionHeader, TargetInfo, TracerSample, SESSION_FORMAT,
 };
-use geocal::session::reader::{read_session, read_session_bytes, Session};
+use geocal::session::reader::{read_session, read_session_bytes, stream_session, Session};
 use geocal::session::recorder::{Recorder, RecorderOptions};
 use geocal::solve::multilateration::{
     best_fit_rigid, initial_stations, solve, MultilaterationProblem, SolveOptions,
@@ -349,6 +349,7 @@ fn phases() {
     let mut build = Phase::new("build problem");
     let mut adjust = Phase::new("solve + covariance (solve::multilateration::solve)");
     let mut method = Phase::new("method::solve_session (extract + build + solve + results)");
+    let mut streamed = Phase::new("stream_session + LengthStream (read + extract, streamed)");
     let mut whole = Phase::new("run::solve_file (everything)");
     for _ in 0..repeats {
         let bytes = file_read.run(|| std::fs::read(&path).expect("read file"));
@@ -389,6 +390,20 @@ fn phases() {
         });
         drop(results);
         drop(session);
+        let (read_back, lengths, held) = streamed.run(|| {
+            let mut sink = LengthStream::new("multilateration");
+            let read_back = stream_session(&path, &mut sink).expect("a clean file streams");
+            let held = sink.peak_samples;
+            (read_back, sink.finish().expect("begun").0, held)
+        });
+        streamed.note = format!(
+            "{} windows used; at most {held} tracer samples, {} messages waiting, {} chunks \
+             decoded at once",
+            lengths.measurements.len(),
+            read_back.peak_held_messages,
+            read_back.peak_chunks_in_flight
+        );
+        drop((read_back, lengths));
         let results = whole
             .run(|| geocal::kinds::solve_file(&path, &Default::default()).expect("solve_file"));
         let r = results.multilateration().expect("tracer results");
@@ -409,7 +424,7 @@ fn phases() {
     println!("| phase | wall time | CPU time | peak heap | heap after | notes |");
     println!("|---|---:|---:|---:|---:|---|");
     for p in [
-        &file_read, &decode, &read, &extract, &build, &adjust, &method, &whole,
+        &file_read, &decode, &read, &extract, &build, &adjust, &method, &streamed, &whole,
     ] {
         let cpu = if p.cpu.is_empty() {
             "-".to_string()

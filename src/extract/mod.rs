@@ -1,9 +1,14 @@
 //! From raw streams to measured points: stillstand detection (sans-I/O, shared with the
 //! live sequencer) and extraction of the settled part of each dwell window of a session.
 
+pub mod lengths;
+mod pairing;
 pub mod points;
 pub mod stillstand;
+#[cfg(test)]
+mod stream_tests;
 
+pub use lengths::{LengthMeasurement, LengthStream, Lengths};
 pub use points::{
     extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement,
 };

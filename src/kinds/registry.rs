@@ -331,6 +331,13 @@ pub(crate) fn solve_and_write(
 
 /// Read a session file and solve it with the method of its kind.
 pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
+    // A clean multilateration session streams: its tracer samples are never held whole.
+    if let Some(solved) = crate::method::multilateration::solve_file_streaming(path, settings) {
+        let results = solved
+            .map_err(MethodError::from)
+            .with_context(|| format!("solving {}", path.display()))?;
+        return Ok(Results::new(results));
+    }
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
     solve_session(&session, settings).with_context(|| {
         let file = path.display();

@@ -8,10 +8,13 @@ use serde::{Deserialize, Serialize};
 
 use crate::solve::misfit::Misfit;
 
-use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel};
+use crate::extract::{
+    extract_points, ExtractOptions, Extraction, LengthMeasurement, LengthStream, Lengths,
+    NoiseModel,
+};
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
-use crate::session::messages::MachineInfo;
+use crate::session::messages::{MachineInfo, SessionHeader};
 use crate::session::reader::{DamagedChunk, Session};
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
@@ -168,29 +171,94 @@ pub fn solve_detailed(
     let declared_noise = NoiseModel::from_header(&session.header, &tracer_id);
     let options = ExtractOptions::from_header(&session.header);
     let extraction = extract_points(session, Some(&tracer_id), declared_noise, &options)?;
+    let lengths = Lengths::of_extraction(&extraction);
+    drop(extraction);
+    let extracted = Extracted {
+        header: &session.header,
+        damaged: &session.damaged,
+        lengths,
+        tracer_id,
+        declared_noise,
+    };
+    solve_extracted(extracted, settings, Some(session))
+}
+
+/// Solve a multilateration session file as `geocal solve` does, streaming it: the tracer
+/// samples go straight to the point extraction and are never held whole. None when the file
+/// cannot be streamed exactly (not a clean multilateration session with one tracer, a
+/// repaired copy, effects to fit, which need the whole session): read it whole then.
+pub fn solve_file_streaming(
+    path: &std::path::Path,
+    settings: &SolveSettings,
+) -> Option<Result<MultilaterationResults, MultilaterationError>> {
+    if settings.effects.is_some() {
+        return None;
+    }
+    let mut sink = LengthStream::new(crate::config::PlanKind::Multilateration.as_str());
+    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
+    let (lengths, tracer_id, declared_noise) = sink.finish()?;
+    let session = streamed.session;
+    let extracted = Extracted {
+        header: &session.header,
+        damaged: &session.damaged,
+        lengths,
+        tracer_id,
+        declared_noise,
+    };
+    Some(solve_extracted(extracted, settings, None).map(|(results, _)| results))
+}
+
+/// A session's extracted lengths and what the results say about them.
+struct Extracted<'a> {
+    header: &'a SessionHeader,
+    damaged: &'a [DamagedChunk],
+    lengths: Lengths,
+    tracer_id: String,
+    declared_noise: Option<NoiseModel>,
+}
+
+/// The adjustment of extracted lengths; `session` is needed only for the effects' fit.
+fn solve_extracted(
+    extracted: Extracted<'_>,
+    settings: &SolveSettings,
+    session: Option<&Session>,
+) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
+    let Extracted {
+        header,
+        damaged,
+        lengths: extraction,
+        tracer_id,
+        declared_noise,
+    } = extracted;
     if extraction.measurements.is_empty() {
         return Err(MultilaterationError::NoPoints {
             dropped: extraction.dropped.len(),
         });
     }
-    let mut problem = Problem::build(&extraction);
+    let mut problem = Problem::of_lengths(&extraction);
     // Effects modelled: the lengths corrected by their jointly fitted contribution (the
     // geometry of the joint optimum is the solve of the corrected lengths).
-    let correction = if let Some(effects) = &settings.effects {
-        let c = effects
-            .correction(session)
-            .map_err(MultilaterationError::Effects)?;
-        for (obs, dl) in problem
-            .problem
-            .observations
-            .iter_mut()
-            .zip(&c.length_correction_m)
-        {
-            obs.length_m -= dl;
+    let correction = match (&settings.effects, session) {
+        (Some(effects), Some(session)) => {
+            let c = effects
+                .correction(session)
+                .map_err(MultilaterationError::Effects)?;
+            for (obs, dl) in problem
+                .problem
+                .observations
+                .iter_mut()
+                .zip(&c.length_correction_m)
+            {
+                obs.length_m -= dl;
+            }
+            Some(c)
         }
-        Some(c)
-    } else {
-        None
+        (Some(_), None) => {
+            return Err(MultilaterationError::Effects(
+                "fitting effects needs the whole session".into(),
+            ))
+        }
+        (None, _) => None,
     };
     let (mut solution, robust) = match settings.huber {
         None => (adjust(&problem.problem, &SolveOptions::default())?, None),
@@ -203,8 +271,8 @@ pub fn solve_detailed(
                 .zip(&extraction.measurements)
                 .filter(|((w, _), _)| **w < 1.0)
                 .map(|((w, res), m)| DownWeighted {
-                    station: m.station.clone(),
-                    target: m.target.clone(),
+                    station: extraction.station(m).to_owned(),
+                    target: extraction.target(m).to_owned(),
                     point: m.point,
                     pass: m.pass,
                     weight: *w,
@@ -298,7 +366,7 @@ pub fn solve_detailed(
     let mut notes = Vec::new();
     let extra_covariance = correction.as_ref().map(|c| &c.point_covariance_m2);
     let geometric_errors =
-        match geometric_errors(session, &problem, &solution, extra_covariance, &mut notes) {
+        match geometric_errors(header, &problem, &solution, extra_covariance, &mut notes) {
             Ok(value) => Some(value),
             Err(why) => {
                 notes.push(format!("no geometric errors: {why}"));
@@ -312,7 +380,7 @@ pub fn solve_detailed(
     let results = MultilaterationResults {
         format: RESULTS_FORMAT.into(),
         kind: "multilateration".into(),
-        session_id: session.header.session_id.clone(),
+        session_id: header.session_id.clone(),
         residual_rms_m: solution.residual_rms_m,
         chi2_per_dof: if dof > 0 {
             solution.chi2 / dof as f64
@@ -340,7 +408,7 @@ pub fn solve_detailed(
             windows_repeated: extraction.repeated.len(),
             dropped_reasons,
             samples_used: extraction.measurements.iter().map(|m| m.samples).sum(),
-            damaged_chunks: session.damaged.clone(),
+            damaged_chunks: damaged.to_vec(),
         },
         effects: correction.map(|c| c.effects).unwrap_or_default(),
         geometric_errors,
@@ -357,13 +425,13 @@ const MAX_DECOMPOSITION_WORK: f64 = 1e9;
 
 /// Decompose the measured volumetric errors into the machine's geometric errors.
 fn geometric_errors(
-    session: &Session,
+    header: &SessionHeader,
     problem: &Problem,
     solution: &MultilaterationSolution,
     extra_covariance: Option<&nalgebra::DMatrix<f64>>,
     notes: &mut Vec<String>,
 ) -> Result<serde_json::Value, String> {
-    let machine = &session.header.machine;
+    let machine = &header.machine;
     let structure = Structure::parse(&machine.structure).map_err(|e| e.to_string())?;
     let observations = point_observations(machine, &problem.points, &problem.axes_m, solution)?;
     let options = DecompositionOptions::default();
@@ -458,39 +526,40 @@ pub struct Problem {
 
 impl Problem {
     pub fn build(extraction: &Extraction) -> Problem {
+        Problem::of_lengths(&Lengths::of_extraction(extraction))
+    }
+
+    pub fn of_lengths(extraction: &Lengths) -> Problem {
+        let target = |m: &LengthMeasurement| extraction.targets[m.target].as_str();
         // Point order: by target, then plan index, so results read in plan order.
         let mut first_seen: BTreeMap<(&str, usize), usize> = BTreeMap::new();
         for (i, m) in extraction.measurements.iter().enumerate() {
-            first_seen.entry((m.target.as_str(), m.point)).or_insert(i);
+            first_seen.entry((target(m), m.point)).or_insert(i);
         }
         let point_index: BTreeMap<(&str, usize), usize> = first_seen
             .keys()
             .enumerate()
             .map(|(k, key)| (*key, k))
             .collect();
-        let axes = |m: &crate::extract::PointMeasurement| {
-            let axis = |name: &str| m.axes.get(name).copied();
-            Some([axis("x")?, axis("y")?, axis("z")?])
-        };
         let mut points = Vec::with_capacity(first_seen.len());
         let mut axes_m = Vec::with_capacity(first_seen.len());
         for &i in first_seen.values() {
             let m = &extraction.measurements[i];
-            points.push((m.target.clone(), m.point, m.nominal_m));
-            axes_m.push(axes(m));
+            points.push((target(m).to_owned(), m.point, m.nominal_m));
+            axes_m.push(m.axes_m);
         }
         let mut segment_index: BTreeMap<(usize, &str, u32), usize> = BTreeMap::new();
         let mut segments = Vec::new();
         let mut observations = Vec::with_capacity(extraction.measurements.len());
         for m in &extraction.measurements {
             let segment = *segment_index
-                .entry((m.station_index, m.target.as_str(), m.beam_segment))
+                .entry((m.station_index, target(m), m.beam_segment))
                 .or_insert_with(|| {
-                    segments.push((m.station_index, m.target.clone(), m.beam_segment));
+                    segments.push((m.station_index, target(m).to_owned(), m.beam_segment));
                     segments.len() - 1
                 });
             observations.push(LengthObservation {
-                point: point_index[&(m.target.as_str(), m.point)],
+                point: point_index[&(target(m), m.point)],
                 segment,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,

@@ -175,6 +175,9 @@ struct Layout {
     /// Per point, the global reduced-system columns it couples to (CSR with `point_cols_start`).
     cols: Vec<usize>,
     point_cols_start: Vec<usize>,
+    /// Per point, its local column indices in order of their global column (CSR with
+    /// `point_cols_start`): the elimination walks the lower triangle without a test.
+    by_col: Vec<usize>,
     /// Per entry of `obs_order`: local column of its station block (3 wide) and of its segment.
     obs_local_station: Vec<usize>,
     obs_local_segment: Vec<usize>,
@@ -351,6 +354,7 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
     }
     let mut cols = Vec::new();
     let mut point_cols_start = Vec::with_capacity(n + 1);
+    let mut by_col = Vec::new();
     let mut obs_local_station = vec![0usize; obs_order.len()];
     let mut obs_local_segment = vec![0usize; obs_order.len()];
     // Marks: global column → local column for the current point (usize::MAX = unset).
@@ -378,6 +382,9 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
         for &c in &cols[start..] {
             local_of[c] = usize::MAX;
         }
+        let mut order: Vec<usize> = (0..cols.len() - start).collect();
+        order.sort_unstable_by_key(|&l| cols[start + l]);
+        by_col.extend(order);
     }
     point_cols_start.push(cols.len());
     let fixed = choose_gauge(&problem.nominal_points)?;
@@ -389,6 +396,7 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
         point_obs_start,
         cols,
         point_cols_start,
+        by_col,
         obs_local_station,
         obs_local_segment,
         fixed,
@@ -686,24 +694,30 @@ impl Normal {
                     + inv[(a, 2)] * self.w[off + 2 * k + c];
             }
         }
-        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+        let span = layout.point_cols_start[i]..layout.point_cols_start[i + 1];
+        let (cols, by_col) = (&layout.cols[span.clone()], &layout.by_col[span]);
         let yg = self.yg[i];
-        for (r, &gr) in cols.iter().enumerate() {
+        let (y0, y1, y2) = (
+            &self.y[off..off + k],
+            &self.y[off + k..off + 2 * k],
+            &self.y[off + 2 * k..off + 3 * k],
+        );
+        let nv = layout.nv;
+        let a = self.a.as_mut_slice();
+        for (p, &r) in by_col.iter().enumerate() {
+            let gr = cols[r];
             let w0 = self.w[off + r];
             let w1 = self.w[off + k + r];
             let w2 = self.w[off + 2 * k + r];
             if w0 == 0.0 && w1 == 0.0 && w2 == 0.0 {
                 continue;
             }
-            for (c, &gc) in cols.iter().enumerate() {
-                // The update is symmetric and the Cholesky factorisation reads only the lower
-                // triangle: half the work, the same factor. Writing (gc, gr) walks the
-                // column-major storage.
-                if gc < gr {
-                    continue;
-                }
-                self.a[(gc, gr)] -=
-                    w0 * self.y[off + c] + w1 * self.y[off + k + c] + w2 * self.y[off + 2 * k + c];
+            // The update is symmetric and the Cholesky factorisation reads only the lower
+            // triangle: half the work, the same factor. Column gr of the column-major
+            // storage, rows gc >= gr (the columns after r in global order).
+            let column = &mut a[gr * nv..(gr + 1) * nv];
+            for &c in &by_col[p..] {
+                column[cols[c]] -= w0 * y0[c] + w1 * y1[c] + w2 * y2[c];
             }
             self.b[gr] -= w0 * yg[0] + w1 * yg[1] + w2 * yg[2];
         }

@@ -3,6 +3,7 @@
 use super::decoder::Decoder;
 use super::pipeline::decode_chunks;
 use super::source::Bytes;
+use super::stream::Reorder;
 use super::streams::RawLog;
 use super::ReadError;
 use crate::session::damage::IndexCounts;
@@ -30,8 +31,23 @@ pub(super) fn read_indexed_file(
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     let source = Bytes::File { file, len };
     let threads = threads.clamp(1, MAX_DECODE_THREADS);
-    let decoded = read_indexed_from(source, name, summary, threads, false, None)?;
+    let decoded = read_indexed_from(source, name, summary, threads, false, None, None)?;
     Ok(decoded.filter(|dec| dec.damages.is_empty()))
+}
+
+/// As `read_indexed_file`, the tracer samples and run events handed to `reorder` chunk by chunk
+/// instead of kept; None (or damages in the decoder) when the stream is not the session.
+pub(super) fn stream_indexed_file(
+    file: &std::fs::File,
+    len: u64,
+    name: &str,
+    summary: &mcap::Summary,
+    reorder: &mut Reorder<'_>,
+) -> Result<Option<Decoder>, ReadError> {
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let source = Bytes::File { file, len };
+    let threads = threads.clamp(1, MAX_DECODE_THREADS);
+    read_indexed_from(source, name, summary, threads, false, None, Some(reorder))
 }
 
 /// Decompressing and parsing is most of the time a large session takes to read, and chunks
@@ -70,6 +86,7 @@ pub(super) fn read_indexed_bounded(
         threads,
         raw,
         max_in_flight,
+        None,
     )
 }
 
@@ -80,6 +97,7 @@ fn read_indexed_from(
     threads: usize,
     raw: bool,
     max_in_flight: Option<usize>,
+    mut reorder: Option<&mut Reorder<'_>>,
 ) -> Result<Option<Decoder>, ReadError> {
     let Some(stats) = &summary.stats else {
         return Ok(None);
@@ -94,6 +112,10 @@ fn read_indexed_from(
     };
     for channel in summary.channels.values() {
         dec.define_channel(channel.id, &channel.topic, &channel.message_encoding);
+        // A streamed read keeps no tracer samples or events: nothing to reserve for.
+        if reorder.is_some() {
+            continue;
+        }
         if let Some(&n) = stats.channel_message_counts.get(&channel.id) {
             // Counts come from the file and may be corrupt: only a hint, bounded by its size.
             dec.reserve(channel.id, n.min(source.len() / 16));
@@ -125,21 +147,28 @@ fn read_indexed_from(
         && stats.channel_message_counts.values().sum::<u64>() == stats.message_count;
     let threads = if all_defined { threads } else { 1 };
     let serial = match source.memory() {
+        Some(_) if reorder.is_some() => None,
         Some(buf) if threads <= 1 || ranges.len() < 2 => Some(buf),
         Some(_) => None,
         // From a file, chunk by chunk: only when the threads' result is certain.
         None if all_defined => None,
+        None if reorder.is_some() => return Ok(None),
         None => return Ok(None),
     };
     let (failure, undefined) = if let Some(buf) = serial {
         (dec.feed_chunks(buf, &ranges).err(), false)
     } else {
+        let mut merged = |dec: &mut Decoder, k: usize| match reorder.as_deref_mut() {
+            Some(reorder) => reorder.merged(dec, k),
+            None => true,
+        };
         let outcome = decode_chunks(
             &mut dec,
             source,
             &ranges,
             threads,
             max_in_flight.unwrap_or(threads * CHUNKS_IN_FLIGHT_PER_THREAD),
+            &mut merged,
         );
         dec.peak_chunks_in_flight = outcome.peak_in_flight;
         (outcome.failure, outcome.undefined)

@@ -23,13 +23,15 @@ pub(super) struct Outcome {
 
 /// Decodes `ranges` (whole chunk records of `source`, in file order) on `threads` workers into
 /// `dec`, exactly as feeding them one by one would, with at most `max_in_flight` decoded
-/// chunks alive at a time (and, reading from a file, their stored bytes).
+/// chunks alive at a time (and, reading from a file, their stored bytes). `merged(dec, k)` runs
+/// after chunk `k` (file order) is merged; false stops the read (no failure is recorded).
 pub(super) fn decode_chunks(
     dec: &mut Decoder,
     source: Bytes<'_>,
     ranges: &[(usize, usize)],
     threads: usize,
     max_in_flight: usize,
+    merged: &mut dyn FnMut(&mut Decoder, usize) -> bool,
 ) -> Outcome {
     let gate = Gate {
         state: Mutex::new(GateState::default()),
@@ -76,15 +78,19 @@ pub(super) fn decode_chunks(
         drop(sender);
         let mut waiting = BTreeMap::new();
         let mut next = 0;
+        let mut stopped = false;
         for (i, result, permit) in decoded {
             waiting.insert(i, (result, permit));
             while let Some((result, permit)) = waiting.remove(&next) {
                 let (start, end) = ranges[next];
                 next += 1;
                 // The first failure in file order decides, as in a serial read.
-                if outcome.failure.is_none() {
+                if outcome.failure.is_none() && !stopped {
                     outcome.failure = merge(dec, result, start, end);
                     if outcome.failure.is_some() {
+                        gate.stop();
+                    } else if !merged(dec, next - 1) {
+                        stopped = true;
                         gate.stop();
                     }
                 }

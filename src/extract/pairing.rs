@@ -1,0 +1,277 @@
+//! The window pairing shared by the whole-session and the streaming extraction: run events in
+//! log-time order open and close dwell windows, and each closed window's tracer samples are
+//! reduced to one settled length. The caller decides what a measured window becomes.
+
+use std::collections::BTreeMap;
+
+use super::points::{DroppedWindow, ExtractOptions, NoiseModel, StationSeen, DAMAGED_CHUNK};
+use super::stillstand::{Stillstand, StillstandDetector};
+use crate::session::messages::{RunEvent, TracerSample};
+use crate::session::reader::Stamped;
+
+/// A `point_begin` whose `point_end` has not come yet.
+pub(crate) struct OpenWindow {
+    pub(crate) log_time_ns: u64,
+    pub(crate) station: String,
+    pub(crate) point: usize,
+    pub(crate) pass: usize,
+    pub(crate) target: String,
+    pub(crate) nominal_m: [f64; 3],
+    pub(crate) axes: BTreeMap<String, f64>,
+    pub(crate) approach: BTreeMap<String, i8>,
+}
+
+/// A closed window whose samples settled.
+pub(crate) struct Measured {
+    pub(crate) window: OpenWindow,
+    pub(crate) station_index: usize,
+    pub(crate) settled: Settled,
+}
+
+pub(crate) struct Settled {
+    pub(crate) mean_m: f64,
+    pub(crate) sigma_m: f64,
+    pub(crate) count: usize,
+    pub(crate) from_s: f64,
+    pub(crate) to_s: f64,
+    pub(crate) beam_segment: u32,
+}
+
+/// Event-by-event state of the extraction; `M` is what a measured window becomes.
+pub(crate) struct Pairing<M> {
+    noise: Option<NoiseModel>,
+    options: ExtractOptions,
+    previous_ns: u64,
+    open: Option<OpenWindow>,
+    station_index: BTreeMap<String, usize>,
+    pub(crate) stations: Vec<StationSeen>,
+    pub(crate) measurements: Vec<M>,
+    pub(crate) dropped: Vec<DroppedWindow>,
+    pub(crate) repeated: Vec<DroppedWindow>,
+}
+
+impl<M> Pairing<M> {
+    pub(crate) fn new(noise: Option<NoiseModel>, options: ExtractOptions) -> Self {
+        Pairing {
+            noise,
+            options,
+            previous_ns: 0,
+            open: None,
+            station_index: BTreeMap::new(),
+            stations: Vec::new(),
+            measurements: Vec::new(),
+            dropped: Vec::new(),
+            repeated: Vec::new(),
+        }
+    }
+
+    /// The log time of the open window's `point_begin`: no earlier sample is needed any more.
+    pub(crate) fn open_since_ns(&self) -> Option<u64> {
+        self.open.as_ref().map(|w| w.log_time_ns)
+    }
+
+    fn index_of(&mut self, id: &str, hint: Option<[f64; 3]>) -> usize {
+        let next = self.station_index.len();
+        let stations = &mut self.stations;
+        *self.station_index.entry(id.to_string()).or_insert_with(|| {
+            stations.push(StationSeen {
+                id: id.to_string(),
+                hint_m: hint,
+            });
+            next
+        })
+    }
+
+    /// One event, in log-time order. `samples` (sorted by log time) must hold every sample of
+    /// the selected tracer from the open window's begin up to at least this event's log time;
+    /// `lost(from, to)` says whether messages in that span may be lost in a damaged chunk.
+    pub(crate) fn event(
+        &mut self,
+        event: &Stamped<RunEvent>,
+        samples: &[Stamped<TracerSample>],
+        lost: &impl Fn(u64, u64) -> bool,
+        make: &mut impl FnMut(Measured) -> M,
+    ) {
+        let since_ns = std::mem::replace(&mut self.previous_ns, event.log_time_ns);
+        let reason = |w: &OpenWindow, to_ns: u64, otherwise: &'static str| {
+            if lost(w.log_time_ns, to_ns) {
+                DAMAGED_CHUNK
+            } else {
+                otherwise
+            }
+        };
+        match &event.msg {
+            RunEvent::StationBegin {
+                station, hint_m, ..
+            } => {
+                self.index_of(station, *hint_m);
+            }
+            RunEvent::PointBegin {
+                station,
+                point,
+                pass,
+                target,
+                nominal_m,
+                axes,
+                approach,
+            } => {
+                if let Some(w) = self.open.take() {
+                    let why = reason(&w, event.log_time_ns, "point_begin without point_end");
+                    self.dropped.push(dropped(&w, why));
+                }
+                self.open = Some(OpenWindow {
+                    log_time_ns: event.log_time_ns,
+                    station: station.clone(),
+                    point: *point,
+                    pass: *pass,
+                    target: target.clone(),
+                    nominal_m: *nominal_m,
+                    axes: axes.clone(),
+                    approach: approach.clone(),
+                });
+            }
+            RunEvent::Rehome { .. } => {
+                if let Some(w) = self.open.take() {
+                    self.repeated
+                        .push(dropped(&w, "beam broken: repeated after re-homing"));
+                }
+            }
+            RunEvent::Resume { .. } => {
+                if let Some(w) = self.open.take() {
+                    self.repeated
+                        .push(dropped(&w, "run interrupted: repeated after resume"));
+                }
+            }
+            RunEvent::UnplannedStop { .. } => {
+                if let Some(w) = self.open.take() {
+                    self.repeated
+                        .push(dropped(&w, "not the planned stop (unplanned_stop)"));
+                }
+            }
+            RunEvent::PointEnd {
+                station,
+                point,
+                pass,
+            } => {
+                let Some(w) = self.open.take() else {
+                    // Its point_begin was in a damaged chunk.
+                    if lost(since_ns, event.log_time_ns) {
+                        self.dropped.push(DroppedWindow {
+                            station: station.clone(),
+                            point: *point,
+                            pass: *pass,
+                            reason: DAMAGED_CHUNK.into(),
+                        });
+                    }
+                    return;
+                };
+                let why = reason(
+                    &w,
+                    event.log_time_ns,
+                    "point_end does not match its point_begin",
+                );
+                if (&w.station, w.point, w.pass) != (station, *point, *pass) || why == DAMAGED_CHUNK
+                {
+                    self.dropped.push(dropped(&w, why));
+                    return;
+                }
+                let station_index = self.index_of(&w.station, None);
+                let window = in_window(samples, w.log_time_ns, event.log_time_ns);
+                match settle(window, self.noise, &self.options) {
+                    Ok(settled) => {
+                        let measured = make(Measured {
+                            window: w,
+                            station_index,
+                            settled,
+                        });
+                        self.measurements.push(measured);
+                    }
+                    Err(reason) => self.dropped.push(dropped(&w, reason)),
+                }
+            }
+            _ => {}
+        }
+    }
+
+    /// The session is over: a window still open never closed.
+    pub(crate) fn finish(&mut self, lost: &impl Fn(u64, u64) -> bool) {
+        if let Some(w) = self.open.take() {
+            let why = if lost(w.log_time_ns, u64::MAX) {
+                DAMAGED_CHUNK
+            } else {
+                "no point_end (session cut short?)"
+            };
+            self.dropped.push(dropped(&w, why));
+        }
+    }
+}
+
+fn dropped(w: &OpenWindow, reason: &str) -> DroppedWindow {
+    DroppedWindow {
+        station: w.station.clone(),
+        point: w.point,
+        pass: w.pass,
+        reason: reason.to_string(),
+    }
+}
+
+/// Samples with begin <= log_time <= end (the slice is sorted by log_time).
+fn in_window(
+    samples: &[Stamped<TracerSample>],
+    begin_ns: u64,
+    end_ns: u64,
+) -> &[Stamped<TracerSample>] {
+    let from = samples.partition_point(|s| s.log_time_ns < begin_ns);
+    let to = samples.partition_point(|s| s.log_time_ns <= end_ns);
+    &samples[from..to.max(from)]
+}
+
+/// The last settled stretch of a dwell window, averaged.
+fn settle(
+    window: &[Stamped<TracerSample>],
+    noise: Option<NoiseModel>,
+    options: &ExtractOptions,
+) -> Result<Settled, &'static str> {
+    let first = window.first().ok_or("no tracer samples in the window")?;
+    let beam_segment = first.msg.beam_segment;
+    if window
+        .iter()
+        .any(|s| !s.msg.tracking || s.msg.beam_segment != beam_segment)
+    {
+        return Err("beam broken inside the window");
+    }
+    let mut detector = StillstandDetector::new(options.window_s, options.tolerance_m);
+    let mut stretch: Option<(f64, f64)> = None;
+    for s in window {
+        if let Stillstand::Settled { since_s } = detector.push(s.msg.t_s, s.msg.length_m) {
+            stretch = Some((since_s, s.msg.t_s));
+        }
+    }
+    let (from_s, to_s) = stretch.ok_or("never settled inside the window")?;
+    let settled = || {
+        window
+            .iter()
+            .filter(move |s| s.msg.t_s >= from_s && s.msg.t_s <= to_s)
+            .map(|s| s.msg.length_m)
+    };
+    let count = settled().count();
+    if count < 2 {
+        return Err("settled stretch holds fewer than 2 samples");
+    }
+    let mean_m = settled().sum::<f64>() / count as f64;
+    let sigma_m = match noise {
+        Some(model) => model.mean_sigma(count).at_zero_beam_m,
+        None => {
+            let var = settled().map(|v| (v - mean_m).powi(2)).sum::<f64>() / (count - 1) as f64;
+            var.sqrt().max(1e-12) / (count as f64).sqrt()
+        }
+    };
+    Ok(Settled {
+        mean_m,
+        sigma_m,
+        count,
+        from_s,
+        to_s,
+        beam_segment,
+    })
+}

@@ -1,0 +1,233 @@
+//! The streaming read of a complete, clean file: chunks decoded in parallel as for
+//! `read_session`, but the tracer samples and run events go to a consumer in log-time order as
+//! soon as no later chunk can hold an earlier one, and are not kept. The other (small) streams
+//! are assembled into the `Session` as usual.
+//!
+//! Order: a chunk's index gives the earliest log time of its messages, so once chunk k is
+//! merged (file order), every message before the earliest start of the chunks after k has been
+//! seen (the watermark). What lies below it is sorted (stable: equal times keep file order)
+//! and handed on: the concatenation of the hand-overs is exactly the stable sort of the whole
+//! stream that `read_session` gives. A chunk holding a message earlier than its index says
+//! ends the stream (the caller reads the whole session instead).
+
+use std::path::Path;
+
+use super::decoder::Decoder;
+use super::Stamped;
+use crate::session::messages::{RunEvent, SessionHeader, TracerSample, TOPIC_EVENT};
+
+/// What consumes a streamed session.
+pub trait SessionSink {
+    /// The session header, the tracer ids the file defines (indices of `batch`'s `tracers`)
+    /// and how many run events the file's summary counts (a hint, bounded by the file's
+    /// size). False: this sink does not take this session (the stream stops).
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool;
+    /// The next messages in log-time order: every message of the file whose log time lies
+    /// between the previous batch's and this one's bound, each stream sorted. The sink takes
+    /// what it keeps (the rest is dropped). False: stop the stream.
+    fn batch(
+        &mut self,
+        tracers: &mut [Vec<Stamped<TracerSample>>],
+        events: &mut Vec<Stamped<RunEvent>>,
+    ) -> bool;
+}
+
+/// Streams the session at `path` through `sink`. None whenever the stream could differ from `read_session`'s (no trusted summary, damaged
+/// chunks, chunks out of their index's order, a sink that stopped, odd writers): the caller
+/// then discards what the sink saw and reads the whole session.
+pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streamed> {
+    let name = path.display().to_string();
+    let file = std::fs::File::open(path).ok()?;
+    let len = file.metadata().ok()?.len();
+    let mut magic = [0u8; 8];
+    std::os::unix::fs::FileExt::read_exact_at(&file, &mut magic, 0).ok()?;
+    if magic[..] != mcap::MAGIC[..] {
+        return None;
+    }
+    let summary = crate::session::summary::trusted_summary_of_file(&file, len, &name)?;
+    let mut reorder = Reorder::new(sink, &summary, len);
+    let decoded = super::indexed::stream_indexed_file(&file, len, &name, &summary, &mut reorder);
+    let mut dec = decoded.ok().flatten()?;
+    if !dec.damages.is_empty() || !reorder.finish(&mut dec) {
+        return None;
+    }
+    let peak_held_messages = reorder.peak_held;
+    let peak_chunks_in_flight = dec.peak_chunks_in_flight;
+    let session = dec.into_session(&name, len).ok()?;
+    Some(Streamed {
+        session,
+        peak_held_messages,
+        peak_chunks_in_flight,
+    })
+}
+
+/// A streamed read's result.
+#[derive(Debug)]
+pub struct Streamed {
+    /// Everything but the tracer samples and run events (which went to the sink): `tracers`
+    /// keeps each tracer's id with an empty stream, `events` is empty.
+    pub session: super::Session,
+    /// The most tracer samples and run events the read held at once, waiting for their turn
+    /// in log-time order (besides the decoded chunks in flight).
+    pub peak_held_messages: usize,
+    /// The most decoded chunks alive at once.
+    pub peak_chunks_in_flight: usize,
+}
+
+/// Holds the tracer samples and events that a later chunk might still precede.
+pub(super) struct Reorder<'s> {
+    sink: &'s mut dyn SessionSink,
+    /// For each chunk in file order: the earliest start among the chunks after it (beyond
+    /// every log time after the last chunk).
+    later_start_ns: Vec<u128>,
+    /// Each chunk's claimed earliest log time, in file order.
+    start_ns: Vec<u64>,
+    /// The summary's count of run events, at most one per 16 bytes of the file.
+    run_events: usize,
+    begun: bool,
+    stopped: bool,
+    tracers: Vec<Vec<Stamped<TracerSample>>>,
+    events: Vec<Stamped<RunEvent>>,
+    out_tracers: Vec<Vec<Stamped<TracerSample>>>,
+    out_events: Vec<Stamped<RunEvent>>,
+    /// The most tracer samples and events held here at once (tests).
+    pub(super) peak_held: usize,
+}
+
+impl<'s> Reorder<'s> {
+    fn new(sink: &'s mut dyn SessionSink, summary: &mcap::Summary, file_bytes: u64) -> Self {
+        let run_events = summary.stats.as_ref().map_or(0, |stats| {
+            let counted: u64 = summary
+                .channels
+                .values()
+                .filter(|c| c.topic == TOPIC_EVENT)
+                .filter_map(|c| stats.channel_message_counts.get(&c.id))
+                .sum();
+            counted.min(file_bytes / 16)
+        });
+        let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
+        chunks.sort_by_key(|c| c.chunk_start_offset);
+        let start_ns: Vec<u64> = chunks.iter().map(|c| c.message_start_time).collect();
+        let mut later_start_ns = vec![u128::MAX; start_ns.len()];
+        for k in (0..start_ns.len().saturating_sub(1)).rev() {
+            later_start_ns[k] = later_start_ns[k + 1].min(u128::from(start_ns[k + 1]));
+        }
+        Reorder {
+            sink,
+            later_start_ns,
+            start_ns,
+            run_events: usize::try_from(run_events).unwrap_or(0),
+            begun: false,
+            stopped: false,
+            tracers: Vec::new(),
+            events: Vec::new(),
+            out_tracers: Vec::new(),
+            out_events: Vec::new(),
+            peak_held: 0,
+        }
+    }
+
+    /// Chunk `k` (file order) was merged into `dec`: takes its samples and events, hands on
+    /// what can no longer be preceded. False: stop reading.
+    pub(super) fn merged(&mut self, dec: &mut Decoder, k: usize) -> bool {
+        if self.stopped || !dec.damages.is_empty() {
+            self.stopped = true;
+            return false;
+        }
+        let Some(&claimed_start) = self.start_ns.get(k) else {
+            self.stopped = true;
+            return false;
+        };
+        if self.tracers.len() < dec.tracers.streams.len() {
+            self.tracers
+                .resize_with(dec.tracers.streams.len(), Vec::new);
+        }
+        let mut earliest = u64::MAX;
+        for (held, (_, new)) in self.tracers.iter_mut().zip(&mut dec.tracers.streams) {
+            earliest = new.iter().map(|s| s.log_time_ns).fold(earliest, u64::min);
+            held.append(new);
+        }
+        earliest = dec
+            .events
+            .iter()
+            .map(|e| e.log_time_ns)
+            .fold(earliest, u64::min);
+        self.events.append(&mut dec.events);
+        if earliest < claimed_start {
+            tracing::debug!(
+                "{}: chunk {k} holds a message at {earliest} ns, before its index's start \
+                 {claimed_start} ns; reading the whole session",
+                dec.file
+            );
+            self.stopped = true;
+            return false;
+        }
+        let held = self.events.len() + self.tracers.iter().map(Vec::len).sum::<usize>();
+        self.peak_held = self.peak_held.max(held);
+        if !self.begun {
+            let Some(header) = &dec.header else {
+                return true;
+            };
+            let ids: Vec<String> = dec
+                .tracers
+                .streams
+                .iter()
+                .map(|(id, _)| id.clone())
+                .collect();
+            self.begun = true;
+            if !self.sink.begin(&header.msg, &ids, self.run_events) {
+                self.stopped = true;
+                return false;
+            }
+        }
+        self.release(self.later_start_ns[k])
+    }
+
+    /// The read is over: hands on the rest. False when the stream stopped or never began.
+    fn finish(&mut self, dec: &mut Decoder) -> bool {
+        if self.stopped || !self.begun && dec.header.is_none() {
+            return false;
+        }
+        if !self.begun {
+            let ids: Vec<String> = dec
+                .tracers
+                .streams
+                .iter()
+                .map(|(id, _)| id.clone())
+                .collect();
+            let Some(header) = &dec.header else {
+                return false;
+            };
+            self.begun = true;
+            if !self.sink.begin(&header.msg, &ids, self.run_events) {
+                return false;
+            }
+        }
+        self.release(u128::MAX) && !self.stopped
+    }
+
+    /// Hands on every held message with a log time below `bound_ns`.
+    fn release(&mut self, bound_ns: u128) -> bool {
+        self.out_tracers.resize_with(self.tracers.len(), Vec::new);
+        for (held, out) in self.tracers.iter_mut().zip(&mut self.out_tracers) {
+            take_below(held, out, bound_ns);
+        }
+        take_below(&mut self.events, &mut self.out_events, bound_ns);
+        let go_on = self.sink.batch(&mut self.out_tracers, &mut self.out_events);
+        for out in &mut self.out_tracers {
+            out.clear();
+        }
+        self.out_events.clear();
+        if !go_on {
+            self.stopped = true;
+        }
+        go_on
+    }
+}
+
+/// Moves the messages of `held` below `bound_ns` to `out`, sorted by log time (stable).
+fn take_below<T>(held: &mut Vec<Stamped<T>>, out: &mut Vec<Stamped<T>>, bound_ns: u128) {
+    held.sort_by_key(|s| s.log_time_ns);
+    let cut = held.partition_point(|s| u128::from(s.log_time_ns) < bound_ns);
+    out.extend(held.drain(..cut));
+}
