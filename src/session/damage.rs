@@ -58,7 +58,9 @@ pub(crate) struct IndexCounts {
 impl IndexCounts {
     /// Adds one MessageIndex record (the body after opcode and length).
     pub fn add(&mut self, body: &[u8]) -> bool {
-        let Ok(Record::MessageIndex(index)) = mcap::parse_record(op::MESSAGE_INDEX, body) else {
+        let Ok(Record::MessageIndex(index)) =
+            crate::session::record::parse(op::MESSAGE_INDEX, body)
+        else {
             return false;
         };
         for entry in &index.records {
@@ -235,7 +237,7 @@ pub(crate) fn resync(
             op::DATA_END => body.len() == 4 && can_follow(buf, end),
             op::FOOTER => body.len() == 20 && buf[end..].starts_with(mcap::MAGIC),
             op::SCHEMA | op::CHANNEL | op::MESSAGE if !saw_chunk => {
-                can_follow(buf, end) && mcap::parse_record(opcode, body).is_ok()
+                can_follow(buf, end) && crate::session::record::parse(opcode, body).is_ok()
             }
             _ => false,
         }

@@ -61,26 +61,28 @@ pub fn for_each_message(
                 reader.notify_read(read);
                 bytes_read += read as u64;
             }
-            LinearReadEvent::Record { data, opcode } => match mcap::parse_record(opcode, data) {
-                Ok(mcap::records::Record::Channel(channel)) => {
-                    topics.insert(channel.id, channel.topic);
-                }
-                Ok(mcap::records::Record::Message { header, data }) => {
-                    let Some(topic) = topics.get(&header.channel_id) else {
-                        continue;
-                    };
-                    if f(topic, header.log_time, &data)?.is_break() {
-                        return Ok(StreamEnd::Complete);
+            LinearReadEvent::Record { data, opcode } => {
+                match crate::session::record::parse(opcode, data) {
+                    Ok(mcap::records::Record::Channel(channel)) => {
+                        topics.insert(channel.id, channel.topic);
+                    }
+                    Ok(mcap::records::Record::Message { header, data }) => {
+                        let Some(topic) = topics.get(&header.channel_id) else {
+                            continue;
+                        };
+                        if f(topic, header.log_time, &data)?.is_break() {
+                            return Ok(StreamEnd::Complete);
+                        }
+                    }
+                    Ok(_) => {}
+                    Err(e) => {
+                        return Ok(StreamEnd::Cut {
+                            bytes_read,
+                            reason: e.to_string(),
+                        })
                     }
                 }
-                Ok(_) => {}
-                Err(e) => {
-                    return Ok(StreamEnd::Cut {
-                        bytes_read,
-                        reason: e.to_string(),
-                    })
-                }
-            },
+            }
         }
     }
     Ok(StreamEnd::Complete)

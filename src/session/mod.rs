@@ -6,6 +6,7 @@ pub mod file_stream;
 pub mod kind_messages;
 pub mod messages;
 pub mod reader;
+pub mod record;
 pub mod recorder;
 pub mod repair;
 mod summary;

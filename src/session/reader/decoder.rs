@@ -324,7 +324,7 @@ impl Decoder {
             op::SCHEMA => {
                 if let Some(raw) = self.raw.as_mut() {
                     if let mcap::records::Record::Schema { header, data } =
-                        mcap::parse_record(opcode, body)?
+                        crate::session::record::parse(opcode, body)?
                     {
                         let schema = (header.name, header.encoding, data.into_owned());
                         raw.schemas.insert(header.id, schema);
@@ -333,7 +333,9 @@ impl Decoder {
                 Ok(())
             }
             op::CHANNEL => {
-                if let mcap::records::Record::Channel(ch) = mcap::parse_record(opcode, body)? {
+                if let mcap::records::Record::Channel(ch) =
+                    crate::session::record::parse(opcode, body)?
+                {
                     self.define_channel(ch.id, &ch.topic, &ch.message_encoding);
                     if let Some(raw) = self.raw.as_mut() {
                         let channel = RawChannel {
