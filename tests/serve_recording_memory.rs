@@ -3,8 +3,11 @@
 //! in real time, ~35 s) while solves of a larger, earlier session run in the daemon back to
 //! back beside it, and the test reads the daemon's resident memory (`VmRSS`) every half
 //! second and its heap in use between two solves. It asserts on data only: the session holds
-//! every sample the driver received, in order, and neither the heap nor the resident memory
-//! grows with the recording.
+//! every sample the driver received, in order, and the heap does not grow with the recording.
+//! The resident memory is printed, not asserted: it moves in steps of a solve's working set
+//! when a solve lands in the other allocator arena (+21 MiB once at a flat heap), and it hides
+//! a leak in the pages the allocator keeps free (a recorder made to keep every sample left it
+//! flat); the heap in use is the figure that moves with what the daemon holds.
 
 mod common;
 
@@ -32,14 +35,6 @@ const MIB: f64 = 1024.0 * 1024.0;
 /// `cargo bench --bench serve -- recording`). A recorder that held every sample would grow by
 /// at least `size_of::<TracerSample>()` (40 B) per sample: ~6 MiB over 160 000 samples.
 const HEAP_GROWTH_BOUND: f64 = 1.5 * MIB;
-/// How much more the resident memory may reach in the recording's last third than in its
-/// first (the first third takes the allocator's warm-up: its arenas taking the solves' and the
-/// recorder's working sets): the recorder's own buffers once more (~4 MiB). Measured: 0.2–2.4
-/// MiB with the daemon's two allocator arenas (the allocator's free pages creep while the heap stays
-/// flat), 2.2 MiB once with glibc's default arenas. The resident memory hides a small leak in
-/// the pages the allocator keeps free for reuse (a solve's tens of MiB); the heap bound above
-/// does not.
-const RSS_GROWTH_BOUND: f64 = 4.0 * MIB;
 
 struct Daemon {
     child: Child,
@@ -359,21 +354,10 @@ fn a_5_khz_recording_keeps_every_sample_and_bounded_memory_while_solves_run() {
     );
     println!(
         "RSS: {} readings over {:.1} s, max {:.1} MiB in the first third, {:.1} MiB in the \
-         last (bound +{:.1} MiB)",
+         last",
         readings.len(),
         readings[readings.len() - 1].at_s - readings[0].at_s,
         first / MIB,
         last / MIB,
-        RSS_GROWTH_BOUND / MIB
-    );
-    assert!(
-        RSS_GROWTH_BOUND < held,
-        "the recording is too short to tell a recorder that holds its samples"
-    );
-    assert!(
-        last - first <= RSS_GROWTH_BOUND,
-        "the resident memory grew {:.1} MiB from the recording's first third to its last: \
-         {rss_series:?}",
-        (last - first) / MIB
     );
 }
