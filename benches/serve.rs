@@ -260,7 +260,10 @@ fn recording(client: &Client, daemon: &Daemon, dir: &std::path::Path) {
         }) {
             // Between two solves: the heap the daemon and the run hold.
             if recording {
-                heap.push((started.elapsed().as_secs_f64(), heap_kib(client, daemon)));
+                heap.push((
+                    started.elapsed().as_secs_f64(),
+                    common::heap_in_use_bytes(client, &daemon.url) as f64 / 1024.0,
+                ));
             }
             solves.push(submit_as(
                 client,
@@ -311,22 +314,6 @@ fn recording(client: &Client, daemon: &Daemon, dir: &std::path::Path) {
         mib(heap[heap.len() - 1].1),
         mib(slope(&heap) * 60.0),
     );
-}
-
-/// The daemon's heap in use, KiB (`geocal_heap_in_use_bytes` in `/metrics`).
-fn heap_kib(client: &Client, daemon: &Daemon) -> f64 {
-    let metrics = client
-        .get(format!("{}/metrics", daemon.url))
-        .send()
-        .expect("metrics")
-        .text()
-        .expect("text");
-    metrics
-        .lines()
-        .find_map(|l| l.strip_prefix("geocal_heap_in_use_bytes "))
-        .and_then(|v| v.trim().parse::<f64>().ok())
-        .expect("geocal_heap_in_use_bytes")
-        / 1024.0
 }
 
 /// Least-squares slope of (x, y).

@@ -119,21 +119,6 @@ fn time_of(job: &Value, key: &str) -> chrono::DateTime<chrono::FixedOffset> {
     chrono::DateTime::parse_from_rfc3339(text).expect("RFC 3339 time")
 }
 
-/// The daemon's heap in use (`geocal_heap_in_use_bytes` in `/metrics`).
-fn heap_bytes(client: &Client, daemon: &Daemon) -> u64 {
-    let metrics = client
-        .get(format!("{}/metrics", daemon.url))
-        .send()
-        .expect("GET /metrics")
-        .text()
-        .expect("metrics text");
-    metrics
-        .lines()
-        .find_map(|l| l.strip_prefix("geocal_heap_in_use_bytes "))
-        .and_then(|v| v.trim().parse().ok())
-        .unwrap_or_else(|| panic!("no heap metric in {metrics}"))
-}
-
 /// One reading of the daemon while the run records.
 struct Reading {
     at_s: f64,
@@ -221,7 +206,7 @@ fn a_5_khz_recording_keeps_every_sample_and_bounded_memory_while_solves_run() {
             // Between two solves (the next is not submitted yet) the heap holds what the
             // daemon and the run hold.
             if recording {
-                let bytes = heap_bytes(&client, &daemon) as f64;
+                let bytes = common::heap_in_use_bytes(&client, &daemon.url) as f64;
                 heap.push((started.elapsed().as_secs_f64(), bytes));
             }
             solves.push(submit(

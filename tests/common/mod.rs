@@ -752,6 +752,21 @@ pub fn daemon_banner(child: &mut std::process::Child) -> (String, Option<String>
     (url, live)
 }
 
+/// The daemon's heap in use, bytes (`geocal_heap_in_use_bytes` in its `/metrics`).
+pub fn heap_in_use_bytes(client: &reqwest::blocking::Client, url: &str) -> u64 {
+    let metrics = client
+        .get(format!("{url}/metrics"))
+        .send()
+        .expect("GET /metrics")
+        .text()
+        .expect("metrics text");
+    metrics
+        .lines()
+        .find_map(|l| l.strip_prefix("geocal_heap_in_use_bytes "))
+        .and_then(|v| v.trim().parse().ok())
+        .unwrap_or_else(|| panic!("no heap metric in {metrics}"))
+}
+
 /// A verification's first half: the small demo on the verification grid, one pass,
 /// calibrated in virtual time under `dir/before`, and each axis's table exported in its
 /// format into `dir/tables/SUB/`. Returns the calibration, each axis's interpolation error

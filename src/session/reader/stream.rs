@@ -165,22 +165,30 @@ impl<'s> Reorder<'s> {
         let held = self.events.len() + self.tracers.iter().map(Vec::len).sum::<usize>();
         self.peak_held = self.peak_held.max(held);
         if !self.begun {
-            let Some(header) = &dec.header else {
-                return true;
-            };
-            let ids: Vec<String> = dec
-                .tracers
-                .streams
-                .iter()
-                .map(|(id, _)| id.clone())
-                .collect();
-            self.begun = true;
-            if !self.sink.begin(&header.msg, &ids, self.run_events) {
-                self.stopped = true;
-                return false;
+            match self.begin(dec) {
+                None => return true,
+                Some(false) => {
+                    self.stopped = true;
+                    return false;
+                }
+                Some(true) => {}
             }
         }
         self.release(self.later_start_ns[k])
+    }
+
+    /// Hands the header and the tracer ids to the sink once the header is read: None before
+    /// that, else whether the sink takes the session.
+    fn begin(&mut self, dec: &Decoder) -> Option<bool> {
+        let header = dec.header.as_ref()?;
+        let ids: Vec<String> = dec
+            .tracers
+            .streams
+            .iter()
+            .map(|(id, _)| id.clone())
+            .collect();
+        self.begun = true;
+        Some(self.sink.begin(&header.msg, &ids, self.run_events))
     }
 
     /// The read is over: hands on the rest. False when the stream stopped or never began.
@@ -188,20 +196,8 @@ impl<'s> Reorder<'s> {
         if self.stopped || !self.begun && dec.header.is_none() {
             return false;
         }
-        if !self.begun {
-            let ids: Vec<String> = dec
-                .tracers
-                .streams
-                .iter()
-                .map(|(id, _)| id.clone())
-                .collect();
-            let Some(header) = &dec.header else {
-                return false;
-            };
-            self.begun = true;
-            if !self.sink.begin(&header.msg, &ids, self.run_events) {
-                return false;
-            }
+        if !self.begun && self.begin(dec) != Some(true) {
+            return false;
         }
         self.release(u128::MAX) && !self.stopped
     }
