@@ -64,7 +64,7 @@ fn lock<'a>(
 
 impl ReplayClock {
     /// Follow the recording with `k` samples delivered.
-    pub fn at_cursor(&self, recording: &Recording, k: usize) {
+    pub fn at_cursor(&self, recording: &mut Recording, k: usize) {
         let base_ns = k
             .checked_sub(1)
             .and_then(|i| recording.samples.get(i))
@@ -78,7 +78,7 @@ impl ReplayClock {
         *c = ClockState {
             base_ns,
             limit_ns,
-            strict: recording.later_at.get(k).copied().unwrap_or(true),
+            strict: recording.later_at(k),
             calls: 0,
         };
     }
@@ -86,12 +86,12 @@ impl ReplayClock {
 
 impl ReplayState {
     pub fn new(
-        recording: Recording,
+        mut recording: Recording,
         plan: Plan,
         realtime: bool,
     ) -> (SharedReplay, Arc<ReplayClock>) {
         let clock = Arc::new(ReplayClock::default());
-        clock.at_cursor(&recording, 0);
+        clock.at_cursor(&mut recording, 0);
         let queue = |id: &str| recording.device_faults(id).into_iter().collect();
         let tracer_faults = queue(&recording.tracer_id);
         let machine_faults = queue(&recording.machine_id);
@@ -101,7 +101,7 @@ impl ReplayState {
         let tracer_links = links(&recording.tracer_id);
         let machine_links = links(&recording.machine_id);
         let table_links = recording.table_id.as_deref().map(links).unwrap_or_default();
-        let first_ns = recording.samples.first().map_or(0, |s| s.log_time_ns);
+        let first_ns = recording.first_sample_ns.unwrap_or(0);
         let state = ReplayState {
             realtime: realtime.then(|| (Instant::now(), first_ns)),
             recording,
@@ -129,6 +129,10 @@ impl ReplayState {
         &self.recording
     }
 
+    pub fn recording_mut(&mut self) -> &mut Recording {
+        &mut self.recording
+    }
+
     pub fn cursor(&self) -> usize {
         self.cursor
     }
@@ -137,24 +141,18 @@ impl ReplayState {
     /// the last `before` placed at or before it and the next `after`, what the recording did
     /// where the replay stopped.
     pub fn recorded_events_near(&self, before: usize, after: usize) -> Vec<String> {
-        let events: Vec<_> = self
-            .recording
-            .events
-            .iter()
-            .filter(|e| {
+        let events: Vec<_> = (self.recording.events.iter())
+            .zip(&self.recording.event_seqs)
+            .filter(|(e, _)| {
                 !matches!(&e.msg, RunEvent::Fault { code, .. }
                     if ["crc", "resync", "frames_lost"].contains(&code.as_str()))
             })
             .collect();
-        let split = events.partition_point(|e| e.after <= self.cursor);
+        let split = events.partition_point(|(e, _)| e.after <= self.cursor);
         events[split.saturating_sub(before)..(split + after).min(events.len())]
             .iter()
-            .map(|e| {
-                let seq = e
-                    .after
-                    .checked_sub(1)
-                    .and_then(|i| self.recording.samples.get(i))
-                    .map_or(String::new(), |s| format!(" (seq {})", s.msg.seq));
+            .map(|(e, seq_before)| {
+                let seq = seq_before.map_or(String::new(), |seq| format!(" (seq {seq})"));
                 let text = serde_json::to_string(&e.msg).unwrap_or_default();
                 format!("after sample {}{seq}: {}", e.after, shorten(&text, 160))
             })
@@ -201,11 +199,14 @@ impl Tracer for ReplayTracer {
             if let Some(e) = ReplayState::due(&mut s.tracer_faults, cursor) {
                 return Err(e);
             }
-            let Some(sample) = s.recording.samples.get(cursor).cloned() else {
+            let Some(sample) = s.recording.samples.get(cursor) else {
                 return Err(s.end_of_stream());
             };
             s.cursor += 1;
-            s.clock.at_cursor(&s.recording, s.cursor);
+            let s = &mut *s;
+            s.clock.at_cursor(&mut s.recording, s.cursor);
+            // The devices look back at most to the sample before the cursor.
+            s.recording.samples.release_before(cursor);
             let wait = s.realtime.map(|(start, first_ns)| {
                 let due = start + Duration::from_nanos(sample.log_time_ns.saturating_sub(first_ns));
                 due.saturating_duration_since(Instant::now())
@@ -308,9 +309,10 @@ impl Machine for ReplayMachine {
         if let Some(e) = ReplayState::due(&mut s.machine_faults, cursor) {
             return Err(e);
         }
-        let (arrival, why) = s
+        let st = &mut *s;
+        let (arrival, why) = st
             .recording
-            .arrival_explained(&s.plan, &self.id, cursor, target)?;
+            .arrival_explained(&st.plan, &self.id, cursor, target)?;
         let ends = match arrival {
             Arrival::At(at) => format!("arrives after sample {at}"),
             Arrival::Never => "never arrives".to_string(),
@@ -643,11 +645,12 @@ mod tests {
     #[test]
     fn the_clock_follows_the_recording() {
         let recording = Recording::new(&session(&[10, 20, 21])).expect("recording");
+        let mut recording = recording;
         let clock = ReplayClock::default();
-        clock.at_cursor(&recording, 1);
+        clock.at_cursor(&mut recording, 1);
         assert_eq!(clock.now_ns(), 10);
         // Nothing recorded between samples 1 and 2: the clock stays below sample 2.
-        clock.at_cursor(&recording, 2);
+        clock.at_cursor(&mut recording, 2);
         let readings: Vec<u64> = (0..5).map(|_| clock.now_ns()).collect();
         assert!(
             readings.iter().all(|&t| (20..21).contains(&t)),
