@@ -16,6 +16,7 @@ use crate::plan::Plan;
 use crate::run::replay::ClockState;
 pub use crate::run::replay::ReplayClock;
 use crate::session::messages::RunEvent;
+use crate::session::recorder::RecorderHandle;
 
 /// What every replay device shares: the recording and how far the replay has got.
 pub struct ReplayState {
@@ -48,7 +49,16 @@ pub struct ReplayState {
     /// The replay's decisions in order (moves and where they end, homings): shown when the
     /// replay diverges, so that the divergence can be traced to a decision.
     pub trail: Vec<String>,
+    /// The recorder of the replayed session: the tracer waits while its queue is long.
+    pub recorder: Option<RecorderHandle>,
 }
+
+/// Decisions the trail keeps at least (a diverged replay shows its last few).
+const TRAIL_KEPT: usize = 64;
+
+/// Messages the replayed session's recorder may hold queued before the replay tracer waits
+/// for it (at full speed the sequencer outruns the writer: the queue would hold the run).
+const RECORDER_BACKLOG: u64 = 8192;
 
 pub type SharedReplay = Arc<Mutex<ReplayState>>;
 
@@ -121,6 +131,7 @@ impl ReplayState {
             table_second_leg: None,
             homings: Vec::new(),
             trail: Vec::new(),
+            recorder: None,
         };
         (Arc::new(Mutex::new(state)), clock)
     }
@@ -159,6 +170,14 @@ impl ReplayState {
             .collect()
     }
 
+    /// A decision for the trail, which keeps the last `TRAIL_KEPT` or more.
+    fn note(&mut self, decision: String) {
+        if self.trail.len() >= 2 * TRAIL_KEPT {
+            self.trail.drain(..TRAIL_KEPT);
+        }
+        self.trail.push(decision);
+    }
+
     /// The next recorded fault of a device, if the replay has reached it.
     fn due(queue: &mut VecDeque<(usize, DeviceError)>, cursor: usize) -> Option<DeviceError> {
         if queue.front().is_some_and(|(after, _)| *after <= cursor) {
@@ -193,6 +212,16 @@ impl Tracer for ReplayTracer {
     }
 
     async fn next_sample(&mut self) -> Result<TracerReading, DeviceError> {
+        let recorder = lock(&self.shared, &self.id)?
+            .recorder
+            .clone()
+            .filter(|r| r.queued() > RECORDER_BACKLOG);
+        if let Some(recorder) = recorder {
+            // The recorded times come from the replay clock: waiting changes nothing recorded.
+            while recorder.queued() > RECORDER_BACKLOG / 2 {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
         let (reading, wait) = {
             let mut s = lock(&self.shared, &self.id)?;
             let cursor = s.cursor;
@@ -236,7 +265,7 @@ impl Tracer for ReplayTracer {
             return Err(e);
         }
         s.homings.push(cursor);
-        s.trail.push(format!("after sample {cursor}: tracer homed"));
+        s.note(format!("after sample {cursor}: tracer homed"));
         Ok(())
     }
 
@@ -317,7 +346,7 @@ impl Machine for ReplayMachine {
             Arrival::At(at) => format!("arrives after sample {at}"),
             Arrival::Never => "never arrives".to_string(),
         };
-        s.trail.push(format!(
+        s.note(format!(
             "after sample {cursor}: move to {}: {ends} ({why})",
             crate::replay::recording::show_axes(target)
         ));

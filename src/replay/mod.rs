@@ -411,6 +411,9 @@ fn run_sequencer(
     let recorder = Recorder::create(out_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", out_path.display()))?;
     let handle = recorder.handle();
+    if let Ok(mut s) = shared.lock() {
+        s.recorder = Some(handle.clone());
+    }
     handle.session(&crate::run::replay::replay_header(header), header_ns);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
