@@ -160,7 +160,7 @@ struct Parts {
 }
 
 /// Marks every log time among `samples`, as `stream::TimeMarks` does for a streamed file.
-fn mark_in(samples: &[Stamped<TracerSample>], log_time_ns: u64) -> Mark {
+pub(crate) fn mark_in(samples: &[Stamped<TracerSample>], log_time_ns: u64) -> Mark {
     let before = samples.partition_point(|s| s.log_time_ns < log_time_ns);
     let at_or_before = samples.partition_point(|s| s.log_time_ns <= log_time_ns);
     let last = at_or_before.checked_sub(1).map(|i| &samples[i]);

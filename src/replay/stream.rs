@@ -10,7 +10,9 @@
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::mpsc::{sync_channel, Receiver, SyncSender};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 
 use crate::session::messages::{RunEvent, SessionHeader, TracerSample};
@@ -263,14 +265,21 @@ impl SessionSink for TimeMarks {
 
 /// Samples sent to the replay at once.
 const FEED_BLOCK: usize = 4096;
-/// Blocks in flight between the reader thread and the replay.
+/// Blocks queued between the reader thread and the replay.
 const FEED_BLOCKS_QUEUED: usize = 2;
+/// The most recorded samples a streamed replay holds at once, whatever the recording's length
+/// (a recording without recorded arrivals may hold more: the homing search looks ahead to
+/// the next point): the buffer (a block and the sample before the cursor) and the blocks
+/// queued or being sent by the reader thread.
+pub const SAMPLES_HELD_BOUND: usize = FEED_BLOCK + 1 + (FEED_BLOCKS_QUEUED + 1) * FEED_BLOCK;
 
 /// The sink of the reader thread: the followed tracer's samples, in blocks.
 struct FeedSink {
     tracer_id: String,
     tracer_index: Option<usize>,
     to_replay: SyncSender<Vec<Stamped<TracerSample>>>,
+    /// Samples taken for sending so far.
+    sent: Arc<AtomicUsize>,
 }
 
 impl SessionSink for FeedSink {
@@ -288,6 +297,7 @@ impl SessionSink for FeedSink {
             return false;
         };
         for block in samples.chunks(FEED_BLOCK) {
+            self.sent.fetch_add(block.len(), Ordering::Relaxed);
             // The replay hung up: it needs no more.
             if self.to_replay.send(block.to_vec()).is_err() {
                 return false;
@@ -308,7 +318,7 @@ pub struct Samples {
     base: usize,
     held: VecDeque<Stamped<TracerSample>>,
     feed: Option<Feed>,
-    /// The most samples held at once.
+    /// The most samples held at once (here, queued and being sent).
     peak_held: usize,
     /// The stream ended before `len` samples.
     cut_short: bool,
@@ -318,6 +328,9 @@ pub struct Samples {
 struct Feed {
     from_reader: Option<Receiver<Vec<Stamped<TracerSample>>>>,
     reader: Option<JoinHandle<()>>,
+    /// Samples the reader thread took for sending, and those received here.
+    sent: Arc<AtomicUsize>,
+    received: usize,
 }
 
 impl Drop for Feed {
@@ -348,10 +361,12 @@ impl Samples {
     pub fn streamed(path: &Path, tracer_id: &str, len: usize) -> std::io::Result<Samples> {
         let (to_replay, from_reader) = sync_channel(FEED_BLOCKS_QUEUED);
         let path: PathBuf = path.to_path_buf();
+        let sent = Arc::new(AtomicUsize::new(0));
         let mut sink = FeedSink {
             tracer_id: tracer_id.to_string(),
             tracer_index: None,
             to_replay,
+            sent: sent.clone(),
         };
         let reader = std::thread::Builder::new()
             .name("replay-feed".into())
@@ -365,6 +380,8 @@ impl Samples {
             feed: Some(Feed {
                 from_reader: Some(from_reader),
                 reader: Some(reader),
+                sent,
+                received: 0,
             }),
             peak_held: 0,
             cut_short: false,
@@ -396,15 +413,14 @@ impl Samples {
             return None;
         }
         while i >= self.base + self.held.len() {
-            let block = self
-                .feed
-                .as_ref()
-                .and_then(|f| f.from_reader.as_ref())
-                .and_then(|rx| rx.recv().ok());
+            let feed = self.feed.as_mut()?;
+            let block = feed.from_reader.as_ref().and_then(|rx| rx.recv().ok());
             match block {
                 Some(block) => {
+                    feed.received += block.len();
                     self.held.extend(block);
-                    self.peak_held = self.peak_held.max(self.held.len());
+                    let in_flight = feed.sent.load(Ordering::Relaxed) - feed.received;
+                    self.peak_held = self.peak_held.max(self.held.len() + in_flight);
                 }
                 None => {
                     self.cut_short = true;
@@ -424,5 +440,85 @@ impl Samples {
         let n = i.saturating_sub(self.base).min(self.held.len());
         self.held.drain(..n);
         self.base += n;
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sample(log_time_ns: u64, seq: u64) -> Stamped<TracerSample> {
+        Stamped {
+            log_time_ns,
+            publish_time_ns: log_time_ns,
+            msg: TracerSample {
+                seq,
+                t_s: log_time_ns as f64 * 1e-9,
+                length_m: 0.1,
+                signal: 1.0,
+                tracking: true,
+                beam_segment: 0,
+            },
+        }
+    }
+
+    /// The marks of times fed in batches equal those found by searching the whole stream:
+    /// times before, between, at (several samples, several marks) and after the samples.
+    #[test]
+    fn streamed_marks_equal_the_searched_ones() {
+        let times = [10, 20, 20, 20, 30, 40, 40, 50];
+        let samples: Vec<_> = (times.iter().enumerate())
+            .map(|(i, &t)| sample(t, 100 + i as u64))
+            .collect();
+        let marked = [0, 5, 10, 15, 20, 20, 25, 40, 45, 50, 60, 60];
+        let searched: Vec<Mark> = (marked.iter())
+            .map(|&t| crate::replay::recording::mark_in(&samples, t))
+            .collect();
+        // Batches as the reader hands them: every mark below a batch's bound, with its samples.
+        for bounds in [
+            vec![u64::MAX],
+            vec![20, 41, u64::MAX],
+            vec![5, 21, 30, 50, u64::MAX],
+        ] {
+            let mut marker = Marker::default();
+            let (mut s, mut m) = (0, 0);
+            for bound in bounds {
+                while m < marked.len() && marked[m] < bound {
+                    marker.add(marked[m]);
+                    m += 1;
+                }
+                while s < samples.len() && samples[s].log_time_ns < bound {
+                    marker.sample(samples[s].log_time_ns, samples[s].msg.seq);
+                    s += 1;
+                }
+            }
+            marker.finish();
+            assert_eq!(marker.marks, searched);
+        }
+        assert_eq!(
+            searched[4],
+            Mark {
+                before: 1,
+                at_or_before: 4,
+                first_seq_from: Some(101),
+                last_seq_to: Some(103),
+                later: false,
+            }
+        );
+        assert!(searched[0].later && searched[0].last_seq_to.is_none());
+        assert_eq!(
+            (searched[10].before, searched[10].first_seq_from),
+            (8, None)
+        );
+    }
+
+    /// A streamed buffer hands out every sample in order and keeps only what is not released.
+    #[test]
+    fn the_whole_buffer_keeps_everything_and_counts_it() {
+        let mut whole = Samples::whole((0..10).map(|i| sample(i, i)).collect());
+        whole.release_before(5);
+        assert_eq!(whole.get(0).map(|s| s.msg.seq), Some(0));
+        assert_eq!(whole.get(10), None);
+        assert_eq!(whole.peak_held(), 10);
     }
 }
