@@ -6,6 +6,8 @@
 //! device faults (timeouts, protocol errors) are raised again at the same place, so the
 //! sequencer retries and records them as it did. Time follows the recorded log times, at full
 //! speed or paced by the wall clock (`realtime`).
+//!
+//! A clean recording is streamed (`stream`): neither it nor the replayed session is held whole.
 
 pub mod compare;
 pub mod devices;

@@ -1,5 +1,6 @@
-//! A recorded session laid out for replay: the tracer samples in order, every other message
-//! placed between them (`after`), and the machine arrivals and device faults the recording implies.
+//! A recorded session laid out for replay: the tracer samples in order (held whole, or streamed
+//! from a clean file: `stream::Samples`), every other message placed between them (`after`),
+//! and the machine arrivals and device faults the recording implies.
 //!
 //! Placement: a message recorded at log time T comes after every tracer sample logged at or
 //! before T. The recorder stamps samples and events with one clock in call order, so this is

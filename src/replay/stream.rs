@@ -512,7 +512,7 @@ mod tests {
         );
     }
 
-    /// A streamed buffer hands out every sample in order and keeps only what is not released.
+    /// Samples held whole stay held whatever is released, and all count as held.
     #[test]
     fn the_whole_buffer_keeps_everything_and_counts_it() {
         let mut whole = Samples::whole((0..10).map(|i| sample(i, i)).collect());
