@@ -90,6 +90,40 @@ fn simulated_session_replays_identically() {
     assert!(out.comparison_path.exists());
 }
 
+/// A clean recording replays streamed: the replay devices hold a bounded number of recorded
+/// tracer samples at once, and the same plan recorded 10x denser does not raise it (held
+/// whole, the dense recording would exceed the bound many times over).
+#[test]
+fn a_denser_recording_replays_holding_the_same_bounded_samples() {
+    use geocal::replay::stream::SAMPLES_HELD_BOUND;
+    let dir = tempfile::tempdir().expect("tempdir");
+    let mut replays = Vec::new();
+    for (name, rate) in [("sparse", "25.0"), ("dense", "250.0")] {
+        let config =
+            small_demo().replace("sample_rate_hz = 25.0", &format!("sample_rate_hz = {rate}"));
+        assert!(config.contains(&format!("sample_rate_hz = {rate}")));
+        let recorded = record(&config, &dir.path().join(name));
+        let out = replay_into(
+            &recorded.session_path,
+            &dir.path().join(format!("{name}-replay")),
+        );
+        assert_identical_replay(&recorded, &out);
+        replays.push((out.comparison.samples_recorded, out.peak_samples_held));
+    }
+    let ((sparse, sparse_held), (dense, dense_held)) = (replays[0], replays[1]);
+    println!("recorded samples {sparse} and {dense}; held at most {sparse_held} and {dense_held}");
+    assert!(dense >= 9 * sparse, "{dense} samples vs {sparse}");
+    assert!(dense > 10 * SAMPLES_HELD_BOUND, "{dense} samples");
+    assert!(
+        sparse_held > 0 && sparse_held <= SAMPLES_HELD_BOUND,
+        "{sparse_held}"
+    );
+    assert!(
+        dense_held > 0 && dense_held <= SAMPLES_HELD_BOUND,
+        "{dense_held}"
+    );
+}
+
 /// A recording made before the sequencer wrote its arrivals (`/machine/<id>/state`): the
 /// replay infers where each move ended from the events and replays it identically still.
 #[test]

@@ -5,8 +5,9 @@ use std::collections::BTreeMap;
 
 use serde::Serialize;
 
+use super::stream::Mark;
 use crate::session::messages::RunEvent;
-use crate::session::reader::Session;
+use crate::session::reader::{Session, Stamped};
 
 /// One closed dwell window (`point_begin` .. `point_end`) and the tracer samples inside it.
 #[derive(Debug, Clone, PartialEq, Eq, Serialize)]
@@ -44,11 +45,47 @@ pub fn windows(session: &Session, tracer_id: &str) -> Vec<Window> {
         .get(tracer_id)
         .map(Vec::as_slice)
         .unwrap_or(&[]);
+    windows_with(&session.events, |begin, end| {
+        let begin_ns = session.events[begin].log_time_ns;
+        let end_ns = session.events[end].log_time_ns;
+        let from = samples.partition_point(|x| x.log_time_ns < begin_ns);
+        let to = samples
+            .partition_point(|x| x.log_time_ns <= end_ns)
+            .max(from);
+        let inside = &samples[from..to];
+        (
+            inside.len(),
+            inside.first().map(|x| x.msg.seq),
+            inside.last().map(|x| x.msg.seq),
+        )
+    })
+}
+
+/// `windows` of a streamed session: its events with their marks among the tracer's samples
+/// (`stream::EventMarks`).
+pub fn windows_marked(events: &[Stamped<RunEvent>], marks: &[Mark]) -> Vec<Window> {
+    windows_with(events, |begin, end| {
+        let (b, e) = (marks[begin], marks[end]);
+        let (from, to) = (b.before, e.at_or_before.max(b.before));
+        if to == from {
+            (0, None, None)
+        } else {
+            (to - from, b.first_seq_from, e.last_seq_to)
+        }
+    })
+}
+
+/// The windows of `events`; `inside(begin, end)` counts the samples between the events at
+/// these indices and gives the first and last one's seq.
+fn windows_with(
+    events: &[Stamped<RunEvent>],
+    inside: impl Fn(usize, usize) -> (usize, Option<u64>, Option<u64>),
+) -> Vec<Window> {
     let mut out = Vec::new();
-    let mut open: Option<(u64, &RunEvent)> = None;
-    for event in &session.events {
+    let mut open: Option<(usize, &RunEvent)> = None;
+    for (k, event) in events.iter().enumerate() {
         match &event.msg {
-            RunEvent::PointBegin { .. } => open = Some((event.log_time_ns, &event.msg)),
+            RunEvent::PointBegin { .. } => open = Some((k, &event.msg)),
             RunEvent::Rehome { .. } => open = None,
             RunEvent::PointEnd {
                 station,
@@ -56,7 +93,7 @@ pub fn windows(session: &Session, tracer_id: &str) -> Vec<Window> {
                 pass,
             } => {
                 let Some((
-                    begin_ns,
+                    begin,
                     RunEvent::PointBegin {
                         station: s,
                         point: p,
@@ -71,19 +108,15 @@ pub fn windows(session: &Session, tracer_id: &str) -> Vec<Window> {
                 if (s, p, q) != (station, point, pass) {
                     continue;
                 }
-                let from = samples.partition_point(|x| x.log_time_ns < begin_ns);
-                let to = samples
-                    .partition_point(|x| x.log_time_ns <= event.log_time_ns)
-                    .max(from);
-                let inside = &samples[from..to];
+                let (samples, first_seq, last_seq) = inside(begin, k);
                 out.push(Window {
                     station: station.clone(),
                     point: *point,
                     pass: *pass,
                     target: target.clone(),
-                    samples: inside.len(),
-                    first_seq: inside.first().map(|x| x.msg.seq),
-                    last_seq: inside.last().map(|x| x.msg.seq),
+                    samples,
+                    first_seq,
+                    last_seq,
                 });
             }
             _ => {}
@@ -94,8 +127,13 @@ pub fn windows(session: &Session, tracer_id: &str) -> Vec<Window> {
 
 /// Count of `fault` events by code, and of `rehome` events under "rehome".
 pub fn event_counts(session: &Session) -> BTreeMap<String, usize> {
+    event_counts_of(&session.events)
+}
+
+/// `event_counts` of a list of events.
+pub fn event_counts_of(events: &[Stamped<RunEvent>]) -> BTreeMap<String, usize> {
     let mut counts = BTreeMap::new();
-    for event in &session.events {
+    for event in events {
         let key = match &event.msg {
             RunEvent::Fault { code, .. } => format!("fault:{code}"),
             RunEvent::Rehome { .. } => "rehome".to_string(),

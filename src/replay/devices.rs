@@ -16,6 +16,7 @@ use crate::plan::Plan;
 use crate::run::replay::ClockState;
 pub use crate::run::replay::ReplayClock;
 use crate::session::messages::RunEvent;
+use crate::session::recorder::RecorderHandle;
 
 /// What every replay device shares: the recording and how far the replay has got.
 pub struct ReplayState {
@@ -48,7 +49,16 @@ pub struct ReplayState {
     /// The replay's decisions in order (moves and where they end, homings): shown when the
     /// replay diverges, so that the divergence can be traced to a decision.
     pub trail: Vec<String>,
+    /// The recorder of the replayed session: the tracer waits while its queue is long.
+    pub recorder: Option<RecorderHandle>,
 }
+
+/// Decisions the trail keeps at least (a diverged replay shows its last few).
+const TRAIL_KEPT: usize = 64;
+
+/// Messages the replayed session's recorder may hold queued before the replay tracer waits
+/// for it (at full speed the sequencer outruns the writer: the queue would hold the run).
+const RECORDER_BACKLOG: u64 = 8192;
 
 pub type SharedReplay = Arc<Mutex<ReplayState>>;
 
@@ -64,7 +74,7 @@ fn lock<'a>(
 
 impl ReplayClock {
     /// Follow the recording with `k` samples delivered.
-    pub fn at_cursor(&self, recording: &Recording, k: usize) {
+    pub fn at_cursor(&self, recording: &mut Recording, k: usize) {
         let base_ns = k
             .checked_sub(1)
             .and_then(|i| recording.samples.get(i))
@@ -78,7 +88,7 @@ impl ReplayClock {
         *c = ClockState {
             base_ns,
             limit_ns,
-            strict: recording.later_at.get(k).copied().unwrap_or(true),
+            strict: recording.later_at(k),
             calls: 0,
         };
     }
@@ -86,12 +96,12 @@ impl ReplayClock {
 
 impl ReplayState {
     pub fn new(
-        recording: Recording,
+        mut recording: Recording,
         plan: Plan,
         realtime: bool,
     ) -> (SharedReplay, Arc<ReplayClock>) {
         let clock = Arc::new(ReplayClock::default());
-        clock.at_cursor(&recording, 0);
+        clock.at_cursor(&mut recording, 0);
         let queue = |id: &str| recording.device_faults(id).into_iter().collect();
         let tracer_faults = queue(&recording.tracer_id);
         let machine_faults = queue(&recording.machine_id);
@@ -101,7 +111,7 @@ impl ReplayState {
         let tracer_links = links(&recording.tracer_id);
         let machine_links = links(&recording.machine_id);
         let table_links = recording.table_id.as_deref().map(links).unwrap_or_default();
-        let first_ns = recording.samples.first().map_or(0, |s| s.log_time_ns);
+        let first_ns = recording.first_sample_ns.unwrap_or(0);
         let state = ReplayState {
             realtime: realtime.then(|| (Instant::now(), first_ns)),
             recording,
@@ -121,12 +131,17 @@ impl ReplayState {
             table_second_leg: None,
             homings: Vec::new(),
             trail: Vec::new(),
+            recorder: None,
         };
         (Arc::new(Mutex::new(state)), clock)
     }
 
     pub fn recording(&self) -> &Recording {
         &self.recording
+    }
+
+    pub fn recording_mut(&mut self) -> &mut Recording {
+        &mut self.recording
     }
 
     pub fn cursor(&self) -> usize {
@@ -137,28 +152,30 @@ impl ReplayState {
     /// the last `before` placed at or before it and the next `after`, what the recording did
     /// where the replay stopped.
     pub fn recorded_events_near(&self, before: usize, after: usize) -> Vec<String> {
-        let events: Vec<_> = self
-            .recording
-            .events
-            .iter()
-            .filter(|e| {
+        let events: Vec<_> = (self.recording.events.iter())
+            .zip(&self.recording.event_seqs)
+            .filter(|(e, _)| {
                 !matches!(&e.msg, RunEvent::Fault { code, .. }
                     if ["crc", "resync", "frames_lost"].contains(&code.as_str()))
             })
             .collect();
-        let split = events.partition_point(|e| e.after <= self.cursor);
+        let split = events.partition_point(|(e, _)| e.after <= self.cursor);
         events[split.saturating_sub(before)..(split + after).min(events.len())]
             .iter()
-            .map(|e| {
-                let seq = e
-                    .after
-                    .checked_sub(1)
-                    .and_then(|i| self.recording.samples.get(i))
-                    .map_or(String::new(), |s| format!(" (seq {})", s.msg.seq));
+            .map(|(e, seq_before)| {
+                let seq = seq_before.map_or(String::new(), |seq| format!(" (seq {seq})"));
                 let text = serde_json::to_string(&e.msg).unwrap_or_default();
                 format!("after sample {}{seq}: {}", e.after, shorten(&text, 160))
             })
             .collect()
+    }
+
+    /// A decision for the trail, which keeps the last `TRAIL_KEPT` or more.
+    fn note(&mut self, decision: String) {
+        if self.trail.len() >= 2 * TRAIL_KEPT {
+            self.trail.drain(..TRAIL_KEPT);
+        }
+        self.trail.push(decision);
     }
 
     /// The next recorded fault of a device, if the replay has reached it.
@@ -195,17 +212,30 @@ impl Tracer for ReplayTracer {
     }
 
     async fn next_sample(&mut self) -> Result<TracerReading, DeviceError> {
+        let recorder = lock(&self.shared, &self.id)?
+            .recorder
+            .clone()
+            .filter(|r| r.queued() > RECORDER_BACKLOG);
+        if let Some(recorder) = recorder {
+            // The recorded times come from the replay clock: waiting changes nothing recorded.
+            while recorder.queued() > RECORDER_BACKLOG / 2 {
+                tokio::time::sleep(Duration::from_millis(1)).await;
+            }
+        }
         let (reading, wait) = {
             let mut s = lock(&self.shared, &self.id)?;
             let cursor = s.cursor;
             if let Some(e) = ReplayState::due(&mut s.tracer_faults, cursor) {
                 return Err(e);
             }
-            let Some(sample) = s.recording.samples.get(cursor).cloned() else {
+            let Some(sample) = s.recording.samples.get(cursor) else {
                 return Err(s.end_of_stream());
             };
             s.cursor += 1;
-            s.clock.at_cursor(&s.recording, s.cursor);
+            let s = &mut *s;
+            s.clock.at_cursor(&mut s.recording, s.cursor);
+            // The devices look back at most to the sample before the cursor.
+            s.recording.samples.release_before(cursor);
             let wait = s.realtime.map(|(start, first_ns)| {
                 let due = start + Duration::from_nanos(sample.log_time_ns.saturating_sub(first_ns));
                 due.saturating_duration_since(Instant::now())
@@ -235,7 +265,7 @@ impl Tracer for ReplayTracer {
             return Err(e);
         }
         s.homings.push(cursor);
-        s.trail.push(format!("after sample {cursor}: tracer homed"));
+        s.note(format!("after sample {cursor}: tracer homed"));
         Ok(())
     }
 
@@ -308,14 +338,15 @@ impl Machine for ReplayMachine {
         if let Some(e) = ReplayState::due(&mut s.machine_faults, cursor) {
             return Err(e);
         }
-        let (arrival, why) = s
+        let st = &mut *s;
+        let (arrival, why) = st
             .recording
-            .arrival_explained(&s.plan, &self.id, cursor, target)?;
+            .arrival_explained(&st.plan, &self.id, cursor, target)?;
         let ends = match arrival {
             Arrival::At(at) => format!("arrives after sample {at}"),
             Arrival::Never => "never arrives".to_string(),
         };
-        s.trail.push(format!(
+        s.note(format!(
             "after sample {cursor}: move to {}: {ends} ({why})",
             crate::replay::recording::show_axes(target)
         ));
@@ -643,11 +674,12 @@ mod tests {
     #[test]
     fn the_clock_follows_the_recording() {
         let recording = Recording::new(&session(&[10, 20, 21])).expect("recording");
+        let mut recording = recording;
         let clock = ReplayClock::default();
-        clock.at_cursor(&recording, 1);
+        clock.at_cursor(&mut recording, 1);
         assert_eq!(clock.now_ns(), 10);
         // Nothing recorded between samples 1 and 2: the clock stays below sample 2.
-        clock.at_cursor(&recording, 2);
+        clock.at_cursor(&mut recording, 2);
         let readings: Vec<u64> = (0..5).map(|_| clock.now_ns()).collect();
         assert!(
             readings.iter().all(|&t| (20..21).contains(&t)),

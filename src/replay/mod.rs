@@ -6,11 +6,14 @@
 //! device faults (timeouts, protocol errors) are raised again at the same place, so the
 //! sequencer retries and records them as it did. Time follows the recorded log times, at full
 //! speed or paced by the wall clock (`realtime`).
+//!
+//! A clean recording is streamed (`stream`): neither it nor the replayed session is held whole.
 
 pub mod compare;
 pub mod devices;
 pub mod kinds;
 pub mod recording;
+pub mod stream;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -21,7 +24,7 @@ use serde::Serialize;
 
 use crate::config::Config;
 use crate::kinds::registry::solve_session;
-use crate::method::SolveSettings;
+use crate::method::{MethodError, Results, SolveSettings};
 use crate::plan::Plan;
 use crate::sequencer::{Devices, Sequencer, SequencerError};
 use crate::session::messages::SessionHeader;
@@ -34,6 +37,7 @@ use devices::{
     ReplayEnvironment, ReplayMachine, ReplayOperator, ReplayRotaryTable, ReplayState, ReplayTracer,
 };
 use recording::Recording;
+use stream::{EventMarks, MarkedEvents};
 
 pub const COMPARISON_FORMAT: &str = "geocal-replay/1";
 
@@ -94,6 +98,9 @@ pub struct ReplayOutput {
     pub results_path: Option<PathBuf>,
     pub comparison_path: PathBuf,
     pub comparison: Comparison,
+    /// The most recorded tracer samples the replay devices held at once (all of them when
+    /// the recording was read whole; 0 for the kinds with their own replay).
+    pub peak_samples_held: usize,
 }
 
 /// The plan the session header records (`plan`, with the machine's targets), expanded as
@@ -129,6 +136,24 @@ pub fn plan_from_header(header: &SessionHeader) -> anyhow::Result<Plan> {
 }
 
 pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<ReplayOutput> {
+    // A clean session streams: its tracer samples are never held whole.
+    if let Some((marked, rest)) = EventMarks::read(session_path, None) {
+        let own_replay = crate::kinds::kind_named(&marked.header.kind)
+            .and_then(|k| k.own_replay())
+            .is_some();
+        if !own_replay {
+            if let Some(recording) = Recording::streamed(session_path, &marked, &rest) {
+                let recorded = Recorded {
+                    header: &marked.header,
+                    completeness: &rest.completeness,
+                    last_t_s: marked.last_t_s.unwrap_or(0.0),
+                    digest: Digest::of_marked(&marked),
+                    session: None,
+                };
+                return replay_recording(session_path, recorded, recording, options);
+            }
+        }
+    }
     let session = read_session(session_path)
         .with_context(|| format!("reading {}", session_path.display()))?;
     // Kinds with their own sequencer and devices replay through it.
@@ -137,9 +162,73 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
     {
         return kinds::replay(&session, session_path, options, replay_sequence);
     }
-    let plan = plan_from_header(&session.header)
-        .with_context(|| format!("rebuilding the plan of {}", session_path.display()))?;
     let recording = Recording::new(&session)?;
+    let tracer_id = recording.tracer_id.clone();
+    let recorded = Recorded {
+        header: &session.header,
+        completeness: &session.completeness,
+        last_t_s: last_t_s(&session, &tracer_id),
+        digest: Digest::of_session(&session, &tracer_id),
+        session: Some(&session),
+    };
+    replay_recording(session_path, recorded, recording, options)
+}
+
+/// What the replay needs of the recorded session besides its `Recording`.
+struct Recorded<'a> {
+    header: &'a SessionHeader,
+    completeness: &'a Completeness,
+    /// The followed tracer's last sample time (s).
+    last_t_s: f64,
+    digest: Digest,
+    /// The session read whole (damaged, cut short or repaired files), solved as it is.
+    session: Option<&'a Session>,
+}
+
+/// What the comparison needs of a session: its windows, event counts and tracer samples.
+struct Digest {
+    windows: Vec<compare::Window>,
+    events: BTreeMap<String, usize>,
+    samples: usize,
+}
+
+impl Digest {
+    fn of_session(session: &Session, tracer_id: &str) -> Digest {
+        Digest {
+            windows: compare::windows(session, tracer_id),
+            events: event_counts(session),
+            samples: session.tracers.get(tracer_id).map_or(0, Vec::len),
+        }
+    }
+
+    fn of_marked(marked: &MarkedEvents) -> Digest {
+        Digest {
+            windows: compare::windows_marked(&marked.events, &marked.marks),
+            events: compare::event_counts_of(&marked.events),
+            samples: marked.samples,
+        }
+    }
+
+    /// The digest of the session file at `path`, streamed when it is clean.
+    fn of_file(path: &Path, tracer_id: &str) -> anyhow::Result<Digest> {
+        if let Some((marked, _)) = EventMarks::read(path, Some(tracer_id.to_string())) {
+            return Ok(Digest::of_marked(&marked));
+        }
+        let session =
+            read_session(path).with_context(|| format!("reading back {}", path.display()))?;
+        Ok(Digest::of_session(&session, tracer_id))
+    }
+}
+
+/// Replays `recording` (of the session at `session_path`) and compares the replay with it.
+fn replay_recording(
+    session_path: &Path,
+    recorded: Recorded<'_>,
+    recording: Recording,
+    options: &ReplayOptions,
+) -> anyhow::Result<ReplayOutput> {
+    let plan = plan_from_header(recorded.header)
+        .with_context(|| format!("rebuilding the plan of {}", session_path.display()))?;
     std::fs::create_dir_all(&options.out_dir)
         .with_context(|| format!("creating output directory {}", options.out_dir.display()))?;
     let out_path = options.out_dir.join("session.mcap");
@@ -150,10 +239,16 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         );
     }
 
-    let ran = run_sequencer(&session, recording, plan, &out_path, options)?;
+    let tracer_id = recording.tracer_id.clone();
+    let ran = run_sequencer(recorded.header, recording, plan, &out_path, options)?;
+    if ran.feed_cut_short {
+        anyhow::bail!(
+            "{} changed while it was replayed: it gave fewer tracer samples than its first read",
+            session_path.display()
+        );
+    }
     let (ended, samples_replayed) = (ran.ended, ran.delivered);
-    let replayed =
-        read_session(&out_path).with_context(|| format!("reading back {}", out_path.display()))?;
+    let replayed = Digest::of_file(&out_path, &tracer_id)?;
     let (outcome, mut message) = match &ended {
         Ok(()) => (
             Outcome::Completed,
@@ -164,14 +259,13 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
             format!(
                 "the recording ends after {} tracer samples (t = {:.3} s), before the plan is \
                  done: replayed up to there",
-                samples_replayed,
-                last_t_s(&session)
+                samples_replayed, recorded.last_t_s
             ),
         ),
         Err(e) => (Outcome::Diverged, format!("the replay stopped: {e}")),
     };
     let diverged = outcome == Outcome::Diverged;
-    let truncation = match &session.completeness {
+    let truncation = match recorded.completeness {
         Completeness::Complete => None,
         Completeness::Truncated {
             bytes_read,
@@ -186,12 +280,15 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         }
     };
 
-    let tracer_id = devices_tracer_id(&session);
-    let windows = compare_windows(
-        &compare::windows(&session, &tracer_id),
-        &compare::windows(&replayed, &tracer_id),
-    );
-    let (results, results_error, results_path) = compare_results(&session, &replayed, options)?;
+    let windows = compare_windows(&recorded.digest.windows, &replayed.windows);
+    let (results, results_error, results_path) = compare_results_of(
+        solve_file_as_session(&out_path, options)?,
+        || match recorded.session {
+            Some(session) => Ok(solve_session(session, &options.settings)),
+            None => solve_file_as_session(session_path, options),
+        },
+        options,
+    )?;
     let comparison = Comparison {
         format: COMPARISON_FORMAT,
         recording: session_path.display().to_string(),
@@ -199,11 +296,11 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         outcome,
         message,
         truncation,
-        samples_recorded: session.tracers.get(&tracer_id).map_or(0, Vec::len),
-        samples_replayed: replayed.tracers.get(&tracer_id).map_or(0, Vec::len),
+        samples_recorded: recorded.digest.samples,
+        samples_replayed: replayed.samples,
         windows,
-        events_recorded: event_counts(&session),
-        events_replayed: event_counts(&replayed),
+        events_recorded: recorded.digest.events,
+        events_replayed: replayed.events,
         trail: if diverged { ran.trail } else { Vec::new() },
         recorded_nearby: if diverged {
             ran.recorded_nearby
@@ -213,7 +310,9 @@ pub fn replay(session_path: &Path, options: &ReplayOptions) -> anyhow::Result<Re
         results,
         results_error,
     };
-    write_comparison(options, out_path, results_path, comparison)
+    let mut output = write_comparison(options, out_path, results_path, comparison)?;
+    output.peak_samples_held = ran.peak_samples_held;
+    Ok(output)
 }
 
 /// Write `comparison.json` into the output directory; the replay's output.
@@ -234,6 +333,7 @@ pub(crate) fn write_comparison(
         results_path,
         comparison_path,
         comparison,
+        peak_samples_held: 0,
     })
 }
 
@@ -244,17 +344,10 @@ pub(crate) fn same_file(a: &Path, b: &Path) -> bool {
     }
 }
 
-fn devices_tracer_id(session: &Session) -> String {
-    Recording::new(session)
-        .map(|r| r.tracer_id)
-        .unwrap_or_default()
-}
-
-fn last_t_s(session: &Session) -> f64 {
-    let id = devices_tracer_id(session);
+fn last_t_s(session: &Session, tracer_id: &str) -> f64 {
     session
         .tracers
-        .get(&id)
+        .get(tracer_id)
         .and_then(|v| v.last())
         .map_or(0.0, |s| s.msg.t_s)
 }
@@ -264,6 +357,10 @@ fn last_t_s(session: &Session) -> f64 {
 struct SequencerRun {
     ended: Result<(), SequencerError>,
     delivered: usize,
+    /// The most recorded samples the devices held at once.
+    peak_samples_held: usize,
+    /// The streamed recording gave fewer samples than counted.
+    feed_cut_short: bool,
     trail: Vec<String>,
     recorded_nearby: Vec<String>,
 }
@@ -275,7 +372,7 @@ const NEARBY_AFTER: usize = 4;
 
 /// Runs the sequencer on the replay drivers into `out_path`.
 fn run_sequencer(
-    session: &Session,
+    header: &SessionHeader,
     recording: Recording,
     plan: Plan,
     out_path: &Path,
@@ -316,10 +413,10 @@ fn run_sequencer(
     let recorder = Recorder::create(out_path, RecorderOptions::default())
         .with_context(|| format!("creating {}", out_path.display()))?;
     let handle = recorder.handle();
-    handle.session(
-        &crate::run::replay::replay_header(&session.header),
-        header_ns,
-    );
+    if let Ok(mut s) = shared.lock() {
+        s.recorder = Some(handle.clone());
+    }
+    handle.session(&crate::run::replay::replay_header(header), header_ns);
     let runtime = tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
@@ -333,28 +430,34 @@ fn run_sequencer(
     // count from it): give it the recorded run's start, then the first recorded stamp.
     clock.set_fixed(start_ns);
     let sequencer = Sequencer::new(&plan, devices, handle, clock.clone());
-    if let Ok(s) = shared.lock() {
-        clock.at_cursor(s.recording(), 0);
+    if let Ok(mut s) = shared.lock() {
+        clock.at_cursor(s.recording_mut(), 0);
     }
     let ended = runtime.block_on(sequencer.run(&mut progress)).map(|_| ());
     bar.finish_and_clear();
     recorder
         .finish()
         .context("finishing the replayed session file")?;
-    let (delivered, trail, recorded_nearby) = shared.lock().map_or_else(
-        |_| (0, Vec::new(), Vec::new()),
-        |s| {
-            let skip = s.trail.len().saturating_sub(TRAIL_SHOWN);
-            (
-                s.cursor(),
-                s.trail[skip..].to_vec(),
-                s.recorded_events_near(NEARBY_BEFORE, NEARBY_AFTER),
-            )
-        },
-    );
+    let (delivered, trail, recorded_nearby, peak_samples_held, feed_cut_short) =
+        shared.lock().map_or_else(
+            |_| (0, Vec::new(), Vec::new(), 0, false),
+            |s| {
+                let skip = s.trail.len().saturating_sub(TRAIL_SHOWN);
+                let samples = &s.recording().samples;
+                (
+                    s.cursor(),
+                    s.trail[skip..].to_vec(),
+                    s.recorded_events_near(NEARBY_BEFORE, NEARBY_AFTER),
+                    samples.peak_held(),
+                    samples.cut_short(),
+                )
+            },
+        );
     Ok(SequencerRun {
         ended,
         delivered,
+        peak_samples_held,
+        feed_cut_short,
         trail,
         recorded_nearby,
     })
@@ -368,7 +471,34 @@ pub(crate) fn compare_results(
     replayed: &Session,
     options: &ReplayOptions,
 ) -> anyhow::Result<ResultsComparison> {
-    let replayed_results = solve_session(replayed, &options.settings);
+    compare_results_of(
+        solve_session(replayed, &options.settings),
+        || Ok(solve_session(recorded, &options.settings)),
+        options,
+    )
+}
+
+/// The session file at `path` solved as `solve_session` solves it, streamed when it is a
+/// clean multilateration session (its samples never held whole).
+fn solve_file_as_session(
+    path: &Path,
+    options: &ReplayOptions,
+) -> anyhow::Result<Result<Results, MethodError>> {
+    if let Some(solved) =
+        crate::method::multilateration::solve_file_streaming(path, &options.settings)
+    {
+        return Ok(solved.map(Results::new).map_err(MethodError::from));
+    }
+    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    Ok(solve_session(&session, &options.settings))
+}
+
+/// The replay's results (written to results.json) against the recording's, solved after it.
+fn compare_results_of(
+    replayed_results: Result<Results, MethodError>,
+    solve_recorded: impl FnOnce() -> anyhow::Result<Result<Results, MethodError>>,
+    options: &ReplayOptions,
+) -> anyhow::Result<ResultsComparison> {
     let mut results_path = None;
     if let Ok(results) = &replayed_results {
         let path = options.out_dir.join("results.json");
@@ -376,7 +506,7 @@ pub(crate) fn compare_results(
             .with_context(|| format!("writing {}", path.display()))?;
         results_path = Some(path);
     }
-    let recorded_results = solve_session(recorded, &options.settings);
+    let recorded_results = solve_recorded()?;
     Ok(match (recorded_results, replayed_results) {
         (Ok(a), Ok(b)) => (
             Some(results_difference(&a.to_json_value()?, &b.to_json_value()?)),
@@ -384,7 +514,7 @@ pub(crate) fn compare_results(
             results_path,
         ),
         (a, b) => {
-            let why = |r: &Result<_, crate::method::MethodError>, which: &str| {
+            let why = |r: &Result<_, MethodError>, which: &str| {
                 r.as_ref()
                     .err()
                     .map(|e| format!("the {which} session does not solve: {e}"))

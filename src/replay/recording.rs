@@ -1,10 +1,14 @@
-//! A recorded session laid out for replay: the tracer samples in order, every other message
-//! placed between them (`after`), and the machine arrivals and device faults the recording implies.
+//! A recorded session laid out for replay: the tracer samples in order (held whole, or streamed
+//! from a clean file: `stream::Samples`), every other message placed between them (`after`),
+//! and the machine arrivals and device faults the recording implies.
 //!
 //! Placement: a message recorded at log time T comes after every tracer sample logged at or
 //! before T. The recorder stamps samples and events with one clock in call order, so this is
 //! the order in which the sequencer saw them (a simulated run stamps events with the time of
 //! the sample before them; a live run with a later time).
+
+use std::collections::BTreeSet;
+use std::path::Path;
 
 use geocal_drivers::{AxisPositions, DeviceError, LinkFault};
 
@@ -14,6 +18,8 @@ use crate::session::messages::{
     EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
 };
 use crate::session::reader::{Completeness, Session, Stamped};
+
+use super::stream::{choose_tracer, Mark, MarkedEvents, Samples, TimeMarks};
 
 /// A recorded message and its place among the tracer samples.
 #[derive(Debug, Clone, PartialEq)]
@@ -41,22 +47,27 @@ pub enum RecordingError {
     AmbiguousTracer(usize),
 }
 
-#[derive(Debug, Clone)]
+#[derive(Debug)]
 pub struct Recording {
     pub tracer_id: String,
     pub machine_id: String,
     pub env_id: Option<String>,
     pub table_id: Option<String>,
-    pub samples: Vec<Stamped<TracerSample>>,
+    /// The tracer samples: held whole, or streamed from the file as the replay goes.
+    pub samples: Samples,
     pub events: Vec<Placed<RunEvent>>,
+    /// Per event: the seq of the tracer sample before it.
+    pub event_seqs: Vec<Option<u64>>,
     pub env: Vec<Placed<EnvSample>>,
     pub rotary: Vec<Placed<RotaryStateSample>>,
     /// The machine's recorded arrivals (`/machine/<id>/state` polls that reported it at
     /// rest); empty in recordings made before the sequencer wrote them.
     pub arrivals: Vec<Placed<MachineStateSample>>,
-    /// Per cursor k (0..=n): whether the messages recorded after sample k-1 carry later log
-    /// times than it (a wall-clock recording) rather than the same one (a virtual clock).
-    pub later_at: Vec<bool>,
+    /// Cursors k after which some recorded message carries a later log time than sample k-1
+    /// (a wall-clock recording) rather than the same one (a virtual clock).
+    later_at: BTreeSet<usize>,
+    /// The first tracer sample's log time.
+    pub first_sample_ns: Option<u64>,
     /// The earliest log time in the recording.
     pub earliest_ns: u64,
     /// The clock reading at which the recorded run started (rotary state times count from it).
@@ -73,91 +84,218 @@ fn device_id(session: &Session, kind: &str) -> Option<String> {
         .map(|d| d.id.clone())
 }
 
-impl Recording {
-    pub fn new(session: &Session) -> Result<Recording, RecordingError> {
-        let tracer_id = match device_id(session, "tracer") {
-            Some(id) if session.tracers.contains_key(&id) => id,
-            _ => match session.tracers.len() {
-                0 => return Err(RecordingError::NoTracer),
-                1 => session.tracers.keys().next().cloned().unwrap_or_default(),
-                n => return Err(RecordingError::AmbiguousTracer(n)),
-            },
-        };
-        let samples = session.tracers.get(&tracer_id).cloned().unwrap_or_default();
-        let place = |log_time_ns: u64| samples.partition_point(|s| s.log_time_ns <= log_time_ns);
-        let events: Vec<_> = session
-            .events
-            .iter()
-            .map(|e| Placed {
-                after: place(e.log_time_ns),
-                log_time_ns: e.log_time_ns,
-                msg: e.msg.clone(),
-            })
-            .collect();
+/// The recorded streams of the other devices a replay follows (each sorted by log time).
+struct OtherDevices {
+    machine_id: String,
+    env_id: Option<String>,
+    table_id: Option<String>,
+    env: Vec<Stamped<EnvSample>>,
+    rotary: Vec<Stamped<RotaryStateSample>>,
+    arrivals: Vec<Stamped<MachineStateSample>>,
+}
+
+impl OtherDevices {
+    fn of(session: &Session) -> OtherDevices {
         let env_id = device_id(session, "environment")
             .filter(|id| session.env.contains_key(id))
             .or_else(|| session.env.keys().next().cloned());
-        let env: Vec<_> = env_id
+        let env = env_id
             .as_ref()
             .and_then(|id| session.env.get(id))
-            .map(|v| {
-                v.iter()
-                    .map(|e| Placed {
-                        after: place(e.log_time_ns),
-                        log_time_ns: e.log_time_ns,
-                        msg: e.msg.clone(),
-                    })
-                    .collect()
-            })
+            .cloned()
             .unwrap_or_default();
         let table_id =
             device_id(session, "rotary_table").or_else(|| session.rotary.keys().next().cloned());
-        let rotary: Vec<_> = table_id
+        let rotary = table_id
             .as_ref()
             .and_then(|id| session.rotary.get(id))
-            .map(|v| {
-                v.iter()
-                    .map(|e| Placed {
-                        after: place(e.log_time_ns),
-                        log_time_ns: e.log_time_ns,
-                        msg: e.msg,
-                    })
-                    .collect()
-            })
+            .cloned()
             .unwrap_or_default();
-
         let machine_id = device_id(session, "machine").unwrap_or_else(|| "machine".into());
-        let arrivals: Vec<_> = session
+        let arrivals = session
             .machines
             .get(&machine_id)
             .map(|v| {
                 v.iter()
                     .filter(|e| e.msg.state == "Idle")
-                    .map(|e| Placed {
-                        after: place(e.log_time_ns),
-                        log_time_ns: e.log_time_ns,
-                        msg: e.msg.clone(),
-                    })
+                    .cloned()
                     .collect()
             })
             .unwrap_or_default();
-
-        let n = samples.len();
-        let mut later_at = vec![false; n + 1];
-        let mut earliest = samples.first().map_or(0, |s| s.log_time_ns);
-        for (after, t) in events
-            .iter()
-            .map(|e| (e.after, e.log_time_ns))
-            .chain(env.iter().map(|e| (e.after, e.log_time_ns)))
-            .chain(rotary.iter().map(|e| (e.after, e.log_time_ns)))
-            .chain(arrivals.iter().map(|e| (e.after, e.log_time_ns)))
-        {
-            let before = after.checked_sub(1).map(|i| samples[i].log_time_ns);
-            if before.is_none_or(|b| t > b) {
-                later_at[after] = true;
-            }
-            earliest = earliest.min(t);
+        OtherDevices {
+            machine_id,
+            env_id,
+            table_id,
+            env,
+            rotary,
+            arrivals,
         }
+    }
+
+    /// Every log time of these streams, sorted, without repeats.
+    fn log_times(&self) -> Vec<u64> {
+        let mut times: Vec<u64> = (self.env.iter().map(|e| e.log_time_ns))
+            .chain(self.rotary.iter().map(|e| e.log_time_ns))
+            .chain(self.arrivals.iter().map(|e| e.log_time_ns))
+            .collect();
+        times.sort_unstable();
+        times.dedup();
+        times
+    }
+}
+
+/// A recorded run event with its mark among the tracer samples.
+struct MarkedEvent {
+    event: Stamped<RunEvent>,
+    mark: Mark,
+}
+
+/// The replay's view of the recording, whatever holds its samples.
+struct Parts {
+    tracer_id: String,
+    samples: Samples,
+    first_sample_ns: Option<u64>,
+    events: Vec<MarkedEvent>,
+    others: OtherDevices,
+    completeness: Completeness,
+}
+
+/// Marks every log time among `samples`, as `stream::TimeMarks` does for a streamed file.
+pub(crate) fn mark_in(samples: &[Stamped<TracerSample>], log_time_ns: u64) -> Mark {
+    let before = samples.partition_point(|s| s.log_time_ns < log_time_ns);
+    let at_or_before = samples.partition_point(|s| s.log_time_ns <= log_time_ns);
+    let last = at_or_before.checked_sub(1).map(|i| &samples[i]);
+    Mark {
+        before,
+        at_or_before,
+        first_seq_from: samples.get(before).map(|s| s.msg.seq),
+        last_seq_to: last.map(|s| s.msg.seq),
+        later: last.is_none_or(|s| log_time_ns > s.log_time_ns),
+    }
+}
+
+impl Recording {
+    /// The recording of a session read whole.
+    pub fn new(session: &Session) -> Result<Recording, RecordingError> {
+        let tracer_id =
+            choose_tracer(&session.header, session.tracers.keys()).map_err(|n| match n {
+                0 => RecordingError::NoTracer,
+                n => RecordingError::AmbiguousTracer(n),
+            })?;
+        let samples = session.tracers.get(&tracer_id).cloned().unwrap_or_default();
+        let events = session
+            .events
+            .iter()
+            .map(|e| MarkedEvent {
+                event: e.clone(),
+                mark: mark_in(&samples, e.log_time_ns),
+            })
+            .collect();
+        let mark = |t: u64| mark_in(&samples, t);
+        let parts = Parts {
+            tracer_id,
+            first_sample_ns: samples.first().map(|s| s.log_time_ns),
+            events,
+            others: OtherDevices::of(session),
+            completeness: session.completeness.clone(),
+            samples: Samples::whole(Vec::new()),
+        };
+        let mut recording = Recording::assemble(parts, &mark);
+        recording.samples = Samples::whole(samples);
+        Ok(recording)
+    }
+
+    /// The recording of a clean session file, streamed: its tracer samples are read by a
+    /// thread as the replay reaches them and never held whole. `marked` and `rest` are the
+    /// file's first streamed read (`stream::EventMarks::read`). None when the file does not
+    /// stream (read it whole).
+    pub fn streamed(path: &Path, marked: &MarkedEvents, rest: &Session) -> Option<Recording> {
+        let others = OtherDevices::of(rest);
+        let times = others.log_times();
+        let marks = if times.is_empty() {
+            Vec::new()
+        } else {
+            TimeMarks::read(path, &marked.tracer_id, &times)?
+        };
+        let mark = |t: u64| {
+            times
+                .binary_search(&t)
+                .ok()
+                .and_then(|k| marks.get(k))
+                .copied()
+                .unwrap_or_default()
+        };
+        let events = marked
+            .events
+            .iter()
+            .zip(&marked.marks)
+            .map(|(event, mark)| MarkedEvent {
+                event: event.clone(),
+                mark: *mark,
+            })
+            .collect();
+        let samples = Samples::streamed(path, &marked.tracer_id, marked.samples).ok()?;
+        let parts = Parts {
+            tracer_id: marked.tracer_id.clone(),
+            samples,
+            first_sample_ns: marked.first_log_ns,
+            events,
+            others,
+            completeness: rest.completeness.clone(),
+        };
+        Some(Recording::assemble(parts, &mark))
+    }
+
+    fn assemble(parts: Parts, mark: &dyn Fn(u64) -> Mark) -> Recording {
+        let Parts {
+            tracer_id,
+            samples,
+            first_sample_ns,
+            events: marked_events,
+            others,
+            completeness,
+        } = parts;
+        let mut later_at = BTreeSet::new();
+        let mut earliest = first_sample_ns.unwrap_or(0);
+        let mut place = |log_time_ns: u64, m: Mark| {
+            if m.later {
+                later_at.insert(m.at_or_before);
+            }
+            earliest = earliest.min(log_time_ns);
+            m.at_or_before
+        };
+        let mut events = Vec::with_capacity(marked_events.len());
+        let mut event_seqs = Vec::with_capacity(marked_events.len());
+        for MarkedEvent { event, mark } in marked_events {
+            events.push(Placed {
+                after: place(event.log_time_ns, mark),
+                log_time_ns: event.log_time_ns,
+                msg: event.msg,
+            });
+            event_seqs.push(mark.last_seq_to);
+        }
+        let mut placed = |t: u64| place(t, mark(t));
+        let env: Vec<_> = (others.env.into_iter())
+            .map(|e| Placed {
+                after: placed(e.log_time_ns),
+                log_time_ns: e.log_time_ns,
+                msg: e.msg,
+            })
+            .collect();
+        let rotary: Vec<_> = (others.rotary.into_iter())
+            .map(|e| Placed {
+                after: placed(e.log_time_ns),
+                log_time_ns: e.log_time_ns,
+                msg: e.msg,
+            })
+            .collect();
+        let arrivals: Vec<_> = (others.arrivals.into_iter())
+            .map(|e| Placed {
+                after: placed(e.log_time_ns),
+                log_time_ns: e.log_time_ns,
+                msg: e.msg,
+            })
+            .collect();
         // Rotary state times count from the run's start: recover it from the first one.
         let start_ns = rotary
             .first()
@@ -166,21 +304,28 @@ impl Recording {
                     .saturating_sub((r.msg.t_s.max(0.0) * 1e9).round() as u64)
             })
             .unwrap_or(earliest);
-        Ok(Recording {
+        Recording {
             tracer_id,
-            machine_id,
-            env_id,
-            table_id,
+            machine_id: others.machine_id,
+            env_id: others.env_id,
+            table_id: others.table_id,
             samples,
             events,
+            event_seqs,
             env,
             rotary,
             arrivals,
             later_at,
+            first_sample_ns,
             earliest_ns: earliest,
             start_ns,
-            completeness: session.completeness.clone(),
-        })
+            completeness,
+        }
+    }
+
+    /// Whether the messages recorded after sample k-1 carry later log times than it.
+    pub fn later_at(&self, k: usize) -> bool {
+        k > self.samples.len() || self.later_at.contains(&k)
     }
 
     /// Where the recording shows the move the sequencer starts with `start_cursor` samples
@@ -189,7 +334,7 @@ impl Recording {
     /// homing point, where the sequencer's homing dwell must begin to end where the recording
     /// homed. An error when the recording's next point lies elsewhere.
     pub fn arrival(
-        &self,
+        &mut self,
         plan: &Plan,
         machine_id: &str,
         start_cursor: usize,
@@ -201,7 +346,7 @@ impl Recording {
 
     /// `arrival`, with what in the recording decided it (for the replay's trail).
     pub fn arrival_explained(
-        &self,
+        &mut self,
         plan: &Plan,
         machine_id: &str,
         start_cursor: usize,
@@ -223,7 +368,7 @@ impl Recording {
 
     /// The arrival of a recording without recorded arrivals, inferred from the events.
     fn inferred_arrival(
-        &self,
+        &mut self,
         plan: &Plan,
         machine_id: &str,
         start_cursor: usize,
@@ -231,7 +376,9 @@ impl Recording {
     ) -> Result<(Arrival, &'static str), DeviceError> {
         let home = plan.points.first().map(|p| p.axes_m);
         let to_home = home.is_some_and(|h| same_axes(target, &h));
-        for event in self.events.iter().filter(|e| e.after > start_cursor) {
+        let next = self.events.iter().position(|e| e.after > start_cursor);
+        for k in next.into_iter().flat_map(|k| k..self.events.len()) {
+            let event = &self.events[k];
             match &event.msg {
                 RunEvent::PointBegin {
                     point,
@@ -255,7 +402,8 @@ impl Recording {
                         });
                     }
                     return Ok(if to_home && *point == 0 {
-                        self.homing_arrival(plan, start_cursor + 1, event.after)
+                        let marked = event.after;
+                        self.homing_arrival(plan, start_cursor + 1, marked)
                     } else {
                         (Arrival::At(event.after), "the next point_begin")
                     });
@@ -264,7 +412,8 @@ impl Recording {
                     return Ok((Arrival::At(event.after), "a beam_break fault"))
                 }
                 RunEvent::Rehome { .. } if to_home => {
-                    return Ok(self.homing_arrival(plan, start_cursor + 1, event.after))
+                    let marked = event.after;
+                    return Ok(self.homing_arrival(plan, start_cursor + 1, marked));
                 }
                 RunEvent::StationBegin { station, .. } | RunEvent::StationEnd { station } => {
                     return Err(DeviceError::Rejected {
@@ -288,7 +437,7 @@ impl Recording {
     /// The arrival for a homing whose first sample after zeroing was sample `marked - 1`:
     /// the latest arrival (not before `lo`) from which the sequencer's homing dwell (stillstand
     /// with no minimum dwell, or `max_dwell_s`) ends exactly at the sample before that.
-    fn homing_arrival(&self, plan: &Plan, lo: usize, marked: usize) -> (Arrival, &'static str) {
+    fn homing_arrival(&mut self, plan: &Plan, lo: usize, marked: usize) -> (Arrival, &'static str) {
         if !self.arrivals.is_empty() {
             // Recorded, not inferred (see `arrival_explained`).
             return (Arrival::At(lo), "recorded");
@@ -296,32 +445,17 @@ impl Recording {
         let Some(end) = marked.checked_sub(2) else {
             return (Arrival::At(lo), "a homing at the recording's start");
         };
-        let ends_at = |a: usize| -> Option<usize> {
-            let begin_s = self.samples.get(a.checked_sub(1)?)?.msg.t_s;
-            let mut detector =
-                StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
-            for (j, s) in self.samples.iter().enumerate().take(end + 1).skip(a) {
-                if !s.msg.tracking {
-                    return None;
-                }
-                let settled = matches!(
-                    detector.push(s.msg.t_s, s.msg.length_m),
-                    Stillstand::Settled { .. }
-                );
-                if settled || s.msg.t_s - begin_s >= plan.max_dwell_s {
-                    return Some(j);
-                }
-            }
-            None
-        };
         let end_s = self.samples.get(end).map_or(0.0, |s| s.msg.t_s);
         let mut a = end;
         while a >= lo.max(1) {
-            if ends_at(a) == Some(end) {
+            if dwell_end(&mut self.samples, plan, a, end) == Some(end) {
                 return (Arrival::At(a), "the recorded homing reproduced");
             }
             // A dwell ends by max_dwell_s: earlier arrivals cannot end this late.
-            let begin_s = self.samples[a - 1].msg.t_s;
+            let begin_s = self
+                .samples
+                .get(a - 1)
+                .map_or(f64::NEG_INFINITY, |s| s.msg.t_s);
             if end_s - begin_s > plan.max_dwell_s + plan.stillstand_window_s {
                 break;
             }
@@ -335,12 +469,6 @@ impl Recording {
             Arrival::At(lo),
             "no arrival reproduces the recorded homing: at once",
         )
-    }
-
-    /// Index of the first tracer sample with a log time after `log_time_ns`.
-    pub fn samples_before(&self, log_time_ns: u64) -> usize {
-        self.samples
-            .partition_point(|s| s.log_time_ns <= log_time_ns)
     }
 
     /// Recorded device faults of `device` that the replayed device raises again (the
@@ -358,6 +486,28 @@ impl Recording {
             })
             .collect()
     }
+}
+
+/// Where the sequencer's homing dwell from an arrival after sample `a - 1` ends (stillstand
+/// with no minimum dwell, or `max_dwell_s`), if by sample `end`.
+fn dwell_end(samples: &mut Samples, plan: &Plan, a: usize, end: usize) -> Option<usize> {
+    let begin_s = samples.get(a.checked_sub(1)?)?.msg.t_s;
+    let mut detector =
+        StillstandDetector::new(plan.stillstand_window_s, plan.stillstand_tolerance_m);
+    for j in a..=end {
+        let s = samples.get(j)?;
+        if !s.msg.tracking {
+            return None;
+        }
+        let settled = matches!(
+            detector.push(s.msg.t_s, s.msg.length_m),
+            Stillstand::Settled { .. }
+        );
+        if settled || s.msg.t_s - begin_s >= plan.max_dwell_s {
+            return Some(j);
+        }
+    }
+    None
 }
 
 /// Fault codes a driver detects and recovers from by itself (`LinkFault`): replayed through
@@ -544,7 +694,7 @@ mod tests {
     /// The homing dwell from the found arrival ends exactly where the recording homed.
     #[test]
     fn the_homing_arrival_reproduces_the_recorded_homing() {
-        let recording = Recording::new(&session()).expect("recording");
+        let mut recording = Recording::new(&session()).expect("recording");
         assert_eq!(recording.events[0].after, 62);
         let arrival = recording
             .arrival(&plan(), "cmm", 0, &axes([0.0; 3]))
@@ -560,7 +710,7 @@ mod tests {
 
     #[test]
     fn a_move_the_recording_does_not_hold_is_an_error() {
-        let recording = Recording::new(&session()).expect("recording");
+        let mut recording = Recording::new(&session()).expect("recording");
         let err = recording
             .arrival(&plan(), "cmm", 70, &axes([0.2, 0.0, 0.0]))
             .expect_err("no such move");

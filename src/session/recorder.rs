@@ -164,6 +164,12 @@ impl RecorderHandle {
         }
     }
 
+    /// Messages sent and not yet written: a producer faster than the file (a replay at full
+    /// speed) waits on it rather than queue the recording up in memory.
+    pub fn queued(&self) -> u64 {
+        self.queued.load(Ordering::Relaxed)
+    }
+
     /// The `/geocal/session` header; the file is flushed and synced right after it.
     pub fn session(&self, header: &SessionHeader, log_time_ns: u64) {
         self.send(Payload::Session(Box::new(header.clone())), log_time_ns);
