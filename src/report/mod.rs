@@ -16,8 +16,8 @@ use anyhow::Context;
 
 use crate::diagnose::Diagnosis;
 use crate::document::{Document, KindReport, Section, Table};
-use crate::kinds::registry::Registry;
 use crate::extract::SettledSession;
+use crate::kinds::registry::Registry;
 use crate::session::reader::Session;
 use crate::solve::misfit::{sigma_rows, Misfit};
 
@@ -97,8 +97,7 @@ impl Inputs {
         let session_path = Some(dir.join("session.mcap")).filter(|p| p.is_file());
         let (session, settled) = match &session_path {
             Some(p) => {
-                let read =
-                    session::read(p).with_context(|| format!("reading {}", p.display()))?;
+                let read = session::read(p).with_context(|| format!("reading {}", p.display()))?;
                 (Some(read.session), read.settled)
             }
             None => (None, None),
