@@ -231,7 +231,8 @@ pub fn solve_file_streaming(
     Some(solve_extracted(extracted, settings, None).map(|(results, _)| results))
 }
 
-fn is_multilateration(kind: &str) -> bool {
+/// Whether a session's plan kind is this method's.
+pub(crate) fn is_multilateration(kind: &str) -> bool {
     kind == crate::config::PlanKind::Multilateration.as_str()
 }
 

@@ -19,7 +19,7 @@ pub struct ReportSession {
 /// file, else read whole.
 pub fn read(path: &Path) -> Result<ReportSession, ReadError> {
     let mut sink = EventsAndWindows {
-        windows: WindowStream::new(is_multilateration),
+        windows: WindowStream::new(crate::method::multilateration::is_multilateration),
         events: Vec::new(),
     };
     if let Some(streamed) = crate::session::reader::stream_session(path, &mut sink) {
@@ -37,10 +37,6 @@ pub fn read(path: &Path) -> Result<ReportSession, ReadError> {
         session: read_session(path)?,
         settled: None,
     })
-}
-
-fn is_multilateration(kind: &str) -> bool {
-    kind == crate::config::PlanKind::Multilateration.as_str()
 }
 
 /// The settled windows of the stream, and its run events (the report lists what they say).
