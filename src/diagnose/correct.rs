@@ -13,9 +13,9 @@ use super::fit::Fit;
 use super::locate::best_step;
 use super::schur::Design;
 use super::{joint_fit, DiagnoseError};
+use crate::extract::SettledSession;
 pub use crate::method::effects::EffectCorrection;
 use crate::method::effects::EffectsFit;
-use crate::session::reader::Session;
 use crate::solve::multilateration::{generator, solve, SolveOptions};
 
 #[derive(Debug, thiserror::Error)]
@@ -63,12 +63,12 @@ pub fn parse_effects(names: &[String]) -> Result<Option<Arc<dyn EffectsFit>>, Co
     Ok(fit(kinds))
 }
 
-/// Fit `kinds` jointly with the geometry of a multilateration session.
+/// Fit `kinds` jointly with the geometry of a multilateration session (its settled windows).
 pub fn correction(
-    session: &Session,
+    settled: &SettledSession,
     kinds: &[EffectKind],
 ) -> Result<EffectCorrection, CorrectionError> {
-    let data = Data::from_session(session).map_err(DiagnoseError::from)?;
+    let data = Data::from_settled(settled.clone()).map_err(DiagnoseError::from)?;
     let nominal = solve(&data.problem, &SolveOptions::default()).map_err(DiagnoseError::from)?;
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
@@ -183,8 +183,8 @@ impl EffectsFit for FittedEffects {
 
     fn correction(
         &self,
-        session: &Session,
+        settled: &SettledSession,
     ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>> {
-        correction(session, &self.0).map_err(Into::into)
+        correction(settled, &self.0).map_err(Into::into)
     }
 }

@@ -2,9 +2,11 @@
 //! time, station, pass, approach directions, homing reference and the logged air at that time.
 
 use std::collections::BTreeMap;
+use std::path::Path;
 
-use crate::extract::{extract_points, ExtractOptions, NoiseModel};
-use crate::session::reader::Session;
+pub use crate::extract::RawWindow;
+use crate::extract::{stream_settled, SettledSession};
+use crate::session::reader::{read_session, ReadError, Session};
 use crate::sim::effects::edlen_dn;
 use crate::solve::multilateration::{solve, MultilaterationProblem, SolveOptions};
 
@@ -32,15 +34,6 @@ pub struct Obs {
     pub material_dt_k: Option<f64>,
     /// Commanded axis positions x, y, z (from `point_begin`; 0 for an axis not named).
     pub axes_m: [f64; 3],
-}
-
-/// The raw samples of one settled dwell window (what its mean length averages).
-#[derive(Debug, Clone)]
-pub struct RawWindow {
-    /// Device time of the first sample after `point_begin`: the machine has just arrived.
-    pub arrival_s: f64,
-    /// (t_s, length_m) of the settled stretch.
-    pub samples: Vec<(f64, f64)>,
 }
 
 #[derive(Debug, Clone)]
@@ -138,23 +131,43 @@ pub fn check_kind(kind: &str) -> Result<(), DataError> {
     Err(DataError::Kind(kind.to_string(), supported))
 }
 
+/// A session file's settled windows for the diagnosis: streamed when the file is clean (its
+/// tracer stream never held whole), else from the whole read (damaged, cut short, repaired,
+/// of another kind). The outer error: the file could not be read.
+pub fn settled_of_file(path: &Path) -> Result<Result<SettledSession, DataError>, ReadError> {
+    if let Some(settled) = stream_settled(path, diagnosable) {
+        return Ok(Ok(settled));
+    }
+    let session = read_session(path)?;
+    Ok(check_kind(&session.header.kind).and_then(|()| Ok(SettledSession::of_session(&session)?)))
+}
+
+fn diagnosable(kind: &str) -> bool {
+    check_kind(kind).is_ok()
+}
+
 impl Data {
     pub fn from_session(session: &Session) -> Result<Data, DataError> {
         check_kind(&session.header.kind)?;
-        let tracer_id = match session.tracers.keys().next() {
-            Some(id) if session.tracers.len() == 1 => Some(id.clone()),
-            _ => None,
-        };
-        let noise = tracer_id
-            .as_deref()
-            .and_then(|id| NoiseModel::from_header(&session.header, id));
-        let options = ExtractOptions::from_header(&session.header);
-        let extraction = extract_points(session, tracer_id.as_deref(), noise, &options)?;
+        Data::from_settled(SettledSession::of_session(session)?)
+    }
+
+    /// From a session reduced to its settled windows (`SettledSession`, streamed or of a whole
+    /// read): the same observations as `from_session` of that session.
+    pub fn from_settled(settled: SettledSession) -> Result<Data, DataError> {
+        check_kind(&settled.header.kind)?;
+        let SettledSession {
+            header,
+            env: env_log,
+            noise,
+            extraction,
+            windows,
+            ..
+        } = settled;
         if extraction.measurements.is_empty() {
             return Err(DataError::NoPoints(extraction.dropped.len()));
         }
-        let mut env: Vec<(f64, f64, f64, f64)> = session
-            .env
+        let mut env: Vec<(f64, f64, f64, f64)> = env_log
             .values()
             .next()
             .map(|v| {
@@ -173,8 +186,7 @@ impl Data {
             .unwrap_or_default();
         env.sort_by(|a, b| a.0.total_cmp(&b.0));
         // Mean of the material sensors (machine structure, scales) per environment sample.
-        let mut material: Vec<(f64, f64)> = session
-            .env
+        let mut material: Vec<(f64, f64)> = env_log
             .values()
             .next()
             .map(|v| {
@@ -251,7 +263,6 @@ impl Data {
                 obs[i].home = home;
             }
         }
-        let windows = raw_windows(session, tracer_id.as_deref(), &extraction.measurements);
         let m = extraction.stations.len();
         let mut station_start_s = vec![f64::INFINITY; m];
         for o in &obs {
@@ -270,8 +281,8 @@ impl Data {
             declared_dead_path_m: noise.map_or(0.0, |n| n.dead_path_m),
             points: built.points,
             point_axes_m: built.axes_m,
-            machine: session.header.machine.clone(),
-            session_id: session.header.session_id.clone(),
+            machine: header.machine,
+            session_id: header.session_id,
             has_env: obs.iter().all(|o| o.dn.is_some()),
             has_material: obs.iter().all(|o| o.material_dt_k.is_some()),
             windows,
@@ -299,46 +310,4 @@ impl Data {
         }
         scaled
     }
-}
-
-/// The raw settled samples of each measurement and the arrival time before them: the last
-/// `point_begin` of its (station, point, pass) (a repeat after a re-homing replaces the first).
-fn raw_windows(
-    session: &Session,
-    tracer_id: Option<&str>,
-    measurements: &[crate::extract::PointMeasurement],
-) -> Vec<Option<RawWindow>> {
-    let Some(samples) = tracer_id.and_then(|id| session.tracers.get(id)) else {
-        return vec![None; measurements.len()];
-    };
-    let mut begins: BTreeMap<(&str, usize, usize), u64> = BTreeMap::new();
-    for e in &session.events {
-        if let crate::session::messages::RunEvent::PointBegin {
-            station,
-            point,
-            pass,
-            ..
-        } = &e.msg
-        {
-            begins.insert((station.as_str(), *point, *pass), e.log_time_ns);
-        }
-    }
-    measurements
-        .iter()
-        .map(|m| {
-            let begin = *begins.get(&(m.station.as_str(), m.point, m.pass))?;
-            let from = samples.partition_point(|s| s.log_time_ns < begin);
-            let arrival_s = samples.get(from)?.msg.t_s;
-            let window: Vec<(f64, f64)> = samples[from..]
-                .iter()
-                .take_while(|s| s.msg.t_s <= m.settled_to_s)
-                .filter(|s| s.msg.t_s >= m.settled_from_s)
-                .map(|s| (s.msg.t_s, s.msg.length_m))
-                .collect();
-            (window.len() >= 2).then_some(RawWindow {
-                arrival_s,
-                samples: window,
-            })
-        })
-        .collect()
 }

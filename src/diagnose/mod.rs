@@ -32,7 +32,8 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use crate::session::reader::{read_session, Session};
+use crate::extract::SettledSession;
+use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
@@ -210,18 +211,22 @@ pub fn diagnose_file(path: &Path, options: &DiagnoseOptions) -> anyhow::Result<D
     Ok(diagnose_file_detailed(path, options)?.0)
 }
 
-/// [`diagnose_file`] with the standardised residuals of every length.
+/// [`diagnose_file`] with the standardised residuals of every length. A clean file is
+/// streamed: its tracer samples are never held whole, only each window's settled stretch.
 pub fn diagnose_file_detailed(
     path: &Path,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
-    let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
-    let detailed = Data::from_session(&session)
+    let settled = data::settled_of_file(path)
+        .with_context(|| format!("reading {}", path.display()))?
+        .map_err(DiagnoseError::from)
+        .with_context(|| format!("diagnosing {}", path.display()))?;
+    let detailed = Data::from_settled(settled.clone())
         .map_err(DiagnoseError::from)
         .and_then(|data| diagnose_data(&data, options))
         .with_context(|| format!("diagnosing {}", path.display()))?;
     let mut diagnosis = detailed.diagnosis;
-    match corrected_calibration(&session, path, &diagnosis.selected) {
+    match corrected_calibration(&settled, path, &diagnosis.selected) {
         Ok(corrected) => diagnosis.corrected = corrected,
         Err(why) => diagnosis
             .notes
@@ -233,7 +238,7 @@ pub fn diagnose_file_detailed(
 /// The calibration re-solved with the selected effects that the solve can model, and how far
 /// its points moved from the nominal calibration's; None when none was selected.
 fn corrected_calibration(
-    session: &Session,
+    settled: &SettledSession,
     path: &Path,
     selected: &[String],
 ) -> Result<Option<CorrectedCalibration>, String> {
@@ -250,7 +255,9 @@ fn corrected_calibration(
             effects: correct::fit(effects),
             ..Default::default()
         };
-        crate::method::multilateration::solve(session, &settings).map_err(|e| e.to_string())
+        crate::method::multilateration::solve_settled(settled, &settings)
+            .map(|(results, _)| results)
+            .map_err(|e| e.to_string())
     };
     let nominal = solve_with(Vec::new())?;
     let corrected = solve_with(kinds.clone())?;

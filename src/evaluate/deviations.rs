@@ -8,7 +8,7 @@ use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 
 use super::iso230_2::{evaluate, AxisType, Curves, CurvesError, Evaluation};
-use crate::extract::{extract_points, ExtractOptions, NoiseModel, PointMeasurement};
+use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel, PointMeasurement};
 use crate::method::multilateration::MultilaterationResults;
 use crate::method::Results;
 use crate::session::reader::Session;
@@ -89,9 +89,22 @@ impl Iso230_2 {
 /// The ISO 230-2 figures of every axis the results measured: the linear axes of a tracer
 /// network (per pass, with the stations fixed) and a rotary table's steps.
 pub fn of_results(results: &Results, session: &Session) -> Result<Iso230_2, DeviationError> {
+    let extraction = match results.multilateration() {
+        Some(_) => Some(tracer_extraction(session)?),
+        None => None,
+    };
+    of_results_extracted(results, extraction.as_ref())
+}
+
+/// `of_results` with the session's point extraction given (its only tracer, the header's
+/// noise model and stillstand settings): a streamed session's, whose samples are not held.
+pub fn of_results_extracted(
+    results: &Results,
+    extraction: Option<&Extraction>,
+) -> Result<Iso230_2, DeviationError> {
     let mut out = Iso230_2::default();
-    if let Some(network) = results.multilateration() {
-        tracer_axes(network, session, &mut out)?;
+    if let (Some(network), Some(extraction)) = (results.multilateration(), extraction) {
+        tracer_axes(network, extraction, &mut out)?;
     }
     let json = results.to_json_value()?;
     if let Some(rotary) = json.get("rotary").filter(|r| !r.is_null()) {
@@ -114,22 +127,26 @@ struct RunPoint {
     sigma_m: [f64; 3],
 }
 
-fn tracer_axes(
-    network: &MultilaterationResults,
-    session: &Session,
-    out: &mut Iso230_2,
-) -> Result<(), DeviationError> {
+/// The point extraction of the session's only tracer.
+fn tracer_extraction(session: &Session) -> Result<Extraction, DeviationError> {
     if session.tracers.len() != 1 {
         return Err(DeviationError::Tracers(session.tracers.len()));
     }
     let tracer_id = session.tracers.keys().next().cloned().unwrap_or_default();
     let noise = NoiseModel::from_header(&session.header, &tracer_id);
-    let extraction = extract_points(
+    Ok(extract_points(
         session,
         Some(&tracer_id),
         noise,
         &ExtractOptions::from_header(&session.header),
-    )?;
+    )?)
+}
+
+fn tracer_axes(
+    network: &MultilaterationResults,
+    extraction: &Extraction,
+    out: &mut Iso230_2,
+) -> Result<(), DeviationError> {
     let mut general = Vec::new();
     if !network.effects.is_empty() {
         general.push(

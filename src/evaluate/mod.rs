@@ -10,4 +10,4 @@ pub mod normalise;
 pub mod tracer;
 pub mod uncertainty;
 
-pub use deviations::{of_results, AxisIso, Iso230_2};
+pub use deviations::{of_results, of_results_extracted, AxisIso, Iso230_2};

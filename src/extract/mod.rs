@@ -7,9 +7,13 @@ pub mod points;
 pub mod stillstand;
 #[cfg(test)]
 mod stream_tests;
+pub mod windows;
+#[cfg(test)]
+mod windows_tests;
 
 pub use lengths::{LengthMeasurement, LengthStream, Lengths};
 pub use points::{
     extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement,
 };
 pub use stillstand::{Stillstand, StillstandDetector};
+pub use windows::{stream_settled, RawWindow, SettledSession, WindowStream};

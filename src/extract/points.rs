@@ -129,7 +129,7 @@ pub fn extract_points(
     })
 }
 
-fn point_measurement(m: Measured, noise: Option<NoiseModel>) -> PointMeasurement {
+pub(super) fn point_measurement(m: Measured, noise: Option<NoiseModel>) -> PointMeasurement {
     let (w, settled) = (m.window, m.settled);
     PointMeasurement {
         station: w.station,

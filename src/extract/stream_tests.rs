@@ -14,7 +14,7 @@ const DT_NS: u64 = 50_000_000;
 /// with every kind of window the extraction meets: settled, beam broken, never ended,
 /// mismatched, repeated after re-homing; events at the log time of a sample, and samples
 /// recorded after an event that precedes them in log time (a device's late delivery).
-fn record(path: &Path, points: usize) {
+pub(super) fn record(path: &Path, points: usize) {
     let rec = Recorder::create(
         path,
         RecorderOptions {
@@ -170,7 +170,7 @@ fn streamed_lengths_equal_the_whole_session_extraction() {
 }
 
 /// The most messages any chunk of the file holds (from its message indexes).
-fn largest_chunk(path: &Path) -> u64 {
+pub(super) fn largest_chunk(path: &Path) -> u64 {
     let bytes = std::fs::read(path).expect("read");
     let summary = mcap::Summary::read(&bytes)
         .expect("summary")

@@ -6,16 +6,17 @@ use std::collections::BTreeMap;
 
 use nalgebra::DMatrix;
 
-use crate::session::reader::Session;
+use crate::extract::SettledSession;
 
 /// Effects fitted jointly with the geometry of a session.
 pub trait EffectsFit: std::fmt::Debug + Send + Sync {
     /// The effects' names (the diagnosis's vocabulary).
     fn names(&self) -> Vec<&'static str>;
-    /// Their joint fit on the session: what to take off each length, and what it adds.
+    /// Their joint fit on the session's settled windows: what to take off each length, and
+    /// what it adds.
     fn correction(
         &self,
-        session: &Session,
+        settled: &SettledSession,
     ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>>;
 }
 

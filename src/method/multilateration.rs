@@ -10,7 +10,7 @@ use crate::solve::misfit::Misfit;
 
 use crate::extract::{
     extract_points, ExtractOptions, Extraction, LengthMeasurement, LengthStream, Lengths,
-    NoiseModel,
+    NoiseModel, SettledSession,
 };
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
@@ -173,6 +173,11 @@ pub fn solve_detailed(
     let extraction = extract_points(session, Some(&tracer_id), declared_noise, &options)?;
     let lengths = Lengths::of_extraction(&extraction);
     drop(extraction);
+    // The effects' fit reads the settled windows (the same extraction, with its maps).
+    let settled = match settings.effects {
+        Some(_) => Some(SettledSession::of_session(session)?),
+        None => None,
+    };
     let extracted = Extracted {
         header: &session.header,
         damaged: &session.damaged,
@@ -180,19 +185,37 @@ pub fn solve_detailed(
         tracer_id,
         declared_noise,
     };
-    solve_extracted(extracted, settings, Some(session))
+    solve_extracted(extracted, settings, settled.as_ref())
+}
+
+/// Solve a multilateration session reduced to its settled windows (`SettledSession`, streamed
+/// or of a whole read): the results `solve` gives of that session.
+pub fn solve_settled(
+    settled: &SettledSession,
+    settings: &SolveSettings,
+) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
+    let extracted = Extracted {
+        header: &settled.header,
+        damaged: &settled.damaged,
+        lengths: Lengths::of_extraction(&settled.extraction),
+        tracer_id: settled.tracer_id.clone(),
+        declared_noise: settled.noise,
+    };
+    solve_extracted(extracted, settings, Some(settled))
 }
 
 /// Solve a multilateration session file as `geocal solve` does, streaming it: the tracer
 /// samples go straight to the point extraction and are never held whole. None when the file
 /// cannot be streamed exactly (not a clean multilateration session with one tracer, a
-/// repaired copy, effects to fit, which need the whole session): read it whole then.
+/// repaired copy): read it whole then. Effects to fit stream the settled windows their fit
+/// reads (`SettledSession`).
 pub fn solve_file_streaming(
     path: &std::path::Path,
     settings: &SolveSettings,
 ) -> Option<Result<MultilaterationResults, MultilaterationError>> {
     if settings.effects.is_some() {
-        return None;
+        let settled = crate::extract::stream_settled(path, is_multilateration)?;
+        return Some(solve_settled(&settled, settings).map(|(results, _)| results));
     }
     let mut sink = LengthStream::new(crate::config::PlanKind::Multilateration.as_str());
     let streamed = crate::session::reader::stream_session(path, &mut sink)?;
@@ -208,6 +231,11 @@ pub fn solve_file_streaming(
     Some(solve_extracted(extracted, settings, None).map(|(results, _)| results))
 }
 
+/// Whether a session's plan kind is this method's.
+pub(crate) fn is_multilateration(kind: &str) -> bool {
+    kind == crate::config::PlanKind::Multilateration.as_str()
+}
+
 /// A session's extracted lengths and what the results say about them.
 struct Extracted<'a> {
     header: &'a SessionHeader,
@@ -217,11 +245,11 @@ struct Extracted<'a> {
     declared_noise: Option<NoiseModel>,
 }
 
-/// The adjustment of extracted lengths; `session` is needed only for the effects' fit.
+/// The adjustment of extracted lengths; `settled` is needed only for the effects' fit.
 fn solve_extracted(
     extracted: Extracted<'_>,
     settings: &SolveSettings,
-    session: Option<&Session>,
+    settled: Option<&SettledSession>,
 ) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
     let Extracted {
         header,
@@ -238,10 +266,10 @@ fn solve_extracted(
     let mut problem = Problem::of_lengths(&extraction);
     // Effects modelled: the lengths corrected by their jointly fitted contribution (the
     // geometry of the joint optimum is the solve of the corrected lengths).
-    let correction = match (&settings.effects, session) {
-        (Some(effects), Some(session)) => {
+    let correction = match (&settings.effects, settled) {
+        (Some(effects), Some(settled)) => {
             let c = effects
-                .correction(session)
+                .correction(settled)
                 .map_err(MultilaterationError::Effects)?;
             for (obs, dl) in problem
                 .problem
@@ -255,7 +283,7 @@ fn solve_extracted(
         }
         (Some(_), None) => {
             return Err(MultilaterationError::Effects(
-                "fitting effects needs the whole session".into(),
+                "fitting effects needs the settled windows of the session".into(),
             ))
         }
         (None, _) => None,

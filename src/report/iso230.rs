@@ -22,8 +22,19 @@ pub fn section(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> 
     if kind != "multilateration" && kind != "rotary_tracer" {
         return Ok(Vec::new());
     }
-    let results = crate::kinds::registry::solve_session(session, &Default::default())?;
-    let iso = crate::evaluate::of_results(&results, session)?;
+    let iso = match &inputs.settled {
+        // A streamed session: its settled windows, solved as `solve_session` solves them.
+        Some(settled) => {
+            let (results, _) =
+                crate::method::multilateration::solve_settled(settled, &Default::default())?;
+            let results = crate::method::Results::new(results);
+            crate::evaluate::of_results_extracted(&results, Some(&settled.extraction))?
+        }
+        None => {
+            let results = crate::kinds::registry::solve_session(session, &Default::default())?;
+            crate::evaluate::of_results(&results, session)?
+        }
+    };
     Ok(vec![document(&iso)])
 }
 

@@ -5,6 +5,7 @@
 pub mod diagnosis;
 pub mod header;
 pub mod iso230;
+pub mod session;
 pub mod standards;
 pub mod summary;
 pub mod verification;
@@ -15,17 +16,21 @@ use anyhow::Context;
 
 use crate::diagnose::Diagnosis;
 use crate::document::{Document, KindReport, Section, Table};
+use crate::extract::SettledSession;
 use crate::kinds::registry::Registry;
-use crate::session::reader::{read_session, Session};
+use crate::session::reader::Session;
 use crate::solve::misfit::{sigma_rows, Misfit};
 
 /// What the report is made from: the results, and what lies beside them.
 pub struct Inputs {
     pub results_path: PathBuf,
     pub results: serde_json::Value,
-    /// The recorded session (`session.mcap` beside the results), when it is there.
+    /// The recorded session (`session.mcap` beside the results), when it is there. A clean
+    /// multilateration file is streamed: `session` then holds every stream but the tracer
+    /// samples (`tracers` empty) and `settled` its settled windows (`session::read`).
     pub session_path: Option<PathBuf>,
     pub session: Option<Session>,
+    pub settled: Option<SettledSession>,
     /// `diagnosis.json` beside the results (geocal-diagnosis/1), when it is there.
     pub diagnosis_path: Option<PathBuf>,
     pub diagnosis: Option<Diagnosis>,
@@ -90,9 +95,12 @@ impl Inputs {
             );
         }
         let session_path = Some(dir.join("session.mcap")).filter(|p| p.is_file());
-        let session = match &session_path {
-            Some(p) => Some(read_session(p).with_context(|| format!("reading {}", p.display()))?),
-            None => None,
+        let (session, settled) = match &session_path {
+            Some(p) => {
+                let read = session::read(p).with_context(|| format!("reading {}", p.display()))?;
+                (Some(read.session), read.settled)
+            }
+            None => (None, None),
         };
         let diagnosis_path = Some(dir.join("diagnosis.json")).filter(|p| p.is_file());
         let diagnosis = match &diagnosis_path {
@@ -110,6 +118,7 @@ impl Inputs {
             results,
             session_path,
             session,
+            settled,
             diagnosis_path,
             diagnosis,
             before_results: None,
@@ -118,8 +127,9 @@ impl Inputs {
 
     /// The recorded session the results came from, when it is not beside them.
     pub fn with_session(mut self, path: &Path) -> anyhow::Result<Inputs> {
-        self.session =
-            Some(read_session(path).with_context(|| format!("reading {}", path.display()))?);
+        let read = session::read(path).with_context(|| format!("reading {}", path.display()))?;
+        self.session = Some(read.session);
+        self.settled = read.settled;
         self.session_path = Some(path.to_path_buf());
         Ok(self)
     }

@@ -1,0 +1,370 @@
+//! What the diagnosis and the effects' fit read of a session beside the solve's lengths: the
+//! extraction with its names and maps, each measurement's raw settled samples and arrival
+//! time, the environment log and the header (`SettledSession`). From a whole session, or
+//! straight from a streamed session file (`WindowStream`), which holds only the open dwell
+//! window's tracer samples and each measured window's settled (t, length) pairs.
+
+use std::collections::{BTreeMap, HashMap};
+
+use super::pairing::{Measured, Pairing};
+use super::points::{point_measurement, ExtractError, PointMeasurement};
+use super::{extract_points, ExtractOptions, Extraction, NoiseModel};
+use crate::session::messages::{EnvSample, RunEvent, SessionHeader, TracerSample};
+use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped, Streamed};
+
+/// The raw samples of one settled dwell window (what its mean length averages).
+#[derive(Debug, Clone, PartialEq)]
+pub struct RawWindow {
+    /// Device time of the first sample after `point_begin`: the machine has just arrived.
+    pub arrival_s: f64,
+    /// (t_s, length_m) of the settled stretch.
+    pub samples: Vec<(f64, f64)>,
+}
+
+/// A session reduced to its settled windows: everything the diagnosis's observations and the
+/// effects' fit are built from, without the tracer stream.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SettledSession {
+    pub header: SessionHeader,
+    /// Key: id from the topic `/env/<id>` (as `Session::env`).
+    pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    /// Chunks of the file that could not be read (as `Session::damaged`).
+    pub damaged: Vec<DamagedChunk>,
+    /// The session's only tracer.
+    pub tracer_id: String,
+    /// The tracer's declared noise model.
+    pub noise: Option<NoiseModel>,
+    /// `extract_points` of the tracer with the header's stillstand settings.
+    pub extraction: Extraction,
+    /// Per measurement: its raw settled window (None when the session's events do not
+    /// locate it, or it holds fewer than 2 samples).
+    pub windows: Vec<Option<RawWindow>>,
+}
+
+impl SettledSession {
+    /// From a session read whole. The errors are `extract_points`'s (no tracer, several).
+    pub fn of_session(session: &Session) -> Result<SettledSession, ExtractError> {
+        let tracer_id = match session.tracers.keys().next() {
+            Some(id) if session.tracers.len() == 1 => Some(id.clone()),
+            _ => None,
+        };
+        let noise = tracer_id
+            .as_deref()
+            .and_then(|id| NoiseModel::from_header(&session.header, id));
+        let options = ExtractOptions::from_header(&session.header);
+        let extraction = extract_points(session, tracer_id.as_deref(), noise, &options)?;
+        // extract_points has named the problem unless there is exactly one tracer.
+        let tracer_id = tracer_id.ok_or(ExtractError::NoTracer)?;
+        let windows = raw_windows(session, &tracer_id, &extraction.measurements);
+        Ok(SettledSession {
+            header: session.header.clone(),
+            env: session.env.clone(),
+            damaged: session.damaged.clone(),
+            tracer_id,
+            noise,
+            extraction,
+            windows,
+        })
+    }
+}
+
+/// Streams the session at `path` to its `SettledSession` when its kind passes `accept_kind`.
+/// None whenever the stream could differ from the whole read (`stream_session`, and
+/// `WindowStream`'s own refusals): the caller then reads the session whole.
+pub fn stream_settled(
+    path: &std::path::Path,
+    accept_kind: fn(&str) -> bool,
+) -> Option<SettledSession> {
+    let mut sink = WindowStream::new(accept_kind);
+    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
+    sink.finish(streamed)
+}
+
+/// The raw settled samples of each measurement and the arrival time before them: the last
+/// `point_begin` of its (station, point, pass) (a repeat after a re-homing replaces the first).
+fn raw_windows(
+    session: &Session,
+    tracer_id: &str,
+    measurements: &[PointMeasurement],
+) -> Vec<Option<RawWindow>> {
+    let Some(samples) = session.tracers.get(tracer_id) else {
+        return vec![None; measurements.len()];
+    };
+    let mut begins: BTreeMap<(&str, usize, usize), u64> = BTreeMap::new();
+    for e in &session.events {
+        if let RunEvent::PointBegin {
+            station,
+            point,
+            pass,
+            ..
+        } = &e.msg
+        {
+            begins.insert((station.as_str(), *point, *pass), e.log_time_ns);
+        }
+    }
+    measurements
+        .iter()
+        .map(|m| {
+            let begin = *begins.get(&(m.station.as_str(), m.point, m.pass))?;
+            let mut window = WindowCollector::new(begin, m);
+            let from = samples.partition_point(|s| s.log_time_ns < begin);
+            for s in &samples[from..] {
+                if !window.push(&s.msg) {
+                    break;
+                }
+            }
+            window.finish()
+        })
+        .collect()
+}
+
+/// One measurement's raw window, gathered sample by sample from its `point_begin` on: the
+/// first sample is the arrival, then the samples up to the first one past the settled
+/// stretch's end, of which those inside the stretch are kept.
+#[derive(Debug, Clone)]
+struct WindowCollector {
+    begin_ns: u64,
+    from_s: f64,
+    to_s: f64,
+    arrival_s: Option<f64>,
+    samples: Vec<(f64, f64)>,
+    done: bool,
+}
+
+impl WindowCollector {
+    fn new(begin_ns: u64, m: &PointMeasurement) -> Self {
+        WindowCollector {
+            begin_ns,
+            from_s: m.settled_from_s,
+            to_s: m.settled_to_s,
+            arrival_s: None,
+            samples: Vec::new(),
+            done: false,
+        }
+    }
+
+    /// The next sample (log-time order, at or after `begin_ns`). False: the window is complete.
+    fn push(&mut self, s: &TracerSample) -> bool {
+        if self.done {
+            return false;
+        }
+        self.arrival_s.get_or_insert(s.t_s);
+        if s.t_s <= self.to_s {
+            if s.t_s >= self.from_s {
+                self.samples.push((s.t_s, s.length_m));
+            }
+        } else {
+            self.done = true;
+        }
+        !self.done
+    }
+
+    /// A later `point_begin` of the same (station, point, pass): the window starts again there.
+    fn restart(&mut self, begin_ns: u64) {
+        self.begin_ns = begin_ns;
+        self.arrival_s = None;
+        self.samples.clear();
+        self.done = false;
+    }
+
+    /// Feeds the samples of `held` (sorted by log time) from `begin_ns` on.
+    fn push_from_begin(&mut self, held: &[Stamped<TracerSample>]) {
+        let from = held.partition_point(|s| s.log_time_ns < self.begin_ns);
+        for s in &held[from..] {
+            if !self.push(&s.msg) {
+                break;
+            }
+        }
+    }
+
+    fn finish(self) -> Option<RawWindow> {
+        let arrival_s = self.arrival_s?;
+        (self.samples.len() >= 2).then_some(RawWindow {
+            arrival_s,
+            samples: self.samples,
+        })
+    }
+}
+
+/// The `SettledSession` of a streamed session file (`session::reader::stream_session`) with
+/// exactly one tracer, as `SettledSession::of_session` gives it of the whole read. It declines
+/// a session whose kind `accept_kind` refuses or with another number of tracers, and stops at
+/// a `data_lost` event (a repaired copy: its windows need the whole session's lost spans).
+pub struct WindowStream {
+    accept_kind: fn(&str) -> bool,
+    started: Option<Started>,
+    /// Samples of the tracer from the open window's begin (or the current batch) on.
+    samples: Vec<Stamped<TracerSample>>,
+    /// Per measurement: its raw window being gathered.
+    windows: Vec<WindowCollector>,
+    /// Measurements whose window still takes samples.
+    gathering: Vec<usize>,
+    /// Measurements by (station, point, pass): a later `point_begin` restarts their windows.
+    by_key: HashMap<(String, usize, usize), Vec<usize>>,
+    /// The most tracer samples held at once, the gathered windows' pairs aside (tests).
+    pub peak_samples: usize,
+}
+
+struct Started {
+    tracer_id: String,
+    noise: Option<NoiseModel>,
+    pairing: Pairing<PointMeasurement>,
+}
+
+impl WindowStream {
+    /// For sessions whose plan kind passes `accept_kind`.
+    pub fn new(accept_kind: fn(&str) -> bool) -> Self {
+        WindowStream {
+            accept_kind,
+            started: None,
+            samples: Vec::new(),
+            windows: Vec::new(),
+            gathering: Vec::new(),
+            by_key: HashMap::new(),
+            peak_samples: 0,
+        }
+    }
+
+    /// The settled session, with the header, environment and damage of the streamed read's
+    /// session; None when the stream never began.
+    pub fn finish(self, streamed: Streamed) -> Option<SettledSession> {
+        let mut started = self.started?;
+        started.pairing.finish(&|_, _| false);
+        let pairing = started.pairing;
+        let session = streamed.session;
+        Some(SettledSession {
+            header: session.header,
+            env: session.env,
+            damaged: session.damaged,
+            tracer_id: started.tracer_id,
+            noise: started.noise,
+            extraction: Extraction {
+                measurements: pairing.measurements,
+                dropped: pairing.dropped,
+                repeated: pairing.repeated,
+                stations: pairing.stations,
+            },
+            windows: self
+                .windows
+                .into_iter()
+                .map(WindowCollector::finish)
+                .collect(),
+        })
+    }
+
+    /// A `point_begin` of `key` at `begin_ns`: the windows of its earlier measurements start
+    /// again there (the whole read takes a measurement's window from its key's last begin).
+    fn restart_windows(&mut self, key: (String, usize, usize), begin_ns: u64) {
+        let Some(measured) = self.by_key.get(&key) else {
+            return;
+        };
+        for &i in measured {
+            let window = &mut self.windows[i];
+            window.restart(begin_ns);
+            window.push_from_begin(&self.samples);
+            if !window.done && !self.gathering.contains(&i) {
+                self.gathering.push(i);
+            }
+        }
+    }
+}
+
+impl SessionSink for WindowStream {
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
+        let [tracer_id] = tracers else {
+            return false;
+        };
+        if !(self.accept_kind)(&header.kind) {
+            return false;
+        }
+        let noise = NoiseModel::from_header(header, tracer_id);
+        let options = ExtractOptions::from_header(header);
+        let mut pairing = Pairing::new(noise, options);
+        // A window takes two events (point_begin, point_end).
+        pairing.measurements.reserve(run_events / 2);
+        self.started = Some(Started {
+            tracer_id: tracer_id.clone(),
+            noise,
+            pairing,
+        });
+        true
+    }
+
+    fn batch(
+        &mut self,
+        tracers: &mut [Vec<Stamped<TracerSample>>],
+        events: &mut Vec<Stamped<RunEvent>>,
+    ) -> bool {
+        if self.started.is_none() {
+            return false;
+        }
+        let fresh = self.samples.len();
+        if let Some(new) = tracers.first_mut() {
+            self.samples.append(new);
+        }
+        self.peak_samples = self.peak_samples.max(self.samples.len());
+        // The windows still gathering have seen every sample before this batch.
+        for &i in &self.gathering {
+            let window = &mut self.windows[i];
+            for s in &self.samples[fresh..] {
+                if !window.push(&s.msg) {
+                    break;
+                }
+            }
+        }
+        // A clean file's stream: no message is lost.
+        let lost = |_: u64, _: u64| false;
+        for event in events.iter() {
+            match &event.msg {
+                RunEvent::DataLost { .. } => return false,
+                RunEvent::PointBegin {
+                    station,
+                    point,
+                    pass,
+                    ..
+                } => self.restart_windows((station.clone(), *point, *pass), event.log_time_ns),
+                _ => {}
+            }
+            let Some(started) = self.started.as_mut() else {
+                return false;
+            };
+            let begin_ns = started.pairing.open_since_ns();
+            let noise = started.noise;
+            let mut make = |m: Measured| point_measurement(m, noise);
+            started
+                .pairing
+                .event(event, &self.samples, &lost, &mut make);
+            // A measured window: its raw samples from its point_begin on (all held: the
+            // samples are kept from the open window's begin).
+            for i in self.windows.len()..started.pairing.measurements.len() {
+                let m = &started.pairing.measurements[i];
+                let mut window = WindowCollector::new(begin_ns.unwrap_or(0), m);
+                window.push_from_begin(&self.samples);
+                if !window.done {
+                    self.gathering.push(i);
+                }
+                self.by_key
+                    .entry((m.station.clone(), m.point, m.pass))
+                    .or_default()
+                    .push(i);
+                self.windows.push(window);
+            }
+        }
+        let windows = &self.windows;
+        self.gathering.retain(|&i| !windows[i].done);
+        // Every later event lies at or after this batch's bound, beyond every sample held:
+        // only an open window still needs its samples (a measured one has gathered its own).
+        match self
+            .started
+            .as_ref()
+            .and_then(|s| s.pairing.open_since_ns())
+        {
+            Some(begin_ns) => {
+                let stale = self.samples.partition_point(|s| s.log_time_ns < begin_ns);
+                self.samples.drain(..stale);
+            }
+            None => self.samples.clear(),
+        }
+        true
+    }
+}
