@@ -270,10 +270,7 @@ fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync) -> 
 }
 
 /// Splits `data` into consecutive pieces of the given lengths.
-fn split_lengths<'a, T>(
-    mut data: &'a mut [T],
-    lengths: impl Iterator<Item = usize>,
-) -> Vec<&'a mut [T]> {
+fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
     let mut pieces = Vec::new();
     for len in lengths {
         let (piece, rest) = data.split_at_mut(len);
@@ -876,8 +873,8 @@ impl Normal {
             .collect();
         let (w, y, yg) = (&self.w, &self.y, &self.yg);
         in_parallel(parts, |((span, a), b)| {
-            for i in 0..layout.n {
-                eliminate_point(layout, i, w, y, &yg[i], span.clone(), a, b);
+            for (i, yg) in yg.iter().enumerate() {
+                eliminate_point(layout, i, w, y, yg, span.clone(), a, b);
             }
         });
     }
