@@ -172,15 +172,24 @@ struct Layout {
     /// Observation indices grouped by point (CSR with `point_obs_start`).
     obs_order: Vec<usize>,
     point_obs_start: Vec<usize>,
-    /// Per point, the global reduced-system columns it couples to (CSR with `point_cols_start`).
+    /// Per point, the global reduced-system columns it couples to, ascending (CSR with
+    /// `point_cols_start`); a point's W and Y rows hold its columns in this order (its local
+    /// columns), so the elimination walks the lower triangle without a test.
     cols: Vec<usize>,
     point_cols_start: Vec<usize>,
-    /// Per point, its local column indices in order of their global column (CSR with
-    /// `point_cols_start`): the elimination walks the lower triangle without a test.
-    by_col: Vec<usize>,
+    /// Per point, its local columns in order of first appearance among its observations (CSR
+    /// with `point_cols_start`): the order every sum over a point's columns runs in, so the
+    /// rounding does not depend on how the columns are stored.
+    summation_order: Vec<usize>,
+    /// Per point, runs of consecutive global columns as (first local column, length) (CSR
+    /// with `point_runs_start`): the elimination updates each run as one contiguous slice.
+    runs: Vec<(usize, usize)>,
+    point_runs_start: Vec<usize>,
     /// Per entry of `obs_order`: local column of its station block (3 wide) and of its segment.
     obs_local_station: Vec<usize>,
     obs_local_segment: Vec<usize>,
+    /// Threads the elimination and the covariance use (1 for small problems).
+    threads: usize,
     /// Six point coordinates held during the iterations: (point, axis).
     fixed: [(usize, usize); 6],
 }
@@ -193,6 +202,82 @@ impl Layout {
     fn w_offset(&self, i: usize) -> usize {
         3 * self.point_cols_start[i]
     }
+    /// Point i's global columns, ascending (its local columns).
+    fn point_cols(&self, i: usize) -> &[usize] {
+        &self.cols[self.point_cols_start[i]..self.point_cols_start[i + 1]]
+    }
+    /// Point i's local columns in the order its sums run.
+    fn summation(&self, i: usize) -> &[usize] {
+        &self.summation_order[self.point_cols_start[i]..self.point_cols_start[i + 1]]
+    }
+    fn point_runs(&self, i: usize) -> &[(usize, usize)] {
+        &self.runs[self.point_runs_start[i]..self.point_runs_start[i + 1]]
+    }
+    /// The points split into `self.threads` consecutive ranges of about equal work.
+    fn point_ranges(&self) -> Vec<std::ops::Range<usize>> {
+        let total = self.cols.len();
+        let mut ranges = Vec::with_capacity(self.threads);
+        let mut start = 0;
+        for t in 1..=self.threads {
+            let end = if t == self.threads {
+                self.n
+            } else {
+                let goal = total * t / self.threads;
+                start + self.point_cols_start[start..self.n].partition_point(|&c| c < goal)
+            };
+            ranges.push(start..end);
+            start = end;
+        }
+        ranges
+    }
+}
+
+/// Below this many lower-triangle updates per elimination (Σ k²/2 over the points) threads
+/// cost more than they save.
+const THREADED_ELIMINATION_WORK: usize = 200_000;
+const MAX_SOLVE_THREADS: usize = 8;
+
+fn solve_threads(point_cols_start: &[usize]) -> usize {
+    let work: usize = point_cols_start
+        .windows(2)
+        .map(|w| (w[1] - w[0]) * (w[1] - w[0] + 1) / 2)
+        .sum();
+    if work < THREADED_ELIMINATION_WORK {
+        return 1;
+    }
+    std::thread::available_parallelism().map_or(1, |t| t.get().min(MAX_SOLVE_THREADS))
+}
+
+/// Runs `job` on every part, the first on this thread and the others on their own; the
+/// results in the parts' order.
+fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync) -> Vec<R> {
+    let mut parts = parts.into_iter();
+    let Some(first) = parts.next() else {
+        return Vec::new();
+    };
+    let job = &job;
+    std::thread::scope(|scope| {
+        let others: Vec<_> = parts.map(|p| scope.spawn(move || job(p))).collect();
+        let mut results = vec![job(first)];
+        for handle in others {
+            match handle.join() {
+                Ok(r) => results.push(r),
+                Err(panic) => std::panic::resume_unwind(panic),
+            }
+        }
+        results
+    })
+}
+
+/// Splits `data` into consecutive pieces of the given lengths.
+fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
+    let mut pieces = Vec::new();
+    for len in lengths {
+        let (piece, rest) = data.split_at_mut(len);
+        pieces.push(piece);
+        data = rest;
+    }
+    pieces
 }
 
 fn validate(problem: &MultilaterationProblem) -> Result<(), SolveError> {
@@ -354,38 +439,69 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
     }
     let mut cols = Vec::new();
     let mut point_cols_start = Vec::with_capacity(n + 1);
-    let mut by_col = Vec::new();
+    let mut summation_order = Vec::new();
+    let mut runs = Vec::new();
+    let mut point_runs_start = Vec::with_capacity(n + 1);
     let mut obs_local_station = vec![0usize; obs_order.len()];
     let mut obs_local_segment = vec![0usize; obs_order.len()];
-    // Marks: global column → local column for the current point (usize::MAX = unset).
-    let mut local_of = vec![usize::MAX; nv];
+    // Marks: global column → column in order of first appearance for the current point
+    // (usize::MAX = unset).
+    let mut first_of = vec![usize::MAX; nv];
+    let mut seen = Vec::new();
+    let mut sorted_position = Vec::new();
     for i in 0..n {
-        let start = cols.len();
-        point_cols_start.push(start);
-        for e in point_obs_start[i]..point_obs_start[i + 1] {
+        seen.clear();
+        let obs_range = point_obs_start[i]..point_obs_start[i + 1];
+        for e in obs_range.clone() {
             let obs = &problem.observations[obs_order[e]];
             let j = problem.segments[obs.segment].station;
-            if local_of[3 * j] == usize::MAX {
+            if first_of[3 * j] == usize::MAX {
                 for a in 0..3 {
-                    local_of[3 * j + a] = cols.len() - start;
-                    cols.push(3 * j + a);
+                    first_of[3 * j + a] = seen.len();
+                    seen.push(3 * j + a);
                 }
             }
             let sc = 3 * m + obs.segment;
-            if local_of[sc] == usize::MAX {
-                local_of[sc] = cols.len() - start;
-                cols.push(sc);
+            if first_of[sc] == usize::MAX {
+                first_of[sc] = seen.len();
+                seen.push(sc);
             }
-            obs_local_station[e] = local_of[3 * j];
-            obs_local_segment[e] = local_of[sc];
+            obs_local_station[e] = first_of[3 * j];
+            obs_local_segment[e] = first_of[sc];
         }
-        for &c in &cols[start..] {
-            local_of[c] = usize::MAX;
+        for &c in &seen {
+            first_of[c] = usize::MAX;
         }
-        let mut order: Vec<usize> = (0..cols.len() - start).collect();
-        order.sort_unstable_by_key(|&l| cols[start + l]);
-        by_col.extend(order);
+        // Local column = rank of the global column; the first-appearance order is kept for
+        // the sums.
+        let start = cols.len();
+        point_cols_start.push(start);
+        let mut order: Vec<usize> = (0..seen.len()).collect();
+        order.sort_unstable_by_key(|&l| seen[l]);
+        sorted_position.clear();
+        sorted_position.resize(seen.len(), 0);
+        for (position, &l) in order.iter().enumerate() {
+            sorted_position[l] = position;
+            cols.push(seen[l]);
+        }
+        summation_order.extend_from_slice(&sorted_position);
+        for e in obs_range {
+            obs_local_station[e] = sorted_position[obs_local_station[e]];
+            obs_local_segment[e] = sorted_position[obs_local_segment[e]];
+        }
+        point_runs_start.push(runs.len());
+        let point_cols = &cols[start..];
+        let mut q = 0;
+        while q < point_cols.len() {
+            let mut len = 1;
+            while q + len < point_cols.len() && point_cols[q + len] == point_cols[q] + len {
+                len += 1;
+            }
+            runs.push((q, len));
+            q += len;
+        }
     }
+    point_runs_start.push(runs.len());
     point_cols_start.push(cols.len());
     let fixed = choose_gauge(&problem.nominal_points)?;
     Ok(Layout {
@@ -394,9 +510,12 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
         nv,
         obs_order,
         point_obs_start,
+        threads: solve_threads(&point_cols_start),
         cols,
         point_cols_start,
-        by_col,
+        summation_order,
+        runs,
+        point_runs_start,
         obs_local_station,
         obs_local_segment,
         fixed,
@@ -647,20 +766,8 @@ impl Normal {
         for c in 0..nv {
             self.a[(c, c)] *= 1.0 + lambda;
         }
-        for i in 0..layout.n {
-            let mut ud = self.u[i];
-            for c in 0..3 {
-                ud[(c, c)] *= 1.0 + lambda;
-            }
-            let Some(inv) = ud.try_inverse() else {
-                return Err(SolveError::Singular(format!(
-                    "point {i}: its 3x3 normal block is singular (stations collinear with it?)"
-                )));
-            };
-            self.uinv[i] = inv;
-            self.yg[i] = inv * self.gx[i];
-            self.eliminate_point(layout, i);
-        }
+        self.prepare_points(layout, lambda)?;
+        self.eliminate_points(layout);
         let Some(chol) = self.a.clone().cholesky() else {
             return Ok(false);
         };
@@ -669,58 +776,165 @@ impl Normal {
         for (i, d) in dx.iter_mut().enumerate() {
             let k = layout.k(i);
             let off = layout.w_offset(i);
-            let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
+            let cols = layout.point_cols(i);
             let mut t = self.yg[i];
             for a in 0..3 {
                 let row = &self.y[off + a * k..off + (a + 1) * k];
-                t[a] -= row.iter().zip(cols).map(|(y, &c)| y * sol[c]).sum::<f64>();
+                t[a] -= layout
+                    .summation(i)
+                    .iter()
+                    .map(|&c| row[c] * sol[cols[c]])
+                    .sum::<f64>();
             }
             *d = t;
         }
         Ok(true)
     }
 
-    /// Y_i = U_i⁻¹ W_i, then A −= W_iᵀ Y_i (its lower triangle only: `a`'s upper triangle is
-    /// left stale, and only the Cholesky factorisation reads `a`) and b −= W_iᵀ U_i⁻¹ g_i
-    /// (uses `uinv`, `yg`).
-    fn eliminate_point(&mut self, layout: &Layout, i: usize) {
-        let k = layout.k(i);
-        let off = layout.w_offset(i);
-        let inv = self.uinv[i];
-        for a in 0..3 {
-            for c in 0..k {
-                self.y[off + a * k + c] = inv[(a, 0)] * self.w[off + c]
-                    + inv[(a, 1)] * self.w[off + k + c]
-                    + inv[(a, 2)] * self.w[off + 2 * k + c];
+    /// Per point: U_i⁻¹ of the damped block, U_i⁻¹ g_i and Y_i = U_i⁻¹ W_i (points split over
+    /// the threads; each point's figures are its own).
+    fn prepare_points(&mut self, layout: &Layout, lambda: f64) -> Result<(), SolveError> {
+        let ranges = layout.point_ranges();
+        let lens = || ranges.iter().map(|r| r.len());
+        let y_lens = ranges
+            .iter()
+            .map(|r| layout.w_offset(r.end) - layout.w_offset(r.start));
+        let parts: Vec<_> = ranges
+            .iter()
+            .cloned()
+            .zip(split_lengths(&mut self.uinv, lens()))
+            .zip(split_lengths(&mut self.yg, lens()))
+            .zip(split_lengths(&mut self.y, y_lens))
+            .collect();
+        let (u, gx, w) = (&self.u, &self.gx, &self.w);
+        let results = in_parallel(parts, |(((range, uinv), yg), y)| {
+            let base = layout.w_offset(range.start);
+            for (p, i) in range.enumerate() {
+                let mut ud = u[i];
+                for c in 0..3 {
+                    ud[(c, c)] *= 1.0 + lambda;
+                }
+                let Some(inv) = ud.try_inverse() else {
+                    return Err(SolveError::Singular(format!(
+                        "point {i}: its 3x3 normal block is singular (stations collinear with it?)"
+                    )));
+                };
+                uinv[p] = inv;
+                yg[p] = inv * gx[i];
+                let k = layout.k(i);
+                let off = layout.w_offset(i);
+                let (w0, w1, w2) = (
+                    &w[off..off + k],
+                    &w[off + k..off + 2 * k],
+                    &w[off + 2 * k..off + 3 * k],
+                );
+                for a in 0..3 {
+                    let row = &mut y[off - base + a * k..off - base + (a + 1) * k];
+                    for (c, y) in row.iter_mut().enumerate() {
+                        *y = inv[(a, 0)] * w0[c] + inv[(a, 1)] * w1[c] + inv[(a, 2)] * w2[c];
+                    }
+                }
             }
-        }
-        let span = layout.point_cols_start[i]..layout.point_cols_start[i + 1];
-        let (cols, by_col) = (&layout.cols[span.clone()], &layout.by_col[span]);
-        let yg = self.yg[i];
-        let (y0, y1, y2) = (
-            &self.y[off..off + k],
-            &self.y[off + k..off + 2 * k],
-            &self.y[off + 2 * k..off + 3 * k],
-        );
+            Ok(())
+        });
+        results.into_iter().collect()
+    }
+
+    /// A −= Σ W_iᵀ Y_i (its lower triangle only: `a`'s upper triangle is left stale, and only
+    /// the Cholesky factorisation reads `a`) and b −= Σ W_iᵀ U_i⁻¹ g_i. The columns of A are
+    /// split over the threads; each walks every point in order, so every element sees the
+    /// same updates in the same order whatever the threads.
+    fn eliminate_points(&mut self, layout: &Layout) {
         let nv = layout.nv;
-        let a = self.a.as_mut_slice();
-        for (p, &r) in by_col.iter().enumerate() {
-            let gr = cols[r];
-            let w0 = self.w[off + r];
-            let w1 = self.w[off + k + r];
-            let w2 = self.w[off + 2 * k + r];
-            if w0 == 0.0 && w1 == 0.0 && w2 == 0.0 {
-                continue;
+        // Column c of the lower triangle holds nv − c elements: equal shares of that work.
+        let total = nv * (nv + 1) / 2;
+        let mut bounds = vec![0];
+        let mut done = 0;
+        for c in 0..nv {
+            done += nv - c;
+            if done * layout.threads >= total * bounds.len() && bounds.len() < layout.threads {
+                bounds.push(c + 1);
             }
-            // The update is symmetric and the Cholesky factorisation reads only the lower
-            // triangle: half the work, the same factor. Column gr of the column-major
-            // storage, rows gc >= gr (the columns after r in global order).
-            let column = &mut a[gr * nv..(gr + 1) * nv];
-            for &c in &by_col[p..] {
-                column[cols[c]] -= w0 * y0[c] + w1 * y1[c] + w2 * y2[c];
-            }
-            self.b[gr] -= w0 * yg[0] + w1 * yg[1] + w2 * yg[2];
         }
+        bounds.push(nv);
+        bounds.dedup();
+        let spans: Vec<_> = bounds.windows(2).map(|b| b[0]..b[1]).collect();
+        let parts: Vec<_> = spans
+            .iter()
+            .cloned()
+            .zip(split_lengths(
+                self.a.as_mut_slice(),
+                spans.iter().map(|s| s.len() * nv),
+            ))
+            .zip(split_lengths(
+                self.b.as_mut_slice(),
+                spans.iter().map(|s| s.len()),
+            ))
+            .collect();
+        let (w, y, yg) = (&self.w, &self.y, &self.yg);
+        in_parallel(parts, |((span, a), b)| {
+            for (i, yg) in yg.iter().enumerate() {
+                eliminate_point(layout, i, w, y, yg, span.clone(), a, b);
+            }
+        });
+    }
+}
+
+/// Point i's share of the elimination in the columns `span` of A (`a`: those columns,
+/// column-major; `b`: those entries).
+#[allow(clippy::too_many_arguments)]
+fn eliminate_point(
+    layout: &Layout,
+    i: usize,
+    w: &[f64],
+    y: &[f64],
+    yg: &Vector3<f64>,
+    span: std::ops::Range<usize>,
+    a: &mut [f64],
+    b: &mut [f64],
+) {
+    let k = layout.k(i);
+    let off = layout.w_offset(i);
+    let nv = layout.nv;
+    let cols = layout.point_cols(i);
+    let runs = layout.point_runs(i);
+    let (y0, y1, y2) = (
+        &y[off..off + k],
+        &y[off + k..off + 2 * k],
+        &y[off + 2 * k..off + 3 * k],
+    );
+    let first = cols.partition_point(|&c| c < span.start);
+    let last = cols.partition_point(|&c| c < span.end);
+    let mut run = 0;
+    for r in first..last {
+        let gr = cols[r];
+        let w0 = w[off + r];
+        let w1 = w[off + k + r];
+        let w2 = w[off + 2 * k + r];
+        if w0 == 0.0 && w1 == 0.0 && w2 == 0.0 {
+            continue;
+        }
+        // The update is symmetric and the Cholesky factorisation reads only the lower
+        // triangle: half the work, the same factor. Column gr, rows gc >= gr (the local
+        // columns from r on), one run of consecutive rows at a time.
+        let column = &mut a[(gr - span.start) * nv..(gr - span.start + 1) * nv];
+        while runs[run].0 + runs[run].1 <= r {
+            run += 1;
+        }
+        for &(run_start, len) in &runs[run..] {
+            let (from, to) = (run_start.max(r), run_start + len);
+            let g = cols[from];
+            let rows = &mut column[g..g + (to - from)];
+            for (((dst, a0), a1), a2) in rows
+                .iter_mut()
+                .zip(&y0[from..to])
+                .zip(&y1[from..to])
+                .zip(&y2[from..to])
+            {
+                *dst -= w0 * a0 + w1 * a1 + w2 * a2;
+            }
+        }
+        b[gr - span.start] -= w0 * yg[0] + w1 * yg[1] + w2 * yg[2];
     }
 }
 
@@ -878,8 +1092,7 @@ fn covariance(
         etg += e.transpose() * g;
         let k = layout.k(i);
         let off = layout.w_offset(i);
-        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
-        for (c, &gc) in cols.iter().enumerate() {
+        for (c, &gc) in layout.point_cols(i).iter().enumerate() {
             for q in 0..6 {
                 z[(gc, q)] += (0..3)
                     .map(|a| normal.y[off + a * k + c] * e[(a, q)])
@@ -892,57 +1105,43 @@ fn covariance(
     })?;
     // M = A⁻¹ Z; B_v = Q_vx E = −M; B_x,i = U_i⁻¹ E_i + Y_i M.
     let mmat = &ainv * &z;
+    // Row g of A⁻¹ as a contiguous column (A⁻¹ is not exactly symmetric in floating point).
+    let ainv_t = ainv.transpose();
+    let centre_ref = &centre;
+    let (mmat_ref, ainv_t_ref, normal_ref) = (&mmat, &ainv_t, &*normal);
+    // Per point, B_x,i and the covariance block Q_ii in the inner-constraint gauge; each
+    // point's figures are its own, so the points are split over the threads.
+    let per_point = in_parallel(layout.point_ranges(), |range| {
+        let mut tmp = vec![0.0; 3 * nv];
+        range
+            .map(|i| {
+                let e = generator(&problem.nominal_points[i], centre_ref);
+                let b = point_b(layout, normal_ref, mmat_ref, &e, i);
+                let q = point_block(layout, normal_ref, ainv_t_ref, i, &mut tmp);
+                (b, q)
+            })
+            .collect::<Vec<_>>()
+    });
     let mut c6 = Matrix6::<f64>::zeros();
-    let mut bx = vec![Matrix3x6::<f64>::zeros(); n];
-    for (i, bxi) in bx.iter_mut().enumerate() {
+    let mut bx = Vec::with_capacity(n);
+    let mut blocks = Vec::with_capacity(n);
+    for (i, (b, q)) in per_point.into_iter().flatten().enumerate() {
         let e = generator(&problem.nominal_points[i], &centre);
-        let k = layout.k(i);
-        let off = layout.w_offset(i);
-        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
-        let mut b = normal.uinv[i] * e;
-        for a in 0..3 {
-            for q in 0..6 {
-                b[(a, q)] += cols
-                    .iter()
-                    .enumerate()
-                    .map(|(c, &gc)| normal.y[off + a * k + c] * mmat[(gc, q)])
-                    .sum::<f64>();
-            }
-        }
         c6 += e.transpose() * b;
-        *bxi = b;
+        bx.push(b);
+        blocks.push(q);
     }
     let kck = kmat * c6 * kmat.transpose();
     let inner = |q: Matrix3<f64>, g: &Matrix3x6<f64>, b: &Matrix3x6<f64>| {
         let gkb = g * kmat * b.transpose();
         q - gkb - gkb.transpose() + g * kck * g.transpose()
     };
-    let mut points = Vec::with_capacity(n);
-    let max_k = (0..n).map(|i| layout.k(i)).max().unwrap_or(0);
-    let mut tmp = vec![0.0; max_k];
-    for (i, bxi) in bx.iter().enumerate() {
-        let k = layout.k(i);
-        let off = layout.w_offset(i);
-        let cols = &layout.cols[layout.point_cols_start[i]..layout.point_cols_start[i + 1]];
-        // Q_ii = U_i⁻¹ + Y_i A⁻¹ Y_iᵀ over the point's columns only.
-        let mut q = normal.uinv[i];
-        for c in 0..3 {
-            let yc = &normal.y[off + c * k..off + (c + 1) * k];
-            for (r1, &g1) in cols.iter().enumerate() {
-                tmp[r1] = cols
-                    .iter()
-                    .zip(yc)
-                    .map(|(&g2, y)| ainv[(g2, g1)] * y)
-                    .sum::<f64>();
-            }
-            for a in 0..3 {
-                let ya = &normal.y[off + a * k..off + (a + 1) * k];
-                q[(a, c)] += ya.iter().zip(&tmp[..k]).map(|(y, t)| y * t).sum::<f64>();
-            }
-        }
-        let g = generator(&p.points[i], &centre);
-        points.push(inner(q, &g, bxi));
-    }
+    let points = blocks
+        .iter()
+        .zip(&bx)
+        .enumerate()
+        .map(|(i, (q, bxi))| inner(*q, &generator(&p.points[i], &centre), bxi))
+        .collect();
     let station_g: Vec<Matrix3x6<f64>> = p.stations.iter().map(|s| generator(s, &centre)).collect();
     let station_b: Vec<Matrix3x6<f64>> = (0..m)
         .map(|j| Matrix3x6::from_fn(|a, c| -mmat[(3 * j + a, c)]))
@@ -977,6 +1176,81 @@ fn covariance(
         stations_joint,
         distance_var_m2,
     })
+}
+
+/// B_x,i = U_i⁻¹ E_i + Y_i M (M = A⁻¹ Z).
+fn point_b(
+    layout: &Layout,
+    normal: &Normal,
+    mmat: &DMatrix<f64>,
+    e: &Matrix3x6<f64>,
+    i: usize,
+) -> Matrix3x6<f64> {
+    let k = layout.k(i);
+    let off = layout.w_offset(i);
+    let cols = layout.point_cols(i);
+    let mut b = normal.uinv[i] * e;
+    for a in 0..3 {
+        let ya = &normal.y[off + a * k..off + (a + 1) * k];
+        for q in 0..6 {
+            b[(a, q)] += layout
+                .summation(i)
+                .iter()
+                .map(|&c| ya[c] * mmat[(cols[c], q)])
+                .sum::<f64>();
+        }
+    }
+    b
+}
+
+/// Q_ii = U_i⁻¹ + Y_i A⁻¹ Y_iᵀ over the point's columns only, in the minimal-constraint
+/// gauge. `ainv_t`: A⁻¹ transposed; `tmp`: scratch of 3·nv.
+fn point_block(
+    layout: &Layout,
+    normal: &Normal,
+    ainv_t: &DMatrix<f64>,
+    i: usize,
+    tmp: &mut [f64],
+) -> Matrix3<f64> {
+    let (k, nv) = (layout.k(i), layout.nv);
+    let off = layout.w_offset(i);
+    let cols = layout.point_cols(i);
+    let order = layout.summation(i);
+    let y = &normal.y[off..off + 3 * k];
+    // tmp_c[r1] = Σ_r2 A⁻¹[(g(r2), g(r1))] · Y[c][r2], r2 in summation order: each element
+    // gets the terms of that sum in that order, the rows r1 a run of columns at a time.
+    let (t0, rest) = tmp[..3 * k].split_at_mut(k);
+    let (t1, t2) = rest.split_at_mut(k);
+    for t in [&mut *t0, &mut *t1, &mut *t2] {
+        t.fill(-0.0);
+    }
+    let ainv_t = ainv_t.as_slice();
+    for &r2 in order {
+        let row = &ainv_t[cols[r2] * nv..(cols[r2] + 1) * nv];
+        let (c0, c1, c2) = (y[r2], y[k + r2], y[2 * k + r2]);
+        for &(start, len) in layout.point_runs(i) {
+            let g = cols[start];
+            let span = start..start + len;
+            for (((&x, d0), d1), d2) in row[g..g + len]
+                .iter()
+                .zip(&mut t0[span.clone()])
+                .zip(&mut t1[span.clone()])
+                .zip(&mut t2[span])
+            {
+                *d0 += x * c0;
+                *d1 += x * c1;
+                *d2 += x * c2;
+            }
+        }
+    }
+    let mut q = normal.uinv[i];
+    for (c, t) in [&*t0, &*t1, &*t2].into_iter().enumerate() {
+        for a in 0..3 {
+            let ya = &y[a * k..(a + 1) * k];
+            q[(a, c)] += order.iter().map(|&r1| ya[r1] * t[r1]).sum::<f64>();
+        }
+    }
+    q
 }
 
 /// Moves points and stations by the rigid motion that best fits the points onto the nominal
@@ -1018,8 +1292,21 @@ pub fn solve(
     problem: &MultilaterationProblem,
     options: &SolveOptions,
 ) -> Result<MultilaterationSolution, SolveError> {
+    solve_on_threads(problem, options, None)
+}
+
+/// `solve` on the given number of threads (None: as many as the problem's size warrants and
+/// the machine has); the result does not depend on it, bit for bit.
+fn solve_on_threads(
+    problem: &MultilaterationProblem,
+    options: &SolveOptions,
+    threads: Option<usize>,
+) -> Result<MultilaterationSolution, SolveError> {
     let stations = initial_stations(problem)?;
-    let layout = build_layout(problem)?;
+    let mut layout = build_layout(problem)?;
+    if let Some(threads) = threads {
+        layout.threads = threads.max(1);
+    }
     let points = problem.nominal_points.clone();
     // Path-dependent σ: set from the starting geometry, re-evaluated after every accepted
     // step that moved them by more than REWEIGHT_TOLERANCE (the first steps, while the
@@ -1354,6 +1641,23 @@ pub(crate) mod tests {
         let chi2_ratio = sol.chi2 / sol.dof as f64;
         assert!((0.7..1.3).contains(&chi2_ratio), "chi2/dof {chi2_ratio}");
         assert_eq!(sol.residuals_m.len(), syn.problem.observations.len());
+    }
+
+    /// The elimination splits the reduced system's columns over the threads and the
+    /// covariance the points: every figure is the same, bit for bit, on any number of threads.
+    #[test]
+    fn threads_give_the_same_solution_bit_for_bit() {
+        let mut syn = synthetic(13, [5, 4, 3], &stations5(), &[1, 3], 30e-9, true);
+        // A point seen from three stations only: its columns are not one run.
+        syn.problem
+            .observations
+            .retain(|o| !(o.point == 7 && syn.problem.segments[o.segment].station == 2));
+        let one = solve_on_threads(&syn.problem, &SolveOptions::default(), Some(1)).expect("1");
+        for threads in [2, 3, 7] {
+            let many = solve_on_threads(&syn.problem, &SolveOptions::default(), Some(threads))
+                .expect("threads");
+            assert_eq!(many, one, "{threads} threads");
+        }
     }
 
     #[test]

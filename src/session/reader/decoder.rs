@@ -251,13 +251,13 @@ impl Decoder {
                 Some((a, b)) => (a.min(first), b.max(last)),
             });
         }
-        self.tracers.absorb(other.tracers);
+        take_streams(&mut self.tracers, other.tracers);
         self.env.absorb(other.env);
         self.rotary.absorb(other.rotary);
         self.machines.absorb(other.machines);
         self.probes.absorb(other.probes);
         self.json.absorb(other.json);
-        self.events.extend(other.events);
+        take_or_extend(&mut self.events, other.events);
         self.damages.extend(other.damages);
         for (log_time_ns, publish_time_ns, data) in other.raw_headers {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
@@ -372,6 +372,25 @@ impl Decoder {
             }
             _ => Ok(()),
         }
+    }
+}
+
+/// `Streams::absorb` without copying the high-rate samples where it can be helped.
+fn take_streams<T>(into: &mut Streams<T>, from: Streams<T>) {
+    for (id, samples) in from.streams {
+        let i = into.index(&id);
+        take_or_extend(&mut into.streams[i].1, samples);
+    }
+}
+
+/// Appends `more` to `into`, taking its buffer instead of copying when `into` is empty and
+/// has no more room reserved (a streamed read empties its streams after every chunk; a whole
+/// read reserves them once for the file).
+fn take_or_extend<T>(into: &mut Vec<T>, more: Vec<T>) {
+    if into.is_empty() && more.capacity() >= into.capacity() {
+        *into = more;
+    } else {
+        into.extend(more);
     }
 }
 

@@ -4,7 +4,7 @@ use serde::de::DeserializeOwned;
 use serde::Deserialize;
 
 use super::decoder::{Decoder, Failure, Slot};
-use super::tracer_json;
+use super::{event_json, tracer_json};
 use super::{ReadError, Stamped};
 use crate::session::messages::{
     EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
@@ -130,7 +130,9 @@ impl Decoder {
                 }
             }
             Slot::Event => {
-                if let Some(msg) = self.parse::<RunEvent>(channel_id, log_time_ns, data) {
+                let msg = event_json::parse_compact(data)
+                    .or_else(|| self.parse::<RunEvent>(channel_id, log_time_ns, data));
+                if let Some(msg) = msg {
                     self.events.push(Stamped {
                         log_time_ns,
                         publish_time_ns,

@@ -4,6 +4,7 @@
 mod assemble;
 mod decoder;
 mod dispatch;
+mod event_json;
 mod indexed;
 mod linear;
 mod pipeline;

@@ -38,13 +38,15 @@ pub(super) fn parse_compact(data: &[u8]) -> Option<TracerSample> {
     })
 }
 
-struct Cursor<'a> {
-    data: &'a [u8],
-    at: usize,
+/// Reads the compact JSON that serde_json writes, byte by byte; every method returns None
+/// (and may leave `at` anywhere) at anything else.
+pub(super) struct Cursor<'a> {
+    pub(super) data: &'a [u8],
+    pub(super) at: usize,
 }
 
 impl Cursor<'_> {
-    fn literal(&mut self, text: &[u8]) -> Option<()> {
+    pub(super) fn literal(&mut self, text: &[u8]) -> Option<()> {
         let rest = self.data.get(self.at..)?;
         rest.starts_with(text).then(|| self.at += text.len())
     }
@@ -59,22 +61,22 @@ impl Cursor<'_> {
     }
 
     /// A JSON integer without sign or leading zeros that fits a u64.
-    fn unsigned(&mut self) -> Option<u64> {
+    pub(super) fn unsigned(&mut self) -> Option<u64> {
         let start = self.at;
         let n = self.digits();
         if n == 0 || (n > 1 && self.data[start] == b'0') {
             return None;
         }
-        std::str::from_utf8(&self.data[start..self.at])
-            .ok()?
-            .parse()
-            .ok()
+        // Digits only: what `u64::from_str` reads, without its UTF-8 check.
+        self.data[start..self.at].iter().try_fold(0u64, |value, d| {
+            value.checked_mul(10)?.checked_add(u64::from(d - b'0'))
+        })
     }
 
     /// A JSON number with a fraction or an exponent (how serde_json writes every finite f64),
     /// parsed with correct rounding as serde_json's `float_roundtrip` does. Integers are left
     /// to serde_json, which reads "-0" as +0.0.
-    fn float(&mut self) -> Option<f64> {
+    pub(super) fn float(&mut self) -> Option<f64> {
         let start = self.at;
         if self.data.get(self.at) == Some(&b'-') {
             self.at += 1;
