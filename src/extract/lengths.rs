@@ -4,8 +4,8 @@
 
 use std::collections::HashMap;
 
-use super::pairing::{Measured, Pairing};
-use super::points::{DroppedWindow, ExtractOptions, Extraction, NoiseModel, StationSeen};
+use super::pairing::{Measured, StreamStart};
+use super::points::{DroppedWindow, Extraction, NoiseModel, StationSeen};
 use crate::session::messages::{RunEvent, SessionHeader, TracerSample};
 use crate::session::reader::{SessionSink, Stamped};
 use crate::solve::multilateration::PathSigma;
@@ -135,11 +135,7 @@ pub struct LengthStream {
     pub peak_samples: usize,
 }
 
-struct Started {
-    tracer_id: String,
-    noise: Option<NoiseModel>,
-    pairing: Pairing<LengthMeasurement>,
-}
+type Started = StreamStart<LengthMeasurement>;
 
 impl LengthStream {
     /// For sessions of plan kind `kind`.
@@ -172,23 +168,11 @@ impl LengthStream {
 
 impl SessionSink for LengthStream {
     fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
-        let [tracer_id] = tracers else {
-            return false;
-        };
         if header.kind != self.kind {
             return false;
         }
-        let noise = NoiseModel::from_header(header, tracer_id);
-        let options = ExtractOptions::from_header(header);
-        let mut pairing = Pairing::new(noise, options);
-        // A window takes two events (point_begin, point_end): no regrowth of the lengths.
-        pairing.measurements.reserve(run_events / 2);
-        self.started = Some(Started {
-            tracer_id: tracer_id.clone(),
-            noise,
-            pairing,
-        });
-        true
+        self.started = Started::of_header(header, tracers, run_events);
+        self.started.is_some()
     }
 
     fn batch(

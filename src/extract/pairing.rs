@@ -37,6 +37,37 @@ pub(crate) struct Settled {
     pub(crate) beam_segment: u32,
 }
 
+/// A streamed extraction's state once its session began: the one tracer, its declared noise
+/// and the pairing (`M` as in `Pairing`).
+pub(crate) struct StreamStart<M> {
+    pub(crate) tracer_id: String,
+    pub(crate) noise: Option<NoiseModel>,
+    pub(crate) pairing: Pairing<M>,
+}
+
+impl<M> StreamStart<M> {
+    /// The start of a stream of a session with exactly one tracer (None otherwise), with the
+    /// header's noise model and stillstand settings; room for one measurement per two events.
+    pub(crate) fn of_header(
+        header: &crate::session::messages::SessionHeader,
+        tracers: &[String],
+        run_events: usize,
+    ) -> Option<Self> {
+        let [tracer_id] = tracers else {
+            return None;
+        };
+        let noise = NoiseModel::from_header(header, tracer_id);
+        let mut pairing = Pairing::new(noise, ExtractOptions::from_header(header));
+        // A window takes two events (point_begin, point_end): no regrowth of the lengths.
+        pairing.measurements.reserve(run_events / 2);
+        Some(StreamStart {
+            tracer_id: tracer_id.clone(),
+            noise,
+            pairing,
+        })
+    }
+}
+
 /// Event-by-event state of the extraction; `M` is what a measured window becomes.
 pub(crate) struct Pairing<M> {
     noise: Option<NoiseModel>,

@@ -6,7 +6,7 @@
 
 use std::collections::{BTreeMap, HashMap};
 
-use super::pairing::{Measured, Pairing};
+use super::pairing::{Measured, StreamStart};
 use super::points::{point_measurement, ExtractError, PointMeasurement};
 use super::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::session::messages::{EnvSample, RunEvent, SessionHeader, TracerSample};
@@ -205,11 +205,7 @@ pub struct WindowStream {
     pub peak_samples: usize,
 }
 
-struct Started {
-    tracer_id: String,
-    noise: Option<NoiseModel>,
-    pairing: Pairing<PointMeasurement>,
-}
+type Started = StreamStart<PointMeasurement>;
 
 impl WindowStream {
     /// For sessions whose plan kind passes `accept_kind`.
@@ -271,23 +267,11 @@ impl WindowStream {
 
 impl SessionSink for WindowStream {
     fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
-        let [tracer_id] = tracers else {
-            return false;
-        };
         if !(self.accept_kind)(&header.kind) {
             return false;
         }
-        let noise = NoiseModel::from_header(header, tracer_id);
-        let options = ExtractOptions::from_header(header);
-        let mut pairing = Pairing::new(noise, options);
-        // A window takes two events (point_begin, point_end).
-        pairing.measurements.reserve(run_events / 2);
-        self.started = Some(Started {
-            tracer_id: tracer_id.clone(),
-            noise,
-            pairing,
-        });
-        true
+        self.started = Started::of_header(header, tracers, run_events);
+        self.started.is_some()
     }
 
     fn batch(
