@@ -71,6 +71,17 @@ pub trait Kind: Sync {
     /// Solve a recorded session of this kind (`geocal solve`).
     fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError>;
 
+    /// Solve the session file at `path` streamed (its tracer samples never held whole), with
+    /// the results `solve` gives of the whole read. None when this kind does not stream or
+    /// the file cannot be streamed exactly (damaged, cut short, repaired): it is read whole.
+    fn solve_streamed(
+        &self,
+        _path: &Path,
+        _settings: &SolveSettings,
+    ) -> Option<Result<Results, MethodError>> {
+        None
+    }
+
     /// For a kind with its own sequencer: how `geocal replay` re-runs it against a recording
     /// (None: the kind replays through the tracer sequencer, `replay::replay`).
     fn own_replay(&self) -> Option<ReplaySequence> {
@@ -331,12 +342,12 @@ pub(crate) fn solve_and_write(
 
 /// Read a session file and solve it with the method of its kind.
 pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Results> {
-    // A clean multilateration session streams: its tracer samples are never held whole.
-    if let Some(solved) = crate::method::multilateration::solve_file_streaming(path, settings) {
-        let results = solved
-            .map_err(MethodError::from)
-            .with_context(|| format!("solving {}", path.display()))?;
-        return Ok(Results::new(results));
+    // A clean session of a kind that streams: its tracer samples are never held whole.
+    let kind = crate::session::file_stream::read_header(path)
+        .ok()
+        .and_then(|header| kind_named(&header.kind));
+    if let Some(solved) = kind.and_then(|kind| kind.solve_streamed(path, settings)) {
+        return solved.with_context(|| format!("solving {}", path.display()));
     }
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
     solve_session(&session, settings).with_context(|| {

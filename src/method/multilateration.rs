@@ -14,8 +14,8 @@ use crate::extract::{
 };
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
-use crate::session::messages::{MachineInfo, SessionHeader};
-use crate::session::reader::{DamagedChunk, Session};
+use crate::session::messages::{MachineInfo, RunEvent, SessionHeader, TracerSample};
+use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped};
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
 };
@@ -229,6 +229,64 @@ pub fn solve_file_streaming(
         declared_noise,
     };
     Some(solve_extracted(extracted, settings, None).map(|(results, _)| results))
+}
+
+/// The solve of a session file of plan kind `kind` whose method builds on the multilateration
+/// and also reads the run events `keep` selects: streamed as `solve_file_streaming`, with the
+/// solution and the streamed session (every stream but the tracer samples; its events the
+/// kept ones). None when the file cannot be streamed exactly, or effects are to be fitted.
+pub fn solve_file_streaming_detailed(
+    path: &std::path::Path,
+    settings: &SolveSettings,
+    kind: &str,
+    keep: fn(&RunEvent) -> bool,
+) -> Option<Result<(MultilaterationResults, MultilaterationSolution, Session), MultilaterationError>>
+{
+    if settings.effects.is_some() {
+        return None;
+    }
+    let mut sink = LengthsAndEvents {
+        lengths: LengthStream::new(kind),
+        keep,
+        kept: Vec::new(),
+    };
+    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
+    let (lengths, tracer_id, declared_noise) = sink.lengths.finish()?;
+    let mut session = streamed.session;
+    session.events = sink.kept;
+    let extracted = Extracted {
+        header: &session.header,
+        damaged: &session.damaged,
+        lengths,
+        tracer_id,
+        declared_noise,
+    };
+    let solved = solve_extracted(extracted, settings, None);
+    Some(solved.map(|(results, solution)| (results, solution, session)))
+}
+
+/// The streamed extraction of the lengths, keeping the run events a method reads beside them.
+struct LengthsAndEvents {
+    lengths: LengthStream,
+    keep: fn(&RunEvent) -> bool,
+    kept: Vec<Stamped<RunEvent>>,
+}
+
+impl SessionSink for LengthsAndEvents {
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
+        self.lengths.begin(header, tracers, run_events)
+    }
+
+    fn batch(
+        &mut self,
+        tracers: &mut [Vec<Stamped<TracerSample>>],
+        events: &mut Vec<Stamped<RunEvent>>,
+    ) -> bool {
+        let keep = self.keep;
+        self.kept
+            .extend(events.iter().filter(|e| keep(&e.msg)).cloned());
+        self.lengths.batch(tracers, events)
+    }
 }
 
 /// Whether a session's plan kind is this method's.

@@ -52,6 +52,15 @@ impl Kind for Multilateration {
         )?))
     }
 
+    fn solve_streamed(
+        &self,
+        path: &Path,
+        settings: &SolveSettings,
+    ) -> Option<Result<Results, MethodError>> {
+        let solved = crate::method::multilateration::solve_file_streaming(path, settings)?;
+        Some(solved.map(Results::new).map_err(MethodError::from))
+    }
+
     fn diagnosable(&self) -> bool {
         true
     }

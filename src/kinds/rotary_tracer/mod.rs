@@ -70,6 +70,15 @@ impl Kind for RotaryTracer {
         ))
     }
 
+    fn solve_streamed(
+        &self,
+        path: &Path,
+        settings: &SolveSettings,
+    ) -> Option<Result<Results, MethodError>> {
+        let solved = solve::solve_file_streaming(path, settings)?;
+        Some(solved.map(Results::new).map_err(MethodError::of_kind))
+    }
+
     fn simulate(&self, path: &Path, options: &SimulateOptions) -> anyhow::Result<()> {
         tracer_plan::simulate(path, options)
     }

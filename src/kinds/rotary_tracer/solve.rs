@@ -183,7 +183,41 @@ pub fn solve(
     session: &Session,
     settings: &crate::method::SolveSettings,
 ) -> Result<RotaryTracerResults, RotaryTracerError> {
-    let (mut results, solution) = multilateration::solve_detailed(session, settings)?;
+    let (results, solution) = multilateration::solve_detailed(session, settings)?;
+    table_axis(session, results, &solution)
+}
+
+/// Solve a rotary-tracer session file streamed, as `solve` solves it read whole: the tracer
+/// samples go straight to the extraction; the table reads the station and rotation events
+/// and the table's recorded states. None when the file cannot be streamed exactly.
+pub fn solve_file_streaming(
+    path: &std::path::Path,
+    settings: &crate::method::SolveSettings,
+) -> Option<Result<RotaryTracerResults, RotaryTracerError>> {
+    let solved =
+        multilateration::solve_file_streaming_detailed(path, settings, KIND, is_table_event)?;
+    Some(
+        solved
+            .map_err(RotaryTracerError::from)
+            .and_then(|(results, solution, session)| table_axis(&session, results, &solution)),
+    )
+}
+
+/// The events `table_stations` reads.
+fn is_table_event(event: &RunEvent) -> bool {
+    matches!(
+        event,
+        RunEvent::StationBegin { .. } | RunEvent::StationEnd { .. } | RunEvent::Rotation { .. }
+    )
+}
+
+/// The table's axis and step angles from the stations' multilateration (`results`,
+/// `solution`), the session's table events and recorded table states.
+fn table_axis(
+    session: &Session,
+    mut results: MultilaterationResults,
+    solution: &crate::solve::multilateration::MultilaterationSolution,
+) -> Result<RotaryTracerResults, RotaryTracerError> {
     results.kind = KIND.into();
     let (table, on_table) = table_stations(session)?;
     if on_table.len() < 3 {
