@@ -28,7 +28,11 @@ fn streamed_rotary_tracer_solve_equals_the_whole_read() {
     // The table's recorded states and rotations reached the streamed solve.
     assert_eq!(streamed.rotary.steps.len(), 4);
     assert!(
-        streamed.rotary.steps.iter().all(|s| s.encoder_rad.is_some()),
+        streamed
+            .rotary
+            .steps
+            .iter()
+            .all(|s| s.encoder_rad.is_some()),
         "{:?}",
         streamed.rotary.steps
     );
@@ -36,5 +40,8 @@ fn streamed_rotary_tracer_solve_equals_the_whole_read() {
     let bytes = std::fs::read(path).expect("read");
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() / 2]).expect("write");
-    assert!(solve_file_streaming(&cut, &settings).is_none(), "a cut file is read whole");
+    assert!(
+        solve_file_streaming(&cut, &settings).is_none(),
+        "a cut file is read whole"
+    );
 }
