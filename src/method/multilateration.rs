@@ -14,8 +14,8 @@ use crate::extract::{
 };
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
-use crate::session::messages::{MachineInfo, RunEvent, SessionHeader, TracerSample};
-use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped};
+use crate::session::messages::{MachineInfo, RunEvent, SessionHeader};
+use crate::session::reader::{DamagedChunk, KeepingEvents, Session};
 use crate::solve::geometric_errors::{
     decompose_correlated, grid_from_points, DecompositionOptions, PointObservation,
 };
@@ -217,18 +217,9 @@ pub fn solve_file_streaming(
         let settled = crate::extract::stream_settled(path, is_multilateration)?;
         return Some(solve_settled(&settled, settings).map(|(results, _)| results));
     }
-    let mut sink = LengthStream::new(crate::config::PlanKind::Multilateration.as_str());
-    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
-    let (lengths, tracer_id, declared_noise) = sink.finish()?;
-    let session = streamed.session;
-    let extracted = Extracted {
-        header: &session.header,
-        damaged: &session.damaged,
-        lengths,
-        tracer_id,
-        declared_noise,
-    };
-    Some(solve_extracted(extracted, settings, None).map(|(results, _)| results))
+    let kind = crate::config::PlanKind::Multilateration.as_str();
+    let solved = solve_file_streaming_detailed(path, settings, kind, |_| false)?;
+    Some(solved.map(|(results, _, _)| results))
 }
 
 /// The solve of a session file of plan kind `kind` whose method builds on the multilateration
@@ -245,13 +236,9 @@ pub fn solve_file_streaming_detailed(
     if settings.effects.is_some() {
         return None;
     }
-    let mut sink = LengthsAndEvents {
-        lengths: LengthStream::new(kind),
-        keep,
-        kept: Vec::new(),
-    };
+    let mut sink = KeepingEvents::new(LengthStream::new(kind), keep);
     let streamed = crate::session::reader::stream_session(path, &mut sink)?;
-    let (lengths, tracer_id, declared_noise) = sink.lengths.finish()?;
+    let (lengths, tracer_id, declared_noise) = sink.inner.finish()?;
     let mut session = streamed.session;
     session.events = sink.kept;
     let extracted = Extracted {
@@ -263,30 +250,6 @@ pub fn solve_file_streaming_detailed(
     };
     let solved = solve_extracted(extracted, settings, None);
     Some(solved.map(|(results, solution)| (results, solution, session)))
-}
-
-/// The streamed extraction of the lengths, keeping the run events a method reads beside them.
-struct LengthsAndEvents {
-    lengths: LengthStream,
-    keep: fn(&RunEvent) -> bool,
-    kept: Vec<Stamped<RunEvent>>,
-}
-
-impl SessionSink for LengthsAndEvents {
-    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
-        self.lengths.begin(header, tracers, run_events)
-    }
-
-    fn batch(
-        &mut self,
-        tracers: &mut [Vec<Stamped<TracerSample>>],
-        events: &mut Vec<Stamped<RunEvent>>,
-    ) -> bool {
-        let keep = self.keep;
-        self.kept
-            .extend(events.iter().filter(|e| keep(&e.msg)).cloned());
-        self.lengths.batch(tracers, events)
-    }
 }
 
 /// Whether a session's plan kind is this method's.

@@ -5,8 +5,7 @@
 use std::path::Path;
 
 use crate::extract::{SettledSession, WindowStream};
-use crate::session::messages::{RunEvent, SessionHeader, TracerSample};
-use crate::session::reader::{read_session, ReadError, Session, SessionSink, Stamped};
+use crate::session::reader::{read_session, KeepingEvents, ReadError, Session};
 
 /// A report's session: `session` holds every stream but, when `settled` is there (a streamed
 /// multilateration file), the tracer samples (`tracers` is then empty).
@@ -18,15 +17,16 @@ pub struct ReportSession {
 /// Reads the session at `path` for the report: streamed when it is a clean multilateration
 /// file, else read whole.
 pub fn read(path: &Path) -> Result<ReportSession, ReadError> {
-    let mut sink = EventsAndWindows {
-        windows: WindowStream::new(crate::method::multilateration::is_multilateration),
-        events: Vec::new(),
-    };
+    // The report lists what every run event says.
+    let mut sink = KeepingEvents::new(
+        WindowStream::new(crate::method::multilateration::is_multilateration),
+        |_| true,
+    );
     if let Some(streamed) = crate::session::reader::stream_session(path, &mut sink) {
         let mut session = streamed.session.clone();
-        if let Some(settled) = sink.windows.finish(streamed) {
+        if let Some(settled) = sink.inner.finish(streamed) {
             session.tracers.clear();
-            session.events = sink.events;
+            session.events = sink.kept;
             return Ok(ReportSession {
                 session,
                 settled: Some(settled),
@@ -37,26 +37,4 @@ pub fn read(path: &Path) -> Result<ReportSession, ReadError> {
         session: read_session(path)?,
         settled: None,
     })
-}
-
-/// The settled windows of the stream, and its run events (the report lists what they say).
-struct EventsAndWindows {
-    windows: WindowStream,
-    events: Vec<Stamped<RunEvent>>,
-}
-
-impl SessionSink for EventsAndWindows {
-    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
-        self.events.reserve(run_events);
-        self.windows.begin(header, tracers, run_events)
-    }
-
-    fn batch(
-        &mut self,
-        tracers: &mut [Vec<Stamped<TracerSample>>],
-        events: &mut Vec<Stamped<RunEvent>>,
-    ) -> bool {
-        self.events.extend(events.iter().cloned());
-        self.windows.batch(tracers, events)
-    }
 }

@@ -31,7 +31,7 @@ use super::summary::{trusted_summary, trusted_summary_of_file};
 use decoder::Decoder;
 use indexed::{read_indexed, read_indexed_file, read_indexed_with};
 use linear::{read_linear, read_linear_dated};
-pub use stream::{stream_session, SessionSink, Streamed};
+pub use stream::{stream_session, KeepingEvents, SessionSink, Streamed};
 use streams::RawLog;
 
 /// A message with its MCAP times.

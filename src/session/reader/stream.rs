@@ -32,6 +32,41 @@ pub trait SessionSink {
     ) -> bool;
 }
 
+/// A sink that hands every batch on to `inner` and keeps beside it the run events `keep`
+/// selects (what a method or a report reads of the events besides `inner`'s extraction).
+pub struct KeepingEvents<S> {
+    pub inner: S,
+    keep: fn(&RunEvent) -> bool,
+    pub kept: Vec<Stamped<RunEvent>>,
+}
+
+impl<S> KeepingEvents<S> {
+    pub fn new(inner: S, keep: fn(&RunEvent) -> bool) -> Self {
+        KeepingEvents {
+            inner,
+            keep,
+            kept: Vec::new(),
+        }
+    }
+}
+
+impl<S: SessionSink> SessionSink for KeepingEvents<S> {
+    fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
+        self.inner.begin(header, tracers, run_events)
+    }
+
+    fn batch(
+        &mut self,
+        tracers: &mut [Vec<Stamped<TracerSample>>],
+        events: &mut Vec<Stamped<RunEvent>>,
+    ) -> bool {
+        let keep = self.keep;
+        self.kept
+            .extend(events.iter().filter(|e| keep(&e.msg)).cloned());
+        self.inner.batch(tracers, events)
+    }
+}
+
 /// Streams the session at `path` through `sink`. None whenever the stream could differ from `read_session`'s (no trusted summary, damaged
 /// chunks, chunks out of their index's order, a sink that stopped, odd writers): the caller
 /// then discards what the sink saw and reads the whole session.
