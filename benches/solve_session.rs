@@ -457,28 +457,109 @@ struct Case {
     name: &'static str,
     grid: [usize; 3],
     rate: usize,
+    layout: Layout,
 }
 
-const CASES: [Case; 4] = [
+/// Who laid the file out: geocal's own recorder, or the Python `mcap` writer rewriting the
+/// same messages (bench/rewrite_session.py) as an independent recorder does.
+#[derive(Clone, Copy)]
+enum Layout {
+    Own,
+    /// `compression`: zstd, lz4 or none; `chunk_bytes`: None writes no chunks.
+    Python {
+        compression: &'static str,
+        chunk_bytes: Option<usize>,
+    },
+}
+
+impl Case {
+    /// The case's session file: the own recorder's, generated on first use, or its rewrite.
+    fn session_file(&self) -> PathBuf {
+        let own = session_file(self.grid, self.rate);
+        let Layout::Python {
+            compression,
+            chunk_bytes,
+        } = self.layout
+        else {
+            return own;
+        };
+        let chunks = chunk_bytes.map_or("unchunked".to_string(), |b| format!("chunk{b}"));
+        let path = own.with_extension(format!("py-{compression}-{chunks}.mcap"));
+        if !path.exists() {
+            let mut command = Command::new("python3");
+            command
+                .arg(Path::new(env!("CARGO_MANIFEST_DIR")).join("bench/rewrite_session.py"))
+                .arg(&own)
+                .arg(&path)
+                .arg("--compression")
+                .arg(compression);
+            match chunk_bytes {
+                Some(b) => command.arg("--chunk-size").arg(b.to_string()),
+                None => command.arg("--unchunked"),
+            };
+            let status = command.status().expect("python3 runs");
+            assert!(
+                status.success(),
+                "bench/rewrite_session.py failed ({status}): pip install mcap"
+            );
+        }
+        path
+    }
+}
+
+const FOUR_MIB: usize = 4 * 1024 * 1024;
+
+const CASES: [Case; 7] = [
     Case {
         name: "1k",
         grid: [10, 10, 10],
         rate: 1,
+        layout: Layout::Own,
     },
     Case {
         name: "10k",
         grid: GRID,
         rate: 1,
+        layout: Layout::Own,
+    },
+    Case {
+        name: "10k-python-zstd-4MiB",
+        grid: GRID,
+        rate: 1,
+        layout: Layout::Python {
+            compression: "zstd",
+            chunk_bytes: Some(FOUR_MIB),
+        },
+    },
+    Case {
+        name: "10k-python-lz4-4MiB",
+        grid: GRID,
+        rate: 1,
+        layout: Layout::Python {
+            compression: "lz4",
+            chunk_bytes: Some(FOUR_MIB),
+        },
+    },
+    Case {
+        name: "10k-python-unchunked",
+        grid: GRID,
+        rate: 1,
+        layout: Layout::Python {
+            compression: "none",
+            chunk_bytes: None,
+        },
     },
     Case {
         name: "10k-dense",
         grid: GRID,
         rate: 10,
+        layout: Layout::Own,
     },
     Case {
         name: "100k",
         grid: [50, 50, 40],
         rate: 1,
+        layout: Layout::Own,
     },
 ];
 
@@ -546,6 +627,9 @@ fn ceres_peer() -> Result<PathBuf, String> {
 
 struct CeresRun {
     solve_time: Duration,
+    /// Ceres's own Solver::Summary times: total and linear solver.
+    summary_total: Duration,
+    summary_linear: Duration,
     iterations: u64,
     chi2: f64,
     chi2_start: f64,
@@ -631,6 +715,10 @@ fn run_ceres(exe: &Path, problem_file: &Path) -> Result<CeresRun, String> {
         .collect();
     Ok(CeresRun {
         solve_time: Duration::from_secs_f64(v["time_s"].as_f64().unwrap_or(f64::NAN)),
+        summary_total: Duration::from_secs_f64(v["ceres_total_s"].as_f64().unwrap_or(0.0)),
+        summary_linear: Duration::from_secs_f64(
+            v["ceres_linear_solver_s"].as_f64().unwrap_or(0.0),
+        ),
         iterations: v["iterations"].as_u64().unwrap_or(0),
         chi2: v["chi2"].as_f64().unwrap_or(f64::NAN),
         chi2_start: v["chi2_start"].as_f64().unwrap_or(f64::NAN),
@@ -659,7 +747,7 @@ fn compare_with_ceres(cases: &[Case]) {
     let repeats = 3;
     let mut rows = Vec::new();
     for case in cases {
-        let path = session_file(case.grid, case.rate);
+        let path = case.session_file();
         let file_mb = std::fs::metadata(&path).map_or(0.0, |m| m.len() as f64 / 1e6);
         // The extracted problem, as `geocal solve` builds it.
         let session = read_session(&path).expect("read_session");
@@ -708,6 +796,7 @@ fn compare_with_ceres(cases: &[Case]) {
             best_ceres.map(|c| {
                 (
                     c.solve_time,
+                    (c.summary_total, c.summary_linear),
                     c.iterations,
                     c.chi2,
                     c.chi2_start,
@@ -724,10 +813,10 @@ fn compare_with_ceres(cases: &[Case]) {
     );
     println!(
         "| case | tracer samples | lengths | file | geocal wall | geocal CPU | peak RSS | \
-         iterations | Ceres solve | ratio geocal/Ceres | Ceres iterations | point error geocal | \
-         point error Ceres | chi2 geocal | chi2 Ceres |"
+         iterations | Ceres solve | Ceres summary total / linear solver | ratio geocal/Ceres | \
+         Ceres iterations | point error geocal | point error Ceres | chi2 geocal | chi2 Ceres |"
     );
-    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
     for (name, samples, lengths, mb, g, iters, chi2, rms, c) in rows {
         let (wall, cpu, rss) = match g {
             Some((w, c, r)) => (
@@ -737,9 +826,10 @@ fn compare_with_ceres(cases: &[Case]) {
             ),
             None => ("-".into(), "-".into(), "-".into()),
         };
-        let (ctime, ratio, citers, crms, cchi2) = match (c, g) {
-            (Some((t, it, chi2c, _start, crms)), g) => (
+        let (ctime, csummary, ratio, citers, crms, cchi2) = match (c, g) {
+            (Some((t, (total, linear), it, chi2c, _start, crms)), g) => (
                 fmt_time(t),
+                format!("{} / {}", fmt_time(total), fmt_time(linear)),
                 g.map_or("-".into(), |(w, _, _)| {
                     format!("{:.2}", w.as_secs_f64() / t.as_secs_f64())
                 }),
@@ -747,11 +837,18 @@ fn compare_with_ceres(cases: &[Case]) {
                 format!("{:.3} µm", crms * 1e6),
                 format!("{chi2c:.1}"),
             ),
-            (None, _) => ("-".into(), "-".into(), "-".into(), "-".into(), "-".into()),
+            (None, _) => (
+                "-".into(),
+                "-".into(),
+                "-".into(),
+                "-".into(),
+                "-".into(),
+                "-".into(),
+            ),
         };
         println!(
             "| {name} | {samples} | {lengths} | {mb:.0} MB | {wall} | {cpu} | {rss} | {iters} | \
-             {ctime} | {ratio} | {citers} | {:.3} µm | {crms} | {chi2:.1} | {cchi2} |",
+             {ctime} | {csummary} | {ratio} | {citers} | {:.3} µm | {crms} | {chi2:.1} | {cchi2} |",
             rms * 1e6
         );
     }
