@@ -1067,13 +1067,17 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         "the Foxglove client: {first:?}"
     );
     // A second viewer, on a raw socket: it must be disconnected when the run ends.
-    let mut viewer = std::net::TcpStream::connect(&live).expect("connect to the live view");
+    let live_address = live
+        .trim_start_matches("ws://")
+        .trim_end_matches('/')
+        .to_owned();
+    let mut viewer = std::net::TcpStream::connect(&live_address).expect("connect to the live view");
     viewer
         .write_all(
             format!(
-                "GET / HTTP/1.1\r\nHost: {live}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+                "GET / HTTP/1.1\r\nHost: {live_address}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
                  Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
-                 Sec-WebSocket-Protocol: foxglove.websocket.v1\r\n\r\n"
+                 Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
             )
             .as_bytes(),
         )
