@@ -314,6 +314,14 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     // The document as configured: no security, the Host refusal on every operation, both
     // bodies of POST /v1/jobs, the real metrics type.
     let document = get(&daemon, "/v1/openapi.json", &own, &[]).json();
+    // A session job is a solve, diagnose or replay; a run is submitted as TOML.
+    let session_types = &document["components"]["schemas"]["SessionJobType"]["enum"];
+    assert_eq!(
+        session_types,
+        &serde_json::json!(["solve", "diagnose", "replay"]),
+        "{}",
+        document["components"]["schemas"]["SessionJob"]
+    );
     assert!(
         document.get("security").is_none(),
         "{}",

@@ -211,9 +211,9 @@ pub fn parse_csv(text: &str, file: &Path) -> Result<Vec<Row>, CompensateError> {
         }
         if !header_seen {
             if line.trim() != "error,axis,position_m,value,unit,sigma" {
-                return Err(err(format!(
-                    "expected the header `error,axis,position_m,value,unit,sigma`"
-                )));
+                return Err(err(
+                    "expected the header `error,axis,position_m,value,unit,sigma`".to_string(),
+                ));
             }
             header_seen = true;
             continue;
