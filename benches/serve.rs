@@ -5,7 +5,8 @@
 //! few minutes while solves of a larger session run beside it.
 //!
 //! `cargo bench --bench serve -- recording` runs only the sections whose name is given
-//! (`latency`, `jobs`, `recording`).
+//! (`latency`, `jobs`, `recording`, `flood`: the health latency with the event streams' cap
+//! full and 1000 idle connections open, or reconnecting).
 
 #[path = "../tests/common/mod.rs"]
 mod common;
@@ -122,6 +123,114 @@ fn main() {
     if run("recording") {
         recording(&client, &daemon, dir.path());
     }
+    if run("flood") {
+        flood(dir.path());
+    }
+}
+
+/// `GET /v1/health` on a new loopback connection: its latency, seconds.
+fn health_s(address: &str) -> f64 {
+    use std::io::{Read, Write};
+    let started = Instant::now();
+    let mut stream = std::net::TcpStream::connect(address).expect("connect");
+    stream
+        .set_read_timeout(Some(Duration::from_secs(60)))
+        .expect("timeout");
+    write!(
+        stream,
+        "GET /v1/health HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n"
+    )
+    .expect("write");
+    let mut answer = Vec::new();
+    let _ = stream.read_to_end(&mut answer);
+    assert!(answer.starts_with(b"HTTP/1.1 200"), "health not answered");
+    started.elapsed().as_secs_f64()
+}
+
+/// `max_connections = 4` with its 4 event streams open (`max_streams = 4`): the health
+/// latency alone, with 1000 idle connections open, and while a peer keeps opening idle ones.
+/// Bounded: 5 rounds of 20 requests, then 3 s of reconnecting.
+fn flood(dir: &std::path::Path) {
+    use std::io::{Read, Write};
+    let config = dir.join("flood.toml");
+    std::fs::write(&config, "max_connections = 4\nmax_streams = 4\n").expect("config");
+    let mut child = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .arg("serve")
+        .arg("--config")
+        .arg(&config)
+        .arg("--data-dir")
+        .arg(dir.join("flood-data"))
+        .args(["--listen", "127.0.0.1:0", "--live", "off"])
+        .stdout(Stdio::piped())
+        .stderr(Stdio::null())
+        .spawn()
+        .expect("spawn geocal serve");
+    let (url, _) = common::daemon_banner(&mut child);
+    let daemon = Daemon { child, url };
+    let address = daemon.url.trim_start_matches("http://").to_owned();
+    let streams: Vec<std::net::TcpStream> = (0..4)
+        .map(|_| {
+            let mut s = std::net::TcpStream::connect(&address).expect("connect");
+            write!(s, "GET /v1/events HTTP/1.1\r\nHost: {address}\r\n\r\n").expect("write");
+            let mut head = [0u8; 12];
+            s.read_exact(&mut head).expect("stream answer");
+            assert_eq!(&head, b"HTTP/1.1 200");
+            s
+        })
+        .collect();
+    let summary = |label: &str, mut t: Vec<f64>| {
+        t.sort_by(f64::total_cmp);
+        println!(
+            "flood: {label}: health p50 {:.1} ms, p99 {:.1} ms, max {:.1} ms ({} requests)",
+            percentile(&t, 0.5) * 1e3,
+            percentile(&t, 0.99) * 1e3,
+            t[t.len() - 1] * 1e3,
+            t.len()
+        );
+    };
+    summary(
+        "4 streams open",
+        (0..100).map(|_| health_s(&address)).collect(),
+    );
+    let mut flooded = Vec::new();
+    for _ in 0..5 {
+        let idle: Vec<std::net::TcpStream> = (0..1000)
+            .filter_map(|_| std::net::TcpStream::connect(&address).ok())
+            .collect();
+        assert!(idle.len() >= 900, "{} connections opened", idle.len());
+        flooded.extend((0..20).map(|_| health_s(&address)));
+    }
+    summary("4 streams + 1000 idle connections", flooded);
+    let stop = std::sync::Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let flooder = {
+        let (stop, address) = (stop.clone(), address.clone());
+        std::thread::spawn(move || {
+            let mut held = std::collections::VecDeque::new();
+            let mut opened = 0u64;
+            while !stop.load(std::sync::atomic::Ordering::Relaxed) {
+                if let Ok(s) = std::net::TcpStream::connect(&address) {
+                    held.push_back(s);
+                    opened += 1;
+                }
+                if held.len() > 1000 {
+                    held.pop_front();
+                }
+            }
+            opened
+        })
+    };
+    let started = Instant::now();
+    let mut reconnecting = Vec::new();
+    while started.elapsed() < Duration::from_secs(3) {
+        reconnecting.push(health_s(&address));
+    }
+    stop.store(true, std::sync::atomic::Ordering::Relaxed);
+    let opened = flooder.join().expect("flooder");
+    summary(
+        &format!("4 streams + a peer opening idle connections ({opened} in 3 s)"),
+        reconnecting,
+    );
+    drop(streams);
 }
 
 fn gaps_in(session: &std::path::Path) -> (usize, u64) {

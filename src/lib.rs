@@ -4,6 +4,7 @@
 pub mod clock;
 pub mod compensate;
 pub mod config;
+pub mod console;
 pub mod devices;
 pub mod diagnose;
 pub mod document;

@@ -295,9 +295,13 @@ fn main() -> ExitCode {
     };
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new(default_level));
+    // No colour codes in a file or a pipe; a failed write of a log line is dropped (telling
+    // of it on the same stderr would fail too).
     let logger = tracing_subscriber::fmt()
         .with_env_filter(filter)
-        .with_writer(std::io::stderr);
+        .with_writer(std::io::stderr)
+        .with_ansi(std::io::stderr().is_terminal())
+        .log_internal_errors(false);
     if matches!(cli.command, Command::Serve { .. }) && !std::io::stderr().is_terminal() {
         logger.json().init();
     } else {
@@ -306,8 +310,10 @@ fn main() -> ExitCode {
     let progress = geocal::progress::Mode::for_stderr(cli.quiet);
     match dispatch(cli.command, progress) {
         Ok(()) => ExitCode::SUCCESS,
+        // The reader of stdout has gone (`geocal check X | head -1`): nothing left to say.
+        Err(e) if geocal::console::is_broken_pipe(&e) => ExitCode::SUCCESS,
         Err(e) => {
-            eprint!("{}", error_text(&e));
+            geocal::console::write_err(format_args!("{}", error_text(&e)));
             ExitCode::FAILURE
         }
     }
@@ -371,7 +377,7 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 Some(text) => {
                     let address = geocal::serve::live::parse_address(&text)?;
                     let view = std::sync::Arc::new(geocal::serve::live::LiveView::start(address)?);
-                    eprintln!(
+                    geocal::errln!(
                         "live view: ws://{} (Foxglove: open connection)",
                         view.address()
                     );
@@ -390,9 +396,20 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 Some(view) => geocal::session::tap::Tap::new(view.clone()),
                 None => Default::default(),
             };
+            // `--yes`: the operator's acknowledgements are lines on stdin, even from a pipe. A
+            // flag of this invocation, never written into the run's stored configuration.
+            let operator = yes.then(|| {
+                std::sync::Arc::new(|| {
+                    Box::new(geocal::devices::operator::ConsoleOperator::new(
+                        std::io::BufReader::new(std::io::stdin()),
+                        Box::new(std::io::stderr()),
+                    )) as Box<dyn geocal_drivers::Operator>
+                }) as geocal::sequencer::control::OperatorSource
+            });
             let control = geocal::run::control::RunControl {
                 tap: shown.tap(live_tap),
                 progress: Some(shown.sink()),
+                operator,
                 ..Default::default()
             };
             let options = geocal::run::RunOptions {
@@ -415,15 +432,15 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 view.stop();
             }
             if json {
-                println!("{}", output.results.to_json_pretty());
+                geocal::outln!("{}", output.results.to_json_pretty())?;
             } else {
-                print!("{}", output.results.report());
-                println!(
+                geocal::out!("{}", output.results.report())?;
+                geocal::outln!(
                     "\n  {} recorded to {}\n  results in {}",
                     output.recorded,
                     output.session_path.display(),
                     output.results_path.display()
-                );
+                )?;
             }
         }
         Command::Solve {
@@ -449,15 +466,15 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?;
             }
             if json {
-                println!("{}", results.to_json_pretty());
+                geocal::outln!("{}", results.to_json_pretty())?;
             } else {
-                print!("{}", results.report());
+                geocal::out!("{}", results.report())?;
             }
         }
         Command::Repair { session, out } => {
             let out = out.unwrap_or_else(|| geocal::session::repair::default_output(&session));
             let report = geocal::session::repair::repair(&session, &out)?;
-            print!("{}", geocal::session::repair::text(&report));
+            geocal::out!("{}", geocal::session::repair::text(&report))?;
         }
         Command::Report {
             input,
@@ -480,7 +497,7 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                     .join(default_name)
             });
             for path in geocal::report::write(&document, &out, format)? {
-                println!("{}", path.display());
+                geocal::outln!("{}", path.display())?;
             }
         }
         Command::Diagnose {
@@ -512,9 +529,9 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 geocal::diagnose::plot::write_svg(&path, &diagnosis.session_id, &residuals)?;
             }
             if json {
-                println!("{}", serde_json::to_string_pretty(&diagnosis)?);
+                geocal::outln!("{}", serde_json::to_string_pretty(&diagnosis)?)?;
             } else {
-                print!("{}", geocal::diagnose::text(&diagnosis));
+                geocal::out!("{}", geocal::diagnose::text(&diagnosis))?;
             }
         }
         Command::Simulate {
@@ -549,9 +566,9 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 },
             )?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&output.comparison)?);
+                geocal::outln!("{}", serde_json::to_string_pretty(&output.comparison)?)?;
             } else {
-                print!("{}", geocal::replay::text(&output.comparison));
+                geocal::out!("{}", geocal::replay::text(&output.comparison))?;
             }
             if output.comparison.outcome == geocal::replay::Outcome::Diverged {
                 anyhow::bail!("{}", output.comparison.message);
@@ -575,14 +592,14 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 .iter()
                 .map(|(k, n)| format!("{n} {k}"))
                 .collect();
-            println!(
+            geocal::outln!(
                 "{} readings ({}), {} device errors{}",
                 summary.readings.values().sum::<u64>(),
                 counts.join(", "),
                 summary.errors,
                 out.map(|p| format!(", recorded to {}", p.display()))
                     .unwrap_or_default()
-            );
+            )?;
         }
         Command::ExportNc { config, out } => {
             let cfg = geocal::config::Config::load(&config)?;
@@ -599,7 +616,7 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
             match out {
                 Some(path) => std::fs::write(&path, text)
                     .map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))?,
-                None => print!("{text}"),
+                None => geocal::out!("{text}")?,
             }
         }
         Command::Serve {
@@ -659,10 +676,10 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
         Command::Check { config, json } => {
             let check = kinds.of_config(&config)?.check(&config)?;
             if json {
-                println!("{}", serde_json::to_string_pretty(&check.json)?);
+                geocal::outln!("{}", serde_json::to_string_pretty(&check.json)?)?;
             } else {
-                println!("{}: valid", config.display());
-                print!("{}", check.text);
+                geocal::outln!("{}: valid", config.display())?;
+                geocal::out!("{}", check.text)?;
             }
         }
     }
@@ -684,7 +701,7 @@ fn client(
         });
         shown.finish();
         let job = job?;
-        println!("{}", serde_json::to_string_pretty(&job)?);
+        geocal::outln!("{}", serde_json::to_string_pretty(&job)?)?;
         if job.state != geocal::serve::catalog::JobState::Succeeded {
             anyhow::bail!("job {id} ended {}", job.state.as_str());
         }
@@ -696,35 +713,37 @@ fn client(
             follow: and_follow,
         } => {
             let id = client.submit(&config)?;
-            println!("{id}");
+            geocal::outln!("{id}")?;
             if and_follow {
                 follow(id)?;
             }
         }
         ClientCommand::Jobs => {
             for job in client.jobs()? {
-                println!("{}", job_line(&job));
+                geocal::outln!("{}", job_line(&job))?;
             }
         }
         ClientCommand::Status { id } => {
-            println!("{}", serde_json::to_string_pretty(&client.job(id)?)?)
+            geocal::outln!("{}", serde_json::to_string_pretty(&client.job(id)?)?)?
         }
         ClientCommand::Follow { id } => follow(id)?,
         ClientCommand::Cancel { id } => client.cancel(id)?,
         ClientCommand::Resume { id } => client.resume(id)?,
         ClientCommand::Prompts => {
             for prompt in client.prompts()? {
-                println!(
+                geocal::outln!(
                     "{:>4}  job {:<5} {}",
-                    prompt.id, prompt.job, prompt.instruction
-                );
+                    prompt.id,
+                    prompt.job,
+                    prompt.instruction
+                )?;
             }
         }
         ClientCommand::Ack { prompt } => client.ack(prompt)?,
         ClientCommand::Fetch { id, what, out } => {
             let out = out.unwrap_or_else(|| default_fetch_path(id, &what));
             let bytes = client.fetch(id, &what, &out)?;
-            println!("{bytes} bytes to {}", out.display());
+            geocal::outln!("{bytes} bytes to {}", out.display())?;
         }
     }
     Ok(())
@@ -778,7 +797,7 @@ fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
     };
     let export = compensate::export(&calibration, format, &options, &sinumerik)?;
     for s in &export.steps {
-        eprintln!(
+        geocal::errln!(
             "axis {}: {} entries, step {:.4} mm, interpolation error {:.4} µm (calibration σ {:.4} µm)",
             s.axis,
             s.entries,
@@ -788,7 +807,7 @@ fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
         );
     }
     for w in export.warnings() {
-        eprintln!("warning: {w}");
+        geocal::errln!("warning: {w}");
     }
     let write = |path: &std::path::Path, text: &str| {
         std::fs::write(path, text).map_err(|e| anyhow::anyhow!("writing {}: {e}", path.display()))
@@ -796,13 +815,13 @@ fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
     match (format, &a.out) {
         (TableFormat::Csv | TableFormat::Json, None) => {
             for f in &export.files {
-                print!("{}", f.text);
+                geocal::out!("{}", f.text)?;
             }
         }
         (TableFormat::Csv | TableFormat::Json, Some(path)) => {
             for f in &export.files {
                 write(path, &f.text)?;
-                eprintln!("wrote {}", path.display());
+                geocal::errln!("wrote {}", path.display());
             }
         }
         (_, out) => {
@@ -812,13 +831,13 @@ fn compensate(a: CompensateArgs) -> anyhow::Result<()> {
             for f in &export.files {
                 let path = dir.join(&f.name);
                 write(&path, &f.text)?;
-                eprintln!("wrote {}", path.display());
+                geocal::errln!("wrote {}", path.display());
             }
             // Beside the tables: the results they came from, for a verification run's report.
             let source = compensate::source::Source::new(&calibration, format, &export.steps);
             let path = dir.join(compensate::source::SOURCE_FILE);
             write(&path, &source.to_json())?;
-            eprintln!("wrote {}", path.display());
+            geocal::errln!("wrote {}", path.display());
         }
     }
     Ok(())

@@ -216,7 +216,7 @@ impl Progress {
             let due = s.cadence.progress(done, total);
             match s.mode {
                 Mode::Bar => s.redraw(),
-                Mode::Lines if due => eprintln!("{}", s.line()),
+                Mode::Lines if due => crate::console::write_err(format_args!("{}\n", s.line())),
                 _ => {}
             }
         });
@@ -229,7 +229,7 @@ impl Progress {
             s.point = None;
             match s.mode {
                 Mode::Bar => s.redraw(),
-                Mode::Lines if due => eprintln!("{}", s.line()),
+                Mode::Lines if due => crate::console::write_err(format_args!("{}\n", s.line())),
                 _ => {}
             }
         });
@@ -249,7 +249,7 @@ impl Progress {
     pub fn println(&self, text: &str) {
         self.with(|s| match (&s.bar, s.mode) {
             (Some(bar), _) => bar.println(text),
-            (None, Mode::Lines) => eprintln!("{text}"),
+            (None, Mode::Lines) => crate::console::write_err(format_args!("{text}\n")),
             _ => {}
         });
     }

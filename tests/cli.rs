@@ -120,3 +120,52 @@ fn diagnose_prints_the_diagnosis_format() {
     let text = geocal_ok(&["diagnose", session.to_str().unwrap()]);
     assert!(!text.stdout.is_empty());
 }
+
+#[test]
+fn yes_is_a_flag_not_configuration_and_a_resume_takes_it() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let config = small_config(dir.path());
+    let config = config.to_str().unwrap();
+    let out = dir.path().join("out");
+    let out = out.to_str().unwrap();
+    geocal_ok(&["run", config, "--out", out, "--yes", "--json"]);
+    let stored = std::fs::read_to_string(Path::new(out).join("run-config.toml")).expect("stored");
+    assert!(!stored.contains("piped_stdin"), "{stored}");
+    // The stored configuration equals the given one, so both are accepted on resume (the run
+    // had finished: the resume copies its session and solves it). Its log has no colour
+    // codes on a pipe.
+    let resumed = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args(["run", config, "--resume", out, "--yes", "--json"])
+        .env("RUST_LOG", "info")
+        .output()
+        .expect("geocal run --resume");
+    let stderr = String::from_utf8_lossy(&resumed.stderr);
+    assert!(resumed.status.success(), "{stderr}");
+    assert!(stderr.contains("resuming"), "a log line: {stderr}");
+    assert!(
+        !stderr.contains('\u{1b}'),
+        "colour codes on a pipe: {stderr:?}"
+    );
+}
+
+#[test]
+fn output_to_a_closed_pipe_ends_quietly() {
+    // `geocal check X | head -0`: the reader is gone before geocal writes.
+    let mut child = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args([
+            "check",
+            concat!(
+                env!("CARGO_MANIFEST_DIR"),
+                "/config/demo-multilateration.toml"
+            ),
+        ])
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .expect("spawn geocal check");
+    drop(child.stdout.take());
+    let output = child.wait_with_output().expect("geocal check ends");
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert!(!stderr.contains("panicked"), "{stderr}");
+    assert!(output.status.success(), "{:?}: {stderr}", output.status);
+}

@@ -9,7 +9,7 @@ use std::path::{Path, PathBuf};
 
 /// Top-level folders (or files) of `src/` by layer, lowest first.
 const LAYERS: &[&[&str]] = &[
-    &["clock", "solve", "model", "compensate"],
+    &["clock", "console", "solve", "model", "compensate"],
     &["session"],
     &["config"],
     &["plan"],

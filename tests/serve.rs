@@ -5,7 +5,7 @@
 
 mod common;
 
-use std::io::{BufRead, BufReader};
+use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
@@ -420,12 +420,14 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
     let mut daemon = Daemon::start(&data, &[]);
     let client = http();
     let id = submit(&client, &daemon, &hil());
-    // Kill it once some points are measured and flushed.
+    // Kill it once the second station's points have begun: the operator's relocation to it
+    // (`relocation_s`, 180 s) was skipped, so the session's log times run ahead of the wall
+    // clock, and the resume below comes at once.
     let start = Instant::now();
     loop {
         let j = job(&client, &daemon, id);
         assert_eq!(j["state"], "running", "the run must still be running: {j}");
-        if j["progress"]["done"].as_u64().unwrap_or(0) >= 4 {
+        if j["progress"]["done"].as_u64().unwrap_or(0) >= 20 {
             break;
         }
         assert!(start.elapsed() < JOB_TIMEOUT);
@@ -437,12 +439,25 @@ fn a_killed_daemon_leaves_an_interrupted_job_that_resumes_through_the_api() {
     let killed = dir.path().join("killed.mcap");
     std::fs::copy(job_dir.join("session.mcap"), &killed).expect("copy the killed session");
 
+    let (_, flushed) =
+        geocal::session::reader::read_session_raw(&killed).expect("killed file reads");
+    let last_log_ns = flushed.iter().map(|m| m.log_time_ns).max().unwrap_or(0);
+    let now_ns = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .expect("clock")
+        .as_nanos() as u64;
+    assert!(
+        last_log_ns > now_ns + 60_000_000_000,
+        "the killed session's log times run ahead of the wall clock (by {} s)",
+        (last_log_ns as f64 - now_ns as f64) * 1e-9
+    );
+
     let daemon = Daemon::start(&data, &[]);
     let interrupted = job(&client, &daemon, id);
     assert_eq!(interrupted["state"], "interrupted", "{interrupted}");
     // Its record shows how far it came and what it left.
     let done_before = interrupted["progress"]["done"].as_u64().unwrap_or(0);
-    assert!(done_before >= 4, "{interrupted}");
+    assert!(done_before >= 20, "{interrupted}");
     assert!(interrupted["progress"]["total"].as_u64().unwrap_or(0) > done_before);
     let names = |j: &Value| -> Vec<String> {
         j["files"]
@@ -1051,10 +1066,38 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         first.contains("connected"),
         "the Foxglove client: {first:?}"
     );
+    // A second viewer, on a raw socket: it must be disconnected when the run ends.
+    let live_address = live
+        .trim_start_matches("ws://")
+        .trim_end_matches('/')
+        .to_owned();
+    let mut viewer = std::net::TcpStream::connect(&live_address).expect("connect to the live view");
+    viewer
+        .write_all(
+            format!(
+                "GET / HTTP/1.1\r\nHost: {live_address}\r\nUpgrade: websocket\r\nConnection: Upgrade\r\n\
+                 Sec-WebSocket-Key: dGhlIHNhbXBsZSBub25jZQ==\r\nSec-WebSocket-Version: 13\r\n\
+                 Sec-WebSocket-Protocol: foxglove.sdk.v1\r\n\r\n"
+            )
+            .as_bytes(),
+        )
+        .expect("handshake");
+    let mut head = [0u8; 12];
+    viewer.read_exact(&mut head).expect("handshake answer");
+    assert_eq!(&head, b"HTTP/1.1 101", "{}", String::from_utf8_lossy(&head));
+    let (closed, disconnected) = std::sync::mpsc::channel();
+    std::thread::spawn(move || {
+        let mut sink = [0u8; 8192];
+        while matches!(viewer.read(&mut sink), Ok(n) if n > 0) {}
+        let _ = closed.send(());
+    });
     let client = http();
     let id = submit(&client, &daemon, &hil());
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
+    disconnected
+        .recv_timeout(Duration::from_secs(120))
+        .expect("the live viewer is disconnected once the run has ended");
     let stdout: Vec<String> = lines.map_while(Result::ok).collect();
     let output = watcher.wait_with_output().expect("the watcher ends");
     assert!(

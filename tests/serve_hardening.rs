@@ -41,7 +41,7 @@ impl Daemon {
             .args(extra)
             .stdin(Stdio::null())
             .stdout(Stdio::piped())
-            .stderr(Stdio::null())
+            .stderr(std::fs::File::create(dir.join("daemon.log")).expect("log file"))
             .spawn()
             .expect("spawn geocal serve");
         let (url, live) = common::daemon_banner(&mut child);
@@ -314,6 +314,14 @@ fn without_a_token_only_its_own_host_names_are_served_and_every_error_is_json() 
     // The document as configured: no security, the Host refusal on every operation, both
     // bodies of POST /v1/jobs, the real metrics type.
     let document = get(&daemon, "/v1/openapi.json", &own, &[]).json();
+    // A session job is a solve, diagnose or replay; a run is submitted as TOML.
+    let session_types = &document["components"]["schemas"]["SessionJobType"]["enum"];
+    assert_eq!(
+        session_types,
+        &serde_json::json!(["solve", "diagnose", "replay"]),
+        "{}",
+        document["components"]["schemas"]["SessionJob"]
+    );
     assert!(
         document.get("security").is_none(),
         "{}",
@@ -492,7 +500,7 @@ fn a_slow_client_is_cut_off_after_the_time_out_while_others_are_served() {
 }
 
 #[test]
-fn connections_beyond_the_cap_wait_for_a_free_slot() {
+fn requests_beyond_the_cap_wait_for_a_free_slot() {
     let dir = tempfile::tempdir().expect("tempdir");
     let daemon = Daemon::start(
         dir.path(),
@@ -501,8 +509,24 @@ fn connections_beyond_the_cap_wait_for_a_free_slot() {
     );
     let own = daemon.address.clone();
     let opened = Instant::now();
-    // Two silent connections hold both slots until the header time-out closes them.
-    let idle: Vec<TcpStream> = (0..2).map(|_| daemon.connect()).collect();
+    // Two admitted requests whose bodies never arrive hold both slots until the body
+    // time-out answers them; idle connections would hold none.
+    let slow: Vec<TcpStream> = (0..2)
+        .map(|_| {
+            let mut stream = daemon.connect();
+            stream
+                .write_all(
+                    format!(
+                        "POST /v1/jobs HTTP/1.1\r\nHost: {own}\r\nContent-Type: \
+                         application/toml\r\nContent-Length: 100\r\n\r\nkind"
+                    )
+                    .as_bytes(),
+                )
+                .expect("write");
+            stream
+        })
+        .collect();
+    std::thread::sleep(Duration::from_millis(300));
     let answer = get(&daemon, "/v1/health", &own, &[]);
     assert_eq!(answer.status, 200);
     assert!(
@@ -510,5 +534,282 @@ fn connections_beyond_the_cap_wait_for_a_free_slot() {
         "served after {:?}: the cap of 2 did not hold",
         opened.elapsed()
     );
-    drop(idle);
+    drop(slow);
+}
+
+/// Raise this process's open-file limit to its hard limit (for the flood).
+fn raise_open_files() {
+    // SAFETY: getrlimit/setrlimit with a valid pointer to a local struct.
+    unsafe {
+        let mut limit = libc::rlimit {
+            rlim_cur: 0,
+            rlim_max: 0,
+        };
+        if libc::getrlimit(libc::RLIMIT_NOFILE, &mut limit) == 0 && limit.rlim_cur < limit.rlim_max
+        {
+            limit.rlim_cur = limit.rlim_max;
+            libc::setrlimit(libc::RLIMIT_NOFILE, &limit);
+        }
+    }
+}
+
+/// An open event stream: its answer's head read, the connection kept.
+fn open_stream(daemon: &Daemon, auth: &str) -> (u16, TcpStream) {
+    let mut stream = daemon.connect();
+    let request = format!(
+        "GET /v1/events HTTP/1.1\r\nHost: {}\r\n{auth}\r\n\r\n",
+        daemon.address
+    );
+    stream.write_all(request.as_bytes()).expect("write");
+    let mut head = Vec::new();
+    let mut byte = [0u8; 1];
+    while !head.ends_with(b"\r\n\r\n") {
+        match stream.read(&mut byte) {
+            Ok(1) => head.push(byte[0]),
+            _ => break,
+        }
+    }
+    let status = String::from_utf8_lossy(&head)
+        .split_whitespace()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(0);
+    (status, stream)
+}
+
+#[test]
+fn streams_and_a_flood_of_idle_connections_do_not_lock_the_api_out() {
+    raise_open_files();
+    let dir = tempfile::tempdir().expect("tempdir");
+    let token = "flood-token-0123456789abcdef";
+    let file = token_file(dir.path(), token);
+    let daemon = Daemon::start(
+        dir.path(),
+        "max_connections = 4\nmax_streams = 4\n",
+        &["--token-file", file.to_str().expect("utf-8")],
+    );
+    let auth = format!("Authorization: Bearer {token}");
+    // Four streams fill the stream cap (a fifth is refused) and hold no request slot.
+    let streams: Vec<TcpStream> = (0..4)
+        .map(|_| {
+            let (status, stream) = open_stream(&daemon, &auth);
+            assert_eq!(status, 200);
+            stream
+        })
+        .collect();
+    let (status, mut fifth) = open_stream(&daemon, &auth);
+    assert_eq!(status, 503);
+    let mut rest = Vec::new();
+    let _ = fifth.read_to_end(&mut rest);
+    assert!(String::from_utf8_lossy(&rest).contains("max_streams"));
+    // Unauthenticated peers: streams refused, and 1000 connections that send nothing.
+    let (status, _) = open_stream(&daemon, "");
+    assert_eq!(status, 401);
+    let flood: Vec<TcpStream> = (0..1000)
+        .filter_map(|_| TcpStream::connect(&daemon.address).ok())
+        .collect();
+    assert!(flood.len() >= 900, "opened {} connections", flood.len());
+    // An authenticated request is still answered (a generous time-out: assert the answer,
+    // not its latency; benches/serve.rs measures that).
+    let answer = get(&daemon, "/v1/health", &daemon.address, &[&auth]);
+    assert_eq!(answer.status, 200, "{answer:?}");
+    assert_eq!(answer.json()["status"], "ok");
+    drop(flood);
+    drop(streams);
+}
+
+#[test]
+fn malformed_requests_get_json_errors() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let daemon = Daemon::start(dir.path(), "", &[]);
+    let own = daemon.address.clone();
+    let raw = |request: &[u8]| -> Answer {
+        let mut stream = daemon.connect();
+        stream.write_all(request).expect("write");
+        read_answer(&mut stream).expect("an answer")
+    };
+    let host = format!("Host: {own}\r\n");
+    let long_target = format!("GET /{} HTTP/1.1\r\n{host}\r\n", "a".repeat(9000));
+    let many_headers = format!(
+        "GET /v1/health HTTP/1.1\r\n{host}{}\r\n",
+        (0..100)
+            .map(|i| format!("X-{i}: a\r\n"))
+            .collect::<String>()
+    );
+    let huge_header = format!(
+        "GET /v1/health HTTP/1.1\r\n{host}X-Big: {}\r\n\r\n",
+        "a".repeat(70 * 1024)
+    );
+    for (request, status) in [
+        (
+            format!("POST /v1/jobs HTTP/1.1\r\n{host}Content-Length: ten\r\n\r\n"),
+            400,
+        ),
+        ("NOT AN HTTP REQUEST\r\n\r\n".to_string(), 400),
+        (long_target, 414),
+        (many_headers, 431),
+        (huge_header, 431),
+    ] {
+        let answer = raw(request.as_bytes());
+        assert_eq!(answer.status, status, "{answer:?}");
+        assert!(!answer.error().is_empty());
+    }
+}
+
+fn private_file(path: &Path, text: &str) {
+    std::fs::write(path, text).expect("write");
+    #[cfg(unix)]
+    {
+        use std::os::unix::fs::PermissionsExt;
+        std::fs::set_permissions(path, std::fs::Permissions::from_mode(0o600)).expect("chmod");
+    }
+}
+
+/// The small demo with `file` at each path-typed key a plan configuration has (docs/serve.md,
+/// "What a plan may read"), one plan per key: (key, plan).
+fn plans_naming(file: &str) -> Vec<(&'static str, String)> {
+    let demo = common::small_demo();
+    vec![
+        (
+            "sim.compensation[0].file",
+            format!(
+                "{demo}\n[[sim.compensation]]\nformat = \"linuxcnc-type0\"\nfile = \"{file}\"\naxis = \"x\"\n"
+            ),
+        ),
+        (
+            "hil.linuxcnc.comp_files[0].file",
+            format!(
+                "{demo}\n[hil]\nemulate = true\n[[hil.linuxcnc.comp_files]]\naxis = \"x\"\nfile = \"{file}\"\ntype = 0\n"
+            ),
+        ),
+        (
+            "devices.machine.linuxcnc.password_file",
+            format!("{demo}\n[devices.machine.linuxcnc]\npassword_file = \"{file}\"\n"),
+        ),
+    ]
+}
+
+#[test]
+fn plans_read_no_file_outside_the_allowed_folders_and_nothing_quotes_one() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let root = dir.path();
+    let token = "probe-token-TOKENSECRET-0123456789";
+    let token_path = token_file(root, token);
+    let password = root.join("linuxcnc-passwords.toml");
+    private_file(
+        &password,
+        "connect = \"PWSECRETconnect\"\nenable = \"PWSECRETenable\"\n",
+    );
+    let secrets = ["TOKENSECRET", "PWSECRET", "TABLESECRET"];
+    // The one folder plans may read: a table that does not parse, and a symlink out of it.
+    let tables = root.join("tables");
+    std::fs::create_dir(&tables).expect("tables");
+    let bad_table = tables.join("bad.txt");
+    std::fs::write(&bad_table, "TABLESECRET 1 2\n0 0 0\n").expect("table");
+    std::os::unix::fs::symlink(&token_path, tables.join("token-link")).expect("symlink");
+    std::os::unix::fs::symlink(&password, tables.join("password-link")).expect("symlink");
+    let config = format!("allowed_read_dirs = [\"{}\"]\n", tables.display());
+    let guarded_dir = root.join("guarded");
+    let open_dir = root.join("open");
+    std::fs::create_dir_all(&guarded_dir).expect("dir");
+    std::fs::create_dir_all(&open_dir).expect("dir");
+    let token_arg = token_path.to_str().expect("utf-8").to_owned();
+    let guarded = Daemon::start(&guarded_dir, &config, &["--token-file", &token_arg]);
+    let open = Daemon::start(&open_dir, &config, &[]);
+    let auth = format!("Authorization: Bearer {token}");
+
+    let submit = |daemon: &Daemon, plan: &str, auth: Option<&str>| -> Answer {
+        let length = format!("Content-Length: {}", plan.len());
+        let host = format!("Host: {}", daemon.address);
+        let mut lines = vec![
+            "POST /v1/jobs HTTP/1.1",
+            host.as_str(),
+            "Content-Type: application/toml",
+            length.as_str(),
+        ];
+        lines.extend(auth);
+        send(daemon, &lines, plan.as_bytes())
+    };
+    let check_quiet = |what: &str, text: &str| {
+        for secret in secrets {
+            assert!(!text.contains(secret), "{what} quotes {secret}: {text}");
+        }
+    };
+    let targets = [
+        token_path.display().to_string(),
+        password.display().to_string(),
+        tables.join("token-link").display().to_string(),
+        tables.join("password-link").display().to_string(),
+        format!("{}/../token", tables.display()),
+        "../../../token".to_string(),
+        "/etc/shadow".to_string(),
+    ];
+    let mut refused = 0;
+    for target in &targets {
+        for (key, plan) in plans_naming(target) {
+            let without = submit(&guarded, &plan, None);
+            assert_eq!(without.status, 401, "{without:?}");
+            check_quiet("a 401", &String::from_utf8_lossy(&without.body));
+            for (daemon, auth) in [(&guarded, Some(auth.as_str())), (&open, None)] {
+                let answer = submit(daemon, &plan, auth);
+                assert_eq!(answer.status, 400, "{key} = {target}: {answer:?}");
+                let error = answer.error();
+                assert!(error.contains(key), "{key}: {error}");
+                check_quiet("a 400", &error);
+                refused += 1;
+            }
+        }
+    }
+    assert_eq!(refused, targets.len() * 3 * 2);
+    // An allowed file is read, and its parse error says where, not what.
+    let (key, plan) = plans_naming(&bad_table.display().to_string()).remove(0);
+    for (daemon, auth) in [(&guarded, Some(auth.as_str())), (&open, None)] {
+        let answer = submit(daemon, &plan, auth);
+        assert_eq!(answer.status, 400, "{key}: {answer:?}");
+        let error = answer.error();
+        assert!(
+            error.contains("bad.txt") && error.contains("line 1"),
+            "{error}"
+        );
+        check_quiet("a parse error", &error);
+    }
+    // Nothing was stored, and the logs quote nothing either.
+    for dir in [&guarded_dir, &open_dir] {
+        let jobs = std::fs::read_dir(dir.join("data").join("jobs"))
+            .map(|d| d.count())
+            .unwrap_or(0);
+        assert_eq!(jobs, 0, "a refused plan left a job folder");
+    }
+    drop(guarded);
+    drop(open);
+    for dir in [&guarded_dir, &open_dir] {
+        let log = std::fs::read_to_string(dir.join("daemon.log")).expect("log");
+        check_quiet("the daemon's log", &log);
+    }
+
+    // The CLI reads what its user names, and quotes none of it either.
+    for target in [&token_path, &password, &bad_table] {
+        for (_, plan) in plans_naming(&target.display().to_string()) {
+            let file = root.join("plan.toml");
+            std::fs::write(&file, plan).expect("plan");
+            let output = Command::new(env!("CARGO_BIN_EXE_geocal"))
+                .arg("check")
+                .arg(&file)
+                .output()
+                .expect("geocal check");
+            let text = String::from_utf8_lossy(&output.stderr).into_owned()
+                + &String::from_utf8_lossy(&output.stdout);
+            check_quiet("geocal check", &text);
+        }
+        let output = Command::new(env!("CARGO_BIN_EXE_geocal"))
+            .arg("check")
+            .arg(target)
+            .output()
+            .expect("geocal check");
+        assert!(!output.status.success());
+        let text = String::from_utf8_lossy(&output.stderr);
+        let name = target.file_name().and_then(|n| n.to_str()).expect("name");
+        assert!(text.contains(name), "names the file: {text}");
+        check_quiet("geocal check of the file itself", &text);
+    }
 }

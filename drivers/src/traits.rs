@@ -35,6 +35,31 @@ pub enum DeviceError {
     },
 }
 
+impl DeviceError {
+    /// What happened, without the device's name (and for a disconnection without
+    /// `disconnected:`), for a new error of the same device that embeds this one: no
+    /// "mill: disconnected: mill: disconnected: …".
+    pub fn detail(&self) -> String {
+        match self {
+            DeviceError::Disconnected { message, .. } => message.clone(),
+            other => {
+                let text = other.to_string();
+                let device = match other {
+                    DeviceError::Timeout { device, .. }
+                    | DeviceError::Protocol { device, .. }
+                    | DeviceError::Disconnected { device, .. }
+                    | DeviceError::Rejected { device, .. }
+                    | DeviceError::EndOfStream { device }
+                    | DeviceError::Alarm { device, .. } => device,
+                };
+                text.strip_prefix(&format!("{device}: "))
+                    .map(str::to_owned)
+                    .unwrap_or(text)
+            }
+        }
+    }
+}
+
 /// Something a driver detected and recovered from by itself (a frame that failed its CRC,
 /// a link it lost and reopened), for the session's `fault` events (`code`: `crc`, `resync`,
 /// `disconnect`, `reconnect`).
@@ -252,4 +277,36 @@ pub trait PoseSensor: Send {
     fn id(&self) -> &str;
     /// Measure the platform pose now (the platform at rest).
     async fn measure(&mut self) -> Result<PoseReading, DeviceError>;
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn an_embedded_error_does_not_repeat_its_prefix() {
+        let lost = DeviceError::Disconnected {
+            device: "mill".into(),
+            message: "read failed: EOF".into(),
+        };
+        let again = DeviceError::Disconnected {
+            device: "mill".into(),
+            message: "cannot open /dev/ttyUSB0: no such file".into(),
+        };
+        let gave_up = DeviceError::Disconnected {
+            device: "mill".into(),
+            message: format!("{}; could not reopen: {}", lost.detail(), again.detail()),
+        };
+        assert_eq!(
+            gave_up.to_string(),
+            "mill: disconnected: read failed: EOF; could not reopen: cannot open \
+             /dev/ttyUSB0: no such file"
+        );
+        let timeout = DeviceError::Timeout {
+            device: "mill".into(),
+            what: "ok".into(),
+            after_s: 2.0,
+        };
+        assert_eq!(timeout.detail(), "timed out after 2 s waiting for ok");
+    }
 }

@@ -279,12 +279,11 @@ impl CompTable {
             .skip(read)
             .filter(|(_, l)| !l.trim().is_empty())
             .collect();
-        if let Some((n, l)) = rest.first() {
+        if let Some((n, _)) = rest.first() {
             return Err(line_error(
                 n + 1,
                 format!(
-                    "`{}` is not three numbers: LinuxCNC stops reading here{}",
-                    l.trim(),
+                    "not three numbers: LinuxCNC stops reading here{}",
                     if read == 0 {
                         " and loads an empty table"
                     } else {

@@ -305,31 +305,32 @@ impl Program {
                 continue;
             }
             let Some((lhs, rhs)) = line.split_once('=') else {
-                return Err(err(format!("expected `$NAME[...]=value`, found `{line}`")));
+                return Err(err("expected `$NAME[...]=value`".to_string()));
             };
             let lhs = lhs.trim();
             let rhs = rhs.trim();
             let (name, index) = lhs
                 .strip_suffix(']')
                 .and_then(|l| l.split_once('['))
-                .ok_or_else(|| err(format!("expected `$NAME[...]`, found `{lhs}`")))?;
+                .ok_or_else(|| err("expected `$NAME[...]` left of `=`".to_string()))?;
             let idx: Vec<&str> = index.split(',').map(str::trim).collect();
             let uint = |s: &str| {
                 s.parse::<usize>()
-                    .map_err(|_| err(format!("`{s}` in `{lhs}` is not an index")))
+                    .map_err(|_| err("an index is not a whole number".to_string()))
             };
-            let number =
-                || parse_number(rhs).ok_or_else(|| err(format!("`{rhs}` is not a finite number")));
+            let number = || {
+                parse_number(rhs).ok_or_else(|| err("the value is not a finite number".to_string()))
+            };
             let axis_ref = || {
                 rhs.strip_prefix('(')
                     .and_then(|r| r.strip_suffix(')'))
                     .map(|r| r.trim().to_string())
                     .filter(|r| !r.is_empty())
-                    .ok_or_else(|| err(format!("expected an axis `(X1)`, found `{rhs}`")))
+                    .ok_or_else(|| err("expected an axis such as `(X1)` as the value".to_string()))
             };
             let enc_key = |i: &[&str], want: usize| -> Result<(u32, String), CompensateError> {
                 if i.len() != want {
-                    return Err(err(format!("`{lhs}`: expected {want} indices")));
+                    return Err(err(format!("`{name}`: expected {want} indices")));
                 }
                 let e = uint(i[0])? as u32;
                 Ok((e, i[want - 1].to_string()))
@@ -346,7 +347,7 @@ impl Program {
                         .insert(point, v)
                         .is_some()
                     {
-                        return Err(err(format!("`{lhs}` assigned twice")));
+                        return Err(err(format!("`{name}` with these indices assigned twice")));
                     }
                 }
                 "$AA_ENC_COMP_STEP"
@@ -365,7 +366,7 @@ impl Program {
                 }
                 "$AN_CEC" => {
                     if idx.len() != 2 {
-                        return Err(err(format!("`{lhs}`: expected 2 indices")));
+                        return Err(err(format!("`{name}`: expected 2 indices")));
                     }
                     let t = uint(idx[0])? as u32;
                     let point = uint(idx[1])?;
@@ -377,7 +378,7 @@ impl Program {
                         .insert(point, v)
                         .is_some()
                     {
-                        return Err(err(format!("`{lhs}` assigned twice")));
+                        return Err(err(format!("`{name}` with these indices assigned twice")));
                     }
                 }
                 "$AN_CEC_INPUT_AXIS"
@@ -389,7 +390,7 @@ impl Program {
                 | "$AN_CEC_MULT_BY_TABLE"
                 | "$AN_CEC_IS_MODULO" => {
                     if idx.len() != 1 {
-                        return Err(err(format!("`{lhs}`: expected 1 index")));
+                        return Err(err(format!("`{name}`: expected 1 index")));
                     }
                     let t = p.cec.entry(uint(idx[0])? as u32).or_default();
                     match name {
@@ -403,7 +404,11 @@ impl Program {
                         _ => t.mult_by_table = Some(number()?),
                     }
                 }
-                _ => return Err(err(format!("unknown variable `{name}`"))),
+                _ => {
+                    return Err(err(
+                        "unknown variable: expected `$AA_ENC_COMP…` or `$AN_CEC…`".to_string(),
+                    ))
+                }
             }
         }
         Ok(p)

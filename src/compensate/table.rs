@@ -211,9 +211,9 @@ pub fn parse_csv(text: &str, file: &Path) -> Result<Vec<Row>, CompensateError> {
         }
         if !header_seen {
             if line.trim() != "error,axis,position_m,value,unit,sigma" {
-                return Err(err(format!(
-                    "expected the header `error,axis,position_m,value,unit,sigma`, found `{line}`"
-                )));
+                return Err(err(
+                    "expected the header `error,axis,position_m,value,unit,sigma`".to_string(),
+                ));
             }
             header_seen = true;
             continue;
@@ -230,7 +230,7 @@ pub fn parse_csv(text: &str, file: &Path) -> Result<Vec<Row>, CompensateError> {
                 .ok()
                 .filter(|v| v.is_finite())
                 .map(Some)
-                .ok_or_else(|| err(format!("{what} `{s}` is not a finite number")))
+                .ok_or_else(|| err(format!("{what} is not a finite number")))
         };
         if f[0].is_empty() || !(f[4] == "m" || f[4] == "rad") {
             return Err(err("expected an error name and the unit m or rad".into()));

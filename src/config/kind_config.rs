@@ -30,11 +30,34 @@ pub fn parse_strict<T: DeserializeOwned>(text: &str, file: &Path) -> Result<T, C
         message,
     };
     let deserializer = toml::de::Deserializer::parse(text)
-        .map_err(|e| parse_error(String::from("(document)"), e.to_string()))?;
+        .map_err(|e| parse_error(String::from("(document)"), toml_error_text(text, &e)))?;
     serde_path_to_error::deserialize(deserializer).map_err(|e| {
         let key = e.path().to_string();
-        parse_error(key, e.into_inner().to_string().trim_end().to_string())
+        parse_error(key, toml_error_text(text, &e.into_inner()))
     })
+}
+
+/// A TOML error as `line L, column C: message`, without the quoted source line that its
+/// `Display` shows: an error must not echo a file's content (it may be one a daemon's client
+/// did not send).
+pub fn toml_error_text(text: &str, error: &toml::de::Error) -> String {
+    let message = error.message().trim_end();
+    match error.span() {
+        Some(span) => {
+            let before = &text.as_bytes()[..span.start.min(text.len())];
+            let line = before.iter().filter(|&&b| b == b'\n').count() + 1;
+            let line_start = before
+                .iter()
+                .rposition(|&b| b == b'\n')
+                .map_or(0, |i| i + 1);
+            let column = String::from_utf8_lossy(&before[line_start..])
+                .chars()
+                .count()
+                + 1;
+            format!("line {line}, column {column}: {message}")
+        }
+        None => message.to_owned(),
+    }
 }
 
 /// An `Invalid` error for `file` at `key`.
@@ -109,5 +132,26 @@ mod tests {
         );
         assert_eq!(declared_kind("kind = 3"), None);
         assert_eq!(declared_kind("not toml ="), None);
+    }
+
+    #[test]
+    fn errors_say_where_without_quoting_the_text() {
+        #[derive(Debug, serde::Deserialize)]
+        #[serde(deny_unknown_fields)]
+        #[allow(dead_code)]
+        struct T {
+            a: f64,
+        }
+        let secret = "root:$6$secretsalt$hash:19000:0:99999:7:::";
+        for text in [
+            format!("a = 1.0\n{secret}\n"),
+            format!("a = 1.0\nb = \"{secret}\"\n"),
+        ] {
+            let e = parse_strict::<T>(&text, Path::new("x.toml"))
+                .unwrap_err()
+                .to_string();
+            assert!(!e.contains("secretsalt"), "{e}");
+            assert!(e.contains("x.toml") && e.contains("line 2"), "{e}");
+        }
     }
 }

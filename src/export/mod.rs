@@ -611,12 +611,16 @@ pub fn command(args: &ExportArgs) -> anyhow::Result<()> {
     };
     let summary = export(&source, &args.out, &options)?;
     for w in &summary.warnings {
-        eprintln!("warning: {w}");
+        crate::console::write_err(format_args!("warning: {w}\n"));
     }
     for s in &summary.skipped {
-        eprintln!("warning: skipped {}: {}", s.results.display(), s.reason);
+        crate::console::write_err(format_args!(
+            "warning: skipped {}: {}\n",
+            s.results.display(),
+            s.reason
+        ));
     }
-    print!("{}", summary.text());
+    crate::console::write_out(format_args!("{}", summary.text()))?;
     if summary.exported.is_empty() && !summary.skipped.is_empty() {
         anyhow::bail!(
             "no run could be exported ({} skipped)",

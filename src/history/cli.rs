@@ -88,7 +88,7 @@ pub struct TrendArgs {
 fn write_html(document: &crate::document::Document, path: &Path) -> anyhow::Result<()> {
     std::fs::write(path, crate::document::html::render(document))
         .with_context(|| format!("writing {}", path.display()))?;
-    eprintln!("wrote {}", path.display());
+    crate::console::write_err(format_args!("wrote {}\n", path.display()));
     Ok(())
 }
 
@@ -105,9 +105,12 @@ pub fn compare(args: CompareArgs) -> anyhow::Result<()> {
         write_html(&compare::document(&comparison)?, path)?;
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&comparison)?);
+        crate::console::write_out(format_args!(
+            "{}\n",
+            serde_json::to_string_pretty(&comparison)?
+        ))?;
     } else {
-        print!("{}", compare::text(&comparison));
+        crate::console::write_out(format_args!("{}", compare::text(&comparison)))?;
     }
     Ok(())
 }
@@ -161,9 +164,9 @@ pub fn trend(
         write_html(&trend::document(&result)?, path)?;
     }
     if args.json {
-        println!("{}", serde_json::to_string_pretty(&result)?);
+        crate::console::write_out(format_args!("{}\n", serde_json::to_string_pretty(&result)?))?;
     } else {
-        print!("{}", trend::text(&result));
+        crate::console::write_out(format_args!("{}", trend::text(&result)))?;
     }
     Ok(())
 }

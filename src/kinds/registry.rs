@@ -32,7 +32,8 @@ pub struct KindCheck {
 /// Choices on the command line that every kind's run accepts.
 #[derive(Debug, Clone, Default)]
 pub struct RunFlags {
-    /// Answer the operator's prompts from a pipe instead of a terminal (`--yes`).
+    /// Answer the operator's prompts from a pipe instead of a terminal (`--yes`). The console
+    /// passes it to the run as its operator (`RunControl::operator`), never as configuration.
     pub assume_yes: bool,
 }
 

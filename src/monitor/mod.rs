@@ -159,8 +159,13 @@ fn settings<T: DeserializeOwned>(file: Option<&Path>, paths: &[&str]) -> anyhow:
     let Some(file) = file else { return Ok(None) };
     let text = std::fs::read_to_string(file)
         .with_context(|| format!("{}: cannot read", file.display()))?;
-    let doc: toml::Table =
-        toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", file.display()))?;
+    let doc: toml::Table = toml::from_str(&text).map_err(|e| {
+        anyhow::anyhow!(
+            "{}: {}",
+            file.display(),
+            crate::config::kind_config::toml_error_text(&text, &e)
+        )
+    })?;
     for path in paths {
         let mut node = Some(&doc);
         let mut value = None;
@@ -227,16 +232,16 @@ impl Sink {
     }
 
     /// Print `line` unless a line was printed less than `print_every` ago.
-    fn print(&mut self, line: impl FnOnce() -> String) {
+    fn print(&mut self, line: impl FnOnce() -> String) -> std::io::Result<()> {
         let now = Instant::now();
         if self
             .last_print
             .is_some_and(|t| now.duration_since(t) < self.print_every)
         {
-            return;
+            return Ok(());
         }
         self.last_print = Some(now);
-        println!("{}", line());
+        crate::console::write_out(format_args!("{}\n", line()))
     }
 
     /// A device error: survived (printed, counted) unless the link is gone.
@@ -244,7 +249,7 @@ impl Sink {
         match e {
             DeviceError::Timeout { .. } | DeviceError::Protocol { .. } => {
                 self.summary.errors += 1;
-                eprintln!("warning: {e}");
+                crate::console::write_err(format_args!("warning: {e}\n"));
                 Ok(())
             }
             other => Err(other.into()),
@@ -392,7 +397,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                                 if s.tracking { "tracking" } else { "BEAM BROKEN" },
                                 s.beam_segment
                             )
-                        });
+                        })?;
                     }
                     Err(e) => sink.error(e)?,
                 }
@@ -409,8 +414,8 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                     }
                     sink.count("env");
                     // Meteo is slow: every reading is printed.
-                    println!(
-                        "t {:9.3} s  {}  air {:.3} K ({:.2} °C)  pressure {:.0} Pa ({:.2} hPa)  humidity {:.1} %",
+                    crate::console::write_out(format_args!(
+                        "t {:9.3} s  {}  air {:.3} K ({:.2} °C)  pressure {:.0} Pa ({:.2} hPa)  humidity {:.1} %\n",
                         m.t_s,
                         env.id(),
                         m.air_temp_k,
@@ -418,7 +423,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                         m.pressure_pa,
                         m.pressure_pa / 100.0,
                         m.humidity_pct
-                    );
+                    ))?;
                 }
             }
         }
@@ -478,7 +483,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                                 p[1] * 1e3,
                                 p[2] * 1e3
                             )
-                        });
+                        })?;
                     }
                 }
                 tokio::time::sleep(interval).await;
@@ -539,7 +544,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                                 p[1] * 1e3,
                                 p[2] * 1e3
                             )
-                        });
+                        })?;
                     }
                 }
                 tokio::time::sleep(interval).await;
@@ -602,7 +607,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                                 commanded_rad.to_degrees(),
                                 if sample.in_position { "in position" } else { "moving" }
                             )
-                        });
+                        })?;
                     }
                     Err(e) => sink.error(e)?,
                 }
@@ -642,7 +647,7 @@ async fn read_device(options: &MonitorOptions, sink: &mut Sink) -> anyhow::Resul
                                 p.value_m,
                                 p.value_m * 1e3
                             )
-                        });
+                        })?;
                     }
                     Err(e) => sink.error(e)?,
                 }

@@ -21,6 +21,8 @@ pub const SESSION_FILE: &str = "session.mcap";
 /// Virtual time between the last recorded message and the continuation of a simulated run
 /// (the restart), seconds.
 const RESTART_S: f64 = 1.0;
+/// Longest wait for a live run's host clock to pass the interrupted session's last log time.
+const MAX_CLOCK_WAIT_S: f64 = 120.0;
 
 /// Store the run's configuration in its output directory, so `--resume DIR` needs nothing else.
 pub fn store_config<C: serde::Serialize>(config: &C, dir: &Path) -> anyhow::Result<()> {
@@ -82,7 +84,8 @@ impl Interruption {
     }
 
     /// Move `session.mcap` aside (as `session.interrupted-N.mcap`) so that the continuation
-    /// can be written in its place.
+    /// can be written in its place. The last step before the new file is created: a resume
+    /// that fails before it leaves `session.mcap` where it was.
     pub fn set_aside(&mut self) -> anyhow::Result<()> {
         let session_path = self.dir.join(SESSION_FILE);
         let kept = self
@@ -106,12 +109,18 @@ impl Interruption {
     }
 
     /// The clock epoch of the continuation: a simulated run keeps its virtual clock's epoch
-    /// (its world resumes after the last log time); a live or emulated run uses the host clock.
+    /// (its world resumes after the last log time); an emulated run starts its clock at the
+    /// host's time, or after the last log time when that is later (an emulated run skips the
+    /// operator's relocations, so its log times run ahead of the host clock); a live run's
+    /// clock is the host's (`wait_for_clock`).
     pub fn epoch_ns(&self, simulated: bool) -> u64 {
         if simulated {
             self.header_log_time_ns
         } else {
-            system_now_ns()
+            system_now_ns().max(
+                self.last_log_time_ns
+                    .saturating_add((RESTART_S * 1e9) as u64),
+            )
         }
     }
 
@@ -129,14 +138,36 @@ impl Interruption {
         (t_s, noise_seed)
     }
 
-    /// A live clock must be past the interrupted session: log times must increase.
-    pub fn check_live_clock(&self, now_ns: u64) -> anyhow::Result<()> {
-        if now_ns <= self.last_log_time_ns {
+    /// A live clock must be past the interrupted session: log times must increase. A clock
+    /// behind it by up to `MAX_CLOCK_WAIT_S` (stepped back since the interruption) is waited
+    /// for, with a message; further behind is an error. Call before `set_aside`: an error
+    /// leaves the run directory as it was, to be resumed later.
+    pub fn wait_for_clock(&self, clock: &dyn Clock) -> anyhow::Result<()> {
+        let behind_s = |now_ns: u64| self.last_log_time_ns.saturating_sub(now_ns) as f64 * 1e-9;
+        let now_ns = clock.now_ns();
+        if now_ns > self.last_log_time_ns {
+            return Ok(());
+        }
+        let behind = behind_s(now_ns);
+        if behind > MAX_CLOCK_WAIT_S {
             bail!(
-                "the host clock ({now_ns} ns) is not past the interrupted session's last log \
-                 time ({} ns): log times must increase",
-                self.last_log_time_ns
+                "the host clock is {behind:.1} s behind the interrupted session's last log time \
+                 (log times must increase): set the clock right and resume again; the session \
+                 is unchanged"
             );
+        }
+        tracing::warn!(
+            "the host clock is {behind:.1} s behind the interrupted session's last log time: \
+             waiting for it to pass before resuming"
+        );
+        let deadline =
+            std::time::Instant::now() + std::time::Duration::from_secs_f64(MAX_CLOCK_WAIT_S + 1.0);
+        while clock.now_ns() <= self.last_log_time_ns {
+            if std::time::Instant::now() > deadline {
+                bail!("the host clock did not pass the interrupted session's last log time");
+            }
+            let left = behind_s(clock.now_ns()).clamp(0.001, 0.5);
+            std::thread::sleep(std::time::Duration::from_secs_f64(left));
         }
         Ok(())
     }
@@ -172,6 +203,12 @@ impl Interruption {
         }
         Ok(())
     }
+}
+
+/// Whether `dir` holds a recorded session to resume (`session.mcap`, or an interrupted file
+/// a resume attempt set aside).
+pub fn has_session(dir: &Path) -> bool {
+    dir.join(SESSION_FILE).is_file() || interrupted_files(dir).is_ok_and(|f| !f.is_empty())
 }
 
 /// `session.interrupted-N.mcap` files in `dir`, by N.
@@ -292,4 +329,64 @@ pub(crate) fn first_unfinished(
         .filter_map(|e| finished(&e.msg))
         .collect();
     (0..count).find(|i| !done.contains(i)).unwrap_or(count)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    struct Shifted(i64);
+
+    impl Clock for Shifted {
+        fn now_ns(&self) -> u64 {
+            (system_now_ns() as i64 + self.0) as u64
+        }
+    }
+
+    fn interrupted_at(dir: &Path, last_log_time_ns: u64) -> Interruption {
+        Interruption {
+            resume_index: 1,
+            session: Session {
+                header: crate::session::reader::testutil::header(),
+                tracers: Default::default(),
+                env: Default::default(),
+                rotary: Default::default(),
+                machines: Default::default(),
+                probes: Default::default(),
+                topics: Default::default(),
+                events: Vec::new(),
+                completeness: crate::session::reader::Completeness::Complete,
+                damaged: Vec::new(),
+                lost_before_repair: Vec::new(),
+                skipped: 0,
+                ignored: 0,
+            },
+            messages: Vec::new(),
+            messages_kept: 0,
+            header_log_time_ns: 0,
+            last_log_time_ns,
+            dir: dir.to_path_buf(),
+            source: dir.join(SESSION_FILE),
+            interrupted_files: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_clock_behind_the_session_is_waited_for_or_refused_without_touching_the_files() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join(SESSION_FILE), b"recorded").unwrap();
+        let now = system_now_ns();
+        // 0.3 s behind: waited for.
+        let soon = interrupted_at(dir.path(), now + 300_000_000);
+        soon.wait_for_clock(&Shifted(0)).unwrap();
+        assert!(system_now_ns() > now + 300_000_000);
+        // An hour behind: an error, and the session is where it was, still resumable.
+        let far = interrupted_at(dir.path(), now + 3_600_000_000_000);
+        let e = far.wait_for_clock(&Shifted(0)).unwrap_err().to_string();
+        assert!(e.contains("behind") && e.contains("unchanged"), "{e}");
+        assert!(dir.path().join(SESSION_FILE).is_file() && has_session(dir.path()));
+        // An emulated run's clock starts after the last log time, whatever the host's says.
+        assert!(far.epoch_ns(false) > now + 3_600_000_000_000);
+        assert_eq!(far.epoch_ns(true), 0);
+    }
 }

@@ -11,9 +11,11 @@ use axum::http::{header, HeaderMap, StatusCode};
 use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
+use axum::Extension;
 use axum::{Json, Router};
 use futures_util::{Stream, StreamExt};
 use serde::{Deserialize, Serialize};
+use tokio::sync::Semaphore;
 use utoipa::{OpenApi, ToSchema};
 
 use super::auth::{require_token, Token};
@@ -52,9 +54,28 @@ pub struct JobView {
 #[serde(deny_unknown_fields)]
 pub struct SessionJob {
     #[serde(rename = "type")]
-    pub job_type: JobType,
+    pub job_type: SessionJobType,
     /// The job whose session to read.
     pub session_of: i64,
+}
+
+/// What a session job does (a run is submitted as a plan configuration instead).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum SessionJobType {
+    Solve,
+    Diagnose,
+    Replay,
+}
+
+impl From<SessionJobType> for JobType {
+    fn from(t: SessionJobType) -> JobType {
+        match t {
+            SessionJobType::Solve => JobType::Solve,
+            SessionJobType::Diagnose => JobType::Diagnose,
+            SessionJobType::Replay => JobType::Replay,
+        }
+    }
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, ToSchema)]
@@ -184,7 +205,8 @@ async fn submit(
                 )
             })?;
             let daemon = daemon.clone();
-            blocking(move || daemon.submit_on_session(job.job_type, job.session_of, &by)).await?
+            blocking(move || daemon.submit_on_session(job.job_type.into(), job.session_of, &by))
+                .await?
         }
         other => {
             return Err(ApiError(
@@ -366,19 +388,55 @@ async fn ack_prompt(
 /// Job states, progress, stations, faults and prompts as Server-Sent Events (the event name
 /// is the `type`).
 #[utoipa::path(get, path = "/v1/events",
-    responses((status = 200, content_type = "text/event-stream", body = ServerEvent)))]
+    responses((status = 200, content_type = "text/event-stream", body = ServerEvent),
+        (status = 503, body = ErrorBody, description = "max_streams event streams are open")))]
 async fn events(
     State(daemon): State<Arc<Daemon>>,
-) -> Sse<impl Stream<Item = Result<Event, Infallible>>> {
+    Extension(streams): Extension<StreamSlots>,
+) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
+    // A stream holds a slot of its own, not one of the request slots, for as long as it runs.
+    let slot = streams.0.clone().try_acquire_owned().map_err(|_| {
+        ApiError(
+            StatusCode::SERVICE_UNAVAILABLE,
+            format!(
+                "{} event streams are open, the daemon's max_streams: close one",
+                streams.1
+            ),
+        )
+    })?;
     let stream = tokio_stream::wrappers::BroadcastStream::new(daemon.events.subscribe())
         .filter_map(|event| async move {
             let event = event.ok()?;
             Event::default().event(event.name()).json_data(&event).ok()
         })
-        .map(Ok)
+        .map(move |event| {
+            let _held = &slot;
+            Ok(event)
+        })
         // Open streams must not hold up a shutdown.
         .take_until(daemon.shutdown.clone().cancelled_owned());
-    Sse::new(stream).keep_alive(KeepAlive::default())
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
+/// The event streams' own slots (`max_streams`) and their number.
+#[derive(Clone)]
+pub struct StreamSlots(Arc<Semaphore>, usize);
+
+/// After the Host and token checks: the connection is admitted (no longer pushed out by
+/// newer waiting ones) and its request takes one of the `max_connections` slots while its
+/// handler runs. Slots are never taken by a request that was refused.
+async fn admit(
+    State(slots): State<Arc<Semaphore>>,
+    request: axum::extract::Request,
+    next: axum::middleware::Next,
+) -> Response {
+    if let Some(admission) = request.extensions().get::<super::http::Admission>() {
+        admission.0.admit();
+    }
+    let Ok(_slot) = slots.acquire().await else {
+        return ApiError(StatusCode::SERVICE_UNAVAILABLE, "stopping".into()).into_response();
+    };
+    next.run(request).await
 }
 
 /// Every machine with a succeeded run (by configured name): its kinds, runs and last run.
@@ -501,6 +559,7 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
     components(schemas(
         JobView,
         SessionJob,
+        SessionJobType,
         Created,
         StateReply,
         ErrorBody,
@@ -559,6 +618,11 @@ pub fn openapi_document(options: &ApiOptions) -> utoipa::openapi::OpenApi {
         (
             "413",
             error("the declared or sent body is over the daemon's limit"),
+        ),
+        ("414", error("the request target is over 8 KiB")),
+        (
+            "431",
+            error("the request's headers are over 64 KiB or more than 64"),
         ),
         ("500", error("an internal error")),
     ];
@@ -665,6 +729,10 @@ pub struct ApiOptions {
     /// The `Host` allow-list, used when no token guards the API.
     pub host_check: Option<HostCheck>,
     pub body: BodyLimits,
+    /// Requests handled at once (`max_connections`).
+    pub request_slots: usize,
+    /// Event streams open at once (`max_streams`).
+    pub stream_slots: usize,
 }
 
 async fn not_found() -> ApiError {
@@ -675,6 +743,7 @@ async fn not_found() -> ApiError {
 /// answer JSON.
 pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
     let limit = options.body.max_bytes;
+    let streams = options.stream_slots.clamp(1, Semaphore::MAX_PERMITS);
     let document = serde_json::to_string(&openapi_document(&options)).unwrap_or_default();
     let openapi = move || {
         let document = document.clone();
@@ -701,9 +770,19 @@ pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
         .route("/metrics", get(metrics))
         .fallback(not_found)
         .layer(DefaultBodyLimit::max(limit))
+        .layer(Extension(StreamSlots(
+            Arc::new(Semaphore::new(streams)),
+            streams,
+        )))
         .layer(axum::middleware::from_fn_with_state(
             options.body,
             read_body,
+        ))
+        .layer(axum::middleware::from_fn_with_state(
+            Arc::new(Semaphore::new(
+                options.request_slots.clamp(1, Semaphore::MAX_PERMITS),
+            )),
+            admit,
         ))
         .layer(axum::middleware::from_fn_with_state(
             Arc::new(options.token),

@@ -38,9 +38,13 @@ pub struct ServeConfig {
     /// token (a guard against DNS rebinding; with a token every host is answered).
     #[serde(default)]
     pub allowed_host_names: Vec<String>,
-    /// Most API connections open at once; more wait for a free slot.
+    /// Most API requests handled at once (taken after the Host and token checks); more wait
+    /// for a free slot.
     #[serde(default = "default_max_connections")]
     pub max_connections: usize,
+    /// Most event streams (`/v1/events`) open at once, apart from the request slots.
+    #[serde(default = "default_max_streams")]
+    pub max_streams: usize,
     /// Time a client has to send a request's headers, and then its body, seconds.
     #[serde(default = "default_request_timeout_s")]
     pub request_timeout_s: f64,
@@ -50,6 +54,10 @@ pub struct ServeConfig {
     /// Hosts (`host` or `host:port`) a job's configuration may name.
     #[serde(default)]
     pub allowed_hosts: Vec<String>,
+    /// Folders whose files a submitted plan may name (compensation tables, password files):
+    /// every named file must resolve, symlinks followed, inside one. Empty: none.
+    #[serde(default)]
+    pub allowed_read_dirs: Vec<PathBuf>,
     /// Scheduled jobs.
     #[serde(default)]
     pub schedule: Vec<super::schedule::ScheduleConfig>,
@@ -82,6 +90,10 @@ fn default_max_connections() -> usize {
     64
 }
 
+fn default_max_streams() -> usize {
+    16
+}
+
 fn default_request_timeout_s() -> f64 {
     10.0
 }
@@ -101,9 +113,11 @@ impl Default for ServeConfig {
             live_origins: Vec::new(),
             allowed_host_names: Vec::new(),
             max_connections: default_max_connections(),
+            max_streams: default_max_streams(),
             request_timeout_s: default_request_timeout_s(),
             allowed_ports: Vec::new(),
             allowed_hosts: Vec::new(),
+            allowed_read_dirs: Vec::new(),
             schedule: Vec::new(),
             devices: DeviceHolding::default(),
             history: Default::default(),
@@ -177,11 +191,13 @@ impl ServeConfig {
         config
             .request_timeout()
             .with_context(|| path.display().to_string())?;
-        if config.max_connections == 0 {
-            anyhow::bail!(
-                "{}: max_connections = 0: expected at least 1",
-                path.display()
-            );
+        for (key, value) in [
+            ("max_connections", config.max_connections),
+            ("max_streams", config.max_streams),
+        ] {
+            if value == 0 {
+                anyhow::bail!("{}: {key} = 0: expected at least 1", path.display());
+            }
         }
         config
             .history
@@ -230,6 +246,119 @@ pub fn named_endpoints(config: &toml::Table) -> Vec<(String, String)> {
 
 const ENDPOINT_KEYS: &[&str] = &["port", "serial_port", "device", "host", "address", "addr"];
 
+/// Files a plan configuration names: every string at a key that names a file (`file`,
+/// `*_file`, `*_path`, `*_dir`), wherever it stands. The path keys of every kind today:
+/// `sim.compensation[N].file`, `hil.linuxcnc.comp_files[N].file` and
+/// `devices.machine.linuxcnc.password_file` (docs/serve.md); the rule also catches any added
+/// later under one of these names.
+pub fn named_files(config: &toml::Table) -> Vec<(String, String)> {
+    fn names_a_file(key: &str) -> bool {
+        key == "file"
+            || key == "path"
+            || ["_file", "_path", "_dir"].iter().any(|s| key.ends_with(s))
+    }
+    fn walk(key_path: &str, value: &toml::Value, out: &mut Vec<(String, String)>) {
+        match value {
+            toml::Value::Table(table) => {
+                for (key, value) in table {
+                    let path = format!("{key_path}.{key}");
+                    if let (true, toml::Value::String(text)) = (names_a_file(key), value) {
+                        out.push((path.clone(), text.clone()));
+                    }
+                    walk(&path, value, out);
+                }
+            }
+            toml::Value::Array(items) => {
+                for (i, item) in items.iter().enumerate() {
+                    walk(&format!("{key_path}[{i}]"), item, out);
+                }
+            }
+            _ => {}
+        }
+    }
+    let mut out = Vec::new();
+    for (key, value) in config {
+        if let (true, toml::Value::String(text)) = (names_a_file(key), value) {
+            out.push((key.clone(), text.clone()));
+        }
+        walk(key, value, &mut out);
+    }
+    out
+}
+
+/// Where the files a submitted plan names may be: inside `allowed_read_dirs` (resolved,
+/// symlinks followed), never the daemon's token file nor anything in its data dir.
+#[derive(Debug, Clone, Default)]
+pub struct ReadAllowance {
+    dirs: Vec<PathBuf>,
+    denied_files: Vec<PathBuf>,
+    denied_dirs: Vec<PathBuf>,
+}
+
+impl ReadAllowance {
+    /// The configuration's `allowed_read_dirs`, each of which must exist.
+    pub fn of(config: &ServeConfig) -> anyhow::Result<ReadAllowance> {
+        let dirs = config
+            .allowed_read_dirs
+            .iter()
+            .enumerate()
+            .map(|(i, dir)| {
+                std::fs::canonicalize(dir)
+                    .ok()
+                    .filter(|d| d.is_dir())
+                    .with_context(|| {
+                        format!(
+                            "allowed_read_dirs[{i}] = \"{}\": expected an existing folder",
+                            dir.display()
+                        )
+                    })
+            })
+            .collect::<anyhow::Result<Vec<_>>>()?;
+        let resolved = |p: &Path| std::fs::canonicalize(p).unwrap_or_else(|_| p.to_path_buf());
+        Ok(ReadAllowance {
+            dirs,
+            denied_files: config.token_file.iter().map(|p| resolved(p)).collect(),
+            denied_dirs: vec![resolved(&config.data_dir)],
+        })
+    }
+
+    /// Every file `plan` names, or an error naming the first key whose file is not allowed.
+    /// The error says nothing of the file (whether it exists, what it holds).
+    pub fn check(&self, plan: &toml::Table) -> Result<(), String> {
+        for (key, value) in named_files(plan) {
+            let path = Path::new(&value);
+            if !path.is_absolute() {
+                return Err(format!(
+                    "key `{key}`: \"{value}\" is a relative path: a submitted plan names its \
+                     files by absolute path, inside the daemon's allowed_read_dirs"
+                ));
+            }
+            if !self.allows(path) {
+                return Err(format!(
+                    "key `{key}`: \"{value}\" is not a file this daemon lets a plan read (only \
+                     files inside its allowed_read_dirs{})",
+                    if self.dirs.is_empty() {
+                        ", none configured"
+                    } else {
+                        ""
+                    }
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    fn allows(&self, path: &Path) -> bool {
+        let Ok(resolved) = std::fs::canonicalize(path) else {
+            return false;
+        };
+        resolved.is_file()
+            && self.dirs.iter().any(|d| resolved.starts_with(d))
+            && !self.denied_files.contains(&resolved)
+            && !self.denied_dirs.iter().any(|d| resolved.starts_with(d))
+    }
+}
+
 /// Whether `value` at `key_path` is allowed: serial ports (paths) against `allowed_ports`,
 /// anything else against `allowed_hosts`.
 pub fn endpoint_allowed(config: &ServeConfig, value: &str) -> bool {
@@ -238,7 +367,11 @@ pub fn endpoint_allowed(config: &ServeConfig, value: &str) -> bool {
         None => value == pattern,
     };
     if value.starts_with('/') {
-        config.allowed_ports.iter().any(matches)
+        // A prefix pattern must not be left by `..` (`/dev/ttyUSB0/../../etc/shadow`).
+        let climbs = Path::new(value)
+            .components()
+            .any(|c| c == std::path::Component::ParentDir);
+        !climbs && config.allowed_ports.iter().any(matches)
     } else {
         let host = value.rsplit_once(':').map_or(value, |(h, _)| h);
         config

@@ -129,6 +129,8 @@ pub struct Daemon {
     pub devices: Option<Arc<DeviceHolder>>,
     /// What the machines' history checks counted (for the metrics).
     pub machines: super::machines::MachineWatch,
+    /// Which files a plan may name.
+    read_allowance: super::config::ReadAllowance,
 }
 
 impl Daemon {
@@ -157,6 +159,7 @@ impl Daemon {
                 tracing::warn!(job = id, "recording the interrupted job's files: {e:#}");
             }
         }
+        let read_allowance = super::config::ReadAllowance::of(&config)?;
         let devices = if config.devices.hold {
             Some(DeviceHolder::new(config.devices.release_idle_after()?)?)
         } else {
@@ -183,6 +186,7 @@ impl Daemon {
             live,
             devices,
             machines: Default::default(),
+            read_allowance,
         }))
     }
 
@@ -259,14 +263,7 @@ impl Daemon {
         let table: toml::Table = toml_text.parse().map_err(|e| {
             JobError::BadRequest(format!("the plan configuration is not TOML: {e}"))
         })?;
-        for (key, value) in super::config::named_endpoints(&table) {
-            if !super::config::endpoint_allowed(&self.config, &value) {
-                return Err(JobError::BadRequest(format!(
-                    "key `{key}`: \"{value}\" is not in the daemon's allowed_ports or \
-                     allowed_hosts"
-                )));
-            }
-        }
+        self.check_reach(&table).map_err(JobError::BadRequest)?;
         // Check in a scratch folder, then move the file into the job's folder.
         let scratch = tempfile::Builder::new()
             .prefix("submit-")
@@ -309,6 +306,21 @@ impl Daemon {
         self.announce(id, JobState::Queued, None);
         self.wake_runs.notify_one();
         Ok(id)
+    }
+
+    /// What a plan may reach: the serial ports and hosts it names against `allowed_ports` and
+    /// `allowed_hosts`, the files against `allowed_read_dirs`. Checked before a plan is
+    /// parsed (its parsers read the files), and again before it runs.
+    fn check_reach(&self, plan: &toml::Table) -> Result<(), String> {
+        for (key, value) in super::config::named_endpoints(plan) {
+            if !super::config::endpoint_allowed(&self.config, &value) {
+                return Err(format!(
+                    "key `{key}`: \"{value}\" is not in the daemon's allowed_ports or \
+                     allowed_hosts"
+                ));
+            }
+        }
+        self.read_allowance.check(plan)
     }
 
     /// Queue a solve, diagnose or replay of the session of job `source`.
@@ -379,14 +391,17 @@ impl Daemon {
         }
     }
 
-    /// Queue an interrupted or cancelled run to continue at its first unfinished point.
+    /// Queue an interrupted, cancelled or failed run to continue at its first unfinished point.
     pub fn resume(&self, id: i64) -> Result<(), JobError> {
         self.check_accepting()?;
         let job = self.job(id)?;
-        if job.job_type != JobType::Run || !job.state.resumable() {
+        // A failed run (a failed resume attempt among them) goes on from what it recorded.
+        let resumable = job.state.resumable()
+            || (job.state == JobState::Failed && crate::run::resume::has_session(&job.dir));
+        if job.job_type != JobType::Run || !resumable {
             return Err(JobError::Conflict(format!(
-                "job {id} is a {} job in state {}: only an interrupted or cancelled run can \
-                 be resumed",
+                "job {id} is a {} job in state {}: only an interrupted, cancelled or failed run \
+                 with a recorded session can be resumed",
                 job.job_type.as_str(),
                 job.state.as_str()
             )));
@@ -560,6 +575,12 @@ impl Daemon {
             running.retain(|r| r.id != id);
         }
         tracing::info!(job = id, state = state.as_str(), "job ended");
+        if lane == Lane::Runs {
+            // Live viewers of this run are disconnected (docs/live-view.md).
+            if let Some(live) = &self.live {
+                live.run_ended();
+            }
+        }
         self.announce(id, state, error);
         if lane == Lane::Runs {
             // Session jobs on this run's session waited for it to end.
@@ -655,6 +676,17 @@ impl Daemon {
                 .dir
                 .join(crate::run::resume::SESSION_FILE))
         };
+        if job.job_type == JobType::Run {
+            // The files a plan names may have changed (a symlink swapped) since it was queued.
+            let plan = job.dir.join(PLAN_FILE);
+            let text = std::fs::read_to_string(&plan)
+                .with_context(|| format!("reading {}", plan.display()))?;
+            let table: toml::Table = text
+                .parse()
+                .map_err(|_| anyhow::anyhow!("{} is no longer TOML", plan.display()))?;
+            self.check_reach(&table)
+                .map_err(|e| anyhow::anyhow!("{e}"))?;
+        }
         match job.job_type {
             JobType::Run if job.resume => {
                 kind.resume(&job.dir, Some(&job.dir.join(PLAN_FILE)), &options)?;

@@ -11,8 +11,8 @@ use std::thread::JoinHandle;
 use anyhow::Context as _;
 use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
 
-use super::live_guard::front;
 pub use super::live_guard::LiveAccess;
+use super::live_guard::{front, RunEnds};
 use crate::session::tap::{MessageTap, TapChannel, TappedMessage};
 
 /// Messages waiting for the publisher thread; beyond this the live view drops (the recorded
@@ -48,6 +48,8 @@ pub struct LiveView {
     published: Arc<AtomicU64>,
     publisher: Mutex<Option<JoinHandle<()>>>,
     server: Mutex<Option<(WebSocketServerHandle, tokio::runtime::Runtime)>>,
+    /// Disconnects the viewers when a run ends (the daemon's live view outlives its runs).
+    run_ends: Arc<RunEnds>,
 }
 
 impl LiveView {
@@ -91,7 +93,8 @@ impl LiveView {
             .local_addr()
             .context("reading the live view's bound address")?;
         let inner = SocketAddr::from(([127, 0, 0, 1], started.port()));
-        handle.spawn(front(listener, inner, Arc::new(access)));
+        let run_ends = Arc::new(RunEnds::default());
+        handle.spawn(front(listener, inner, Arc::new(access), run_ends.clone()));
 
         let (sender, receiver) = sync_channel(QUEUE_CAPACITY);
         let published = Arc::new(AtomicU64::new(0));
@@ -110,6 +113,7 @@ impl LiveView {
             published,
             publisher: Mutex::new(Some(publisher)),
             server: Mutex::new(Some((started, runtime))),
+            run_ends,
         })
     }
 
@@ -184,6 +188,10 @@ impl MessageTap for LiveView {
             }
             Err(TrySendError::Disconnected(_)) => {}
         }
+    }
+
+    fn run_ended(&self) {
+        self.run_ends.end();
     }
 }
 

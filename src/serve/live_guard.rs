@@ -14,7 +14,10 @@ use std::time::Duration;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
+use tokio_util::sync::CancellationToken;
+
 use super::auth::Token;
+use super::door::{Entry, Waiting};
 
 /// The Foxglove app's origins (the web app, and its former name).
 pub const FOXGLOVE_ORIGINS: &[&str] = &["https://app.foxglove.dev", "https://studio.foxglove.dev"];
@@ -99,10 +102,39 @@ impl LiveAccess {
     }
 }
 
+/// When the running job ends: every live connection admitted during it is closed.
+#[derive(Default)]
+pub struct RunEnds {
+    current: std::sync::Mutex<CancellationToken>,
+}
+
+impl RunEnds {
+    fn token(&self) -> CancellationToken {
+        self.current
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .clone()
+    }
+
+    /// Close the connections open now; later ones wait for the next end.
+    pub fn end(&self) {
+        let mut current = self.current.lock().unwrap_or_else(|e| e.into_inner());
+        std::mem::take(&mut *current).cancel();
+    }
+}
+
 /// Accept on `listener` and splice every admitted connection to `inner` (the Foxglove
-/// server's internal loopback address). Runs until its runtime stops.
-pub async fn front(listener: TcpListener, inner: SocketAddr, access: Arc<LiveAccess>) {
+/// server's internal loopback address). A connection waits (`door`) until its handshake has
+/// passed the checks, and only then takes one of the `MAX_CONNECTIONS` slots: a peer without
+/// the token holds none. Runs until its runtime stops.
+pub async fn front(
+    listener: TcpListener,
+    inner: SocketAddr,
+    access: Arc<LiveAccess>,
+    run_ends: Arc<RunEnds>,
+) {
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
+    let waiting = Waiting::new(super::http::MAX_WAITING);
     loop {
         let (stream, peer) = match listener.accept().await {
             Ok(accepted) => accepted,
@@ -112,15 +144,17 @@ pub async fn front(listener: TcpListener, inner: SocketAddr, access: Arc<LiveAcc
                 continue;
             }
         };
-        let Ok(slot) = slots.clone().try_acquire_owned() else {
-            tracing::warn!(%peer, "live view: refused, {MAX_CONNECTIONS} connections already open");
-            tokio::spawn(answer(stream, 503, "too many live view connections".into()));
-            continue;
-        };
+        let entry = waiting.enter();
         let access = access.clone();
+        let slots = slots.clone();
+        let run_ends = run_ends.clone();
         tokio::spawn(async move {
-            connection(stream, peer, inner, &access).await;
-            drop(slot);
+            tokio::select! {
+                _ = entry.pushed_out() => {
+                    tracing::debug!(%peer, "live view: a waiting connection pushed out by newer ones");
+                }
+                _ = connection(stream, peer, inner, &access, &entry, &slots, &run_ends) => {}
+            }
         });
     }
 }
@@ -130,6 +164,9 @@ async fn connection(
     peer: SocketAddr,
     inner: SocketAddr,
     access: &LiveAccess,
+    entry: &Entry,
+    slots: &Arc<tokio::sync::Semaphore>,
+    run_ends: &RunEnds,
 ) {
     let head = match tokio::time::timeout(HANDSHAKE_TIMEOUT, read_head(&mut stream)).await {
         Ok(Ok(head)) => head,
@@ -154,6 +191,13 @@ async fn connection(
         answer(stream, status, reason).await;
         return;
     }
+    entry.admit();
+    let Ok(_slot) = slots.clone().try_acquire_owned() else {
+        tracing::warn!(%peer, "live view: refused, {MAX_CONNECTIONS} connections already open");
+        answer(stream, 503, "too many live view connections".into()).await;
+        return;
+    };
+    let run_ended = run_ends.token();
     let mut upstream = match TcpStream::connect(inner).await {
         Ok(upstream) => upstream,
         Err(e) => {
@@ -165,7 +209,12 @@ async fn connection(
     if upstream.write_all(&head).await.is_err() {
         return;
     }
-    let _ = tokio::io::copy_bidirectional(&mut stream, &mut upstream).await;
+    tokio::select! {
+        _ = tokio::io::copy_bidirectional(&mut stream, &mut upstream) => {}
+        _ = run_ended.cancelled() => {
+            tracing::debug!(%peer, "live view: the run ended, disconnecting");
+        }
+    }
 }
 
 /// The request's bytes up to and including the blank line ending its headers. Clients wait

@@ -8,6 +8,7 @@ pub mod auth;
 pub mod catalog;
 pub mod client;
 pub mod config;
+pub mod door;
 pub mod guard;
 pub mod http;
 pub mod jobs;
@@ -55,8 +56,13 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
     }
     config.request_timeout()?;
     config.history.check()?;
-    if config.max_connections == 0 {
-        anyhow::bail!("max_connections = 0: expected at least 1");
+    for (key, value) in [
+        ("max_connections", config.max_connections),
+        ("max_streams", config.max_streams),
+    ] {
+        if value == 0 {
+            anyhow::bail!("{key} = 0: expected at least 1");
+        }
     }
     // A bad schedule refuses the start, like a bad key.
     schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
@@ -112,21 +118,22 @@ async fn run(
             max_bytes: config.max_body_bytes,
             timeout: request_timeout,
         },
+        request_slots: config.max_connections,
+        stream_slots: config.max_streams,
     };
-    let limits = http::Limits {
-        max_connections: config.max_connections,
-        request_timeout,
-    };
+    let limits = http::Limits { request_timeout };
     let daemon = jobs::Daemon::open(config, registry, live_tap)?;
     let worker = tokio::spawn(daemon.clone().work());
     let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
 
     let app = api::router(daemon.clone(), options);
     // The line tools and tests wait for: the API is up.
-    println!(
-        "geocal serve: listening on http://{address}, data in {}{live_line}",
+    if let Err(e) = crate::console::write_out(format_args!(
+        "geocal serve: listening on http://{address}, data in {}{live_line}\n",
         data_dir.display()
-    );
+    )) {
+        tracing::warn!("writing the ready line to stdout: {e}");
+    }
     tracing::info!(%address, data_dir = %data_dir.display(), "geocal serve ready");
     notify_systemd(&[sd_notify::NotifyState::Ready]);
     let watchdog = tokio::spawn(watchdog());

@@ -29,6 +29,10 @@ pub struct TappedMessage<'a> {
 /// and never block (hand the message on through a bounded or lossy channel).
 pub trait MessageTap: Send + Sync {
     fn message(&self, message: &TappedMessage<'_>);
+
+    /// The run whose messages this tap saw has ended (a tap that outlives its runs, such as
+    /// the daemon's live view, ends what belonged to it).
+    fn run_ended(&self) {}
 }
 
 /// An optional tap in `RecorderOptions` (which derives Debug and Clone).

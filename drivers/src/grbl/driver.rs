@@ -415,8 +415,11 @@ impl<S: AsyncRead + AsyncWrite + Unpin + Send> GrblMachine<S> {
                     return Err(DeviceError::Disconnected {
                         device: self.cfg.id.clone(),
                         message: format!(
-                            "{lost}; could not reopen {} within {} s: {e}",
-                            self.cfg.port, self.cfg.reconnect_timeout_s
+                            "{}; could not reopen {} within {} s: {}",
+                            lost.detail(),
+                            self.cfg.port,
+                            self.cfg.reconnect_timeout_s,
+                            e.detail()
                         ),
                     })
                 }

@@ -100,7 +100,7 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
-    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+    let (config, interruption) = crate::run::resume::read_interrupted_run(
         dir,
         config,
         KIND,
@@ -110,7 +110,6 @@ pub fn resume(
     let plan = HexapodPlan::from_config(&config);
     let pose = first_unfinished_pose(&plan, &interruption.session);
     let commanded = commanded_poses(&interruption.session);
-    interruption.set_aside()?;
     tracing::info!(
         kept = interruption.messages_kept(),
         "resuming {} at pose {pose}",
@@ -156,7 +155,7 @@ fn commanded_poses(session: &Session) -> Vec<PlatformPose> {
 fn execute(
     config: &HexapodConfig,
     options: &RunOptions,
-    continuation: Option<Continuation>,
+    mut continuation: Option<Continuation>,
 ) -> anyhow::Result<RunOutput> {
     let plan = HexapodPlan::from_config(config);
     // Simulated: the sim hexapod in virtual time (the pose sensor is the world's or `given`).
@@ -170,6 +169,12 @@ fn execute(
         epoch_ns,
         options.control.devices.as_deref(),
     ))?;
+    if let Some(c) = continuation.as_mut() {
+        if !simulated {
+            c.interruption.wait_for_clock(built.clock.as_ref())?;
+        }
+        c.interruption.set_aside()?;
+    }
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
@@ -182,9 +187,6 @@ fn execute(
                     .lock()
                     .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
                     .resume_at(simulated.then_some(t_s), noise_seed, &c.commanded);
-            }
-            if !simulated {
-                c.interruption.check_live_clock(built.clock.now_ns())?;
             }
             let event = RunEvent::Resume {
                 resume_index: c.interruption.resume_index,

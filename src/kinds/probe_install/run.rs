@@ -98,7 +98,7 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<RunOutput> {
-    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+    let (config, interruption) = crate::run::resume::read_interrupted_run(
         dir,
         config,
         KIND,
@@ -116,7 +116,6 @@ pub fn resume(
         .max()
         .unwrap_or(1);
     let machine_at = last_commanded(session);
-    interruption.set_aside()?;
     tracing::info!(
         kept = interruption.messages_kept(),
         "resuming {} at posture {posture}",
@@ -215,7 +214,7 @@ async fn build(
 fn execute(
     config: &ProbeInstallConfig,
     options: &RunOptions,
-    continuation: Option<Continuation>,
+    mut continuation: Option<Continuation>,
 ) -> anyhow::Result<RunOutput> {
     let plan = ProbeInstallPlan::from_config(config);
     let simulated = config.all_sim();
@@ -225,6 +224,12 @@ fn execute(
     let real_devices = !simulated && !config.emulated();
     let runtime = crate::run::run_runtime(&options.control, real_devices)?;
     let built = runtime.block_on(build(config, epoch_ns, options.control.devices.as_deref()))?;
+    if let Some(c) = continuation.as_mut() {
+        if !simulated {
+            c.interruption.wait_for_clock(built.clock.as_ref())?;
+        }
+        c.interruption.set_aside()?;
+    }
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut interruption = None;
@@ -237,9 +242,6 @@ fn execute(
                     .lock()
                     .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
                     .resume_at(simulated.then_some(t_s), noise_seed, c.machine_at);
-            }
-            if !simulated {
-                c.interruption.check_live_clock(built.clock.now_ns())?;
             }
             let left = c.posture < plan.postures_rad.len();
             let event = RunEvent::Resume {

@@ -15,7 +15,7 @@ pub fn peek_kind(path: &Path) -> Result<Option<String>, ConfigError> {
     let value: toml::Table = toml::from_str(&text).map_err(|e| ConfigError::Parse {
         file: path.to_path_buf(),
         key: "(document)".into(),
-        message: e.to_string(),
+        message: crate::config::kind_config::toml_error_text(&text, &e),
     })?;
     Ok(value
         .get("kind")

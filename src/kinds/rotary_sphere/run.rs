@@ -242,7 +242,7 @@ pub fn resume(
     config: Option<&Path>,
     options: &RunOptions,
 ) -> anyhow::Result<SphereRunOutput> {
-    let (config, mut interruption) = crate::run::resume::read_interrupted_run(
+    let (config, interruption) = crate::run::resume::read_interrupted_run(
         dir,
         config,
         KIND,
@@ -251,7 +251,6 @@ pub fn resume(
     )?;
     let plan = SpherePlan::from_config(&config.plan);
     let first = first_unfinished_sphere(&plan, &interruption.session);
-    interruption.set_aside()?;
     tracing::info!(
         kept = interruption.messages_kept(),
         "resuming {} at sphere {first:?}",
@@ -303,20 +302,23 @@ fn execute(
         epoch_ns,
         options.control.devices.as_deref(),
     ))?;
+    if let Some((interruption, _)) = continuation.as_mut() {
+        if !simulated {
+            interruption.wait_for_clock(built.clock.as_ref())?;
+        }
+        interruption.set_aside()?;
+    }
     let (session_path, recorder) = crate::run::create_session(options)?;
     let handle = recorder.handle();
     let mut first_sphere = (0, 0);
     match continuation.as_mut() {
         Some((interruption, first)) => {
-            match (&built.world, &config.sim) {
-                (Some(world), Some(sim)) if simulated => {
-                    let (t_s, noise_seed) = interruption.simulated_restart(sim.seed);
-                    world
-                        .lock()
-                        .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
-                        .resume_at(t_s, noise_seed);
-                }
-                _ => interruption.check_live_clock(built.clock.now_ns())?,
+            if let (true, Some(world), Some(sim)) = (simulated, &built.world, &config.sim) {
+                let (t_s, noise_seed) = interruption.simulated_restart(sim.seed);
+                world
+                    .lock()
+                    .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
+                    .resume_at(t_s, noise_seed);
             }
             let event = RunEvent::Resume {
                 resume_index: interruption.resume_index,

@@ -14,18 +14,6 @@ use crate::config::Config;
 use crate::run::RunOptions;
 use simulate::SimulateOptions;
 
-/// The configuration at `path`; `--yes` answers the operator's prompts from a pipe.
-fn load(path: &Path, flags: &RunFlags) -> anyhow::Result<Config> {
-    let mut config = Config::load(path)?;
-    if flags.assume_yes {
-        config
-            .operator
-            .get_or_insert_with(Default::default)
-            .piped_stdin = true;
-    }
-    Ok(config)
-}
-
 /// `geocal check`: the tracer plan's predicted uncertainties.
 pub(crate) fn check(path: &Path) -> anyhow::Result<KindCheck> {
     let config = Config::load(path)?;
@@ -41,9 +29,10 @@ pub(crate) fn check(path: &Path) -> anyhow::Result<KindCheck> {
 pub(crate) fn run(
     path: &Path,
     options: &RunOptions,
-    flags: &RunFlags,
+    _flags: &RunFlags,
 ) -> anyhow::Result<KindRunOutput> {
-    run::run(&load(path, flags)?, options).map(from_run)
+    // `--yes` reaches the run as its operator (`RunControl::operator`), not as configuration.
+    run::run(&Config::load(path)?, options).map(from_run)
 }
 
 pub(crate) fn resume(

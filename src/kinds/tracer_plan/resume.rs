@@ -155,7 +155,7 @@ impl Continuation {
     /// Bring a rebuilt simulated world to the moment after the interruption.
     pub fn prepare_world(&self, config: &Config, built: &BuiltDevices) -> anyhow::Result<()> {
         if !simulated(config) {
-            return self.interruption.check_live_clock(built.clock.now_ns());
+            return self.interruption.wait_for_clock(built.clock.as_ref());
         }
         let (Some(world), Some(sim)) = (&built.world, &config.sim) else {
             return Ok(());
@@ -166,6 +166,11 @@ impl Continuation {
             .map_err(|_| anyhow::anyhow!("simulated world poisoned"))?
             .resume_at(t_s, noise_seed);
         Ok(())
+    }
+
+    /// Move the interrupted file aside: the step just before the new one is created.
+    pub fn set_aside(&mut self) -> anyhow::Result<()> {
+        self.interruption.set_aside()
     }
 
     /// Copy the interrupted session into the new file and record the `resume` event;
@@ -204,7 +209,7 @@ pub fn resume(
         bail!("a passive run cannot be resumed: its machine restarts its NC program");
     }
     let plan = Plan::from_config(&config);
-    let mut interruption = Interruption::read(dir)?;
+    let interruption = Interruption::read(dir)?;
     let session = &interruption.session;
     if session.header.kind != config.kind.as_str()
         || session.header.plan != serde_json::to_value(&config.plan).unwrap_or_default()
@@ -233,7 +238,6 @@ pub fn resume(
             order[at.order_index],
         )
     });
-    interruption.set_aside()?;
     tracing::info!(
         kept = interruption.messages_kept(),
         finished = interrupted.finished.len(),

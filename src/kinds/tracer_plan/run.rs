@@ -42,8 +42,9 @@ pub(crate) fn execute(
         options.control.operator.as_ref(),
         options.control.devices.as_deref(),
     ))?;
-    if let Some(c) = continuation.as_deref() {
+    if let Some(c) = continuation.as_deref_mut() {
         c.prepare_world(config, &built)?;
+        c.set_aside()?;
     }
     let (session_path, recorder) = create_session(options)?;
     let handle = recorder.handle();
