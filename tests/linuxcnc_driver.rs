@@ -89,7 +89,11 @@ fn operator_sends(lcnc: &LinuxCnc, lines: &[&str]) {
     let mut s = lcnc.connect().expect("second client connects");
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let mut r = BufReader::new(s.try_clone().unwrap());
-    let control = ["hello EMC operator 1.0", "set verbose on", "set enable EMCTOO"];
+    let control = [
+        "hello EMC operator 1.0",
+        "set verbose on",
+        "set enable EMCTOO",
+    ];
     for line in control.iter().chain(lines) {
         s.write_all(format!("{line}\r\n").as_bytes()).unwrap();
         let mut reply = String::new();
@@ -250,7 +254,10 @@ async fn exercise(lcnc: &LinuxCnc) {
         .expect_err("a move is refused in E-stop");
     assert!(matches!(e, DeviceError::Alarm { .. }), "{e}");
     let stopped_at = watcher.status().await.expect("status").position_m;
-    let e = m.unlock().await.expect_err("geocal does not release the E-stop");
+    let e = m
+        .unlock()
+        .await
+        .expect_err("geocal does not release the E-stop");
     assert!(
         matches!(e, DeviceError::Rejected { .. })
             && e.to_string().contains("in E-stop")
@@ -264,7 +271,9 @@ async fn exercise(lcnc: &LinuxCnc) {
         "still stopped where it stopped: {s:?}"
     );
     operator_sends(lcnc, &["set estop off", "set machine on"]);
-    m.unlock().await.expect("unlock once the operator cleared it");
+    m.unlock()
+        .await
+        .expect("unlock once the operator cleared it");
     m.start_move(&b).await.expect("move accepted again");
     let at = wait_idle(&mut m, Duration::from_secs(60))
         .await

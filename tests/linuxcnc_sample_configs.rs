@@ -143,7 +143,11 @@ impl Operator {
             .expect("timeout");
         let reader = BufReader::new(stream.try_clone().expect("clone"));
         let mut op = Operator { stream, reader };
-        for line in ["hello EMC operator 1.0", "set verbose on", "set enable EMCTOO"] {
+        for line in [
+            "hello EMC operator 1.0",
+            "set verbose on",
+            "set enable EMCTOO",
+        ] {
             op.send(line);
         }
         op
@@ -242,7 +246,11 @@ fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
             .err()
             .expect("unhomed machine refused");
         assert!(e.to_string().contains("not homed"), "{e}");
-        assert_eq!(op.controller_state(), fresh, "refusal changed the controller");
+        assert_eq!(
+            op.controller_state(),
+            fresh,
+            "refusal changed the controller"
+        );
         // In E-stop without power_on: refused, nothing changed.
         let e = LinuxCncMachine::connect_with(config(HomePolicy::Allow, false), connector(lcnc))
             .await
@@ -253,13 +261,16 @@ fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
             text.contains("in E-stop") && text.contains("power_on = true"),
             "{text}"
         );
-        assert_eq!(op.controller_state(), fresh, "refusal changed the controller");
+        assert_eq!(
+            op.controller_state(),
+            fresh,
+            "refusal changed the controller"
+        );
 
         // power_on and home allowed: geocal powers on and homes (home switches), then runs.
-        let mut m =
-            LinuxCncMachine::connect_with(config(HomePolicy::Allow, true), connector(lcnc))
-                .await
-                .expect("connects, powers on, homes");
+        let mut m = LinuxCncMachine::connect_with(config(HomePolicy::Allow, true), connector(lcnc))
+            .await
+            .expect("connects, powers on, homes");
         let plan = [
             target(0.010, 0.005, 0.002),
             target(0.030, -0.010, 0.010),
@@ -301,7 +312,10 @@ fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
             m.requests() - requests
         );
         // The run ends (its `finish`): in E-stop LinuxCNC refuses mode changes; it says so.
-        let e = m.finish().await.expect_err("nothing can be set back in E-stop");
+        let e = m
+            .finish()
+            .await
+            .expect_err("nothing can be set back in E-stop");
         assert!(e.to_string().contains("E-stop"), "{e}");
         assert!(op.controller_state().starts_with("estop ON machine OFF"));
         drop(m);
@@ -380,10 +394,9 @@ fn gantry_runs_with_its_four_joints() {
             .err()
             .expect("unhomed gantry refused");
         assert!(e.to_string().contains("[0, 1, 2, 3] are not homed"), "{e}");
-        let mut m =
-            LinuxCncMachine::connect_with(config(HomePolicy::Allow, true), connector(lcnc))
-                .await
-                .expect("connects, homes 4 joints");
+        let mut m = LinuxCncMachine::connect_with(config(HomePolicy::Allow, true), connector(lcnc))
+            .await
+            .expect("connects, homes 4 joints");
         let homed = op.get("joint_homed");
         assert!(homed.starts_with("YES YES YES YES"), "{homed}");
         let t = target(0.040, 0.030, 0.090);

@@ -348,7 +348,10 @@ async fn the_operators_modes_are_left_as_found() {
             ]
         );
         assert_eq!(s.target, [1.0, 2.0, 0.1], "inches");
-        assert_eq!((&*s.units, &*s.distance, &*s.feed_mode), ("G20", "G91", "G93"));
+        assert_eq!(
+            (&*s.units, &*s.distance, &*s.feed_mode),
+            ("G20", "G91", "G93")
+        );
         assert_eq!(s.mode, "MDI");
     }
     m.finish().await.expect("finish");

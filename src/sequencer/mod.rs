@@ -421,7 +421,9 @@ impl<'a> Sequencer<'a> {
         self.event(RunEvent::Fault {
             device,
             code: "alarm".into(),
-            message: format!("{error}: unlock asked (the move is commanded again once the alarm is cleared)"),
+            message: format!(
+                "{error}: unlock asked (the move is commanded again once the alarm is cleared)"
+            ),
         });
         if *alarms > MAX_ALARMS {
             return Err(error.into());

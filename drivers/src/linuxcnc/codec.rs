@@ -692,8 +692,12 @@ mod tests {
         );
         // An interpreter found in G20 stays in G20: inches, 0.25 nm.
         assert_eq!(
-            format_move(&[('X', 25.4), ('Z', -0.0000001)], MoveKind::feed_m_s(0.01), true)
-                .unwrap(),
+            format_move(
+                &[('X', 25.4), ('Z', -0.0000001)],
+                MoveKind::feed_m_s(0.01),
+                true
+            )
+            .unwrap(),
             "G20 G90 G94 G53 G1 X1.00000000 Z0.00000000 F23.6220"
         );
         assert!(format_move(&[('X', f64::NAN)], MoveKind::Rapid, false).is_err());

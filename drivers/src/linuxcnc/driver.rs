@@ -485,8 +485,7 @@ impl LinuxCncMachine {
             let _ = self.leave_as_found().await;
             if found.estop && !self.get_on_off(Query::Estop).await.unwrap_or(true) {
                 let _ = self.set(&Request::Estop(true)).await;
-            } else if !found.machine_on && self.get_on_off(Query::Machine).await.unwrap_or(false)
-            {
+            } else if !found.machine_on && self.get_on_off(Query::Machine).await.unwrap_or(false) {
                 let _ = self.set(&Request::Machine(false)).await;
             }
             return Err(e);
@@ -526,8 +525,7 @@ impl LinuxCncMachine {
     /// The interpreter's units, distance and feed mode.
     async fn program_codes(&mut self) -> Result<ModalCodes, DeviceError> {
         let value = self.get(Query::ProgramCodes).await?;
-        decode_program_codes(&value)
-            .map_err(|e| self.protocol(format!("`get program_codes`: {e}")))
+        decode_program_codes(&value).map_err(|e| self.protocol(format!("`get program_codes`: {e}")))
     }
 
     /// The joint count: the config's `joints`, else `[KINS] JOINTS` of the INI file LinuxCNC
@@ -573,9 +571,16 @@ impl LinuxCncMachine {
             return Err(self.rejected(format!(
                 "LinuxCNC is in E-stop or off, where it refuses mode changes and MDI: it stays \
                  in mode {mode:?}{} (found: mode {:?}{})",
-                if restore.is_some() { " with G90 G94" } else { "" },
+                if restore.is_some() {
+                    " with G90 G94"
+                } else {
+                    ""
+                },
                 found.mode,
-                restore.as_deref().map(|w| format!(", {w}")).unwrap_or_default()
+                restore
+                    .as_deref()
+                    .map(|w| format!(", {w}"))
+                    .unwrap_or_default()
             )));
         }
         if let Some(words) = restore {

@@ -450,7 +450,8 @@ fn with_display_linuxcncrsh(text: &str) -> Option<String> {
             section = t;
         }
         let is_display = section == "[DISPLAY]"
-            && t.split_once('=').is_some_and(|(k, _)| k.trim() == "DISPLAY");
+            && t.split_once('=')
+                .is_some_and(|(k, _)| k.trim() == "DISPLAY");
         if is_display && !changed {
             out.push_str("DISPLAY = linuxcncrsh");
             changed = true;
