@@ -1080,7 +1080,17 @@ impl LinuxCncMachine {
     async fn fault(&mut self, context: &str) -> Result<Option<DeviceError>, DeviceError> {
         let mut errors = self.drain_errors().await?;
         let mut estop = self.get_on_off(Query::Estop).await?;
-        let stopped = estop || !self.get_on_off(Query::Machine).await?;
+        let mut stopped = estop || !self.get_on_off(Query::Machine).await?;
+        if !stopped && !self.get_on_off(Query::Enable).await? {
+            // Another client took control: an operator's GUI or pendant does so to press
+            // E-stop, which shows a few cycles later.
+            let deadline = Instant::now() + STOP_SETTLE;
+            while !stopped && Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+                estop = self.get_on_off(Query::Estop).await?;
+                stopped = estop || !self.get_on_off(Query::Machine).await?;
+            }
+        }
         if stopped {
             // Let the state settle before naming it: another client's E-stop shows as machine
             // off first.
