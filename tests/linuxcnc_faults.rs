@@ -115,10 +115,7 @@ fn press_estop_and_watch(pid: u32) -> Result<String, String> {
     let mut readings = 0;
     let mut seen = Vec::new();
     let mut stopped_at: Option<String> = None;
-    loop {
-        let (Some(estop), Some(position)) = (ask("get estop")?, ask("get abs_act_pos")?) else {
-            break;
-        };
+    while let (Some(estop), Some(position)) = (ask("get estop")?, ask("get abs_act_pos")?) {
         seen.push(estop.clone());
         if estop == "ESTOP OFF" && readings == 0 {
             // linuxcncrsh shows the E-stop a few cycles late; the run stops as soon as it
