@@ -45,6 +45,8 @@ fn config(home: HomePolicy) -> LinuxCncConfig {
     LinuxCncConfig {
         id: "lcnc".into(),
         home,
+        // A fresh LinuxCNC starts in E-stop; the joint count comes from its INI.
+        power_on: true,
         feed_m_s: 0.25,
         motion: MoveMode::Feed,
         reply_timeout_s: 30.0,
@@ -80,20 +82,19 @@ fn assert_at(position: &AxisPositions, want: &AxisPositions) {
     }
 }
 
-/// One raw linuxcncrsh session (another client: an operator's GUI).
-fn press_estop_elsewhere(lcnc: &LinuxCnc) {
+/// One raw linuxcncrsh session (another client: an operator's GUI) sending `lines` after
+/// taking control.
+fn operator_sends(lcnc: &LinuxCnc, lines: &[&str]) {
     use std::io::{BufRead, BufReader, Write};
     let mut s = lcnc.connect().expect("second client connects");
     s.set_read_timeout(Some(Duration::from_secs(30))).unwrap();
     let mut r = BufReader::new(s.try_clone().unwrap());
-    for line in [
+    let control = [
         "hello EMC operator 1.0",
         "set verbose on",
         "set enable EMCTOO",
-        // Global to linuxcncrsh: a move would then be answered only when done.
-        "set set_wait done",
-        "set estop on",
-    ] {
+    ];
+    for line in control.iter().chain(lines) {
         s.write_all(format!("{line}\r\n").as_bytes()).unwrap();
         let mut reply = String::new();
         while reply.trim().is_empty() || reply.trim().eq_ignore_ascii_case(line) {
@@ -157,7 +158,8 @@ async fn exercise(lcnc: &LinuxCnc) {
     .expect("wrong enable password refused");
     assert!(e.to_string().contains("enable password"), "{e}");
 
-    // A fresh LinuxCNC is not homed: refused unless the config allows homing.
+    // A fresh LinuxCNC is not homed: refused unless the config allows homing, before
+    // anything is changed (E-stop and power as found, although power_on allows them).
     let e = LinuxCncMachine::connect_with(config(HomePolicy::Refuse), connector.clone())
         .await
         .err()
@@ -169,6 +171,11 @@ async fn exercise(lcnc: &LinuxCnc) {
             && text.contains("home = \"allow\""),
         "{text}"
     );
+    let mut watcher = LinuxCncMachine::observe_with(config(HomePolicy::Refuse), connector.clone())
+        .await
+        .expect("watcher connects");
+    let s = watcher.status().await.expect("status");
+    assert!(s.estop && !s.machine_on, "as found: {s:?}");
 
     let mut m = LinuxCncMachine::connect_with(config(HomePolicy::Allow), own_connector)
         .await
@@ -212,14 +219,22 @@ async fn exercise(lcnc: &LinuxCnc) {
         "{e}"
     );
 
-    // E-stop pressed at another client in the middle of a move: an alarm; unlock resets
-    // it (and takes control back); the move commanded again arrives.
+    // E-stop pressed at another client in the middle of a move: an alarm (E-stop, once the
+    // state settled); unlock refuses while it is pressed and nothing is sent; once the
+    // operator cleared it, unlock takes control back and the move commanded again arrives.
     let b = target(0.9, 0.6, 0.3);
     m.start_move(&b).await.expect("move accepted");
     tokio::time::sleep(Duration::from_millis(800)).await;
     assert_eq!(m.state().await.expect("moving"), MachineState::Moving);
     // (A blocking client on the test's single thread: nothing else needs to run meanwhile.)
-    press_estop_elsewhere(lcnc);
+    operator_sends(
+        lcnc,
+        &[
+            // Global to linuxcncrsh: a move would then be answered only when done.
+            "set set_wait done",
+            "set estop on",
+        ],
+    );
     let e = wait_idle(&mut m, Duration::from_secs(60))
         .await
         .expect_err("E-stop is an alarm");
@@ -238,7 +253,27 @@ async fn exercise(lcnc: &LinuxCnc) {
         .await
         .expect_err("a move is refused in E-stop");
     assert!(matches!(e, DeviceError::Alarm { .. }), "{e}");
-    m.unlock().await.expect("unlock");
+    let stopped_at = watcher.status().await.expect("status").position_m;
+    let e = m
+        .unlock()
+        .await
+        .expect_err("geocal does not release the E-stop");
+    assert!(
+        matches!(e, DeviceError::Rejected { .. })
+            && e.to_string().contains("in E-stop")
+            && e.to_string().contains("--resume"),
+        "{e}"
+    );
+    tokio::time::sleep(Duration::from_millis(1500)).await;
+    let s = watcher.status().await.expect("status");
+    assert!(
+        s.estop && !s.machine_on && s.position_m == stopped_at,
+        "still stopped where it stopped: {s:?}"
+    );
+    operator_sends(lcnc, &["set estop off", "set machine on"]);
+    m.unlock()
+        .await
+        .expect("unlock once the operator cleared it");
     m.start_move(&b).await.expect("move accepted again");
     let at = wait_idle(&mut m, Duration::from_secs(60))
         .await
@@ -265,9 +300,6 @@ async fn exercise(lcnc: &LinuxCnc) {
     assert_eq!(faults, ["disconnect", "reconnect"]);
 
     // A watcher (geocal monitor): sees the state and position, commands nothing.
-    let mut watcher = LinuxCncMachine::observe_with(config(HomePolicy::Refuse), connector)
-        .await
-        .expect("watcher connects");
     let s = watcher.status().await.expect("status");
     assert!(
         !s.estop && s.machine_on && s.program == ProgramStatus::Idle,

@@ -1,9 +1,10 @@
 //! Whole runs through the real LinuxCNC with faults injected from outside geocal, as an
 //! operator or a network would: E-stop pressed by another linuxcncrsh client in the middle
-//! of a run, the driver's connection torn down (`ss -K` in LinuxCNC's namespace), and
-//! linuxcncrsh killed. The run recovers or stops with a clear message; no recorded sample
-//! is lost; `geocal run --resume DIR` finishes a stopped run and the results recover the
-//! truth. Skips without LinuxCNC or root (saying why), fails when `CI` is set.
+//! of a run (the run stops: the operator owns the E-stop), the driver's connection torn down
+//! (`ss -K` in LinuxCNC's namespace), and linuxcncrsh killed. The run recovers or stops with
+//! a clear message; no recorded sample is lost; `geocal run --resume DIR` finishes a stopped
+//! run and the results recover the truth. Skips without LinuxCNC or root (saying why), fails
+//! when `CI` is set.
 
 mod common;
 
@@ -76,40 +77,80 @@ fn connect_in_namespace_of(pid: u32) -> std::io::Result<TcpStream> {
     .map_err(|_| std::io::Error::other("the namespace thread panicked"))?
 }
 
-/// Another linuxcncrsh client (an operator's GUI) takes control and presses E-stop.
-fn press_estop(pid: u32) -> Result<(), String> {
+/// Another linuxcncrsh client (an operator's GUI) takes control and presses E-stop, then
+/// watches LinuxCNC until it shuts down (the run's end): once the E-stop shows, every
+/// reading must show it still pressed and the commanded position unchanged (nothing
+/// released it, no move was sent). Says how many readings it took.
+fn press_estop_and_watch(pid: u32) -> Result<String, String> {
     let mut s = connect_in_namespace_of(pid).map_err(|e| format!("connect: {e}"))?;
     s.set_read_timeout(Some(Duration::from_secs(30)))
         .map_err(|e| e.to_string())?;
     let mut r = BufReader::new(s.try_clone().map_err(|e| e.to_string())?);
+    // The reply to `line`, or None once LinuxCNC closed the connection.
+    let mut ask = |line: &str| -> Result<Option<String>, String> {
+        if s.write_all(format!("{line}\r\n").as_bytes()).is_err() {
+            return Ok(None);
+        }
+        let mut reply = String::new();
+        while reply.trim().is_empty() || reply.trim().eq_ignore_ascii_case(line) {
+            reply.clear();
+            match r.read_line(&mut reply) {
+                Ok(0) | Err(_) => return Ok(None),
+                Ok(_) => {}
+            }
+        }
+        Ok(Some(reply.trim().to_string()))
+    };
     for line in [
         "hello EMC faults 1.0",
         "set verbose on",
         "set enable EMCTOO",
         "set estop on",
     ] {
-        s.write_all(format!("{line}\r\n").as_bytes())
-            .map_err(|e| format!("{line}: {e}"))?;
-        let mut reply = String::new();
-        while reply.trim().is_empty() || reply.trim().eq_ignore_ascii_case(line) {
-            reply.clear();
-            if r.read_line(&mut reply)
-                .map_err(|e| format!("{line}: {e}"))?
-                == 0
-            {
-                return Err(format!("{line}: linuxcncrsh closed the connection"));
-            }
-        }
-        if !reply.contains("ACK") || reply.contains("NAK") {
-            return Err(format!("{line}: {reply}"));
+        match ask(line)? {
+            Some(reply) if reply.contains("ACK") && !reply.contains("NAK") => {}
+            other => return Err(format!("{line}: {other:?}")),
         }
     }
-    Ok(())
+    let mut readings = 0;
+    let mut seen = Vec::new();
+    let mut stopped_at: Option<String> = None;
+    while let (Some(estop), Some(position)) = (ask("get estop")?, ask("get abs_act_pos")?) {
+        seen.push(estop.clone());
+        if estop == "ESTOP OFF" && readings == 0 {
+            // linuxcncrsh shows the E-stop a few cycles late; the run stops as soon as it
+            // shows, and its end shuts LinuxCNC down: watch closely.
+            std::thread::sleep(Duration::from_millis(2));
+            continue;
+        }
+        if estop != "ESTOP ON" {
+            return Err(format!("the E-stop was released: {estop}"));
+        }
+        match &stopped_at {
+            None => stopped_at = Some(position),
+            Some(p) if *p != position => {
+                return Err(format!("moved in E-stop: from {p} to {position}"))
+            }
+            Some(_) => {}
+        }
+        readings += 1;
+        std::thread::sleep(Duration::from_millis(10));
+    }
+    if readings == 0 {
+        // The run stops as soon as the driver sees the E-stop, and its end shuts this
+        // LinuxCNC down at once: this client may see it go before the E-stop shows to it.
+        return Ok(format!(
+            "LinuxCNC shut down before the E-stop showed to this client (readings {seen:?})"
+        ));
+    }
+    Ok(format!(
+        "E-stop on and the position unchanged in all {readings} readings until LinuxCNC shut down"
+    ))
 }
 
 /// Tear down every client connection to linuxcncrsh in `pid`'s namespace (the kernel's
 /// SOCK_DESTROY, as a firewall or a network fault would: the driver reads an error).
-fn cut_connections(pid: u32) -> Result<(), String> {
+fn cut_connections(pid: u32) -> Result<String, String> {
     let out = std::process::Command::new("nsenter")
         .arg(format!("--net=/proc/{pid}/ns/net"))
         .args(["ss", "-K", "dport", "=", "5007"])
@@ -122,11 +163,12 @@ fn cut_connections(pid: u32) -> Result<(), String> {
             String::from_utf8_lossy(&out.stderr)
         ));
     }
-    Ok(())
+    Ok(String::new())
 }
 
-/// What a test does at a point of the run: after `points` points are done, `inject`.
-type Injection = (u64, Box<dyn FnOnce(u32) -> Result<(), String> + Send>);
+/// What a test does at a point of the run: after `points` points are done, `inject` (what
+/// it saw, or why it failed).
+type Injection = (u64, Box<dyn FnOnce(u32) -> Result<String, String> + Send>);
 
 /// `geocal run` (in this process) of `config` into `dir`, with `injections` done from a
 /// thread of their own as the run's progress reaches them. The run's result, and each
@@ -160,7 +202,7 @@ fn run_with_injections(
                 continue;
             }
             let outcome = match our_linuxcncrsh() {
-                Some(pid) => inject(pid).map(|()| format!("done at point {at}")),
+                Some(pid) => inject(pid).map(|seen| format!("done at point {at}: {seen}")),
                 None => Err("no linuxcncrsh of this test's LinuxCNC".to_string()),
             };
             outcomes.push(outcome.unwrap_or_else(|e| format!("FAILED at point {at}: {e}")));
@@ -255,29 +297,44 @@ fn linuxcnc_run_reconnects_after_a_cut_connection() {
     assert_recovers_truth(results, &truth);
 }
 
-/// E-stop pressed by another client at point 4. The driver's `unlock` resets it; if
-/// LinuxCNC will not turn the machine on again (see docs/linuxcnc.md "Faults"), the run
-/// stops with a message naming the E-stop alarm, the session kept, and `geocal run --resume
-/// DIR` (a fresh LinuxCNC) finishes it. Either way: the alarm is recorded, no sample is
-/// lost, the stopped session's messages are all in the final file, and the results
-/// recover the truth.
+/// E-stop pressed by another client at point 4: the run stops (geocal does not release an
+/// E-stop it did not cause) with a message that names it and says how to go on, the session
+/// kept; LinuxCNC stays in E-stop with its position unchanged until the run's end shuts it
+/// down; the E-stop is recorded as an `alarm` fault. `geocal run --resume DIR` (a fresh
+/// LinuxCNC: the HIL's controller is the run's own) finishes it with no sample lost, every
+/// message of the stopped session unchanged, and the results recover the truth.
 #[test]
-fn linuxcnc_run_through_an_estop_recovers_or_resumes() {
+fn linuxcnc_run_stopped_by_an_estop_resumes() {
     if !common::linuxcnc_available() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
     let started = std::time::Instant::now();
-    let (result, outcomes) =
-        run_with_injections(&config_text(), dir.path(), vec![(4, Box::new(press_estop))]);
+    let (result, outcomes) = run_with_injections(
+        &config_text(),
+        dir.path(),
+        vec![(4, Box::new(press_estop_and_watch))],
+    );
     println!(
-        "LinuxCNC run with an E-stop: {:.1} s, injections {outcomes:?}",
-        started.elapsed().as_secs_f64()
+        "LinuxCNC run with an E-stop: {:.1} s, injections {outcomes:?}, result {:?}",
+        started.elapsed().as_secs_f64(),
+        result.as_ref().map(|_| ()).map_err(|e| format!("{e:#}"))
     );
     assert!(
         outcomes[0].starts_with("done"),
         "injection: {}",
         outcomes[0]
+    );
+    let error = match result {
+        Ok(_) => panic!("the run went on through an E-stop it did not cause"),
+        Err(e) => format!("{e:#}"),
+    };
+    println!("the run stopped: {error}");
+    assert!(
+        error.contains("in E-stop")
+            && error.contains("geocal run --resume")
+            && error.contains("session recorded so far is kept"),
+        "the message names LinuxCNC's E-stop and the way on: {error}"
     );
     let session_path = dir.path().join("session.mcap");
     let first = read_session(&session_path).expect("the session reads");
@@ -287,29 +344,11 @@ fn linuxcnc_run_through_an_estop_recovers_or_resumes() {
         .collect();
     println!("alarms: {alarms:?}");
     assert!(
-        !alarms.is_empty()
-            && alarms
-                .iter()
-                .all(|m| m.starts_with("cmm: ")
-                && (m.contains("E-stop") || m.contains("machine is off"))),
-        "the E-stop is recorded as an alarm (E-stop or machine off, whichever the driver saw first): {alarms:?}"
+        alarms.len() == 1 && alarms[0].starts_with("cmm: ") && alarms[0].contains("E-stop"),
+        "the E-stop is recorded as one alarm, named once settled: {alarms:?}"
     );
     assert_tracer_streams_whole(&first);
-    let results = match result {
-        Ok(output) => {
-            println!("the run recovered from the E-stop");
-            output.results
-        }
-        Err(e) => {
-            let error = format!("{e:#}");
-            println!("the run stopped: {error}");
-            assert!(
-                error.contains("E-stop") && error.contains("session recorded so far is kept"),
-                "the message names LinuxCNC's E-stop: {error}"
-            );
-            resume_and_check_prefix(dir.path())
-        }
-    };
+    let results = resume_and_check_prefix(dir.path());
     let ml = results.multilateration().expect("tracer results");
     assert_eq!(ml.points.len(), 18);
     let truth: serde_json::Value =
@@ -375,12 +414,12 @@ fn linuxcnc_run_stopped_by_a_killed_linuxcncrsh_resumes() {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
-    let kill = |pid: u32| -> Result<(), String> {
+    let kill = |pid: u32| -> Result<String, String> {
         // SAFETY: kill(2) of the linuxcncrsh this test started (found by ancestry).
         if unsafe { libc::kill(pid as i32, libc::SIGKILL) } != 0 {
             return Err(std::io::Error::last_os_error().to_string());
         }
-        Ok(())
+        Ok(String::new())
     };
     let started = std::time::Instant::now();
     let (result, outcomes) =

@@ -152,6 +152,11 @@ pub trait Machine: Send {
     fn controller_trims(&mut self) -> Vec<ControllerTrim> {
         Vec::new()
     }
+    /// The run is over (done or stopped): leave the controller's modes as the run found them
+    /// (nothing to do by default).
+    async fn finish(&mut self) -> Result<(), DeviceError> {
+        Ok(())
+    }
 }
 
 /// One joint's compensation as the controller applies it, metres.

@@ -33,6 +33,14 @@ struct Machine3 {
     connections: u32,
     mdi_seen: u32,
     mode: String,
+    /// The interpreter's units, distance and feed mode words, as MDI lines set them.
+    units: String,
+    distance: String,
+    feed_mode: String,
+    /// `get user_linear_units`.
+    linear_units: String,
+    /// Every MDI line received.
+    mdi_lines: Vec<String>,
 }
 
 /// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
@@ -42,6 +50,10 @@ async fn fake(faults: Faults) -> (u16, Arc<Mutex<Machine3>>) {
     let state = Arc::new(Mutex::new(Machine3 {
         estop: true,
         mode: "MANUAL".into(),
+        units: "G21".into(),
+        linear_units: "MM".into(),
+        distance: "G90".into(),
+        feed_mode: "G94".into(),
         ..Machine3::default()
     }));
     let shared = state.clone();
@@ -125,7 +137,16 @@ fn answer(
         }
         ("set", "mdi") if s.mode != "MDI" => (nak("mdi"), false),
         ("set", "mdi") => {
+            s.mdi_lines.push(words[2..].join(" "));
+            let mut moves = false;
             for word in &words[2..] {
+                match word.as_str() {
+                    "g20" | "g21" => s.units = word.to_ascii_uppercase(),
+                    "g90" | "g91" => s.distance = word.to_ascii_uppercase(),
+                    "g93" | "g94" | "g95" => s.feed_mode = word.to_ascii_uppercase(),
+                    "g0" | "g1" => moves = true,
+                    _ => {}
+                }
                 let (letter, num) = word.split_at(1);
                 let k = match letter {
                     "x" => 0,
@@ -134,6 +155,9 @@ fn answer(
                     _ => continue,
                 };
                 s.target[k] = num.parse().unwrap_or(f64::NAN);
+            }
+            if !moves {
+                return (ack("mdi"), false);
             }
             s.polls_left = 3;
             s.mdi_seen += 1;
@@ -156,7 +180,11 @@ fn answer(
                     let h = if s.homed { "YES" } else { "NO" };
                     format!("JOINT_HOMED {h} {h} {h} NO NO NO")
                 }
-                "user_linear_units" => "USER_LINEAR_UNITS MM".into(),
+                "user_linear_units" => format!("USER_LINEAR_UNITS {}", s.linear_units),
+                "program_codes" => format!(
+                    "PROGRAM_CODES G80 G17 G40 {} {} {} G54 G49 G99 G64 G97 G91.1 G8 G92.2 F0 S0",
+                    s.units, s.distance, s.feed_mode
+                ),
                 "error" => "ERROR OK".into(),
                 "program_status" => {
                     if s.polls_left > 0 {
@@ -184,6 +212,8 @@ fn config(port: u16) -> LinuxCncConfig {
         host: "127.0.0.1".into(),
         port,
         home: HomePolicy::Allow,
+        power_on: true,
+        joints: Some(3),
         status_interval_s: 0.0,
         reply_timeout_s: 2.0,
         reconnect_timeout_s: 2.0,
@@ -252,6 +282,80 @@ async fn refusals_are_clear_errors() {
     .err()
     .expect("not homed");
     assert!(e.to_string().contains("[0, 1, 2] are not homed"), "{e}");
+}
+
+/// Every check that could refuse a run comes before anything is changed: an unhomed machine
+/// (`home = "refuse"`) or one in E-stop without `power_on` is refused with the E-stop, the
+/// power and the mode exactly as found.
+#[tokio::test]
+async fn refusals_leave_the_machine_as_found() {
+    for (home, power_on, says) in [
+        (HomePolicy::Refuse, true, "not homed"),
+        (HomePolicy::Allow, false, "power_on = true"),
+    ] {
+        let (port, state) = fake(Faults::default()).await;
+        let e = LinuxCncMachine::connect(LinuxCncConfig {
+            home,
+            power_on,
+            ..config(port)
+        })
+        .await
+        .err()
+        .expect("refused");
+        assert!(
+            matches!(e, DeviceError::Rejected { .. }) && e.to_string().contains(says),
+            "{e}"
+        );
+        let s = state.lock().unwrap();
+        assert!(
+            s.estop && !s.machine_on && !s.homed && s.mode == "MANUAL",
+            "changed: estop {} machine {} homed {} mode {}",
+            s.estop,
+            s.machine_on,
+            s.homed,
+            s.mode
+        );
+    }
+}
+
+/// An operator's modal state is kept: an interpreter in G20 gets its moves in inches (never
+/// G21), G91/G93 are set again as soon as the machine stands, and `finish` sets the task
+/// mode back.
+#[tokio::test]
+async fn the_operators_modes_are_left_as_found() {
+    let (port, state) = fake(Faults::default()).await;
+    {
+        let mut s = state.lock().unwrap();
+        s.linear_units = "INCH".into();
+        s.units = "G20".into();
+        s.distance = "G91".into();
+        s.feed_mode = "G93".into();
+    }
+    let mut m = LinuxCncMachine::connect(config(port))
+        .await
+        .expect("connects");
+    m.start_move(&target(0.0254, 0.0508, 0.00254))
+        .await
+        .expect("accepted");
+    wait_idle(&mut m).await.expect("arrives");
+    {
+        let s = state.lock().unwrap();
+        assert_eq!(
+            s.mdi_lines,
+            [
+                "g20 g90 g94 g53 g1 x1.00000000 y2.00000000 z0.10000000 f23.6220",
+                "g91 g93"
+            ]
+        );
+        assert_eq!(s.target, [1.0, 2.0, 0.1], "inches");
+        assert_eq!(
+            (&*s.units, &*s.distance, &*s.feed_mode),
+            ("G20", "G91", "G93")
+        );
+        assert_eq!(s.mode, "MDI");
+    }
+    m.finish().await.expect("finish");
+    assert_eq!(state.lock().unwrap().mode, "MANUAL");
 }
 
 #[tokio::test]

@@ -43,8 +43,11 @@ impl<S: Send + 'static> Holdable for geocal_drivers::grbl::GrblMachine<S> {}
 #[async_trait]
 impl Holdable for geocal_drivers::linuxcnc::LinuxCncMachine {
     /// The connection may have been closed while idle: a query shows it (and reconnects).
+    /// Then the start of a run, as a fresh connection makes it (the state found, the checks
+    /// that may refuse, MDI mode).
     async fn reuse(&mut self) -> Result<(), DeviceError> {
-        self.ping().await
+        self.ping().await?;
+        self.begin_run().await
     }
 }
 impl<S: Send + 'static> Holdable for geocal_drivers::probe::AsciiProbe<S> {}
@@ -370,6 +373,10 @@ impl<T: Machine + Holdable> Machine for Held<T> {
     }
     fn take_link_faults(&mut self) -> Vec<LinkFault> {
         self.driver.take_link_faults()
+    }
+    async fn finish(&mut self) -> Result<(), DeviceError> {
+        let r = self.driver.finish().await;
+        self.noted(r)
     }
 }
 

@@ -285,9 +285,12 @@ async fn build_emulated(
     // an injected disconnect), or the simulated machine.
     let machine: Box<dyn Machine> = match (&hosted.machine_path, &hosted.linuxcnc) {
         (_, Some(linuxcnc)) => {
-            // The driver homes the joints where they stand, as the INI geocal wrote allows.
+            // geocal started this LinuxCNC (in E-stop, unhomed): the driver powers it on and
+            // homes the joints where they stand, as the INI geocal wrote allows (the driver
+            // reads its joint count from that INI).
             let mut cfg = linuxcnc_config(config);
             cfg.home = geocal_drivers::linuxcnc::HomePolicy::Allow;
+            cfg.power_on = true;
             let driver = LinuxCncMachine::connect_with(cfg, linuxcnc.stream_connector())
                 .await
                 .context("connecting the LinuxCNC driver to the LinuxCNC geocal started")?;

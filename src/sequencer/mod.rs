@@ -204,11 +204,26 @@ impl<'a> Sequencer<'a> {
         self
     }
 
-    /// Run the whole plan: every station, every pass, every point.
+    /// Run the whole plan: every station, every pass, every point. Done or stopped, the
+    /// machine is then asked to leave its controller as the run found it (`finish`); a
+    /// failure to is a `fault` event, not a failed run.
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
-        if let Some(hint_tolerance_m) = self.passive.take() {
-            return self.run_passive(hint_tolerance_m, progress).await;
+        let result = match self.passive.take() {
+            Some(hint_tolerance_m) => self.run_passive(hint_tolerance_m, progress).await,
+            None => self.run_plan(progress).await,
+        };
+        if let Err(e) = self.devices.machine.finish().await {
+            tracing::warn!("leaving the machine's controller as found: {e}");
+            self.event(RunEvent::Fault {
+                device: self.devices.machine.id().to_string(),
+                code: "finish".into(),
+                message: format!("leaving the controller as the run found it: {e}"),
+            });
         }
+        result
+    }
+
+    async fn run_plan(&mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
         let plan = self.plan;
         let total =
             (plan.stations.len() * plan.targets.len() * plan.passes.len() * plan.points.len())
@@ -294,7 +309,7 @@ impl<'a> Sequencer<'a> {
             });
         }
         self.poll_environment().await?;
-        Ok(self.summary)
+        Ok(self.summary.clone())
     }
 
     fn event(&mut self, event: RunEvent) {
@@ -406,7 +421,9 @@ impl<'a> Sequencer<'a> {
         self.event(RunEvent::Fault {
             device,
             code: "alarm".into(),
-            message: format!("{error}: unlocking and commanding the move again"),
+            message: format!(
+                "{error}: unlock asked (the move is commanded again once the alarm is cleared)"
+            ),
         });
         if *alarms > MAX_ALARMS {
             return Err(error.into());

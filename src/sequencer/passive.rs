@@ -248,7 +248,7 @@ impl StopMatcher {
 impl Sequencer<'_> {
     /// Passive mode: per station and target, follow the tracer and match its stops.
     pub(super) async fn run_passive(
-        mut self,
+        &mut self,
         hint_tolerance_m: f64,
         progress: Progress<'_>,
     ) -> Result<RunSummary, SequencerError> {
@@ -345,7 +345,7 @@ impl Sequencer<'_> {
             });
         }
         self.poll_environment().await?;
-        Ok(self.summary)
+        Ok(self.summary.clone())
     }
 }
 

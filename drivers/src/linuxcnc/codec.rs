@@ -52,6 +52,10 @@ pub enum Query {
     Error,
     UserLinearUnits,
     Enable,
+    /// The interpreter's active G and M codes (units, distance and feed mode among them).
+    ProgramCodes,
+    /// The path of the INI file LinuxCNC runs with.
+    IniFile,
 }
 
 impl Query {
@@ -68,6 +72,8 @@ impl Query {
             Query::Error => "ERROR",
             Query::UserLinearUnits => "USER_LINEAR_UNITS",
             Query::Enable => "ENABLE",
+            Query::ProgramCodes => "PROGRAM_CODES",
+            Query::IniFile => "INIFILE",
         }
     }
 }
@@ -410,25 +416,112 @@ impl MoveKind {
     }
 }
 
-/// A number for an MDI word: fixed 6 decimals (1 nm in mm), never `-0.000000`.
-fn mdi_number(v: f64) -> String {
-    let s = format!("{v:.6}");
+/// A number for an MDI word: fixed `decimals`, never `-0.000…`.
+fn mdi_number(v: f64, decimals: usize) -> String {
+    let s = format!("{v:.decimals$}");
     if s.trim_start_matches('-')
         .bytes()
         .all(|b| b == b'0' || b == b'.')
     {
-        "0.000000".into()
+        format!("{:.decimals$}", 0.0)
     } else {
         s
     }
 }
 
+/// The interpreter's distance mode (`G90` absolute, `G91` incremental).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Distance {
+    Absolute,
+    Incremental,
+}
+
+/// The interpreter's feed-rate mode: `G93` inverse time, `G94` units per minute, `G95` per
+/// revolution.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum FeedMode {
+    InverseTime,
+    PerMinute,
+    PerRevolution,
+}
+
+/// The interpreter's modal state that a move line changes, as `get program_codes` shows it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct ModalCodes {
+    /// `G20` (inch) rather than `G21` (mm).
+    pub inch: bool,
+    pub distance: Distance,
+    pub feed_mode: FeedMode,
+}
+
+impl ModalCodes {
+    /// The words that set this state again after a move line (`G90 G94` stated): none when
+    /// the move left it as it is. Units are never changed (moves are written in them).
+    pub fn restore_words(&self) -> Option<String> {
+        let mut words = Vec::new();
+        if self.distance == Distance::Incremental {
+            words.push("G91");
+        }
+        match self.feed_mode {
+            FeedMode::PerMinute => {}
+            FeedMode::InverseTime => words.push("G93"),
+            FeedMode::PerRevolution => words.push("G95"),
+        }
+        (!words.is_empty()).then(|| words.join(" "))
+    }
+}
+
+/// `get program_codes` (`G80 G17 G40 G21 G90 G94 G54 … F0 S0`): units, distance and feed
+/// mode. `G91.1` is the arc distance mode, not `G91`.
+pub fn decode_program_codes(value: &str) -> Result<ModalCodes, ValueError> {
+    let mut inch = None;
+    let mut distance = None;
+    let mut feed_mode = None;
+    for w in value.split_ascii_whitespace() {
+        match w.to_ascii_uppercase().as_str() {
+            "G20" => inch = Some(true),
+            "G21" => inch = Some(false),
+            "G90" => distance = Some(Distance::Absolute),
+            "G91" => distance = Some(Distance::Incremental),
+            "G93" => feed_mode = Some(FeedMode::InverseTime),
+            "G94" => feed_mode = Some(FeedMode::PerMinute),
+            "G95" => feed_mode = Some(FeedMode::PerRevolution),
+            _ => {}
+        }
+    }
+    match (inch, distance, feed_mode) {
+        (Some(inch), Some(distance), Some(feed_mode)) => Ok(ModalCodes {
+            inch,
+            distance,
+            feed_mode,
+        }),
+        _ => Err(ValueError(format!(
+            "expected G20 or G21, G90 or G91, and G93, G94 or G95 among {value:?}"
+        ))),
+    }
+}
+
+/// Millimetres per inch.
+pub const MM_PER_INCH: f64 = 25.4;
+
 /// The MDI line of an absolute move in machine coordinates: `G21 G90 G94 G53 G1 X.. F..`.
-/// `words` are (axis letter, position in mm). G21 (mm), G90 (absolute) and G94 (units per
-/// minute) are stated on every line so that an operator's modal state cannot change what
-/// the numbers mean; G53 ignores work offsets (G54.., G92) and tool length offsets.
-pub fn format_move(words: &[(char, f64)], kind: MoveKind) -> Result<String, EncodeError> {
-    let mut line = String::from("G21 G90 G94 G53 ");
+/// `words` are (axis letter, position in mm). The line is written in the interpreter's
+/// units as found (`inch`: `G20`, 8 decimals, 0.25 nm; else `G21`, 6 decimals, 1 nm), so
+/// that a move never changes them; G90 (absolute) and G94 (units per minute) are stated on
+/// every line so that an operator's modal state cannot change what the numbers mean; G53
+/// ignores work offsets (G54.., G92) and tool length offsets.
+pub fn format_move(
+    words: &[(char, f64)],
+    kind: MoveKind,
+    inch: bool,
+) -> Result<String, EncodeError> {
+    let (per_mm, decimals, feed_decimals) = if inch {
+        (1.0 / MM_PER_INCH, 8, 4)
+    } else {
+        (1.0, 6, 3)
+    };
+    let mut line = String::from(if inch { "G20" } else { "G21" });
+    line.push_str(" G90 G94 G53 ");
     line.push_str(match kind {
         MoveKind::Feed { .. } => "G1",
         MoveKind::Rapid => "G0",
@@ -439,13 +532,13 @@ pub fn format_move(words: &[(char, f64)], kind: MoveKind) -> Result<String, Enco
         }
         line.push(' ');
         line.push(letter.to_ascii_uppercase());
-        line.push_str(&mdi_number(mm));
+        line.push_str(&mdi_number(mm * per_mm, decimals));
     }
     if let MoveKind::Feed { mm_per_min } = kind {
         if !(mm_per_min.is_finite() && mm_per_min > 0.0) {
             return Err(EncodeError::BadMdi(format!("F{mm_per_min}")));
         }
-        line.push_str(&format!(" F{mm_per_min:.3}"));
+        line.push_str(&format!(" F{:.feed_decimals$}", mm_per_min * per_mm));
     }
     Ok(line)
 }
@@ -586,6 +679,7 @@ mod tests {
         let line = format_move(
             &[('X', 100.0), ('Y', -0.0000001), ('Z', 12.3456789)],
             MoveKind::feed_m_s(0.01),
+            false,
         )
         .unwrap();
         assert_eq!(
@@ -593,11 +687,42 @@ mod tests {
             "G21 G90 G94 G53 G1 X100.000000 Y0.000000 Z12.345679 F600.000"
         );
         assert_eq!(
-            format_move(&[('X', 1.5)], MoveKind::Rapid).unwrap(),
+            format_move(&[('X', 1.5)], MoveKind::Rapid, false).unwrap(),
             "G21 G90 G94 G53 G0 X1.500000"
         );
-        assert!(format_move(&[('X', f64::NAN)], MoveKind::Rapid).is_err());
-        assert!(format_move(&[('X', 1.0)], MoveKind::feed_m_s(0.0)).is_err());
+        // An interpreter found in G20 stays in G20: inches, 0.25 nm.
+        assert_eq!(
+            format_move(
+                &[('X', 25.4), ('Z', -0.0000001)],
+                MoveKind::feed_m_s(0.01),
+                true
+            )
+            .unwrap(),
+            "G20 G90 G94 G53 G1 X1.00000000 Z0.00000000 F23.6220"
+        );
+        assert!(format_move(&[('X', f64::NAN)], MoveKind::Rapid, false).is_err());
+        assert!(format_move(&[('X', 1.0)], MoveKind::feed_m_s(0.0), false).is_err());
+    }
+
+    #[test]
+    fn program_codes_decode_and_restore() {
+        let metric = decode_program_codes(
+            "G80 G17 G40 G21 G90 G94 G54 G49 G99 G64 G97 G91.1 G8 G92.2 F0 S0",
+        )
+        .unwrap();
+        assert_eq!(
+            metric,
+            ModalCodes {
+                inch: false,
+                distance: Distance::Absolute,
+                feed_mode: FeedMode::PerMinute
+            }
+        );
+        assert_eq!(metric.restore_words(), None);
+        let odd = decode_program_codes("G80 G17 G40 G20 G91 G93 G54 G91.1 F0 S0").unwrap();
+        assert!(odd.inch);
+        assert_eq!(odd.restore_words().as_deref(), Some("G91 G93"));
+        assert!(decode_program_codes("G80 G17 G91.1 F0").is_err());
     }
 
     proptest! {
@@ -613,6 +738,7 @@ mod tests {
                     let _ = decode_program_status(&value);
                     let _ = decode_linear_units_mm(&value);
                     let _ = decode_error(&value);
+                    let _ = decode_program_codes(&value);
                 }
             }
         }
@@ -642,7 +768,7 @@ mod tests {
 
         #[test]
         fn moves_round_trip(x in -2000.0f64..2000.0, y in -2000.0f64..2000.0, feed in 1e-4f64..1.0) {
-            let line = format_move(&[('X', x), ('Y', y)], MoveKind::feed_m_s(feed)).unwrap();
+            let line = format_move(&[('X', x), ('Y', y)], MoveKind::feed_m_s(feed), false).unwrap();
             let words: Vec<&str> = line.split(' ').collect();
             let num = |prefix: char| words.iter().find_map(|w| w.strip_prefix(prefix)).unwrap().parse::<f64>().unwrap();
             prop_assert!((num('X') - x).abs() <= 5e-7);

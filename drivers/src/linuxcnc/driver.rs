@@ -19,8 +19,8 @@ use tokio::time::Instant;
 
 use super::codec::{
     decode_error, decode_homed, decode_linear_units_mm, decode_mode, decode_on_off,
-    decode_positions, decode_program_status, format_move, parse_reply, Mode, MoveKind,
-    ProgramStatus, Query, Reply, Request, MAX_LINE_BYTES, MM_PER_M,
+    decode_positions, decode_program_codes, decode_program_status, format_move, parse_reply,
+    ModalCodes, Mode, MoveKind, ProgramStatus, Query, Reply, Request, MAX_LINE_BYTES, MM_PER_M,
 };
 use crate::grbl::codec::{Framed, LineFramer};
 use crate::serial::check_seconds;
@@ -36,6 +36,11 @@ pub const ALARM_ESTOP: u16 = 1;
 pub const ALARM_MACHINE_OFF: u16 = 2;
 /// How long `set machine on` may take to show before the E-stop is cycled.
 const MACHINE_ON_SETTLE: Duration = Duration::from_secs(3);
+/// How long a stop caused elsewhere takes to show in full: linuxcncrsh reports another
+/// client's `set estop on` as machine off first and as E-stop about 0.3 s later.
+const STOP_SETTLE: Duration = Duration::from_secs(1);
+/// LinuxCNC's joint limit (`EMCMOT_MAX_JOINTS`).
+const MAX_JOINTS: usize = 16;
 
 /// Opens a new connection to linuxcncrsh: by host and port (`tcp_connector`), or by whatever
 /// the caller needs (e.g. a socket opened inside another network namespace).
@@ -96,9 +101,17 @@ pub struct LinuxCncConfig {
     /// Home the joints when they are not homed (`allow`), or refuse to run (`refuse`).
     #[serde(default)]
     pub home: HomePolicy,
-    /// Joints 0..joints must be homed (`[KINS] JOINTS`; linuxcncrsh reports unused ones too).
-    #[serde(default = "default_joints")]
-    pub joints: usize,
+    /// LinuxCNC's joint count (`[KINS] JOINTS`); joints 0..joints must be homed. linuxcncrsh
+    /// reports six homed flags whatever the machine has, so without this key the driver reads
+    /// `[KINS] JOINTS` from the INI file LinuxCNC names (`get inifile`), which works when
+    /// geocal runs on the LinuxCNC computer; elsewhere the key is required.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub joints: Option<usize>,
+    /// At the start of a run, release LinuxCNC's E-stop and turn the machine on when they are
+    /// found so (false: refuse to start, the operator does it at the machine). Never during a
+    /// run: an E-stop or machine-off geocal did not cause stops the run.
+    #[serde(default)]
+    pub power_on: bool,
     #[serde(default)]
     pub motion: MoveMode,
     /// Feed of every `G1` move, m/s (a run takes `devices.machine.feed_m_s`).
@@ -147,9 +160,6 @@ fn default_port() -> u16 {
 fn default_client_name() -> String {
     "geocal".into()
 }
-fn default_joints() -> usize {
-    3
-}
 fn default_feed_m_s() -> f64 {
     0.01
 }
@@ -187,7 +197,8 @@ impl Default for LinuxCncConfig {
             password_file: None,
             client_name: default_client_name(),
             home: HomePolicy::default(),
-            joints: default_joints(),
+            joints: None,
+            power_on: false,
             motion: MoveMode::default(),
             feed_m_s: default_feed_m_s(),
             reply_timeout_s: default_reply_timeout_s(),
@@ -242,10 +253,9 @@ impl LinuxCncConfig {
                 self.position_tolerance_m
             )));
         }
-        if !(1..=16).contains(&self.joints) {
+        if let Some(joints) = self.joints.filter(|j| !(1..=MAX_JOINTS).contains(j)) {
             return Err(bad(format!(
-                "joints must be between 1 and 16, got {}",
-                self.joints
+                "joints must be between 1 and {MAX_JOINTS}, got {joints}"
             )));
         }
         if self.client_name.is_empty() || !self.client_name.bytes().all(|b| b.is_ascii_graphic()) {
@@ -387,6 +397,21 @@ pub struct LinuxCncMachine {
     link_faults: Vec<LinkFault>,
     /// Connected for watching only (no `set enable`).
     observer: bool,
+    /// What the run found LinuxCNC in: set back at its end, on a stop and on a refusal.
+    found: Option<Found>,
+    /// Joints 0..joints must be homed (the config's `joints` or the INI's `[KINS] JOINTS`).
+    joints: usize,
+    /// A move line stated G90/G94 where the operator had G91/G93/G95: set back at arrival.
+    modes_changed: bool,
+}
+
+/// The controller's state as a run found it.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+struct Found {
+    mode: Mode,
+    codes: ModalCodes,
+    estop: bool,
+    machine_on: bool,
 }
 
 /// What linuxcncrsh reports of the machine (`LinuxCncMachine::status`).
@@ -427,16 +452,173 @@ impl LinuxCncMachine {
         Self::connect_with_passwords(cfg, connector, passwords).await
     }
 
-    /// Connect through `connector` with the given passwords: `hello`, enable, estop off,
-    /// machine on, homing (as `home` allows), MDI mode.
+    /// Connect through `connector` with the given passwords: `hello`, enable, then the start
+    /// of a run (`begin_run`).
     pub async fn connect_with_passwords(
         cfg: LinuxCncConfig,
         connector: StreamConnector,
         passwords: Passwords,
     ) -> Result<Self, DeviceError> {
         let mut machine = Self::open(cfg, connector, passwords, false).await?;
-        machine.power_up().await?;
+        machine.begin_run().await?;
         Ok(machine)
+    }
+
+    /// The start of a run: note the controller's state (mode, units, distance and feed mode),
+    /// check everything that could refuse the run (joints homed as `home` allows, E-stop and
+    /// machine power as `power_on` allows), and only then release the E-stop and power on
+    /// (if allowed), home (if allowed) and enter MDI mode. A refusal leaves LinuxCNC as found.
+    pub async fn begin_run(&mut self) -> Result<(), DeviceError> {
+        self.found = None;
+        self.modes_changed = false;
+        let found = Found {
+            mode: self.mode().await?,
+            codes: self.program_codes().await?,
+            estop: self.get_on_off(Query::Estop).await?,
+            machine_on: self.get_on_off(Query::Machine).await?,
+        };
+        self.found = Some(found);
+        let r = self.check_and_prepare().await;
+        if let Err(e) = r {
+            // Best effort, the first error being the one worth reporting: the mode as found,
+            // and the E-stop pressed again (or the machine off) if this start released it.
+            let _ = self.leave_as_found().await;
+            if found.estop && !self.get_on_off(Query::Estop).await.unwrap_or(true) {
+                let _ = self.set(&Request::Estop(true)).await;
+            } else if !found.machine_on && self.get_on_off(Query::Machine).await.unwrap_or(false) {
+                let _ = self.set(&Request::Machine(false)).await;
+            }
+            return Err(e);
+        }
+        Ok(())
+    }
+
+    async fn check_and_prepare(&mut self) -> Result<(), DeviceError> {
+        self.joints = self.joint_count().await?;
+        let unhomed = self.unhomed_joints().await?;
+        if !unhomed.is_empty() && self.cfg.home == HomePolicy::Refuse {
+            return Err(self.rejected(format!(
+                "LinuxCNC's joints {unhomed:?} are not homed and home = \"refuse\": home the \
+                 machine at its console, or set home = \"allow\" to let geocal home all joints"
+            )));
+        }
+        let (estop, machine_on) = self
+            .found
+            .map_or((true, false), |f| (f.estop, f.machine_on));
+        if (estop || !machine_on) && !self.cfg.power_on {
+            let what = if estop {
+                "in E-stop"
+            } else {
+                "powered off (machine off)"
+            };
+            return Err(self.rejected(format!(
+                "LinuxCNC is {what}: release the E-stop and turn the machine on at the machine, \
+                 then start again (geocal does so itself only with power_on = true in \
+                 [devices.machine.linuxcnc])"
+            )));
+        }
+        self.power_up().await?;
+        self.ensure_homed().await?;
+        self.ensure_mdi().await
+    }
+
+    /// The interpreter's units, distance and feed mode.
+    async fn program_codes(&mut self) -> Result<ModalCodes, DeviceError> {
+        let value = self.get(Query::ProgramCodes).await?;
+        decode_program_codes(&value).map_err(|e| self.protocol(format!("`get program_codes`: {e}")))
+    }
+
+    /// The joint count: the config's `joints`, else `[KINS] JOINTS` of the INI file LinuxCNC
+    /// names (linuxcncrsh itself reports six joints whatever the machine has).
+    async fn joint_count(&mut self) -> Result<usize, DeviceError> {
+        if let Some(joints) = self.cfg.joints {
+            return Ok(joints);
+        }
+        let path = self.get(Query::IniFile).await?;
+        let path = path.trim();
+        let text = std::fs::read_to_string(path).map_err(|e| {
+            self.rejected(format!(
+                "the joint count: linuxcncrsh reports six joints whatever the machine has, so \
+                 geocal reads [KINS] JOINTS from LinuxCNC's INI file, {path} (`get inifile`), \
+                 which cannot be read here ({e}): set `joints` in [devices.machine.linuxcnc]"
+            ))
+        })?;
+        ini_joints(&text).ok_or_else(|| {
+            self.rejected(format!(
+                "the joint count: LinuxCNC's INI file {path} has no [KINS] JOINTS between 1 and \
+                 {MAX_JOINTS}: set `joints` in [devices.machine.linuxcnc]"
+            ))
+        })
+    }
+
+    /// Set back what the run changed: the distance and feed mode (a restoring MDI line) and
+    /// the task mode, as found at the start. LinuxCNC refuses both in E-stop or with the
+    /// machine off: then an error says what stays changed (units never change: moves are
+    /// written in the units found).
+    pub async fn leave_as_found(&mut self) -> Result<(), DeviceError> {
+        let Some(found) = self.found else {
+            return Ok(());
+        };
+        if self.observer {
+            return Ok(());
+        }
+        let restore = found.codes.restore_words().filter(|_| self.modes_changed);
+        let mode = self.mode().await?;
+        if restore.is_none() && mode == found.mode {
+            return Ok(());
+        }
+        if self.get_on_off(Query::Estop).await? || !self.get_on_off(Query::Machine).await? {
+            return Err(self.rejected(format!(
+                "LinuxCNC is in E-stop or off, where it refuses mode changes and MDI: it stays \
+                 in mode {mode:?}{} (found: mode {:?}{})",
+                if restore.is_some() {
+                    " with G90 G94"
+                } else {
+                    ""
+                },
+                found.mode,
+                restore
+                    .as_deref()
+                    .map(|w| format!(", {w}"))
+                    .unwrap_or_default()
+            )));
+        }
+        if let Some(words) = restore {
+            self.restore_modal_codes(&words).await?;
+        }
+        if mode != found.mode || self.mode().await? != found.mode {
+            self.ensure_mode(found.mode).await?;
+        }
+        Ok(())
+    }
+
+    /// Send the MDI line that sets the operator's distance/feed mode again and wait until the
+    /// interpreter took it.
+    async fn restore_modal_codes(&mut self, words: &str) -> Result<(), DeviceError> {
+        self.ensure_mdi().await?;
+        self.set(&Request::Mdi(words.to_string())).await?;
+        let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
+        loop {
+            let value = self.get(Query::ProgramStatus).await?;
+            let status = decode_program_status(&value)
+                .map_err(|e| self.protocol(format!("`get program_status`: {e}")))?;
+            if status == ProgramStatus::Idle {
+                break;
+            }
+            if Instant::now() >= deadline {
+                return Err(DeviceError::Timeout {
+                    device: self.cfg.id.clone(),
+                    what: format!("`set mdi {words}` to finish"),
+                    after_s: self.cfg.reply_timeout_s,
+                });
+            }
+            tokio::time::sleep(Duration::from_millis(10)).await;
+        }
+        if let Some(e) = self.error_text().await? {
+            return Err(self.rejected(format!("LinuxCNC refused `set mdi {words}`: {e}")));
+        }
+        self.modes_changed = false;
+        Ok(())
     }
 
     /// Connect for watching only (`geocal monitor`): `hello` with the connect password, no
@@ -482,6 +664,9 @@ impl LinuxCncMachine {
             status_polls: 0,
             link_faults: Vec::new(),
             observer,
+            found: None,
+            joints: 0,
+            modes_changed: false,
         };
         machine.handshake().await?;
         Ok(machine)
@@ -585,7 +770,7 @@ impl LinuxCncMachine {
         self.set(&Request::WaitReceived).await
     }
 
-    /// Out of E-stop, machine on, joints homed (or a refusal), MDI mode.
+    /// Out of E-stop, machine on (only at the start of a run, and only with `power_on`).
     async fn power_up(&mut self) -> Result<(), DeviceError> {
         if self.get_on_off(Query::Estop).await? {
             self.set(&Request::Estop(false)).await?;
@@ -627,8 +812,7 @@ impl LinuxCncMachine {
                 )));
             }
         }
-        self.ensure_homed().await?;
-        self.ensure_mdi().await
+        Ok(())
     }
 
     /// Joints 0..joints homed; homes them (`set home -1`) if the config allows it.
@@ -669,14 +853,14 @@ impl LinuxCncMachine {
         let value = self.get(Query::JointHomed).await?;
         let flags =
             decode_homed(&value).map_err(|e| self.protocol(format!("`get joint_homed`: {e}")))?;
-        if flags.len() < self.cfg.joints {
+        if flags.len() < self.joints {
             return Err(self.protocol(format!(
-                "`get joint_homed` reports {} joints, the config expects {}",
+                "`get joint_homed` reports {} joints, the machine has {}",
                 flags.len(),
-                self.cfg.joints
+                self.joints
             )));
         }
-        Ok((0..self.cfg.joints).filter(|&j| !flags[j]).collect())
+        Ok((0..self.joints).filter(|&j| !flags[j]).collect())
     }
 
     async fn ensure_mdi(&mut self) -> Result<(), DeviceError> {
@@ -689,17 +873,30 @@ impl LinuxCncMachine {
         if self.mode().await? == want {
             return Ok(());
         }
-        self.set(&Request::SetMode(want)).await?;
+        let request = Request::SetMode(want);
+        let refused = match self.set(&request).await {
+            Err(DeviceError::Rejected { .. }) => true,
+            Err(e) => return Err(e),
+            Ok(()) => false,
+        };
         let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
         loop {
             let mode = self.mode().await?;
             if mode == want {
                 return Ok(());
             }
-            if Instant::now() >= deadline {
+            if refused || Instant::now() >= deadline {
+                // LinuxCNC's own reason, e.g. "all joints must be homed before going into
+                // coordinated mode".
+                let errors = self.drain_errors().await?;
+                let why = if errors.is_empty() {
+                    String::new()
+                } else {
+                    format!(": LinuxCNC says \"{}\"", errors.join("; "))
+                };
+                let nak = if refused { " (NAK)" } else { "" };
                 return Err(self.rejected(format!(
-                    "LinuxCNC stays in mode {mode:?} after `{}`",
-                    Request::SetMode(want)
+                    "LinuxCNC stays in mode {mode:?} after `{request}`{nak}{why}"
                 )));
             }
             tokio::time::sleep(Duration::from_millis(20)).await;
@@ -877,32 +1074,50 @@ impl LinuxCncMachine {
         Ok(())
     }
 
-    /// Why LinuxCNC does not move: E-stop or machine off (an alarm: `unlock` clears it), else
-    /// its error message if it has one.
+    /// Why LinuxCNC does not move: E-stop or machine off (an alarm geocal did not cause and
+    /// does not clear: `unlock` refuses until the operator cleared it), else its error message
+    /// if it has one.
     async fn fault(&mut self, context: &str) -> Result<Option<DeviceError>, DeviceError> {
-        let errors = self.drain_errors().await?;
+        let mut errors = self.drain_errors().await?;
+        let mut estop = self.get_on_off(Query::Estop).await?;
+        let mut stopped = estop || !self.get_on_off(Query::Machine).await?;
+        if !stopped && !self.get_on_off(Query::Enable).await? {
+            // Another client took control: an operator's GUI or pendant does so to press
+            // E-stop, which shows a few cycles later.
+            let deadline = Instant::now() + STOP_SETTLE;
+            while !stopped && Instant::now() < deadline {
+                tokio::time::sleep(Duration::from_millis(20)).await;
+                estop = self.get_on_off(Query::Estop).await?;
+                stopped = estop || !self.get_on_off(Query::Machine).await?;
+            }
+        }
+        if stopped {
+            // Let the state settle before naming it: another client's E-stop shows as machine
+            // off first.
+            if !estop {
+                estop = self
+                    .settle_on_off_within(Query::Estop, true, STOP_SETTLE)
+                    .await?;
+            }
+            errors.extend(self.drain_errors().await?);
+        }
         let said = if errors.is_empty() {
             String::new()
         } else {
             format!(" (LinuxCNC: {})", errors.join("; "))
         };
-        if self.get_on_off(Query::Estop).await? {
+        if stopped {
+            let (code, what) = if estop {
+                (ALARM_ESTOP, "LinuxCNC went into E-stop")
+            } else {
+                (ALARM_MACHINE_OFF, "LinuxCNC's machine was turned off")
+            };
             return Ok(Some(DeviceError::Alarm {
                 device: self.cfg.id.clone(),
-                code: ALARM_ESTOP,
+                code,
                 message: format!(
-                    "LinuxCNC is in E-stop {context}{said}; unlock resets it and the move is \
-                     commanded again"
-                ),
-            }));
-        }
-        if !self.get_on_off(Query::Machine).await? {
-            return Ok(Some(DeviceError::Alarm {
-                device: self.cfg.id.clone(),
-                code: ALARM_MACHINE_OFF,
-                message: format!(
-                    "LinuxCNC's machine is off {context}{said}; unlock turns it on and the move \
-                     is commanded again"
+                    "{what} {context}{said}, not by geocal, which does not release an E-stop \
+                     or power a machine on during a run"
                 ),
             }));
         }
@@ -916,6 +1131,25 @@ impl LinuxCncMachine {
             ))));
         }
         Ok(None)
+    }
+
+    /// "in E-stop" or "powered off" while LinuxCNC is stopped (once the state settled), else
+    /// None.
+    async fn stopped_state(&mut self) -> Result<Option<&'static str>, DeviceError> {
+        let mut estop = self.get_on_off(Query::Estop).await?;
+        if !estop {
+            if self.get_on_off(Query::Machine).await? {
+                return Ok(None);
+            }
+            estop = self
+                .settle_on_off_within(Query::Estop, true, STOP_SETTLE)
+                .await?;
+        }
+        Ok(Some(if estop {
+            "in E-stop"
+        } else {
+            "powered off (machine off)"
+        }))
     }
 
     /// Positions of the configured axes (metres) from `get abs_act_pos`.
@@ -961,7 +1195,11 @@ impl LinuxCncMachine {
             MoveMode::Feed => MoveKind::feed_m_s(self.cfg.feed_m_s),
             MoveMode::Rapid => MoveKind::Rapid,
         };
-        let line = format_move(&mm, kind)
+        let codes = match self.found {
+            Some(found) => found.codes,
+            None => self.program_codes().await?,
+        };
+        let line = format_move(&mm, kind, codes.inch)
             .map_err(|e| self.rejected(format!("cannot command the move: {e}")))?;
         // Errors queued before this move are not about it.
         self.drain_errors().await?;
@@ -975,6 +1213,7 @@ impl LinuxCncMachine {
             return Err(self.fault(&format!("refusing `{mdi}`")).await?.unwrap_or(e));
         }
         sent?;
+        self.modes_changed |= codes.restore_words().is_some();
         self.commanded = next;
         self.last_move = Some(line);
         self.last_state = None;
@@ -1002,6 +1241,12 @@ impl LinuxCncMachine {
             .all(|(c, a)| c.is_none_or(|c| a.is_some_and(|a| (c - a).abs() <= tol)));
         if arrived {
             self.idle_short_since = None;
+            // The operator's G91/G93/G95 again while the machine stands.
+            if self.modes_changed {
+                if let Some(words) = self.found.and_then(|f| f.codes.restore_words()) {
+                    self.restore_modal_codes(&words).await?;
+                }
+            }
             let position = self
                 .axis_index
                 .iter()
@@ -1243,28 +1488,29 @@ impl Machine for LinuxCncMachine {
         }
     }
 
-    /// Leave E-stop or machine-off: enable this connection again, estop off, machine on, home if needed (as `home`
-    /// allows), MDI mode. The interrupted move must be commanded again.
+    /// After an E-stop or machine-off: geocal releases neither (the operator owns the
+    /// E-stop), so this refuses while LinuxCNC is still stopped and the run stops, resumable.
+    /// Once the operator has cleared it at the machine: take control again (`set enable`),
+    /// check the homes (as `home` allows), MDI mode. The interrupted move must be commanded
+    /// again.
     async fn unlock(&mut self) -> Result<(), DeviceError> {
-        // Another client may have taken control (and pressed E-stop): take it back first.
-        let r = match self.enable().await {
-            Ok(()) => self.power_up().await,
-            Err(e) => Err(e),
-        };
-        let r = match r {
+        let still = match self.stopped_state().await {
             Err(e @ DeviceError::Disconnected { .. }) => {
                 self.reconnect(e).await?;
-                self.power_up().await
+                self.stopped_state().await?
             }
-            r => r,
+            r => r?,
         };
-        r.map_err(|e| match e {
-            DeviceError::Rejected { device, message } => DeviceError::Rejected {
-                device,
-                message: format!("clearing LinuxCNC's E-stop/machine-off alarm: {message}"),
-            },
-            e => e,
-        })?;
+        if let Some(what) = still {
+            return Err(self.rejected(format!(
+                "LinuxCNC is {what}, which geocal did not cause and does not undo: clear it at \
+                 the machine (release the E-stop, turn the machine on) and continue the run \
+                 with `geocal run --resume DIR`"
+            )));
+        }
+        self.enable().await?;
+        self.ensure_homed().await?;
+        self.ensure_mdi().await?;
         self.drain_errors().await?;
         self.last_state = None;
         self.last_poll = None;
@@ -1275,6 +1521,39 @@ impl Machine for LinuxCncMachine {
     fn take_link_faults(&mut self) -> Vec<LinkFault> {
         std::mem::take(&mut self.link_faults)
     }
+
+    /// Set back the task mode and the distance/feed mode the run found.
+    async fn finish(&mut self) -> Result<(), DeviceError> {
+        self.leave_as_found().await
+    }
+}
+
+/// `[KINS] JOINTS` of a LinuxCNC INI file's text (comments start with `#` or `;`).
+fn ini_joints(text: &str) -> Option<usize> {
+    let mut in_kins = false;
+    for line in text.lines() {
+        let line = line.trim();
+        if line.starts_with('#') || line.starts_with(';') {
+            continue;
+        }
+        if line.starts_with('[') {
+            in_kins = line == "[KINS]";
+            continue;
+        }
+        if !in_kins {
+            continue;
+        }
+        if let Some((key, value)) = line.split_once('=') {
+            if key.trim() == "JOINTS" {
+                return value
+                    .trim()
+                    .parse()
+                    .ok()
+                    .filter(|j| (1..=MAX_JOINTS).contains(j));
+            }
+        }
+    }
+    None
 }
 
 #[cfg(test)]
@@ -1284,7 +1563,10 @@ mod tests {
     #[test]
     fn config_defaults_and_refusals() {
         let c: LinuxCncConfig = toml::from_str("host = \"cnc\"").expect("config");
-        assert_eq!((c.port, c.joints, c.home), (5007, 3, HomePolicy::Refuse));
+        assert_eq!(
+            (c.port, c.joints, c.home, c.power_on),
+            (5007, None, HomePolicy::Refuse, false)
+        );
         assert!(c.validate().is_ok());
         let inline: LinuxCncConfig =
             toml::from_str("host = \"cnc\"\nenable_password = \"EMCTOO\"").expect("parses");
@@ -1306,6 +1588,16 @@ mod tests {
             ..LinuxCncConfig::default()
         };
         assert!(slow.validate().is_err());
+    }
+
+    #[test]
+    fn joint_count_from_the_ini() {
+        let gantry = "[KINS]\n# a comment\nKINEMATICS = trivkins coordinates=xyyz\nJOINTS = 4\n\
+                      [TRAJ]\nJOINTS = 9\n";
+        assert_eq!(ini_joints(gantry), Some(4));
+        assert_eq!(ini_joints("[TRAJ]\nJOINTS = 3\n"), None);
+        assert_eq!(ini_joints("[KINS]\nJOINTS = 40\n"), None);
+        assert_eq!(ini_joints("[KINS]\n;JOINTS = 2\nJOINTS=3"), Some(3));
     }
 
     #[test]

@@ -197,7 +197,9 @@ impl<'a> ProbeInstallSequencer<'a> {
         self.log.fault(
             &id,
             "alarm",
-            format!("{error}: unlocking and commanding the move again"),
+            format!(
+                "{error}: unlock asked (the move is commanded again once the alarm is cleared)"
+            ),
         );
         if *alarms > crate::sequencer::MAX_ALARMS {
             return Err(error.into());

@@ -160,6 +160,10 @@ impl geocal_drivers::Machine for TrimReportingMachine {
         self.inner.unlock().await
     }
 
+    async fn finish(&mut self) -> Result<(), geocal_drivers::DeviceError> {
+        self.inner.finish().await
+    }
+
     fn take_link_faults(&mut self) -> Vec<geocal_drivers::LinkFault> {
         self.inner.take_link_faults()
     }

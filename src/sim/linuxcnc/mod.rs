@@ -148,6 +148,56 @@ impl LinuxCnc {
                 );
             }
         }
+        Self::launch(timeout, |dir| {
+            let ini_path = dir.join("geocal.ini");
+            std::fs::write(&ini_path, ini::ini_text(setup))?;
+            std::fs::write(dir.join(ini::HAL_FILE), ini::hal_text())?;
+            std::fs::write(dir.join("geocal.tbl"), "")?;
+            std::fs::write(dir.join("geocal.var"), "")?;
+            Ok(ini_path)
+        })
+    }
+
+    /// Start LinuxCNC from someone else's configuration, e.g. one of the sample configs Debian
+    /// ships: the files of `ini`'s directory are copied (symbolic links followed) into the
+    /// scratch directory with only `[DISPLAY] DISPLAY` changed to `linuxcncrsh`.
+    pub fn start_config(ini: &Path, timeout: Duration) -> anyhow::Result<Self> {
+        if let Some(why) = unavailable() {
+            bail!("LinuxCNC cannot run here: {why}");
+        }
+        let source = ini
+            .parent()
+            .with_context(|| format!("{} has no directory", ini.display()))?;
+        let name = ini
+            .file_name()
+            .with_context(|| format!("{} names no file", ini.display()))?;
+        let text = std::fs::read_to_string(ini)
+            .with_context(|| format!("reading LinuxCNC configuration {}", ini.display()))?;
+        let text = with_display_linuxcncrsh(&text)
+            .with_context(|| format!("{}: no [DISPLAY] DISPLAY line", ini.display()))?;
+        Self::launch(timeout, |dir| {
+            let config = dir.join("config");
+            std::fs::create_dir(&config)?;
+            for entry in std::fs::read_dir(source)? {
+                let path = entry?.path();
+                if path.is_file() {
+                    if let Some(file) = path.file_name() {
+                        std::fs::copy(&path, config.join(file))?;
+                    }
+                }
+            }
+            let ini_path = config.join(name);
+            std::fs::write(&ini_path, &text)?;
+            Ok(ini_path)
+        })
+    }
+
+    /// Take the lock, make the scratch directory, let `write_config` put the configuration
+    /// into it (returning its INI's path), start LinuxCNC and wait for linuxcncrsh.
+    fn launch(
+        timeout: Duration,
+        write_config: impl FnOnce(&Path) -> std::io::Result<PathBuf>,
+    ) -> anyhow::Result<Self> {
         let lock = take_lock()?;
         if let Some(pid) = running_linuxcnc() {
             bail!(
@@ -172,11 +222,7 @@ impl LinuxCnc {
         std::fs::set_permissions(&fifo_dir, std::fs::Permissions::from_mode(0o700))?;
         std::os::unix::fs::chown(&fifo_dir, Some(uid), None)
             .context("handing the RTAPI fifo directory to nobody")?;
-        let ini_path = dir.path().join("geocal.ini");
-        std::fs::write(&ini_path, ini::ini_text(setup))?;
-        std::fs::write(dir.path().join(ini::HAL_FILE), ini::hal_text())?;
-        std::fs::write(dir.path().join("geocal.tbl"), "")?;
-        std::fs::write(dir.path().join("geocal.var"), "")?;
+        let ini_path = write_config(dir.path()).context("writing LinuxCNC's configuration")?;
         let env = vec![
             ("RTAPI_UID".to_string(), uid.to_string()),
             (
@@ -190,7 +236,7 @@ impl LinuxCnc {
         cmd.args(["-n", "--", "sh", "-c"])
             .arg("ip link set lo up && exec linuxcnc -r \"$0\"")
             .arg(&ini_path)
-            .current_dir(dir.path())
+            .current_dir(ini_path.parent().unwrap_or(dir.path()))
             .env_remove("DISPLAY")
             .stdin(Stdio::null())
             .stdout(log.try_clone()?)
@@ -392,6 +438,31 @@ impl Drop for LinuxCnc {
     }
 }
 
+/// `text` (an INI file) with its `[DISPLAY]` section's `DISPLAY` set to `linuxcncrsh`; None
+/// without such a line.
+fn with_display_linuxcncrsh(text: &str) -> Option<String> {
+    let mut section = "";
+    let mut changed = false;
+    let mut out = String::with_capacity(text.len());
+    for line in text.lines() {
+        let t = line.trim();
+        if t.starts_with('[') {
+            section = t;
+        }
+        let is_display = section == "[DISPLAY]"
+            && t.split_once('=')
+                .is_some_and(|(k, _)| k.trim() == "DISPLAY");
+        if is_display && !changed {
+            out.push_str("DISPLAY = linuxcncrsh");
+            changed = true;
+        } else {
+            out.push_str(line);
+        }
+        out.push('\n');
+    }
+    changed.then_some(out)
+}
+
 /// Opens linuxcncrsh connections inside a LinuxCNC's namespace (cheap to clone).
 #[derive(Clone)]
 pub struct Connector {
@@ -552,4 +623,19 @@ pub fn linuxcnc_shared_memory() -> Vec<String> {
         .map(|key| format!("0x{:08x}", key as u32))
         .filter(|key| IPC_KEYS.contains(&key.as_str()))
         .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::with_display_linuxcncrsh;
+
+    #[test]
+    fn only_the_display_line_changes() {
+        let ini = "[EMC]\nDISPLAY = x\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = axis\nCYCLE_TIME = 0.1\n";
+        assert_eq!(
+            with_display_linuxcncrsh(ini).as_deref(),
+            Some("[EMC]\nDISPLAY = x\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = linuxcncrsh\nCYCLE_TIME = 0.1\n")
+        );
+        assert_eq!(with_display_linuxcncrsh("[EMC]\nDISPLAY = axis\n"), None);
+    }
 }
