@@ -446,7 +446,11 @@ fn duckdb_reads_the_export_as_the_results_say() {
                         })
                         .unwrap_or_else(|| panic!("{name} of {id} at {position}"));
                     let planned = f(&row[3]).expect("position");
-                    assert_eq!(planned, as_planned(planned), "{name} at {position}: as planned");
+                    assert_eq!(
+                        planned,
+                        as_planned(planned),
+                        "{name} at {position}: as planned"
+                    );
                     same(&row[4], &e["values"][i], name);
                     same(&row[5], &e["sigma"][i], name);
                     assert_eq!(row[6], e["unit"]);
@@ -583,7 +587,11 @@ fn duckdb_reads_the_export_as_the_results_say() {
         .collect();
     assert_eq!(drift.len(), identifiable.len(), "{drift:?}");
     for row in drift {
-        assert_eq!(row[0], json!(mill_key), "only the mill has two runs: {row:?}");
+        assert_eq!(
+            row[0],
+            json!(mill_key),
+            "only the mill has two runs: {row:?}"
+        );
         assert_eq!(row[1], json!(MILL));
         assert_eq!(row[3], json!(2));
         let name = row[2].as_str().expect("name");
@@ -896,6 +904,15 @@ fn copy_run(from: &Path, to: &Path, files: &[&str], name: &str, serial: Option<&
     std::fs::create_dir_all(to).expect("mkdir");
     for file in files {
         std::fs::copy(from.join(file), to.join(file)).expect("copy");
+        // The file's time too: a run without a session starts at its results file's time.
+        let modified = std::fs::metadata(from.join(file))
+            .and_then(|m| m.modified())
+            .expect("file time");
+        std::fs::File::options()
+            .write(true)
+            .open(to.join(file))
+            .and_then(|f| f.set_modified(modified))
+            .expect("set the file time");
     }
     rename_machine(to, name, serial);
 }
@@ -921,19 +938,31 @@ fn rename_machine(dir: &Path, name: &str, serial: Option<&str>) {
 
 /// A run of another session from the results of `from` (results and configuration only: no
 /// session, so no ISO 230-2 figures, and its time is the results file's, `age_s` ago).
-fn results_only_run(from: &Path, to: &Path, session_suffix: &str, age_s: u64, name: &str, serial: Option<&str>) {
+fn results_only_run(
+    from: &Path,
+    to: &Path,
+    session_suffix: &str,
+    age_s: u64,
+    name: &str,
+    serial: Option<&str>,
+) {
     copy_run(from, to, &["run-config.toml"], name, serial);
     let mut results: Value =
         serde_json::from_slice(&std::fs::read(from.join("results.json")).expect("results"))
             .expect("results JSON");
-    let session = format!("{}{session_suffix}", results["session_id"].as_str().expect("id"));
+    let session = format!(
+        "{}{session_suffix}",
+        results["session_id"].as_str().expect("id")
+    );
     results["session_id"] = json!(session);
     let path = to.join("results.json");
     std::fs::write(&path, serde_json::to_string(&results).expect("JSON")).expect("write");
     std::fs::File::options()
         .write(true)
         .open(&path)
-        .and_then(|f| f.set_modified(std::time::SystemTime::now() - std::time::Duration::from_secs(age_s)))
+        .and_then(|f| {
+            f.set_modified(std::time::SystemTime::now() - std::time::Duration::from_secs(age_s))
+        })
         .expect("set the results' time");
 }
 
@@ -1001,11 +1030,42 @@ fn engines_read_a_fleet_alike(
     let multi = ["results.json", "session.mcap", "run-config.toml"];
     copy_run(&runs[0].dir, &src.join("a-fraese-1"), &multi, FRAESE, None);
     copy_run(&runs[1].dir, &src.join("a-fraese-2"), &multi, FRAESE, None);
-    copy_run(&runs[1].dir, &src.join("a-fraese-2-copy"), &multi, FRAESE, None);
-    let with_diagnosis = ["results.json", "session.mcap", "run-config.toml", "diagnosis.json"];
-    copy_run(&runs[2].dir, &src.join("b-bridge-1001"), &with_diagnosis, SHARED, Some("BR-1001"));
-    results_only_run(&runs[0].dir, &src.join("c-bridge-1002-a"), "-br1002", 120, "Old Bridge", Some("BR-1002"));
-    results_only_run(&runs[1].dir, &src.join("c-bridge-1002-b"), "-br1002", 60, "Old Bridge", Some("BR-1002"));
+    copy_run(
+        &runs[1].dir,
+        &src.join("a-fraese-2-copy"),
+        &multi,
+        FRAESE,
+        None,
+    );
+    let with_diagnosis = [
+        "results.json",
+        "session.mcap",
+        "run-config.toml",
+        "diagnosis.json",
+    ];
+    copy_run(
+        &runs[2].dir,
+        &src.join("b-bridge-1001"),
+        &with_diagnosis,
+        SHARED,
+        Some("BR-1001"),
+    );
+    results_only_run(
+        &runs[0].dir,
+        &src.join("c-bridge-1002-a"),
+        "-br1002",
+        120,
+        "Old Bridge",
+        Some("BR-1002"),
+    );
+    results_only_run(
+        &runs[1].dir,
+        &src.join("c-bridge-1002-b"),
+        "-br1002",
+        60,
+        "Old Bridge",
+        Some("BR-1002"),
+    );
     results_only_run(&runs[1].dir, &src.join("d-0042"), "-0042", 60, DIGITS, None);
     let dest = work.join("spark-fleet");
     let export = |from: &Path, to: &Path, raw: bool| {
@@ -1034,31 +1094,56 @@ fn engines_read_a_fleet_alike(
         "{stderr}"
     );
     let old_key = key_of("Old Bridge", Some("BR-1002"));
-    assert!(dest.join(format!("parameters/machine_key={old_key}")).is_dir());
+    assert!(dest
+        .join(format!("parameters/machine_key={old_key}"))
+        .is_dir());
 
     // The machine renamed; an interrupted export left a file in the staging folder; exported
     // again without --raw.
     for run in ["c-bridge-1002-a", "c-bridge-1002-b"] {
         rename_machine(&src.join(run), SHARED, Some("BR-1002"));
     }
-    std::fs::write(dest.join("_staging/parameters.r-interrupted.parquet"), b"PAR1 half").expect("leftover");
+    std::fs::write(
+        dest.join("_staging/parameters.r-interrupted.parquet"),
+        b"PAR1 half",
+    )
+    .expect("leftover");
     export(&src, &dest, false);
     for table in TABLES {
         let dir = dest.join(table.name);
-        assert!(!dir.join(format!("machine_key={old_key}")).exists(), "{}", table.name);
+        assert!(
+            !dir.join(format!("machine_key={old_key}")).exists(),
+            "{}",
+            table.name
+        );
         let entries: Vec<String> = std::fs::read_dir(&dir)
             .expect("table folder")
             .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
             .collect();
         let empty = entries.iter().any(|e| e == "empty.parquet");
-        assert!(empty != entries.iter().any(|e| e.starts_with("machine_key=")), "{}: {entries:?}", table.name);
-        assert_eq!(empty, table.name == "tracer_samples", "{}: {entries:?}", table.name);
+        assert!(
+            empty != entries.iter().any(|e| e.starts_with("machine_key=")),
+            "{}: {entries:?}",
+            table.name
+        );
+        assert_eq!(
+            empty,
+            table.name == "tracer_samples",
+            "{}: {entries:?}",
+            table.name
+        );
     }
     assert!(!dest.join("_staging").exists());
     // A fleet of results only: no diagnoses, ISO 230-2 figures or raw samples.
     let bare_src = work.join("spark-runs-bare");
     for run in ["c-bridge-1002-a", "c-bridge-1002-b", "d-0042"] {
-        copy_run(&src.join(run), &bare_src.join(run), &["results.json", "run-config.toml"], if run == "d-0042" { DIGITS } else { SHARED }, (run != "d-0042").then_some("BR-1002"));
+        copy_run(
+            &src.join(run),
+            &bare_src.join(run),
+            &["results.json", "run-config.toml"],
+            if run == "d-0042" { DIGITS } else { SHARED },
+            (run != "d-0042").then_some("BR-1002"),
+        );
     }
     let bare = work.join("spark-fleet-bare");
     export(&bare_src, &bare, false);
@@ -1109,7 +1194,9 @@ fn engines_read_a_fleet_alike(
     {
         use std::io::Write;
         let mut stdin = child.stdin.take().expect("stdin");
-        stdin.write_all(request.to_string().as_bytes()).expect("write request");
+        stdin
+            .write_all(request.to_string().as_bytes())
+            .expect("write request");
     }
     let output = child.wait_with_output().expect("python3 output");
     assert!(
@@ -1131,13 +1218,23 @@ fn engines_read_a_fleet_alike(
         for table in TABLES {
             let spark = &a["summary"]["spark"][table.name];
             for engine in ["duckdb", "polars", "pyarrow"] {
-                agree(&a["summary"][engine][table.name], spark, &format!("{fleet} {} {engine}", table.name));
+                agree(
+                    &a["summary"][engine][table.name],
+                    spark,
+                    &format!("{fleet} {} {engine}", table.name),
+                );
             }
             for (engine, types) in a["types"].as_object().expect("types") {
                 for column in ["machine_key", "machine", "machine_serial", "run_id"] {
-                    let t = types[table.name][column].as_str().unwrap_or_default().to_lowercase();
+                    let t = types[table.name][column]
+                        .as_str()
+                        .unwrap_or_default()
+                        .to_lowercase();
                     assert!(
-                        t == "string" || t == "varchar" || t == "str" || t == "dictionary<values=string, indices=int32, ordered=0>",
+                        t == "string"
+                            || t == "varchar"
+                            || t == "str"
+                            || t == "dictionary<values=string, indices=int32, ordered=0>",
                         "{fleet} {engine} {}.{column}: {t}",
                         table.name
                     );
@@ -1145,7 +1242,11 @@ fn engines_read_a_fleet_alike(
             }
         }
         for (query, spark) in a["spark"].as_object().expect("spark answers") {
-            agree(&a["duckdb"][query], spark, &format!("{fleet} {query}: DuckDB and Spark"));
+            agree(
+                &a["duckdb"][query],
+                spark,
+                &format!("{fleet} {query}: DuckDB and Spark"),
+            );
         }
     }
 
@@ -1164,9 +1265,27 @@ fn engines_read_a_fleet_alike(
         json!([fraese, FRAESE, null, run_id(&session_of(&runs[0])), 1]),
         json!([fraese, FRAESE, null, run_id(&session_of(&runs[1])), 1]),
         json!([b1001, SHARED, "BR-1001", run_id(&session_of(&runs[2])), 1]),
-        json!([b1002, SHARED, "BR-1002", run_id(&format!("{}-br1002", session_of(&runs[0]))), 1]),
-        json!([b1002, SHARED, "BR-1002", run_id(&format!("{}-br1002", session_of(&runs[1]))), 1]),
-        json!([digits, DIGITS, null, run_id(&format!("{}-0042", session_of(&runs[1]))), 1]),
+        json!([
+            b1002,
+            SHARED,
+            "BR-1002",
+            run_id(&format!("{}-br1002", session_of(&runs[0]))),
+            1
+        ]),
+        json!([
+            b1002,
+            SHARED,
+            "BR-1002",
+            run_id(&format!("{}-br1002", session_of(&runs[1]))),
+            1
+        ]),
+        json!([
+            digits,
+            DIGITS,
+            null,
+            run_id(&format!("{}-0042", session_of(&runs[1]))),
+            1
+        ]),
     ];
     want_runs.sort_by_key(|r| r.to_string());
     assert_eq!(sorted(&fleet["summary"]["spark"]["runs"]), want_runs);
@@ -1190,7 +1309,11 @@ fn engines_read_a_fleet_alike(
         let source = source_of[row[3].as_str().expect("run id")];
         assert_eq!(row[4], json!(rows_of(&session_of(&runs[source]))), "{row}");
     }
-    assert_eq!(fleet["summary"]["spark"]["tracer_samples"], json!([]), "a plain export removes the raw samples");
+    assert_eq!(
+        fleet["summary"]["spark"]["tracer_samples"],
+        json!([]),
+        "a plain export removes the raw samples"
+    );
 
     // docs/fleet.md's questions, answered by Spark as the results files say.
     let spark = &fleet["spark"];
@@ -1207,18 +1330,31 @@ fn engines_read_a_fleet_alike(
     assert_eq!(drift.len(), 2 * identifiable.len(), "{drift:?}");
     for row in drift {
         let name = row[2].as_str().expect("name");
-        let machine = if row[0] == json!(fraese) { FRAESE } else { SHARED };
+        let machine = if row[0] == json!(fraese) {
+            FRAESE
+        } else {
+            SHARED
+        };
         assert!(row[0] == json!(fraese) || row[0] == json!(b1002), "{row}");
         assert_eq!(row[1], json!(machine), "the name as written");
         assert_eq!(row[3], json!(2));
-        let value = |r: &Run| r.results["geometric_errors"]["squareness"][name]["value_rad"].as_f64().expect("value");
+        let value = |r: &Run| {
+            r.results["geometric_errors"]["squareness"][name]["value_rad"]
+                .as_f64()
+                .expect("value")
+        };
         assert_eq!(f(&row[4]), Some(value(&runs[1]) - value(&runs[0])), "{row}");
     }
     let mut e_failed: Vec<(String, String)> = spark["iso_e_failed"]
         .as_array()
         .expect("rows")
         .iter()
-        .map(|row| (row[3].as_str().expect("session").to_owned(), row[4].as_str().expect("axis").to_owned()))
+        .map(|row| {
+            (
+                row[3].as_str().expect("session").to_owned(),
+                row[4].as_str().expect("axis").to_owned(),
+            )
+        })
         .collect();
     e_failed.sort();
     assert_eq!(e_failed, failed_e);
@@ -1232,7 +1368,12 @@ fn engines_read_a_fleet_alike(
         .iter()
         .map(|r| (r[0].clone(), r[4].clone()))
         .collect();
-    let mut want = vec![(json!(fraese), json!(2)), (json!(b1001), json!(1)), (json!(b1002), json!(2)), (json!(digits), json!(1))];
+    let mut want = vec![
+        (json!(fraese), json!(2)),
+        (json!(b1001), json!(1)),
+        (json!(b1002), json!(2)),
+        (json!(digits), json!(1)),
+    ];
     want.sort_by_key(|(k, _)| k.to_string());
     assert_eq!(per_machine, want);
 
@@ -1361,10 +1502,7 @@ fn every_kind_exports_what_its_results_hold() {
 
     let probe = &results["probe-install"];
     for p in probe["parameters"].as_array().expect("parameters") {
-        let row = parameter(
-            probe,
-            p["name"].as_str().expect("name"),
-        );
+        let row = parameter(probe, p["name"].as_str().expect("name"));
         same(&row[2], &p["value"], "probe parameter");
         same(&row[3], &p["sigma"], "probe parameter σ");
     }

@@ -255,9 +255,7 @@ fn a_slow_thermal_growth_of_a_positioning_error_is_a_drift_with_its_rate() {
         );
     }
     // The far end grows 1 µm, 5σ: it must be among those found.
-    assert!(found
-        .iter()
-        .any(|e| e.parameter == "EXX@x=1.300"));
+    assert!(found.iter().any(|e| e.parameter == "EXX@x=1.300"));
 }
 
 #[test]

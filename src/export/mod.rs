@@ -547,11 +547,7 @@ impl<'a> RawBatch<'a> {
 
 /// Every tracer sample of `session` to `path`, a batch in memory at a time; (samples written,
 /// how the stream ended, samples that did not parse).
-fn write_raw(
-    session: &Path,
-    path: &Path,
-    run: &Table,
-) -> anyhow::Result<(usize, StreamEnd, u64)> {
+fn write_raw(session: &Path, path: &Path, run: &Table) -> anyhow::Result<(usize, StreamEnd, u64)> {
     let mut file: Option<write::PartFile> = None;
     let mut batch = RawBatch::new(run);
     let mut written = 0usize;

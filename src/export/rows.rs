@@ -382,7 +382,7 @@ pub fn points(results: &Value, run: &RunCells) -> Table {
             continue;
         };
         let mut cells: Vec<(&str, Cell)> = vec![
-                ("target", target.into()),
+            ("target", target.into()),
             ("point", Cell::Int(point as i64)),
             (
                 "observations",
@@ -416,7 +416,7 @@ pub fn iso230_2(iso: &Iso230_2, run: &RunCells) -> Table {
         let down = f.down.as_ref();
         let bi = f.bidirectional.as_ref();
         t.push(vec![
-                ("axis", a.axis.as_str().into()),
+            ("axis", a.axis.as_str().into()),
             ("target", a.target.clone().into()),
             ("unit", unit.into()),
             ("targets", e.targets.into()),

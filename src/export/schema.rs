@@ -199,13 +199,7 @@ pub const RUNS: TableDef = TableDef {
             "",
             "the export schema's version (2)",
         ),
-        col(
-            "date",
-            Date,
-            false,
-            "",
-            "the UTC date of started_at",
-        ),
+        col("date", Date, false, "", "the UTC date of started_at"),
         col(
             "structure",
             Utf8,

@@ -15,7 +15,9 @@ use parquet::file::metadata::KeyValue;
 use parquet::file::properties::WriterProperties;
 use sha2::{Digest, Sha256};
 
-use super::schema::{TableDef, MACHINE_KEY, META_SCHEMA_VERSION, META_TABLE, SCHEMA_VERSION, TABLES};
+use super::schema::{
+    TableDef, MACHINE_KEY, META_SCHEMA_VERSION, META_TABLE, SCHEMA_VERSION, TABLES,
+};
 
 /// Files being written, outside the tables' folders.
 pub const STAGING_DIR: &str = "_staging";
@@ -115,7 +117,8 @@ impl Dataset {
 
     /// Where a file of `table` for run `run_id` is written before it is published.
     pub fn staged(&self, table: &TableDef, run_id: &str) -> PathBuf {
-        self.staging.join(format!("{}.{run_id}.parquet", table.name))
+        self.staging
+            .join(format!("{}.{run_id}.parquet", table.name))
     }
 
     /// Put run `run_id`'s staged files (staged path, final path) in place: first every earlier
@@ -139,9 +142,8 @@ impl Dataset {
             }
             std::fs::create_dir_all(partition)
                 .with_context(|| format!("creating {}", partition.display()))?;
-            std::fs::rename(staged, path).with_context(|| {
-                format!("renaming {} to {}", staged.display(), path.display())
-            })?;
+            std::fs::rename(staged, path)
+                .with_context(|| format!("renaming {} to {}", staged.display(), path.display()))?;
             self.runs
                 .entry(run_id.to_owned())
                 .or_default()
@@ -278,6 +280,31 @@ mod tests {
             path,
             Path::new("out/runs/machine_key=m-fr-se-7-0a1b2c3d").join(format!("{run}.parquet"))
         );
+    }
+
+    #[test]
+    fn a_run_published_again_leaves_one_file_and_every_table_is_there() {
+        use super::super::schema::{PARAMETERS, RUNS};
+        let dest = tempfile::tempdir().expect("tempdir");
+        let publish = |key: &str| {
+            let mut dataset = Dataset::open(dest.path()).expect("open");
+            let staged = dataset.staged(&PARAMETERS, "r-1");
+            std::fs::write(&staged, b"rows").expect("stage");
+            let path = run_file(dest.path(), &PARAMETERS, key, "r-1");
+            dataset
+                .publish("r-1", &[(staged, path.clone())])
+                .expect("publish");
+            dataset.finish().expect("finish");
+            path
+        };
+        let old = publish("m-old-00000000");
+        assert!(old.is_file());
+        let new = publish("m-new-11111111");
+        assert!(new.is_file() && !old.exists() && !old.parent().expect("dir").exists());
+        assert!(!dest.path().join(STAGING_DIR).exists());
+        // A table no run has rows for holds its empty file; one with rows does not.
+        assert!(dest.path().join(RUNS.name).join(EMPTY_FILE).is_file());
+        assert!(!dest.path().join(PARAMETERS.name).join(EMPTY_FILE).exists());
     }
 
     #[test]

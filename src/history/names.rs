@@ -106,7 +106,10 @@ mod tests {
     #[test]
     fn positions_are_named_as_planned() {
         assert_eq!(at_position("ECY", "y", 1.2, "m"), "ECY@y=1.200");
-        assert_eq!(at_position("EXX", "x", 0.9999999999999999, "m"), "EXX@x=1.000");
+        assert_eq!(
+            at_position("EXX", "x", 0.9999999999999999, "m"),
+            "EXX@x=1.000"
+        );
         assert_eq!(at_position("EXX", "x", -1e-12, "m"), "EXX@x=0.000");
         assert_eq!(
             at_position("EXC", "c", std::f64::consts::FRAC_PI_6, "rad"),
@@ -122,7 +125,11 @@ mod tests {
         });
         let name = |path: &str, x: Option<f64>, unit: &str| of_path(&results, path, x, unit);
         assert_eq!(
-            name("geometric_errors.axes.y.errors.ECY.values[2]", Some(1.2), "m"),
+            name(
+                "geometric_errors.axes.y.errors.ECY.values[2]",
+                Some(1.2),
+                "m"
+            ),
             "ECY@y=1.200"
         );
         assert_eq!(

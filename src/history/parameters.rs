@@ -317,12 +317,7 @@ impl Walker<'_> {
                 };
                 let x_unit = x.map(|(_, u)| u.to_owned()).unwrap_or_default();
                 self.out.parameters.push(Parameter {
-                    id: super::names::of_path(
-                        self.results,
-                        &path.text,
-                        x.map(|(x, _)| x),
-                        &x_unit,
-                    ),
+                    id: super::names::of_path(self.results, &path.text, x.map(|(x, _)| x), &x_unit),
                     path: path.text.clone(),
                     curve,
                     x: x.map(|(x, _)| x),
@@ -372,9 +367,7 @@ mod tests {
                 "rotary.steps[c02].error_rad",
             ]
         );
-        let exx = found
-            .get("EXX@x=0.500")
-            .expect("EXX");
+        let exx = found.get("EXX@x=0.500").expect("EXX");
         assert_eq!(exx.curve, "geometric_errors.axes.x.errors.EXX.values");
         assert_eq!((exx.x, exx.unit.as_str()), (Some(0.5), "m"));
         let step = found.get("step_error@table=0.5000").expect("step");
@@ -396,6 +389,9 @@ mod tests {
         });
         let found = parameters(&results);
         assert_eq!(found.parameters[0].sigma, 1.0);
-        assert_eq!(found.parameters[0].id, "a.value_m", "no known shape: its path");
+        assert_eq!(
+            found.parameters[0].id, "a.value_m",
+            "no known shape: its path"
+        );
     }
 }

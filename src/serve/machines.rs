@@ -225,7 +225,10 @@ struct CatalogRun {
 /// The machine's name as the daemon shows it, when the run names one.
 fn name_of(run: &Run) -> Option<String> {
     let m = &run.machine;
-    m.name.clone().or_else(|| m.serial.clone()).or_else(|| m.id.clone())
+    m.name
+        .clone()
+        .or_else(|| m.serial.clone())
+        .or_else(|| m.id.clone())
 }
 
 /// The succeeded runs among the catalog's `jobs` that left results, oldest first (by job id).
@@ -503,7 +506,9 @@ pub fn notify(url: &str, change: &MachineChange, watch: &MachineWatch) {
         });
     if let Err(e) = sent {
         tracing::warn!(machine = change.machine, "history: notifying {url}: {e:#}");
-        watch.update(&change.key, &change.machine, |c| c.notifications_failed += 1);
+        watch.update(&change.key, &change.machine, |c| {
+            c.notifications_failed += 1
+        });
     }
 }
 
