@@ -1103,6 +1103,7 @@ fn engines_read_a_fleet_alike(
     for run in ["c-bridge-1002-a", "c-bridge-1002-b"] {
         rename_machine(&src.join(run), SHARED, Some("BR-1002"));
     }
+    std::fs::create_dir_all(dest.join("_staging")).expect("staging folder");
     std::fs::write(
         dest.join("_staging/parameters.r-interrupted.parquet"),
         b"PAR1 half",
@@ -1305,7 +1306,11 @@ fn engines_read_a_fleet_alike(
     let parameters = sorted(&fleet["summary"]["spark"]["parameters"]);
     assert_eq!(parameters.len(), want_runs.len());
     for (row, run) in parameters.iter().zip(&want_runs) {
-        assert_eq!(row[..4], run.as_array().expect("row")[..4], "{row}");
+        assert_eq!(
+            row.as_array().expect("row")[..4],
+            run.as_array().expect("row")[..4],
+            "{row}"
+        );
         let source = source_of[row[3].as_str().expect("run id")];
         assert_eq!(row[4], json!(rows_of(&session_of(&runs[source]))), "{row}");
     }
