@@ -12,7 +12,9 @@ use std::process::{Command, Stdio};
 
 use geocal::evaluate::iso230_2::UnitFigures;
 use geocal::evaluate::of_results;
-use geocal::export::schema::{ColumnType, TABLES};
+use geocal::export::rows::as_planned;
+use geocal::export::schema::{Column, ColumnType, RUN_COLUMNS, TABLES};
+use geocal::history::MachineIdentity;
 use geocal::session::reader::read_session;
 use serde_json::{json, Value};
 
@@ -109,6 +111,16 @@ fn duckdb(
         .collect()
 }
 
+/// The machine key of a machine with this name and serial (docs/fleet.md, "One machine").
+fn key_of(name: &str, serial: Option<&str>) -> String {
+    MachineIdentity {
+        name: Some(name.to_owned()),
+        serial: serial.map(str::to_owned),
+        id: None,
+    }
+    .key()
+}
+
 fn q(name: &str, sql: String) -> (String, String) {
     (name.to_owned(), sql)
 }
@@ -161,9 +173,14 @@ fn fleet_doc_lists_every_column() {
         ColumnType::Utf8 => "string",
         ColumnType::Utf8List => "list<string>",
         ColumnType::TimestampUs => "timestamp (µs, UTC)",
+        ColumnType::Date => "date",
     };
-    for def in TABLES {
-        let heading = format!("### `{}`", def.name);
+    let sections = TABLES
+        .iter()
+        .map(|def| (format!("### `{}`", def.name), def.own_columns))
+        .chain([("### Every table: the run's columns".to_owned(), RUN_COLUMNS)]);
+    for (heading, columns) in sections {
+        let columns: &[Column] = columns;
         let section = FLEET_DOC
             .split(&heading)
             .nth(1)
@@ -181,8 +198,7 @@ fn fleet_doc_lists_every_column() {
                 )
             })
             .collect();
-        let code: Vec<(String, String, String)> = def
-            .columns
+        let code: Vec<(String, String, String)> = columns
             .iter()
             .map(|c| {
                 (
@@ -192,7 +208,7 @@ fn fleet_doc_lists_every_column() {
                 )
             })
             .collect();
-        assert_eq!(documented, code, "docs/fleet.md, table {}", def.name);
+        assert_eq!(documented, code, "docs/fleet.md, {heading}");
     }
 }
 
@@ -246,10 +262,11 @@ fn duckdb_reads_the_export_as_the_results_say() {
     let stderr = String::from_utf8_lossy(&out.stderr);
     assert!(out.status.success(), "{stdout}\n{stderr}");
     assert!(stdout.contains("3 runs exported, 0 skipped"), "{stdout}");
-    // Hive partitions, escaped as DuckDB and Spark unescape them.
+    // Hive partitions by machine key: ASCII, nothing to escape.
+    let mill_key = key_of(MILL, None);
+    assert!(mill_key.starts_with("m-mill-3-a-simulated-"), "{mill_key}");
     assert!(
-        dest.join("runs/machine=Mill%203%2FA%20%28simulated%29%20%C3%A9")
-            .is_dir(),
+        dest.join(format!("runs/machine_key={mill_key}")).is_dir(),
         "{stdout}"
     );
 
@@ -275,8 +292,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
         q(
             "error_functions",
             format!(
-                "SELECT session_id, axis, error_function, position, value, sigma, unit FROM {} \
-                 ORDER BY session_id, axis, error_function, position",
+                "SELECT session_id, axis, error_function, position, value, sigma, unit, parameter \
+                 FROM {} ORDER BY session_id, axis, error_function, position",
                 table(&dest, "error_functions")
             ),
         ),
@@ -316,7 +333,7 @@ fn duckdb_reads_the_export_as_the_results_say() {
         q(
             "metadata",
             format!(
-                "SELECT DISTINCT decode(key), decode(value) FROM parquet_kv_metadata('{}/*/*/*/*.parquet') \
+                "SELECT DISTINCT decode(key), decode(value) FROM parquet_kv_metadata('{}/*/*/*.parquet') \
                  WHERE decode(key) LIKE 'geocal.%' ORDER BY 1, 2",
                 dest.display()
             ),
@@ -325,7 +342,12 @@ fn duckdb_reads_the_export_as_the_results_say() {
     .into_iter()
     .collect();
     let docs = doc_queries(&dest);
-    for name in ["squareness_drift", "iso_e_failed", "verdicts"] {
+    for name in [
+        "squareness_drift",
+        "iso_e_failed",
+        "verdicts",
+        "runs_per_machine",
+    ] {
         let sql = docs
             .get(name)
             .unwrap_or_else(|| panic!("docs/fleet.md has no `-- duckdb: {name}` query"));
@@ -357,12 +379,12 @@ fn duckdb_reads_the_export_as_the_results_say() {
             .unwrap_or_else(|| panic!("run {id} exported"));
         assert_eq!(row[1], json!(r.machine));
         assert_eq!(row[2], r.results["kind"]);
-        assert_eq!(row[3], json!(1));
+        assert_eq!(row[3], json!(2), "schema version");
         same(&row[4], &r.results["chi2_per_dof"], "chi2_per_dof");
         assert_eq!(row[5], r.results["dof"]);
         same(&row[6], &r.results["residual_rms_m"], "residual_rms_m");
         assert!(row[8].is_null(), "ISO 230-2 of {id}: {}", row[8]);
-        assert_eq!(row[9], json!(true), "date partition is the start's date");
+        assert_eq!(row[9], json!(true), "date is the start's date");
         let serial = (r.machine == BRIDGE).then_some(BRIDGE_SERIAL);
         assert_eq!(row[10], json!(serial), "the declared serial");
         assert_eq!(row[11], json!("FYXZ"));
@@ -382,7 +404,7 @@ fn duckdb_reads_the_export_as_the_results_say() {
             .as_object()
             .expect("squareness")
         {
-            let row = find(&format!("squareness.{name}"));
+            let row = find(name);
             same(&row[2], &s["value_rad"], name);
             same(&row[3], &s["sigma_rad"], name);
             assert_eq!(row[4], json!("rad"));
@@ -420,9 +442,15 @@ fn duckdb_reads_the_export_as_the_results_say() {
                             row[0] == json!(id)
                                 && row[1] == json!(axis)
                                 && row[2] == json!(name)
-                                && row[3] == *position
+                                && f(&row[3]).map(as_planned) == f(position).map(as_planned)
                         })
                         .unwrap_or_else(|| panic!("{name} of {id} at {position}"));
+                    let planned = f(&row[3]).expect("position");
+                    assert_eq!(
+                        planned,
+                        as_planned(planned),
+                        "{name} at {position}: as planned"
+                    );
                     same(&row[4], &e["values"][i], name);
                     same(&row[5], &e["sigma"][i], name);
                     assert_eq!(row[6], e["unit"]);
@@ -531,7 +559,7 @@ fn duckdb_reads_the_export_as_the_results_say() {
 
     // Every file says its schema version and table.
     let metadata = &answers["metadata"];
-    assert!(metadata.contains(&vec![json!("geocal.schema_version"), json!("1")]));
+    assert!(metadata.contains(&vec![json!("geocal.schema_version"), json!("2")]));
     for name in [
         "runs",
         "parameters",
@@ -559,26 +587,28 @@ fn duckdb_reads_the_export_as_the_results_say() {
         .collect();
     assert_eq!(drift.len(), identifiable.len(), "{drift:?}");
     for row in drift {
-        assert_eq!(row[0], json!(MILL), "only the mill has two runs: {row:?}");
-        assert_eq!(row[2], json!(2));
-        let name = row[1]
-            .as_str()
-            .expect("name")
-            .trim_start_matches("squareness.");
+        assert_eq!(
+            row[0],
+            json!(mill_key),
+            "only the mill has two runs: {row:?}"
+        );
+        assert_eq!(row[1], json!(MILL));
+        assert_eq!(row[3], json!(2));
+        let name = row[2].as_str().expect("name");
         let want = last["geometric_errors"]["squareness"][name]["value_rad"]
             .as_f64()
             .expect("value")
             - first["geometric_errors"]["squareness"][name]["value_rad"]
                 .as_f64()
                 .expect("value");
-        assert_eq!(f(&row[3]), Some(want), "{name}");
+        assert_eq!(f(&row[4]), Some(want), "{name}");
     }
     let largest = drift
         .iter()
-        .map(|row| f(&row[3]).expect("change").abs())
+        .map(|row| f(&row[4]).expect("change").abs())
         .fold(0.0, f64::max);
     assert_eq!(
-        f(&drift[0][3]).map(f64::abs),
+        f(&drift[0][4]).map(f64::abs),
         Some(largest),
         "ordered by |change|"
     );
@@ -588,8 +618,8 @@ fn duckdb_reads_the_export_as_the_results_say() {
         .iter()
         .map(|row| {
             (
-                row[2].as_str().expect("session").to_owned(),
-                row[3].as_str().expect("axis").to_owned(),
+                row[3].as_str().expect("session").to_owned(),
+                row[4].as_str().expect("axis").to_owned(),
             )
         })
         .collect();
@@ -598,14 +628,65 @@ fn duckdb_reads_the_export_as_the_results_say() {
     assert_eq!(got, failed_e);
 
     // docs/fleet.md: verdicts per machine.
+    let bridge_key = key_of(BRIDGE, Some(BRIDGE_SERIAL));
     assert_eq!(
         answers["doc_verdicts"],
         vec![vec![
+            json!(bridge_key),
             json!(BRIDGE),
+            json!(BRIDGE_SERIAL),
             json!(geocal::export::rows::verdict(&diagnosis)),
             json!(1)
         ]]
     );
+    // docs/fleet.md: runs per machine and kind, with their parameters.
+    let parameters_of = |r: &Run| {
+        params
+            .iter()
+            .filter(|p| p[0] == json!(session_of(r)))
+            .count()
+    };
+    let mut want = vec![
+        vec![
+            json!(bridge_key),
+            json!(BRIDGE),
+            json!(BRIDGE_SERIAL),
+            json!("multilateration"),
+            json!(1),
+            json!(parameters_of(&runs[2])),
+        ],
+        vec![
+            json!(mill_key),
+            json!(MILL),
+            Value::Null,
+            json!("multilateration"),
+            json!(2),
+            json!(parameters_of(&runs[0]) + parameters_of(&runs[1])),
+        ],
+    ];
+    want.sort_by_key(|row| row[0].to_string());
+    assert_eq!(answers["doc_runs_per_machine"], want);
+    // The history's names are the export's: every parameter compare and trend follow is a
+    // parameter or an error function of the export, by the same name.
+    let exported_names = |session: &str| -> Vec<String> {
+        params
+            .iter()
+            .filter(|p| p[0] == json!(session))
+            .map(|p| p[1].as_str().expect("name").to_owned())
+            .chain(
+                functions
+                    .iter()
+                    .filter(|e| e[0] == json!(session))
+                    .map(|e| e[7].as_str().expect("parameter").to_owned()),
+            )
+            .collect()
+    };
+    for r in &runs {
+        let names = exported_names(&session_of(r));
+        for p in geocal::history::parameters::parameters(&r.results).parameters {
+            assert!(names.contains(&p.id), "{} not exported", p.id);
+        }
+    }
 
     // The daemon's catalog: a succeeded run job and a diagnose job of it (the diagnosis in
     // the diagnose job's folder); a failed run job is left out.
@@ -813,6 +894,507 @@ fn duckdb_reads_the_export_as_the_results_say() {
         stderr.contains(&damaged.display().to_string()) && stderr.contains("not JSON"),
         "{stderr}"
     );
+
+    let verdict = geocal::export::rows::verdict(&diagnosis);
+    engines_read_a_fleet_alike(work.path(), &runs, &failed_e, verdict, params);
+}
+
+/// A copy of run folder `from` in `to` (the `files` it has), its configured machine renamed.
+fn copy_run(from: &Path, to: &Path, files: &[&str], name: &str, serial: Option<&str>) {
+    std::fs::create_dir_all(to).expect("mkdir");
+    for file in files {
+        std::fs::copy(from.join(file), to.join(file)).expect("copy");
+        // The file's time too: a run without a session starts at its results file's time.
+        let modified = std::fs::metadata(from.join(file))
+            .and_then(|m| m.modified())
+            .expect("file time");
+        std::fs::File::options()
+            .write(true)
+            .open(to.join(file))
+            .and_then(|f| f.set_modified(modified))
+            .expect("set the file time");
+    }
+    rename_machine(to, name, serial);
+}
+
+/// Set the `[machine] name` and `serial` of the run folder's configuration.
+fn rename_machine(dir: &Path, name: &str, serial: Option<&str>) {
+    let path = dir.join("run-config.toml");
+    let mut config: toml::Table = std::fs::read_to_string(&path)
+        .expect("config")
+        .parse()
+        .expect("TOML");
+    let machine = config
+        .get_mut("machine")
+        .and_then(|m| m.as_table_mut())
+        .expect("[machine]");
+    machine.insert("name".into(), name.into());
+    match serial {
+        Some(s) => machine.insert("serial".into(), s.into()),
+        None => machine.remove("serial"),
+    };
+    std::fs::write(&path, toml::to_string(&config).expect("TOML")).expect("write config");
+}
+
+/// A run of another session from the results of `from` (results and configuration only: no
+/// session, so no ISO 230-2 figures, and its time is the results file's, `age_s` ago).
+fn results_only_run(
+    from: &Path,
+    to: &Path,
+    session_suffix: &str,
+    age_s: u64,
+    name: &str,
+    serial: Option<&str>,
+) {
+    copy_run(from, to, &["run-config.toml"], name, serial);
+    let mut results: Value =
+        serde_json::from_slice(&std::fs::read(from.join("results.json")).expect("results"))
+            .expect("results JSON");
+    let session = format!(
+        "{}{session_suffix}",
+        results["session_id"].as_str().expect("id")
+    );
+    results["session_id"] = json!(session);
+    let path = to.join("results.json");
+    std::fs::write(&path, serde_json::to_string(&results).expect("JSON")).expect("write");
+    std::fs::File::options()
+        .write(true)
+        .open(&path)
+        .and_then(|f| {
+            f.set_modified(std::time::SystemTime::now() - std::time::Duration::from_secs(age_s))
+        })
+        .expect("set the results' time");
+}
+
+/// The Spark setup block and the `-- <engine>: <name>` SQL blocks of docs/fleet.md.
+fn doc_blocks(engine: &str) -> BTreeMap<String, String> {
+    let mut out = BTreeMap::new();
+    for block in FLEET_DOC.split("```sql\n").skip(1) {
+        let body = block.split("```").next().unwrap_or_default();
+        if let Some(name) = body
+            .lines()
+            .next()
+            .and_then(|l| l.strip_prefix(&format!("-- {engine}: ")))
+        {
+            out.insert(name.trim().to_owned(), body.to_owned());
+        }
+    }
+    out
+}
+
+fn sorted(rows: &Value) -> Vec<Value> {
+    let mut rows = rows.as_array().cloned().unwrap_or_default();
+    rows.sort_by_key(|r| r.to_string());
+    rows
+}
+
+/// Two engines' answers agree: the same rows, numbers to the last bits (their sqrt and power
+/// may round differently).
+fn agree(a: &Value, b: &Value, what: &str) {
+    let (a, b) = (sorted(a), sorted(b));
+    assert_eq!(a.len(), b.len(), "{what}: {a:?} vs {b:?}");
+    for (ra, rb) in a.iter().zip(&b) {
+        let (ra, rb) = (ra.as_array().expect("row"), rb.as_array().expect("row"));
+        assert_eq!(ra.len(), rb.len(), "{what}");
+        for (x, y) in ra.iter().zip(rb) {
+            match (x.as_f64(), y.as_f64()) {
+                (Some(x), Some(y)) if x != y => assert!(
+                    (x - y).abs() <= 1e-12 * x.abs().max(y.abs()),
+                    "{what}: {ra:?} vs {rb:?}"
+                ),
+                _ if x.is_number() && y.is_number() => {}
+                _ => assert_eq!(x, y, "{what}: {ra:?} vs {rb:?}"),
+            }
+        }
+    }
+}
+
+/// The fleet an analyst would find hard: a non-ASCII machine name, an all-digit one, two
+/// machines sharing a name (serials BR-1001 and BR-1002), a run copied twice, a re-export
+/// after a rename over a `--raw` one with an interrupted export's leftovers; and a fleet
+/// without diagnoses, ISO 230-2 figures or raw samples. Apache Spark (one local[2] session
+/// for both, running docs/fleet.md's Spark setup and every Spark SQL block as written there),
+/// DuckDB (the page's DuckDB blocks), polars and pyarrow read them alike, and the answers are
+/// those of the results files.
+fn engines_read_a_fleet_alike(
+    work: &Path,
+    runs: &[Run],
+    failed_e: &[(String, String)],
+    verdict: &str,
+    params: &[Vec<Value>],
+) {
+    const FRAESE: &str = "Fräse 7";
+    const DIGITS: &str = "0042";
+    const SHARED: &str = "Bridge";
+    let src = work.join("spark-runs");
+    let multi = ["results.json", "session.mcap", "run-config.toml"];
+    copy_run(&runs[0].dir, &src.join("a-fraese-1"), &multi, FRAESE, None);
+    copy_run(&runs[1].dir, &src.join("a-fraese-2"), &multi, FRAESE, None);
+    copy_run(
+        &runs[1].dir,
+        &src.join("a-fraese-2-copy"),
+        &multi,
+        FRAESE,
+        None,
+    );
+    let with_diagnosis = [
+        "results.json",
+        "session.mcap",
+        "run-config.toml",
+        "diagnosis.json",
+    ];
+    copy_run(
+        &runs[2].dir,
+        &src.join("b-bridge-1001"),
+        &with_diagnosis,
+        SHARED,
+        Some("BR-1001"),
+    );
+    results_only_run(
+        &runs[0].dir,
+        &src.join("c-bridge-1002-a"),
+        "-br1002",
+        120,
+        "Old Bridge",
+        Some("BR-1002"),
+    );
+    results_only_run(
+        &runs[1].dir,
+        &src.join("c-bridge-1002-b"),
+        "-br1002",
+        60,
+        "Old Bridge",
+        Some("BR-1002"),
+    );
+    results_only_run(&runs[1].dir, &src.join("d-0042"), "-0042", 60, DIGITS, None);
+    let dest = work.join("spark-fleet");
+    let export = |from: &Path, to: &Path, raw: bool| {
+        let mut args = vec![
+            "export",
+            "--format",
+            "parquet",
+            from.to_str().expect("path"),
+            "--out",
+            to.to_str().expect("path"),
+        ];
+        if raw {
+            args.push("--raw");
+        }
+        let out = geocal(&args);
+        let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+        let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+        assert!(out.status.success(), "{stdout}\n{stderr}");
+        (stdout, stderr)
+    };
+    let (stdout, stderr) = export(&src, &dest, true);
+    assert!(stdout.contains("6 runs exported, 0 skipped"), "{stdout}");
+    assert!(
+        stderr.contains("a-fraese-2-copy/results.json: the same run (session")
+            && stderr.contains("exported once"),
+        "{stderr}"
+    );
+    let old_key = key_of("Old Bridge", Some("BR-1002"));
+    assert!(dest
+        .join(format!("parameters/machine_key={old_key}"))
+        .is_dir());
+
+    // The machine renamed; an interrupted export left a file in the staging folder; exported
+    // again without --raw.
+    for run in ["c-bridge-1002-a", "c-bridge-1002-b"] {
+        rename_machine(&src.join(run), SHARED, Some("BR-1002"));
+    }
+    std::fs::create_dir_all(dest.join("_staging")).expect("staging folder");
+    std::fs::write(
+        dest.join("_staging/parameters.r-interrupted.parquet"),
+        b"PAR1 half",
+    )
+    .expect("leftover");
+    export(&src, &dest, false);
+    for table in TABLES {
+        let dir = dest.join(table.name);
+        assert!(
+            !dir.join(format!("machine_key={old_key}")).exists(),
+            "{}",
+            table.name
+        );
+        let entries: Vec<String> = std::fs::read_dir(&dir)
+            .expect("table folder")
+            .map(|e| e.expect("entry").file_name().to_string_lossy().into_owned())
+            .collect();
+        let empty = entries.iter().any(|e| e == "empty.parquet");
+        assert!(
+            empty != entries.iter().any(|e| e.starts_with("machine_key=")),
+            "{}: {entries:?}",
+            table.name
+        );
+        assert_eq!(
+            empty,
+            table.name == "tracer_samples",
+            "{}: {entries:?}",
+            table.name
+        );
+    }
+    assert!(!dest.join("_staging").exists());
+    // A fleet of results only: no diagnoses, ISO 230-2 figures or raw samples.
+    let bare_src = work.join("spark-runs-bare");
+    for run in ["c-bridge-1002-a", "c-bridge-1002-b", "d-0042"] {
+        copy_run(
+            &src.join(run),
+            &bare_src.join(run),
+            &["results.json", "run-config.toml"],
+            if run == "d-0042" { DIGITS } else { SHARED },
+            (run != "d-0042").then_some("BR-1002"),
+        );
+    }
+    let bare = work.join("spark-fleet-bare");
+    export(&bare_src, &bare, false);
+
+    let duckdb_setup: Vec<String> = doc_blocks("duckdb")
+        .remove("setup")
+        .expect("docs/fleet.md has a `-- duckdb: setup` block")
+        .lines()
+        .filter(|l| !l.starts_with("--"))
+        .collect::<Vec<_>>()
+        .join("\n")
+        .split(';')
+        .map(str::trim)
+        .filter(|s| !s.is_empty())
+        .map(str::to_owned)
+        .collect();
+    let mut duckdb_queries = doc_blocks("duckdb");
+    duckdb_queries.remove("setup");
+    let spark_queries = doc_blocks("spark");
+    assert_eq!(
+        spark_queries.keys().collect::<Vec<_>>(),
+        duckdb_queries.keys().collect::<Vec<_>>(),
+        "every question in both dialects"
+    );
+    let spark_setup = FLEET_DOC
+        .split("```python\n")
+        .skip(1)
+        .map(|b| b.split("```").next().unwrap_or_default())
+        .find(|b| b.contains("spark.read"))
+        .expect("docs/fleet.md has the Spark setup block");
+    let request = json!({
+        "fleets": {"fleet": dest, "bare": bare},
+        "spark_setup": spark_setup,
+        "spark_queries": spark_queries,
+        "duckdb_setup": duckdb_setup,
+        "duckdb_queries": duckdb_queries,
+        "tables": TABLES.iter().map(|t| t.name).collect::<Vec<_>>(),
+    });
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/python/fleet_engines.py");
+    let started = std::time::Instant::now();
+    let mut child = Command::new("python3")
+        .arg(&script)
+        .stdin(Stdio::piped())
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("python3");
+    {
+        use std::io::Write;
+        let mut stdin = child.stdin.take().expect("stdin");
+        stdin
+            .write_all(request.to_string().as_bytes())
+            .expect("write request");
+    }
+    let output = child.wait_with_output().expect("python3 output");
+    assert!(
+        output.status.success(),
+        "Spark, DuckDB, polars or pyarrow failed (a JRE and pip install pyspark duckdb \
+         polars pyarrow?):\n{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let answer: Value = serde_json::from_slice(&output.stdout).expect("answer JSON");
+    println!(
+        "engines: {:.1} s in all, {}",
+        started.elapsed().as_secs_f64(),
+        answer["timings"]
+    );
+
+    // Every engine reads every table alike: the same machine keys, names, serials and runs,
+    // each run under one machine only, every machine column a string.
+    for (fleet, a) in answer["fleets"].as_object().expect("fleets") {
+        for table in TABLES {
+            let spark = &a["summary"]["spark"][table.name];
+            for engine in ["duckdb", "polars", "pyarrow"] {
+                agree(
+                    &a["summary"][engine][table.name],
+                    spark,
+                    &format!("{fleet} {} {engine}", table.name),
+                );
+            }
+            for (engine, types) in a["types"].as_object().expect("types") {
+                for column in ["machine_key", "machine", "machine_serial", "run_id"] {
+                    let t = types[table.name][column]
+                        .as_str()
+                        .unwrap_or_default()
+                        .to_lowercase();
+                    assert!(
+                        t == "string"
+                            || t == "varchar"
+                            || t == "str"
+                            || t == "dictionary<values=string, indices=int32, ordered=0>",
+                        "{fleet} {engine} {}.{column}: {t}",
+                        table.name
+                    );
+                }
+            }
+        }
+        for (query, spark) in a["spark"].as_object().expect("spark answers") {
+            agree(
+                &a["duckdb"][query],
+                spark,
+                &format!("{fleet} {query}: DuckDB and Spark"),
+            );
+        }
+    }
+
+    let fleet = &answer["fleets"]["fleet"];
+    let session_of = |r: &Run| r.results["session_id"].as_str().expect("id").to_owned();
+    let run_id = |session: &str| geocal::export::write::run_id(session);
+    let (fraese, b1001, b1002, digits) = (
+        key_of(FRAESE, None),
+        key_of(SHARED, Some("BR-1001")),
+        key_of(SHARED, Some("BR-1002")),
+        key_of(DIGITS, None),
+    );
+    assert!(fraese.starts_with("m-fr-se-7-") && digits.starts_with("m-0042-") && b1001 != b1002);
+    // runs: one row per run, under its machine, with its name as written.
+    let mut want_runs = vec![
+        json!([fraese, FRAESE, null, run_id(&session_of(&runs[0])), 1]),
+        json!([fraese, FRAESE, null, run_id(&session_of(&runs[1])), 1]),
+        json!([b1001, SHARED, "BR-1001", run_id(&session_of(&runs[2])), 1]),
+        json!([
+            b1002,
+            SHARED,
+            "BR-1002",
+            run_id(&format!("{}-br1002", session_of(&runs[0]))),
+            1
+        ]),
+        json!([
+            b1002,
+            SHARED,
+            "BR-1002",
+            run_id(&format!("{}-br1002", session_of(&runs[1]))),
+            1
+        ]),
+        json!([
+            digits,
+            DIGITS,
+            null,
+            run_id(&format!("{}-0042", session_of(&runs[1]))),
+            1
+        ]),
+    ];
+    want_runs.sort_by_key(|r| r.to_string());
+    assert_eq!(sorted(&fleet["summary"]["spark"]["runs"]), want_runs);
+    // parameters: each run once (as many rows as its results give), after the rename.
+    let source_of: BTreeMap<String, usize> = [
+        (session_of(&runs[0]), 0),
+        (session_of(&runs[1]), 1),
+        (session_of(&runs[2]), 2),
+        (format!("{}-br1002", session_of(&runs[0])), 0),
+        (format!("{}-br1002", session_of(&runs[1])), 1),
+        (format!("{}-0042", session_of(&runs[1])), 1),
+    ]
+    .into_iter()
+    .map(|(session, i)| (run_id(&session), i))
+    .collect();
+    let rows_of = |session: &str| params.iter().filter(|p| p[0] == json!(session)).count();
+    let parameters = sorted(&fleet["summary"]["spark"]["parameters"]);
+    assert_eq!(parameters.len(), want_runs.len());
+    for (row, run) in parameters.iter().zip(&want_runs) {
+        assert_eq!(
+            row.as_array().expect("row")[..4],
+            run.as_array().expect("row")[..4],
+            "{row}"
+        );
+        let source = source_of[row[3].as_str().expect("run id")];
+        assert_eq!(row[4], json!(rows_of(&session_of(&runs[source]))), "{row}");
+    }
+    assert_eq!(
+        fleet["summary"]["spark"]["tracer_samples"],
+        json!([]),
+        "a plain export removes the raw samples"
+    );
+
+    // docs/fleet.md's questions, answered by Spark as the results files say.
+    let spark = &fleet["spark"];
+    let identifiable: Vec<&String> = runs[1].results["geometric_errors"]["squareness"]
+        .as_object()
+        .expect("squareness")
+        .iter()
+        .filter(|(_, s)| s["identifiable"] == json!(true))
+        .map(|(name, _)| name)
+        .collect();
+    let drift = spark["squareness_drift"].as_array().expect("drift");
+    // Fräse 7 and the BR-1002 bridge have two runs each; the BR-1001 bridge one (the two
+    // bridges are not one machine of three runs).
+    assert_eq!(drift.len(), 2 * identifiable.len(), "{drift:?}");
+    for row in drift {
+        let name = row[2].as_str().expect("name");
+        let machine = if row[0] == json!(fraese) {
+            FRAESE
+        } else {
+            SHARED
+        };
+        assert!(row[0] == json!(fraese) || row[0] == json!(b1002), "{row}");
+        assert_eq!(row[1], json!(machine), "the name as written");
+        assert_eq!(row[3], json!(2));
+        let value = |r: &Run| {
+            r.results["geometric_errors"]["squareness"][name]["value_rad"]
+                .as_f64()
+                .expect("value")
+        };
+        assert_eq!(f(&row[4]), Some(value(&runs[1]) - value(&runs[0])), "{row}");
+    }
+    let mut e_failed: Vec<(String, String)> = spark["iso_e_failed"]
+        .as_array()
+        .expect("rows")
+        .iter()
+        .map(|row| {
+            (
+                row[3].as_str().expect("session").to_owned(),
+                row[4].as_str().expect("axis").to_owned(),
+            )
+        })
+        .collect();
+    e_failed.sort();
+    assert_eq!(e_failed, failed_e);
+    assert_eq!(
+        spark["verdicts"],
+        json!([[b1001, SHARED, "BR-1001", verdict, 1]])
+    );
+    let per_machine: Vec<(Value, Value)> = spark["runs_per_machine"]
+        .as_array()
+        .expect("rows")
+        .iter()
+        .map(|r| (r[0].clone(), r[4].clone()))
+        .collect();
+    let mut want = vec![
+        (json!(fraese), json!(2)),
+        (json!(b1001), json!(1)),
+        (json!(b1002), json!(2)),
+        (json!(digits), json!(1)),
+    ];
+    want.sort_by_key(|(k, _)| k.to_string());
+    assert_eq!(per_machine, want);
+
+    // The fleet without diagnoses: the page's setup and questions work, with no rows where
+    // there are none.
+    let bare = &answer["fleets"]["bare"];
+    for table in ["diagnoses", "iso230_2", "tracer_samples"] {
+        assert_eq!(bare["summary"]["spark"][table], json!([]), "{table}");
+    }
+    assert_eq!(bare["spark"]["verdicts"], json!([]));
+    assert_eq!(bare["spark"]["iso_e_failed"], json!([]));
+    assert_eq!(
+        bare["spark"]["squareness_drift"].as_array().map(Vec::len),
+        Some(identifiable.len()),
+        "the BR-1002 bridge's two runs"
+    );
 }
 
 /// Every other plan kind's example run exported: its parameters and error functions as its
@@ -869,7 +1451,8 @@ fn every_kind_exports_what_its_results_hold() {
             q(
                 "error_functions",
                 format!(
-                    "SELECT session_id, axis, error_function, position, value, sigma, unit FROM {}",
+                    "SELECT session_id, axis, error_function, position, value, sigma, unit, \
+                     parameter FROM {}",
                     table(&dest, "error_functions")
                 ),
             ),
@@ -897,12 +1480,34 @@ fn every_kind_exports_what_its_results_hold() {
             .clone()
     };
 
+    // The history's names are the export's, for every kind.
+    for (kind, r) in &results {
+        let names: Vec<&Value> = answers["parameters"]
+            .iter()
+            .filter(|p| p[0] == r["session_id"])
+            .map(|p| &p[1])
+            .chain(
+                answers["error_functions"]
+                    .iter()
+                    .filter(|e| e[0] == r["session_id"])
+                    .map(|e| &e[7]),
+            )
+            .collect();
+        let found = geocal::history::parameters::parameters(r).parameters;
+        assert!(!found.is_empty(), "{kind}");
+        for p in found {
+            assert!(
+                names.contains(&&json!(p.id)),
+                "{kind}: {} ({}) not exported by that name",
+                p.id,
+                p.path
+            );
+        }
+    }
+
     let probe = &results["probe-install"];
     for p in probe["parameters"].as_array().expect("parameters") {
-        let row = parameter(
-            probe,
-            &format!("parameter.{}", p["name"].as_str().expect("name")),
-        );
+        let row = parameter(probe, p["name"].as_str().expect("name"));
         same(&row[2], &p["value"], "probe parameter");
         same(&row[3], &p["sigma"], "probe parameter σ");
     }
@@ -910,7 +1515,7 @@ fn every_kind_exports_what_its_results_hold() {
     let sphere = &results["rotary-sphere"];
     for l in sphere["location"].as_array().expect("location") {
         let name = l["name"].as_str().expect("name");
-        let row = parameter(sphere, &format!("location.{name}"));
+        let row = parameter(sphere, name);
         same(&row[2], &l["value"], name);
         same(&row[3], &l["sigma"], name);
         let unit = if name.starts_with("EA") || name.starts_with("EB") {

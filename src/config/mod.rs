@@ -97,6 +97,10 @@ pub struct MachineConfig {
     /// runs apart in its history (docs/history.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    /// A declared machine id: where given, it alone is the machine's identity (name and
+    /// serial may then change), docs/fleet.md.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
     /// ISO 230-1 style chain, e.g. `FYXZ` (letters left of F carry the workpiece).
     pub structure: String,
     /// Travel of each axis `x`, `y`, `z`: [low, high], metres.

@@ -1,6 +1,6 @@
 //! `geocal export` (docs/fleet.md): the results of every run of a folder or of the daemon's
 //! catalog, and on request their raw tracer samples, as Parquet tables partitioned Hive-style
-//! by machine and date, for the engines analysts already use (DuckDB, Spark, pandas).
+//! by machine key, for the engines analysts already use (Spark, DuckDB, polars, pandas).
 
 pub mod rows;
 pub mod schema;
@@ -19,7 +19,7 @@ use serde_json::Value;
 
 use crate::session::file_stream::{self as stream, StreamEnd};
 use schema::{DIAGNOSES, ISO230_2, RUNS, TRACER_SAMPLES};
-use table::{Cell, Table};
+use table::{Cell, RunCells, Table};
 
 pub const RESULTS_FILE: &str = "results.json";
 pub const DIAGNOSIS_FILE: &str = "diagnosis.json";
@@ -70,8 +70,10 @@ impl RunInput {
 pub struct RunExported {
     pub results: PathBuf,
     pub session_id: String,
+    pub run_id: String,
+    /// The machine as people name it, and its key (its partition).
     pub machine: String,
-    pub date: String,
+    pub machine_key: String,
     /// Rows per table.
     pub rows: Vec<(&'static str, usize)>,
     pub files: Vec<PathBuf>,
@@ -103,11 +105,12 @@ impl ExportSummary {
                 .map(|(t, n)| format!("{n} {t}"))
                 .collect();
             out += &format!(
-                "{}: machine {:?}, {}, session {}: {}\n",
+                "{}: machine {:?} ({}), session {} (run {}): {}\n",
                 r.results.display(),
                 r.machine,
-                r.date,
+                r.machine_key,
                 r.session_id,
+                r.run_id,
                 rows.join(", ")
             );
         }
@@ -203,11 +206,14 @@ pub fn export_runs(
     dest: &Path,
     options: &ExportOptions,
 ) -> anyhow::Result<ExportSummary> {
-    std::fs::create_dir_all(dest).with_context(|| format!("creating {}", dest.display()))?;
+    let mut dataset = write::Dataset::open(dest)?;
     let mut summary = ExportSummary::default();
+    // Session id → the results file it was exported from: a run copied twice goes once.
+    let mut seen: std::collections::HashMap<String, PathBuf> = Default::default();
     for run in runs {
-        match export_run(run, dest, options, &mut summary.warnings) {
-            Ok(done) => summary.exported.push(done),
+        match export_run(run, &mut dataset, options, &mut seen, &mut summary.warnings) {
+            Ok(Some(done)) => summary.exported.push(done),
+            Ok(None) => {}
             Err(e) if !options.strict => summary.skipped.push(RunSkipped {
                 results: run.results.clone(),
                 reason: format!("{e:#}"),
@@ -217,6 +223,7 @@ pub fn export_runs(
             }
         }
     }
+    dataset.finish()?;
     Ok(summary)
 }
 
@@ -250,12 +257,15 @@ fn iso_of(
     Ok(iso)
 }
 
+/// Export one run; None (with a warning) when its session was already exported from another
+/// results file.
 fn export_run(
     run: &RunInput,
-    dest: &Path,
+    dataset: &mut write::Dataset,
     options: &ExportOptions,
+    seen: &mut std::collections::HashMap<String, PathBuf>,
     warnings: &mut Vec<String>,
-) -> anyhow::Result<RunExported> {
+) -> anyhow::Result<Option<RunExported>> {
     // The run as the machine's history loads it: results, kind, machine identity (the
     // configured name and serial), start time.
     let loaded = crate::history::load::Run::load(&run.results)?;
@@ -267,12 +277,19 @@ fn export_run(
             run.results.display()
         );
     }
+    if let Some(first) = seen.get(&session_id) {
+        warnings.push(format!(
+            "{}: the same run (session {session_id}) as {}: exported once, from the first",
+            run.results.display(),
+            first.display()
+        ));
+        return Ok(None);
+    }
+    seen.insert(session_id.clone(), run.results.clone());
     let kind = loaded.kind.clone();
-    let machine = loaded
-        .machine
-        .name
-        .clone()
-        .unwrap_or_else(|| loaded.machine.label());
+    let machine = loaded.machine.label();
+    let machine_key = loaded.machine.key();
+    let run_id = write::run_id(&session_id);
     let started = loaded.started_at.ok_or_else(|| {
         anyhow::anyhow!(
             "{}: no start time (no session header beside it, no file time)",
@@ -285,7 +302,16 @@ fn export_run(
             run.results.display()
         )
     })?;
-    let date = started.format("%Y-%m-%d").to_string();
+    let days = i32::try_from(started_ns.div_euclid(86_400_000_000_000)).unwrap_or(i32::MAX);
+    let run_cells: RunCells = vec![
+        ("run_id", run_id.as_str().into()),
+        ("session_id", session_id.as_str().into()),
+        ("machine", loaded.machine.name.clone().into()),
+        ("machine_serial", loaded.machine.serial.clone().into()),
+        ("machine_id", loaded.machine.id.clone().into()),
+        ("kind", kind.as_str().into()),
+        ("started_at", Cell::TimeNs(started_ns)),
+    ];
     let session = run.session.is_file().then_some(run.session.as_path());
     let structure = match session {
         Some(path) => {
@@ -322,9 +348,9 @@ fn export_run(
     };
 
     let mut tables: Vec<Table> = vec![
-        rows::parameters(results, &session_id),
-        rows::error_functions(results, &session_id),
-        rows::points(results, &session_id),
+        rows::parameters(results, &run_cells),
+        rows::error_functions(results, &run_cells),
+        rows::points(results, &run_cells),
     ];
     let mut iso_note = None;
     let iso = match session {
@@ -335,22 +361,24 @@ fn export_run(
         )),
     };
     match iso {
-        Ok(iso) => tables.push(rows::iso230_2(&iso, &session_id)),
+        Ok(iso) => tables.push(rows::iso230_2(&iso, &run_cells)),
         Err(why) => {
             iso_note = Some(why);
-            tables.push(Table::new(&ISO230_2));
+            tables.push(Table::of_run(&ISO230_2, &run_cells));
         }
     }
     tables.push(match &diagnosis {
-        Some(d) => rows::diagnosis(d, &session_id),
-        None => Table::new(&DIAGNOSES),
+        Some(d) => rows::diagnosis(d, &run_cells),
+        None => Table::of_run(&DIAGNOSES, &run_cells),
     });
 
-    let mut files = Vec::new();
+    // (staged file, its place in the dataset)
+    let mut files: Vec<(PathBuf, PathBuf)> = Vec::new();
     let mut row_counts = Vec::new();
     let raw_samples = if let (true, Some(session)) = (options.raw, session) {
-        let path = write::run_file(dest, &TRACER_SAMPLES, &machine, &date, &session_id);
-        let (n, end, skipped) = write_raw(session, &path, &session_id)?;
+        let staged = dataset.staged(&TRACER_SAMPLES, &run_id);
+        let raw_table = Table::of_run(&TRACER_SAMPLES, &run_cells);
+        let (n, end, skipped) = write_raw(session, &staged, &raw_table)?;
         if let StreamEnd::Cut { bytes_read, reason } = end {
             warnings.push(format!(
                 "{}: raw samples exported up to byte {bytes_read} only ({reason}); `geocal \
@@ -365,7 +393,8 @@ fn export_run(
             ));
         }
         if n > 0 {
-            files.push(path);
+            let path = write::run_file(dataset.dest(), &TRACER_SAMPLES, &machine_key, &run_id);
+            files.push((staged, path));
         }
         row_counts.push((TRACER_SAMPLES.name, n));
         Some(n)
@@ -381,13 +410,10 @@ fn export_run(
 
     let extraction = &results["extraction"];
     let misfit = &results["misfit"];
-    let mut runs = Table::new(&RUNS);
+    let mut runs = Table::of_run(&RUNS, &run_cells);
     runs.push(vec![
         ("schema_version", Cell::Int(schema::SCHEMA_VERSION.into())),
-        ("session_id", session_id.as_str().into()),
-        ("kind", kind.as_str().into()),
-        ("started_at", Cell::TimeNs(started_ns)),
-        ("machine_serial", loaded.machine.serial.clone().into()),
+        ("date", Cell::Days(days)),
         ("structure", structure.into()),
         ("source", run.results.display().to_string().into()),
         ("job_id", run.job_id.map_or(Cell::Null, Cell::Int)),
@@ -434,25 +460,29 @@ fn export_run(
         }
     }
     for table in &tables {
-        let path = write::run_file(dest, table.def, &machine, &date, &session_id);
-        if write::write_batch(&path, table.def, &table.to_batch()?)? {
-            files.push(path);
+        let staged = dataset.staged(table.def, &run_id);
+        if write::write_batch(&staged, table.def, &table.to_batch()?)? {
+            let path = write::run_file(dataset.dest(), table.def, &machine_key, &run_id);
+            files.push((staged, path));
         }
         row_counts.push((table.def.name, table.len()));
     }
-    Ok(RunExported {
+    dataset.publish(&run_id, &files)?;
+    Ok(Some(RunExported {
         results: run.results.clone(),
         session_id,
+        run_id,
         machine,
-        date,
+        machine_key,
         rows: row_counts,
-        files,
-    })
+        files: files.into_iter().map(|(_, path)| path).collect(),
+    }))
 }
 
 /// Raw tracer samples in record batches, streamed from the session to the file.
-struct RawBatch {
-    session_id: String,
+struct RawBatch<'a> {
+    /// The run's columns.
+    run: &'a Table,
     tracer: StringBuilder,
     log_time: TimestampMicrosecondBuilder,
     log_time_ns: Int64Builder,
@@ -465,10 +495,10 @@ struct RawBatch {
     rows: usize,
 }
 
-impl RawBatch {
-    fn new(session_id: &str) -> RawBatch {
+impl<'a> RawBatch<'a> {
+    fn new(run: &'a Table) -> RawBatch<'a> {
         RawBatch {
-            session_id: session_id.to_owned(),
+            run,
             tracer: StringBuilder::new(),
             log_time: TimestampMicrosecondBuilder::new().with_timezone("UTC"),
             log_time_ns: Int64Builder::new(),
@@ -499,12 +529,8 @@ impl RawBatch {
 
     fn finish(&mut self) -> anyhow::Result<RecordBatch> {
         let rows = std::mem::take(&mut self.rows);
-        let mut session = StringBuilder::new();
-        for _ in 0..rows {
-            session.append_value(&self.session_id);
-        }
-        let arrays: Vec<ArrayRef> = vec![
-            Arc::new(session.finish()),
+        let mut arrays: Vec<ArrayRef> = self.run.run_arrays(rows)?;
+        arrays.extend::<[ArrayRef; 9]>([
             Arc::new(self.tracer.finish()),
             Arc::new(self.log_time.finish()),
             Arc::new(self.log_time_ns.finish()),
@@ -514,20 +540,16 @@ impl RawBatch {
             Arc::new(self.signal.finish()),
             Arc::new(self.tracking.finish()),
             Arc::new(self.beam_segment.finish()),
-        ];
+        ]);
         Ok(RecordBatch::try_new(TRACER_SAMPLES.schema(), arrays)?)
     }
 }
 
 /// Every tracer sample of `session` to `path`, a batch in memory at a time; (samples written,
 /// how the stream ended, samples that did not parse).
-fn write_raw(
-    session: &Path,
-    path: &Path,
-    session_id: &str,
-) -> anyhow::Result<(usize, StreamEnd, u64)> {
+fn write_raw(session: &Path, path: &Path, run: &Table) -> anyhow::Result<(usize, StreamEnd, u64)> {
     let mut file: Option<write::PartFile> = None;
-    let mut batch = RawBatch::new(session_id);
+    let mut batch = RawBatch::new(run);
     let mut written = 0usize;
     let mut skipped = 0u64;
     let flush =
@@ -552,17 +574,8 @@ fn write_raw(
         Ok(())
     })?;
     written += flush(&mut batch, &mut file)?;
-    match file {
-        Some(f) => {
-            f.finish()?;
-        }
-        None => {
-            write::write_batch(
-                path,
-                &TRACER_SAMPLES,
-                &RecordBatch::new_empty(TRACER_SAMPLES.schema()),
-            )?;
-        }
+    if let Some(f) = file {
+        f.finish()?;
     }
     Ok((written, end, skipped))
 }
@@ -583,7 +596,7 @@ pub struct ExportArgs {
     /// The format: parquet.
     #[arg(long, default_value = "parquet")]
     pub format: String,
-    /// The export's folder (one folder per table inside, partitioned machine=…/date=…).
+    /// The export's folder (one folder per table inside, partitioned machine_key=…).
     #[arg(long, value_name = "DEST")]
     pub out: PathBuf,
     /// Also export every raw tracer sample (table tracer_samples), streamed from the sessions.

@@ -5,9 +5,10 @@
 use serde_json::Value;
 
 use super::schema::{DIAGNOSES, ERROR_FUNCTIONS, ISO230_2, PARAMETERS, POINTS};
-use super::table::{Cell, Table};
+use super::table::{Cell, RunCells, Table};
 use crate::diagnose::Diagnosis;
 use crate::evaluate::deviations::Iso230_2;
+use crate::history::names;
 
 const XYZ: [&str; 3] = ["x", "y", "z"];
 
@@ -31,6 +32,18 @@ fn unit_of_suffix(name: &str) -> &'static str {
     }
 }
 
+/// A position as the plan gave it: a value within float rounding of a whole number of
+/// nanometres (or nanoradians) is that number, so `0.9999999999999999` is `1`; any other value
+/// (an angle such as π/6) is kept as it is.
+pub fn as_planned(x: f64) -> f64 {
+    let snapped = (x * 1e9).round() / 1e9;
+    if (snapped - x).abs() <= 4.0 * f64::EPSILON * x.abs().max(1.0) {
+        snapped
+    } else {
+        x
+    }
+}
+
 fn f64_at(v: &Value, key: &str) -> Option<f64> {
     v.get(key).and_then(Value::as_f64)
 }
@@ -50,9 +63,8 @@ struct Param<'a> {
     identifiable: bool,
 }
 
-fn parameter(table: &mut Table, session_id: &str, p: Param<'_>) {
+fn parameter(table: &mut Table, p: Param<'_>) {
     table.push(vec![
-        ("session_id", session_id.into()),
         ("category", p.category.into()),
         ("name", p.name.into()),
         ("value", p.value.into()),
@@ -64,8 +76,8 @@ fn parameter(table: &mut Table, session_id: &str, p: Param<'_>) {
 
 /// Every estimate with its σ the results hold: tracer stations, squareness, a kind's
 /// `parameters` and `location` lists, a rotary axis, hexapod hinges, fitted effects.
-pub fn parameters(results: &Value, session_id: &str) -> Table {
-    let mut t = Table::new(&PARAMETERS);
+pub fn parameters(results: &Value, run: &RunCells) -> Table {
+    let mut t = Table::of_run(&PARAMETERS, run);
     for station in results["stations"].as_array().into_iter().flatten() {
         let id = station["id"].as_str().unwrap_or("?");
         if let (Some(p), s) = (
@@ -77,7 +89,6 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
                 let name = format!("station.{id}.{}", XYZ[k]);
                 parameter(
                     &mut t,
-                    session_id,
                     Param {
                         category: "station",
                         name,
@@ -95,10 +106,9 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
             let identifiable = e["identifiable"].as_bool().unwrap_or(false);
             parameter(
                 &mut t,
-                session_id,
                 Param {
                     category: "squareness",
-                    name: format!("squareness.{name}"),
+                    name: name.clone(),
                     value: f64_at(e, "value_rad"),
                     sigma: f64_at(e, "sigma_rad"),
                     unit: "rad",
@@ -114,10 +124,9 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
         let sigma = f64_at(p, "sigma");
         parameter(
             &mut t,
-            session_id,
             Param {
                 category: "parameter",
-                name: format!("parameter.{name}"),
+                name: name.to_owned(),
                 value: f64_at(p, "value"),
                 sigma,
                 unit: unit_of_suffix(name),
@@ -132,10 +141,9 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
         let sigma = f64_at(p, "sigma");
         parameter(
             &mut t,
-            session_id,
             Param {
                 category: "location",
-                name: format!("location.{name}"),
+                name: name.to_owned(),
                 value: f64_at(p, "value"),
                 sigma,
                 unit: unit_of_iso_name(name),
@@ -153,11 +161,10 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
             if let Some(v) = array3(rotary.get(key)) {
                 let s = array3(rotary.get(sigma_key));
                 for k in 0..3 {
-                    let name = format!("rotary_axis.{table}.{key}.{}", XYZ[k]);
+                    let name = names::rotary_axis(table, key, k);
                     let sigma = s.and_then(|s| s[k]);
                     parameter(
                         &mut t,
-                        session_id,
                         Param {
                             category: "rotary_axis",
                             name,
@@ -175,7 +182,6 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
             let sigma = f64_at(rotary, "radius_sigma_m");
             parameter(
                 &mut t,
-                session_id,
                 Param {
                     category: "rotary_axis",
                     name,
@@ -196,11 +202,10 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
             if let Some(v) = array3(hinge.get(key)) {
                 let s = array3(hinge.get(sigma_key));
                 for k in 0..3 {
-                    let name = format!("hinge.{leg}.{side}.{}", XYZ[k]);
+                    let name = names::hinge(leg, side, k);
                     let sigma = s.and_then(|s| s[k]);
                     parameter(
                         &mut t,
-                        session_id,
                         Param {
                             category: "hinge",
                             name,
@@ -226,7 +231,6 @@ pub fn parameters(results: &Value, session_id: &str) -> Table {
                 let sigma = params.get(&format!("{name}.sigma")).and_then(Value::as_f64);
                 parameter(
                     &mut t,
-                    session_id,
                     Param {
                         category: "effect",
                         name: format!("effect.{effect}.{name}"),
@@ -254,12 +258,15 @@ struct ErrorRow<'a> {
     identifiable: bool,
 }
 
-fn error_row(t: &mut Table, session_id: &str, e: ErrorRow<'_>) {
+fn error_row(t: &mut Table, e: ErrorRow<'_>) {
     t.push(vec![
-        ("session_id", session_id.into()),
         ("axis", e.axis.into()),
         ("error_function", e.function.into()),
-        ("position", e.position.into()),
+        (
+            "parameter",
+            names::at_position(e.function, e.axis, as_planned(e.position), e.position_unit).into(),
+        ),
+        ("position", as_planned(e.position).into()),
         ("position_unit", e.position_unit.into()),
         ("value", e.value.into()),
         ("sigma", e.sigma.into()),
@@ -270,8 +277,8 @@ fn error_row(t: &mut Table, session_id: &str, e: ErrorRow<'_>) {
 
 /// The error functions at their axis positions: the 21 geometric errors' 18 axis functions,
 /// a rotary axis's motion errors, a rotary table's step errors.
-pub fn error_functions(results: &Value, session_id: &str) -> Table {
-    let mut t = Table::new(&ERROR_FUNCTIONS);
+pub fn error_functions(results: &Value, run: &RunCells) -> Table {
+    let mut t = Table::of_run(&ERROR_FUNCTIONS, run);
     if let Some(axes) = results["geometric_errors"]["axes"].as_object() {
         for (axis, a) in axes {
             let positions: Vec<f64> = a["positions_m"]
@@ -288,7 +295,6 @@ pub fn error_functions(results: &Value, session_id: &str) -> Table {
                     let sigma = f["sigma"].get(i).and_then(Value::as_f64);
                     error_row(
                         &mut t,
-                        session_id,
                         ErrorRow {
                             axis,
                             function: name,
@@ -321,7 +327,6 @@ pub fn error_functions(results: &Value, session_id: &str) -> Table {
                 let identifiable = value.is_some();
                 error_row(
                     &mut t,
-                    session_id,
                     ErrorRow {
                         axis: table,
                         function: name,
@@ -346,7 +351,6 @@ pub fn error_functions(results: &Value, session_id: &str) -> Table {
             let value = f64_at(s, "error_rad");
             error_row(
                 &mut t,
-                session_id,
                 ErrorRow {
                     axis: table,
                     function: "step_error",
@@ -364,8 +368,8 @@ pub fn error_functions(results: &Value, session_id: &str) -> Table {
 }
 
 /// The measured points of a tracer network.
-pub fn points(results: &Value, session_id: &str) -> Table {
-    let mut t = Table::new(&POINTS);
+pub fn points(results: &Value, run: &RunCells) -> Table {
+    let mut t = Table::of_run(&POINTS, run);
     for p in results["points"].as_array().into_iter().flatten() {
         let (Some(nominal), Some(error), Some(sigma)) = (
             array3(p.get("nominal_m")),
@@ -378,7 +382,6 @@ pub fn points(results: &Value, session_id: &str) -> Table {
             continue;
         };
         let mut cells: Vec<(&str, Cell)> = vec![
-            ("session_id", session_id.into()),
             ("target", target.into()),
             ("point", Cell::Int(point as i64)),
             (
@@ -400,9 +403,9 @@ pub fn points(results: &Value, session_id: &str) -> Table {
 }
 
 /// The ISO 230-2 figures of every evaluated axis.
-pub fn iso230_2(iso: &Iso230_2, session_id: &str) -> Table {
+pub fn iso230_2(iso: &Iso230_2, run: &RunCells) -> Table {
     use crate::evaluate::iso230_2::UnitFigures;
-    let mut t = Table::new(&ISO230_2);
+    let mut t = Table::of_run(&ISO230_2, run);
     for a in &iso.axes {
         let e = &a.evaluation;
         let (unit, f) = match &e.figures {
@@ -413,7 +416,6 @@ pub fn iso230_2(iso: &Iso230_2, session_id: &str) -> Table {
         let down = f.down.as_ref();
         let bi = f.bidirectional.as_ref();
         t.push(vec![
-            ("session_id", session_id.into()),
             ("axis", a.axis.as_str().into()),
             ("target", a.target.clone().into()),
             ("unit", unit.into()),
@@ -468,10 +470,9 @@ pub fn verdict(d: &Diagnosis) -> &'static str {
 }
 
 /// The diagnosis's verdict row.
-pub fn diagnosis(d: &Diagnosis, session_id: &str) -> Table {
-    let mut t = Table::new(&DIAGNOSES);
+pub fn diagnosis(d: &Diagnosis, run: &RunCells) -> Table {
+    let mut t = Table::of_run(&DIAGNOSES, run);
     t.push(vec![
-        ("session_id", session_id.into()),
         ("verdict", verdict(d).into()),
         ("selected", d.selected.clone().into()),
         ("unexplained", d.unexplained.into()),
@@ -484,4 +485,20 @@ pub fn diagnosis(d: &Diagnosis, session_id: &str) -> Table {
         ("observations", d.observations.into()),
     ]);
     t
+}
+
+#[cfg(test)]
+mod tests {
+    use super::as_planned;
+
+    #[test]
+    fn positions_are_as_planned() {
+        assert_eq!(as_planned(0.9999999999999999), 1.0);
+        assert_eq!(as_planned(0.1 + 0.2), 0.3);
+        assert_eq!(as_planned(-0.30000000000000004), -0.3);
+        assert_eq!(as_planned(1.2), 1.2);
+        let angle = std::f64::consts::FRAC_PI_6;
+        assert_eq!(as_planned(angle), angle, "not a grid value: kept");
+        assert_eq!(as_planned(0.0), 0.0);
+    }
 }

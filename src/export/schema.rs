@@ -9,11 +9,15 @@ use arrow_schema::{DataType, Field, Schema, TimeUnit};
 
 /// The version of the export's schema: in every file's key-value metadata
 /// (`geocal.schema_version`) and in the `runs` table's `schema_version` column.
-pub const SCHEMA_VERSION: i32 = 1;
+pub const SCHEMA_VERSION: i32 = 2;
 
 /// File metadata keys.
 pub const META_SCHEMA_VERSION: &str = "geocal.schema_version";
 pub const META_TABLE: &str = "geocal.table";
+
+/// The partition column: every table's files lie in `machine_key=<key>` folders (the machine's
+/// key, docs/fleet.md "One machine"); a reader of the table gets it as a string column.
+pub const MACHINE_KEY: &str = "machine_key";
 
 /// A column's type.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -27,6 +31,8 @@ pub enum ColumnType {
     Utf8List,
     /// UTC timestamp, microseconds.
     TimestampUs,
+    /// A calendar date (days since the Unix epoch).
+    Date,
 }
 
 impl ColumnType {
@@ -43,6 +49,7 @@ impl ColumnType {
             ColumnType::TimestampUs => {
                 DataType::Timestamp(TimeUnit::Microsecond, Some("UTC".into()))
             }
+            ColumnType::Date => DataType::Date32,
         }
     }
 }
@@ -76,21 +83,37 @@ const fn col(
 
 use ColumnType::*;
 
-/// One table of the export: a folder `DEST/<name>/machine=…/date=…/`.
+/// One table of the export: a folder `DEST/<name>/machine_key=…/`.
 #[derive(Debug, Clone, Copy)]
 pub struct TableDef {
     pub name: &'static str,
     pub about: &'static str,
-    pub columns: &'static [Column],
+    /// The table's own columns, after the run's (`RUN_COLUMNS`).
+    pub own_columns: &'static [Column],
 }
 
 impl TableDef {
+    /// Every column of the table's files: the run's, then its own.
+    pub fn columns(&self) -> impl Iterator<Item = &'static Column> + Clone {
+        RUN_COLUMNS.iter().chain(self.own_columns.iter())
+    }
+
     /// The Arrow schema, with each field's unit as field metadata (`unit`) and the table's
     /// name and schema version as schema metadata.
     pub fn schema(&self) -> Arc<Schema> {
+        self.schema_with(&[])
+    }
+
+    /// The schema of a table's file when no run has rows for it: the columns, then the
+    /// partition column that the folders give otherwise, so that every reader sees the same
+    /// columns whether the table has rows or not.
+    pub fn empty_schema(&self) -> Arc<Schema> {
+        self.schema_with(&[Field::new(MACHINE_KEY, DataType::Utf8, false)])
+    }
+
+    fn schema_with(&self, extra: &[Field]) -> Arc<Schema> {
         let fields: Vec<Field> = self
-            .columns
-            .iter()
+            .columns()
             .map(|c| {
                 let field = Field::new(c.name, c.kind.data_type(), c.nullable);
                 if c.unit.is_empty() {
@@ -99,6 +122,7 @@ impl TableDef {
                     field.with_metadata(HashMap::from([("unit".to_owned(), c.unit.to_owned())]))
                 }
             })
+            .chain(extra.iter().cloned())
             .collect();
         Arc::new(Schema::new(fields).with_metadata(HashMap::from([
             (META_TABLE.to_owned(), self.name.to_owned()),
@@ -107,51 +131,75 @@ impl TableDef {
     }
 
     pub fn index_of(&self, name: &str) -> Option<usize> {
-        self.columns.iter().position(|c| c.name == name)
+        self.columns().position(|c| c.name == name)
     }
 }
 
-const SESSION_ID: Column = col(
-    "session_id",
-    Utf8,
-    false,
-    "",
-    "the run's session id (geocal-session/1 header): joins the tables",
-);
+/// The columns every table starts with: which run, of which machine, of which kind, when.
+pub const RUN_COLUMNS: &[Column] = &[
+    col(
+        "run_id",
+        Utf8,
+        false,
+        "",
+        "the run: `r-` and 16 hex digits of the SHA-256 of its session id; joins the tables",
+    ),
+    col(
+        "session_id",
+        Utf8,
+        false,
+        "",
+        "the run's session id (geocal-session/1 header)",
+    ),
+    col(
+        "machine",
+        Utf8,
+        true,
+        "",
+        "the machine's configured name, as written (null when none is configured)",
+    ),
+    col(
+        "machine_serial",
+        Utf8,
+        true,
+        "",
+        "the machine's serial where its configuration declares one",
+    ),
+    col(
+        "machine_id",
+        Utf8,
+        true,
+        "",
+        "the machine's declared id ([machine] id) where there is one",
+    ),
+    col(
+        "kind",
+        Utf8,
+        false,
+        "",
+        "plan kind (multilateration, rotary_tracer, rotary_sphere, probe_install, hexapod)",
+    ),
+    col(
+        "started_at",
+        TimestampUs,
+        false,
+        "s",
+        "when the run started (session header, else the results file's time), UTC",
+    ),
+];
 
 pub const RUNS: TableDef = TableDef {
     name: "runs",
     about: "one row per run",
-    columns: &[
+    own_columns: &[
         col(
             "schema_version",
             Int32,
             false,
             "",
-            "the export schema's version (1)",
+            "the export schema's version (2)",
         ),
-        SESSION_ID,
-        col(
-            "kind",
-            Utf8,
-            false,
-            "",
-            "plan kind (multilateration, rotary_tracer, rotary_sphere, probe_install, hexapod)",
-        ),
-        col(
-            "started_at",
-            TimestampUs,
-            false,
-            "s",
-            "when the run started (session header), UTC",
-        ),
-        col(
-            "machine_serial",
-            Utf8,
-            true,
-            "",
-            "the machine's serial where its configuration declares one",
-        ),
+        col("date", Date, false, "", "the UTC date of started_at"),
         col(
             "structure",
             Utf8,
@@ -244,8 +292,7 @@ pub const RUNS: TableDef = TableDef {
 pub const PARAMETERS: TableDef = TableDef {
     name: "parameters",
     about: "one row per estimated scalar parameter with its standard uncertainty",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col(
             "category",
             Utf8,
@@ -258,7 +305,7 @@ pub const PARAMETERS: TableDef = TableDef {
             Utf8,
             false,
             "",
-            "stable parameter name, e.g. squareness.EC0Y, station.s1.x",
+            "stable parameter name as the history names it, e.g. EC0Y, station.s1.x",
         ),
         col(
             "value",
@@ -294,8 +341,7 @@ pub const PARAMETERS: TableDef = TableDef {
 pub const ERROR_FUNCTIONS: TableDef = TableDef {
     name: "error_functions",
     about: "one row per error function (ISO 230-1 name) at one position of its axis",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col(
             "axis",
             Utf8,
@@ -309,6 +355,13 @@ pub const ERROR_FUNCTIONS: TableDef = TableDef {
             false,
             "",
             "ISO 230-1 name (EXX, EYX, …, EXC, …) or step_error",
+        ),
+        col(
+            "parameter",
+            Utf8,
+            false,
+            "",
+            "the function at its position as the history names it, e.g. ECY@y=1.200",
         ),
         col(
             "position",
@@ -358,8 +411,7 @@ pub const ERROR_FUNCTIONS: TableDef = TableDef {
 pub const POINTS: TableDef = TableDef {
     name: "points",
     about: "one row per measured point of a tracer network (machine frame)",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col("target", Utf8, false, "", "reflector target id"),
         col("point", Int64, false, "", "point number in the plan"),
         col("nominal_x_m", Float64, false, "m", "nominal position x"),
@@ -408,8 +460,7 @@ pub const POINTS: TableDef = TableDef {
 pub const ISO230_2: TableDef = TableDef {
     name: "iso230_2",
     about: "one row per axis (and target) evaluated per ISO 230-2 (docs/iso230-2.md)",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col("axis", Utf8, false, "", "x, y, z, or the rotary table's id"),
         col(
             "target",
@@ -515,8 +566,7 @@ pub const ISO230_2: TableDef = TableDef {
 pub const DIAGNOSES: TableDef = TableDef {
     name: "diagnoses",
     about: "one row per run with a diagnosis (diagnosis.json, geocal-diagnosis/1)",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col(
             "verdict",
             Utf8,
@@ -593,8 +643,7 @@ pub const DIAGNOSES: TableDef = TableDef {
 pub const TRACER_SAMPLES: TableDef = TableDef {
     name: "tracer_samples",
     about: "with --raw: every raw tracer sample of the session, as recorded",
-    columns: &[
-        SESSION_ID,
+    own_columns: &[
         col(
             "tracer",
             Utf8,

@@ -65,7 +65,7 @@ pub struct TrendArgs {
     /// The daemon's data dir: its catalog's succeeded runs instead of a folder.
     #[arg(long, value_name = "DATA_DIR", conflicts_with = "dir")]
     pub catalog: Option<PathBuf>,
-    /// The machine (configured name or serial) when the runs are of several.
+    /// The machine (its key, declared id, configured name or serial) when the runs are of several.
     #[arg(long, value_name = "NAME")]
     pub machine: Option<String>,
     /// Print geocal-trend/1 JSON instead of the text.
@@ -115,17 +115,18 @@ pub fn compare(args: CompareArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// The runs of the machine `wanted` among `runs` (all of them when they are of one machine).
+/// The runs of the machine `wanted` among `runs` (all of them when they are of one machine):
+/// machines told apart by their key (docs/fleet.md, "One machine").
 pub fn runs_of_machine(runs: Vec<Run>, wanted: Option<&str>) -> anyhow::Result<Vec<Run>> {
-    let mut machines: Vec<String> = runs.iter().map(|r| r.machine.label()).collect();
+    let mut machines: Vec<String> = runs
+        .iter()
+        .map(|r| format!("{}: {}", r.machine.label(), r.machine.key()))
+        .collect();
     machines.sort();
     machines.dedup();
     match wanted {
         Some(key) => {
-            let kept: Vec<Run> = runs
-                .into_iter()
-                .filter(|r| r.machine.answers_to(key))
-                .collect();
+            let kept = load::runs_of_machine(runs, key, |r| &r.machine)?;
             if kept.is_empty() {
                 anyhow::bail!(
                     "no run of machine \"{key}\" (machines found: {})",
@@ -135,7 +136,7 @@ pub fn runs_of_machine(runs: Vec<Run>, wanted: Option<&str>) -> anyhow::Result<V
             Ok(kept)
         }
         None if machines.len() > 1 => anyhow::bail!(
-            "the runs are of {} machines ({}): choose one with --machine NAME",
+            "the runs are of {} machines ({}): choose one with --machine NAME or KEY",
             machines.len(),
             machines.join("; ")
         ),

@@ -103,7 +103,10 @@ impl RunRef {
 /// One parameter in both runs.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ParameterChange {
+    /// Its name (docs/history.md, "Which parameters").
     pub id: String,
+    /// Its JSON path in the results.
+    pub path: String,
     pub curve: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub x: Option<f64>,
@@ -178,12 +181,15 @@ pub fn check_comparable(a: &Run, b: &Run) -> anyhow::Result<Vec<String>> {
     }
     match (a.machine.is_known(), b.machine.is_known()) {
         (true, true) if !a.machine.same_machine(&b.machine) => anyhow::bail!(
-            "{} calibrated \"{}\" and {} calibrated \"{}\": runs of different machines \
-             cannot be compared (machines are told apart by [machine] name and serial)",
+            "{} calibrated \"{}\" (key {}) and {} calibrated \"{}\" (key {}): runs of \
+             different machines cannot be compared (a machine is its [machine] id, else its \
+             name and serial together)",
             a.label,
             a.machine.label(),
+            a.machine.key(),
             b.label,
-            b.machine.label()
+            b.machine.label(),
+            b.machine.key()
         ),
         (true, true) => {}
         _ => notes.push(format!(
@@ -241,7 +247,8 @@ pub fn compare(a: &Run, b: &Run, options: &CompareOptions) -> anyhow::Result<Com
     }
     let mut changes = Vec::new();
     for pa in &params_a.parameters {
-        let Some(pb) = params_b.get(&pa.id) else {
+        // Matched by path: a parameter at another position is an incompatible plan.
+        let Some(pb) = params_b.at_path(&pa.path) else {
             continue;
         };
         check_positions(a, pa, b, pb)?;
@@ -250,7 +257,7 @@ pub fn compare(a: &Run, b: &Run, options: &CompareOptions) -> anyhow::Result<Com
     let only = |x: &Parameters, y: &Parameters| -> Vec<String> {
         x.parameters
             .iter()
-            .filter(|p| y.get(&p.id).is_none())
+            .filter(|p| y.at_path(&p.path).is_none())
             .map(|p| p.id.clone())
             .collect()
     };
@@ -314,6 +321,7 @@ fn change(pa: &Parameter, pb: &Parameter, tolerances: &Tolerances) -> ParameterC
     let tolerance = tolerances.of(&pa.unit);
     ParameterChange {
         id: pa.id.clone(),
+        path: pa.path.clone(),
         curve: pa.curve.clone(),
         x: pa.x,
         x_unit: pa.x_unit.clone(),
@@ -636,6 +644,7 @@ mod tests {
             MachineIdentity {
                 name: Some(machine.into()),
                 serial: None,
+                id: None,
             },
             None,
         )
@@ -648,10 +657,7 @@ mod tests {
         let b = run("b", "M", 9e-6, [1.05e-6, 2.02e-6]);
         let c = compare(&a, &b, &CompareOptions::default()).expect("compare");
         assert_eq!(c.compared, 3);
-        assert_eq!(
-            c.significant,
-            ["geometric_errors.squareness.EB0Z.value_rad"]
-        );
+        assert_eq!(c.significant, ["EB0Z"]);
         let sq = &c.parameters[2];
         assert!((sq.z - 8e-6 / 2f64.sqrt() / 1e-6).abs() < 1e-9, "{sq:?}");
         assert!(text(&c).contains("EB0Z"));
@@ -671,10 +677,7 @@ mod tests {
             ..Default::default()
         };
         let c = compare(&a, &b, &options).expect("compare");
-        assert_eq!(
-            c.exceeding_tolerance,
-            ["geometric_errors.axes.x.errors.EXX.values[2]"]
-        );
+        assert_eq!(c.exceeding_tolerance, ["EXX@x=0.900"]);
     }
 
     #[test]

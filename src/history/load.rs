@@ -15,47 +15,128 @@ pub const CONFIG_FILES: &[&str] = &["run-config.toml", "plan.toml"];
 /// The recorded session beside the results.
 pub const SESSION_FILE: &str = "session.mcap";
 
-/// Which machine a run calibrated: the configured `[machine] name`, and its `serial` where
-/// the configuration declares one.
+/// Which machine a run calibrated: the configured `[machine] name` and `serial`, or a
+/// declared `[machine] id`.
+///
+/// The one identity rule of compare, trend, the daemon's machines and the export
+/// (docs/fleet.md): a declared id alone is the machine; without one, the name and the serial
+/// together are (a missing serial is a value of its own, so `Mill` and `Mill` with serial
+/// `S1` are two machines). `key()` is that identity as an ASCII-safe key.
 #[derive(Debug, Clone, Default, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
 pub struct MachineIdentity {
     pub name: Option<String>,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
 }
+
+/// Characters of the readable part of a machine key.
+const KEY_SLUG_MAX: usize = 24;
 
 impl MachineIdentity {
     /// The name people see: `name (serial S)`, or `unknown machine`.
     pub fn label(&self) -> String {
-        match (&self.name, &self.serial) {
+        let base = match (&self.name, &self.serial) {
             (Some(n), Some(s)) => format!("{n} (serial {s})"),
             (Some(n), None) => n.clone(),
             (None, Some(s)) => format!("serial {s}"),
             (None, None) => "unknown machine".into(),
+        };
+        match &self.id {
+            Some(id) if self.name.is_none() && self.serial.is_none() => format!("machine {id}"),
+            Some(id) => format!("{base} (id {id})"),
+            None => base,
         }
     }
 
     pub fn is_known(&self) -> bool {
-        self.name.is_some() || self.serial.is_some()
+        self.name.is_some() || self.serial.is_some() || self.id.is_some()
     }
 
-    /// Whether two runs are of one machine: the same name, and the same serial when both
-    /// declare one. Unknown identities match nothing.
-    pub fn same_machine(&self, other: &MachineIdentity) -> bool {
-        if !self.is_known() || !other.is_known() {
-            return false;
-        }
-        let serials_agree = match (&self.serial, &other.serial) {
-            (Some(a), Some(b)) => a == b,
-            _ => true,
+    /// The machine's key: `m-` (never read as a number), a readable slug of its id or name
+    /// (ASCII letters and digits, lower case, `-` between words), `-`, and the first 8 hex
+    /// digits of the SHA-256 of the identity, which tells apart machines whose slugs agree.
+    /// Spark, Hive, DuckDB, polars and pyarrow read it as the same string.
+    pub fn key(&self) -> String {
+        let (readable, identity) = match &self.id {
+            Some(id) => (id.as_str(), format!("id\n{id}")),
+            None => (
+                self.name
+                    .as_deref()
+                    .or(self.serial.as_deref())
+                    .unwrap_or("unknown"),
+                format!(
+                    "name\n{}\nserial\n{}",
+                    self.name.as_deref().unwrap_or(""),
+                    self.serial.as_deref().unwrap_or("")
+                ),
+            ),
         };
-        self.name == other.name && serials_agree
+        let mut slug = String::new();
+        for c in readable.chars().flat_map(char::to_lowercase) {
+            if c.is_ascii_alphanumeric() {
+                slug.push(c);
+            } else if !slug.is_empty() && !slug.ends_with('-') {
+                slug.push('-');
+            }
+            if slug.len() >= KEY_SLUG_MAX {
+                break;
+            }
+        }
+        let slug = slug.trim_end_matches('-');
+        let hash = format!("{:x}", Sha256::digest(identity.as_bytes()));
+        if slug.is_empty() {
+            format!("m-{}", &hash[..8])
+        } else {
+            format!("m-{slug}-{}", &hash[..8])
+        }
     }
 
-    /// Whether this identity names the machine `key` (a name, or a serial).
-    pub fn answers_to(&self, key: &str) -> bool {
-        self.name.as_deref() == Some(key) || self.serial.as_deref() == Some(key)
+    /// Whether two runs are of one machine: known, and of the same key. Unknown identities
+    /// match nothing.
+    pub fn same_machine(&self, other: &MachineIdentity) -> bool {
+        self.is_known() && other.is_known() && self.key() == other.key()
     }
+
+    /// Whether this identity answers to `wanted`: its key, declared id, name or serial.
+    pub fn answers_to(&self, wanted: &str) -> bool {
+        self.key() == wanted
+            || self.id.as_deref() == Some(wanted)
+            || self.name.as_deref() == Some(wanted)
+            || self.serial.as_deref() == Some(wanted)
+    }
+}
+
+/// The runs among `runs` of the machine `wanted` (its key, id, name or serial). A name that
+/// several machines share is refused, naming each with its key.
+pub fn runs_of_machine<T>(
+    runs: Vec<T>,
+    wanted: &str,
+    identity: impl Fn(&T) -> &MachineIdentity,
+) -> anyhow::Result<Vec<T>> {
+    let matching: Vec<T> = runs
+        .into_iter()
+        .filter(|r| identity(r).answers_to(wanted))
+        .collect();
+    let mut machines: Vec<(String, String)> = matching
+        .iter()
+        .map(|r| (identity(r).key(), identity(r).label()))
+        .collect();
+    machines.sort();
+    machines.dedup();
+    if machines.len() > 1 {
+        anyhow::bail!(
+            "\"{wanted}\" names {} machines ({}): choose one by its key",
+            machines.len(),
+            machines
+                .iter()
+                .map(|(key, label)| format!("{label}: {key}"))
+                .collect::<Vec<_>>()
+                .join("; ")
+        );
+    }
+    Ok(matching)
 }
 
 /// Where a plan fingerprint came from: fingerprints of different sources are not compared.
@@ -154,6 +235,7 @@ impl Run {
         let machine = MachineIdentity {
             name: from_config("name").or_else(|| from_header("name")),
             serial: from_config("serial").or_else(|| from_header("serial")),
+            id: from_config("id").or_else(|| from_header("id")),
         };
         let plan = match (&config, &header) {
             (Some(c), _) if c.get("plan").is_some() => Some(PlanFingerprint {
@@ -345,11 +427,45 @@ mod tests {
         let m = |n: &str, s: Option<&str>| MachineIdentity {
             name: Some(n.into()),
             serial: s.map(Into::into),
+            id: None,
         };
-        assert!(m("a", None).same_machine(&m("a", Some("1"))));
+        assert!(m("a", Some("1")).same_machine(&m("a", Some("1"))));
+        assert!(!m("a", None).same_machine(&m("a", Some("1"))));
         assert!(!m("a", Some("1")).same_machine(&m("a", Some("2"))));
         assert!(!m("a", None).same_machine(&m("b", None)));
         assert!(!MachineIdentity::default().same_machine(&MachineIdentity::default()));
+        // A declared id is the machine, whatever its name and serial.
+        let with_id = |n: &str| MachineIdentity {
+            id: Some("cell-4".into()),
+            ..m(n, None)
+        };
+        assert!(with_id("old name").same_machine(&with_id("new name")));
+    }
+
+    #[test]
+    fn machine_keys_are_ascii_and_tell_machines_apart() {
+        let m = |n: &str, s: Option<&str>| MachineIdentity {
+            name: Some(n.into()),
+            serial: s.map(Into::into),
+            id: None,
+        };
+        let fraese = m("Fräse 7", None).key();
+        assert!(fraese.starts_with("m-fr-se-7-"), "{fraese}");
+        assert!(m("0042", None).key().starts_with("m-0042-"));
+        let (a, b) = (m("Bridge", Some("BR-1001")), m("Bridge", Some("BR-1002")));
+        assert_ne!(a.key(), b.key());
+        assert_eq!(a.key(), a.clone().key(), "stable");
+        for key in [fraese, a.key(), MachineIdentity::default().key()] {
+            assert!(
+                key.starts_with("m-")
+                    && key
+                        .bytes()
+                        .all(|c| c.is_ascii_lowercase() || c.is_ascii_digit() || c == b'-'),
+                "{key}"
+            );
+        }
+        let long = m(&"x".repeat(200), None).key();
+        assert_eq!(long.len(), 2 + KEY_SLUG_MAX + 1 + 8, "{long}");
     }
 
     #[test]

@@ -5,6 +5,7 @@
 pub mod cli;
 pub mod compare;
 pub mod load;
+pub mod names;
 pub mod parameters;
 pub mod stats;
 pub mod trend;

@@ -43,8 +43,11 @@ const NAME_KEYS: &[&str] = &["name", "id", "station"];
 /// One estimate with its standard uncertainty.
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct Parameter {
-    /// Stable id: the JSON path of the value, array elements by name where they have one.
+    /// Stable id: its name as people read it and the fleet export names it (`names`:
+    /// `EC0Y`, `ECY@y=1.200`), else its JSON path.
     pub id: String,
+    /// The JSON path of the value, array elements by name where they have one.
+    pub path: String,
     /// The curve it belongs to (its id with the curve's index as `[*]`); a lone figure is
     /// its own curve.
     pub curve: String,
@@ -75,6 +78,10 @@ impl Parameters {
     pub fn get(&self, id: &str) -> Option<&Parameter> {
         self.parameters.iter().find(|p| p.id == id)
     }
+
+    pub fn at_path(&self, path: &str) -> Option<&Parameter> {
+        self.parameters.iter().find(|p| p.path == path)
+    }
 }
 
 /// Every parameter of a results document, in document order.
@@ -89,6 +96,7 @@ pub fn parameters(results: &serde_json::Value) -> Parameters {
         ..Default::default()
     };
     let mut walker = Walker {
+        results,
         out: &mut out,
         sigma_scale,
         positions: Vec::new(),
@@ -157,6 +165,7 @@ impl Path {
 }
 
 struct Walker<'a> {
+    results: &'a serde_json::Value,
     out: &'a mut Parameters,
     sigma_scale: f64,
     /// `positions_m` of the enclosing objects, innermost last (an axis's grid positions).
@@ -306,11 +315,13 @@ impl Walker<'_> {
                     Some((curve, x)) => (curve.clone(), *x),
                     None => (path.text.clone(), None),
                 };
+                let x_unit = x.map(|(_, u)| u.to_owned()).unwrap_or_default();
                 self.out.parameters.push(Parameter {
-                    id: path.text.clone(),
+                    id: super::names::of_path(self.results, &path.text, x.map(|(x, _)| x), &x_unit),
+                    path: path.text.clone(),
                     curve,
                     x: x.map(|(x, _)| x),
-                    x_unit: x.map(|(_, u)| u.to_owned()).unwrap_or_default(),
+                    x_unit,
                     unit: unit.to_owned(),
                     value: v,
                     sigma: s * self.sigma_scale,
@@ -342,10 +353,10 @@ mod tests {
             "hinges": [{"leg": 0, "base_m": [1.0, 2.0, 3.0], "base_sigma_m": [1e-5, 1e-5, 1e-5]}],
         });
         let found = parameters(&results);
-        let mut ids: Vec<&str> = found.parameters.iter().map(|p| p.id.as_str()).collect();
-        ids.sort();
+        let mut paths: Vec<&str> = found.parameters.iter().map(|p| p.path.as_str()).collect();
+        paths.sort();
         assert_eq!(
-            ids,
+            paths,
             [
                 "geometric_errors.axes.x.errors.EXX.values[1]",
                 "geometric_errors.squareness.EB0Z.value_rad",
@@ -356,16 +367,14 @@ mod tests {
                 "rotary.steps[c02].error_rad",
             ]
         );
-        let exx = found
-            .get("geometric_errors.axes.x.errors.EXX.values[1]")
-            .expect("EXX");
+        let exx = found.get("EXX@x=0.500").expect("EXX");
         assert_eq!(exx.curve, "geometric_errors.axes.x.errors.EXX.values");
         assert_eq!((exx.x, exx.unit.as_str()), (Some(0.5), "m"));
-        let step = found.get("rotary.steps[c02].error_rad").expect("step");
+        let step = found.get("step_error@table=0.5000").expect("step");
         assert_eq!(step.curve, "rotary.steps[*].error_rad");
         assert_eq!((step.x, step.x_unit.as_str()), (Some(0.5), "rad"));
         assert_eq!(
-            found.get("hinges[0].base_m[1]").map(|p| p.curve.as_str()),
+            found.get("hinge.0.base.y").map(|p| p.curve.as_str()),
             Some("hinges[*].base_m[1]")
         );
         // EXX at 0.1 (σ 0), at 0.9 (null) and the reference step are not estimates.
@@ -380,6 +389,9 @@ mod tests {
         });
         let found = parameters(&results);
         assert_eq!(found.parameters[0].sigma, 1.0);
-        assert_eq!(found.parameters[0].id, "a.value_m");
+        assert_eq!(
+            found.parameters[0].id, "a.value_m",
+            "no known shape: its path"
+        );
     }
 }

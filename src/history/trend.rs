@@ -80,7 +80,10 @@ pub struct StepFit {
 /// One parameter over the series (null where a run did not estimate it).
 #[derive(Debug, Clone, PartialEq, Serialize)]
 pub struct ParameterTrend {
+    /// Its name (docs/history.md, "Which parameters").
     pub id: String,
+    /// Its JSON path in the results.
+    pub path: String,
     pub curve: String,
     #[serde(skip_serializing_if = "Option::is_none")]
     pub x: Option<f64>,
@@ -200,7 +203,8 @@ pub fn trend(runs: &[Run], options: &TrendOptions) -> anyhow::Result<Trend> {
     let mut order: Vec<&Parameter> = Vec::new();
     for (run, params) in runs.iter().zip(&per_run) {
         for p in &params.parameters {
-            match order.iter().find(|q| q.id == p.id) {
+            // Matched by path: a parameter at another position is an incompatible plan.
+            match order.iter().find(|q| q.path == p.path) {
                 Some(q) => check_positions(first, q, run, p)?,
                 None => order.push(p),
             }
@@ -211,13 +215,14 @@ pub fn trend(runs: &[Run], options: &TrendOptions) -> anyhow::Result<Trend> {
         .map(|p| {
             let (values, sigmas) = per_run
                 .iter()
-                .map(|params| match params.get(&p.id) {
+                .map(|params| match params.at_path(&p.path) {
                     Some(q) => (Some(q.value), Some(q.sigma)),
                     None => (None, None),
                 })
                 .unzip();
             ParameterTrend {
                 id: p.id.clone(),
+                path: p.path.clone(),
                 curve: p.curve.clone(),
                 x: p.x,
                 x_unit: p.x_unit.clone(),
@@ -655,6 +660,7 @@ mod tests {
                     MachineIdentity {
                         name: Some("M".into()),
                         serial: None,
+                        id: None,
                     },
                     Some(t0 + chrono::Duration::days(7 * i as i64)),
                 )

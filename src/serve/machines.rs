@@ -113,6 +113,9 @@ pub struct MachineChange {
     pub machine: String,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    /// The machine's key (docs/fleet.md, "One machine").
+    #[serde(default)]
+    pub key: String,
     pub kind: String,
     /// The scheduled run and the run it was compared with.
     pub job: i64,
@@ -129,10 +132,14 @@ pub struct MachineChange {
 /// One machine as `/v1/machines` lists it.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct MachineView {
-    /// The key of its other routes: its configured name (or its serial without one).
+    /// Its configured name (or its serial, or its declared id, without one); its other
+    /// routes take it when no other machine has it.
     pub name: String,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    /// Its key (docs/fleet.md, "One machine"): its other routes always take it.
+    #[serde(default)]
+    pub key: String,
     /// Plan kinds it was calibrated with.
     pub kinds: Vec<String>,
     /// Succeeded runs in the catalog.
@@ -172,18 +179,22 @@ pub struct MachineHistory {
     pub machine: String,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    #[serde(default)]
+    pub key: String,
     /// Oldest first.
     pub runs: Vec<HistoryEntry>,
 }
 
-/// What the daemon counts of its machines since it started (for the metrics).
+/// What the daemon counts of its machines since it started (for the metrics), by machine key.
 #[derive(Debug, Default)]
 pub struct MachineWatch {
     counts: Mutex<BTreeMap<String, WatchCounts>>,
 }
 
-#[derive(Debug, Default, Clone, Copy)]
+#[derive(Debug, Default, Clone)]
 pub struct WatchCounts {
+    /// The machine's name (its last run's).
+    pub name: String,
     pub comparisons: u64,
     pub changes: u64,
     pub notifications_failed: u64,
@@ -192,9 +203,11 @@ pub struct WatchCounts {
 }
 
 impl MachineWatch {
-    fn update(&self, machine: &str, f: impl FnOnce(&mut WatchCounts)) {
+    fn update(&self, key: &str, name: &str, f: impl FnOnce(&mut WatchCounts)) {
         if let Ok(mut counts) = self.counts.lock() {
-            f(counts.entry(machine.to_owned()).or_default());
+            let c = counts.entry(key.to_owned()).or_default();
+            c.name = name.to_owned();
+            f(c);
         }
     }
 
@@ -209,11 +222,13 @@ struct CatalogRun {
     run: Run,
 }
 
-fn key_of(run: &Run) -> Option<String> {
-    run.machine
-        .name
+/// The machine's name as the daemon shows it, when the run names one.
+fn name_of(run: &Run) -> Option<String> {
+    let m = &run.machine;
+    m.name
         .clone()
-        .or_else(|| run.machine.serial.clone())
+        .or_else(|| m.serial.clone())
+        .or_else(|| m.id.clone())
 }
 
 /// The succeeded runs among the catalog's `jobs` that left results, oldest first (by job id).
@@ -289,11 +304,12 @@ fn comparison_summary(dir: &Path) -> Option<ComparisonSummary> {
 pub fn machines(jobs: Vec<JobRecord>) -> Vec<MachineView> {
     let mut out: Vec<MachineView> = Vec::new();
     for r in succeeded_runs(jobs) {
-        let Some(name) = key_of(&r.run) else {
+        let Some(name) = name_of(&r.run) else {
             continue;
         };
+        let key = r.run.machine.key();
         let changed = comparison_summary(&r.job.dir).map(|s| s.changed);
-        match out.iter_mut().find(|m| m.name == name) {
+        match out.iter_mut().find(|m| m.key == key) {
             Some(m) => {
                 if !m.kinds.contains(&r.run.kind) {
                     m.kinds.push(r.run.kind.clone());
@@ -302,13 +318,14 @@ pub fn machines(jobs: Vec<JobRecord>) -> Vec<MachineView> {
                 m.last_job = r.job.id;
                 m.last_started_at = r.run.started_text();
                 m.last_changed = changed;
-                if m.serial.is_none() {
-                    m.serial = r.run.machine.serial.clone();
-                }
+                // A declared id keeps the machine while its name changes: show the last.
+                m.name = name;
+                m.serial = r.run.machine.serial.clone();
             }
             None => out.push(MachineView {
                 name,
                 serial: r.run.machine.serial.clone(),
+                key,
                 kinds: vec![r.run.kind.clone()],
                 runs: 1,
                 last_job: r.job.id,
@@ -320,20 +337,23 @@ pub fn machines(jobs: Vec<JobRecord>) -> Vec<MachineView> {
     out
 }
 
-fn runs_of(jobs: Vec<JobRecord>, name: &str) -> Vec<CatalogRun> {
-    succeeded_runs(jobs)
-        .into_iter()
-        .filter(|r| r.run.machine.answers_to(name))
-        .collect()
+/// The runs of the machine `name` (its key, id, name or serial); a name several machines
+/// share is an error naming their keys.
+fn runs_of(jobs: Vec<JobRecord>, name: &str) -> anyhow::Result<Vec<CatalogRun>> {
+    crate::history::load::runs_of_machine(succeeded_runs(jobs), name, |r| &r.run.machine)
 }
 
-/// The history of machine `name`; None when it has no succeeded run.
+/// The history of machine `name`; None when it has no succeeded run, or when machines share
+/// the name (the key tells them apart).
 pub fn history(jobs: Vec<JobRecord>, name: &str) -> Option<MachineHistory> {
-    let runs = runs_of(jobs, name);
-    let first = runs.first()?;
+    let runs = runs_of(jobs, name)
+        .map_err(|e| tracing::info!("history: {e:#}"))
+        .ok()?;
+    let last = runs.last()?;
     Some(MachineHistory {
-        machine: key_of(&first.run).unwrap_or_else(|| name.to_owned()),
-        serial: first.run.machine.serial.clone(),
+        machine: name_of(&last.run).unwrap_or_else(|| name.to_owned()),
+        serial: last.run.machine.serial.clone(),
+        key: last.run.machine.key(),
         runs: runs
             .iter()
             .map(|r| HistoryEntry {
@@ -365,7 +385,7 @@ pub fn trend(
     name: &str,
     config: &HistoryConfig,
 ) -> Result<serde_json::Value, TrendError> {
-    let runs = runs_of(jobs, name);
+    let runs = runs_of(jobs, name).map_err(|e| TrendError::NotEnough(format!("{e:#}")))?;
     let Some(last) = runs.last() else {
         return Err(TrendError::NoMachine(name.to_owned()));
     };
@@ -396,7 +416,7 @@ pub fn check_scheduled_run(
     watch: &MachineWatch,
 ) -> anyhow::Result<Option<MachineChange>> {
     let run = Run::load(&job.dir)?;
-    let Some(name) = key_of(&run) else {
+    let Some(name) = name_of(&run) else {
         tracing::info!(
             job = job.id,
             "history: the run names no machine ([machine] name): not compared"
@@ -425,7 +445,8 @@ pub fn check_scheduled_run(
         serde_json::to_string_pretty(&json)?,
     )
     .with_context(|| format!("writing {COMPARISON_FILE} of job {}", job.id))?;
-    watch.update(&name, |c| {
+    let key = this.machine.key();
+    watch.update(&key, &name, |c| {
         c.comparisons += 1;
         c.last_significant = comparison.significant.len() as u64;
         if comparison.changed() {
@@ -446,6 +467,7 @@ pub fn check_scheduled_run(
     Ok(Some(MachineChange {
         machine: name,
         serial: this.machine.serial.clone(),
+        key,
         kind: this.kind.clone(),
         job: job.id,
         previous_job: previous.job.id,
@@ -484,7 +506,9 @@ pub fn notify(url: &str, change: &MachineChange, watch: &MachineWatch) {
         });
     if let Err(e) = sent {
         tracing::warn!(machine = change.machine, "history: notifying {url}: {e:#}");
-        watch.update(&change.machine, |c| c.notifications_failed += 1);
+        watch.update(&change.key, &change.machine, |c| {
+            c.notifications_failed += 1
+        });
     }
 }
 
@@ -502,8 +526,8 @@ pub fn register_metrics(
     let changes = Family::<Labels, Counter>::default();
     let failed = Family::<Labels, Counter>::default();
     let significant = Family::<Labels, Gauge>::default();
-    for (machine, c) in watch.counts() {
-        let labels = vec![("machine".to_owned(), machine)];
+    for (key, c) in watch.counts() {
+        let labels = vec![("machine".to_owned(), c.name), ("key".to_owned(), key)];
         comparisons.get_or_create(&labels).inc_by(c.comparisons);
         changes.get_or_create(&labels).inc_by(c.changes);
         failed.get_or_create(&labels).inc_by(c.notifications_failed);

@@ -134,6 +134,10 @@ pub struct HexapodMachine {
     /// runs apart in its history (docs/history.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    /// A declared machine id: where given, it alone is the machine's identity (name and
+    /// serial may then change), docs/fleet.md.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
     /// Design fixed-platform hinges B_i, fixed frame, metres.
     pub base_hinges_m: Vec<[f64; 3]>,
     /// Design moving-platform hinges P_i, platform frame, metres.

@@ -109,6 +109,10 @@ pub struct CmmConfig {
     /// runs apart in its history (docs/history.md).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub serial: Option<String>,
+    /// A declared machine id: where given, it alone is the machine's identity (name and
+    /// serial may then change), docs/fleet.md.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub id: Option<String>,
     /// Travel of the linear axes `x`, `y`, `z`: [low, high], metres.
     pub travel_m: BTreeMap<String, [f64; 2]>,
 }
