@@ -98,7 +98,9 @@ fn outside_clean_session_selects_nothing() {
     assert!(d.selected.is_empty(), "{}", text(&d));
     assert!(!d.unexplained, "{}", text(&d));
     assert!(
-        d.candidates.iter().any(|c| c.effect == "table_error_motion"),
+        d.candidates
+            .iter()
+            .any(|c| c.effect == "table_error_motion"),
         "{}",
         text(&d)
     );
@@ -120,13 +122,22 @@ fn outside_eccentricity_is_named_and_fitted() {
         ("table.e_sin_phi0_m", e * phi0.sin()),
     ] {
         let (v, s) = param(&d, "tracer_eccentricity", name);
-        println!("{name}: {v:.4e} ± {s:.2e}, truth {want:.4e}, z {:.2}", (v - want) / s);
-        assert!((v - want).abs() < 4.0 * s, "{name}: {v} ± {s}, truth {want}");
+        println!(
+            "{name}: {v:.4e} ± {s:.2e}, truth {want:.4e}, z {:.2}",
+            (v - want) / s
+        );
+        assert!(
+            (v - want).abs() < 4.0 * s,
+            "{name}: {v} ± {s}, truth {want}"
+        );
     }
 }
 
 #[test]
 fn outside_table_motion_is_named_at_the_stations() {
+    let clean = diagnosed(&outside_dir("outside-rotary-clean-2"));
+    let (clean_ratio, _) = stations_heldout(&clean);
+    println!("outside-rotary-clean-2: stations held-out ratio {clean_ratio:.2}");
     for name in ["outside-rotary-table-motion-22", "outside-rotary-wobble-4"] {
         let dir = outside_dir(name);
         let d = diagnosed(&dir);
@@ -138,13 +149,98 @@ fn outside_table_motion_is_named_at_the_stations() {
             .iter()
             .find(|c| c.effect == "table_error_motion")
             .expect("candidate");
-        let before = c.params["stations.heldout_ratio"].as_f64().expect("ratio");
-        let after = c.params["stations.heldout_ratio_after"]
+        let before = c.params["stations_heldout_ratio"].as_f64().expect("ratio");
+        let after = c.params["stations_heldout_ratio_after"]
             .as_f64()
             .expect("ratio");
         println!("{name}: stations held-out ratio {before:.2} -> {after:.2}");
-        assert!(after < 1.3 * 1.0_f64.max(before.min(1.0)) + 0.3, "{after}");
+        assert!(
+            after <= HELDOUT_STATIONS_MAX,
+            "{name}: held-out ratio after {after}, clean {clean_ratio}"
+        );
+        if name == "outside-rotary-table-motion-22" {
+            check_motion_parameters(&d, &truth(&dir));
+        }
     }
+}
+
+/// The fitted harmonics against the same harmonics fitted to the truth's own pivot
+/// displacements (radial, axial per table station, by least squares with the circle's
+/// harmonics 0-1 beside them).
+fn check_motion_parameters(d: &Diagnosis, truth: &Value) {
+    use nalgebra::{DMatrix, DVector};
+    let c = d
+        .candidates
+        .iter()
+        .find(|c| c.effect == "table_error_motion")
+        .expect("candidate");
+    let displacements = truth["effect_params"]["table_error_motion"]["pivot_displacement_m"]
+        .as_array()
+        .expect("pivot displacements");
+    let angle = |station: &str| {
+        truth["stations"]
+            .as_array()
+            .expect("stations")
+            .iter()
+            .find(|s| s["id"] == station)
+            .and_then(|s| s["commanded_rad"].as_f64())
+            .expect("commanded angle")
+    };
+    // Columns: (row 0 radial / 1 axial, order, sine).
+    let mut columns: Vec<(usize, u32, bool)> = Vec::new();
+    for (row, top) in [(0, 5), (1, 4)] {
+        for order in 0..=top {
+            columns.push((row, order, false));
+            if order > 0 {
+                columns.push((row, order, true));
+            }
+        }
+    }
+    let m = displacements.len();
+    let mut x = DMatrix::zeros(2 * m, columns.len());
+    let mut y = DVector::zeros(2 * m);
+    for (k, p) in displacements.iter().enumerate() {
+        let theta = angle(p["station"].as_str().expect("station"));
+        y[2 * k] = p["radial"].as_f64().expect("radial");
+        y[2 * k + 1] = p["axial"].as_f64().expect("axial");
+        for (col, &(row, order, sine)) in columns.iter().enumerate() {
+            let (s, co) = (f64::from(order) * theta).sin_cos();
+            x[(2 * k + row, col)] = if sine { s } else { co };
+        }
+    }
+    let fit = x.clone().svd(true, true).solve(&y, 1e-12).expect("lsq");
+    let residual = (&x * &fit - &y).norm() / (2.0 * m as f64).sqrt();
+    println!(
+        "truth's displacements beyond the model: RMS {:.2} nm",
+        1e9 * residual
+    );
+    let mut z2 = Vec::new();
+    for (col, &(row, order, sine)) in columns.iter().enumerate() {
+        if order < 2 {
+            continue;
+        }
+        let name = format!(
+            "{}_{}{order}_m",
+            if row == 0 { "radial" } else { "axial" },
+            if sine { "sin" } else { "cos" }
+        );
+        let v = c.params[&name].as_f64().expect("value");
+        let s = c.params[&format!("{name}.sigma")].as_f64().expect("sigma");
+        let z = (v - fit[col]) / s;
+        println!(
+            "{name}: {:.1} ± {:.1} nm, truth {:.1} nm, z {z:.2}",
+            1e9 * v,
+            1e9 * s,
+            1e9 * fit[col]
+        );
+        assert!(z.abs() < 4.0, "{name}: {v} ± {s}, truth {}", fit[col]);
+        z2.push(z * z);
+    }
+    let mean = z2.iter().sum::<f64>() / z2.len() as f64;
+    println!(
+        "table_error_motion parameters: mean z² {mean:.2} over {}",
+        z2.len()
+    );
 }
 
 #[test]
@@ -160,9 +256,8 @@ fn outside_eccentricity_fitted_gives_step_angles_as_good_as_clean() {
     let plain = step_errors(&solved(&session, &[]), &t);
     let fitted = step_errors(&solved(&session, &["tracer_eccentricity"]), &t);
     let err = |v: &[(f64, f64)]| rms(&v.iter().map(|e| e.0).collect::<Vec<_>>());
-    let z2 = |v: &[(f64, f64)]| {
-        v.iter().map(|(e, s)| (e / s).powi(2)).sum::<f64>() / v.len() as f64
-    };
+    let z2 =
+        |v: &[(f64, f64)]| v.iter().map(|(e, s)| (e / s).powi(2)).sum::<f64>() / v.len() as f64;
     println!(
         "step error RMS: clean {:.3}\", plain {:.3}\" (z² {:.1}), fitted {:.3}\" (z² {:.2}); clean z² {:.2}",
         err(&clean).to_degrees() * 3600.0,
@@ -177,14 +272,17 @@ fn outside_eccentricity_fitted_gives_step_angles_as_good_as_clean() {
     assert!(z2(&fitted) < 2.3, "z² {}", z2(&fitted));
 }
 
-/// The published set-up shrunk for speed (12 table stations 30° apart + 1 off the table,
-/// 4 x 3 x 2 points, 10 Hz) at `seed`, the air swinging 0.5 K in 15 min, with `effects`.
+/// The published set-up (12 table stations 30° apart + 1 off the table, 6 x 6 x 2 points) at
+/// 10 Hz with 1 s dwells, at `seed`, the air swinging 0.5 K in 15 min, with `effects`.
 fn simulated(seed: u64, effects: &str) -> String {
-    let base = common::reduced_rotary(30f64.to_radians(), 12, "");
-    assert!(base.contains("seed = 20240611"));
+    let base = common::ROTARY
+        .replace("sample_rate_hz = 25.0", "sample_rate_hz = 10.0")
+        .replace("dwell_s = 2.0", "dwell_s = 1.0")
+        .replace("window_s = 0.6", "window_s = 0.4")
+        .replace("seed = 20240611", &format!("seed = {seed}"));
+    assert!(base.contains(&format!("seed = {seed}")) && base.contains("dwell_s = 1.0"));
     format!(
-        "{}\n[sim.environment]\ntemp_swing_k = 0.5\ntemp_period_s = 900.0\n\n[sim.effects]\n{effects}\n",
-        base.replace("seed = 20240611", &format!("seed = {seed}"))
+        "{base}\n[sim.environment]\ntemp_swing_k = 0.5\ntemp_period_s = 900.0\n\n[sim.effects]\n{effects}\n"
     )
 }
 
@@ -196,13 +294,20 @@ fn stations_heldout(d: &Diagnosis) -> (f64, f64) {
         .expect("table_error_motion candidate");
     let f = |k: &str| c.params[k].as_f64().expect(k);
     (
-        f("stations.heldout_ratio"),
-        f("stations.heldout_ratio_after"),
+        f("stations_heldout_ratio"),
+        f("stations_heldout_ratio_after"),
     )
 }
 
-/// Held-out gap after the selected effect within this factor of the clean session's.
+/// Held-out gap after the selected effect within this factor of the clean session's (the
+/// lengths: ~300 held-out lengths, sampling spread of the ratio ≈ 0.04).
 const HELDOUT_VS_CLEAN_MAX: f64 = 1.3;
+
+/// The stations level's held-out ratio where the model holds: 12 table stations, each
+/// predicted from the others, z²/2 per station ~ χ²(2)/2 (variance 1), so the mean over 12 has
+/// a standard deviation of 0.29 and the ratio √(mean) of 0.14: one clean draw lies anywhere in
+/// 0.7-1.3 (outside-rotary-clean-2: 0.70). The bound is 3 of those above 1.
+const HELDOUT_STATIONS_MAX: f64 = 1.43;
 
 #[test]
 fn simulated_effects_are_named_against_the_clean_case() {
@@ -238,7 +343,10 @@ fn simulated_effects_are_named_against_the_clean_case() {
     println!(
         "stations held-out ratio: clean {clean_stations:.3}, table motion {before:.3} -> {after:.3}"
     );
-    assert!(after <= HELDOUT_VS_CLEAN_MAX * clean_stations.max(1.0));
+    assert!(
+        after <= HELDOUT_STATIONS_MAX,
+        "held-out ratio after {after}"
+    );
 
     let outside_library = common::run_and_diagnose(&simulated(
         seed,

@@ -155,7 +155,8 @@ pub struct Library {
 impl Library {
     /// The library of `data`'s plan kind.
     pub fn of(data: &Data) -> Library {
-        let network = crate::kinds::kind_named(&data.header.kind).and_then(|k| k.tracer_diagnosis());
+        let network =
+            crate::kinds::kind_named(&data.header.kind).and_then(|k| k.tracer_diagnosis());
         let Some(network) = network else {
             return Library {
                 names: LIBRARY.iter().map(|k| k.name()).collect(),

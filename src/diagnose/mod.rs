@@ -252,7 +252,9 @@ fn corrected_calibration(
     let kinds = selected
         .iter()
         .filter_map(|s| known.iter().copied().find(|name| name == s))
-        .filter(|name| !["settling", "target_offset"].contains(name) && Some(*name) != stations_effect)
+        .filter(|name| {
+            !["settling", "target_offset"].contains(name) && Some(*name) != stations_effect
+        })
         .collect::<Vec<_>>();
     if kinds.is_empty() {
         return Ok(None);
@@ -573,7 +575,8 @@ pub(crate) fn diagnose_data(
     let library = Library::of(data);
     notes.extend(library.notes.iter().cloned());
     let mut available: Vec<EffectModel> = library.lengths.clone();
-    let in_library = |available: &[EffectModel], k: EffectKind| available.iter().any(|m| m.kind == k);
+    let in_library =
+        |available: &[EffectModel], k: EffectKind| available.iter().any(|m| m.kind == k);
     if !data.has_env {
         let lacking: Vec<&str> = [EffectKind::AirRefraction, EffectKind::DeadPath]
             .into_iter()
@@ -582,7 +585,10 @@ pub(crate) fn diagnose_data(
             .collect();
         available.retain(|m| !matches!(m.kind, EffectKind::AirRefraction | EffectKind::DeadPath));
         if !lacking.is_empty() {
-            notes.push(format!("no environment log: {} cannot be tested", lacking.join(" and ")));
+            notes.push(format!(
+                "no environment log: {} cannot be tested",
+                lacking.join(" and ")
+            ));
         }
     }
     if !data.has_material && in_library(&available, EffectKind::ThermalExpansion) {
@@ -1015,11 +1021,17 @@ pub(crate) fn diagnose_data(
     let mut unexplained = unexplained;
     if let Some(network) = library.network {
         let (positions, mut covariance) = if accepted.is_empty() {
-            (solution.stations.clone(), solution.station_joint_covariance.clone())
+            (
+                solution.stations.clone(),
+                solution.station_joint_covariance.clone(),
+            )
         } else {
             let first = 3 * final_fit.geom.points.len();
             let cols: Vec<usize> = (first..first + 3 * final_fit.geom.stations.len()).collect();
-            (final_fit.geom.stations.clone(), final_fit.basis.pinv_block(&cols))
+            (
+                final_fit.geom.stations.clone(),
+                final_fit.basis.pinv_block(&cols),
+            )
         };
         if let Some(scale) = &noise_scale {
             covariance *= scale.k.powi(2);
@@ -1030,7 +1042,8 @@ pub(crate) fn diagnose_data(
         };
         match network.stations_level(&data.network_session(), &solved) {
             Ok(Some(level)) => {
-                let outcome = stations::judge(&level, options.alpha, library.names.len(), alpha_part);
+                let outcome =
+                    stations::judge(&level, options.alpha, library.names.len(), alpha_part);
                 where_.extend(outcome.where_);
                 notes.extend(outcome.notes);
                 if outcome.selected {

@@ -24,12 +24,7 @@ pub struct Judged {
 /// The level's effect is selected when its χ² drop passes at `alpha / library_size`, BIC
 /// improves and the held-out stations are predicted better; the level is unexplained when
 /// its χ² (after the effect, if selected) fails at `alpha_part`.
-pub fn judge(
-    level: &StationsLevel,
-    alpha: f64,
-    library_size: usize,
-    alpha_part: f64,
-) -> Judged {
+pub fn judge(level: &StationsLevel, alpha: f64, library_size: usize, alpha_part: f64) -> Judged {
     let rows: usize = level.stations.iter().map(|s| s.residual_m.len()).sum();
     let p_value = if level.df > 0 {
         chi2_sf(level.chi2_drop, level.df as f64)
@@ -60,12 +55,12 @@ pub fn judge(
         params.insert(name.clone(), (*v).into());
         params.insert(format!("{name}.sigma"), (*s).into());
     }
-    params.insert("stations.chi2".into(), level.chi2.into());
-    params.insert("stations.dof".into(), level.dof.into());
-    params.insert("stations.rms_m".into(), level.rms_m.into());
-    params.insert("stations.heldout_ratio".into(), level.heldout_ratio.into());
+    params.insert("stations_chi2".into(), level.chi2.into());
+    params.insert("stations_dof".into(), level.dof.into());
+    params.insert("stations_rms_m".into(), level.rms_m.into());
+    params.insert("stations_heldout_ratio".into(), level.heldout_ratio.into());
     params.insert(
-        "stations.heldout_ratio_after".into(),
+        "stations_heldout_ratio_after".into(),
         level.heldout_ratio_after.into(),
     );
     let (chi2_final, dof_final) = if selected {

@@ -95,7 +95,9 @@ pub trait Kind: Sync {
 
     /// For a kind whose session is a tracer network: its effect library and models in the
     /// diagnosis of the lengths (None: the multilateration's library as it is).
-    fn tracer_diagnosis(&self) -> Option<&'static dyn method::tracer_effects::TracerNetworkDiagnosis> {
+    fn tracer_diagnosis(
+        &self,
+    ) -> Option<&'static dyn method::tracer_effects::TracerNetworkDiagnosis> {
         None
     }
 

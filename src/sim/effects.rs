@@ -281,7 +281,12 @@ impl SimEffects {
                         let (e1, e2) = crate::sim::rotary::plane_basis(&n);
                         let az = v.dot(&e2).atan2(v.dot(&e1)) - angle;
                         let el = (v.dot(&n) / d).clamp(-1.0, 1.0).asin();
-                        (az, el, self.table_eccentricity_phi0, c.tracer_eccentricity.z_size_m)
+                        (
+                            az,
+                            el,
+                            self.table_eccentricity_phi0,
+                            c.tracer_eccentricity.z_size_m,
+                        )
                     }
                     None => (v.y.atan2(v.x), (v.z / d).asin(), phi0, ez),
                 };

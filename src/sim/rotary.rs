@@ -58,8 +58,8 @@ impl AngleError {
     }
 }
 
-/// The table's error motions, periodic in its true angle θ (harmonics 2-4: a circle through
-/// the pivots absorbs harmonics 0 and 1 of a radial or axial motion): the axis moves radially
+/// The table's error motions, periodic in its true angle θ (radial and axial harmonics 2-4,
+/// tilt 2-3: a circle through the pivots absorbs harmonics 0 and 1 of a radial or axial motion): the axis moves radially
 /// by a 2-vector in the plane (e1, e2) and axially along n, and tilts by a 2-vector (about a
 /// line through the axis point). The pivot moves by axial·n + radial + tilt × (pivot − axis
 /// point).
@@ -83,8 +83,11 @@ impl ErrorMotion {
             let s = size_m / f64::from(k);
             radial_m.push((k, [draw(s), draw(s)], [draw(s), draw(s)]));
             axial_m.push((k, draw(s), draw(s)));
-            let t = s / arm_m.max(1e-3);
-            tilt_rad.push((k, [draw(t), draw(t)], [draw(t), draw(t)]));
+            // Tilts of harmonics 2-3 only: their pivot moves reach harmonic 4 (k ± 1).
+            if k <= 3 {
+                let t = s / arm_m.max(1e-3);
+                tilt_rad.push((k, [draw(t), draw(t)], [draw(t), draw(t)]));
+            }
         }
         ErrorMotion {
             radial_m,

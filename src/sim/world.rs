@@ -563,13 +563,13 @@ impl SimWorld {
                 reversal_rad: table.reversal_rad,
                 repeatability_rad: table.repeatability_rad(),
                 error_motion: table.error_motion.clone(),
-                tracer_eccentricity: self.effects.table_eccentricity().map(|(e_m, phi0_rad, ez_m)| {
-                    TruthTableEccentricity {
+                tracer_eccentricity: self.effects.table_eccentricity().map(
+                    |(e_m, phi0_rad, ez_m)| TruthTableEccentricity {
                         e_m,
                         phi0_rad,
                         ez_m,
-                    }
-                }),
+                    },
+                ),
                 steps: plan
                     .stations
                     .iter()

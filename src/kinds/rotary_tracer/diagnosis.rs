@@ -7,8 +7,8 @@
 use nalgebra::{DMatrix, DVector, Vector3};
 
 use crate::method::tracer_effects::{
-    BeamObservation, LengthEffect, NetworkSession, SolvedStations, StationResidual,
-    StationsLevel, TracerNetworkDiagnosis,
+    BeamObservation, LengthEffect, NetworkSession, SolvedStations, StationResidual, StationsLevel,
+    TracerNetworkDiagnosis,
 };
 use crate::solve::circle::fit_circle;
 
@@ -24,9 +24,16 @@ pub const LIBRARY: &[&str] = &[
     "length_step",
 ];
 
-/// Highest harmonic of the table angle in `table_error_motion` (the outside recorders and the
-/// simulator use 2-4); fewer when the table stations cannot carry them.
-pub const MAX_HARMONIC: u32 = 4;
+/// Highest harmonics of the table angle in `table_error_motion`: an error motion of harmonic
+/// k (a radial motion of the axis, a 2-vector in the plane; a tilt) moves a pivot turning with
+/// the table by harmonics k − 1 and k + 1 along its radius, so the outside recorders' and the
+/// simulator's motions of harmonics 2-4 (tilts 2-3) reach radial 5 and axial 4. Fewer when the
+/// table stations cannot carry them.
+pub const MAX_RADIAL_HARMONIC: u32 = 5;
+pub const MAX_AXIAL_HARMONIC: u32 = 4;
+
+/// Degrees of freedom the stations level keeps beside the circle and the error motions.
+const MIN_STATIONS_DOF: i64 = 4;
 
 pub struct RotaryTracerDiagnosis;
 
@@ -156,9 +163,8 @@ impl TracerNetworkDiagnosis for RotaryTracerDiagnosis {
         name: &str,
         session: &NetworkSession<'_>,
     ) -> Option<Result<Box<dyn LengthEffect>, String>> {
-        (name == TRACER_ECCENTRICITY).then(|| {
-            TurningEccentricity::of(session).map(|e| Box::new(e) as Box<dyn LengthEffect>)
-        })
+        (name == TRACER_ECCENTRICITY)
+            .then(|| TurningEccentricity::of(session).map(|e| Box::new(e) as Box<dyn LengthEffect>))
     }
 
     fn stations_effect(&self) -> Option<&'static str> {
@@ -237,7 +243,11 @@ fn heldout_ratio(y: &DVector<f64>, x: &DMatrix<f64>, c: &DMatrix<f64>, m: usize)
             DMatrix::from_fn(rows.len(), cols.len(), |r, k| a[(rows[r], cols[k])])
         };
         let all_cols: Vec<usize> = (0..x.ncols()).collect();
-        let (c_kk, c_hk, c_hh) = (pick(&kept, &kept, c), pick(&held, &kept, c), pick(&held, &held, c));
+        let (c_kk, c_hk, c_hh) = (
+            pick(&kept, &kept, c),
+            pick(&held, &kept, c),
+            pick(&held, &held, c),
+        );
         let (w_kk, _) = psd_pinv(&c_kk);
         let x_k = pick(&kept, &all_cols, x);
         let x_h = pick(&held, &all_cols, x);
@@ -276,9 +286,19 @@ fn table_error_motion(
         .filter_map(|(j, a)| a.map(|a| (j, a)))
         .collect();
     let m = on_table.len();
-    // Harmonics 2..K need 2m − 6 − 4(K − 1) ≥ 4 degrees of freedom left.
-    let top = MAX_HARMONIC.min(((m as i64 - 3) / 2).max(0) as u32);
-    if top < 2 {
+    // Harmonics 2..K of each component, within what 2m values beside the circle's 6 carry.
+    let dof_left = |radial: u32, axial: u32| {
+        2 * m as i64 - 6 - 2 * (i64::from(radial) - 1) - 2 * (i64::from(axial) - 1)
+    };
+    let (mut top_radial, mut top_axial) = (MAX_RADIAL_HARMONIC, MAX_AXIAL_HARMONIC);
+    while dof_left(top_radial, top_axial) < MIN_STATIONS_DOF && top_radial.max(top_axial) > 2 {
+        if top_radial >= top_axial {
+            top_radial -= 1;
+        } else {
+            top_axial -= 1;
+        }
+    }
+    if dof_left(top_radial, top_axial) < MIN_STATIONS_DOF {
         return Err(format!(
             "{m} table stations: the table's error motions need at least 7 (harmonics 2 and up beside the circle)"
         ));
@@ -312,24 +332,30 @@ fn table_error_motion(
     }
     let c = &jac * &cov_p * jac.transpose();
     let (weight, rank_c) = psd_pinv(&c);
-    let harmonic_columns = |from: u32, to: u32| {
-        let per = 2 * (to - from + 1) as usize;
-        let mut x = DMatrix::zeros(2 * m, 2 * per);
+    // Columns of harmonics `radial` of the radial rows and `axial` of the axial rows (order 0:
+    // the constant).
+    let harmonic_columns = |radial: std::ops::RangeInclusive<u32>,
+                            axial: std::ops::RangeInclusive<u32>| {
+        let mut columns: Vec<(usize, u32, bool)> = Vec::new();
+        for (row, orders) in [(0, radial), (1, axial)] {
+            for order in orders {
+                columns.push((row, order, false));
+                if order > 0 {
+                    columns.push((row, order, true));
+                }
+            }
+        }
+        let mut x = DMatrix::zeros(2 * m, columns.len());
         for (k, &(_, theta)) in on_table.iter().enumerate() {
-            for (h, order) in (from..=to).enumerate() {
+            for (c, &(row, order, sine)) in columns.iter().enumerate() {
                 let (s, co) = (f64::from(order) * theta).sin_cos();
-                let (cos_v, sin_v) = if order == 0 { (1.0, 0.0) } else { (co, s) };
-                // radial: columns 2h, 2h+1; axial: per + 2h, per + 2h + 1
-                x[(2 * k, 2 * h)] = cos_v;
-                x[(2 * k, 2 * h + 1)] = sin_v;
-                x[(2 * k + 1, per + 2 * h)] = cos_v;
-                x[(2 * k + 1, per + 2 * h + 1)] = sin_v;
+                x[(2 * k + row, c)] = if sine { s } else { co };
             }
         }
         x
     };
-    let nuisance = harmonic_columns(0, 1);
-    let motion = harmonic_columns(2, top);
+    let nuisance = harmonic_columns(0..=1, 0..=1);
+    let motion = harmonic_columns(2..=top_radial, 2..=top_axial);
     let both = {
         let mut x = DMatrix::zeros(2 * m, nuisance.ncols() + motion.ncols());
         x.columns_mut(0, nuisance.ncols()).copy_from(&nuisance);
@@ -340,7 +366,7 @@ fn table_error_motion(
     let before = gls(&y, &nuisance, &weight);
     let after = gls(&y, &both, &weight);
     let mut names = Vec::new();
-    for component in ["radial", "axial"] {
+    for (component, top) in [("radial", top_radial), ("axial", top_axial)] {
         for order in 2..=top {
             names.push(format!("{component}_cos{order}_m"));
             names.push(format!("{component}_sin{order}_m"));
