@@ -1277,7 +1277,7 @@ mod tests {
             .collect();
         let sigma = 0.05e-6;
         let base = Matrix3::new(1.0, 0.1, 0.45, 0.1, 1.2, -0.35, 0.45, -0.35, 0.8) * sigma * sigma;
-        for nominal in [0.0, 1.0, 2.5] {
+        for nominal in [0.0f64, 1.0, 2.5] {
             let placement = Vector3::new(0.26e-3, -0.29e-3, 0.04e-3);
             let q: Vec<Vector3<f64>> = [0.178, 0.084]
                 .iter()
