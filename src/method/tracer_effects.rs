@@ -2,7 +2,7 @@
 //! machine's points, solved by the multilateration) adds to the diagnosis of those lengths:
 //! its effect library, its own models of effects on the lengths, and a test of the solved
 //! stations against the kind's model of them (e.g. a circle for stations on a rotary table).
-//! The diagnosis (`crate::diagnose`) and the solve with effects use it without naming a kind.
+//! The diagnosis and the solve with effects use it without naming a kind.
 
 use nalgebra::{DMatrix, Vector3};
 
