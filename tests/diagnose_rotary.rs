@@ -366,8 +366,8 @@ fn simulated_effects_are_named_against_the_clean_case() {
 #[test]
 fn rotations_stream_as_read_whole() {
     let path = outside_dir("outside-rotary-clean-2").join("session.mcap");
-    let streamed = geocal::extract::stream_settled(&path, |k| k == "rotary_tracer")
-        .expect("streams");
+    let streamed =
+        geocal::extract::stream_settled(&path, |k| k == "rotary_tracer").expect("streams");
     let session = geocal::session::reader::read_session(&path).expect("session");
     let whole = geocal::extract::SettledSession::of_session(&session).expect("settled");
     assert_eq!(streamed.rotations.len(), 12);
