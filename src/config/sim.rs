@@ -87,9 +87,9 @@ pub struct EffectsConfig {
     /// Not in the diagnosis library (a test of the points level): a local bump of the tool
     /// position that the quasi-rigid 21-error model cannot express (src/sim/bump.rs).
     pub local_bump: BumpSwitch,
-    /// The rotary table's radial, axial (harmonics 2-4) and tilt (2-3) error motions of the table
-    /// angle, `size` metres of pivot displacement per component): the tracer on the table
-    /// stands off the circle its pivot would turn on (src/sim/rotary.rs).
+    /// The rotary table's error motions, periodic in the table angle: radial and axial
+    /// (harmonics 2-4) and tilt (2-3), `size` metres of pivot displacement per component; the
+    /// tracer on the table stands off the circle its pivot would turn on (src/sim/rotary.rs).
     pub table_error_motion: EffectSwitch,
 }
 
