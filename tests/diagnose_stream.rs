@@ -31,6 +31,8 @@ fn assert_same_data(streamed: &Data, whole: &Data, name: &str) {
         point_axes_m,
         machine,
         declared_dead_path_m,
+        header,
+        rotations,
     } = whole;
     let same = |field: &str, a: String, b: String| {
         assert!(
@@ -58,7 +60,9 @@ fn assert_same_data(streamed: &Data, whole: &Data, name: &str) {
         points,
         point_axes_m,
         machine,
-        declared_dead_path_m
+        declared_dead_path_m,
+        header,
+        rotations
     );
 }
 

@@ -112,7 +112,7 @@ fn monte_carlo(budget_declares: &UncertaintyConfig) -> Draws {
         let sim = SimEffects::new(&effects, &env, 7, 1, 0);
         let read_m = |x: f64| {
             let axes = sim.actual_axes_m([x + true_error_m(x), 0.0, 0.0], 0.0);
-            sim.distance_m(0, &station, &Vector3::from(axes), 0.0)
+            sim.distance_m(0, &station, &Vector3::from(axes), 0.0, None)
         };
         // Homed at the reference position: the counter reads relative to it.
         let home_m = read_m(x_ref);

@@ -87,6 +87,10 @@ pub struct EffectsConfig {
     /// Not in the diagnosis library (a test of the points level): a local bump of the tool
     /// position that the quasi-rigid 21-error model cannot express (src/sim/bump.rs).
     pub local_bump: BumpSwitch,
+    /// The rotary table's error motions, periodic in the table angle: radial and axial
+    /// (harmonics 2-4) and tilt (2-3), `size` metres of pivot displacement per component; the
+    /// tracer on the table stands off the circle its pivot would turn on (src/sim/rotary.rs).
+    pub table_error_motion: EffectSwitch,
 }
 
 impl EffectsConfig {
@@ -103,6 +107,7 @@ impl EffectsConfig {
             || self.target_offset.enabled
             || self.periodic_nonlinearity.enabled
             || self.local_bump.enabled
+            || self.table_error_motion.enabled
     }
 
     /// Ranges serde cannot check; on failure (key, what was expected).
@@ -125,6 +130,7 @@ impl EffectsConfig {
             ("thermal_expansion.size", self.thermal_expansion.size),
             ("settling.size_m", self.settling.size_m),
             ("target_offset.size_m", self.target_offset.size_m),
+            ("table_error_motion.size", self.table_error_motion.size),
             (
                 "periodic_nonlinearity.size_m",
                 self.periodic_nonlinearity.size_m,

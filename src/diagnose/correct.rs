@@ -8,7 +8,7 @@ use std::sync::Arc;
 use nalgebra::{DMatrix, DVector, Matrix6, Vector3, Vector6};
 
 use super::data::Data;
-use super::effects::{effect_by_name, EffectKind, EffectModel, Geometry};
+use super::effects::{known_names, EffectKind, EffectModel, Geometry, Library};
 use super::fit::Fit;
 use super::locate::best_step;
 use super::schur::Design;
@@ -32,35 +32,40 @@ pub enum CorrectionError {
     Fit(String),
 }
 
-/// Parse a comma-separated list of effect names (unknown names list the known ones).
+/// Parse a comma-separated list of effect names (unknown names list the known ones: every
+/// plan kind's library). Whether the session's kind models a name is decided at the fit.
 pub fn parse_effects(names: &[String]) -> Result<Option<Arc<dyn EffectsFit>>, CorrectionError> {
-    let mut kinds = Vec::new();
+    let known = known_names();
+    let mut chosen: Vec<&'static str> = Vec::new();
     for name in names.iter().flat_map(|n| n.split(',')) {
         let name = name.trim();
         if name.is_empty() {
             continue;
         }
-        let kind = effect_by_name(name).map_err(CorrectionError::Name)?;
-        match kind {
-            EffectKind::Settling => {
-                return Err(CorrectionError::Unsupported(
-                    "settling",
-                    "its bias is fitted on the raw samples inside the dwell windows, not on the settled lengths",
-                ))
-            }
-            EffectKind::TargetOffset => {
-                return Err(CorrectionError::Unsupported(
-                    "target_offset",
-                    "the free points of the calibration absorb it (it is seen only at the points level)",
-                ))
-            }
-            _ => {}
+        let Some(&known_name) = known.iter().find(|k| **k == name) else {
+            return Err(CorrectionError::Name(format!(
+                "unknown effect `{name}`; known effects: {}",
+                known.join(", ")
+            )));
+        };
+        if let Some(why) = unsupported(known_name) {
+            return Err(why);
         }
-        if !kinds.contains(&kind) {
-            kinds.push(kind);
+        if !chosen.contains(&known_name) {
+            chosen.push(known_name);
         }
     }
-    Ok(fit(kinds))
+    Ok(fit_named(chosen))
+}
+
+/// Why an effect of the libraries cannot be modelled in the calibration, if it cannot.
+fn unsupported(name: &'static str) -> Option<CorrectionError> {
+    let why = match name {
+        "settling" => "its bias is fitted on the raw samples inside the dwell windows, not on the settled lengths",
+        "target_offset" => "the free points of the calibration absorb it (it is seen only at the points level)",
+        _ => return None,
+    };
+    Some(CorrectionError::Unsupported(name, why))
 }
 
 /// Fit `kinds` jointly with the geometry of a multilateration session (its settled windows).
@@ -68,17 +73,36 @@ pub fn correction(
     settled: &SettledSession,
     kinds: &[EffectKind],
 ) -> Result<EffectCorrection, CorrectionError> {
+    let names: Vec<&'static str> = kinds.iter().map(|k| k.name()).collect();
+    correction_named(settled, &names)
+}
+
+/// Fit the effects called `names` (of the session's kind's library) jointly with the geometry
+/// of a tracer-network session (its settled windows).
+pub fn correction_named(
+    settled: &SettledSession,
+    names: &[&'static str],
+) -> Result<EffectCorrection, CorrectionError> {
     let data = Data::from_settled(settled.clone()).map_err(DiagnoseError::from)?;
+    let library = Library::of(&data);
     let nominal = solve(&data.problem, &SolveOptions::default()).map_err(DiagnoseError::from)?;
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let nominal_basis = Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
-    let models: Vec<EffectModel> = kinds
+    let stations_effect = library.network.and_then(|n| n.stations_effect());
+    let models: Vec<EffectModel> = names
         .iter()
-        .map(|&kind| {
-            if kind != EffectKind::LengthStep {
-                return Ok(EffectModel::plain(kind));
+        .map(|&name| {
+            if Some(name) == stations_effect {
+                return Err(CorrectionError::Unsupported(
+                    name,
+                    "it moves the table stations off their circle, not the lengths, and leaves the step angles as they are (its tangential part is the step angle itself); `geocal diagnose` fits it on the stations and reports its parameters",
+                ));
+            }
+            let model = library.model(name).map_err(CorrectionError::Name)?;
+            if model.kind != EffectKind::LengthStep {
+                return Ok(model);
             }
             // The step's place: the best change point of any pass in the nominal residuals.
             let r = DVector::from_fn(nobs, |i, _| nominal.residuals_m[i] * w[i]);
@@ -86,9 +110,8 @@ pub fn correction(
             let (g, k, _, _) = best_step(&data, &nominal_basis, &res_w, None)
                 .ok_or_else(|| CorrectionError::Fit("no pass to place a length step in".into()))?;
             Ok(EffectModel {
-                kind,
                 step: Some((g, k)),
-                tau_s: None,
+                ..model
             })
         })
         .collect::<Result<_, CorrectionError>>()?;
@@ -127,26 +150,41 @@ pub fn correction(
         Arc::new(Design::nominal(&data, &fit.geom)),
         (0..nobs).collect(),
     );
-    let n = fit.geom.points.len();
+    let (n, m) = (fit.geom.points.len(), fit.geom.stations.len());
     let mut response = DMatrix::zeros(3 * n, parameters);
+    let mut station_response = DMatrix::zeros(3 * m, parameters);
     for c in 0..parameters {
         let a_w = DVector::from_fn(nobs, |i, _| columns[(i, c)] * w[i]);
         let step = geometry_basis.solve(&a_w);
-        let moved = without_rigid_motion(&data, &step.as_slice()[..3 * n]);
+        let (moved, stations) = without_rigid_motion(
+            &data,
+            &step.as_slice()[..3 * n],
+            &fit.geom.stations,
+            &step.as_slice()[3 * n..3 * n + 3 * m],
+        );
         response.column_mut(c).copy_from(&moved);
+        station_response.column_mut(c).copy_from(&stations);
     }
-    let point_covariance_m2 = &response * theta_cov * response.transpose();
+    let point_covariance_m2 = &response * &theta_cov * response.transpose();
+    let station_covariance_m2 = &station_response * &theta_cov * station_response.transpose();
     Ok(EffectCorrection {
         length_correction_m: fit.effect_m,
         effects,
         parameters,
         point_covariance_m2,
+        station_covariance_m2,
     })
 }
 
 /// Point displacements (3n, point-major) with their best-fit rigid motion about the nominal
-/// points' centre taken off: the inner-constraint datum the calibration reports points in.
-fn without_rigid_motion(data: &Data, moved: &[f64]) -> DVector<f64> {
+/// points' centre taken off: the inner-constraint datum the calibration reports points in;
+/// the stations' displacements (3m) with the same rigid motion taken off.
+fn without_rigid_motion(
+    data: &Data,
+    moved: &[f64],
+    stations: &[Vector3<f64>],
+    stations_moved: &[f64],
+) -> (DVector<f64>, DVector<f64>) {
     let nominal: Vec<Vector3<f64>> = data.problem.nominal_points.clone();
     let centre = nominal.iter().sum::<Vector3<f64>>() / nominal.len().max(1) as f64;
     let mut normal = Matrix6::<f64>::zeros();
@@ -160,31 +198,41 @@ fn without_rigid_motion(data: &Data, moved: &[f64]) -> DVector<f64> {
     let motion = normal
         .try_inverse()
         .map_or(Vector6::zeros(), |inv| inv * rhs);
-    DVector::from_fn(moved.len(), |k, _| {
+    let points = DVector::from_fn(moved.len(), |k, _| {
         let g = generator(&nominal[k / 3], &centre);
         moved[k] - (g * motion)[k % 3]
-    })
+    });
+    let stations = DVector::from_fn(stations_moved.len(), |k, _| {
+        let g = generator(&stations[k / 3], &centre);
+        stations_moved[k] - (g * motion)[k % 3]
+    });
+    (points, stations)
 }
 
 /// The diagnosis's effect models as the solve fits them (`SolveSettings::effects`): None when
 /// no effect is named.
 pub fn fit(kinds: Vec<EffectKind>) -> Option<Arc<dyn EffectsFit>> {
-    (!kinds.is_empty()).then(|| Arc::new(FittedEffects(kinds)) as Arc<dyn EffectsFit>)
+    fit_named(kinds.into_iter().map(|k| k.name()).collect())
 }
 
-/// Effects of the diagnosis's library, fitted jointly with the geometry.
+/// As [`fit`], by name (of the session's kind's library).
+pub fn fit_named(names: Vec<&'static str>) -> Option<Arc<dyn EffectsFit>> {
+    (!names.is_empty()).then(|| Arc::new(FittedEffects(names)) as Arc<dyn EffectsFit>)
+}
+
+/// Effects of the session's kind's library, fitted jointly with the geometry.
 #[derive(Debug)]
-pub struct FittedEffects(pub Vec<EffectKind>);
+pub struct FittedEffects(pub Vec<&'static str>);
 
 impl EffectsFit for FittedEffects {
     fn names(&self) -> Vec<&'static str> {
-        self.0.iter().map(|k| k.name()).collect()
+        self.0.clone()
     }
 
     fn correction(
         &self,
         settled: &SettledSession,
     ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>> {
-        correction(settled, &self.0).map_err(Into::into)
+        correction_named(settled, &self.0).map_err(Into::into)
     }
 }

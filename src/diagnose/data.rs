@@ -60,6 +60,10 @@ pub struct Data {
     pub machine: crate::session::messages::MachineInfo,
     /// The tracer's declared dead path (m): part of the absolute optical path the air acts on.
     pub declared_dead_path_m: f64,
+    /// The session's header (its kind and plan).
+    pub header: crate::session::messages::SessionHeader,
+    /// The stations on a rotary table and its commanded angle there.
+    pub rotations: Vec<(String, f64)>,
 }
 
 #[derive(Debug, thiserror::Error)]
@@ -162,8 +166,10 @@ impl Data {
             noise,
             extraction,
             windows,
+            rotations,
             ..
         } = settled;
+        let full_header = header.clone();
         if extraction.measurements.is_empty() {
             return Err(DataError::NoPoints(extraction.dropped.len()));
         }
@@ -278,6 +284,8 @@ impl Data {
             }
         }
         Ok(Data {
+            header: full_header,
+            rotations,
             declared_dead_path_m: noise.map_or(0.0, |n| n.dead_path_m),
             points: built.points,
             point_axes_m: built.axes_m,
@@ -298,6 +306,15 @@ impl Data {
 }
 
 impl Data {
+    /// What a plan kind's effect models may read of this session.
+    pub fn network_session(&self) -> crate::method::tracer_effects::NetworkSession<'_> {
+        crate::method::tracer_effects::NetworkSession {
+            header: &self.header,
+            station_ids: &self.station_ids,
+            rotations: &self.rotations,
+        }
+    }
+
     /// The same observations with every σ multiplied by `k` (a common scale of the declared
     /// noise model).
     pub fn with_sigma_scaled(&self, k: f64) -> Data {

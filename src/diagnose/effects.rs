@@ -1,9 +1,12 @@
 //! The effect library: for each unmodelled effect, a parametric model that adds to the nominal
 //! predicted lengths, as Jacobian columns in its own parameters evaluated at the fitted geometry.
 
+use std::sync::Arc;
+
 use nalgebra::{DMatrix, Vector3};
 
 use super::data::Data;
+use crate::method::tracer_effects::{BeamObservation, LengthEffect, TracerNetworkDiagnosis};
 use crate::solve::multilateration::MultilaterationSolution;
 
 /// The fitted geometry the columns are evaluated at.
@@ -99,6 +102,9 @@ pub enum EffectKind {
     ThermalExpansion,
     Settling,
     TargetOffset,
+    /// An effect on the lengths that the session's plan kind models itself
+    /// (`method::tracer_effects::LengthEffect`), by its name.
+    Own(&'static str),
 }
 
 /// The effects the diagnosis can name (DESIGN.md "Unmodelled effects").
@@ -128,8 +134,89 @@ impl EffectKind {
             EffectKind::ThermalExpansion => "thermal_expansion",
             EffectKind::Settling => "settling",
             EffectKind::TargetOffset => "target_offset",
+            EffectKind::Own(name) => name,
         }
     }
+}
+
+/// The effects a session's diagnosis tests: the multilateration library, or the library of
+/// the session's plan kind (its own models and the shared ones it names).
+pub struct Library {
+    /// Every name of the library, in order.
+    pub names: Vec<&'static str>,
+    /// The lengths-level candidates (a length step's position is searched per round).
+    pub lengths: Vec<EffectModel>,
+    /// The plan kind's diagnosis of its tracer network, if it has one.
+    pub network: Option<&'static dyn TracerNetworkDiagnosis>,
+    /// Models that could not be built for this session, and why.
+    pub notes: Vec<String>,
+}
+
+impl Library {
+    /// The library of `data`'s plan kind.
+    pub fn of(data: &Data) -> Library {
+        let network =
+            crate::kinds::kind_named(&data.header.kind).and_then(|k| k.tracer_diagnosis());
+        let Some(network) = network else {
+            return Library {
+                names: LIBRARY.iter().map(|k| k.name()).collect(),
+                lengths: LIBRARY.iter().map(|&k| EffectModel::plain(k)).collect(),
+                network: None,
+                notes: Vec::new(),
+            };
+        };
+        let session = data.network_session();
+        let mut lengths = Vec::new();
+        let mut notes = Vec::new();
+        for &name in network.library() {
+            if network.stations_effect() == Some(name) {
+                continue;
+            }
+            match network.length_effect(name, &session) {
+                Some(Ok(model)) => lengths.push(EffectModel::of_kind(Arc::from(model))),
+                Some(Err(why)) => notes.push(format!("{name}: cannot be tested: {why}")),
+                None => match effect_by_name(name) {
+                    Ok(kind) => lengths.push(EffectModel::plain(kind)),
+                    Err(why) => notes.push(why),
+                },
+            }
+        }
+        Library {
+            names: network.library().to_vec(),
+            lengths,
+            network: Some(network),
+            notes,
+        }
+    }
+
+    /// The lengths-level model called `name`, or why this library has none.
+    pub fn model(&self, name: &str) -> Result<EffectModel, String> {
+        self.lengths
+            .iter()
+            .find(|m| m.kind.name() == name)
+            .cloned()
+            .ok_or_else(|| {
+                format!(
+                    "effect `{name}` is not modelled on the lengths of this session's kind; its library: {}",
+                    self.names.join(", ")
+                )
+            })
+    }
+}
+
+/// Every effect name any plan kind's library holds (the multilateration's first).
+pub fn known_names() -> Vec<&'static str> {
+    let mut names: Vec<&'static str> = LIBRARY.iter().map(|k| k.name()).collect();
+    for kind in crate::kinds::KINDS {
+        if let Some(network) = kind.tracer_diagnosis() {
+            for name in network.library() {
+                if !names.contains(name) {
+                    names.push(name);
+                }
+            }
+        }
+    }
+    names
 }
 
 /// The library effect called `name`, or an error that lists the known names.
@@ -149,12 +236,19 @@ pub fn effect_by_name(name: &str) -> Result<EffectKind, String> {
 
 /// One effect as a model: its kind and, for a length step, where the step is (pass group and
 /// position in the pass's time order from which the lengths are shifted); for settling, its
-/// time constant.
-#[derive(Debug, Clone, PartialEq)]
+/// time constant; for an effect the plan kind models, that model.
+#[derive(Debug, Clone)]
 pub struct EffectModel {
     pub kind: EffectKind,
     pub step: Option<(usize, usize)>,
     pub tau_s: Option<f64>,
+    pub own: Option<Arc<dyn LengthEffect>>,
+}
+
+impl PartialEq for EffectModel {
+    fn eq(&self, other: &Self) -> bool {
+        self.kind == other.kind && self.step == other.step && self.tau_s == other.tau_s
+    }
 }
 
 impl EffectModel {
@@ -163,6 +257,16 @@ impl EffectModel {
             kind,
             step: None,
             tau_s: None,
+            own: None,
+        }
+    }
+
+    /// An effect the session's plan kind models.
+    pub fn of_kind(model: Arc<dyn LengthEffect>) -> EffectModel {
+        EffectModel {
+            kind: EffectKind::Own(model.name()),
+            own: Some(model),
+            ..EffectModel::plain(EffectKind::Own(""))
         }
     }
 
@@ -175,6 +279,7 @@ impl EffectModel {
                 .collect()
         };
         match self.kind {
+            EffectKind::Own(_) => self.own.as_ref().map_or(Vec::new(), |m| m.param_names()),
             EffectKind::StationDrift => per_station(["wx_m_s", "wy_m_s", "wz_m_s"]),
             EffectKind::Reversal => vec!["bx_m".into(), "by_m".into(), "bz_m".into()],
             EffectKind::LengthStep => vec!["step_m".into()],
@@ -222,6 +327,22 @@ impl EffectModel {
         let nobs = data.obs.len();
         let m = data.station_ids.len();
         match self.kind {
+            EffectKind::Own(_) => match &self.own {
+                Some(model) => {
+                    let beams: Vec<BeamObservation> = data
+                        .obs
+                        .iter()
+                        .enumerate()
+                        .map(|(i, o)| BeamObservation {
+                            station: o.station,
+                            beam: -geom.beam(data, i).0,
+                            t_s: o.t_s,
+                        })
+                        .collect();
+                    model.absolute(&beams)
+                }
+                None => DMatrix::zeros(nobs, 0),
+            },
             EffectKind::StationDrift => {
                 let mut f = DMatrix::zeros(nobs, 3 * m);
                 for (i, o) in data.obs.iter().enumerate() {

@@ -15,6 +15,7 @@ pub mod plot;
 pub mod points;
 pub mod schur;
 pub mod settling;
+pub mod stations;
 pub mod stats;
 mod text;
 pub mod twin;
@@ -36,7 +37,7 @@ use crate::extract::SettledSession;
 use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
-use effects::{EffectKind, EffectModel, Geometry, LIBRARY};
+use effects::{EffectKind, EffectModel, Geometry, Library};
 use fit::Fit;
 use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
@@ -242,17 +243,25 @@ fn corrected_calibration(
     path: &Path,
     selected: &[String],
 ) -> Result<Option<CorrectedCalibration>, String> {
+    // The effects the solve models: those on the lengths (not the raw windows' settling, the
+    // points level's target offset or an effect on the stations).
+    let stations_effect = crate::kinds::kind_named(&settled.header.kind)
+        .and_then(|k| k.tracer_diagnosis())
+        .and_then(|n| n.stations_effect());
+    let known = effects::known_names();
     let kinds = selected
         .iter()
-        .filter_map(|name| effects::effect_by_name(name).ok())
-        .filter(|k| !matches!(k, EffectKind::Settling | EffectKind::TargetOffset))
+        .filter_map(|s| known.iter().copied().find(|name| name == s))
+        .filter(|name| {
+            !["settling", "target_offset"].contains(name) && Some(*name) != stations_effect
+        })
         .collect::<Vec<_>>();
     if kinds.is_empty() {
         return Ok(None);
     }
-    let solve_with = |effects: Vec<EffectKind>| {
+    let solve_with = |effects: Vec<&'static str>| {
         let settings = crate::method::SolveSettings {
-            effects: correct::fit(effects),
+            effects: correct::fit_named(effects),
             ..Default::default()
         };
         crate::method::multilateration::solve_settled(settled, &settings)
@@ -270,7 +279,7 @@ fn corrected_calibration(
             count += 1;
         }
     }
-    let names: Vec<&str> = kinds.iter().map(|k| k.name()).collect();
+    let names = kinds;
     Ok(Some(CorrectedCalibration {
         command: format!(
             "geocal solve {} --effects {}",
@@ -563,15 +572,31 @@ pub(crate) fn diagnose_data(
         data.station_ids.len(),
         data.dropped_windows
     )];
-    let mut available: Vec<EffectKind> = LIBRARY.to_vec();
+    let library = Library::of(data);
+    notes.extend(library.notes.iter().cloned());
+    let mut available: Vec<EffectModel> = library.lengths.clone();
+    let in_library =
+        |available: &[EffectModel], k: EffectKind| available.iter().any(|m| m.kind == k);
     if !data.has_env {
-        available.retain(|k| !matches!(k, EffectKind::AirRefraction | EffectKind::DeadPath));
-        notes.push("no environment log: air_refraction and dead_path cannot be tested".into());
+        let lacking: Vec<&str> = [EffectKind::AirRefraction, EffectKind::DeadPath]
+            .into_iter()
+            .filter(|&k| in_library(&available, k))
+            .map(|k| k.name())
+            .collect();
+        available.retain(|m| !matches!(m.kind, EffectKind::AirRefraction | EffectKind::DeadPath));
+        if !lacking.is_empty() {
+            notes.push(format!(
+                "no environment log: {} cannot be tested",
+                lacking.join(" and ")
+            ));
+        }
     }
-    if !data.has_material {
-        available.retain(|k| *k != EffectKind::ThermalExpansion);
+    if !data.has_material && in_library(&available, EffectKind::ThermalExpansion) {
+        available.retain(|m| m.kind != EffectKind::ThermalExpansion);
         notes.push("no material temperature in the log: thermal_expansion cannot be tested".into());
     }
+    let settling_in_library = in_library(&available, EffectKind::Settling);
+    let offset_in_library = in_library(&available, EffectKind::TargetOffset);
     let nominal_design = Arc::new(Design::nominal(data, &geom));
     let all_rows: Vec<usize> = (0..nobs).collect();
     let ln_n = (nobs as f64).ln();
@@ -586,8 +611,12 @@ pub(crate) fn diagnose_data(
     // Settling shows in the raw samples inside the dwell windows, which no other candidate
     // predicts: it is tested there (its own block of data, in the first round's family), and
     // once accepted its bias is taken off the window means before the selection on the means.
-    available.retain(|k| *k != EffectKind::Settling);
-    let settling_fit = settling::evaluate(data, &geom);
+    available.retain(|m| m.kind != EffectKind::Settling);
+    let settling_fit = if settling_in_library {
+        settling::evaluate(data, &geom)
+    } else {
+        None
+    };
     match &settling_fit {
         Some(fit) => {
             let alpha_each = options.alpha / (available.len() + 1) as f64;
@@ -620,13 +649,14 @@ pub(crate) fn diagnose_data(
                 });
             }
         }
-        None => notes.push(
+        None if settling_in_library => notes.push(
             "settling: no raw dwell window with a move into it, so it cannot be tested".into(),
         ),
+        None => {}
     }
     let mut last_base = None;
     let mut final_round = 0;
-    for round in 0..=LIBRARY.len() {
+    for round in 0..=library.names.len() {
         final_round = round;
         let design = Arc::new(nominal_design.with_effects(
             accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
@@ -648,27 +678,27 @@ pub(crate) fn diagnose_data(
         if gap_before.is_none() {
             gap_before = Some(base_gap.clone());
         }
-        let candidates: Vec<EffectKind> = available
+        let candidates: Vec<EffectModel> = available
             .iter()
-            .copied()
-            .filter(|k| !accepted.iter().any(|m| m.kind == *k))
+            .filter(|k| !accepted.iter().any(|m| m.kind == k.kind))
+            .cloned()
             .collect();
         let mut trials = Vec::new();
-        for kind in &candidates {
+        for candidate in &candidates {
+            let kind = &candidate.kind;
             let (model, searched) = if *kind == EffectKind::LengthStep {
                 match best_step(data, &full.basis, &full.res_w, None) {
                     Some((g, k, _, tried)) => (
                         EffectModel {
-                            kind: *kind,
                             step: Some((g, k)),
-                            tau_s: None,
+                            ..candidate.clone()
                         },
                         tried,
                     ),
                     None => continue,
                 }
             } else {
-                (EffectModel::plain(*kind), 1)
+                (candidate.clone(), 1)
             };
             let a = model.columns(data, &geom);
             let eval = engine.evaluate(&design, &full, &fold_fits, &a);
@@ -937,7 +967,8 @@ pub(crate) fn diagnose_data(
     // target_offset is tested at the points level (the lengths level cannot see it), after
     // the lengths-level effects, with the same Bonferroni share as a lengths candidate.
     let offset_test = after_level.as_ref().and_then(|p| p.target_offset.clone());
-    let offset_threshold = options.alpha / LIBRARY.len() as f64;
+    let offset_threshold = options.alpha / library.names.len() as f64;
+    let offset_test = offset_test.filter(|_| offset_in_library);
     let offset_accepted = offset_test
         .as_ref()
         .is_some_and(|t| t.p_value < offset_threshold && t.bic_delta < 0.0);
@@ -985,6 +1016,49 @@ pub(crate) fn diagnose_data(
         .map(|m| m.kind.name().to_string())
         .collect();
     let mut candidates: Vec<Candidate> = records.into_values().collect();
+    // The plan kind's test of the solved stations (e.g. the table stations against their
+    // circle), at the geometry of the final model.
+    let mut unexplained = unexplained;
+    if let Some(network) = library.network {
+        let (positions, mut covariance) = if accepted.is_empty() {
+            (
+                solution.stations.clone(),
+                solution.station_joint_covariance.clone(),
+            )
+        } else {
+            let first = 3 * final_fit.geom.points.len();
+            let cols: Vec<usize> = (first..first + 3 * final_fit.geom.stations.len()).collect();
+            (
+                final_fit.geom.stations.clone(),
+                final_fit.basis.pinv_block(&cols),
+            )
+        };
+        if let Some(scale) = &noise_scale {
+            covariance *= scale.k.powi(2);
+        }
+        let solved = crate::method::tracer_effects::SolvedStations {
+            positions_m: &positions,
+            covariance_m2: &covariance,
+        };
+        match network.stations_level(&data.network_session(), &solved) {
+            Ok(Some(level)) => {
+                let outcome =
+                    stations::judge(&level, options.alpha, library.names.len(), alpha_part);
+                where_.extend(outcome.where_);
+                notes.extend(outcome.notes);
+                if outcome.selected {
+                    selected.push(level.effect.to_string());
+                }
+                unexplained |= outcome.unexplained;
+                candidates.push(outcome.candidate);
+            }
+            Ok(None) => {}
+            Err(why) => notes.push(format!(
+                "{}: not tested: {why}",
+                network.stations_effect().unwrap_or("the stations level")
+            )),
+        }
+    }
     if let Some(t) = &offset_test {
         if offset_accepted {
             selected.push(EffectKind::TargetOffset.name().to_string());
@@ -1074,8 +1148,19 @@ fn standardised_residuals(
         .map(|m| m.kind.name().to_string())
         .collect();
     final_effects.dedup();
+    // A kind may place its stations in its own coordinates (e.g. the table angle).
+    let network = crate::kinds::kind_named(&data.header.kind).and_then(|k| k.tracer_diagnosis());
+    let session = data.network_session();
     StandardisedResiduals {
-        station_ids: data.station_ids.clone(),
+        station_ids: data
+            .station_ids
+            .iter()
+            .map(|id| {
+                network
+                    .and_then(|n| n.station_label(&session, id))
+                    .unwrap_or_else(|| id.clone())
+            })
+            .collect(),
         lengths: data
             .obs
             .iter()

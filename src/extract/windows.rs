@@ -39,6 +39,35 @@ pub struct SettledSession {
     /// Per measurement: its raw settled window (None when the session's events do not
     /// locate it, or it holds fewer than 2 samples).
     pub windows: Vec<Option<RawWindow>>,
+    /// The stations that stood on a rotary table: (station, commanded table angle of its last
+    /// `rotation` event), in the session's order; empty without a table.
+    pub rotations: Vec<(String, f64)>,
+}
+
+/// The `rotation` events of a session, each with the station it happened in.
+#[derive(Debug, Clone, Default)]
+struct Rotations {
+    current: Option<String>,
+    found: Vec<(String, f64)>,
+}
+
+impl Rotations {
+    fn event(&mut self, event: &RunEvent) {
+        match event {
+            RunEvent::StationBegin { station, .. } => self.current = Some(station.clone()),
+            RunEvent::StationEnd { .. } => self.current = None,
+            RunEvent::Rotation { commanded_rad, .. } => {
+                if let Some(station) = &self.current {
+                    // A repeated rotation within a station (a retry) replaces the earlier one.
+                    if self.found.last().is_some_and(|(s, _)| s == station) {
+                        self.found.pop();
+                    }
+                    self.found.push((station.clone(), *commanded_rad));
+                }
+            }
+            _ => {}
+        }
+    }
 }
 
 impl SettledSession {
@@ -56,7 +85,12 @@ impl SettledSession {
         // extract_points has named the problem unless there is exactly one tracer.
         let tracer_id = tracer_id.ok_or(ExtractError::NoTracer)?;
         let windows = raw_windows(session, &tracer_id, &extraction.measurements);
+        let mut rotations = Rotations::default();
+        for e in &session.events {
+            rotations.event(&e.msg);
+        }
         Ok(SettledSession {
+            rotations: rotations.found,
             header: session.header.clone(),
             env: session.env.clone(),
             damaged: session.damaged.clone(),
@@ -203,6 +237,7 @@ pub struct WindowStream {
     by_key: HashMap<(String, usize, usize), Vec<usize>>,
     /// The most tracer samples held at once, the gathered windows' pairs aside (tests).
     pub peak_samples: usize,
+    rotations: Rotations,
 }
 
 type Started = StreamStart<PointMeasurement>;
@@ -218,6 +253,7 @@ impl WindowStream {
             gathering: Vec::new(),
             by_key: HashMap::new(),
             peak_samples: 0,
+            rotations: Rotations::default(),
         }
     }
 
@@ -229,6 +265,7 @@ impl WindowStream {
         let pairing = started.pairing;
         let session = streamed.session;
         Some(SettledSession {
+            rotations: self.rotations.found,
             header: session.header,
             env: session.env,
             damaged: session.damaged,
@@ -299,6 +336,7 @@ impl SessionSink for WindowStream {
         // A clean file's stream: no message is lost.
         let lost = |_: u64, _: u64| false;
         for event in events.iter() {
+            self.rotations.event(&event.msg);
             match &event.msg {
                 RunEvent::DataLost { .. } => return false,
                 RunEvent::PointBegin {

@@ -94,6 +94,14 @@ pub trait Kind: Sync {
         false
     }
 
+    /// For a kind whose session is a tracer network: its effect library and models in the
+    /// diagnosis of the lengths (None: the multilateration's library as it is).
+    fn tracer_diagnosis(
+        &self,
+    ) -> Option<&'static dyn method::tracer_effects::TracerNetworkDiagnosis> {
+        None
+    }
+
     /// Host the configuration's device emulators on their own (`geocal simulate`).
     fn simulate(
         &self,

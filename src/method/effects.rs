@@ -33,4 +33,7 @@ pub struct EffectCorrection {
     /// Covariance the effects' uncertainty adds to the points (3n x 3n, point-major, in the
     /// points' inner-constraint datum).
     pub point_covariance_m2: DMatrix<f64>,
+    /// Covariance the effects' uncertainty adds to the stations (3m x 3m, station-major, in
+    /// the same datum): what a method built on the stations (a circle through them) needs.
+    pub station_covariance_m2: DMatrix<f64>,
 }

@@ -344,6 +344,12 @@ fn solve_extracted(
         for (i, cov) in solution.point_covariance.iter_mut().enumerate() {
             *cov += c.point_covariance_m2.fixed_view::<3, 3>(3 * i, 3 * i);
         }
+        if c.station_covariance_m2.shape() == solution.station_joint_covariance.shape() {
+            solution.station_joint_covariance += &c.station_covariance_m2;
+            for (j, cov) in solution.station_covariance.iter_mut().enumerate() {
+                *cov += c.station_covariance_m2.fixed_view::<3, 3>(3 * j, 3 * j);
+            }
+        }
     }
     let effect_parameters = correction.as_ref().map_or(0, |c| c.parameters);
     let dof = solution.dof.saturating_sub(effect_parameters);

@@ -48,6 +48,8 @@ pub struct SimEffects {
     drift_m_s: Vec<Vector3<f64>>,
     /// Per station: (e, φ0, ez).
     eccentricity: Vec<(f64, f64, f64)>,
+    /// The tracer on a rotary table: φ0 in the table's frame (it turns with the table).
+    table_eccentricity_phi0: f64,
     /// Target drift velocity, m/s.
     thermal_drift_m_s: Vector3<f64>,
     /// Per station: error of the declared dead path (uncompensated), metres.
@@ -119,7 +121,11 @@ impl SimEffects {
             .collect();
         let settling_m =
             std::array::from_fn(|_| config.settling.size_m * rng.random_range(0.5..1.0));
+        // Its own stream: drawing it leaves every other effect's values as they were.
+        let table_eccentricity_phi0 = ChaCha8Rng::seed_from_u64(seed ^ 0x5441_424c_4545_4343)
+            .random_range(0.0..std::f64::consts::TAU);
         SimEffects {
+            table_eccentricity_phi0,
             config: *config,
             env: env.clone(),
             drift_m_s,
@@ -145,6 +151,13 @@ impl SimEffects {
     pub fn with_declared_dead_path(mut self, dead_path_m: f64) -> SimEffects {
         self.declared_dead_path_m = dead_path_m;
         self
+    }
+
+    /// The tracer's eccentricity on a rotary table (e, φ0 in the table's frame, ez), if on.
+    pub fn table_eccentricity(&self) -> Option<(f64, f64, f64)> {
+        let c = &self.config.tracer_eccentricity;
+        c.enabled
+            .then_some((c.size_m, self.table_eccentricity_phi0, c.z_size_m))
     }
 
     /// The tracer now stands at `station` (the operator has finished placing it).
@@ -235,13 +248,17 @@ impl SimEffects {
 
     /// The distance the tracer at `station` (nominally at `station_m`) reads to `target_m` at
     /// time t: geometry with drift, plus the length errors of eccentricity, air and fringes.
-    /// Homing zeroes whatever this contains at the homing time.
+    /// Homing zeroes whatever this contains at the homing time. `table_frame`: the tracer
+    /// stands on a rotary table (its axis n and true angle θ), so its eccentricity turns with
+    /// the table: azimuth about n (from e1 = x projected on the table's plane) less θ,
+    /// elevation from the table's plane.
     pub fn distance_m(
         &self,
         station: usize,
         station_m: &Vector3<f64>,
         target_m: &Vector3<f64>,
         t_s: f64,
+        table_frame: Option<(Vector3<f64>, f64)>,
     ) -> f64 {
         let c = &self.config;
         let mut p = *station_m;
@@ -259,8 +276,20 @@ impl SimEffects {
         let mut err = 0.0;
         if c.tracer_eccentricity.enabled && d > 0.0 {
             if let Some(&(e, phi0, ez)) = self.eccentricity.get(station) {
-                let az = v.y.atan2(v.x);
-                let el = (v.z / d).asin();
+                let (az, el, phi0, ez) = match table_frame {
+                    Some((n, angle)) => {
+                        let (e1, e2) = crate::sim::rotary::plane_basis(&n);
+                        let az = v.dot(&e2).atan2(v.dot(&e1)) - angle;
+                        let el = (v.dot(&n) / d).clamp(-1.0, 1.0).asin();
+                        (
+                            az,
+                            el,
+                            self.table_eccentricity_phi0,
+                            c.tracer_eccentricity.z_size_m,
+                        )
+                    }
+                    None => (v.y.atan2(v.x), (v.z / d).asin(), phi0, ez),
+                };
                 err += e * (az - phi0).cos() + ez * el.sin();
             }
         }

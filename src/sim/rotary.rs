@@ -58,6 +58,81 @@ impl AngleError {
     }
 }
 
+/// The table's error motions, periodic in its true angle θ (radial and axial harmonics 2-4,
+/// tilt 2-3: a circle through the pivots absorbs harmonics 0 and 1 of a radial or axial motion): the axis moves radially
+/// by a 2-vector in the plane (e1, e2) and axially along n, and tilts by a 2-vector (about a
+/// line through the axis point). The pivot moves by axial·n + radial + tilt × (pivot − axis
+/// point).
+#[derive(Debug, Clone, Serialize, PartialEq)]
+pub struct ErrorMotion {
+    /// (k, cos coefficient, sin coefficient): radial and tilt in (e1, e2), axial along n.
+    pub radial_m: Vec<(u32, [f64; 2], [f64; 2])>,
+    pub axial_m: Vec<(u32, f64, f64)>,
+    pub tilt_rad: Vec<(u32, [f64; 2], [f64; 2])>,
+}
+
+impl ErrorMotion {
+    /// Coefficients drawn in ±size/k (metres of pivot displacement; the tilt's scaled by the
+    /// pivot's distance from the axis point).
+    pub fn random(rng: &mut ChaCha8Rng, size_m: f64, arm_m: f64) -> ErrorMotion {
+        let mut draw = |scale: f64| scale * rng.random_range(-1.0..=1.0);
+        let mut radial_m = Vec::new();
+        let mut axial_m = Vec::new();
+        let mut tilt_rad = Vec::new();
+        for k in 2..=4u32 {
+            let s = size_m / f64::from(k);
+            radial_m.push((k, [draw(s), draw(s)], [draw(s), draw(s)]));
+            axial_m.push((k, draw(s), draw(s)));
+            // Tilts of harmonics 2-3 only: their pivot moves reach harmonic 4 (k ± 1).
+            if k <= 3 {
+                let t = s / arm_m.max(1e-3);
+                tilt_rad.push((k, [draw(t), draw(t)], [draw(t), draw(t)]));
+            }
+        }
+        ErrorMotion {
+            radial_m,
+            axial_m,
+            tilt_rad,
+        }
+    }
+
+    /// The pivot's displacement at true table angle θ; `arm` = pivot − axis point.
+    pub fn displacement_m(
+        &self,
+        angle_rad: f64,
+        n: &Vector3<f64>,
+        arm: &Vector3<f64>,
+    ) -> Vector3<f64> {
+        let (e1, e2) = plane_basis(n);
+        let harmonic = |k: u32, c: f64, s: f64| {
+            let x = f64::from(k) * angle_rad;
+            c * x.cos() + s * x.sin()
+        };
+        let in_plane = |terms: &[(u32, [f64; 2], [f64; 2])]| {
+            terms.iter().fold(Vector3::zeros(), |acc, &(k, c, s)| {
+                acc + e1 * harmonic(k, c[0], s[0]) + e2 * harmonic(k, c[1], s[1])
+            })
+        };
+        let axial: f64 = self
+            .axial_m
+            .iter()
+            .map(|&(k, c, s)| harmonic(k, c, s))
+            .sum();
+        in_plane(&self.radial_m) + n * axial + in_plane(&self.tilt_rad).cross(arm)
+    }
+}
+
+/// The plane of the table (normal n): e1 = x projected on it (y when x is along n), e2 = n × e1.
+pub fn plane_basis(n: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>) {
+    let x = if n.x.abs() < 0.9 {
+        Vector3::x()
+    } else {
+        Vector3::y()
+    };
+    let e1 = (x - n * n.dot(&x)).normalize();
+    (e1, n.cross(&e1))
+}
+
 /// The table's truth and its motion state.
 #[derive(Debug, Clone)]
 pub struct SimTable {
@@ -68,6 +143,8 @@ pub struct SimTable {
     /// Where the tracer stands at true table angle 0, metres.
     pub tracer_base_m: Vector3<f64>,
     pub error: AngleError,
+    /// Radial, axial and tilt error motions (`[sim.effects] table_error_motion`), if on.
+    pub error_motion: Option<ErrorMotion>,
     /// Reversal (backlash): the table stands half of it beyond the command in the direction of
     /// its last move, radians.
     pub reversal_rad: f64,
@@ -121,6 +198,7 @@ impl SimTable {
             axis_direction,
             tracer_base_m,
             error,
+            error_motion: None,
             reversal_rad: sim.reversal_rad,
             approach: 0.0,
             repeatability: (sim.repeatability_rad > 0.0)
@@ -170,14 +248,29 @@ impl SimTable {
         self.from_true_rad + (self.to_true_rad - self.from_true_rad) * s
     }
 
+    /// The table with error motions of `size_m` drawn from their own stream of `seed`.
+    pub fn with_error_motion(mut self, seed: u64, size_m: f64) -> SimTable {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed ^ 0x4552_524f_524d_4f54);
+        let arm = (self.tracer_base_m - self.axis_point_m).norm();
+        self.error_motion = Some(ErrorMotion::random(&mut rng, size_m, arm));
+        self
+    }
+
     /// Where the tracer on the table is at true table angle `angle_rad`.
     pub fn tracer_at(&self, angle_rad: f64) -> Vector3<f64> {
-        rotate_about_axis(
+        let turned = rotate_about_axis(
             &self.tracer_base_m,
             &self.axis_point_m,
             &self.axis_direction,
             angle_rad,
-        )
+        );
+        match &self.error_motion {
+            Some(motion) => {
+                let arm = turned - self.axis_point_m;
+                turned + motion.displacement_m(angle_rad, &self.axis_direction, &arm)
+            }
+            None => turned,
+        }
     }
 
     /// Start turning to `commanded_rad` at `now_s`; returns whether the table moves at all.

@@ -134,7 +134,22 @@ pub struct TruthRotary {
     /// true angles.
     #[serde(skip_serializing_if = "crate::config::is_zero")]
     pub repeatability_rad: f64,
+    /// The table's error motions (`[sim.effects] table_error_motion`).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub error_motion: Option<crate::sim::rotary::ErrorMotion>,
+    /// The tracer's eccentricity on the table (`[sim.effects] tracer_eccentricity`), turning
+    /// with it: e cos(az_t − φ0) + ez sin(el), az_t the azimuth about the axis (from e1 = x
+    /// projected on the table's plane) less the table angle.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub tracer_eccentricity: Option<TruthTableEccentricity>,
     pub steps: Vec<TruthStep>,
+}
+
+#[derive(Debug, Clone, Serialize)]
+pub struct TruthTableEccentricity {
+    pub e_m: f64,
+    pub phi0_rad: f64,
+    pub ez_m: f64,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -195,7 +210,11 @@ impl SimWorld {
             })
             .collect();
         let table = config.plan.rotary.as_ref().map(|rotary| {
-            SimTable::random(sim.seed, rotary, &sim.rotary, sim.station_hint_error_m)
+            let table = SimTable::random(sim.seed, rotary, &sim.rotary, sim.station_hint_error_m);
+            match sim.effects.table_error_motion {
+                m if m.enabled => table.with_error_motion(sim.seed, m.size),
+                _ => table,
+            }
         });
         let table_station = plan.stations.iter().map(|s| s.rotation.is_some()).collect();
         let tracer = &config.devices.tracer;
@@ -281,8 +300,13 @@ impl SimWorld {
             None => self.target_at(self.motion.at(t_s), t_s),
         };
         let station = self.station_at(t_s);
+        // The tracer on the table turns with it: its eccentricity is fixed in the table.
+        let table_frame = match (&self.table, self.on_table) {
+            (Some(table), true) => Some((table.axis_direction.into_inner(), table.angle_at(t_s))),
+            _ => None,
+        };
         self.effects
-            .distance_m(self.current_station, &station, &target, t_s)
+            .distance_m(self.current_station, &station, &target, t_s, table_frame)
     }
 
     // --- tracer ---
@@ -538,6 +562,14 @@ impl SimWorld {
                 angle_error: table.error.clone(),
                 reversal_rad: table.reversal_rad,
                 repeatability_rad: table.repeatability_rad(),
+                error_motion: table.error_motion.clone(),
+                tracer_eccentricity: self.effects.table_eccentricity().map(
+                    |(e_m, phi0_rad, ez_m)| TruthTableEccentricity {
+                        e_m,
+                        phi0_rad,
+                        ez_m,
+                    },
+                ),
                 steps: plan
                     .stations
                     .iter()

@@ -3,6 +3,7 @@
 //! step errors (`solve`).
 
 pub mod budget;
+pub mod diagnosis;
 pub mod report;
 pub mod solve;
 
@@ -20,6 +21,16 @@ pub struct RotaryTracer;
 impl Kind for RotaryTracer {
     fn name(&self) -> &'static str {
         crate::config::PlanKind::RotaryTracer.as_str()
+    }
+
+    fn diagnosable(&self) -> bool {
+        true
+    }
+
+    fn tracer_diagnosis(
+        &self,
+    ) -> Option<&'static dyn crate::method::tracer_effects::TracerNetworkDiagnosis> {
+        Some(&diagnosis::DIAGNOSIS)
     }
 
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
