@@ -165,9 +165,8 @@ pub fn joint_fit(
         }
         a
     };
-    let residual = |p: &DVector<f64>, a: &DMatrix<f64>, theta: &DVector<f64>| {
-        model.residuals(p) - a * theta
-    };
+    let residual =
+        |p: &DVector<f64>, a: &DMatrix<f64>, theta: &DVector<f64>| model.residuals(p) - a * theta;
     let whitened = |m: DMatrix<f64>| {
         let mut m = m;
         for (i, s) in sigma.iter().enumerate() {

@@ -215,7 +215,13 @@ impl Engine {
         (full, folds, ss / c, zz / c, count)
     }
 
-    fn evaluate(&self, design: &DMatrix<f64>, full: &BaseFit, folds: &[BaseFit], a: &DMatrix<f64>) -> Eval {
+    fn evaluate(
+        &self,
+        design: &DMatrix<f64>,
+        full: &BaseFit,
+        folds: &[BaseFit],
+        a: &DMatrix<f64>,
+    ) -> Eval {
         let reference = column_norm_max(a);
         let perp = Basis::new(&full.basis.project_off(a), EFFECT_RANK_TOL, reference);
         let coeff = perp.u.transpose() * &full.res_w;
@@ -298,8 +304,8 @@ fn locate(
                 .filter(|&i| labels[i].unit == "m")
                 .collect();
             let used = if metres.is_empty() { members } else { &metres };
-            let rms = (used.iter().map(|&i| raw[i] * raw[i]).sum::<f64>() / used.len() as f64)
-                .sqrt();
+            let rms =
+                (used.iter().map(|&i| raw[i] * raw[i]).sum::<f64>() / used.len() as f64).sqrt();
             out.push((
                 ss - dof,
                 WhereEntry {
@@ -390,7 +396,8 @@ pub fn diagnose(
         let gap = Gap {
             rms_m: rms_in_metres(model, &full.res_w.component_mul(&sigma)),
             heldout_rms_m: heldout_ms.sqrt(),
-            chi2_per_dof: full.res_w.norm_squared() / n.saturating_sub(full.basis.rank()).max(1) as f64,
+            chi2_per_dof: full.res_w.norm_squared()
+                / n.saturating_sub(full.basis.rank()).max(1) as f64,
             heldout_floor_m: 1.0,
             heldout_ratio: heldout_z2.sqrt(),
         };
@@ -539,7 +546,13 @@ pub fn diagnose(
         Basis::new(&design, RANK_TOL, 0.0).leverages()
     };
     let nominal_leverage = Basis::new(&engine.x, RANK_TOL, 0.0).leverages();
-    let where_ = locate(model, &rw, &nominal.residuals, &nominal_leverage, options.alpha);
+    let where_ = locate(
+        model,
+        &rw,
+        &nominal.residuals,
+        &nominal_leverage,
+        options.alpha,
+    );
     let alpha_part = options.alpha / 2.0;
     let remaining = locate(
         model,
@@ -578,8 +591,7 @@ pub fn diagnose(
             .filter(|(l, _)| l.unit == "m")
             .map(|(_, s)| s * s)
             .collect();
-        (metres.iter().sum::<f64>() / metres.len().max(1) as f64 * nominal.dof as f64
-            / n as f64)
+        (metres.iter().sum::<f64>() / metres.len().max(1) as f64 * nominal.dof as f64 / n as f64)
             .sqrt()
     };
     let selected: Vec<String> = accepted

@@ -169,12 +169,15 @@ impl HexapodWorld {
             home_lengths_m,
             pose: reached,
             move_end_s: 0.0,
-            effects: config.sim.as_ref().map_or_else(SimEffects::default, |s| SimEffects {
-                leg_scale: s.leg_scale,
-                leg_backlash_m: s.leg_backlash_m,
-                sensor_drift: s.sensor_drift,
-                platform_sag_m: s.platform_sag_m,
-            }),
+            effects: config
+                .sim
+                .as_ref()
+                .map_or_else(SimEffects::default, |s| SimEffects {
+                    leg_scale: s.leg_scale,
+                    leg_backlash_m: s.leg_backlash_m,
+                    sensor_drift: s.sensor_drift,
+                    platform_sag_m: s.platform_sag_m,
+                }),
             motion_sign: [0.0; LEGS],
             last_commanded: home,
         }
@@ -235,8 +238,8 @@ impl HexapodWorld {
         // The controller drives each leg to its design length: the sign of that change.
         let (from, to) = (to_pose(&self.last_commanded), to_pose(&commanded));
         for i in 0..LEGS {
-            let change = leg_length(&self.nominal.leg(i), &to).0
-                - leg_length(&self.nominal.leg(i), &from).0;
+            let change =
+                leg_length(&self.nominal.leg(i), &to).0 - leg_length(&self.nominal.leg(i), &from).0;
             if change != 0.0 {
                 self.motion_sign[i] = change.signum();
             }

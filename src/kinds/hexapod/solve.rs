@@ -270,7 +270,8 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                     n,
                     pose_messages: k,
                     commanded,
-                    t_s: (begin_ns.saturating_sub(first_ns) + end_ns.saturating_sub(begin_ns) / 2) as f64
+                    t_s: (begin_ns.saturating_sub(first_ns) + end_ns.saturating_sub(begin_ns) / 2)
+                        as f64
                         * 1e-9,
                 });
             }
@@ -557,7 +558,11 @@ pub fn solve_with_effects(
         "; with --effects {}: hinges, sigmas, covariance_m2 and chi2_per_dof from the joint fit \
          of the hinges, the legs' encoder constants, the measured poses and the effects (the \
          residual model of docs/diagnosis.md)",
-        effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(",")
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(",")
     ));
     Ok(results)
 }

@@ -57,7 +57,9 @@ impl ProbeResidualModel {
             .devices
             .iter()
             .find(|d| d.kind == "probe" && d.noise_m.is_some())
-            .ok_or_else(|| anyhow::anyhow!("session header: no device of kind `probe` with `noise_m`"))?;
+            .ok_or_else(|| {
+                anyhow::anyhow!("session header: no device of kind `probe` with `noise_m`")
+            })?;
         let points = timed_observations(session, probe.noise_m.unwrap_or(0.0), &probe.id)?;
         let e3 = solved.beam().normalize();
         let (e1, e2) = tangent_basis(&e3);
@@ -78,17 +80,30 @@ impl ProbeResidualModel {
             labels: Vec::new(),
         };
         let params = model.params(&model.start);
-        let t_end = model.points.iter().map(|p| p.t_s).fold(0.0, f64::max).max(1e-9);
-        let (t_lo, t_hi) = model.points.iter().fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
-            (lo.min(p.observation.reading_m), hi.max(p.observation.reading_m))
-        });
+        let t_end = model
+            .points
+            .iter()
+            .map(|p| p.t_s)
+            .fold(0.0, f64::max)
+            .max(1e-9);
+        let (t_lo, t_hi) =
+            model
+                .points
+                .iter()
+                .fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), p| {
+                    (
+                        lo.min(p.observation.reading_m),
+                        hi.max(p.observation.reading_m),
+                    )
+                });
         let span = (t_hi - t_lo).max(1e-12);
         for (i, p) in model.points.iter().enumerate() {
             let (normal, beam) = normal_and_beam(&params, &p.observation);
             let cosine = normal.dot(&beam).abs().max(COSINE_FLOOR);
             model.sigma.push(p.observation.sigma_m * cosine);
             let block = ((p.t_s / t_end) * TIME_BLOCKS as f64).floor() as usize;
-            let bin = (((p.observation.reading_m - t_lo) / span) * READING_BINS as f64).floor() as usize;
+            let bin =
+                (((p.observation.reading_m - t_lo) / span) * READING_BINS as f64).floor() as usize;
             let bin = bin.min(READING_BINS - 1);
             let posture = format!(
                 "posture {} (A {:.0}°, B {:.0}°)",
@@ -156,15 +171,22 @@ fn surface_point_with(p: &InstallParams, o: &ProbeObservation, rx: &Matrix3<f64>
 fn normal_and_beam(p: &InstallParams, o: &ProbeObservation) -> (Vector3<f64>, Vector3<f64>) {
     let q = surface_point_with(p, o, &rot_x(o.a_rad));
     let d = q - p.sphere_centre();
-    let normal = if d.norm() > 0.0 { d.normalize() } else { Vector3::z() };
+    let normal = if d.norm() > 0.0 {
+        d.normalize()
+    } else {
+        Vector3::z()
+    };
     let beam = rot_z(o.b_rad + p.b_offset_rad) * rot_x(o.a_rad) * p.beam();
     (normal, beam)
 }
 
 /// The A rotation about the axis (1, 0, τ) (tilted out of the plane normal to B).
 pub fn tilted_a_rotation(a_rad: f64, tilt_rad: f64) -> Matrix3<f64> {
-    Rotation3::from_axis_angle(&Unit::new_normalize(Vector3::new(1.0, 0.0, tilt_rad)), a_rad)
-        .into_inner()
+    Rotation3::from_axis_angle(
+        &Unit::new_normalize(Vector3::new(1.0, 0.0, tilt_rad)),
+        a_rad,
+    )
+    .into_inner()
 }
 
 /// Real spherical harmonics of degree 2 and 3 at the unit vector n (unnormalised Cartesian
@@ -188,8 +210,18 @@ pub fn form_harmonics(n: &Vector3<f64>) -> [f64; 12] {
 }
 
 pub const FORM_TERMS: [&str; 12] = [
-    "c2_xy", "c2_yz", "c2_zz", "c2_xz", "c2_xx_yy", "c3_y3xx_yy", "c3_xyz", "c3_y5zz_1",
-    "c3_z5zz_3", "c3_x5zz_1", "c3_zxx_yy", "c3_xxx_3yy",
+    "c2_xy",
+    "c2_yz",
+    "c2_zz",
+    "c2_xz",
+    "c2_xx_yy",
+    "c3_y3xx_yy",
+    "c3_xyz",
+    "c3_y5zz_1",
+    "c3_z5zz_3",
+    "c3_x5zz_1",
+    "c3_zxx_yy",
+    "c3_xxx_3yy",
 ];
 
 impl ResidualModel for ProbeResidualModel {
@@ -270,8 +302,12 @@ impl Effect for AAxisTilt<'_> {
     }
 }
 
+/// The library's `sphere_form` fits the 5 harmonics of degree 2: on the cap the probe sees,
+/// degree 3 adds 7 parameters that trade against the installation's and double its error.
+const FITTED_FORM_TERMS: usize = 5;
+
 /// `sphere_form`: the reference sphere's radius varies with the direction n from its centre,
-/// R + Σ c_k Y_k(n) over the real harmonics of degree 2 and 3 (metres).
+/// R + Σ c_k Y_k(n) over the real harmonics of degree 2 (metres).
 struct SphereForm<'a>(&'a ProbeResidualModel);
 
 impl Effect for SphereForm<'_> {
@@ -279,15 +315,21 @@ impl Effect for SphereForm<'_> {
         "sphere_form"
     }
     fn parameter_names(&self) -> Vec<String> {
-        FORM_TERMS.iter().map(|t| format!("{t}_m")).collect()
+        FORM_TERMS[..FITTED_FORM_TERMS]
+            .iter()
+            .map(|t| format!("{t}_m"))
+            .collect()
     }
     fn columns(&self, p: &DVector<f64>) -> DMatrix<f64> {
         let m = self.0;
         let params = m.params(p);
-        let mut a = DMatrix::zeros(m.points.len(), FORM_TERMS.len());
+        let mut a = DMatrix::zeros(m.points.len(), FITTED_FORM_TERMS);
         for (i, t) in m.points.iter().enumerate() {
             let (normal, _) = normal_and_beam(&params, &t.observation);
-            for (k, y) in form_harmonics(&normal).iter().enumerate() {
+            for (k, y) in form_harmonics(&normal)[..FITTED_FORM_TERMS]
+                .iter()
+                .enumerate()
+            {
                 a[(i, k)] = *y;
             }
         }
@@ -325,7 +367,9 @@ impl Effect for ThermalDrift<'_> {
         "thermal_drift"
     }
     fn parameter_names(&self) -> Vec<String> {
-        ["vx_m_per_s", "vy_m_per_s", "vz_m_per_s"].map(String::from).to_vec()
+        ["vx_m_per_s", "vy_m_per_s", "vz_m_per_s"]
+            .map(String::from)
+            .to_vec()
     }
     fn columns(&self, p: &DVector<f64>) -> DMatrix<f64> {
         let m = self.0;

@@ -266,8 +266,8 @@ impl ProbeInstallWorld {
                 0.0,
                 0.0,
             );
-        let centre = self.truth.sphere_centre()
-            + Vector3::from(e.thermal_drift_m_per_s) * self.now_s();
+        let centre =
+            self.truth.sphere_centre() + Vector3::from(e.thermal_drift_m_per_s) * self.now_s();
         let scale = self.truth.beam().norm();
         let d = origin - centre;
         let half_b = w.dot(&d);
@@ -279,8 +279,12 @@ impl ProbeInstallWorld {
             // The form at the perfect sphere's hit point (its second-order change ignored).
             let hit = d + w * (-half_b - disc.sqrt());
             let y = crate::kinds::probe_install::diagnosis::form_harmonics(&hit.normalize());
-            let radius =
-                self.radius_m + e.sphere_form_m.iter().zip(y).map(|(c, y)| c * y).sum::<f64>();
+            let radius = self.radius_m
+                + e.sphere_form_m
+                    .iter()
+                    .zip(y)
+                    .map(|(c, y)| c * y)
+                    .sum::<f64>();
             disc = half_b * half_b - (d.norm_squared() - radius * radius);
             if disc < 0.0 {
                 return None;

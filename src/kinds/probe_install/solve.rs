@@ -445,16 +445,20 @@ pub fn residual_model(
     solved: &ProbeInstallResults,
 ) -> anyhow::Result<super::diagnosis::ProbeResidualModel> {
     let values: Vec<f64> = solved.parameters.iter().map(|p| p.value).collect();
-    let params = crate::model::probe_install::InstallParams::from_vector(
-        &nalgebra::SVector::<f64, N_PARAMS>::from_column_slice(&values),
-    );
+    let params =
+        crate::model::probe_install::InstallParams::from_vector(
+            &nalgebra::SVector::<f64, N_PARAMS>::from_column_slice(&values),
+        );
     super::diagnosis::ProbeResidualModel::new(session, &params, solved.sphere_radius_m)
 }
 
 /// `geocal solve --effects NAMES`: the solve, then the installation and the named effects of
 /// the probe's library fitted jointly: parameters, σ (the beam's mapped from its two angles)
 /// and χ² of the joint fit. A parameter the postures cannot see keeps σ null.
-pub fn solve_with_effects(session: &Session, names: &[String]) -> anyhow::Result<ProbeInstallResults> {
+pub fn solve_with_effects(
+    session: &Session,
+    names: &[String],
+) -> anyhow::Result<ProbeInstallResults> {
     use crate::method::diagnosis::{effect_parameters, effects_named, joint_fit, ResidualModel};
     let mut results = solve(session)?;
     let model = residual_model(session, &results)?;
@@ -466,7 +470,19 @@ pub fn solve_with_effects(session: &Session, names: &[String]) -> anyhow::Result
     let chart_cov = nalgebra::Matrix2::from_fn(|i, j| fit.covariance[(2 + i, 2 + j)]);
     let beam_cov = beam_jac * chart_cov * beam_jac.transpose();
     // Model parameter of each of the 11 (None: a beam component, from the chart).
-    let index = [Some(0), Some(1), None, None, None, Some(4), Some(5), Some(6), Some(7), Some(8), Some(9)];
+    let index = [
+        Some(0),
+        Some(1),
+        None,
+        None,
+        None,
+        Some(4),
+        Some(5),
+        Some(6),
+        Some(7),
+        Some(8),
+        Some(9),
+    ];
     for (k, p) in results.parameters.iter_mut().enumerate() {
         p.value = installed[k];
         let sigma = match index[k] {
@@ -482,7 +498,11 @@ pub fn solve_with_effects(session: &Session, names: &[String]) -> anyhow::Result
     results.note.push_str(&format!(
         "; with --effects {}: parameters, sigmas and chi2_per_dof from the joint fit of the \
          installation and the effects (the residual model of docs/diagnosis.md)",
-        effects.iter().map(|e| e.name()).collect::<Vec<_>>().join(",")
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(",")
     ));
     Ok(results)
 }

@@ -90,10 +90,7 @@ impl SphereResidualModel {
                 groups: vec![
                     ("direction", name.clone()),
                     ("height", format!("height {h}")),
-                    (
-                        "angle",
-                        format!("angle {:.0}°", p.angle_rad.to_degrees()),
-                    ),
+                    ("angle", format!("angle {:.0}°", p.angle_rad.to_degrees())),
                     (
                         "time",
                         format!("block {} of {TIME_BLOCKS}", block.min(TIME_BLOCKS - 1) + 1),
@@ -187,8 +184,16 @@ pub fn turning_form_harmonics(n: &Vector3<f64>) -> [f64; 10] {
 }
 
 pub const TURNING_FORM_TERMS: [&str; 10] = [
-    "c2_xy", "c2_yz", "c2_xz", "c2_xx_yy", "c3_y3xx_yy", "c3_xyz", "c3_y5zz_1", "c3_x5zz_1",
-    "c3_zxx_yy", "c3_xxx_3yy",
+    "c2_xy",
+    "c2_yz",
+    "c2_xz",
+    "c2_xx_yy",
+    "c3_y3xx_yy",
+    "c3_xyz",
+    "c3_y5zz_1",
+    "c3_x5zz_1",
+    "c3_zxx_yy",
+    "c3_xxx_3yy",
 ];
 
 impl ResidualModel for SphereResidualModel {
@@ -279,7 +284,10 @@ impl Effect for SphereForm<'_> {
         "sphere_form"
     }
     fn parameter_names(&self) -> Vec<String> {
-        TURNING_FORM_TERMS.iter().map(|t| format!("{t}_m")).collect()
+        TURNING_FORM_TERMS
+            .iter()
+            .map(|t| format!("{t}_m"))
+            .collect()
     }
     fn columns(&self, params: &DVector<f64>) -> DMatrix<f64> {
         let m = self.0;

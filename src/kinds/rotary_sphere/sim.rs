@@ -159,11 +159,16 @@ impl SphereWorld {
         if !self.sim.sphere_form_m.is_empty() {
             // The form at the perfect sphere's hit point, in the sphere's own frame (its
             // second-order change ignored).
-            let n = crate::model::rotary_sphere::rz(-self.commanded_rad)
-                * (w + u * t).normalize();
+            let n = crate::model::rotary_sphere::rz(-self.commanded_rad) * (w + u * t).normalize();
             let y = crate::kinds::rotary_sphere::diagnosis::turning_form_harmonics(&n);
             let radius = self.radius_m
-                + self.sim.sphere_form_m.iter().zip(y).map(|(c, y)| c * y).sum::<f64>();
+                + self
+                    .sim
+                    .sphere_form_m
+                    .iter()
+                    .zip(y)
+                    .map(|(c, y)| c * y)
+                    .sum::<f64>();
             let disc = b * b - w.norm_squared() + radius * radius;
             if disc < 0.0 {
                 return None;
@@ -173,8 +178,8 @@ impl SphereWorld {
         let (az, el) = (normal.y.atan2(normal.x), normal.z.clamp(-1.0, 1.0).asin());
         let lobing = self.sim.probe_lobing_m
             * ((3.0 * az).cos() * el.cos() + 0.6 * (el.cos().powi(2) - 0.5));
-        let vibration = self.sim.probe_vibration_m
-            * (std::f64::consts::TAU * self.now_s / 7.3).sin();
+        let vibration =
+            self.sim.probe_vibration_m * (std::f64::consts::TAU * self.now_s / 7.3).sin();
         Some(t - self.standoff_m + lobing + vibration)
     }
 
