@@ -346,7 +346,7 @@ fn error_text(e: &anyhow::Error) -> String {
 fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     geocal::method::SolveSettings {
         huber: huber.map(|threshold_sigma| geocal::solve::robust::Huber { threshold_sigma }),
-        effects: None,
+        ..Default::default()
     }
 }
 
@@ -450,10 +450,11 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
             huber,
             effects,
         } => {
-            let settings = geocal::method::SolveSettings {
-                effects: geocal::diagnose::correct::parse_effects(&effects)?,
-                ..settings(huber)
-            };
+            let settings = geocal::diagnose::residual_model::solve_settings(
+                &session,
+                &effects,
+                settings(huber),
+            )?;
             let spinner = geocal::progress::spinner(
                 progress,
                 &format!("solve: reading and solving {}", session.display()),
@@ -516,12 +517,16 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
             );
             let diagnosed = match twin {
                 None => geocal::diagnose::diagnose_file_detailed(&session, &Default::default()),
-                Some(twin) => geocal::diagnose::twin::diagnose_file_with_twin_detailed(
-                    &session,
-                    &twin,
-                    twin_out.as_deref(),
-                    &Default::default(),
-                ),
+                Some(twin) => {
+                    geocal::diagnose::residual_model::refuse_twin(&session).and_then(|()| {
+                        geocal::diagnose::twin::diagnose_file_with_twin_detailed(
+                            &session,
+                            &twin,
+                            twin_out.as_deref(),
+                            &Default::default(),
+                        )
+                    })
+                }
             };
             spinner.finish_and_clear();
             let (diagnosis, residuals) = diagnosed?;

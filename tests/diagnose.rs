@@ -468,11 +468,11 @@ fn confounded_pair_is_reported_not_named() {
     assert!(d.gap_after.heldout_ratio < HELDOUT_RATIO_MAX, "{text}");
 }
 
-/// `geocal diagnose` on a session of a kind it has no model for (rotary_sphere, probe_install,
-/// hexapod): a clear error naming the kind and what is supported, never a panic; with and
-/// without a twin.
+/// `geocal diagnose` on sessions of the kinds with a residual model (rotary_sphere,
+/// probe_install, hexapod): diagnosed by their own model (`tests/diagnose_kinds.rs` checks the
+/// findings); `--twin`, which compares tracer lengths, is refused clearly, never a panic.
 #[test]
-fn sessions_of_other_kinds_are_refused_clearly() {
+fn sessions_of_other_kinds_are_diagnosed_and_twins_refused_clearly() {
     let dir = tempfile::tempdir().expect("tempdir");
     let sphere = include_str!("../config/rotary-sphere.toml")
         .replace(
@@ -514,21 +514,24 @@ fn sessions_of_other_kinds_are_refused_clearly() {
             String::from_utf8_lossy(&run.stderr)
         );
         let session = out.join("session.mcap");
-        for twin in [None, Some(&config)] {
-            let mut args: Vec<&std::ffi::OsStr> = vec!["diagnose".as_ref(), session.as_os_str()];
-            if let Some(t) = twin {
-                args.extend(["--twin".as_ref(), t.as_os_str()]);
-            }
-            let d = geocal(&args);
-            let err = String::from_utf8_lossy(&d.stderr);
-            assert_eq!(d.status.code(), Some(1), "{err}");
-            assert!(!err.contains("panicked"), "{err}");
-            assert!(
-                err.contains(&format!("session kind `{kind}` cannot be diagnosed")),
-                "{err}"
-            );
-            assert!(err.contains("supports `multilateration`"), "{err}");
-            assert!(err.contains("session.mcap"), "{err}");
-        }
+        let d = geocal(&["diagnose".as_ref(), session.as_os_str()]);
+        let text = String::from_utf8_lossy(&d.stdout);
+        assert!(d.status.success(), "{}", String::from_utf8_lossy(&d.stderr));
+        assert!(
+            text.contains(&format!("Diagnosis of {kind} session")),
+            "{text}"
+        );
+        let d = geocal(&[
+            "diagnose".as_ref(),
+            session.as_os_str(),
+            "--twin".as_ref(),
+            config.as_os_str(),
+        ]);
+        let err = String::from_utf8_lossy(&d.stderr);
+        assert_eq!(d.status.code(), Some(1), "{err}");
+        assert!(!err.contains("panicked"), "{err}");
+        assert!(err.contains("--twin compares tracer lengths"), "{err}");
+        assert!(err.contains(&format!("a {kind} session")), "{err}");
+        assert!(err.contains("session.mcap"), "{err}");
     }
 }

@@ -13,6 +13,7 @@ pub mod loso;
 mod oracle;
 pub mod plot;
 pub mod points;
+pub mod residual_model;
 pub mod schur;
 pub mod settling;
 pub mod stations;
@@ -147,6 +148,10 @@ pub struct Diagnosis {
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
+    /// For a kind with a residual model (hexapod, probe_install, rotary_sphere): its kind,
+    /// residual units, coordinates, library and the parameters with the effects fitted.
+    #[serde(default, flatten, skip_serializing_if = "Option::is_none")]
+    pub model: Option<residual_model::ModelDiagnosis>,
 }
 
 /// The `noise_scale` finding: the declared per-length σ times `k` fits the residuals.
@@ -195,6 +200,9 @@ pub struct StandardisedResiduals {
     pub lengths: Vec<StandardisedResidual>,
     /// The effects in the final model; empty when it is the nominal model (`after` = `before`).
     pub final_effects: Vec<String>,
+    /// The x axis when it is not time (a kind's residual model: its coordinate), and then
+    /// `station_ids` are the plot's rows (legs, directions, ...).
+    pub x_axis: Option<String>,
 }
 
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -218,6 +226,9 @@ pub fn diagnose_file_detailed(
     path: &Path,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
+    if let Some(diagnosed) = residual_model::diagnose_file(path, options)? {
+        return Ok(diagnosed);
+    }
     let settled = data::settled_of_file(path)
         .with_context(|| format!("reading {}", path.display()))?
         .map_err(DiagnoseError::from)
@@ -1117,6 +1128,7 @@ pub(crate) fn diagnose_data(
         observations: nobs,
         notes,
         twin: None,
+        model: None,
     };
     // The twin comparison takes this off the recorded lengths: settling's bias was taken off
     // before the final fit, so it is added here.
@@ -1173,6 +1185,7 @@ fn standardised_residuals(
             })
             .collect(),
         final_effects,
+        x_axis: None,
     }
 }
 

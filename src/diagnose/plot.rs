@@ -71,21 +71,34 @@ pub fn svg(session_id: &str, residuals: &StandardisedResiduals) -> anyhow::Resul
                     (lo.min(t), hi.max(t))
                 });
             let (t_min, t_max) = if t_min <= t_max {
-                let pad = (0.02 * (t_max - t_min)).max(1.0);
+                // A kind's coordinate may span less than one unit (e.g. a posture index).
+                let min_pad = if residuals.x_axis.is_some() { 0.5 } else { 1.0 };
+                let pad = (0.02 * (t_max - t_min)).max(min_pad);
                 (t_min - pad, t_max + pad)
             } else {
                 (0.0, 1.0)
             };
             let mut chart = ChartBuilder::on(area)
                 .margin(6)
-                .caption(format!("station {id}"), ("sans-serif", 13))
+                .caption(
+                    match residuals.x_axis {
+                        Some(_) => id.clone(),
+                        None => format!("station {id}"),
+                    },
+                    ("sans-serif", 13),
+                )
                 .x_label_area_size(40)
                 .y_label_area_size(48)
                 .build_cartesian_2d(t_min..t_max, -z_max..z_max)
                 .map_err(drawing)?;
             chart
                 .configure_mesh()
-                .x_desc("time since the first length [s]")
+                .x_desc(
+                    residuals
+                        .x_axis
+                        .as_deref()
+                        .unwrap_or("time since the first length [s]"),
+                )
                 .y_desc("residual / sigma")
                 .x_label_formatter(&|t| format!("{t:.0}"))
                 .y_label_formatter(&|z| format!("{z:.0}"))

@@ -25,6 +25,9 @@ pub fn text(d: &Diagnosis) -> String {
 /// At most [`SUMMARY_MAX_LINES`] lines: session, verdict, where, which, how far, and when
 /// present the points level, the noise scale and the corrected calibration.
 pub fn summary(d: &Diagnosis) -> Vec<String> {
+    if d.model.is_some() {
+        return super::residual_model::summary(d);
+    }
     let mut head = vec![
         format!(
             "Diagnosis of session {} ({} lengths)",
@@ -461,6 +464,9 @@ fn capped<T>(s: &mut String, rows: &[T], row: impl Fn(&T) -> String) {
 /// Everything behind the summary: the gaps in full, the failing groups, points and stations,
 /// every candidate's statistics, the selected effects' parameters, the notes.
 pub fn details(d: &Diagnosis) -> String {
+    if d.model.is_some() {
+        return super::residual_model::details(d);
+    }
     let mut s = String::from("Details\n");
     let _ = writeln!(
         s,
@@ -836,6 +842,7 @@ mod tests {
             }),
             points_level: None,
             points_level_after: None,
+            model: None,
             leave_one_station_out: stations
                 .iter()
                 .map(|s| HeldOutStation {

@@ -102,6 +102,21 @@ pub trait Kind: Sync {
         None
     }
 
+    /// Whether this kind hands `geocal diagnose` and `geocal solve --effects` a residual
+    /// model with its effect library (`residual_model`).
+    fn has_residual_model(&self) -> bool {
+        false
+    }
+
+    /// The session's residual model (measured quantities against the nominal model, their
+    /// labels) and the kind's effect library (docs/diagnosis.md).
+    fn residual_model(
+        &self,
+        _session: &Session,
+    ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
+        anyhow::bail!("a {} session has no residual model", self.name())
+    }
+
     /// Host the configuration's device emulators on their own (`geocal simulate`).
     fn simulate(
         &self,

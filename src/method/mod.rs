@@ -1,6 +1,7 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind (`kinds::registry::solve_session` picks it from the session's kind).
 
+pub mod diagnosis;
 pub mod effects;
 pub mod multilateration;
 pub mod plan_check;
@@ -126,11 +127,16 @@ pub struct SolveSettings {
     /// Unmodelled effects fitted jointly with the geometry (the diagnosis's models:
     /// `diagnose::correct::parse_effects`); None: none.
     pub effects: Option<std::sync::Arc<dyn effects::EffectsFit>>,
+    /// Effects of the kind's own library (kinds with a residual model, `diagnosis`), fitted
+    /// jointly with its calibration; empty: none.
+    pub effect_names: Vec<String>,
 }
 
 impl PartialEq for SolveSettings {
     fn eq(&self, other: &Self) -> bool {
         let names = |s: &SolveSettings| s.effects.as_ref().map(|e| e.names());
-        self.huber == other.huber && names(self) == names(other)
+        self.huber == other.huber
+            && names(self) == names(other)
+            && self.effect_names == other.effect_names
     }
 }

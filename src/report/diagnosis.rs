@@ -68,13 +68,24 @@ pub fn document(d: &Diagnosis) -> Section {
     let line = |prefix: &str| summary.iter().find(|l| l.starts_with(prefix)).cloned();
     let mut section = Section::new("diagnosis", "Diagnosis")
         .badge(tone(d), verdict(d))
-        .paragraph(format!(
-            "Session {}, {} lengths; noise floor {:.1} nm (the fitted RMS the noise model \
-             alone would give).",
-            d.session_id,
-            d.observations,
-            d.noise_floor_m * 1e9
-        ));
+        .paragraph(match &d.model {
+            Some(m) => format!(
+                "{} session {}, {} residuals ({}); noise floor {:.1} nm (the fitted RMS of \
+                 its length residuals the noise model alone would give).",
+                m.kind,
+                d.session_id,
+                d.observations,
+                m.coordinates.join(", "),
+                d.noise_floor_m * 1e9
+            ),
+            None => format!(
+                "Session {}, {} lengths; noise floor {:.1} nm (the fitted RMS the noise model \
+                 alone would give).",
+                d.session_id,
+                d.observations,
+                d.noise_floor_m * 1e9
+            ),
+        });
     for prefix in ["where: ", "how far: ", "noise: ", "corrected calibration: "] {
         if let Some(text) = line(prefix) {
             section = section.paragraph(text);
@@ -111,7 +122,13 @@ pub fn candidate_row(c: &Candidate, d: &Diagnosis) -> Vec<String> {
         format!("{:.1}", c.chi2_drop),
         format!("{:.1e}", c.p_value),
         format!("{:.1}", c.bic_delta),
-        format!("{:.1}", c.heldout_rms_after_m * 1e9),
+        // A kind's residual model holds residuals of several units: its held-out RMS is in
+        // units of each residual's σ.
+        if d.model.is_some() {
+            format!("{:.3} σ", c.heldout_rms_after_m)
+        } else {
+            format!("{:.1}", c.heldout_rms_after_m * 1e9)
+        },
         outcome,
     ]
 }

@@ -274,6 +274,23 @@ pub struct HexapodSim {
     /// kinematics of their lengths with the true hinges.
     #[serde(default)]
     pub exact_poses: bool,
+    /// Unmodelled effects in the simulated world, withheld from the solve's model (the
+    /// diagnosis's library, docs/diagnosis.md "hexapod"). `leg_scale`: leg i's encoder reads
+    /// (1 + k_i) × its change since home.
+    #[serde(default)]
+    pub leg_scale: [f64; 6],
+    /// `leg_backlash`: leg i's reading is off by b_i (m) × the sign of its last motion.
+    #[serde(default)]
+    pub leg_backlash_m: [f64; 6],
+    /// `sensor_drift`: the pose sensor's reading drifts by v × t (t since power-on): m/s for
+    /// x, y, z, rad/s for the rotation vector's components.
+    #[serde(default)]
+    pub sensor_drift: [f64; 6],
+    /// Out of the library: the platform deflects elastically with its pose: each leg's
+    /// length grows by sag × (tilt / 0.1 rad)² × the leg direction's vertical component
+    /// (metres at a 0.1 rad tilt).
+    #[serde(default)]
+    pub platform_sag_m: f64,
 }
 
 impl HexapodConfig {

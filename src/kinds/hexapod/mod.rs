@@ -6,6 +6,7 @@ pub mod budget;
 pub mod check;
 pub mod config;
 pub mod devices;
+pub mod diagnosis;
 pub mod hil_source;
 pub mod plan;
 pub mod replay;
@@ -80,9 +81,28 @@ impl Kind for Hexapod {
         Some(replay::replay)
     }
 
-    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+        if !settings.effect_names.is_empty() {
+            return solve::solve_with_effects(session, &settings.effect_names)
+                .map(Results::new)
+                .map_err(MethodError::Kind);
+        }
         solve::solve(session)
             .map(Results::new)
             .map_err(MethodError::of_kind)
+    }
+
+    fn has_residual_model(&self) -> bool {
+        true
+    }
+
+    fn residual_model(
+        &self,
+        session: &Session,
+    ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
+        let nominal = solve::solve(session)?;
+        Ok(Box::new(diagnosis::HexapodResidualModel::new(
+            session, &nominal,
+        )?))
     }
 }

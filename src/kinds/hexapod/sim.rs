@@ -77,6 +77,21 @@ pub struct HexapodWorld {
     home_lengths_m: [f64; LEGS],
     pose: PlatformPose,
     move_end_s: f64,
+    /// The withheld effects of `[sim]` (all zero: none).
+    effects: SimEffects,
+    /// Each leg's last motion (+1 extending, −1 retracting, 0 none since power-on) and the
+    /// last commanded pose: what the backlash depends on.
+    motion_sign: [f64; LEGS],
+    last_commanded: PlatformPose,
+}
+
+/// The unmodelled effects a simulated hexapod may carry (docs/diagnosis.md, "hexapod").
+#[derive(Debug, Clone, Copy, Default)]
+struct SimEffects {
+    leg_scale: [f64; LEGS],
+    leg_backlash_m: [f64; LEGS],
+    sensor_drift: [f64; 6],
+    platform_sag_m: f64,
 }
 
 pub type SharedHexapodWorld = Arc<Mutex<HexapodWorld>>;
@@ -154,6 +169,17 @@ impl HexapodWorld {
             home_lengths_m,
             pose: reached,
             move_end_s: 0.0,
+            effects: config
+                .sim
+                .as_ref()
+                .map_or_else(SimEffects::default, |s| SimEffects {
+                    leg_scale: s.leg_scale,
+                    leg_backlash_m: s.leg_backlash_m,
+                    sensor_drift: s.sensor_drift,
+                    platform_sag_m: s.platform_sag_m,
+                }),
+            motion_sign: [0.0; LEGS],
+            last_commanded: home,
         }
     }
 
@@ -209,6 +235,16 @@ impl HexapodWorld {
                 format!("the legs' lengths for pose {commanded:?} have no nearby true pose")
             })?;
         self.poses.push((commanded, target));
+        // The controller drives each leg to its design length: the sign of that change.
+        let (from, to) = (to_pose(&self.last_commanded), to_pose(&commanded));
+        for i in 0..LEGS {
+            let change =
+                leg_length(&self.nominal.leg(i), &to).0 - leg_length(&self.nominal.leg(i), &from).0;
+            if change != 0.0 {
+                self.motion_sign[i] = change.signum();
+            }
+        }
+        self.last_commanded = commanded;
         let dist =
             (Vector3::from(target.translation_m) - Vector3::from(self.pose.translation_m)).norm();
         let turn = (Rotation3::new(Vector3::from(target.rotation_vector_rad))
@@ -233,9 +269,18 @@ impl HexapodWorld {
         let t_s = self.now_s() + self.reading_period_s;
         self.clock.advance_to(t_s);
         let pose = to_pose(&self.pose);
+        let e = self.effects;
+        let tilt = pose.rotation.angle();
         let lengths_m = std::array::from_fn(|i| {
             let z: f64 = StandardNormal.sample(&mut self.rng);
-            leg_length(&self.truth.leg(i), &pose).0 - self.home_lengths_m[i]
+            let leg = self.truth.leg(i);
+            let change = leg_length(&leg, &pose).0 - self.home_lengths_m[i];
+            let d = pose.rotation * self.truth.platform_m[i] + pose.translation_m
+                - self.truth.base_m[i];
+            let sag = e.platform_sag_m * (tilt / 0.1).powi(2) * d.z / d.norm();
+            change * (1.0 + e.leg_scale[i])
+                + e.leg_backlash_m[i] * self.motion_sign[i]
+                + sag
                 + self.start_count_m[i]
                 + self.encoder_noise_m * z
         });
@@ -251,11 +296,14 @@ impl HexapodWorld {
             s * z
         };
         let p = self.pose;
+        let drift = self.effects.sensor_drift.map(|v| v * t_s);
         PoseReading {
             t_s,
             pose: PlatformPose {
-                translation_m: p.translation_m.map(|v| v + n(sm)),
-                rotation_vector_rad: p.rotation_vector_rad.map(|v| v + n(sr)),
+                translation_m: std::array::from_fn(|c| p.translation_m[c] + drift[c] + n(sm)),
+                rotation_vector_rad: std::array::from_fn(|c| {
+                    p.rotation_vector_rad[c] + drift[3 + c] + n(sr)
+                }),
             },
         }
     }

@@ -112,6 +112,11 @@ pub struct HexapodResults {
     /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub misfit: Option<crate::solve::misfit::Misfit>,
+    /// `geocal solve --effects`: the effects fitted jointly with the hinges (effect →
+    /// parameter → value, with `<parameter>.sigma`); the hinges, covariance and χ² are then
+    /// those of the joint fit.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub effects: std::collections::BTreeMap<String, std::collections::BTreeMap<String, f64>>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -166,11 +171,15 @@ fn parse<T: serde::de::DeserializeOwned>(
 
 /// One pose's data: the pose, the mean leg reading, how many readings made it and how many
 /// pose messages the measured pose averages (0: commanded, taken as exact).
-struct PoseData {
-    pose: Pose,
-    mean_m: [f64; LEGS],
-    n: usize,
-    pose_messages: usize,
+pub(crate) struct PoseData {
+    pub(crate) pose: Pose,
+    pub(crate) mean_m: [f64; LEGS],
+    pub(crate) n: usize,
+    pub(crate) pose_messages: usize,
+    /// The commanded pose, and the middle of the pose's window (s since the session's first
+    /// pose window began): what the diagnosis's effects depend on.
+    pub(crate) commanded: Pose,
+    pub(crate) t_s: f64,
 }
 
 fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
@@ -182,6 +191,7 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
     let mut open: Option<(usize, u64, Pose)> = None;
     let mut out = Vec::new();
     let mut any_measured = false;
+    let mut first_begin_ns: Option<u64> = None;
     for e in &session.events {
         match &e.msg {
             RunEvent::PoseBegin { pose, axes } => {
@@ -253,11 +263,16 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                 } else {
                     commanded
                 };
+                let first_ns = *first_begin_ns.get_or_insert(begin_ns);
                 out.push(PoseData {
                     pose,
                     mean_m: sum.map(|s| s / n as f64),
                     n,
                     pose_messages: k,
+                    commanded,
+                    t_s: (begin_ns.saturating_sub(first_ns) + end_ns.saturating_sub(begin_ns) / 2)
+                        as f64
+                        * 1e-9,
                 });
             }
             _ => {}
@@ -271,11 +286,11 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
 pub struct Prepared {
     plan: HexapodPlanConfig,
     pub nominal: HexapodGeometry,
-    data: Vec<PoseData>,
-    any_measured: bool,
+    pub(crate) data: Vec<PoseData>,
+    pub(crate) any_measured: bool,
     sigma_change_m: f64,
-    pose_sigma_m: f64,
-    pose_sigma_rad: f64,
+    pub(crate) pose_sigma_m: f64,
+    pub(crate) pose_sigma_rad: f64,
     pub observations: HexapodObservations,
     pub noise: HexapodNoise,
 }
@@ -475,6 +490,7 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
         chi2_per_dof: (dof > 0).then(|| fit.chi2 / dof as f64),
         dof,
         misfit: crate::solve::misfit::Misfit::check(fit.chi2, dof),
+        effects: Default::default(),
         two_stage: TwoStageSummary {
             objective_initial_m2: two.objective_initial_m2,
             objective_stage1_m2: two.objective_stage1_m2,
@@ -506,4 +522,47 @@ pub fn solve(session: &Session) -> Result<HexapodResults, HexapodMethodError> {
                geometry"
             .into(),
     })
+}
+
+/// `geocal solve --effects NAMES`: the nominal solve, then the hinges and the named effects of
+/// the hexapod's library fitted jointly (docs/diagnosis.md, "hexapod"): hinges, σ, covariance
+/// and χ² of the joint fit.
+pub fn solve_with_effects(
+    session: &Session,
+    names: &[String],
+) -> Result<HexapodResults, Box<dyn std::error::Error + Send + Sync>> {
+    use crate::method::diagnosis::{effect_parameters, effects_named, joint_fit, ResidualModel};
+    let mut results = solve(session)?;
+    let model = super::diagnosis::HexapodResidualModel::new(session, &results)?;
+    let library = model.effects();
+    let effects = effects_named(&library, names)?;
+    let fit = joint_fit(&model, &effects, &model.start());
+    let hinges = 6 * LEGS;
+    for h in &mut results.hinges {
+        for k in 0..3 {
+            let (b, p) = (3 * h.leg + k, 3 * (LEGS + h.leg) + k);
+            h.base_m[k] = fit.params[b];
+            h.base_sigma_m[k] = fit.sigma(b);
+            h.platform_m[k] = fit.params[p];
+            h.platform_sigma_m[k] = fit.sigma(p);
+        }
+    }
+    results.covariance_m2 = (0..hinges)
+        .map(|i| (0..hinges).map(|j| fit.covariance[(i, j)]).collect())
+        .collect();
+    results.dof = fit.dof;
+    results.chi2_per_dof = (fit.dof > 0).then(|| fit.chi2 / fit.dof as f64);
+    results.misfit = crate::solve::misfit::Misfit::check(fit.chi2, fit.dof);
+    results.effects = effect_parameters(&effects, &fit, fit.params.len());
+    results.note.push_str(&format!(
+        "; with --effects {}: hinges, sigmas, covariance_m2 and chi2_per_dof from the joint fit \
+         of the hinges, the legs' encoder constants, the measured poses and the effects (the \
+         residual model of docs/diagnosis.md)",
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(",")
+    ));
+    Ok(results)
 }

@@ -269,6 +269,20 @@ pub struct ProbeInstallEffects {
     /// the probe reports (1 + size) × the true distance from its zero point along the beam.
     /// The model's beam direction is a unit vector, so it cannot take the scale up.
     pub probe_direction: ProbeDirectionEffect,
+    /// `reading_scale` (the diagnosis's library, docs/diagnosis.md): the probe reports
+    /// (1 + k) × the true distance; adds to `probe_direction`'s size.
+    pub reading_scale: f64,
+    /// `a_axis_tilt`: the A axis turns about (1, 0, τ) instead of (1, 0, 0), τ in radians.
+    pub a_axis_tilt_rad: f64,
+    /// `sphere_form`: the reference sphere's radius varies with the direction n from its
+    /// centre by Σ c_k Y_k(n), the 12 real harmonics of degree 2 and 3 in the order of
+    /// docs/diagnosis.md (metres; fewer given: the rest 0).
+    pub sphere_form_m: Vec<f64>,
+    /// `thermal_drift`: the sphere moves against the machine by v × t (m/s, x y z).
+    pub thermal_drift_m_per_s: [f64; 3],
+    /// Out of the library: the machine's x scale has a periodic error, the true x =
+    /// reported x + a sin(2π x / 1 mm) (metres).
+    pub x_periodic_error_m: f64,
 }
 
 #[derive(Debug, Clone, Default, Serialize, Deserialize, PartialEq)]
@@ -285,11 +299,8 @@ impl ProbeInstallEffects {
     /// The reading scale error in force: 0 when the switch is off.
     pub fn reading_scale_error(&self) -> f64 {
         let e = &self.probe_direction;
-        if e.enabled {
-            e.size
-        } else {
-            0.0
-        }
+        let direction = if e.enabled { e.size } else { 0.0 };
+        direction + self.reading_scale
     }
 }
 

@@ -5,6 +5,7 @@
 pub mod budget;
 pub mod check;
 pub mod config;
+pub mod diagnosis;
 pub mod hil_source;
 pub mod plan;
 pub mod replay;
@@ -79,9 +80,26 @@ impl Kind for ProbeInstall {
         Some(replay::replay)
     }
 
-    fn solve(&self, session: &Session, _: &SolveSettings) -> Result<Results, MethodError> {
+    fn solve(&self, session: &Session, settings: &SolveSettings) -> Result<Results, MethodError> {
+        if !settings.effect_names.is_empty() {
+            return solve::solve_with_effects(session, &settings.effect_names)
+                .map(Results::new)
+                .map_err(|e| MethodError::Kind(e.into()));
+        }
         solve::solve(session)
             .map(Results::new)
             .map_err(MethodError::of_kind)
+    }
+
+    fn has_residual_model(&self) -> bool {
+        true
+    }
+
+    fn residual_model(
+        &self,
+        session: &Session,
+    ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
+        let nominal = solve::solve(session)?;
+        Ok(Box::new(solve::residual_model(session, &nominal)?))
     }
 }

@@ -58,6 +58,8 @@ pub struct ProbeInstallWorld {
     move_from: [f64; 5],
     move_start_s: f64,
     move_end_s: f64,
+    /// `[sim.effects]` beyond the reading scale (docs/diagnosis.md, "probe_install").
+    effects: crate::kinds::probe_install::config::ProbeInstallEffects,
 }
 
 pub type SharedProbeWorld = Arc<Mutex<ProbeInstallWorld>>;
@@ -118,6 +120,11 @@ impl ProbeInstallWorld {
             move_from: [travel("x")[0], travel("y")[0], travel("z")[1], 0.0, 0.0],
             move_start_s: 0.0,
             move_end_s: 0.0,
+            effects: config
+                .sim
+                .as_ref()
+                .map(|s| s.effects.clone())
+                .unwrap_or_default(),
         }
     }
 
@@ -233,15 +240,55 @@ impl ProbeInstallWorld {
     /// the true sphere, plus noise; None when it misses or is out of range.
     pub(crate) fn reading_now(&mut self) -> Option<f64> {
         let [x, y, z, a, b] = self.axes_now().0;
-        let w = beam_in_base(&self.truth, a, b).normalize();
+        let e = &self.effects;
+        let (w, origin) = if e.a_axis_tilt_rad == 0.0 {
+            // q(t) = origin + t·|beam|·w, origin the point at reading 0.
+            (
+                beam_in_base(&self.truth, a, b).normalize(),
+                Vector3::new(x, y, z) + probe_offset(&self.truth, a, b, 0.0),
+            )
+        } else {
+            // The A axis tilted: the beam and the zero point turn about (1, 0, τ).
+            use crate::kinds::probe_install::diagnosis::tilted_a_rotation;
+            use crate::model::probe_install::rot_z;
+            let ra = tilted_a_rotation(a, e.a_axis_tilt_rad);
+            let rz = rot_z(b + self.truth.b_offset_rad);
+            (
+                (rz * ra * self.truth.beam()).normalize(),
+                Vector3::new(x, y, z)
+                    + rz * (Vector3::new(0.0, self.truth.y_offset_m, 0.0)
+                        + ra * self.truth.zero_point()),
+            )
+        };
+        let origin = origin
+            + Vector3::new(
+                e.x_periodic_error_m * (std::f64::consts::TAU * x / 1e-3).sin(),
+                0.0,
+                0.0,
+            );
+        let centre =
+            self.truth.sphere_centre() + Vector3::from(e.thermal_drift_m_per_s) * self.now_s();
         let scale = self.truth.beam().norm();
-        // q(t) = origin + t·|beam|·w, origin the point at reading 0.
-        let origin = Vector3::new(x, y, z) + probe_offset(&self.truth, a, b, 0.0);
-        let d = origin - self.truth.sphere_centre();
+        let d = origin - centre;
         let half_b = w.dot(&d);
-        let disc = half_b * half_b - (d.norm_squared() - self.radius_m * self.radius_m);
+        let mut disc = half_b * half_b - (d.norm_squared() - self.radius_m * self.radius_m);
         if disc < 0.0 {
             return None;
+        }
+        if !e.sphere_form_m.is_empty() {
+            // The form at the perfect sphere's hit point (its second-order change ignored).
+            let hit = d + w * (-half_b - disc.sqrt());
+            let y = crate::kinds::probe_install::diagnosis::form_harmonics(&hit.normalize());
+            let radius = self.radius_m
+                + e.sphere_form_m
+                    .iter()
+                    .zip(y)
+                    .map(|(c, y)| c * y)
+                    .sum::<f64>();
+            disc = half_b * half_b - (d.norm_squared() - radius * radius);
+            if disc < 0.0 {
+                return None;
+            }
         }
         // The entry point: the smaller root along the beam.
         let reading = (1.0 + self.scale_error) * (-half_b - disc.sqrt()) / scale;

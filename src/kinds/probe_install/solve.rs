@@ -87,6 +87,11 @@ pub struct ProbeInstallResults {
     /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub misfit: Option<crate::solve::misfit::Misfit>,
+    /// `geocal solve --effects`: the effects fitted jointly with the installation (effect →
+    /// parameter → value, with `<parameter>.sigma`); the parameters, σ and χ² are then the
+    /// joint fit's.
+    #[serde(default, skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub effects: std::collections::BTreeMap<String, std::collections::BTreeMap<String, f64>>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -139,6 +144,42 @@ struct PointWindow {
     observation: Option<ProbeObservation>,
     valid: usize,
     out_of_range: usize,
+    /// When its window began (log time).
+    begin_ns: u64,
+}
+
+/// A point's observation with its posture and when it was probed (s since the session's
+/// first probed point): what the diagnosis's labels and time-dependent effects need.
+#[derive(Debug, Clone, Copy)]
+pub struct TimedObservation {
+    pub observation: ProbeObservation,
+    pub posture: usize,
+    pub t_s: f64,
+}
+
+/// The observations as `observations` gives them, each with its posture and time.
+pub fn timed_observations(
+    session: &Session,
+    noise_m: f64,
+    probe_id: &str,
+) -> Result<Vec<TimedObservation>, ProbeInstallMethodError> {
+    let windows = point_windows(session, noise_m, probe_id)?;
+    let first = windows
+        .iter()
+        .filter(|w| w.observation.is_some())
+        .map(|w| w.begin_ns)
+        .min()
+        .unwrap_or(0);
+    Ok(windows
+        .into_iter()
+        .filter_map(|w| {
+            w.observation.map(|observation| TimedObservation {
+                observation,
+                posture: w.posture,
+                t_s: w.begin_ns.saturating_sub(first) as f64 * 1e-9,
+            })
+        })
+        .collect())
 }
 
 /// The observations (one per point with a valid reading), the valid raw readings in them and
@@ -150,6 +191,18 @@ pub fn observations(
     noise_m: f64,
     probe_id: &str,
 ) -> Result<(Vec<ProbeObservation>, usize, usize), ProbeInstallMethodError> {
+    let windows = point_windows(session, noise_m, probe_id)?;
+    let raw = windows.iter().map(|w| w.valid).sum();
+    let out_of_range = windows.iter().map(|w| w.out_of_range).sum();
+    let out = windows.into_iter().filter_map(|w| w.observation).collect();
+    Ok((out, raw, out_of_range))
+}
+
+fn point_windows(
+    session: &Session,
+    noise_m: f64,
+    probe_id: &str,
+) -> Result<Vec<PointWindow>, ProbeInstallMethodError> {
     let empty = Vec::new();
     let no_readings = Vec::new();
     let readings = session.probes.get(probe_id).unwrap_or(&no_readings);
@@ -252,15 +305,13 @@ pub fn observations(
                     observation,
                     valid: values.len(),
                     out_of_range,
+                    begin_ns,
                 });
             }
             _ => {}
         }
     }
-    let raw = windows.iter().map(|w| w.valid).sum();
-    let out_of_range = windows.iter().map(|w| w.out_of_range).sum();
-    let out = windows.into_iter().filter_map(|w| w.observation).collect();
-    Ok((out, raw, out_of_range))
+    Ok(windows)
 }
 
 /// What the solvers take from a session: its plan, the problem (nominal installation, the
@@ -353,6 +404,7 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
         chi2_per_dof: (lm.dof > 0).then(|| lm.chi2 / lm.dof as f64),
         dof: lm.dof,
         misfit: crate::solve::misfit::Misfit::check(lm.chi2, lm.dof),
+        effects: Default::default(),
         not_identifiable: (0..N_PARAMS)
             .filter(|&k| !lm.identifiable[k])
             .map(|k| PARAM_NAMES[k].to_string())
@@ -384,4 +436,73 @@ pub fn solve(session: &Session) -> Result<ProbeInstallResults, ProbeInstallMetho
                nominal ± SearchBox; radii from one sphere fitted through all points"
             .into(),
     })
+}
+
+/// The residual model of a session (docs/diagnosis.md, "probe_install"), started at its
+/// solve's installation.
+pub fn residual_model(
+    session: &Session,
+    solved: &ProbeInstallResults,
+) -> anyhow::Result<super::diagnosis::ProbeResidualModel> {
+    let values: Vec<f64> = solved.parameters.iter().map(|p| p.value).collect();
+    let params =
+        crate::model::probe_install::InstallParams::from_vector(
+            &nalgebra::SVector::<f64, N_PARAMS>::from_column_slice(&values),
+        );
+    super::diagnosis::ProbeResidualModel::new(session, &params, solved.sphere_radius_m)
+}
+
+/// `geocal solve --effects NAMES`: the solve, then the installation and the named effects of
+/// the probe's library fitted jointly: parameters, σ (the beam's mapped from its two angles)
+/// and χ² of the joint fit. A parameter the postures cannot see keeps σ null.
+pub fn solve_with_effects(
+    session: &Session,
+    names: &[String],
+) -> anyhow::Result<ProbeInstallResults> {
+    use crate::method::diagnosis::{effect_parameters, effects_named, joint_fit, ResidualModel};
+    let mut results = solve(session)?;
+    let model = residual_model(session, &results)?;
+    let library = model.effects();
+    let effects = effects_named(&library, names).map_err(anyhow::Error::msg)?;
+    let fit = joint_fit(&model, &effects, &model.start());
+    let installed = model.params(&fit.params).to_vector();
+    let beam_jac = model.beam_jacobian(&fit.params);
+    let chart_cov = nalgebra::Matrix2::from_fn(|i, j| fit.covariance[(2 + i, 2 + j)]);
+    let beam_cov = beam_jac * chart_cov * beam_jac.transpose();
+    // Model parameter of each of the 11 (None: a beam component, from the chart).
+    let index = [
+        Some(0),
+        Some(1),
+        None,
+        None,
+        None,
+        Some(4),
+        Some(5),
+        Some(6),
+        Some(7),
+        Some(8),
+        Some(9),
+    ];
+    for (k, p) in results.parameters.iter_mut().enumerate() {
+        p.value = installed[k];
+        let sigma = match index[k] {
+            Some(j) => fit.sigma(j),
+            None => beam_cov[(k - 2, k - 2)].max(0.0).sqrt(),
+        };
+        p.sigma = p.sigma.map(|_| sigma);
+    }
+    results.dof = fit.dof;
+    results.chi2_per_dof = (fit.dof > 0).then(|| fit.chi2 / fit.dof as f64);
+    results.misfit = crate::solve::misfit::Misfit::check(fit.chi2, fit.dof);
+    results.effects = effect_parameters(&effects, &fit, fit.params.len());
+    results.note.push_str(&format!(
+        "; with --effects {}: parameters, sigmas and chi2_per_dof from the joint fit of the \
+         installation and the effects (the residual model of docs/diagnosis.md)",
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(",")
+    ));
+    Ok(results)
 }

@@ -217,6 +217,23 @@ pub struct SphereSimConfig {
     pub point_time_s: f64,
     #[serde(default = "default_remount")]
     pub remount_s: f64,
+    /// Unmodelled effects, withheld from the solve's model (the diagnosis's library,
+    /// docs/diagnosis.md "rotary_sphere"). `probe_lobing`: the probe reads off by
+    /// A (cos(3 az) cos(el) + 0.6 (cos² el − 1/2)), (az, el) of the probing direction (metres).
+    #[serde(default)]
+    pub probe_lobing_m: f64,
+    /// `sphere_form`: the sphere's radius varies by Σ c_k Y_k(n) with n in the sphere's own
+    /// frame (turning with the table), the 10 non-zonal harmonics of degree 2 and 3 in the
+    /// order of docs/diagnosis.md (metres; fewer given: the rest 0).
+    #[serde(default)]
+    pub sphere_form_m: Vec<f64>,
+    /// `thermal_drift`: the sphere (with the axis) moves by v × t (m/s, x y z).
+    #[serde(default)]
+    pub thermal_drift_m_per_s: [f64; 3],
+    /// Out of the library: the probe vibrates, every reading off by a sin(2π t / 7.3 s)
+    /// (metres).
+    #[serde(default)]
+    pub probe_vibration_m: f64,
 }
 
 fn default_truth_order() -> usize {

@@ -133,10 +133,14 @@ impl SphereWorld {
         (self.now_s >= self.in_position_at_s).then_some(self.commanded_rad)
     }
 
-    /// True centre of the mounted sphere at the table's commanded angle.
+    /// True centre of the mounted sphere at the table's commanded angle (drifting with
+    /// `[sim] thermal_drift_m_per_s`).
     pub fn true_centre(&self) -> Option<Vector3<f64>> {
         let h = self.height?;
-        Some(self.truth.centre(self.commanded_rad, &self.positions_m[h]))
+        Some(
+            self.truth.centre(self.commanded_rad, &self.positions_m[h])
+                + Vector3::from(self.sim.thermal_drift_m_per_s) * self.now_s,
+        )
     }
 
     /// Travel beyond the standoff until the probe meets the true surface (no noise); None
@@ -151,8 +155,32 @@ impl SphereWorld {
         if disc < 0.0 {
             return None;
         }
-        let t = -b - disc.sqrt();
-        Some(t - self.standoff_m)
+        let mut t = -b - disc.sqrt();
+        if !self.sim.sphere_form_m.is_empty() {
+            // The form at the perfect sphere's hit point, in the sphere's own frame (its
+            // second-order change ignored).
+            let n = crate::model::rotary_sphere::rz(-self.commanded_rad) * (w + u * t).normalize();
+            let y = crate::kinds::rotary_sphere::diagnosis::turning_form_harmonics(&n);
+            let radius = self.radius_m
+                + self
+                    .sim
+                    .sphere_form_m
+                    .iter()
+                    .zip(y)
+                    .map(|(c, y)| c * y)
+                    .sum::<f64>();
+            let disc = b * b - w.norm_squared() + radius * radius;
+            if disc < 0.0 {
+                return None;
+            }
+            t = -b - disc.sqrt();
+        }
+        let (az, el) = (normal.y.atan2(normal.x), normal.z.clamp(-1.0, 1.0).asin());
+        let lobing = self.sim.probe_lobing_m
+            * ((3.0 * az).cos() * el.cos() + 0.6 * (el.cos().powi(2) - 0.5));
+        let vibration =
+            self.sim.probe_vibration_m * (std::f64::consts::TAU * self.now_s / 7.3).sin();
+        Some(t - self.standoff_m + lobing + vibration)
     }
 
     /// One probe reading with the probe's noise.

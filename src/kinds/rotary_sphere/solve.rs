@@ -88,6 +88,11 @@ pub struct RotarySphereResults {
     /// then not trustworthy; `sigma_scale` = √(χ²/dof) (docs/uncertainty.md, "Misfit").
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub misfit: Option<crate::solve::misfit::Misfit>,
+    /// `geocal solve --effects`: the effects fitted jointly with the sphere centres (effect
+    /// → parameter → value, with `<parameter>.sigma`); every reading is then corrected by
+    /// their fitted contribution before the centres and the axis are solved.
+    #[serde(skip_serializing_if = "std::collections::BTreeMap::is_empty")]
+    pub effects: BTreeMap<String, BTreeMap<String, f64>>,
 }
 
 #[derive(Debug, Clone, Serialize)]
@@ -291,6 +296,17 @@ pub struct ProbedSphere {
 pub fn probed(
     session: &Session,
 ) -> Result<(SpherePlanConfig, f64, Vec<ProbedSphere>), RotarySphereMethodError> {
+    probed_with_times(session).map(|(plan, noise, spheres, _)| (plan, noise, spheres))
+}
+
+/// Per probed sphere, per point with readings: its index in the plan's directions and when
+/// its window began (s since the first point's).
+pub type PointTimes = Vec<Vec<(usize, f64)>>;
+
+/// `probed`, with each point's direction index and time (what the diagnosis needs).
+pub fn probed_with_times(
+    session: &Session,
+) -> Result<(SpherePlanConfig, f64, Vec<ProbedSphere>, PointTimes), RotarySphereMethodError> {
     let plan_config: SpherePlanConfig = serde_json::from_value(session.header.plan.clone())
         .map_err(|e| RotarySphereMethodError::Plan(e.to_string()))?;
     let plan = SpherePlan::from_config(&plan_config);
@@ -316,6 +332,23 @@ pub fn probed(
     }
     let mut spheres = collect_points(session, &plan)?;
     attach_readings(&mut spheres, &readings);
+    let first_ns = spheres
+        .values()
+        .flat_map(|s| s.1.values())
+        .filter(|p| p.readings > 0)
+        .map(|p| p.begin_ns)
+        .min()
+        .unwrap_or(0);
+    let times: PointTimes = spheres
+        .values()
+        .map(|(_, points)| {
+            points
+                .iter()
+                .filter(|(_, p)| p.readings > 0)
+                .map(|(k, p)| (*k, p.begin_ns.saturating_sub(first_ns) as f64 * 1e-9))
+                .collect()
+        })
+        .collect();
     let probed = spheres
         .into_iter()
         .map(|((h, a), (commanded_rad, points))| ProbedSphere {
@@ -334,7 +367,7 @@ pub fn probed(
                 .collect(),
         })
         .collect();
-    Ok((plan_config, noise_m, probed))
+    Ok((plan_config, noise_m, probed, times))
 }
 
 /// The sphere's nominal azimuth at θ = 0: that of the mean of the fit heights' nominal
@@ -452,6 +485,17 @@ fn series_of(fits: &Fits, h: usize, angles: &[usize]) -> CentreSeries {
 /// Solve a rotary_sphere session.
 pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMethodError> {
     let (plan_config, noise_m, probed) = probed(session)?;
+    solve_probed(session, plan_config, noise_m, probed)
+}
+
+/// Solve the probed spheres of a session (their readings as the session holds them, or
+/// corrected by fitted effects).
+fn solve_probed(
+    session: &Session,
+    plan_config: SpherePlanConfig,
+    noise_m: f64,
+    probed: Vec<ProbedSphere>,
+) -> Result<RotarySphereResults, RotarySphereMethodError> {
     let plan = SpherePlan::from_config(&plan_config);
     let Identified {
         fits,
@@ -567,7 +611,48 @@ pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMetho
         misfit: crate::solve::misfit::Misfit::check(id.chi2, id.dof),
         validation,
         notes,
+        effects: BTreeMap::new(),
     })
+}
+
+/// `geocal solve --effects NAMES`: the named effects of the sphere's library fitted jointly
+/// with every sphere centre (docs/diagnosis.md, "rotary_sphere"), each reading corrected by
+/// their fitted contribution, then the solve on the corrected readings.
+pub fn solve_with_effects(
+    session: &Session,
+    names: &[String],
+) -> anyhow::Result<RotarySphereResults> {
+    use crate::method::diagnosis::{effect_parameters, effects_named, joint_fit, ResidualModel};
+    let model = super::diagnosis::SphereResidualModel::new(session)?;
+    let library = model.effects();
+    let effects = effects_named(&library, names).map_err(anyhow::Error::msg)?;
+    let fit = joint_fit(&model, &effects, &model.start());
+    let correction: BTreeMap<((usize, usize), usize), f64> = model
+        .point_keys()
+        .into_iter()
+        .zip(fit.effect_contribution.iter().copied())
+        .collect();
+    let (plan_config, noise_m, mut spheres, times) = probed_with_times(session)?;
+    for (sphere, point_times) in spheres.iter_mut().zip(&times) {
+        let key = (sphere.height_index, sphere.angle_index);
+        for (p, (k, _)) in sphere.points.iter_mut().zip(point_times) {
+            if let Some(c) = correction.get(&(key, *k)) {
+                p.mean_m -= c;
+            }
+        }
+    }
+    let mut results = solve_probed(session, plan_config, noise_m, spheres)?;
+    results.effects = effect_parameters(&effects, &fit, fit.params.len());
+    results.notes.push(format!(
+        "with --effects {}: each reading corrected by the effects' contribution fitted jointly \
+         with the sphere centres (the residual model of docs/diagnosis.md), then solved",
+        effects
+            .iter()
+            .map(|e| e.name())
+            .collect::<Vec<_>>()
+            .join(",")
+    ));
+    Ok(results)
 }
 
 #[cfg(test)]

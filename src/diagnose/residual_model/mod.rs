@@ -1,0 +1,798 @@
+//! The diagnosis of a kind's residual model (`method::diagnosis::ResidualModel`): small dense
+//! problems (tens to a few hundred parameters, hundreds to thousands of residuals). Where
+//! (each label group's whitened sum of squares against the noise model), which (forward
+//! selection over the kind's effect library with the multilateration diagnosis's statistics:
+//! score/F test on the effect's columns projected off the model, BIC, family-wise α, held-out
+//! validation on the kind's held-out groups, confounded candidates), and how far (held-out gap
+//! before and after, and the calibration re-solved with the selected effects).
+
+mod text;
+
+pub use text::{details, summary};
+
+use std::collections::BTreeMap;
+use std::path::Path;
+
+use anyhow::Context;
+use nalgebra::{DMatrix, DVector};
+use serde::{Deserialize, Serialize};
+use serde_json::Value;
+
+use super::locate::WhereEntry;
+use super::stats::{chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
+use super::{
+    Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, StandardisedResidual,
+    StandardisedResiduals, CONFOUNDED_COSINE, DECISIVE_BIC, DIAGNOSIS_FORMAT,
+};
+use crate::method::diagnosis::{
+    concat, effect_parameters, joint_fit, Effect, JointFit, ResidualModel,
+};
+
+/// What a diagnosis of a kind's residual model adds to geocal-diagnosis/1.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ModelDiagnosis {
+    /// The session's plan kind.
+    pub kind: String,
+    /// Unit of each plot row and `where` key (its `rms_m`): "rad" when every residual in it
+    /// is an angle, else "m" (the RMS over its length residuals).
+    pub residual_units: BTreeMap<String, String>,
+    /// The coordinates the residuals are grouped by (`where[].group`).
+    pub coordinates: Vec<String>,
+    /// The residual plot's x axis.
+    pub x_axis: String,
+    /// The effect library of the session (the candidates).
+    pub library: Vec<String>,
+    /// The calibration's parameters nominal → with the selected effects fitted jointly
+    /// (empty when nothing is selected).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub parameters_after: Vec<ParameterAfter>,
+}
+
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
+pub struct ParameterAfter {
+    pub name: String,
+    pub nominal: f64,
+    pub nominal_sigma: f64,
+    pub corrected: f64,
+    pub sigma: f64,
+}
+
+/// Whether the session at `path` is of a kind with a residual model; then its diagnosis and
+/// standardised residuals (None: another diagnosis applies).
+pub fn diagnose_file(
+    path: &Path,
+    options: &DiagnoseOptions,
+) -> anyhow::Result<Option<(Diagnosis, StandardisedResiduals)>> {
+    let Ok(header) = crate::session::file_stream::read_header(path) else {
+        return Ok(None);
+    };
+    let Some(kind) = crate::kinds::kind_named(&header.kind) else {
+        return Ok(None);
+    };
+    if !kind.has_residual_model() {
+        return Ok(None);
+    }
+    let session = crate::session::reader::read_session(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let model = kind
+        .residual_model(&session)
+        .with_context(|| format!("diagnosing {}", path.display()))?;
+    let (mut diagnosis, residuals) = diagnose(model.as_ref(), options);
+    if let Some(c) = &mut diagnosis.corrected {
+        c.command = format!(
+            "geocal solve {} --effects {}",
+            path.display(),
+            c.effects.join(",")
+        );
+    }
+    Ok(Some((diagnosis, residuals)))
+}
+
+/// The linearised model around the nominal optimum, whitened.
+struct Engine {
+    /// Whitened nominal residuals and the whitened Jacobian of the nominal model.
+    rw: DVector<f64>,
+    x: DMatrix<f64>,
+    sigma: DVector<f64>,
+    folds: Vec<(Vec<usize>, Vec<usize>)>,
+}
+
+/// A base design (the nominal model and the accepted effects) fitted on a set of rows.
+struct BaseFit {
+    rows: Vec<usize>,
+    /// Held-out rows the training rows determine, and their prediction variance (whitened).
+    held: Vec<usize>,
+    held_var: Vec<f64>,
+    basis: Basis,
+    res_w: DVector<f64>,
+}
+
+struct Eval {
+    chi2_drop: f64,
+    df: usize,
+    theta: DVector<f64>,
+    theta_sigma: DVector<f64>,
+    rms_after: f64,
+    heldout_z2: f64,
+    heldout_ms: f64,
+    u_perp: DMatrix<f64>,
+}
+
+fn rows_of(m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
+    DMatrix::from_fn(rows.len(), m.ncols(), |r, c| m[(rows[r], c)])
+}
+
+fn column_norm_max(m: &DMatrix<f64>) -> f64 {
+    (0..m.ncols())
+        .map(|c| m.column(c).norm())
+        .fold(0.0, f64::max)
+}
+
+impl Engine {
+    fn fit_base(&self, design: &DMatrix<f64>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
+        let d = rows_of(design, &rows);
+        let basis = Basis::new(&d, RANK_TOL, 0.0);
+        let rw = DVector::from_fn(rows.len(), |k, _| self.rw[rows[k]]);
+        let res_w = basis.project_off_vec(&rw);
+        let mut kept = Vec::new();
+        let mut held_var = Vec::new();
+        for &h in held {
+            let row: Vec<f64> = design.row(h).iter().copied().collect();
+            // In the training design's row space: its prediction is determined.
+            let norm2: f64 = row.iter().map(|v| v * v).sum();
+            let inside: f64 = (0..basis.rank())
+                .map(|k| {
+                    (0..row.len())
+                        .map(|j| basis.vt[(k, j)] * row[j])
+                        .sum::<f64>()
+                        .powi(2)
+                })
+                .sum();
+            if norm2 == 0.0 || norm2 - inside <= 1e-12 * norm2 {
+                kept.push(h);
+                held_var.push(basis.prediction_variance(&row));
+            }
+        }
+        BaseFit {
+            rows,
+            held: kept,
+            held_var,
+            basis,
+            res_w,
+        }
+    }
+
+    /// Held-out (Σ r², Σ r²/var) in whitened units of a fold's fit, with an optional effect.
+    fn heldout(
+        &self,
+        design: &DMatrix<f64>,
+        fit: &BaseFit,
+        a: Option<&DMatrix<f64>>,
+    ) -> (f64, f64) {
+        let rw = DVector::from_fn(fit.rows.len(), |k, _| self.rw[fit.rows[k]]);
+        let d = rows_of(design, &fit.rows);
+        let (beta, theta) = match a {
+            None => (fit.basis.solve(&rw), None),
+            Some(a) => {
+                let aw = rows_of(a, &fit.rows);
+                let reference = column_norm_max(&aw);
+                let perp = Basis::new(&fit.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
+                let theta = perp.solve(&fit.res_w);
+                let beta = fit.basis.solve(&(rw - &aw * &theta));
+                (beta, Some(theta))
+            }
+        };
+        let _ = d;
+        let (mut ss, mut zz) = (0.0, 0.0);
+        for (&h, var) in fit.held.iter().zip(&fit.held_var) {
+            let mut pred = design.row(h).transpose().dot(&beta);
+            if let (Some(a), Some(theta)) = (a, &theta) {
+                pred += a.row(h).transpose().dot(theta);
+            }
+            let r = self.rw[h] - pred;
+            ss += r * r;
+            zz += r * r / (1.0 + var);
+        }
+        (ss, zz)
+    }
+
+    fn base(&self, design: &DMatrix<f64>) -> (BaseFit, Vec<BaseFit>, f64, f64, usize) {
+        let n = self.rw.len();
+        let full = self.fit_base(design, (0..n).collect(), &[]);
+        let folds: Vec<BaseFit> = self
+            .folds
+            .iter()
+            .map(|(train, held)| self.fit_base(design, train.clone(), held))
+            .collect();
+        let (mut ss, mut zz, mut count) = (0.0, 0.0, 0);
+        for f in &folds {
+            let (s, z) = self.heldout(design, f, None);
+            ss += s;
+            zz += z;
+            count += f.held.len();
+        }
+        let c = count.max(1) as f64;
+        (full, folds, ss / c, zz / c, count)
+    }
+
+    fn evaluate(
+        &self,
+        design: &DMatrix<f64>,
+        full: &BaseFit,
+        folds: &[BaseFit],
+        a: &DMatrix<f64>,
+    ) -> Eval {
+        let reference = column_norm_max(a);
+        let perp = Basis::new(&full.basis.project_off(a), EFFECT_RANK_TOL, reference);
+        let coeff = perp.u.transpose() * &full.res_w;
+        let chi2_drop = coeff.norm_squared();
+        let after = &full.res_w - &perp.u * &coeff;
+        let rms_after = after
+            .iter()
+            .zip(self.sigma.iter())
+            .map(|(r, s)| (r * s).powi(2))
+            .sum::<f64>();
+        let theta = perp.solve(&full.res_w);
+        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
+            (0..perp.rank())
+                .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        });
+        let (mut ss, mut zz, mut count) = (0.0, 0.0, 0);
+        for f in folds {
+            let (s, z) = self.heldout(design, f, Some(a));
+            ss += s;
+            zz += z;
+            count += f.held.len();
+        }
+        let c = count.max(1) as f64;
+        Eval {
+            chi2_drop,
+            df: perp.rank(),
+            theta,
+            theta_sigma,
+            rms_after: (rms_after / self.rw.len() as f64).sqrt(),
+            heldout_z2: zz / c,
+            heldout_ms: ss / c,
+            u_perp: perp.u,
+        }
+    }
+}
+
+/// Whitened effect columns at parameters `p`.
+fn whitened_columns(effect: &dyn Effect, p: &DVector<f64>, sigma: &DVector<f64>) -> DMatrix<f64> {
+    let mut a = effect.columns(p);
+    for (i, s) in sigma.iter().enumerate() {
+        a.row_mut(i).scale_mut(1.0 / s);
+    }
+    a
+}
+
+/// The `where` groups of whitened residuals `rw` with leverages `h`: each group's Σ r² tested
+/// as χ² with Σ(1 − h) degrees of freedom, Bonferroni over the groups; those failing at
+/// `alpha`, largest excess first.
+fn locate(
+    model: &dyn ResidualModel,
+    rw: &DVector<f64>,
+    raw: &DVector<f64>,
+    leverage: &[f64],
+    alpha: f64,
+) -> Vec<WhereEntry> {
+    let mut groups: BTreeMap<(&'static str, String), Vec<usize>> = BTreeMap::new();
+    for (i, label) in model.labels().iter().enumerate() {
+        for (g, key) in &label.groups {
+            groups.entry((*g, key.clone())).or_default().push(i);
+        }
+    }
+    let total: f64 = rw.norm_squared().max(f64::MIN_POSITIVE);
+    let tests = groups.len().max(1) as f64;
+    let mut out: Vec<(f64, WhereEntry)> = Vec::new();
+    for ((group, key), members) in &groups {
+        let ss: f64 = members.iter().map(|&i| rw[i] * rw[i]).sum();
+        let dof: f64 = members.iter().map(|&i| (1.0 - leverage[i]).max(0.0)).sum();
+        if dof < 0.5 {
+            continue;
+        }
+        let p = (chi2_sf(ss, dof) * tests).min(1.0);
+        if p < alpha {
+            // In metres over the group's length residuals; radians when it has none.
+            let labels = model.labels();
+            let metres: Vec<usize> = members
+                .iter()
+                .copied()
+                .filter(|&i| labels[i].unit == "m")
+                .collect();
+            let used = if metres.is_empty() { members } else { &metres };
+            let rms =
+                (used.iter().map(|&i| raw[i] * raw[i]).sum::<f64>() / used.len() as f64).sqrt();
+            out.push((
+                ss - dof,
+                WhereEntry {
+                    level: "residuals".into(),
+                    group: group.to_string(),
+                    key: key.clone(),
+                    share: ss / total,
+                    rms_m: rms,
+                    p_value: p,
+                },
+            ));
+        }
+    }
+    out.sort_by(|a, b| b.0.total_cmp(&a.0));
+    out.into_iter().map(|(_, w)| w).collect()
+}
+
+fn rms_in_metres(model: &dyn ResidualModel, r: &DVector<f64>) -> f64 {
+    let (mut ss, mut n) = (0.0, 0usize);
+    for (v, l) in r.iter().zip(model.labels()) {
+        if l.unit == "m" {
+            ss += v * v;
+            n += 1;
+        }
+    }
+    (ss / n.max(1) as f64).sqrt()
+}
+
+/// Diagnose a kind's residual model.
+pub fn diagnose(
+    model: &dyn ResidualModel,
+    options: &DiagnoseOptions,
+) -> (Diagnosis, StandardisedResiduals) {
+    let library = model.effects();
+    let sigma = DVector::from_column_slice(model.sigma());
+    let n = sigma.len();
+    let start = model.start();
+    let nominal = joint_fit(model, &[], &start);
+    let p0 = nominal.params.clone();
+    let mut x = model.jacobian(&p0);
+    for (i, s) in sigma.iter().enumerate() {
+        x.row_mut(i).scale_mut(1.0 / s);
+    }
+    let rw = nominal.residuals.component_div(&sigma);
+    // Folds of the held-out groups: group g → fold g mod K.
+    let groups: std::collections::BTreeSet<usize> =
+        model.labels().iter().filter_map(|l| l.holdout).collect();
+    let k_folds = options.folds.max(2).min(groups.len().max(1));
+    let folds: Vec<(Vec<usize>, Vec<usize>)> = (0..k_folds)
+        .map(|f| {
+            let (mut train, mut held) = (Vec::new(), Vec::new());
+            for (i, l) in model.labels().iter().enumerate() {
+                match l.holdout {
+                    Some(g) if g % k_folds == f => held.push(i),
+                    _ => train.push(i),
+                }
+            }
+            (train, held)
+        })
+        .collect();
+    let engine = Engine {
+        rw: rw.clone(),
+        x: x.clone(),
+        sigma: sigma.clone(),
+        folds,
+    };
+    let columns: Vec<DMatrix<f64>> = library
+        .iter()
+        .map(|e| whitened_columns(e.as_ref(), &p0, &sigma))
+        .collect();
+    let ln_n = (n as f64).ln();
+    let mut notes = vec![format!(
+        "{n} residuals of kind {} against {} parameters; {} held-out groups in {k_folds} folds",
+        model.kind(),
+        p0.len(),
+        groups.len()
+    )];
+    let mut accepted: Vec<usize> = Vec::new();
+    let mut confounded_set: Vec<usize> = Vec::new();
+    let mut records: BTreeMap<usize, Candidate> = BTreeMap::new();
+    let mut gap_before = None;
+    let mut last = None;
+    for round in 0..=library.len() {
+        let design = accepted
+            .iter()
+            .fold(engine.x.clone(), |d, &e| concat(&d, &columns[e]));
+        let (full, fold_fits, heldout_ms, heldout_z2, count) = engine.base(&design);
+        let gap = Gap {
+            rms_m: rms_in_metres(model, &full.res_w.component_mul(&sigma)),
+            heldout_rms_m: heldout_ms.sqrt(),
+            chi2_per_dof: full.res_w.norm_squared()
+                / n.saturating_sub(full.basis.rank()).max(1) as f64,
+            heldout_floor_m: 1.0,
+            heldout_ratio: heldout_z2.sqrt(),
+        };
+        if round == 0 {
+            notes.push(format!(
+                "cross-validation: {count} held-out residuals determined by the rest and predicted (held-out figures are in units of each residual's σ)"
+            ));
+        }
+        gap_before.get_or_insert_with(|| gap.clone());
+        let candidates: Vec<usize> = (0..library.len())
+            .filter(|e| !accepted.contains(e))
+            .collect();
+        let mut trials: Vec<(usize, Eval, f64, f64)> = Vec::new();
+        for &e in &candidates {
+            let eval = engine.evaluate(&design, &full, &fold_fits, &columns[e]);
+            if eval.df == 0 {
+                if round == 0 {
+                    notes.push(format!(
+                        "{}: absorbed by the nominal model (projected rank 0), not identifiable here",
+                        library[e].name()
+                    ));
+                }
+                continue;
+            }
+            let chi2_base = full.res_w.norm_squared();
+            let chi2_after = (chi2_base - eval.chi2_drop).max(f64::MIN_POSITIVE);
+            let dof_after = n.saturating_sub(full.basis.rank() + eval.df).max(1) as f64;
+            let f_stat = (eval.chi2_drop / eval.df as f64) / (chi2_after / dof_after);
+            let p_value = f_sf(f_stat, eval.df as f64, dof_after);
+            let bic = n as f64 * (chi2_after / chi2_base).ln() + eval.df as f64 * ln_n;
+            trials.push((e, eval, p_value, bic));
+        }
+        let alpha_each = options.alpha / candidates.len().max(1) as f64;
+        let passes = |t: &(usize, Eval, f64, f64)| {
+            t.2 < alpha_each && t.3 < 0.0 && (count == 0 || t.1.heldout_z2 < heldout_z2)
+        };
+        let mut order: Vec<usize> = (0..trials.len()).collect();
+        order.sort_by(|&a, &b| trials[a].3.total_cmp(&trials[b].3));
+        let winner = order.iter().copied().find(|&t| passes(&trials[t]));
+        let mut confounded = Vec::new();
+        if let Some(best) = winner {
+            for &other in &order {
+                if other != best
+                    && passes(&trials[other])
+                    && trials[other].3 - trials[best].3 < DECISIVE_BIC
+                    && max_principal_cosine(&trials[best].1.u_perp, &trials[other].1.u_perp)
+                        > CONFOUNDED_COSINE
+                {
+                    confounded.push(other);
+                }
+            }
+        }
+        for (t, (e, eval, p, bic)) in trials.iter().enumerate() {
+            let status = if Some(t) == winner && confounded.is_empty() {
+                "selected".to_string()
+            } else if Some(t) == winner || confounded.contains(&t) {
+                "confounded".to_string()
+            } else if passes(&trials[t]) {
+                "passed, not the best this round".to_string()
+            } else {
+                let mut why = Vec::new();
+                if *p >= alpha_each {
+                    why.push(format!("p {p:.2e} >= {alpha_each:.2e}"));
+                }
+                if *bic >= 0.0 {
+                    why.push("BIC does not improve".into());
+                }
+                if count > 0 && eval.heldout_z2 >= heldout_z2 {
+                    why.push("held-out RMS does not improve".into());
+                }
+                format!("rejected: {}", why.join("; "))
+            };
+            let confounded_with = if status == "confounded" {
+                std::iter::once(winner)
+                    .flatten()
+                    .chain(confounded.iter().copied())
+                    .filter(|&o| o != t)
+                    .map(|o| library[trials[o].0].name().to_string())
+                    .collect()
+            } else {
+                Vec::new()
+            };
+            let mut params = BTreeMap::new();
+            for (k, name) in library[*e].parameter_names().into_iter().enumerate() {
+                params.insert(name.clone(), Value::from(eval.theta[k]));
+                params.insert(format!("{name}.sigma"), Value::from(eval.theta_sigma[k]));
+            }
+            records.insert(
+                *e,
+                Candidate {
+                    effect: library[*e].name().to_string(),
+                    params,
+                    rms_after_m: eval.rms_after,
+                    heldout_rms_after_m: eval.heldout_ms.sqrt(),
+                    bic_delta: *bic,
+                    p_value: *p,
+                    round,
+                    df: eval.df,
+                    chi2_drop: eval.chi2_drop,
+                    status,
+                    confounded_with,
+                },
+            );
+        }
+        match winner {
+            Some(best) if confounded.is_empty() => accepted.push(trials[best].0),
+            Some(best) => {
+                let group: Vec<usize> = std::iter::once(best)
+                    .chain(confounded.iter().copied())
+                    .map(|t| trials[t].0)
+                    .collect();
+                notes.push(format!(
+                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
+                    group.iter().map(|&e| library[e].name()).collect::<Vec<_>>().join(", ")
+                ));
+                confounded_set.extend(&group);
+                accepted.extend(group);
+            }
+            None => {
+                last = Some(gap);
+                break;
+            }
+        }
+    }
+
+    // The final model: the model's parameters and the accepted effects fitted jointly.
+    let accepted_effects: Vec<&dyn Effect> =
+        accepted.iter().map(|&e| library[e].as_ref()).collect();
+    let final_fit = if accepted.is_empty() {
+        nominal.clone()
+    } else {
+        joint_fit(model, &accepted_effects, &p0)
+    };
+    let rw_after = final_fit.residuals.component_div(&sigma);
+    let leverage = |fit: &JointFit| -> Vec<f64> {
+        let mut design = model.jacobian(&fit.params);
+        if !accepted.is_empty() {
+            let a = accepted.iter().fold(DMatrix::zeros(n, 0), |d, &e| {
+                concat(&d, &library[e].columns(&fit.params))
+            });
+            design = concat(&design, &a);
+        }
+        for (i, s) in sigma.iter().enumerate() {
+            design.row_mut(i).scale_mut(1.0 / s);
+        }
+        Basis::new(&design, RANK_TOL, 0.0).leverages()
+    };
+    let nominal_leverage = Basis::new(&engine.x, RANK_TOL, 0.0).leverages();
+    let where_ = locate(
+        model,
+        &rw,
+        &nominal.residuals,
+        &nominal_leverage,
+        options.alpha,
+    );
+    let alpha_part = options.alpha / 2.0;
+    let remaining = locate(
+        model,
+        &rw_after,
+        &final_fit.residuals,
+        &leverage(&final_fit),
+        alpha_part,
+    );
+    let chi2_p = chi2_sf(final_fit.chi2, final_fit.dof.max(1) as f64);
+    let unexplained = chi2_p < alpha_part || !remaining.is_empty();
+    if unexplained {
+        notes.push(format!(
+            "after the selected effects: chi2/dof {:.2} (p = {chi2_p:.1e}), {} residual group(s) still fail the noise model{}",
+            final_fit.chi2 / final_fit.dof.max(1) as f64,
+            remaining.len(),
+            remaining
+                .first()
+                .map(|w| format!(", largest {} {}", w.group, w.key))
+                .unwrap_or_default()
+        ));
+    }
+    let cv_after = last.unwrap_or_else(|| gap_before.clone().expect("round 0 ran"));
+    let gap_after = Gap {
+        rms_m: rms_in_metres(model, &final_fit.residuals),
+        heldout_rms_m: cv_after.heldout_rms_m,
+        chi2_per_dof: final_fit.chi2 / final_fit.dof.max(1) as f64,
+        heldout_floor_m: 1.0,
+        heldout_ratio: cv_after.heldout_ratio,
+    };
+    let gap_before = gap_before.expect("round 0 ran");
+    let noise_floor_m = {
+        let metres: Vec<f64> = model
+            .labels()
+            .iter()
+            .zip(sigma.iter())
+            .filter(|(l, _)| l.unit == "m")
+            .map(|(_, s)| s * s)
+            .collect();
+        (metres.iter().sum::<f64>() / metres.len().max(1) as f64 * nominal.dof as f64 / n as f64)
+            .sqrt()
+    };
+    let selected: Vec<String> = accepted
+        .iter()
+        .filter(|e| !confounded_set.contains(e))
+        .map(|&e| library[e].name().to_string())
+        .collect();
+    // The calibration re-solved with the selected effects: its reported parameters ± σ.
+    let names = model.parameter_names();
+    let reported = model.reported_parameters();
+    let (parameters_after, corrected) = if selected.is_empty() {
+        (Vec::new(), None)
+    } else {
+        let after: Vec<ParameterAfter> = reported
+            .iter()
+            .map(|&j| ParameterAfter {
+                name: names[j].clone(),
+                nominal: nominal.params[j],
+                nominal_sigma: nominal.sigma(j),
+                corrected: final_fit.params[j],
+                sigma: final_fit.sigma(j),
+            })
+            .collect();
+        let count = after.len().max(1) as f64;
+        let moved_m = (after
+            .iter()
+            .map(|a| (a.corrected - a.nominal).powi(2))
+            .sum::<f64>()
+            / count)
+            .sqrt();
+        let moved_sigma = (after
+            .iter()
+            .map(|a| ((a.corrected - a.nominal) / a.sigma.max(f64::MIN_POSITIVE)).powi(2))
+            .sum::<f64>()
+            / count)
+            .sqrt();
+        (
+            after,
+            Some(CorrectedCalibration {
+                command: format!("geocal solve SESSION --effects {}", selected.join(",")),
+                effects: selected.clone(),
+                points_moved_rms_m: moved_m,
+                points_moved_rms_sigma: moved_sigma,
+            }),
+        )
+    };
+    let selected_effects: Vec<&dyn Effect> = accepted
+        .iter()
+        .filter(|e| !confounded_set.contains(e))
+        .map(|&e| library[e].as_ref())
+        .collect();
+    if !selected_effects.is_empty() {
+        // The final fit's effects are the accepted ones; report the selected ones' estimates.
+        let offset = p0.len();
+        let fitted = effect_parameters(&accepted_effects, &final_fit, offset);
+        for e in &selected_effects {
+            if let Some(p) = fitted.get(e.name()) {
+                notes.push(format!(
+                    "{} fitted jointly with the calibration: {}",
+                    e.name(),
+                    p.iter()
+                        .filter(|(k, _)| !k.ends_with(".sigma"))
+                        .map(|(k, v)| format!("{k} {v:.4e} ± {:.1e}", p[&format!("{k}.sigma")]))
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ));
+            }
+        }
+    }
+    let rank_of = |c: &Candidate| {
+        selected
+            .iter()
+            .position(|s| *s == c.effect)
+            .unwrap_or(usize::MAX)
+    };
+    let mut candidates: Vec<Candidate> = records.into_values().collect();
+    candidates.sort_by(|a, b| {
+        rank_of(a)
+            .cmp(&rank_of(b))
+            .then(a.bic_delta.total_cmp(&b.bic_delta))
+    });
+    let mut residual_units = BTreeMap::new();
+    let mut coordinates: Vec<String> = Vec::new();
+    for l in model.labels() {
+        // A row's or a group's unit: radians only when every residual in it is an angle.
+        for key in std::iter::once(&l.row).chain(l.groups.iter().map(|(_, k)| k)) {
+            let unit = residual_units
+                .entry(key.clone())
+                .or_insert_with(|| l.unit.to_string());
+            if unit != l.unit {
+                *unit = "m".into();
+            }
+        }
+        for (g, _) in &l.groups {
+            if !coordinates.iter().any(|c| c == g) {
+                coordinates.push(g.to_string());
+            }
+        }
+    }
+    let mut rows: Vec<String> = Vec::new();
+    let lengths = model
+        .labels()
+        .iter()
+        .enumerate()
+        .map(|(i, l)| {
+            let row = rows.iter().position(|r| *r == l.row).unwrap_or_else(|| {
+                rows.push(l.row.clone());
+                rows.len() - 1
+            });
+            StandardisedResidual {
+                station: row,
+                t_s: l.x,
+                before: rw[i],
+                after: rw_after[i],
+            }
+        })
+        .collect();
+    let residuals = StandardisedResiduals {
+        station_ids: rows,
+        lengths,
+        final_effects: accepted
+            .iter()
+            .map(|&e| library[e].name().to_string())
+            .collect(),
+        x_axis: Some(model.x_axis().to_string()),
+    };
+    let diagnosis = Diagnosis {
+        format: DIAGNOSIS_FORMAT.into(),
+        session_id: model.session_id().to_string(),
+        noise_floor_m,
+        gap: gap_before,
+        where_,
+        candidates,
+        selected,
+        gap_after,
+        unexplained,
+        noise_scale: None,
+        corrected,
+        points_level: None,
+        points_level_after: None,
+        leave_one_station_out: Vec::new(),
+        twin: None,
+        observations: n,
+        notes,
+        model: Some(ModelDiagnosis {
+            kind: model.kind().to_string(),
+            residual_units,
+            coordinates,
+            x_axis: model.x_axis().to_string(),
+            library: library.iter().map(|e| e.name().to_string()).collect(),
+            parameters_after,
+        }),
+    };
+    (diagnosis, residuals)
+}
+
+/// The settings of `geocal solve SESSION --effects NAMES`: the names of a kind with a residual
+/// model go to its own solve (which checks them against its library); the multilateration
+/// effects are parsed as before.
+pub fn solve_settings(
+    session: &Path,
+    names: &[String],
+    base: crate::method::SolveSettings,
+) -> anyhow::Result<crate::method::SolveSettings> {
+    let own_library = crate::session::file_stream::read_header(session)
+        .ok()
+        .and_then(|h| crate::kinds::kind_named(&h.kind))
+        .is_some_and(|k| k.has_residual_model());
+    Ok(if own_library {
+        crate::method::SolveSettings {
+            effect_names: names
+                .iter()
+                .flat_map(|n| n.split(','))
+                .map(|n| n.trim().to_string())
+                .filter(|n| !n.is_empty())
+                .collect(),
+            ..base
+        }
+    } else {
+        crate::method::SolveSettings {
+            effects: super::correct::parse_effects(names)?,
+            ..base
+        }
+    })
+}
+
+/// `--twin` compares a tracer session with its twin's lengths; a session of a kind with a
+/// residual model is diagnosed without it (a clear error, not the tracer kinds' refusal).
+pub fn refuse_twin(session: &Path) -> anyhow::Result<()> {
+    let kind = crate::session::file_stream::read_header(session)
+        .ok()
+        .and_then(|h| crate::kinds::kind_named(&h.kind))
+        .filter(|k| k.has_residual_model());
+    match kind {
+        Some(k) => anyhow::bail!(
+            "{}: --twin compares tracer lengths with a twin's; a {} session is diagnosed \
+             against its own model: run `geocal diagnose {}` without --twin",
+            session.display(),
+            k.name(),
+            session.display()
+        ),
+        None => Ok(()),
+    }
+}

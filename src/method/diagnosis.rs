@@ -1,0 +1,284 @@
+//! What a kind with a small, dense calibration problem hands the diagnosis (`geocal diagnose`)
+//! and the solve with effects (`geocal solve --effects`): its residual model (measured minus
+//! modelled quantities against the nominal parameters, their σ, Jacobian and labels) and its
+//! effect library (what each unmodelled effect adds to each modelled quantity). The
+//! selection (`diagnose::residual_model`) and the joint fit below name no kind.
+
+use nalgebra::{DMatrix, DVector};
+
+/// Where one residual lies in the kind's natural coordinates.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ResidualLabel {
+    /// The groups it belongs to, each (coordinate, key): ("leg", "leg 2"), ("time", "block 3
+    /// of 8"), ("direction", "d5"), ... The diagnosis tests each group against the noise model.
+    pub groups: Vec<(&'static str, String)>,
+    /// The residual plot's row (e.g. "leg 2", "pose sensor") and position along its x axis.
+    pub row: String,
+    pub x: f64,
+    /// Held-out group of the cross-validation (e.g. the pose or the posture it was measured
+    /// in); None: always in the training set (e.g. a reading that alone determines nuisance
+    /// parameters of its group).
+    pub holdout: Option<usize>,
+    /// Unit of the residual and of its σ: "m" or "rad".
+    pub unit: &'static str,
+}
+
+/// A kind's measured quantities against its nominal model.
+pub trait ResidualModel: Send + Sync {
+    fn kind(&self) -> &'static str;
+    fn session_id(&self) -> &str;
+    /// The residual plot's x axis, e.g. "time since the first pose [s]".
+    fn x_axis(&self) -> &'static str;
+    /// Names of the model's parameters (the calibration's and any nuisance parameters).
+    fn parameter_names(&self) -> Vec<String>;
+    /// Indices of the parameters a report states (the calibration's, not the nuisance ones).
+    fn reported_parameters(&self) -> Vec<usize> {
+        (0..self.parameter_names().len()).collect()
+    }
+    /// Where the fit starts (the kind's nominal solve, or its design values).
+    fn start(&self) -> DVector<f64>;
+    /// Standard deviation of each residual (the declared noise model), in its unit.
+    fn sigma(&self) -> &[f64];
+    fn labels(&self) -> &[ResidualLabel];
+    /// Measured minus modelled quantities at parameters `p`.
+    fn residuals(&self, p: &DVector<f64>) -> DVector<f64>;
+    /// Step of the finite differences for parameter `j`.
+    fn step(&self, _j: usize) -> f64 {
+        1e-7
+    }
+    /// ∂(modelled)/∂p: by default central differences of the residuals.
+    fn jacobian(&self, p: &DVector<f64>) -> DMatrix<f64> {
+        let n = self.sigma().len();
+        let mut jac = DMatrix::zeros(n, p.len());
+        for j in 0..p.len() {
+            let h = self.step(j);
+            let mut plus = p.clone();
+            plus[j] += h;
+            let mut minus = p.clone();
+            minus[j] -= h;
+            let d = (self.residuals(&minus) - self.residuals(&plus)) / (2.0 * h);
+            jac.set_column(j, &d);
+        }
+        jac
+    }
+    /// The kind's effect library (the effects this session can show).
+    fn effects(&self) -> Vec<Box<dyn Effect + '_>>;
+}
+
+/// One unmodelled effect: linear in its parameters θ, it adds A(p) θ to the modelled
+/// quantities.
+pub trait Effect {
+    /// Its name in the diagnosis's vocabulary (e.g. `leg_scale`).
+    fn name(&self) -> &'static str;
+    fn parameter_names(&self) -> Vec<String>;
+    /// A(p): residuals × parameters, what a unit of each parameter adds to each modelled
+    /// quantity (in the quantity's unit).
+    fn columns(&self, p: &DVector<f64>) -> DMatrix<f64>;
+}
+
+/// The model's parameters and the effects' fitted together.
+#[derive(Debug, Clone)]
+pub struct JointFit {
+    pub params: DVector<f64>,
+    /// The effects' parameters, in the order of the effects and of their parameter names.
+    pub theta: DVector<f64>,
+    /// Covariance of [params, theta] from the whitened design (pseudo-inverse).
+    pub covariance: DMatrix<f64>,
+    /// Measured minus modelled minus the effects' contribution.
+    pub residuals: DVector<f64>,
+    /// The effects' fitted contribution to each quantity.
+    pub effect_contribution: DVector<f64>,
+    pub chi2: f64,
+    /// Rank of the whitened design and degrees of freedom (residuals − rank).
+    pub rank: usize,
+    pub dof: usize,
+    pub iterations: usize,
+}
+
+impl JointFit {
+    pub fn sigma(&self, k: usize) -> f64 {
+        self.covariance[(k, k)].max(0.0).sqrt()
+    }
+}
+
+/// Relative singular value below which a direction of the design is not determined.
+const RANK_CUT: f64 = 1e-9;
+
+/// Minimum-norm least squares of the whitened design `x` against `b`, and the pseudo-inverse
+/// covariance (xᵀx)⁺ with the rank.
+fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>) -> (DVector<f64>, DMatrix<f64>, usize) {
+    // Columns scaled to unit norm so that the rank cut does not depend on their units.
+    let norms: Vec<f64> = (0..x.ncols())
+        .map(|c| x.column(c).norm().max(f64::MIN_POSITIVE))
+        .collect();
+    let mut scaled = x.clone();
+    for (c, n) in norms.iter().enumerate() {
+        scaled.column_mut(c).scale_mut(1.0 / n);
+    }
+    let svd = scaled.svd(true, true);
+    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+        let p = x.ncols();
+        return (DVector::zeros(p), DMatrix::zeros(p, p), 0);
+    };
+    let smax = svd.singular_values.max();
+    let keep: Vec<usize> = (0..svd.singular_values.len())
+        .filter(|&k| smax > 0.0 && svd.singular_values[k] > RANK_CUT * smax)
+        .collect();
+    let p = x.ncols();
+    let mut sol = DVector::zeros(p);
+    let mut cov = DMatrix::zeros(p, p);
+    for &k in &keep {
+        let s = svd.singular_values[k];
+        let coeff = u.column(k).dot(b) / s;
+        let v = vt.row(k).transpose();
+        sol += &v * coeff;
+        cov += &v * v.transpose() / (s * s);
+    }
+    for i in 0..p {
+        sol[i] /= norms[i];
+        for j in 0..p {
+            cov[(i, j)] /= norms[i] * norms[j];
+        }
+    }
+    (sol, cov, keep.len())
+}
+
+/// Gauss–Newton on the model's parameters and the effects' together, from `start` (the
+/// effects' parameters from zero), relinearising at each step.
+pub fn joint_fit(
+    model: &dyn ResidualModel,
+    effects: &[&dyn Effect],
+    start: &DVector<f64>,
+) -> JointFit {
+    let sigma = DVector::from_column_slice(model.sigma());
+    let np = start.len();
+    let widths: Vec<usize> = effects.iter().map(|e| e.parameter_names().len()).collect();
+    let nt: usize = widths.iter().sum();
+    let mut params = start.clone();
+    let mut theta = DVector::zeros(nt);
+    let columns = |p: &DVector<f64>| {
+        let mut a = DMatrix::zeros(sigma.len(), nt);
+        let mut at = 0;
+        for (e, w) in effects.iter().zip(&widths) {
+            a.columns_mut(at, *w).copy_from(&e.columns(p));
+            at += w;
+        }
+        a
+    };
+    let residual =
+        |p: &DVector<f64>, a: &DMatrix<f64>, theta: &DVector<f64>| model.residuals(p) - a * theta;
+    let whitened = |m: DMatrix<f64>| {
+        let mut m = m;
+        for (i, s) in sigma.iter().enumerate() {
+            m.row_mut(i).scale_mut(1.0 / s);
+        }
+        m
+    };
+    let mut iterations = 0;
+    let mut cost = f64::INFINITY;
+    for _ in 0..30 {
+        iterations += 1;
+        let a = columns(&params);
+        let r = residual(&params, &a, &theta);
+        let rw = r.component_div(&sigma);
+        cost = cost.min(rw.norm_squared());
+        let design = whitened(concat(&model.jacobian(&params), &a));
+        let (step, _, _) = pinv_solve(&design, &rw);
+        // Halve a step that raises the cost (a poor start far from the optimum).
+        let mut scale = 1.0;
+        let mut accepted = false;
+        for _ in 0..8 {
+            let p_try = &params + step.rows(0, np) * scale;
+            let t_try = &theta + step.rows(np, nt) * scale;
+            let c = residual(&p_try, &columns(&p_try), &t_try)
+                .component_div(&sigma)
+                .norm_squared();
+            if c <= cost * (1.0 + 1e-12) {
+                params = p_try;
+                theta = t_try;
+                cost = c;
+                accepted = true;
+                break;
+            }
+            scale *= 0.5;
+        }
+        // Converged when the step moves no modelled quantity by more than 1e-6 of its σ.
+        let moved = (&design * &step).amax() * scale;
+        if !accepted || moved < 1e-6 {
+            break;
+        }
+    }
+    let a = columns(&params);
+    let r = residual(&params, &a, &theta);
+    let rw = r.component_div(&sigma);
+    let design = whitened(concat(&model.jacobian(&params), &a));
+    let (_, covariance, rank) = pinv_solve(&design, &rw);
+    let chi2 = rw.norm_squared();
+    JointFit {
+        effect_contribution: &a * &theta,
+        params,
+        theta,
+        covariance,
+        residuals: r,
+        chi2,
+        rank,
+        dof: sigma.len().saturating_sub(rank),
+        iterations,
+    }
+}
+
+/// [a b] side by side.
+pub fn concat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(a.nrows(), a.ncols() + b.ncols());
+    out.columns_mut(0, a.ncols()).copy_from(a);
+    out.columns_mut(a.ncols(), b.ncols()).copy_from(b);
+    out
+}
+
+/// The effects of `model`'s library named in `names` (comma lists allowed), in the order
+/// given; an unknown name is an error listing the library.
+pub fn effects_named<'a>(
+    library: &'a [Box<dyn Effect + 'a>],
+    names: &[String],
+) -> Result<Vec<&'a dyn Effect>, String> {
+    let mut out: Vec<&dyn Effect> = Vec::new();
+    for name in names.iter().flat_map(|n| n.split(',')).map(str::trim) {
+        if name.is_empty() || out.iter().any(|e| e.name() == name) {
+            continue;
+        }
+        match library.iter().find(|e| e.name() == name) {
+            Some(e) => out.push(e.as_ref()),
+            None => {
+                return Err(format!(
+                    "unknown effect `{name}` for this session (its library: {})",
+                    library
+                        .iter()
+                        .map(|e| e.name())
+                        .collect::<Vec<_>>()
+                        .join(", ")
+                ))
+            }
+        }
+    }
+    Ok(out)
+}
+
+/// One effect's fitted parameters: name → value, with `<name>.sigma` beside each.
+pub fn effect_parameters(
+    effects: &[&dyn Effect],
+    fit: &JointFit,
+    offset: usize,
+) -> std::collections::BTreeMap<String, std::collections::BTreeMap<String, f64>> {
+    let mut out = std::collections::BTreeMap::new();
+    let mut at = 0;
+    for e in effects {
+        let mut params = std::collections::BTreeMap::new();
+        for name in e.parameter_names() {
+            params.insert(name.clone(), fit.theta[at]);
+            params.insert(format!("{name}.sigma"), fit.sigma(offset + at));
+            at += 1;
+        }
+        out.insert(e.name().to_string(), params);
+    }
+    out
+}
