@@ -716,9 +716,7 @@ fn run_ceres(exe: &Path, problem_file: &Path) -> Result<CeresRun, String> {
     Ok(CeresRun {
         solve_time: Duration::from_secs_f64(v["time_s"].as_f64().unwrap_or(f64::NAN)),
         summary_total: Duration::from_secs_f64(v["ceres_total_s"].as_f64().unwrap_or(0.0)),
-        summary_linear: Duration::from_secs_f64(
-            v["ceres_linear_solver_s"].as_f64().unwrap_or(0.0),
-        ),
+        summary_linear: Duration::from_secs_f64(v["ceres_linear_solver_s"].as_f64().unwrap_or(0.0)),
         iterations: v["iterations"].as_u64().unwrap_or(0),
         chi2: v["chi2"].as_f64().unwrap_or(f64::NAN),
         chi2_start: v["chi2_start"].as_f64().unwrap_or(f64::NAN),

@@ -1330,8 +1330,10 @@ impl LinuxCncMachine {
                 Err(e @ DeviceError::Rejected { .. }) => return Err(e),
                 Err(e) if Instant::now() >= deadline => {
                     return Err(self.disconnected(format!(
-                        "{lost}; could not reconnect within {} s: {e}",
-                        self.cfg.reconnect_timeout_s
+                        "{}; could not reconnect within {} s: {}",
+                        lost.detail(),
+                        self.cfg.reconnect_timeout_s,
+                        e.detail()
                     )))
                 }
                 Err(_) => {}
