@@ -212,7 +212,7 @@ fn bad_configs_give_file_key_and_expectation() {
         (
             "feed_m_s = 0.02",
             "feed_ms = 0.02",
-            "key `devices.machine.feed_ms`: TOML parse error",
+            "key `devices.machine.feed_ms`: line 25, column 1: unknown field `feed_ms`",
         ),
         (
             "driver = \"sim\"                 # or \"grbl\"",
@@ -222,7 +222,7 @@ fn bad_configs_give_file_key_and_expectation() {
         (
             "driver = \"sim\"                 # or \"ascii\"",
             "driver = \"laser\" #",
-            "key `devices.probe.driver`: TOML parse error",
+            "key `devices.probe.driver`: line ",
         ),
         (
             "driver = \"sim\"                 # or \"grbl\"",
@@ -270,7 +270,7 @@ fn bad_configs_give_file_key_and_expectation() {
         (
             "[devices.probe]",
             "[devices.machine.grbl]\nbaud = 115200\n[devices.probe]",
-            "key `devices.machine.grbl`: TOML parse error",
+            "key `devices.machine.grbl`: line ",
         ),
         (
             "[devices.probe]",

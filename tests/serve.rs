@@ -647,7 +647,7 @@ fn bad_requests_are_clear_and_write_nothing() {
     assert!(body["error"]
         .as_str()
         .unwrap_or("")
-        .contains("only an interrupted or cancelled run"));
+        .contains("only an interrupted, cancelled or failed run"));
     let r = client
         .get(daemon.at(&format!("/v1/jobs/{id}/files/..%2Fcatalog.sqlite")))
         .send()

@@ -111,10 +111,10 @@ impl HexapodResidualModel {
             .collect();
         let mut sigma = Vec::new();
         let mut labels = Vec::new();
-        for (k, p) in poses.iter().enumerate() {
-            for i in 0..LEGS {
+        for (k, (p, signs)) in poses.iter().zip(&motion_sign).enumerate() {
+            for (i, sign) in signs.iter().enumerate() {
                 sigma.push(encoder_sigma / (p.n.max(1) as f64).sqrt());
-                let motion = match motion_sign[k][i] {
+                let motion = match *sign {
                     s if s > 0.0 => "extending",
                     s if s < 0.0 => "retracting",
                     _ => "at rest",
