@@ -4,3 +4,4 @@ pub mod hexapod;
 pub mod kinematics;
 pub mod probe_install;
 pub mod rotary_sphere;
+pub mod sphere_form;

@@ -189,40 +189,8 @@ pub fn tilted_a_rotation(a_rad: f64, tilt_rad: f64) -> Matrix3<f64> {
     .into_inner()
 }
 
-/// Real spherical harmonics of degree 2 and 3 at the unit vector n (unnormalised Cartesian
-/// forms): degree 0 is the radius (calibrated) and degree 1 the centre (a parameter).
-pub fn form_harmonics(n: &Vector3<f64>) -> [f64; 12] {
-    let (x, y, z) = (n.x, n.y, n.z);
-    [
-        x * y,
-        y * z,
-        3.0 * z * z - 1.0,
-        x * z,
-        x * x - y * y,
-        y * (3.0 * x * x - y * y),
-        x * y * z,
-        y * (5.0 * z * z - 1.0),
-        z * (5.0 * z * z - 3.0),
-        x * (5.0 * z * z - 1.0),
-        z * (x * x - y * y),
-        x * (x * x - 3.0 * y * y),
-    ]
-}
-
-pub const FORM_TERMS: [&str; 12] = [
-    "c2_xy",
-    "c2_yz",
-    "c2_zz",
-    "c2_xz",
-    "c2_xx_yy",
-    "c3_y3xx_yy",
-    "c3_xyz",
-    "c3_y5zz_1",
-    "c3_z5zz_3",
-    "c3_x5zz_1",
-    "c3_zxx_yy",
-    "c3_xxx_3yy",
-];
+/// The reference sphere's form error terms (degree 2 and 3).
+pub use crate::model::sphere_form::{harmonics as form_harmonics, TERMS as FORM_TERMS};
 
 impl ResidualModel for ProbeResidualModel {
     fn kind(&self) -> &'static str {

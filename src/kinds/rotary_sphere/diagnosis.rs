@@ -165,36 +165,11 @@ fn centre_start(sphere: &ProbedSphere, radius_m: f64) -> [f64; 3] {
     }
 }
 
-/// Real spherical harmonics of degree 2 and 3 that change when the table turns (the zonal
-/// ones, 3z² − 1 and z(5z² − 3), are the same at every angle: a probe lobing pattern).
-pub fn turning_form_harmonics(n: &Vector3<f64>) -> [f64; 10] {
-    let (x, y, z) = (n.x, n.y, n.z);
-    [
-        x * y,
-        y * z,
-        x * z,
-        x * x - y * y,
-        y * (3.0 * x * x - y * y),
-        x * y * z,
-        y * (5.0 * z * z - 1.0),
-        x * (5.0 * z * z - 1.0),
-        z * (x * x - y * y),
-        x * (x * x - 3.0 * y * y),
-    ]
-}
-
-pub const TURNING_FORM_TERMS: [&str; 10] = [
-    "c2_xy",
-    "c2_yz",
-    "c2_xz",
-    "c2_xx_yy",
-    "c3_y3xx_yy",
-    "c3_xyz",
-    "c3_y5zz_1",
-    "c3_x5zz_1",
-    "c3_zxx_yy",
-    "c3_xxx_3yy",
-];
+/// The sphere's form error terms that change when the table turns (the zonal ones are the
+/// same at every angle: a probe lobing pattern).
+pub use crate::model::sphere_form::{
+    azimuthal_harmonics as turning_form_harmonics, AZIMUTHAL_TERMS as TURNING_FORM_TERMS,
+};
 
 impl ResidualModel for SphereResidualModel {
     fn kind(&self) -> &'static str {
