@@ -451,22 +451,15 @@ async fn list_machines(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<
 /// A machine's succeeded runs, oldest first, each with its comparison with the run before
 /// (scheduled runs).
 #[utoipa::path(get, path = "/v1/machines/{name}/history", params(("name" = String, Path)),
-    responses((status = 200, body = MachineHistory), (status = 404, body = ErrorBody)))]
+    responses((status = 200, body = MachineHistory), (status = 404, body = ErrorBody),
+        (status = 409, body = ErrorBody, description = "the name is shared by several machines: the message names their keys")))]
 async fn machine_history(
     State(daemon): State<Arc<Daemon>>,
     Path(name): Path<String>,
 ) -> ApiResult<Json<MachineHistory>> {
-    let d = daemon.clone();
-    let key = name.clone();
-    blocking(move || Ok(super::machines::history(d.jobs()?, &key)))
-        .await?
+    machine_query(daemon, move |jobs| super::machines::history(jobs, &name))
+        .await
         .map(Json)
-        .ok_or_else(|| {
-            ApiError(
-                StatusCode::NOT_FOUND,
-                format!("no machine \"{name}\" has a succeeded run"),
-            )
-        })
 }
 
 /// A machine's trend over its runs of the kind of its last run (geocal-trend/1): each
@@ -475,26 +468,43 @@ async fn machine_history(
 #[utoipa::path(get, path = "/v1/machines/{name}/trend", params(("name" = String, Path)),
     responses((status = 200, content_type = "application/json", description = "geocal-trend/1"),
         (status = 404, body = ErrorBody),
-        (status = 409, body = ErrorBody, description = "fewer than 2 runs of its last kind")))]
+        (status = 409, body = ErrorBody, description = "fewer than 2 runs of its last kind, or the name is shared by several machines")))]
 async fn machine_trend(
     State(daemon): State<Arc<Daemon>>,
     Path(name): Path<String>,
 ) -> ApiResult<Json<serde_json::Value>> {
-    use super::machines::TrendError;
-    let d = daemon.clone();
-    let trend = tokio::task::spawn_blocking(move || {
-        let jobs = d
+    let config = daemon.config.history.clone();
+    machine_query(daemon, move |jobs| {
+        super::machines::trend(jobs, &name, &config)
+    })
+    .await
+    .map(Json)
+}
+
+/// A query over the catalog's machines, answered off the async runtime: no machine → 404, a
+/// shared name or too few runs → 409.
+async fn machine_query<T: Send + 'static>(
+    daemon: Arc<Daemon>,
+    query: impl FnOnce(Vec<super::catalog::JobRecord>) -> Result<T, super::machines::MachineError>
+        + Send
+        + 'static,
+) -> ApiResult<T> {
+    use super::machines::MachineError;
+    let answer = tokio::task::spawn_blocking(move || {
+        let jobs = daemon
             .jobs()
-            .map_err(|e| TrendError::Internal(anyhow::anyhow!("{e}")))?;
-        super::machines::trend(jobs, &name, &d.config.history)
+            .map_err(|e| MachineError::Internal(anyhow::anyhow!("{e}")))?;
+        query(jobs)
     })
     .await
     .map_err(|e| ApiError(StatusCode::INTERNAL_SERVER_ERROR, e.to_string()))?;
-    match trend {
-        Ok(value) => Ok(Json(value)),
-        Err(e @ TrendError::NoMachine(_)) => Err(ApiError(StatusCode::NOT_FOUND, e.to_string())),
-        Err(e @ TrendError::NotEnough(_)) => Err(ApiError(StatusCode::CONFLICT, e.to_string())),
-        Err(TrendError::Internal(e)) => {
+    match answer {
+        Ok(value) => Ok(value),
+        Err(e @ MachineError::NoMachine(_)) => Err(ApiError(StatusCode::NOT_FOUND, e.to_string())),
+        Err(e @ (MachineError::NotEnough(_) | MachineError::Ambiguous(_))) => {
+            Err(ApiError(StatusCode::CONFLICT, e.to_string()))
+        }
+        Err(MachineError::Internal(e)) => {
             tracing::error!("internal error: {e:#}");
             Err(ApiError(
                 StatusCode::INTERNAL_SERVER_ERROR,

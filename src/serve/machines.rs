@@ -339,18 +339,18 @@ pub fn machines(jobs: Vec<JobRecord>) -> Vec<MachineView> {
 
 /// The runs of the machine `name` (its key, id, name or serial); a name several machines
 /// share is an error naming their keys.
-fn runs_of(jobs: Vec<JobRecord>, name: &str) -> anyhow::Result<Vec<CatalogRun>> {
+fn runs_of(jobs: Vec<JobRecord>, name: &str) -> Result<Vec<CatalogRun>, MachineError> {
     crate::history::load::runs_of_machine(succeeded_runs(jobs), name, |r| &r.run.machine)
+        .map_err(|e| MachineError::Ambiguous(format!("{e:#}")))
 }
 
-/// The history of machine `name`; None when it has no succeeded run, or when machines share
-/// the name (the key tells them apart).
-pub fn history(jobs: Vec<JobRecord>, name: &str) -> Option<MachineHistory> {
-    let runs = runs_of(jobs, name)
-        .map_err(|e| tracing::info!("history: {e:#}"))
-        .ok()?;
-    let last = runs.last()?;
-    Some(MachineHistory {
+/// The history of machine `name` (its key, id, name or serial).
+pub fn history(jobs: Vec<JobRecord>, name: &str) -> Result<MachineHistory, MachineError> {
+    let runs = runs_of(jobs, name)?;
+    let Some(last) = runs.last() else {
+        return Err(MachineError::NoMachine(name.to_owned()));
+    };
+    Ok(MachineHistory {
         machine: name_of(&last.run).unwrap_or_else(|| name.to_owned()),
         serial: last.run.machine.serial.clone(),
         key: last.run.machine.key(),
@@ -368,11 +368,14 @@ pub fn history(jobs: Vec<JobRecord>, name: &str) -> Option<MachineHistory> {
     })
 }
 
-/// Why a trend of a machine cannot be given.
+/// Why a machine's history or trend cannot be given.
 #[derive(Debug, thiserror::Error)]
-pub enum TrendError {
+pub enum MachineError {
     #[error("no machine \"{0}\" has a succeeded run")]
     NoMachine(String),
+    /// The name is shared by several machines: the message names their keys.
+    #[error("{0}")]
+    Ambiguous(String),
     #[error("{0}")]
     NotEnough(String),
     #[error(transparent)]
@@ -384,10 +387,10 @@ pub fn trend(
     jobs: Vec<JobRecord>,
     name: &str,
     config: &HistoryConfig,
-) -> Result<serde_json::Value, TrendError> {
-    let runs = runs_of(jobs, name).map_err(|e| TrendError::NotEnough(format!("{e:#}")))?;
+) -> Result<serde_json::Value, MachineError> {
+    let runs = runs_of(jobs, name)?;
     let Some(last) = runs.last() else {
-        return Err(TrendError::NoMachine(name.to_owned()));
+        return Err(MachineError::NoMachine(name.to_owned()));
     };
     let kind = last.run.kind.clone();
     let series: Vec<Run> = runs
@@ -396,13 +399,13 @@ pub fn trend(
         .map(|r| r.run)
         .collect();
     if series.len() < 2 {
-        return Err(TrendError::NotEnough(format!(
+        return Err(MachineError::NotEnough(format!(
             "machine \"{name}\" has {} succeeded {kind} run: a trend needs 2",
             series.len()
         )));
     }
     let trend = crate::history::trend(&series, &config.trend_options())
-        .map_err(|e| TrendError::NotEnough(format!("{e:#}")))?;
+        .map_err(|e| MachineError::NotEnough(format!("{e:#}")))?;
     Ok(serde_json::to_value(&trend).context("serialising the trend")?)
 }
 
@@ -587,5 +590,80 @@ impl super::jobs::Daemon {
             Ok(None) => {}
             Err(e) => tracing::warn!(job = job.id, "history: not compared: {e:#}"),
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A succeeded run job of machine `name` with `serial`, its folder under `root`.
+    fn job(root: &Path, id: i64, name: &str, serial: &str) -> JobRecord {
+        let dir = root.join(format!("job-{id}"));
+        std::fs::create_dir_all(&dir).expect("job folder");
+        std::fs::write(
+            dir.join(crate::history::load::RESULTS_FILE),
+            format!(
+                r#"{{"format": "geocal-results/1", "kind": "hexapod", "session_id": "s{id}"}}"#
+            ),
+        )
+        .expect("results");
+        std::fs::write(
+            dir.join("run-config.toml"),
+            format!("kind = \"hexapod\"\n[machine]\nname = {name:?}\nserial = {serial:?}\n"),
+        )
+        .expect("config");
+        JobRecord {
+            id,
+            job_type: JobType::Run,
+            kind: "hexapod".into(),
+            state: JobState::Succeeded,
+            submitted_at: "2026-11-28T00:00:00Z".into(),
+            started_at: None,
+            finished_at: None,
+            submitted_by: "127.0.0.1".into(),
+            config_sha256: None,
+            source_job: None,
+            dir,
+            error: None,
+            progress_done: 0,
+            progress_total: 0,
+            resume: false,
+            files: Vec::new(),
+        }
+    }
+
+    #[test]
+    fn a_shared_name_is_refused_naming_each_machines_key() {
+        let root = tempfile::tempdir().expect("tempdir");
+        let jobs = vec![
+            job(root.path(), 1, "Bridge", "BR-1001"),
+            job(root.path(), 2, "Bridge", "BR-1002"),
+        ];
+        let keys: Vec<String> = machines(jobs.clone()).into_iter().map(|m| m.key).collect();
+        assert_eq!(keys.len(), 2);
+        for answer in [
+            history(jobs.clone(), "Bridge").map(|_| ()),
+            trend(jobs.clone(), "Bridge", &HistoryConfig::default()).map(|_| ()),
+        ] {
+            match answer {
+                Err(MachineError::Ambiguous(message)) => {
+                    for key in &keys {
+                        assert!(message.contains(key.as_str()), "{message}");
+                    }
+                }
+                other => panic!("expected the shared name refused, got {other:?}"),
+            }
+        }
+        let one = history(jobs.clone(), &keys[1]).expect("by key");
+        assert_eq!((one.key.as_str(), one.runs.len()), (keys[1].as_str(), 1));
+        assert_eq!(
+            history(jobs.clone(), "BR-1001").expect("by serial").runs[0].job,
+            1
+        );
+        assert!(matches!(
+            history(jobs, "Mill"),
+            Err(MachineError::NoMachine(_))
+        ));
     }
 }
