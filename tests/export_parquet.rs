@@ -1148,6 +1148,21 @@ fn engines_read_a_fleet_alike(
     }
     let bare = work.join("spark-fleet-bare");
     export(&bare_src, &bare, false);
+    // A fleet of probe and hexapod runs only: no error functions, diagnoses or ISO 230-2
+    // figures, no tracer.
+    let (kind_dir, _) = kind_runs();
+    let kinds_src = work.join("spark-runs-kinds");
+    for kind in ["probe-install", "hexapod"] {
+        copy_run(
+            &kind_dir.join(kind),
+            &kinds_src.join(kind),
+            &["results.json", "session.mcap", "run-config.toml"],
+            &format!("Cell {kind}"),
+            None,
+        );
+    }
+    let kinds = work.join("spark-fleet-kinds");
+    export(&kinds_src, &kinds, false);
 
     let duckdb_setup: Vec<String> = doc_blocks("duckdb")
         .remove("setup")
@@ -1176,7 +1191,7 @@ fn engines_read_a_fleet_alike(
         .find(|b| b.contains("spark.read"))
         .expect("docs/fleet.md has the Spark setup block");
     let request = json!({
-        "fleets": {"fleet": dest, "bare": bare},
+        "fleets": {"fleet": dest, "bare": bare, "kinds": kinds},
         "spark_setup": spark_setup,
         "spark_queries": spark_queries,
         "duckdb_setup": duckdb_setup,
@@ -1395,35 +1410,71 @@ fn engines_read_a_fleet_alike(
         Some(identifiable.len()),
         "the BR-1002 bridge's two runs"
     );
+
+    // The probe and hexapod fleet: the page's setup and every question run; their
+    // parameters are there, one run per machine, and no table has rows it cannot have.
+    let kinds = &answer["fleets"]["kinds"];
+    for table in ["error_functions", "diagnoses", "iso230_2", "tracer_samples"] {
+        assert_eq!(kinds["summary"]["spark"][table], json!([]), "{table}");
+    }
+    let per_run: Vec<(Value, Value)> = kinds["summary"]["spark"]["parameters"]
+        .as_array()
+        .expect("parameters summary")
+        .iter()
+        .map(|row| (row[1].clone(), row[3].clone()))
+        .collect();
+    let machines: Vec<&Value> = per_run.iter().map(|(m, _)| m).collect();
+    assert_eq!(
+        machines,
+        [json!("Cell hexapod"), json!("Cell probe-install")]
+            .iter()
+            .collect::<Vec<_>>(),
+        "{per_run:?}"
+    );
+    assert_eq!(kinds["spark"]["verdicts"], json!([]));
+    assert_eq!(kinds["spark"]["iso_e_failed"], json!([]));
 }
 
 /// Every other plan kind's example run exported: its parameters and error functions as its
 /// results file holds them (found by the results' shape, docs/fleet.md).
+/// The example run of every other plan kind, run once for the tests that read them: the
+/// folder holding one run folder per kind, and each run's results.
+fn kind_runs() -> &'static (PathBuf, BTreeMap<&'static str, Value>) {
+    static RUNS: std::sync::OnceLock<(PathBuf, BTreeMap<&'static str, Value>)> =
+        std::sync::OnceLock::new();
+    RUNS.get_or_init(|| {
+        let runs = Path::new(env!("CARGO_TARGET_TMPDIR"))
+            .join(format!("export-kind-runs-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&runs);
+        let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+        let mut results = BTreeMap::new();
+        for kind in ["rotary-sphere", "probe-install", "hexapod", "rotary-tracer"] {
+            let dir = runs.join(kind);
+            let config = configs.join(format!("{kind}.toml"));
+            let out = geocal(&[
+                "run",
+                config.to_str().expect("path"),
+                "--out",
+                dir.to_str().expect("path"),
+            ]);
+            assert!(
+                out.status.success(),
+                "{}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let json: Value =
+                serde_json::from_slice(&std::fs::read(dir.join("results.json")).expect("results"))
+                    .expect("results JSON");
+            results.insert(kind, json);
+        }
+        (runs, results)
+    })
+}
+
 #[test]
 fn every_kind_exports_what_its_results_hold() {
     let work = tempfile::tempdir().expect("tempdir");
-    let runs = work.path().join("runs");
-    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
-    let mut results = BTreeMap::new();
-    for kind in ["rotary-sphere", "probe-install", "hexapod", "rotary-tracer"] {
-        let dir = runs.join(kind);
-        let config = configs.join(format!("{kind}.toml"));
-        let out = geocal(&[
-            "run",
-            config.to_str().expect("path"),
-            "--out",
-            dir.to_str().expect("path"),
-        ]);
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        let json: Value =
-            serde_json::from_slice(&std::fs::read(dir.join("results.json")).expect("results"))
-                .expect("results JSON");
-        results.insert(kind, json);
-    }
+    let (runs, results) = kind_runs();
     let dest = work.path().join("fleet");
     let out = geocal(&[
         "export",
@@ -1481,7 +1532,7 @@ fn every_kind_exports_what_its_results_hold() {
     };
 
     // The history's names are the export's, for every kind.
-    for (kind, r) in &results {
+    for (kind, r) in results {
         let names: Vec<&Value> = answers["parameters"]
             .iter()
             .filter(|p| p[0] == r["session_id"])
