@@ -350,16 +350,6 @@ fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     }
 }
 
-/// What `geocal run` counts, by kind.
-fn progress_unit(kind: &str) -> &'static str {
-    match kind {
-        "rotary_sphere" => "probed points",
-        "probe_install" => "postures",
-        "hexapod" => "poses",
-        _ => "points",
-    }
-}
-
 fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Result<()> {
     let kinds = geocal::kinds::Registry::standard();
     match command {
@@ -390,8 +380,7 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 (None, Some(config)) => kinds.of_config(config)?,
                 (None, None) => anyhow::bail!("geocal run needs CONFIG or --resume DIR"),
             };
-            let shown =
-                geocal::progress::Progress::new(progress, "run", progress_unit(kind.name()));
+            let shown = geocal::progress::Progress::new(progress, "run", kind.progress_unit());
             let live_tap = match &live {
                 Some(view) => geocal::session::tap::Tap::new(view.clone()),
                 None => Default::default(),

@@ -136,6 +136,35 @@ pub trait Kind: Sync {
         Ok(crate::document::KindReport::raw(self.name(), results))
     }
 
+    /// What a run of this kind counts in its progress (points, postures, poses …).
+    fn progress_unit(&self) -> &'static str {
+        "points"
+    }
+
+    /// Whether the report gives ISO 230-2 positioning figures for this kind's sessions: the
+    /// network solve of a tracer kind yields per-run positioning deviations.
+    fn reports_iso230_2(&self) -> bool {
+        false
+    }
+
+    /// Whether this kind's results carry error functions with uncertainty budgets that the
+    /// report checks against the declared tolerances (`evaluated_errors`).
+    fn has_error_functions(&self) -> bool {
+        false
+    }
+
+    /// The kind's error functions evaluated with their uncertainty budgets, and the results'
+    /// geometric errors they come from, for the report's tolerance verdict (None: none in
+    /// these results).
+    fn evaluated_errors(
+        &self,
+        _results: &serde_json::Value,
+        _session: &Session,
+        _config: Option<&crate::config::Config>,
+    ) -> anyhow::Result<Option<EvaluatedErrors>> {
+        Ok(None)
+    }
+
     /// The kind's uncertainty budget in `geocal report` (docs/uncertainty.md), from its
     /// results, the recorded session and the run's configuration (`run-config.toml` beside
     /// the results; None when absent). By default none.
@@ -147,6 +176,13 @@ pub trait Kind: Sync {
     ) -> anyhow::Result<Vec<crate::document::Section>> {
         Ok(Vec::new())
     }
+}
+
+/// A kind's error functions with their uncertainty budgets (`Kind::evaluated_errors`).
+pub struct EvaluatedErrors {
+    pub evaluation: crate::evaluate::tracer::TracerEvaluation,
+    /// The results' geometric errors the functions come from.
+    pub geometric: serde_json::Value,
 }
 
 /// Every plan kind geocal knows.

@@ -18,8 +18,10 @@ pub fn section(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> 
     let Some(session) = &inputs.session else {
         return Ok(Vec::new());
     };
-    let kind = inputs.kind()?;
-    if kind != "multilateration" && kind != "rotary_tracer" {
+    let by_network = crate::kinds::registry::Registry::standard()
+        .named(inputs.kind()?)
+        .is_some_and(|k| k.reports_iso230_2());
+    if !by_network {
         return Ok(Vec::new());
     }
     let iso = match &inputs.settled {

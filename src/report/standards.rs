@@ -1,8 +1,7 @@
-//! The report's uncertainty budget (GUM) with the normalisation to 20 °C, for the tracer
-//! kinds (the ISO 230-2 figures: `iso230`).
+//! The report's uncertainty budget (GUM) with the normalisation to 20 °C: each kind's own
+//! (`Kind::uncertainty`).
 
-use crate::document::{cell, um, KindReport, Section, Table};
-use crate::method::multilateration::MultilaterationResults;
+use crate::document::{KindReport, Section};
 
 use super::Inputs;
 
@@ -18,99 +17,9 @@ pub fn uncertainty(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Sectio
         .parent()
         .map(|d| d.join(crate::run::resume::CONFIG_FILE))
         .filter(|p| p.is_file());
-    let kind = inputs.kind()?;
-    if kind != "multilateration" {
-        return match crate::kinds::registry::Registry::standard().named(kind) {
-            Some(k) => k.uncertainty(&inputs.results, session, config_path.as_deref()),
-            None => Ok(Vec::new()),
-        };
-    }
-    let results: MultilaterationResults =
-        crate::document::results_of("multilateration", &inputs.results)?;
-    let config = match config_path {
-        Some(path) => Some(crate::config::Config::load(&path)?),
-        None => None,
-    };
-    let evaluation = crate::evaluate::tracer::evaluate_session(session, &results, config.as_ref())?;
-    let mut section = Section::new("uncertainty", "Uncertainty budget and 20 °C").paragraph(
-        "Expanded uncertainty U (k = 2) of the positioning errors from the solve's σ and the \
-         declared contributors (GUM; docs/uncertainty.md); the values referred to 20 °C with \
-         the scales' CTE and the logged material temperature (ISO 1).",
-    );
-    let mut table = Table::new(
-        "Positioning errors",
-        &[
-            "error",
-            "positions",
-            "max |raw| [µm]",
-            "max |at 20 °C| [µm]",
-            "max U [µm]",
-            "largest contributor",
-        ],
-    );
-    let mut worst: Option<&crate::evaluate::uncertainty::Budget> = None;
-    for positioning in &evaluation.positioning {
-        let curve = &positioning.curve;
-        let max_abs = |values: &[Option<f64>]| {
-            values
-                .iter()
-                .flatten()
-                .map(|v| v.abs())
-                .fold(None, |m: Option<f64>, v| Some(m.map_or(v, |m| m.max(v))))
-        };
-        let budgets: Vec<_> = positioning.budgets.iter().flatten().collect();
-        let largest = budgets
-            .iter()
-            .copied()
-            .max_by(|a, b| a.expanded_uncertainty.total_cmp(&b.expanded_uncertainty));
-        if let Some(b) = largest {
-            if worst.is_none_or(|w| b.expanded_uncertainty > w.expanded_uncertainty) {
-                worst = Some(b);
-            }
-        }
-        let contributor = largest
-            .and_then(|b| {
-                b.contributors
-                    .iter()
-                    .max_by(|x, y| x.share.total_cmp(&y.share))
-            })
-            .map_or("-".to_owned(), |c| {
-                format!("{} ({:.0} %)", c.name, 100.0 * c.share)
-            });
-        table.row(vec![
-            format!("{} along {}", curve.error, curve.axis),
-            curve.positions_m.len().to_string(),
-            cell(max_abs(&curve.raw_m).map(um), 3),
-            cell(max_abs(&curve.normalised_m).map(um), 3),
-            cell(largest.map(|b| um(b.expanded_uncertainty)), 3),
-            contributor,
-        ]);
-    }
-    section = section.table(table);
-    if let Some(budget) = worst {
-        let mut contributors = Table::new(
-            &format!("Contributors at the largest U: {}", budget.quantity),
-            &["contributor", "u(x)", "sensitivity", "u(y) [µm]", "share"],
-        );
-        for c in &budget.contributors {
-            contributors.row(vec![
-                c.name.clone(),
-                format!("{:.3e} {}", c.standard_uncertainty, c.unit),
-                format!("{:.3e} {}", c.sensitivity, c.sensitivity_unit),
-                format!("{:.4}", um(c.contribution)),
-                format!("{:.1} %", 100.0 * c.share),
-            ]);
-        }
-        section = section.table(contributors);
-    }
-    let mut notes: Vec<String> = evaluation.notes.clone();
-    if config.is_none() {
-        notes.push(
-            "no run-config.toml beside the results: the default declared uncertainties".into(),
-        );
-    }
-    for note in notes {
-        section = section.paragraph(note);
-    }
-    Ok(vec![section])
+    crate::kinds::registry::Registry::standard()
+        .named(inputs.kind()?)
+        .map_or(Ok(Vec::new()), |k| {
+            k.uncertainty(&inputs.results, session, config_path.as_deref())
+        })
 }

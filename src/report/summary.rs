@@ -14,7 +14,6 @@ use crate::config::report::ReportConfig;
 use crate::document::{arcsec, KindReport, Section, Table, Tone};
 use crate::evaluate::tracer::TracerEvaluation;
 use crate::evaluate::uncertainty::Budget;
-use crate::method::multilateration::MultilaterationResults;
 
 use super::Inputs;
 
@@ -103,9 +102,10 @@ impl ErrorFunction {
 pub fn section(inputs: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section>> {
     let tolerances = declared_tolerances(inputs)?;
     let functions = error_functions(inputs)?;
+    let plan_kind = crate::kinds::registry::Registry::standard().named(inputs.kind()?);
     let mut section = Section::new("summary", "Summary");
     let (tone, verdict) = match &functions {
-        None if inputs.kind()? == "multilateration" => (
+        None if plan_kind.is_some_and(|k| k.has_error_functions()) => (
             Tone::Neutral,
             "tolerances: not checked (the error functions and the session.mcap beside the \
              results are needed for their uncertainty budget)"
@@ -114,8 +114,8 @@ pub fn section(inputs: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section
         None => (
             Tone::Neutral,
             format!(
-                "tolerances: not checked for {} results (a multilateration's error functions \
-                 are, against [report] tolerance_um and tolerance_arcsec)",
+                "tolerances: not checked for {} results (they have no error functions to \
+                 check against [report] tolerance_um and tolerance_arcsec)",
                 inputs.kind()?
             ),
         ),
@@ -147,10 +147,11 @@ pub fn section(inputs: &Inputs, kind: &KindReport) -> anyhow::Result<Vec<Section
             super::diagnosis::tone(d),
             format!("diagnosis: {}", super::diagnosis::verdict(d)),
         ),
-        None if inputs.kind()? == "multilateration" => section.paragraph(
-            "Diagnosis: not made (write it beside the results with `geocal diagnose \
+        None if plan_kind.is_some_and(|k| k.diagnosable() || k.has_residual_model()) => section
+            .paragraph(
+                "Diagnosis: not made (write it beside the results with `geocal diagnose \
              DIR/session.mcap --json > DIR/diagnosis.json`).",
-        ),
+            ),
         None => section,
     };
     Ok(vec![section.facts(facts)])
@@ -173,23 +174,25 @@ fn config_beside(results: &Path) -> Option<std::path::PathBuf> {
         .filter(|p| p.is_file())
 }
 
-/// The error functions of a multilateration with budgets (the session is needed for the
-/// material temperature); None for other kinds or without the session.
+/// The kind's error functions with budgets (the session is needed for the material
+/// temperature); None for kinds without them or without the session.
 fn error_functions(inputs: &Inputs) -> anyhow::Result<Option<Vec<ErrorFunction>>> {
-    let (Some(session), "multilateration") = (&inputs.session, inputs.kind()?) else {
+    let Some(session) = &inputs.session else {
         return Ok(None);
     };
-    let results: MultilaterationResults =
-        crate::document::results_of("multilateration", &inputs.results)?;
-    let Some(geometric) = &results.geometric_errors else {
+    let Some(kind) = crate::kinds::registry::Registry::standard().named(inputs.kind()?) else {
         return Ok(None);
     };
+    if !kind.has_error_functions() {
+        return Ok(None);
+    }
     let config = match config_beside(&inputs.results_path) {
         Some(path) => Some(crate::config::Config::load(&path)?),
         None => None,
     };
-    let evaluation = crate::evaluate::tracer::evaluate_session(session, &results, config.as_ref())?;
-    Ok(Some(functions_of(&evaluation, geometric)))
+    Ok(kind
+        .evaluated_errors(&inputs.results, session, config.as_ref())?
+        .map(|e| functions_of(&e.evaluation, &e.geometric)))
 }
 
 /// Every identifiable error function of the evaluation, positioning errors at 20 °C.

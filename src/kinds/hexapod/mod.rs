@@ -33,6 +33,10 @@ impl Kind for Hexapod {
         config::KIND
     }
 
+    fn progress_unit(&self) -> &'static str {
+        "poses"
+    }
+
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         report::document(results)
     }

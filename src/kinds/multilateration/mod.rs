@@ -3,10 +3,11 @@
 //! and rotary_tracer) gives stations, points and their covariance.
 
 pub mod report;
+pub mod uncertainty;
 
 use std::path::Path;
 
-use super::registry::{Kind, KindCheck, KindRunOutput, RunFlags};
+use super::registry::{EvaluatedErrors, Kind, KindCheck, KindRunOutput, RunFlags};
 use super::tracer_plan;
 use crate::kinds::tracer_plan::simulate::SimulateOptions;
 use crate::method::{MethodError, Results, SolveSettings};
@@ -63,6 +64,41 @@ impl Kind for Multilateration {
 
     fn diagnosable(&self) -> bool {
         true
+    }
+
+    fn reports_iso230_2(&self) -> bool {
+        true
+    }
+
+    fn has_error_functions(&self) -> bool {
+        true
+    }
+
+    fn evaluated_errors(
+        &self,
+        results: &serde_json::Value,
+        session: &Session,
+        config: Option<&crate::config::Config>,
+    ) -> anyhow::Result<Option<EvaluatedErrors>> {
+        let results: crate::method::multilateration::MultilaterationResults =
+            crate::document::results_of(self.name(), results)?;
+        let Some(geometric) = results.geometric_errors.clone() else {
+            return Ok(None);
+        };
+        let evaluation = crate::evaluate::tracer::evaluate_session(session, &results, config)?;
+        Ok(Some(EvaluatedErrors {
+            evaluation,
+            geometric,
+        }))
+    }
+
+    fn uncertainty(
+        &self,
+        results: &serde_json::Value,
+        session: &Session,
+        config: Option<&Path>,
+    ) -> anyhow::Result<Vec<crate::document::Section>> {
+        uncertainty::section(results, session, config)
     }
 
     fn simulate(&self, path: &Path, options: &SimulateOptions) -> anyhow::Result<()> {

@@ -32,6 +32,10 @@ impl Kind for ProbeInstall {
         config::KIND
     }
 
+    fn progress_unit(&self) -> &'static str {
+        "postures"
+    }
+
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         report::document(results)
     }

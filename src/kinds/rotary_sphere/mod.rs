@@ -39,6 +39,10 @@ impl Kind for RotarySphere {
         config::KIND
     }
 
+    fn progress_unit(&self) -> &'static str {
+        "probed points"
+    }
+
     fn report(&self, results: &serde_json::Value) -> anyhow::Result<crate::document::KindReport> {
         report::document(results)
     }

@@ -27,6 +27,10 @@ impl Kind for RotaryTracer {
         true
     }
 
+    fn reports_iso230_2(&self) -> bool {
+        true
+    }
+
     fn tracer_diagnosis(
         &self,
     ) -> Option<&'static dyn crate::method::tracer_effects::TracerNetworkDiagnosis> {
