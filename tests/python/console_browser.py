@@ -115,6 +115,10 @@ def main():
 
         # The demo from the plan library: its progress moves on the job's page to succeeded.
         first = submit_demo(page)
+        # Two more runs of the same machine, queued behind it from a second tab.
+        second_tab = context.new_page()
+        others = [submit_demo(second_tab), submit_demo(second_tab)]
+        second_tab.close()
         seen, state = set(), ""
         deadline = time.time() + JOB_TIMEOUT_S
         while time.time() < deadline:
@@ -144,8 +148,7 @@ def main():
         check(f"report of job {first} opens inline: {heading.inner_text().strip()!r}")
         shot(page, "job")
 
-        # Two more runs of the same machine: its history shows three runs and their trend.
-        others = [submit_demo(page), submit_demo(page)]
+        # After the two more runs the machine's history shows three runs and their trend.
         for other in others:
             assert wait_ended(OPEN, other)["state"] == "succeeded", other
         page.goto(OPEN + "/#/machines")
