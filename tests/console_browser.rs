@@ -96,7 +96,16 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
     let dir = tempfile::tempdir().expect("tempdir");
     let library = dir.path().join("plans");
     std::fs::create_dir(&library).expect("library");
+    // Three runs of one machine, each with its own measurement noise (the machine's errors
+    // are drawn from `seed`, the same in all three), so the trend has scatter to show.
     std::fs::write(library.join("demo.toml"), trend_demo()).expect("demo plan");
+    for (name, seed) in [("demo-2.toml", 202), ("demo-3.toml", 303)] {
+        std::fs::write(
+            library.join(name),
+            format!("{}noise_seed = {seed}\n", trend_demo()),
+        )
+        .expect("demo plan");
+    }
     let hil = dir.path().join("hil-prompts.toml");
     std::fs::write(
         &hil,

@@ -96,7 +96,7 @@ function linePlot(title, unit, points) {
 
 // A parameter over runs: values with ±2σ, the tolerance band, the trend's events.
 function trendPlot(parameter, runs, events) {
-  const W = 360, H = 170, L = 10, R = 10, T = 24, B = 22;
+  const W = 300, H = 170, L = 10, R = 10, T = 24, B = 22;
   const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img",
     "aria-label": `${parameter.id} over ${runs.length} runs`, "data-parameter": parameter.id });
   svg.append(s("text", { x: L, y: 15, class: "label" }, `${parameter.id} (${parameter.unit || ""})`));
@@ -141,7 +141,7 @@ function trendPlot(parameter, runs, events) {
 
 // The station layout seen from above: the machine's travel (x, y) and the stations' hints.
 function layoutPlot(layout, nextStation) {
-  const W = 360, H = 300, P = 36;
+  const W = 420, H = 320, P = 40;
   const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img",
     "aria-label": "station layout, seen from above" });
   const axis = (name) => layout.travel.find((a) => a.axis === name);
@@ -160,8 +160,10 @@ function layoutPlot(layout, nextStation) {
     svg.append(s("rect", { class: "travel", x: px(ax.from_m), y: py(ay.to_m),
       width: (ax.to_m - ax.from_m) * scale, height: (ay.to_m - ay.from_m) * scale },
       s("title", {}, "the machine's travel in x and y")));
-    svg.append(s("text", { x: px(ax.from_m), y: py(ay.from_m) + 16 }, `x ${ax.from_m}…${ax.to_m} m`));
-    svg.append(s("text", { x: px(ax.from_m) - 4, y: py(ay.to_m) - 6 }, `y ${ay.from_m}…${ay.to_m} m`));
+    // Inside the travel, clear of the stations around it.
+    const cx = px((ax.from_m + ax.to_m) / 2), cy = py((ay.from_m + ay.to_m) / 2);
+    svg.append(s("text", { x: cx, y: cy - 4, "text-anchor": "middle" }, `x ${ax.from_m}…${ax.to_m} m`));
+    svg.append(s("text", { x: cx, y: cy + 14, "text-anchor": "middle" }, `y ${ay.from_m}…${ay.to_m} m`));
   }
   for (const st of layout.stations) {
     if (!st.hint_m) continue;
@@ -169,8 +171,12 @@ function layoutPlot(layout, nextStation) {
     svg.append(s("circle", { class: next ? "station next" : "station", cx: px(st.hint_m[0]), cy: py(st.hint_m[1]),
       r: next ? 11 : 8, "data-station": st.id },
       s("title", {}, `${st.id}: x ${st.hint_m[0]} m, y ${st.hint_m[1]} m, z ${st.hint_m[2]} m`)));
-    svg.append(s("text", { class: "label", x: px(st.hint_m[0]) + 13, y: py(st.hint_m[1]) + 5 },
-      `${st.id} (z ${st.hint_m[2]} m)`));
+    // Labels point away from the travel's centre, so they do not cross it.
+    const right = ax ? st.hint_m[0] >= (ax.from_m + ax.to_m) / 2 : true;
+    svg.append(s("text", { class: "label", x: px(st.hint_m[0]) + (right ? 14 : -14), y: py(st.hint_m[1]) + 5,
+      "text-anchor": right ? "start" : "end" }, `${st.id}`));
+    svg.append(s("text", { x: px(st.hint_m[0]) + (right ? 14 : -14), y: py(st.hint_m[1]) + 20,
+      "text-anchor": right ? "start" : "end" }, `z ${st.hint_m[2]} m`));
   }
   return svg;
 }
@@ -413,7 +419,7 @@ async function renderPrompts() {
     const card = h("section", { class: "card", "data-prompt": p.id },
       h("p", { class: "muted" }, `Job ${p.job}, asked ${fmtTime(p.prompted_at)}`),
       h("p", { class: "instruction" }, p.instruction),
-      layout && (layout.stations.length || layout.travel.length) ? h("figure", {}, layoutPlot(layout, station),
+      layout && (layout.stations.length || layout.travel.length) ? h("figure", { class: "layout" }, layoutPlot(layout, station),
         h("figcaption", { class: "muted" }, "Seen from above: the machine's travel (green) and the stations' hint positions; the next one in red.")) : null,
       h("button", { class: "button huge", "data-ack": p.id, onclick: (e) => acknowledge(p.id, e.currentTarget) }, "Continue"));
     out.append(card);

@@ -66,10 +66,10 @@ def job_id_of(page):
     return int(page.url.rsplit("/", 1)[1])
 
 
-def submit_demo(page):
+def submit_demo(page, plan="demo.toml"):
     page.goto(OPEN + "/#/jobs")
-    page.wait_for_selector("#plan-select option[value='demo.toml']", state="attached")
-    page.select_option("#plan-select", "demo.toml")
+    page.wait_for_selector(f"#plan-select option[value='{plan}']", state="attached")
+    page.select_option("#plan-select", plan)
     page.click("#submit-library")
     return job_id_of(page)
 
@@ -117,7 +117,7 @@ def main():
         first = submit_demo(page)
         # Two more runs of the same machine, queued behind it from a second tab.
         second_tab = context.new_page()
-        others = [submit_demo(second_tab), submit_demo(second_tab)]
+        others = [submit_demo(second_tab, "demo-2.toml"), submit_demo(second_tab, "demo-3.toml")]
         second_tab.close()
         seen, state = set(), ""
         deadline = time.time() + JOB_TIMEOUT_S
@@ -146,7 +146,12 @@ def main():
         heading.wait_for(timeout=30_000)
         assert heading.inner_text().strip(), "the report has a title"
         check(f"report of job {first} opens inline: {heading.inner_text().strip()!r}")
-        shot(page, "job")
+        # A sandboxed frame is drawn in its own process: a full-page capture leaves it blank,
+        # a tall viewport does not.
+        page.set_viewport_size({"width": 1280, "height": 2200})
+        page.wait_for_timeout(500)
+        page.screenshot(path=f"{SHOTS}/job.png")
+        page.set_viewport_size({"width": 1280, "height": 900})
 
         # After the two more runs the machine's history shows three runs and their trend.
         for other in others:
@@ -161,6 +166,8 @@ def main():
         dots = page.locator("#trend-plots svg[data-parameter]").first.locator("circle.dot").count()
         assert plots > 0 and dots == 3, (plots, dots)
         assert page.locator("#compare-result tbody tr").count() > 0
+        z = page.locator("#compare-result tbody tr td:last-child").first.inner_text()
+        assert float(z) != 0.0, f"two runs with different noise compare equal: z {z}"
         machine_url = page.url
         check(f"machine with 3 runs: trend of {plots} parameters drawn, 3 runs each, compare table")
         shot(page, "machine")
@@ -217,6 +224,8 @@ def main():
         assert len(answered) == 5, answered
         check(f"HIL job {hil}: {len(answered)} prompts answered by clicking Continue, succeeded")
 
+        # No prompt waits any more: no banner.
+        page.wait_for_selector("#prompt-banner", state="hidden", timeout=10_000)
         page.goto(OPEN + "/#/schedules")
         row = page.locator("main tr", has_text="nightly")
         row.wait_for()
