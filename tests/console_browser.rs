@@ -148,7 +148,10 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
     );
     let shots = Path::new(env!("CARGO_TARGET_TMPDIR")).join("console-screenshots");
     std::fs::create_dir_all(&shots).expect("screenshot dir");
-    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/tests/python/console_browser.py");
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/tests/python/console_browser.py"
+    );
     let output = Command::new("python3")
         .arg(script)
         .args([&open.1, &guarded.1, TOKEN])
@@ -165,9 +168,21 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
         String::from_utf8_lossy(&output.stderr)
     );
     assert!(stdout.contains("console: all checks passed"), "{stdout}");
-    for page in ["now", "prompts", "jobs", "job", "machine", "schedules", "login", "phone-jobs"] {
+    for page in [
+        "now",
+        "prompts",
+        "jobs",
+        "job",
+        "machine",
+        "schedules",
+        "login",
+        "phone-jobs",
+    ] {
         let png = std::fs::read(shots.join(format!("{page}.png"))).expect("screenshot");
-        assert!(png.starts_with(b"\x89PNG") && png.len() > 5_000, "{page}.png");
+        assert!(
+            png.starts_with(b"\x89PNG") && png.len() > 5_000,
+            "{page}.png"
+        );
     }
     println!(
         "screenshots in {}; {:.0} s",

@@ -141,7 +141,8 @@ function trendPlot(parameter, runs, events) {
 
 // The station layout seen from above: the machine's travel (x, y) and the stations' hints.
 function layoutPlot(layout, nextStation) {
-  const W = 420, H = 320, P = 40;
+  // Room beside the drawing for the stations' labels.
+  const W = 460, H = 320, PX = 90, PY = 30;
   const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img",
     "aria-label": "station layout, seen from above" });
   const axis = (name) => layout.travel.find((a) => a.axis === name);
@@ -154,8 +155,9 @@ function layoutPlot(layout, nextStation) {
     return svg;
   }
   const x0 = Math.min(...xs), x1 = Math.max(...xs), y0 = Math.min(...ys), y1 = Math.max(...ys);
-  const scale = Math.min((W - 2 * P) / Math.max(x1 - x0, 1e-3), (H - 2 * P) / Math.max(y1 - y0, 1e-3));
-  const px = (v) => P + (v - x0) * scale, py = (v) => H - P - (v - y0) * scale;
+  const scale = Math.min((W - 2 * PX) / Math.max(x1 - x0, 1e-3), (H - 2 * PY) / Math.max(y1 - y0, 1e-3));
+  const left = (W - (x1 - x0) * scale) / 2;
+  const px = (v) => left + (v - x0) * scale, py = (v) => H - PY - (v - y0) * scale;
   if (ax && ay) {
     svg.append(s("rect", { class: "travel", x: px(ax.from_m), y: py(ay.to_m),
       width: (ax.to_m - ax.from_m) * scale, height: (ay.to_m - ay.from_m) * scale },

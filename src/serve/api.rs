@@ -22,11 +22,11 @@ use super::auth::{require_token, Token};
 use super::catalog::{JobFile, JobRecord, JobState, JobType};
 use super::guard::{check_host, json_errors, read_body, BodyLimits, HostCheck};
 use super::jobs::{Daemon, JobError, ServerEvent, REPORT_FILE};
+use super::layout::{AxisTravel, StationHint, StationLayout};
+use super::library::{LibraryPlan, PlanLibrary};
 use super::machines::{
     ComparisonSummary, HistoryEntry, MachineChange, MachineHistory, MachineView,
 };
-use super::layout::{AxisTravel, StationHint, StationLayout};
-use super::library::{LibraryPlan, PlanLibrary};
 use super::prompts::PendingPrompt;
 use super::schedule::{ScheduleView, ScheduledJob};
 use super::status::{DeviceStatus, Progress};
@@ -513,9 +513,7 @@ async fn list_plans(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<Lib
     let d = daemon.clone();
     blocking(move || {
         Ok(match &d.config.plan_library {
-            Some(dir) => PlanLibrary::open(dir)
-                .map_err(JobError::Internal)?
-                .list(),
+            Some(dir) => PlanLibrary::open(dir).map_err(JobError::Internal)?.list(),
             None => Vec::new(),
         })
     })

@@ -136,8 +136,8 @@ pub async fn require_token(
         .and_then(|v| v.to_str().ok())
         .and_then(bearer_credentials)
         .map(|v| v.as_bytes().to_vec());
-    let by_cookie = presented.is_none()
-        && session_cookies(request.headers()).any(|c| token.matches_session(c));
+    let by_cookie =
+        presented.is_none() && session_cookies(request.headers()).any(|c| token.matches_session(c));
     if by_cookie || is_public(request.method(), request.uri().path()) {
         return next.run(request).await;
     }
@@ -196,9 +196,14 @@ mod tests {
         let mut headers = axum::http::HeaderMap::new();
         headers.insert(
             header::COOKIE,
-            format!("a=b; {SESSION_COOKIE}={session}; c=d").parse().unwrap(),
+            format!("a=b; {SESSION_COOKIE}={session}; c=d")
+                .parse()
+                .unwrap(),
         );
-        assert_eq!(session_cookies(&headers).collect::<Vec<_>>(), [session.as_str()]);
+        assert_eq!(
+            session_cookies(&headers).collect::<Vec<_>>(),
+            [session.as_str()]
+        );
         use axum::http::Method;
         assert!(is_public(&Method::GET, "/"));
         assert!(is_public(&Method::GET, "/console/assets/console.js"));

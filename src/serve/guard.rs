@@ -116,7 +116,10 @@ pub fn cross_origin(method: &axum::http::Method, headers: &axum::http::HeaderMap
             .map(|v| v.to_str().unwrap_or("\u{0}").trim().to_ascii_lowercase())
             .collect::<Vec<_>>()
     };
-    if text("sec-fetch-site").iter().any(|site| site == "cross-site") {
+    if text("sec-fetch-site")
+        .iter()
+        .any(|site| site == "cross-site")
+    {
         return true;
     }
     let hosts = text("host");
@@ -264,14 +267,23 @@ mod tests {
             }
             map
         };
-        let own = headers(&[("host", "127.0.0.1:7878"), ("origin", "http://127.0.0.1:7878")]);
+        let own = headers(&[
+            ("host", "127.0.0.1:7878"),
+            ("origin", "http://127.0.0.1:7878"),
+        ]);
         assert!(!cross_origin(&Method::POST, &own));
         let proxied = headers(&[("host", "geocal.lab"), ("origin", "https://geocal.lab")]);
         assert!(!cross_origin(&Method::POST, &proxied));
         assert!(!cross_origin(&Method::POST, &headers(&[("host", "x:1")])));
         for refused in [
-            headers(&[("host", "127.0.0.1:7878"), ("origin", "http://evil.example")]),
-            headers(&[("host", "127.0.0.1:7878"), ("origin", "http://127.0.0.1:7879")]),
+            headers(&[
+                ("host", "127.0.0.1:7878"),
+                ("origin", "http://evil.example"),
+            ]),
+            headers(&[
+                ("host", "127.0.0.1:7878"),
+                ("origin", "http://127.0.0.1:7879"),
+            ]),
             headers(&[("host", "127.0.0.1:7878"), ("origin", "null")]),
             headers(&[("host", "127.0.0.1:7878"), ("sec-fetch-site", "cross-site")]),
             headers(&[("origin", "http://127.0.0.1:7878")]),

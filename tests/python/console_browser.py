@@ -149,7 +149,7 @@ def main():
         # A sandboxed frame is drawn in its own process: a full-page capture leaves it blank,
         # a tall viewport does not.
         page.set_viewport_size({"width": 1280, "height": 2200})
-        page.wait_for_timeout(500)
+        page.wait_for_timeout(1500)
         page.screenshot(path=f"{SHOTS}/job.png")
         page.set_viewport_size({"width": 1280, "height": 900})
 
