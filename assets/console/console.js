@@ -376,7 +376,7 @@ async function renderNow() {
       h("tr", {}, h("td", {}, d.id), h("td", {}, d.kind), h("td", {}, d.connected ? "yes" : "no"),
         h("td", {}, summarizeReading(d.last_reading)), h("td", { class: "num" }, d.last_reading_age_s === null ? "—" : `${d.last_reading_age_s.toFixed(1)} s`),
         h("td", { class: "num" }, d.signal_level === null ? "—" : d.signal_level.toFixed(2)),
-        h("td", { class: d.last_error ? "error" : "muted" }, d.last_error || "none")))));
+        h("td", { class: d.last_error ? "error wrap" : "muted" }, d.last_error || "none")))));
   return out;
 }
 
