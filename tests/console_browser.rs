@@ -190,3 +190,37 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
         started.elapsed().as_secs_f64()
     );
 }
+
+/// `geocal client … --follow` in a terminal ends with a short summary: state, time, where the
+/// results, report and session are, the other files, the error, the job's page.
+#[test]
+fn the_follow_summary_says_state_time_and_where_the_results_are() {
+    let job: geocal::serve::api::JobView = serde_json::from_value(serde_json::json!({
+        "id": 7, "kind": "multilateration", "type": "run", "state": "succeeded",
+        "progress": {"done": 256, "total": 256, "station": null, "eta_s": null, "last_faults": []},
+        "submitted_at": "2026-11-28T10:00:00Z", "started_at": "2026-11-28T10:00:01Z",
+        "finished_at": "2026-11-28T10:01:13.5Z", "submitted_by": "127.0.0.1:5000",
+        "config_sha256": null, "source_job": null, "error": null, "resume": false,
+        "files": [
+            {"name": "results.json", "bytes": 10, "sha256": "00"},
+            {"name": "report.html", "bytes": 10, "sha256": "00"},
+            {"name": "job.log", "bytes": 10, "sha256": "00"}
+        ]
+    }))
+    .expect("a job");
+    let text = geocal::serve::client::summary(&job, "http://127.0.0.1:7878/");
+    let lines: Vec<&str> = text.lines().collect();
+    assert_eq!(
+        lines[0],
+        "job 7 succeeded in 1 min 12 s: multilateration run (256/256 points), submitted by 127.0.0.1:5000",
+        "{text}"
+    );
+    assert!(
+        text.contains("http://127.0.0.1:7878/v1/jobs/7/results  (geocal client fetch 7 results)")
+    );
+    assert!(text.contains("http://127.0.0.1:7878/v1/jobs/7/report  (geocal client fetch 7 report)"));
+    assert!(!text.contains("session"), "no session was left: {text}");
+    assert!(text.contains("files:   job.log"), "{text}");
+    assert!(text.contains("http://127.0.0.1:7878/#/jobs/7"), "{text}");
+    assert!(lines.len() <= 6, "short: {text}");
+}
