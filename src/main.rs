@@ -259,13 +259,22 @@ enum ClientCommand {
         /// Follow the job's progress until it ends; exit non-zero unless it succeeded.
         #[arg(long)]
         follow: bool,
+        /// With --follow: print the final job as JSON even in a terminal (on a pipe it is JSON
+        /// anyway; in a terminal a short summary).
+        #[arg(long)]
+        json: bool,
     },
     /// List every job.
     Jobs,
     /// Show one job as JSON.
     Status { id: i64 },
-    /// Follow a job until it ends.
-    Follow { id: i64 },
+    /// Follow a job until it ends: a short summary in a terminal, the job as JSON on a pipe
+    /// or with --json.
+    Follow {
+        id: i64,
+        #[arg(long)]
+        json: bool,
+    },
     /// Cancel a queued or running job.
     Cancel { id: i64 },
     /// Resume an interrupted or cancelled run.
@@ -688,14 +697,19 @@ fn client(
 ) -> anyhow::Result<()> {
     use geocal::serve::client::{default_fetch_path, job_line, Client};
     let client = Client::new(server, token_file)?;
-    let follow = |id: i64| -> anyhow::Result<()> {
+    let follow = |id: i64, json: bool| -> anyhow::Result<()> {
         let shown = geocal::progress::Progress::new(progress, &format!("job {id}"), "points");
         let job = client.follow_events(id, |event, value| {
             geocal::serve::client::show_event(&shown, event, value)
         });
         shown.finish();
         let job = job?;
-        geocal::outln!("{}", serde_json::to_string_pretty(&job)?)?;
+        // A person reads a summary; a program (a pipe, or --json) the whole record.
+        if json || !std::io::IsTerminal::is_terminal(&std::io::stdout()) {
+            geocal::outln!("{}", serde_json::to_string_pretty(&job)?)?;
+        } else {
+            geocal::outln!("{}", geocal::serve::client::summary(&job, server))?;
+        }
         if job.state != geocal::serve::catalog::JobState::Succeeded {
             anyhow::bail!("job {id} ended {}", job.state.as_str());
         }
@@ -705,11 +719,12 @@ fn client(
         ClientCommand::Submit {
             config,
             follow: and_follow,
+            json,
         } => {
             let id = client.submit(&config)?;
             geocal::outln!("{id}")?;
             if and_follow {
-                follow(id)?;
+                follow(id, json)?;
             }
         }
         ClientCommand::Jobs => {
@@ -720,7 +735,7 @@ fn client(
         ClientCommand::Status { id } => {
             geocal::outln!("{}", serde_json::to_string_pretty(&client.job(id)?)?)?
         }
-        ClientCommand::Follow { id } => follow(id)?,
+        ClientCommand::Follow { id, json } => follow(id, json)?,
         ClientCommand::Cancel { id } => client.cancel(id)?,
         ClientCommand::Resume { id } => client.resume(id)?,
         ClientCommand::Prompts => {

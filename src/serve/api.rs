@@ -22,10 +22,13 @@ use super::auth::{require_token, Token};
 use super::catalog::{JobFile, JobRecord, JobState, JobType};
 use super::guard::{check_host, json_errors, read_body, BodyLimits, HostCheck};
 use super::jobs::{Daemon, JobError, ServerEvent, REPORT_FILE};
+use super::layout::{AxisTravel, StationHint, StationLayout};
+use super::library::{LibraryPlan, PlanLibrary};
 use super::machines::{
     ComparisonSummary, HistoryEntry, MachineChange, MachineHistory, MachineView,
 };
 use super::prompts::PendingPrompt;
+use super::schedule::{ScheduleView, ScheduledJob};
 use super::status::{DeviceStatus, Progress};
 
 /// A job as the API shows it.
@@ -514,6 +517,86 @@ async fn machine_query<T: Send + 'static>(
     }
 }
 
+/// The plan library's plans (the daemon's `plan_library`; none without one).
+#[utoipa::path(get, path = "/v1/plans", responses((status = 200, body = Vec<LibraryPlan>)))]
+async fn list_plans(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<LibraryPlan>>> {
+    let d = daemon.clone();
+    blocking(move || {
+        Ok(match &d.config.plan_library {
+            Some(dir) => PlanLibrary::open(dir).map_err(JobError::Internal)?.list(),
+            None => Vec::new(),
+        })
+    })
+    .await
+    .map(Json)
+}
+
+/// Submit plan `name` of the plan library as a run job (as `POST /v1/jobs` with its text).
+#[utoipa::path(post, path = "/v1/plans/{name}/submit", params(("name" = String, Path)),
+    responses((status = 201, body = Created),
+        (status = 400, body = ErrorBody, description = "the plan is invalid: the error names the key"),
+        (status = 404, body = ErrorBody, description = "the library offers no such plan"),
+        (status = 503, body = ErrorBody, description = "the daemon is stopping")))]
+async fn submit_library_plan(
+    State(daemon): State<Arc<Daemon>>,
+    ConnectInfo(peer): ConnectInfo<SocketAddr>,
+    Path(name): Path<String>,
+) -> ApiResult<(StatusCode, Json<Created>)> {
+    let d = daemon.clone();
+    let wanted = name.clone();
+    let text = blocking(move || match &d.config.plan_library {
+        Some(dir) => Ok(PlanLibrary::open(dir)
+            .map_err(JobError::Internal)?
+            .read(&wanted)),
+        None => Ok(None),
+    })
+    .await?
+    .ok_or_else(|| {
+        ApiError(
+            StatusCode::NOT_FOUND,
+            format!("the plan library offers no plan `{name}`"),
+        )
+    })?;
+    let d = daemon.clone();
+    let id = blocking(move || d.submit_run(&text, &peer.to_string())).await?;
+    Ok((StatusCode::CREATED, Json(Created { id })))
+}
+
+/// Every schedule: its expression and zone, its next run and its last job.
+#[utoipa::path(get, path = "/v1/schedules", responses((status = 200, body = Vec<ScheduleView>)))]
+async fn list_schedules(State(daemon): State<Arc<Daemon>>) -> ApiResult<Json<Vec<ScheduleView>>> {
+    let d = daemon.clone();
+    blocking(move || {
+        Ok(super::schedule::overview(
+            &d.config.schedule,
+            &d.config.base_dir,
+            chrono::Utc::now(),
+            &d.jobs()?,
+        ))
+    })
+    .await
+    .map(Json)
+}
+
+/// Where a run's stations go: the machine's travel and the plan's station hints (empty for a
+/// plan without stations).
+#[utoipa::path(get, path = "/v1/jobs/{id}/layout", params(("id" = i64, Path)),
+    responses((status = 200, body = StationLayout), (status = 404, body = ErrorBody)))]
+async fn job_layout(
+    State(daemon): State<Arc<Daemon>>,
+    Path(id): Path<i64>,
+) -> ApiResult<Json<StationLayout>> {
+    let d = daemon.clone();
+    blocking(move || {
+        let job = d.job(id)?;
+        Ok(std::fs::read_to_string(job.dir.join("plan.toml"))
+            .map(|text| super::layout::of_plan(&text))
+            .unwrap_or_default())
+    })
+    .await
+    .map(Json)
+}
+
 #[utoipa::path(get, path = "/v1/health", responses((status = 200, body = Health)))]
 async fn health(State(daemon): State<Arc<Daemon>>) -> Json<Health> {
     Json(Health {
@@ -560,6 +643,10 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         prompts,
         ack_prompt,
         events,
+        list_plans,
+        submit_library_plan,
+        list_schedules,
+        job_layout,
         health,
         metrics,
         list_machines,
@@ -578,6 +665,12 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         JobState,
         JobType,
         Progress,
+        LibraryPlan,
+        ScheduleView,
+        ScheduledJob,
+        StationLayout,
+        AxisTravel,
+        StationHint,
         DeviceStatus,
         crate::devices::held::HeldStatus,
         PendingPrompt,
@@ -775,6 +868,11 @@ pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
         .route("/v1/machines", get(list_machines))
         .route("/v1/machines/{name}/history", get(machine_history))
         .route("/v1/machines/{name}/trend", get(machine_trend))
+        .route("/v1/plans", get(list_plans))
+        .route("/v1/plans/{name}/submit", post(submit_library_plan))
+        .route("/v1/schedules", get(list_schedules))
+        .route("/v1/jobs/{id}/layout", get(job_layout))
+        .merge(super::console::routes(options.token.clone()))
         .route("/v1/health", get(health))
         .route("/v1/openapi.json", get(openapi))
         .route("/metrics", get(metrics))
@@ -802,6 +900,7 @@ pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
             Arc::new(options.host_check),
             check_host,
         ))
+        .layer(axum::middleware::from_fn(super::guard::check_origin))
         .layer(axum::middleware::from_fn(json_errors))
         .with_state(daemon)
 }

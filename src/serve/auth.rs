@@ -55,6 +55,48 @@ impl Token {
         // ct_eq on slices of different lengths is false without comparing the bytes.
         bool::from(self.0.as_slice().ct_eq(presented))
     }
+
+    /// The console's session cookie value: a digest of the token, so the cookie jar never
+    /// holds the token itself (it is as good as the token to this daemon, and to no other).
+    pub fn session_value(&self) -> String {
+        use sha2::{Digest, Sha256};
+        let digest = Sha256::new()
+            .chain_update(b"geocal console session\0")
+            .chain_update(&self.0)
+            .finalize();
+        digest.iter().map(|b| format!("{b:02x}")).collect()
+    }
+
+    fn matches_session(&self, presented: &str) -> bool {
+        bool::from(self.session_value().as_bytes().ct_eq(presented.as_bytes()))
+    }
+}
+
+/// The console's session cookie (set by its login form: HttpOnly, SameSite=Strict).
+pub const SESSION_COOKIE: &str = "geocal_session";
+
+/// The session cookie's values in a request's `Cookie` headers.
+fn session_cookies(headers: &axum::http::HeaderMap) -> impl Iterator<Item = &str> {
+    headers
+        .get_all(header::COOKIE)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(';'))
+        .filter_map(|pair| {
+            let (name, value) = pair.trim().split_once('=')?;
+            (name == SESSION_COOKIE).then_some(value.trim())
+        })
+}
+
+/// What anyone may fetch without the token: the console's page, its assets and its login
+/// (none holds data; the page asks for the token when the API refuses it).
+fn is_public(method: &axum::http::Method, path: &str) -> bool {
+    use axum::http::Method;
+    match *method {
+        Method::GET | Method::HEAD => path == "/" || path.starts_with("/console/assets/"),
+        Method::POST => path == "/console/login" || path == "/console/logout",
+        _ => false,
+    }
 }
 
 /// The credentials of an `Authorization` header value: the scheme is case-insensitive
@@ -67,7 +109,8 @@ pub fn bearer_credentials(value: &str) -> Option<&str> {
 }
 
 /// The middleware: more than one `Authorization` header is a 400 (which would count?); with a
-/// token configured, every request must carry `Authorization: Bearer <token>`.
+/// token configured, every request but the console's public ones must carry `Authorization:
+/// Bearer <token>` or the console's session cookie.
 pub async fn require_token(
     State(token): State<Arc<Option<Token>>>,
     ConnectInfo(peer): ConnectInfo<SocketAddr>,
@@ -93,6 +136,11 @@ pub async fn require_token(
         .and_then(|v| v.to_str().ok())
         .and_then(bearer_credentials)
         .map(|v| v.as_bytes().to_vec());
+    let by_cookie =
+        presented.is_none() && session_cookies(request.headers()).any(|c| token.matches_session(c));
+    if by_cookie || is_public(request.method(), request.uri().path()) {
+        return next.run(request).await;
+    }
     match presented {
         Some(p) if token.matches(&p) => next.run(request).await,
         presented => {
@@ -140,6 +188,29 @@ mod tests {
         assert_eq!(bearer_credentials("BEARER  abc "), Some("abc"));
         assert_eq!(bearer_credentials("Basic abc"), None);
         assert_eq!(bearer_credentials("Bearerabc"), None);
+        let session = token.session_value();
+        assert_eq!(session.len(), 64);
+        assert!(!session.contains("0123456789abcdef0123"));
+        assert!(token.matches_session(&session));
+        assert!(!token.matches_session(&session[1..]));
+        let mut headers = axum::http::HeaderMap::new();
+        headers.insert(
+            header::COOKIE,
+            format!("a=b; {SESSION_COOKIE}={session}; c=d")
+                .parse()
+                .unwrap(),
+        );
+        assert_eq!(
+            session_cookies(&headers).collect::<Vec<_>>(),
+            [session.as_str()]
+        );
+        use axum::http::Method;
+        assert!(is_public(&Method::GET, "/"));
+        assert!(is_public(&Method::GET, "/console/assets/console.js"));
+        assert!(is_public(&Method::POST, "/console/login"));
+        assert!(!is_public(&Method::GET, "/v1/jobs"));
+        assert!(!is_public(&Method::POST, "/"));
+        assert!(!is_public(&Method::GET, "/console/other"));
         std::fs::write(&path, "short").unwrap();
         assert!(Token::load(&path).is_err());
     }

@@ -238,6 +238,67 @@ fn describe(event: &str, value: &serde_json::Value) -> String {
     }
 }
 
+/// A followed job's end for a person at a terminal: its state and time, where its results
+/// and report are (URL and the command that fetches them), its files and its error.
+pub fn summary(job: &JobView, server: &str) -> String {
+    let server = server.trim_end_matches('/');
+    let time = |t: &Option<String>| {
+        t.as_deref()
+            .and_then(|t| chrono::DateTime::parse_from_rfc3339(t).ok())
+    };
+    let took = match (time(&job.started_at), time(&job.finished_at)) {
+        (Some(start), Some(end)) => {
+            let seconds = (end - start).num_milliseconds().max(0) as f64 / 1000.0;
+            let minutes = (seconds / 60.0).floor();
+            if minutes >= 1.0 {
+                format!(" in {minutes:.0} min {:.0} s", seconds - 60.0 * minutes)
+            } else {
+                format!(" in {seconds:.1} s")
+            }
+        }
+        _ => String::new(),
+    };
+    let mut lines = vec![format!(
+        "job {} {}{took}: {} {} ({}/{} points), submitted by {}",
+        job.id,
+        job.state.as_str(),
+        job.kind,
+        job.job_type.as_str(),
+        job.progress.done,
+        job.progress.total,
+        job.submitted_by
+    )];
+    if let Some(error) = &job.error {
+        lines.push(format!("  {:<9}{error}", "error:"));
+    }
+    let has = |name: &str| job.files.iter().any(|f| f.name == name);
+    for (what, file, route) in [
+        ("results", "results.json", "results"),
+        ("report", "report.html", "report"),
+        ("session", "session.mcap", "session"),
+    ] {
+        if has(file) {
+            lines.push(format!(
+                "  {:<9}{server}/v1/jobs/{}/{route}  (geocal client fetch {} {what})",
+                format!("{what}:"),
+                job.id,
+                job.id
+            ));
+        }
+    }
+    let others: Vec<&str> = job
+        .files
+        .iter()
+        .map(|f| f.name.as_str())
+        .filter(|name| !["results.json", "report.html", "session.mcap"].contains(name))
+        .collect();
+    if !others.is_empty() {
+        lines.push(format!("  {:<9}{}", "files:", others.join(", ")));
+    }
+    lines.push(format!("  {:<9}{server}/#/jobs/{}", "console:", job.id));
+    lines.join("\n")
+}
+
 /// One line per job for `geocal client jobs`.
 pub fn job_line(job: &JobView) -> String {
     format!(

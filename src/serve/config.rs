@@ -58,6 +58,10 @@ pub struct ServeConfig {
     /// every named file must resolve, symlinks followed, inside one. Empty: none.
     #[serde(default)]
     pub allowed_read_dirs: Vec<PathBuf>,
+    /// The plan library: a folder of plan configurations the console offers to submit by
+    /// name (only `.toml` files directly in it). None: no library.
+    #[serde(default)]
+    pub plan_library: Option<PathBuf>,
     /// Scheduled jobs.
     #[serde(default)]
     pub schedule: Vec<super::schedule::ScheduleConfig>,
@@ -118,6 +122,7 @@ impl Default for ServeConfig {
             allowed_ports: Vec::new(),
             allowed_hosts: Vec::new(),
             allowed_read_dirs: Vec::new(),
+            plan_library: None,
             schedule: Vec::new(),
             devices: DeviceHolding::default(),
             history: Default::default(),
@@ -208,6 +213,12 @@ impl ServeConfig {
             .filter(|p| !p.as_os_str().is_empty())
             .unwrap_or(Path::new("."))
             .to_owned();
+        // Like the schedules' plans, a relative library is the configuration file's neighbour.
+        if let Some(library) = &mut config.plan_library {
+            if library.is_relative() {
+                *library = config.base_dir.join(&*library);
+            }
+        }
         Ok(config)
     }
 }

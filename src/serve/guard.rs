@@ -100,6 +100,63 @@ pub async fn check_host(
     )
 }
 
+/// Whether a request that changes state (any method but GET, HEAD, OPTIONS) comes from
+/// another web origin: an `Origin` other than the request's own host (either scheme, for a
+/// TLS proxy in front), `Origin: null`, or `Sec-Fetch-Site: cross-site`. Clients that send
+/// neither header (the CLI, scripts) are not browsers acting for another site.
+pub fn cross_origin(method: &axum::http::Method, headers: &axum::http::HeaderMap) -> bool {
+    use axum::http::Method;
+    if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
+        return false;
+    }
+    let text = |name: &str| {
+        headers
+            .get_all(name)
+            .iter()
+            .map(|v| v.to_str().unwrap_or("\u{0}").trim().to_ascii_lowercase())
+            .collect::<Vec<_>>()
+    };
+    if text("sec-fetch-site")
+        .iter()
+        .any(|site| site == "cross-site")
+    {
+        return true;
+    }
+    let hosts = text("host");
+    text("origin").iter().any(|origin| {
+        let own = hosts.len() == 1
+            && ["http://", "https://"].iter().any(|scheme| {
+                origin
+                    .strip_prefix(scheme)
+                    .is_some_and(|rest| rest == hosts[0].as_str())
+            });
+        !own
+    })
+}
+
+/// The middleware: a state-changing request from another web origin is a 403 (a page
+/// elsewhere must not ack a prompt or submit a job through the operator's browser).
+pub async fn check_origin(request: Request, next: Next) -> Response {
+    if !cross_origin(request.method(), request.headers()) {
+        return next.run(request).await;
+    }
+    let origin = request
+        .headers()
+        .get(header::ORIGIN)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("")
+        .to_owned();
+    tracing::warn!(origin, method = %request.method(), path = %request.uri().path(), "refused: cross-origin request");
+    error(
+        StatusCode::FORBIDDEN,
+        format!(
+            "a {} from another web origin (`{origin}`) is refused: state-changing requests \
+             from a browser must come from the daemon's own pages",
+            request.method()
+        ),
+    )
+}
+
 /// Body limits: a `Content-Length` over the limit is refused before anything is read, and a
 /// body must arrive whole within the time-out.
 #[derive(Debug, Clone, Copy)]
@@ -199,6 +256,42 @@ pub async fn json_errors(request: Request, next: Next) -> Response {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn state_changing_requests_from_other_origins_are_cross_origin() {
+        use axum::http::{HeaderMap, Method};
+        let headers = |pairs: &[(&'static str, &str)]| {
+            let mut map = HeaderMap::new();
+            for (name, value) in pairs {
+                map.append(*name, value.parse().unwrap());
+            }
+            map
+        };
+        let own = headers(&[
+            ("host", "127.0.0.1:7878"),
+            ("origin", "http://127.0.0.1:7878"),
+        ]);
+        assert!(!cross_origin(&Method::POST, &own));
+        let proxied = headers(&[("host", "geocal.lab"), ("origin", "https://geocal.lab")]);
+        assert!(!cross_origin(&Method::POST, &proxied));
+        assert!(!cross_origin(&Method::POST, &headers(&[("host", "x:1")])));
+        for refused in [
+            headers(&[
+                ("host", "127.0.0.1:7878"),
+                ("origin", "http://evil.example"),
+            ]),
+            headers(&[
+                ("host", "127.0.0.1:7878"),
+                ("origin", "http://127.0.0.1:7879"),
+            ]),
+            headers(&[("host", "127.0.0.1:7878"), ("origin", "null")]),
+            headers(&[("host", "127.0.0.1:7878"), ("sec-fetch-site", "cross-site")]),
+            headers(&[("origin", "http://127.0.0.1:7878")]),
+        ] {
+            assert!(cross_origin(&Method::POST, &refused), "{refused:?}");
+            assert!(!cross_origin(&Method::GET, &refused), "{refused:?}");
+        }
+    }
 
     #[test]
     fn loopback_hosts_with_the_port_and_configured_names_are_allowed() {

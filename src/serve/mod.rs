@@ -8,10 +8,13 @@ pub mod auth;
 pub mod catalog;
 pub mod client;
 pub mod config;
+pub mod console;
 pub mod door;
 pub mod guard;
 pub mod http;
 pub mod jobs;
+pub mod layout;
+pub mod library;
 pub mod live;
 pub mod live_guard;
 pub mod machines;
@@ -63,6 +66,9 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
         if value == 0 {
             anyhow::bail!("{key} = 0: expected at least 1");
         }
+    }
+    if let Some(library) = &config.plan_library {
+        library::PlanLibrary::open(library)?;
     }
     // A bad schedule refuses the start, like a bad key.
     schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;

@@ -174,6 +174,83 @@ impl Scheduler {
     }
 }
 
+/// A schedule as the API shows it: what runs when, its next run and its last job.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ScheduleView {
+    pub name: String,
+    pub cron: String,
+    /// The IANA zone the expression is read in.
+    pub time_zone: String,
+    /// `queue` or `skip`.
+    pub when_busy: String,
+    /// The plan file it submits, as configured.
+    pub plan: String,
+    /// RFC 3339 UTC; none when the expression never comes due again.
+    pub next_run: Option<String>,
+    /// Its newest job, when it submitted one.
+    pub last_job: Option<ScheduledJob>,
+}
+
+/// The last job a schedule submitted.
+#[derive(Debug, Clone, PartialEq, serde::Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ScheduledJob {
+    pub id: i64,
+    pub state: crate::serve::catalog::JobState,
+    pub submitted_at: String,
+    pub finished_at: Option<String>,
+    pub error: Option<String>,
+}
+
+/// Every configured schedule with its next occurrence after `now` and its newest job among
+/// `jobs` (submitted by `schedule:<name>`).
+pub fn overview(
+    configs: &[ScheduleConfig],
+    base_dir: &Path,
+    now: DateTime<Utc>,
+    jobs: &[crate::serve::catalog::JobRecord],
+) -> Vec<ScheduleView> {
+    let upcoming = Scheduler::new(configs, base_dir, now)
+        .map(|s| s.upcoming())
+        .unwrap_or_default();
+    configs
+        .iter()
+        .map(|config| {
+            let by = format!("schedule:{}", config.name);
+            let last_job = jobs
+                .iter()
+                .filter(|job| job.submitted_by == by)
+                .max_by_key(|job| job.id)
+                .map(|job| ScheduledJob {
+                    id: job.id,
+                    state: job.state,
+                    submitted_at: job.submitted_at.clone(),
+                    finished_at: job.finished_at.clone(),
+                    error: job.error.clone(),
+                });
+            ScheduleView {
+                name: config.name.clone(),
+                cron: config.cron.clone(),
+                time_zone: config
+                    .time_zone
+                    .clone()
+                    .unwrap_or_else(|| local_zone().name().to_owned()),
+                when_busy: match config.when_busy {
+                    WhenBusy::Queue => "queue",
+                    WhenBusy::Skip => "skip",
+                }
+                .to_owned(),
+                plan: config.plan.display().to_string(),
+                next_run: upcoming
+                    .iter()
+                    .find(|(name, _)| *name == config.name)
+                    .and_then(|(_, next)| *next)
+                    .map(|t| t.to_rfc3339_opts(chrono::SecondsFormat::Secs, true)),
+                last_job,
+            }
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
