@@ -416,8 +416,8 @@ fn gantry_runs_with_its_four_joints() {
     });
 }
 
-/// The whole-run tests' plan on `axis_mm`: 4 stations x 12 points 10 mm apart around the
-/// homed position (the solve's minimum with room), the HPI-3D tracer at `port`, LinuxCNC's
+/// The whole-run tests' plan on `axis_mm`: 4 stations x 16 points 10 mm apart around the
+/// homed position (multilateration's minimum of 16), the HPI-3D tracer at `port`, LinuxCNC's
 /// linuxcncrsh at 127.0.0.1 (geocal runs in its namespace) with the driver's defaults:
 /// no `power_on`, `home = "refuse"`: the operator powered the machine on and homed it.
 fn whole_run_config(port: &str) -> String {
@@ -427,7 +427,7 @@ fn whole_run_config(port: &str) -> String {
 [machine]
 name = "axis_mm sample config (simulated steel)"
 structure = "FYXZ"
-travel_m = {{ x = [-0.02, 0.04], y = [-0.02, 0.03], z = [-0.03, 0.02] }}
+travel_m = {{ x = [-0.02, 0.05], y = [-0.02, 0.03], z = [-0.03, 0.02] }}
 targets = [{{ id = "t0", offset_m = [0.0, 0.0, -0.05] }}]
 
 [devices.tracer]
@@ -464,7 +464,7 @@ max_dwell_s = 2.0
 stillstand = {{ window_s = 0.03, tolerance_m = 5e-6 }}
 
 [plan.grid]
-x = {{ from = 0.0, to = 0.02, count = 3 }}
+x = {{ from = 0.0, to = 0.03, count = 4 }}
 y = {{ from = 0.0, to = 0.01, count = 2 }}
 z = {{ from = -0.01, to = 0.0, count = 2 }}
 order = "serpentine"
@@ -838,7 +838,7 @@ fn axis_mm_whole_run_stopped_by_an_estop_resumes_with_nothing_lost() {
             .collect();
         points.sort();
         points.dedup();
-        assert_eq!(points.len(), 4 * 12, "every planned point measured: {points:?}");
+        assert_eq!(points.len(), 4 * 16, "every planned point measured: {points:?}");
 
         // A run cancelled in the middle of a move (the daemon's cancel; Ctrl-C does the
         // same) stops it and leaves the controller as found: the operator's G91, no motion
