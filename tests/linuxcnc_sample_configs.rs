@@ -416,7 +416,7 @@ fn gantry_runs_with_its_four_joints() {
     });
 }
 
-/// The whole-run tests' plan on `axis_mm`: 4 stations x 16 points 10 mm apart around the
+/// The whole-run tests' plan on `axis_mm`: 4 stations x 16 points 5 mm apart around the
 /// homed position (multilateration's minimum of 16), the HPI-3D tracer at `port`, LinuxCNC's
 /// linuxcncrsh at 127.0.0.1 (geocal runs in its namespace) with the driver's defaults:
 /// no `power_on`, `home = "refuse"`: the operator powered the machine on and homed it.
@@ -464,9 +464,9 @@ max_dwell_s = 2.0
 stillstand = {{ window_s = 0.03, tolerance_m = 5e-6 }}
 
 [plan.grid]
-x = {{ from = 0.0, to = 0.03, count = 4 }}
-y = {{ from = 0.0, to = 0.01, count = 2 }}
-z = {{ from = -0.01, to = 0.0, count = 2 }}
+x = {{ from = 0.0, to = 0.015, count = 4 }}
+y = {{ from = 0.0, to = 0.005, count = 2 }}
+z = {{ from = -0.005, to = 0.0, count = 2 }}
 order = "serpentine"
 
 [[plan.stations]]

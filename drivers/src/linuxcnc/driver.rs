@@ -1336,8 +1336,9 @@ impl LinuxCncMachine {
         }
     }
 
-    /// After the connection was lost: reconnect until `reconnect_timeout_s`, `hello` and
-    /// enable again (LinuxCNC keeps moving without its client). Records `disconnect` and
+    /// After the connection was lost: reconnect until `reconnect_timeout_s` (`hello`), then
+    /// take control again unless the machine was stopped meanwhile (an alarm: the operator's
+    /// stop ends the run). LinuxCNC keeps moving without its client. Records `disconnect` and
     /// `reconnect` link faults; fails with the original error if it cannot reconnect.
     async fn reconnect(&mut self, lost: DeviceError) -> Result<(), DeviceError> {
         if self.cfg.reconnect_timeout_s <= 0.0 {
@@ -1359,19 +1360,14 @@ impl LinuxCncMachine {
                     self.reply_owed = false;
                     self.last_state = None;
                     self.last_poll = None;
-                    match self.handshake().await {
-                        Ok(()) => self.take_control_unless_stopped().await,
-                        Err(e) => Err(e),
-                    }
+                    self.handshake().await
                 }
                 Err(e) => Err(e),
             };
             match attempt {
                 Ok(()) => break,
-                // A refused password will not get better; a stop is the operator's.
-                Err(e @ (DeviceError::Rejected { .. } | DeviceError::Alarm { .. })) => {
-                    return Err(e)
-                }
+                // A refused password will not get better.
+                Err(e @ DeviceError::Rejected { .. }) => return Err(e),
                 Err(e) if Instant::now() >= deadline => {
                     return Err(self.disconnected(format!(
                         "{}; could not reconnect within {} s: {}",
@@ -1390,7 +1386,7 @@ impl LinuxCncMachine {
                 started.elapsed().as_secs_f64()
             ),
         });
-        Ok(())
+        self.take_control_unless_stopped().await
     }
 
     /// After a reconnect, before anything is commanded: a stop made while the connection was
