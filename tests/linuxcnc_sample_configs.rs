@@ -652,9 +652,7 @@ fn spawn_run(
                     kind.run(&config_path, &options, &geocal::kinds::RunFlags::default())
                 })
             };
-            output
-                .map(|o| o.recorded)
-                .map_err(|e| format!("{e:#}"))
+            output.map(|o| o.recorded).map_err(|e| format!("{e:#}"))
         })
         .expect("a thread in LinuxCNC's namespace")
 }
@@ -670,7 +668,9 @@ fn wait_for_progress(progress: &std::sync::mpsc::Receiver<u64>, points: u64) {
     }
 }
 
-fn run_events(session: &geocal::session::reader::Session) -> Vec<geocal::session::messages::RunEvent> {
+fn run_events(
+    session: &geocal::session::reader::Session,
+) -> Vec<geocal::session::messages::RunEvent> {
     session.events.iter().map(|e| e.msg.clone()).collect()
 }
 
@@ -683,7 +683,10 @@ fn assert_tracer_streams_whole(session: &geocal::session::reader::Session, runs:
         .windows(2)
         .filter(|p| {
             let (a, b) = (p[0].msg.seq, p[1].msg.seq);
-            assert!(b == a + 1 || b < a, "tracer seq jumps from {a} to {b}: samples lost");
+            assert!(
+                b == a + 1 || b < a,
+                "tracer seq jumps from {a} to {b}: samples lost"
+            );
             b < a
         })
         .count();
@@ -838,7 +841,11 @@ fn axis_mm_whole_run_stopped_by_an_estop_resumes_with_nothing_lost() {
             .collect();
         points.sort();
         points.dedup();
-        assert_eq!(points.len(), 4 * 16, "every planned point measured: {points:?}");
+        assert_eq!(
+            points.len(),
+            4 * 16,
+            "every planned point measured: {points:?}"
+        );
 
         // A run cancelled in the middle of a move (the daemon's cancel; Ctrl-C does the
         // same) stops it and leaves the controller as found: the operator's G91, no motion

@@ -91,7 +91,11 @@ async fn fake(faults: Faults) -> (u16, Arc<Mutex<Machine3>>) {
                         .split_whitespace()
                         .map(|w| w.to_ascii_lowercase())
                         .collect();
-                    state.lock().unwrap().received.push((connection, line.clone()));
+                    state
+                        .lock()
+                        .unwrap()
+                        .received
+                        .push((connection, line.clone()));
                     let (reply, close) = answer(&words, &line, &state, &faults, first);
                     let mut out = String::new();
                     if echo && words[0] != "hello" {
@@ -506,7 +510,11 @@ async fn a_server_that_does_not_come_back_is_a_disconnection() {
 #[tokio::test]
 async fn a_reconnect_finds_the_operators_stop_and_changes_nothing() {
     for (stop, code, says) in [
-        (Stop::Estop, geocal_drivers::linuxcnc::ALARM_ESTOP, "in E-stop"),
+        (
+            Stop::Estop,
+            geocal_drivers::linuxcnc::ALARM_ESTOP,
+            "in E-stop",
+        ),
         (
             Stop::MachineOff,
             geocal_drivers::linuxcnc::ALARM_MACHINE_OFF,

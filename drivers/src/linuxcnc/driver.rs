@@ -570,10 +570,13 @@ impl LinuxCncMachine {
         }
         let stopped =
             self.get_on_off(Query::Estop).await? || !self.get_on_off(Query::Machine).await?;
-        if !stopped && self.last_move.is_some() && self.program_status().await? != ProgramStatus::Idle
+        if !stopped
+            && self.last_move.is_some()
+            && self.program_status().await? != ProgramStatus::Idle
         {
             self.abort().await?;
-            self.wait_program_idle("`set abort` to stop geocal's move").await?;
+            self.wait_program_idle("`set abort` to stop geocal's move")
+                .await?;
         }
         let now = self.program_codes().await?;
         let restore = found.codes.words_to_restore(&now);
