@@ -363,7 +363,7 @@ fn cancel_on_interrupt(cancel: tokio_util::sync::CancellationToken) {
                 _ = tokio::signal::ctrl_c() => {}
                 _ = term.recv() => {}
             }
-            let _ = geocal::errln!(
+            geocal::errln!(
                 "interrupted: stopping the run, leaving the machine as found and keeping the \
                  session (`geocal run --resume DIR` continues it); again to quit at once"
             );
