@@ -525,7 +525,8 @@ struct TracerRig {
     time: std::sync::Arc<geocal::sim::hil::HilTime>,
     noise: geocal::extract::NoiseModel,
     rate_hz: f64,
-    links: tempfile::TempDir,
+    /// Holds the link path; removed with the rig.
+    _links: tempfile::TempDir,
     port: String,
 }
 
@@ -562,7 +563,7 @@ impl TracerRig {
             time,
             noise: config.devices.tracer.noise_model(),
             rate_hz: config.devices.tracer.sample_rate_hz,
-            links,
+            _links: links,
             port,
         };
         rig.fresh_emulator(1);
