@@ -352,6 +352,40 @@ fn error_text(e: &anyhow::Error) -> String {
     out
 }
 
+/// Ctrl-C (SIGINT) or SIGTERM during `geocal run` cancels the run as the daemon's cancel
+/// does: it stops, the machine's controller is left as found and the session is kept for
+/// `--resume`. A second signal ends the process at once.
+fn cancel_on_interrupt(cancel: tokio_util::sync::CancellationToken) {
+    std::thread::spawn(move || {
+        let Ok(runtime) = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+        else {
+            return;
+        };
+        runtime.block_on(async {
+            use tokio::signal::unix::{signal, SignalKind};
+            let Ok(mut term) = signal(SignalKind::terminate()) else {
+                return;
+            };
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            geocal::errln!(
+                "interrupted: stopping the run, leaving the machine as found and keeping the \
+                 session (`geocal run --resume DIR` continues it); again to quit at once"
+            );
+            cancel.cancel();
+            tokio::select! {
+                _ = tokio::signal::ctrl_c() => {}
+                _ = term.recv() => {}
+            }
+            std::process::exit(130);
+        });
+    });
+}
+
 fn settings(huber: Option<f64>) -> geocal::method::SolveSettings {
     geocal::method::SolveSettings {
         huber: huber.map(|threshold_sigma| geocal::solve::robust::Huber { threshold_sigma }),
@@ -404,7 +438,10 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                     )) as Box<dyn geocal_drivers::Operator>
                 }) as geocal::sequencer::control::OperatorSource
             });
+            let cancel = tokio_util::sync::CancellationToken::new();
+            cancel_on_interrupt(cancel.clone());
             let control = geocal::run::control::RunControl {
+                cancel,
                 tap: shown.tap(live_tap),
                 progress: Some(shown.sink()),
                 operator,

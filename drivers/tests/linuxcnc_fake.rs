@@ -20,6 +20,15 @@ struct Faults {
     replace: Option<(&'static str, &'static str)>,
     /// Close the first connection right after acknowledging its first `set mdi`.
     drop_after_first_mdi: bool,
+    /// With that close, the operator presses E-stop (or turns the machine off) while the
+    /// driver is away.
+    stop_while_away: Option<Stop>,
+}
+
+#[derive(Clone, Copy, PartialEq)]
+enum Stop {
+    Estop,
+    MachineOff,
 }
 
 #[derive(Default)]
@@ -41,6 +50,8 @@ struct Machine3 {
     linear_units: String,
     /// Every MDI line received.
     mdi_lines: Vec<String>,
+    /// Every line received, with the number of its connection (1, 2, ...).
+    received: Vec<(u32, String)>,
 }
 
 /// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
@@ -62,11 +73,12 @@ async fn fake(faults: Faults) -> (u16, Arc<Mutex<Machine3>>) {
             let state = shared.clone();
             let faults = faults.clone();
             tokio::spawn(async move {
-                let first = {
+                let connection = {
                     let mut s = state.lock().unwrap();
                     s.connections += 1;
-                    s.connections == 1
+                    s.connections
                 };
+                let first = connection == 1;
                 let (rd, mut wr) = sock.into_split();
                 let mut lines = BufReader::new(rd).lines();
                 let mut echo = true;
@@ -79,6 +91,11 @@ async fn fake(faults: Faults) -> (u16, Arc<Mutex<Machine3>>) {
                         .split_whitespace()
                         .map(|w| w.to_ascii_lowercase())
                         .collect();
+                    state
+                        .lock()
+                        .unwrap()
+                        .received
+                        .push((connection, line.clone()));
                     let (reply, close) = answer(&words, &line, &state, &faults, first);
                     let mut out = String::new();
                     if echo && words[0] != "hello" {
@@ -162,6 +179,16 @@ fn answer(
             s.polls_left = 3;
             s.mdi_seen += 1;
             let close = faults.drop_after_first_mdi && first && s.mdi_seen == 1;
+            if close {
+                match faults.stop_while_away {
+                    Some(Stop::Estop) => {
+                        s.estop = true;
+                        s.machine_on = false;
+                    }
+                    Some(Stop::MachineOff) => s.machine_on = false,
+                    None => {}
+                }
+            }
             (ack("mdi"), close)
         }
         ("set", sub) => (ack(sub), false),
@@ -473,4 +500,72 @@ async fn a_server_that_does_not_come_back_is_a_disconnection() {
         "{e}"
     );
     assert!(*calls.lock().unwrap() >= 2);
+}
+
+/// The connection drops while the operator stops the machine (E-stop, or machine off): the
+/// driver reconnects and, before commanding anything, finds the stop and reports it as an
+/// alarm naming it; `unlock` refuses while it lasts. The new connection sends no command that
+/// changes LinuxCNC's state (E-stop, power, mode, homing, MDI, abort), nor takes control
+/// (`set enable`) of a machine someone else stopped.
+#[tokio::test]
+async fn a_reconnect_finds_the_operators_stop_and_changes_nothing() {
+    for (stop, code, says) in [
+        (
+            Stop::Estop,
+            geocal_drivers::linuxcnc::ALARM_ESTOP,
+            "in E-stop",
+        ),
+        (
+            Stop::MachineOff,
+            geocal_drivers::linuxcnc::ALARM_MACHINE_OFF,
+            "powered off",
+        ),
+    ] {
+        let (port, state) = fake(Faults {
+            drop_after_first_mdi: true,
+            stop_while_away: Some(stop),
+            ..Faults::default()
+        })
+        .await;
+        let mut m = LinuxCncMachine::connect(config(port))
+            .await
+            .expect("connects");
+        m.start_move(&target(0.3, 0.2, 0.1))
+            .await
+            .expect("accepted before the drop");
+        let e = wait_idle(&mut m).await.expect_err("the stop is found");
+        assert!(
+            matches!(e, DeviceError::Alarm { code: c, .. } if c == code)
+                && e.to_string().contains(says)
+                && e.to_string().contains("not by geocal"),
+            "{e}"
+        );
+        let e = m.unlock().await.expect_err("geocal does not undo it");
+        assert!(e.to_string().contains("--resume"), "{e}");
+        let codes: Vec<String> = m.take_link_faults().into_iter().map(|f| f.code).collect();
+        assert_eq!(codes, ["disconnect", "reconnect"]);
+        let s = state.lock().unwrap();
+        let after: Vec<&str> = s
+            .received
+            .iter()
+            .filter(|(c, _)| *c > 1)
+            .map(|(_, l)| l.as_str())
+            .collect();
+        let commands: Vec<&str> = after
+            .iter()
+            .copied()
+            .filter(|l| {
+                let l = l.to_ascii_lowercase();
+                l.starts_with("set ")
+                    && !["set verbose", "set echo"]
+                        .iter()
+                        .any(|ok| l.starts_with(ok))
+            })
+            .collect();
+        assert!(
+            commands.is_empty(),
+            "the reconnect sent {commands:?} (all: {after:?})"
+        );
+        assert!(s.estop || !s.machine_on, "still stopped");
+    }
 }

@@ -398,13 +398,26 @@ async fn build_real(
     };
     let rotary = match config.devices.rotary_table.as_ref() {
         Some(table) if table.driver != DriverKind::Sim => {
-            Some(crate::devices::rotary_table::connect_real(table, holder).await?)
+            crate::devices::rotary_table::connect_real(table, holder)
+                .await
+                .map(Some)
         }
-        Some(table) => anyhow::bail!(
+        Some(table) => Err(anyhow::anyhow!(
             "devices.rotary_table.driver = \"{}\" in a real run: expected \"modbus_tcp\" or \"modbus_rtu\"",
             table.driver.as_str()
-        ),
-        None => None,
+        )),
+        None => Ok(None),
+    };
+    let mut machine = machine;
+    let rotary = match rotary {
+        Ok(rotary) => rotary,
+        Err(e) => {
+            // The machine was prepared for the run (its mode): leave it as found.
+            if let Err(f) = machine.finish().await {
+                tracing::warn!("leaving the machine's controller as found: {f}");
+            }
+            return Err(e);
+        }
     };
     Ok(BuiltDevices {
         devices: Devices {

@@ -17,6 +17,8 @@ pub mod passive;
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
+use tokio_util::sync::CancellationToken;
+
 use geocal_drivers::{
     AxisPositions, DeviceError, Environment, Machine, MachineState, Operator, RotaryState,
     RotaryTable, Tracer, TracerReading,
@@ -156,6 +158,8 @@ pub struct Sequencer<'a> {
     passive: Option<f64>,
     /// Added to recorded beam segments (see `ResumeAt::segment_offset`).
     segment_offset: u32,
+    /// Cancels the run (the daemon's cancel, Ctrl-C): it stops at once, then `finish`es.
+    cancel: CancellationToken,
 }
 
 impl<'a> Sequencer<'a> {
@@ -183,7 +187,15 @@ impl<'a> Sequencer<'a> {
             resume: None,
             passive: None,
             segment_offset: 0,
+            cancel: CancellationToken::new(),
         }
+    }
+
+    /// Stop the run as soon as `cancel` is cancelled (the machine's controller is still left
+    /// as found).
+    pub fn cancelled_by(mut self, cancel: CancellationToken) -> Self {
+        self.cancel = cancel;
+        self
     }
 
     /// Passive mode: the machine runs its NC program; stops are matched to the plan's points
@@ -204,13 +216,21 @@ impl<'a> Sequencer<'a> {
         self
     }
 
-    /// Run the whole plan: every station, every pass, every point. Done or stopped, the
-    /// machine is then asked to leave its controller as the run found it (`finish`); a
-    /// failure to is a `fault` event, not a failed run.
+    /// Run the whole plan: every station, every pass, every point. Done, failed or
+    /// cancelled, the machine is then asked to leave its controller as the run found it
+    /// (`finish`); a failure to is a `fault` event, not a failed run.
     pub async fn run(mut self, progress: Progress<'_>) -> Result<RunSummary, SequencerError> {
-        let result = match self.passive.take() {
-            Some(hint_tolerance_m) => self.run_passive(hint_tolerance_m, progress).await,
-            None => self.run_plan(progress).await,
+        let cancel = self.cancel.clone();
+        let passive = self.passive.take();
+        let result = tokio::select! {
+            biased;
+            _ = cancel.cancelled() => Err(SequencerError::Cancelled(control::Cancelled)),
+            result = async {
+                match passive {
+                    Some(hint_tolerance_m) => self.run_passive(hint_tolerance_m, progress).await,
+                    None => self.run_plan(progress).await,
+                }
+            } => result,
         };
         if let Err(e) = self.devices.machine.finish().await {
             tracing::warn!("leaving the machine's controller as found: {e}");

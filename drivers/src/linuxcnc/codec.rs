@@ -445,13 +445,41 @@ pub enum FeedMode {
     PerRevolution,
 }
 
-/// The interpreter's modal state that a move line changes, as `get program_codes` shows it.
+/// The interpreter's motion mode (modal group 1), the first code of `get program_codes`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum MotionMode {
+    /// `G80`: no motion mode (LinuxCNC starts so).
+    Off,
+    /// `G0`.
+    Rapid,
+    /// `G1`.
+    Feed,
+    /// An arc, probe, canned cycle or spline mode: it cannot be set without axis words.
+    Other,
+}
+
+impl MotionMode {
+    fn word(self) -> Option<&'static str> {
+        match self {
+            MotionMode::Off => Some("G80"),
+            MotionMode::Rapid => Some("G0"),
+            MotionMode::Feed => Some("G1"),
+            MotionMode::Other => None,
+        }
+    }
+}
+
+/// The interpreter's modal state that a move line changes, as `get program_codes` shows it.
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct ModalCodes {
     /// `G20` (inch) rather than `G21` (mm).
     pub inch: bool,
     pub distance: Distance,
     pub feed_mode: FeedMode,
+    /// None when the reply names no motion mode.
+    pub motion: Option<MotionMode>,
+    /// The `F` word (the feed rate in the interpreter's units), if reported.
+    pub feed_rate: Option<f64>,
 }
 
 impl ModalCodes {
@@ -469,16 +497,59 @@ impl ModalCodes {
         }
         (!words.is_empty()).then(|| words.join(" "))
     }
+
+    /// The MDI words that set everything of this state that differs in `now` back (units,
+    /// distance and feed mode, motion mode, feed rate): none when nothing differs. A motion
+    /// mode that cannot be set without axis words (an arc, a canned cycle) is left out.
+    pub fn words_to_restore(&self, now: &ModalCodes) -> Option<String> {
+        let mut words: Vec<String> = Vec::new();
+        if now.inch != self.inch {
+            words.push(if self.inch { "G20" } else { "G21" }.into());
+        }
+        if now.distance != self.distance {
+            words.push(match self.distance {
+                Distance::Absolute => "G90".into(),
+                Distance::Incremental => "G91".into(),
+            });
+        }
+        if now.feed_mode != self.feed_mode {
+            words.push(match self.feed_mode {
+                FeedMode::InverseTime => "G93".into(),
+                FeedMode::PerMinute => "G94".into(),
+                FeedMode::PerRevolution => "G95".into(),
+            });
+        }
+        if let (Some(found), Some(current)) = (self.motion, now.motion) {
+            if found != current {
+                if let Some(word) = found.word() {
+                    words.push(word.into());
+                }
+            }
+        }
+        if let (Some(found), Some(current)) = (self.feed_rate, now.feed_rate) {
+            if found != current {
+                words.push(format!("F{found}"));
+            }
+        }
+        (!words.is_empty()).then(|| words.join(" "))
+    }
 }
 
 /// `get program_codes` (`G80 G17 G40 G21 G90 G94 G54 … F0 S0`): units, distance and feed
-/// mode. `G91.1` is the arc distance mode, not `G91`.
+/// mode, the motion mode (the first code) and the feed rate. `G91.1` is the arc distance
+/// mode, not `G91`.
 pub fn decode_program_codes(value: &str) -> Result<ModalCodes, ValueError> {
     let mut inch = None;
     let mut distance = None;
     let mut feed_mode = None;
-    for w in value.split_ascii_whitespace() {
-        match w.to_ascii_uppercase().as_str() {
+    let mut feed_rate = None;
+    let words: Vec<String> = value
+        .split_ascii_whitespace()
+        .map(|w| w.to_ascii_uppercase())
+        .collect();
+    let motion = words.first().and_then(|w| motion_mode(w));
+    for w in &words {
+        match w.as_str() {
             "G20" => inch = Some(true),
             "G21" => inch = Some(false),
             "G90" => distance = Some(Distance::Absolute),
@@ -486,7 +557,11 @@ pub fn decode_program_codes(value: &str) -> Result<ModalCodes, ValueError> {
             "G93" => feed_mode = Some(FeedMode::InverseTime),
             "G94" => feed_mode = Some(FeedMode::PerMinute),
             "G95" => feed_mode = Some(FeedMode::PerRevolution),
-            _ => {}
+            _ => {
+                if let Some(f) = w.strip_prefix('F') {
+                    feed_rate = f.parse::<f64>().ok().filter(|f| f.is_finite());
+                }
+            }
         }
     }
     match (inch, distance, feed_mode) {
@@ -494,10 +569,27 @@ pub fn decode_program_codes(value: &str) -> Result<ModalCodes, ValueError> {
             inch,
             distance,
             feed_mode,
+            motion,
+            feed_rate,
         }),
         _ => Err(ValueError(format!(
             "expected G20 or G21, G90 or G91, and G93, G94 or G95 among {value:?}"
         ))),
+    }
+}
+
+/// The motion mode a code of modal group 1 sets, None for a code of another group.
+fn motion_mode(word: &str) -> Option<MotionMode> {
+    let number: f64 = word.strip_prefix('G')?.parse().ok()?;
+    let tenths = (number * 10.0).round() as i64;
+    match tenths {
+        800 => Some(MotionMode::Off),
+        0 => Some(MotionMode::Rapid),
+        10 => Some(MotionMode::Feed),
+        20 | 30 | 50 | 51 | 52 | 330 | 331 | 382..=385 | 730 | 740 | 760 | 810..=890 => {
+            Some(MotionMode::Other)
+        }
+        _ => None,
     }
 }
 
@@ -715,10 +807,27 @@ mod tests {
             ModalCodes {
                 inch: false,
                 distance: Distance::Absolute,
-                feed_mode: FeedMode::PerMinute
+                feed_mode: FeedMode::PerMinute,
+                motion: Some(MotionMode::Off),
+                feed_rate: Some(0.0),
             }
         );
         assert_eq!(metric.restore_words(), None);
+        assert_eq!(metric.words_to_restore(&metric), None);
+        // After a feed move: G1 and its F; set back to G80 and F0.
+        let moved = decode_program_codes(
+            "G1 G17 G40 G21 G90 G94 G54 G49 G99 G64 G97 G91.1 G8 G92.2 F1800 S0",
+        )
+        .unwrap();
+        assert_eq!(moved.motion, Some(MotionMode::Feed));
+        assert_eq!(metric.words_to_restore(&moved).as_deref(), Some("G80 F0"));
+        // An arc mode found cannot be set back without axis words; the rest is.
+        let arc = decode_program_codes("G2 G17 G40 G20 G91 G94 G54 F12.5 S0").unwrap();
+        assert_eq!(arc.motion, Some(MotionMode::Other));
+        assert_eq!(
+            arc.words_to_restore(&moved).as_deref(),
+            Some("G20 G91 F12.5")
+        );
         let odd = decode_program_codes("G80 G17 G40 G20 G91 G93 G54 G91.1 F0 S0").unwrap();
         assert!(odd.inch);
         assert_eq!(odd.restore_words().as_deref(), Some("G91 G93"));

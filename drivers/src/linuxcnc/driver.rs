@@ -39,6 +39,9 @@ const MACHINE_ON_SETTLE: Duration = Duration::from_secs(3);
 /// How long a stop caused elsewhere takes to show in full: linuxcncrsh reports another
 /// client's `set estop on` as machine off first and as E-stop about 0.3 s later.
 const STOP_SETTLE: Duration = Duration::from_secs(1);
+/// How `stopped_state` names the two stops.
+const IN_ESTOP: &str = "in E-stop";
+const POWERED_OFF: &str = "powered off (machine off)";
 /// LinuxCNC's joint limit (`EMCMOT_MAX_JOINTS`).
 const MAX_JOINTS: usize = 16;
 
@@ -403,10 +406,12 @@ pub struct LinuxCncMachine {
     joints: usize,
     /// A move line stated G90/G94 where the operator had G91/G93/G95: set back at arrival.
     modes_changed: bool,
+    /// An exchange was abandoned between its request and its reply (its future dropped).
+    reply_owed: bool,
 }
 
 /// The controller's state as a run found it.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 struct Found {
     mode: Mode,
     codes: ModalCodes,
@@ -551,10 +556,11 @@ impl LinuxCncMachine {
         })
     }
 
-    /// Set back what the run changed: the distance and feed mode (a restoring MDI line) and
-    /// the task mode, as found at the start. LinuxCNC refuses both in E-stop or with the
-    /// machine off: then an error says what stays changed (units never change: moves are
-    /// written in the units found).
+    /// Set back what the run changed, as found at its start: geocal's own move still under
+    /// way is stopped (`set abort`: a cancelled run ends there), then the interpreter's modal
+    /// codes (units, distance and feed mode, motion mode, feed rate; one MDI line) and the
+    /// task mode. LinuxCNC refuses both in E-stop or with the machine off: then an error says
+    /// what stays changed.
     pub async fn leave_as_found(&mut self) -> Result<(), DeviceError> {
         let Some(found) = self.found else {
             return Ok(());
@@ -562,25 +568,31 @@ impl LinuxCncMachine {
         if self.observer {
             return Ok(());
         }
-        let restore = found.codes.restore_words().filter(|_| self.modes_changed);
+        let stopped =
+            self.get_on_off(Query::Estop).await? || !self.get_on_off(Query::Machine).await?;
+        if !stopped
+            && self.last_move.is_some()
+            && self.program_status().await? != ProgramStatus::Idle
+        {
+            self.abort().await?;
+            self.wait_program_idle("`set abort` to stop geocal's move")
+                .await?;
+        }
+        let now = self.program_codes().await?;
+        let restore = found.codes.words_to_restore(&now);
         let mode = self.mode().await?;
         if restore.is_none() && mode == found.mode {
             return Ok(());
         }
-        if self.get_on_off(Query::Estop).await? || !self.get_on_off(Query::Machine).await? {
+        if stopped {
             return Err(self.rejected(format!(
                 "LinuxCNC is in E-stop or off, where it refuses mode changes and MDI: it stays \
-                 in mode {mode:?}{} (found: mode {:?}{})",
-                if restore.is_some() {
-                    " with G90 G94"
-                } else {
-                    ""
-                },
-                found.mode,
+                 in mode {mode:?}{} (found: mode {:?})",
                 restore
                     .as_deref()
-                    .map(|w| format!(", {w}"))
-                    .unwrap_or_default()
+                    .map(|w| format!(" without `{w}`"))
+                    .unwrap_or_default(),
+                found.mode,
             )));
         }
         if let Some(words) = restore {
@@ -592,28 +604,35 @@ impl LinuxCncMachine {
         Ok(())
     }
 
-    /// Send the MDI line that sets the operator's distance/feed mode again and wait until the
-    /// interpreter took it.
-    async fn restore_modal_codes(&mut self, words: &str) -> Result<(), DeviceError> {
-        self.ensure_mdi().await?;
-        self.set(&Request::Mdi(words.to_string())).await?;
+    async fn program_status(&mut self) -> Result<ProgramStatus, DeviceError> {
+        let value = self.get(Query::ProgramStatus).await?;
+        decode_program_status(&value)
+            .map_err(|e| self.protocol(format!("`get program_status`: {e}")))
+    }
+
+    /// Wait (up to `reply_timeout_s`) until the interpreter is idle.
+    async fn wait_program_idle(&mut self, what: &str) -> Result<(), DeviceError> {
         let deadline = Instant::now() + Duration::from_secs_f64(self.cfg.reply_timeout_s);
-        loop {
-            let value = self.get(Query::ProgramStatus).await?;
-            let status = decode_program_status(&value)
-                .map_err(|e| self.protocol(format!("`get program_status`: {e}")))?;
-            if status == ProgramStatus::Idle {
-                break;
-            }
+        while self.program_status().await? != ProgramStatus::Idle {
             if Instant::now() >= deadline {
                 return Err(DeviceError::Timeout {
                     device: self.cfg.id.clone(),
-                    what: format!("`set mdi {words}` to finish"),
+                    what: what.to_string(),
                     after_s: self.cfg.reply_timeout_s,
                 });
             }
             tokio::time::sleep(Duration::from_millis(10)).await;
         }
+        Ok(())
+    }
+
+    /// Send the MDI line that sets the operator's distance/feed mode again and wait until the
+    /// interpreter took it.
+    async fn restore_modal_codes(&mut self, words: &str) -> Result<(), DeviceError> {
+        self.ensure_mdi().await?;
+        self.set(&Request::Mdi(words.to_string())).await?;
+        self.wait_program_idle(&format!("`set mdi {words}` to finish"))
+            .await?;
         if let Some(e) = self.error_text().await? {
             return Err(self.rejected(format!("LinuxCNC refused `set mdi {words}`: {e}")));
         }
@@ -667,8 +686,12 @@ impl LinuxCncMachine {
             found: None,
             joints: 0,
             modes_changed: false,
+            reply_owed: false,
         };
         machine.handshake().await?;
+        if !machine.observer {
+            machine.enable().await?;
+        }
         Ok(machine)
     }
 
@@ -717,9 +740,8 @@ impl LinuxCncMachine {
         }
     }
 
-    /// `hello`, verbose on (every `set` is answered), echo off, enable, `set_wait received`,
-    /// units; then the
-    /// error queue is emptied (old errors are not this run's).
+    /// `hello`, verbose on (every `set` is answered), echo off, units; then the error queue is
+    /// emptied (old errors are not this run's). Control (`enable`) is taken apart.
     async fn handshake(&mut self) -> Result<(), DeviceError> {
         let hello = Request::Hello {
             password: self.passwords.connect.clone(),
@@ -738,9 +760,6 @@ impl LinuxCncMachine {
         }
         self.set(&Request::Verbose(true)).await?;
         self.set(&Request::Echo(false)).await?;
-        if !self.observer {
-            self.enable().await?;
-        }
         let units = self.get(Query::UserLinearUnits).await?;
         self.mm_per_unit = decode_linear_units_mm(&units)
             .map_err(|e| self.protocol(format!("`get user_linear_units`: {e}")))?;
@@ -989,10 +1008,36 @@ impl LinuxCncMachine {
 
     /// Write one request and read its reply (skipping its echo).
     async fn exchange(&mut self, request: &Request) -> Result<Reply, DeviceError> {
+        if std::mem::take(&mut self.reply_owed) {
+            self.skip_owed_reply().await?;
+        }
+        let reply = self.exchange_once(request).await;
+        self.reply_owed = false;
+        reply
+    }
+
+    /// Read and drop the reply still owed to an exchange whose future was dropped (LinuxCNC
+    /// answers every request), up to `reply_timeout_s`.
+    async fn skip_owed_reply(&mut self) -> Result<(), DeviceError> {
+        let t = self.cfg.reply_timeout_s;
+        let deadline = Instant::now() + Duration::from_secs_f64(t);
+        match self
+            .next_line(deadline, "the reply to an abandoned request", t)
+            .await
+        {
+            Ok(_) | Err(DeviceError::Timeout { .. }) => Ok(()),
+            Err(e) => Err(e),
+        }
+    }
+
+    async fn exchange_once(&mut self, request: &Request) -> Result<Reply, DeviceError> {
         let line = request
             .encode()
             .map_err(|e| self.rejected(format!("cannot send `{request}`: {e}")))?;
         self.drain().await?;
+        // Set from the write to the reply: left set only when this future is dropped (a
+        // cancelled run), so that the late reply is not taken for the next request's.
+        self.reply_owed = true;
         self.requests += 1;
         let written = async {
             self.io.write_all(line.as_bytes()).await?;
@@ -1145,11 +1190,7 @@ impl LinuxCncMachine {
                 .settle_on_off_within(Query::Estop, true, STOP_SETTLE)
                 .await?;
         }
-        Ok(Some(if estop {
-            "in E-stop"
-        } else {
-            "powered off (machine off)"
-        }))
+        Ok(Some(if estop { IN_ESTOP } else { POWERED_OFF }))
     }
 
     /// Positions of the configured axes (metres) from `get abs_act_pos`.
@@ -1298,8 +1339,9 @@ impl LinuxCncMachine {
         }
     }
 
-    /// After the connection was lost: reconnect until `reconnect_timeout_s`, `hello` and
-    /// enable again (LinuxCNC keeps moving without its client). Records `disconnect` and
+    /// After the connection was lost: reconnect until `reconnect_timeout_s` (`hello`), then
+    /// take control again unless the machine was stopped meanwhile (an alarm: the operator's
+    /// stop ends the run). LinuxCNC keeps moving without its client. Records `disconnect` and
     /// `reconnect` link faults; fails with the original error if it cannot reconnect.
     async fn reconnect(&mut self, lost: DeviceError) -> Result<(), DeviceError> {
         if self.cfg.reconnect_timeout_s <= 0.0 {
@@ -1318,6 +1360,7 @@ impl LinuxCncMachine {
                     self.io = io;
                     self.framer.clear();
                     self.lines.clear();
+                    self.reply_owed = false;
                     self.last_state = None;
                     self.last_poll = None;
                     self.handshake().await
@@ -1346,7 +1389,34 @@ impl LinuxCncMachine {
                 started.elapsed().as_secs_f64()
             ),
         });
-        Ok(())
+        self.take_control_unless_stopped().await
+    }
+
+    /// After a reconnect, before anything is commanded: a stop made while the connection was
+    /// down (E-stop, machine off) is the operator's, an alarm that stops the run; control is
+    /// not taken (`set enable`) then. Otherwise take control again. Nothing that changes
+    /// LinuxCNC's state (E-stop, power, mode) is sent either way.
+    async fn take_control_unless_stopped(&mut self) -> Result<(), DeviceError> {
+        if self.observer {
+            return Ok(());
+        }
+        if let Some(what) = self.stopped_state().await? {
+            let code = if what == IN_ESTOP {
+                ALARM_ESTOP
+            } else {
+                ALARM_MACHINE_OFF
+            };
+            return Err(DeviceError::Alarm {
+                device: self.cfg.id.clone(),
+                code,
+                message: format!(
+                    "LinuxCNC was found {what} on reconnecting after the connection was lost, \
+                     not by geocal, which does not release an E-stop or power a machine on \
+                     during a run"
+                ),
+            });
+        }
+        self.enable().await
     }
 
     /// E-stop, machine power, interpreter state and position, queried now (reconnects after

@@ -35,18 +35,30 @@ pub(crate) fn execute(
         .as_ref()
         .map_or_else(system_now_ns, |c| c.epoch_ns(config));
     let runtime = run_runtime(&options.control, crate::devices::uses_real_devices(config))?;
-    let built = runtime.block_on(crate::devices::build(
+    let mut built = runtime.block_on(crate::devices::build(
         config,
         &plan,
         epoch_ns,
         options.control.operator.as_ref(),
         options.control.devices.as_deref(),
     ))?;
-    if let Some(c) = continuation.as_deref_mut() {
-        c.prepare_world(config, &built)?;
-        c.set_aside()?;
-    }
-    let (session_path, recorder) = create_session(options)?;
+    let prepared = (|| {
+        if let Some(c) = continuation.as_deref_mut() {
+            c.prepare_world(config, &built)?;
+            c.set_aside()?;
+        }
+        create_session(options)
+    })();
+    let (session_path, recorder) = match prepared {
+        Ok(prepared) => prepared,
+        Err(e) => {
+            // The run never started: its machine's controller is still left as found.
+            if let Err(f) = runtime.block_on(built.devices.machine.finish()) {
+                tracing::warn!("leaving the machine's controller as found: {f}");
+            }
+            return Err(e);
+        }
+    };
     let handle = recorder.handle();
     let resume_at = match continuation.as_deref_mut() {
         Some(c) => Some(c.record_start(&handle, built.clock.as_ref())),
@@ -70,11 +82,10 @@ pub(crate) fn execute(
         let passive = config.devices.machine.passive.clone().unwrap_or_default();
         sequencer = sequencer.passive(passive.hint_tolerance_m);
     }
-    let summary = runtime.block_on(
-        options
-            .control
-            .until_cancelled(sequencer.run(&mut progress)),
-    );
+    // The sequencer watches the cancellation itself, so that a cancelled run still leaves
+    // the machine's controller as found.
+    let sequencer = sequencer.cancelled_by(options.control.cancel.clone());
+    let summary = runtime.block_on(sequencer.run(&mut progress));
     // Stop the emulators of an emulated run.
     drop(built.emulators);
     bar.finish_and_clear();

@@ -474,6 +474,24 @@ impl Connector {
         connect_in(&self.netns, RSH_PORT)
     }
 
+    /// Start `work` on a thread of its own inside the namespace, as a program started there
+    /// would run (`nsenter --net=...`): every socket it opens, on that thread or on threads
+    /// it starts, reaches this LinuxCNC at 127.0.0.1. Joining gives its result, or the error
+    /// of entering the namespace.
+    pub fn spawn_inside<T: Send + 'static>(
+        &self,
+        work: impl FnOnce() -> T + Send + 'static,
+    ) -> std::io::Result<std::thread::JoinHandle<std::io::Result<T>>> {
+        let ns = self.netns.try_clone()?;
+        Ok(std::thread::spawn(move || {
+            // SAFETY: setns on this thread only; the fd is a namespace file `ns` keeps open.
+            if unsafe { libc::setns(ns.as_raw_fd(), libc::CLONE_NEWNET) } != 0 {
+                return Err(std::io::Error::last_os_error());
+            }
+            Ok(work())
+        }))
+    }
+
     /// The same, as a tokio stream (the blocking connect runs on a blocking thread).
     pub async fn connect_tokio(&self) -> std::io::Result<tokio::net::TcpStream> {
         let me = self.clone();
