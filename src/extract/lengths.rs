@@ -184,7 +184,11 @@ impl SessionSink for LengthStream {
             return false;
         };
         if let Some(new) = tracers.first_mut() {
-            self.samples.append(new);
+            if self.samples.is_empty() {
+                std::mem::swap(&mut self.samples, new);
+            } else {
+                self.samples.append(new);
+            }
         }
         self.peak_samples = self.peak_samples.max(self.samples.len());
         let noise = started.noise;

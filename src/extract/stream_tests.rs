@@ -214,6 +214,57 @@ fn streaming_holds_a_bound_whatever_the_length() {
     }
 }
 
+/// `from`'s messages written again by the mcap crate's writer without chunks (as an
+/// unchunked recorder lays them out), in the same order.
+fn rewrite_unchunked(from: &Path, to: &Path) {
+    let bytes = std::fs::read(from).expect("read");
+    let file = std::io::BufWriter::new(std::fs::File::create(to).expect("create"));
+    let mut writer = mcap::WriteOptions::new()
+        .use_chunks(false)
+        .create(file)
+        .expect("writer");
+    for message in mcap::MessageStream::new(&bytes).expect("messages") {
+        writer.write(&message.expect("message")).expect("write");
+    }
+    writer.finish().expect("finish");
+}
+
+/// A file without chunks streams from the file in runs of records (parallel, bounded: the
+/// runs are a few kB in tests) to exactly the whole read's extraction and session.
+#[test]
+fn unchunked_files_stream_as_read_whole() {
+    let dir = tempfile::tempdir().expect("tempdir");
+    let (chunked, unchunked) = (dir.path().join("c.mcap"), dir.path().join("u.mcap"));
+    record(&chunked, 300);
+    rewrite_unchunked(&chunked, &unchunked);
+    let bytes = std::fs::read(&unchunked).expect("read");
+    let summary = mcap::Summary::read(&bytes)
+        .expect("summary")
+        .expect("summary");
+    assert!(summary.chunk_indexes.is_empty());
+    let whole = whole_session_lengths(&chunked);
+    assert_eq!(whole_session_lengths(&unchunked), whole);
+    let (lengths, streamed, samples) = streamed(&unchunked);
+    assert_eq!(lengths, whole);
+    let mut session = read_session(&unchunked).expect("session");
+    for samples in session.tracers.values_mut() {
+        samples.clear();
+    }
+    session.events.clear();
+    assert_eq!(streamed.session, session);
+    // Bounded as a chunked file is: a run holds fewer than 100 messages here.
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let runs_bound = 2 * threads.clamp(1, 8);
+    assert!(samples <= 14 + 200, "{samples} samples held");
+    assert!(
+        streamed.peak_held_messages <= 200,
+        "{}",
+        streamed.peak_held_messages
+    );
+    assert!((1..=runs_bound).contains(&streamed.peak_chunks_in_flight));
+    assert!((1..=runs_bound).contains(&streamed.chunk_decoders_made));
+}
+
 /// A session the stream cannot reproduce exactly is declined, and the caller reads it whole.
 #[test]
 fn damaged_other_kinds_and_repaired_copies_are_not_streamed() {

@@ -6,7 +6,7 @@ use mcap::sans_io::{LinearReadEvent, LinearReader, LinearReaderOptions};
 
 use super::streams::{RawLog, Streams};
 use super::{RawChannel, RawMessage, ReadError, Stamped};
-use crate::session::damage::{date_from_chunk_index, le_u64, Damage, RECORD_PREFIX};
+use crate::session::damage::{date_from_chunk_index, framed, le_u64, Damage, RECORD_PREFIX};
 use crate::session::messages::{
     EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, RunEvent, SessionHeader,
     TracerSample,
@@ -42,7 +42,7 @@ pub(super) struct Mark {
     pub(super) streams: [Vec<usize>; 6],
 }
 
-#[derive(Debug, Clone, Copy)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub(super) enum Slot {
     Undefined,
     Session,
@@ -95,6 +95,8 @@ pub(super) struct Decoder {
     pub(super) awaiting_after: usize,
     /// The most decoded chunks alive at once in a parallel read (0 when serial).
     pub(super) peak_chunks_in_flight: usize,
+    /// Chunk decoders a parallel read made (each merged one is reused; 0 when serial).
+    pub(super) chunk_decoders_made: usize,
 }
 
 impl Decoder {
@@ -124,6 +126,7 @@ impl Decoder {
             last_ns: None,
             awaiting_after: 0,
             peak_chunks_in_flight: 0,
+            chunk_decoders_made: 0,
         }
     }
 
@@ -225,6 +228,30 @@ impl Decoder {
         result
     }
 
+    /// Feeds a run of whole top-level records (the data section of a file without chunks);
+    /// on failure nothing of it is kept.
+    pub(super) fn feed_records(&mut self, mut records: &[u8]) -> Result<(), Failure> {
+        let mark = self.mark();
+        let mut result = Ok(());
+        while !records.is_empty() {
+            let Some((opcode, end)) = framed(records, 0) else {
+                result = Err(Failure::Damaged(
+                    "a record runs past its run of records".into(),
+                ));
+                break;
+            };
+            result = self.on_record(opcode, &records[RECORD_PREFIX..end]);
+            if result.is_err() {
+                break;
+            }
+            records = &records[end..];
+        }
+        if matches!(result, Err(Failure::Damaged(_))) {
+            self.rollback(mark);
+        }
+        result
+    }
+
     /// An empty decoder with the same channels, for a thread that decodes a later run of chunks.
     pub(super) fn worker(&self) -> Decoder {
         let mut w = Decoder::new(&self.file);
@@ -239,8 +266,25 @@ impl Decoder {
         w
     }
 
-    /// Appends what a worker decoded from the chunks that follow this decoder's chunks.
-    pub(super) fn absorb(&mut self, other: Decoder) -> Result<(), Failure> {
+    /// `template.worker()` holding this spent worker's sample and event buffers, emptied with
+    /// their capacity kept: a read's chunks reuse a bounded set of buffers instead of growing
+    /// (and freeing) new ones per chunk.
+    pub(super) fn recycled(mut self, template: &Decoder) -> Decoder {
+        let mut fresh = template.worker();
+        fresh.tracers.reuse_buffers(&mut self.tracers);
+        fresh.env.reuse_buffers(&mut self.env);
+        fresh.rotary.reuse_buffers(&mut self.rotary);
+        fresh.machines.reuse_buffers(&mut self.machines);
+        fresh.probes.reuse_buffers(&mut self.probes);
+        fresh.json.reuse_buffers(&mut self.json);
+        self.events.clear();
+        fresh.events = self.events;
+        fresh
+    }
+
+    /// Appends what a worker decoded from the chunks that follow this decoder's chunks,
+    /// leaving the worker empty (its buffers can be reused).
+    pub(super) fn absorb(&mut self, other: &mut Decoder) -> Result<(), Failure> {
         self.messages += other.messages;
         self.skipped += other.skipped;
         self.ignored += other.ignored;
@@ -251,15 +295,15 @@ impl Decoder {
                 Some((a, b)) => (a.min(first), b.max(last)),
             });
         }
-        take_streams(&mut self.tracers, other.tracers);
-        self.env.absorb(other.env);
-        self.rotary.absorb(other.rotary);
-        self.machines.absorb(other.machines);
-        self.probes.absorb(other.probes);
-        self.json.absorb(other.json);
-        take_or_extend(&mut self.events, other.events);
-        self.damages.extend(other.damages);
-        for (log_time_ns, publish_time_ns, data) in other.raw_headers {
+        take_streams(&mut self.tracers, &mut other.tracers);
+        self.env.absorb(&mut other.env);
+        self.rotary.absorb(&mut other.rotary);
+        self.machines.absorb(&mut other.machines);
+        self.probes.absorb(&mut other.probes);
+        self.json.absorb(&mut other.json);
+        take_or_append(&mut self.events, &mut other.events);
+        self.damages.append(&mut other.damages);
+        for (log_time_ns, publish_time_ns, data) in std::mem::take(&mut other.raw_headers) {
             self.session_message(log_time_ns, publish_time_ns, &data)?;
         }
         Ok(())
@@ -376,21 +420,22 @@ impl Decoder {
 }
 
 /// `Streams::absorb` without copying the high-rate samples where it can be helped.
-fn take_streams<T>(into: &mut Streams<T>, from: Streams<T>) {
-    for (id, samples) in from.streams {
-        let i = into.index(&id);
-        take_or_extend(&mut into.streams[i].1, samples);
+fn take_streams<T>(into: &mut Streams<T>, from: &mut Streams<T>) {
+    for (id, samples) in &mut from.streams {
+        let i = into.index(id);
+        take_or_append(&mut into.streams[i].1, samples);
     }
 }
 
-/// Appends `more` to `into`, taking its buffer instead of copying when `into` is empty and
-/// has no more room reserved (a streamed read empties its streams after every chunk; a whole
-/// read reserves them once for the file).
-fn take_or_extend<T>(into: &mut Vec<T>, more: Vec<T>) {
+/// Moves `more` to the end of `into`, exchanging the buffers instead of copying when `into`
+/// is empty and has no more room reserved (a streamed read empties its streams after every
+/// chunk; a whole read reserves them once for the file). `more` is left empty either way,
+/// with a buffer to reuse.
+pub(super) fn take_or_append<T>(into: &mut Vec<T>, more: &mut Vec<T>) {
     if into.is_empty() && more.capacity() >= into.capacity() {
-        *into = more;
+        std::mem::swap(into, more);
     } else {
-        into.extend(more);
+        into.append(more);
     }
 }
 

@@ -1,7 +1,8 @@
 //! The indexed read of a complete file: the chunks the summary lists, decoded in parallel.
 
 use super::decoder::Decoder;
-use super::pipeline::decode_chunks;
+use super::pipeline::{decode_chunks, Layout};
+use super::runs::record_runs;
 use super::source::Bytes;
 use super::stream::Reorder;
 use super::streams::RawLog;
@@ -138,6 +139,19 @@ fn read_indexed_from(
         };
         ranges.push(range);
     }
+    let mut layout = Layout::Chunks;
+    if ranges.is_empty() && stats.message_count > 0 {
+        // No chunks: from the file, in runs of records; in memory the linear read applies.
+        let runs = match source {
+            Bytes::File { file, len } => record_runs(file, len),
+            Bytes::Memory(_) => None,
+        };
+        let Some(runs) = runs else {
+            return Ok(None);
+        };
+        ranges = runs;
+        layout = Layout::Records;
+    }
     // A chunk may define a channel that later chunks use: threads are only safe when the
     // summary already defines every channel that has messages.
     let all_defined = stats
@@ -166,11 +180,13 @@ fn read_indexed_from(
             &mut dec,
             source,
             &ranges,
+            layout,
             threads,
             max_in_flight.unwrap_or(threads * CHUNKS_IN_FLIGHT_PER_THREAD),
             &mut merged,
         );
         dec.peak_chunks_in_flight = outcome.peak_in_flight;
+        dec.chunk_decoders_made = outcome.decoders_made;
         (outcome.failure, outcome.undefined)
     };
     if undefined {

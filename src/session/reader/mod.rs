@@ -8,6 +8,7 @@ mod event_json;
 mod indexed;
 mod linear;
 mod pipeline;
+mod runs;
 mod source;
 mod stream;
 mod streams;

@@ -1,8 +1,11 @@
 //! Parallel chunk decoding with a bound on what waits: workers take chunks in file order and
 //! decode each on its own, the caller merges them back in file order, and no more than a set
 //! number of decoded chunks exist at once (each holds a permit from its taking to its merge).
+//! A merged chunk's decoder goes back to the workers with its buffers emptied, so a read
+//! reuses at most that many sets of buffers whatever the number of chunks.
 
 use std::collections::BTreeMap;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{mpsc, Condvar, Mutex, MutexGuard, PoisonError};
 
 use super::decoder::{chunk_reader, Decoder, Failure};
@@ -19,9 +22,21 @@ pub(super) struct Outcome {
     pub(super) undefined: bool,
     /// The most chunks that were taken for decoding and not yet merged, at any moment.
     pub(super) peak_in_flight: usize,
+    /// Chunk decoders (each with its buffers) made for the read: the rest were reused.
+    pub(super) decoders_made: usize,
 }
 
-/// Decodes `ranges` (whole chunk records of `source`, in file order) on `threads` workers into
+/// What each range of a parallel read holds.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) enum Layout {
+    /// One whole chunk record.
+    Chunks,
+    /// A run of whole top-level records (a file whose messages are not in chunks).
+    Records,
+}
+
+/// Decodes `ranges` (whole chunk records of `source`, or runs of records, in file order) on
+/// `threads` workers into
 /// `dec`, exactly as feeding them one by one would, with at most `max_in_flight` decoded
 /// chunks alive at a time (and, reading from a file, their stored bytes). `merged(dec, k)` runs
 /// after chunk `k` (file order) is merged; false stops the read (no failure is recorded).
@@ -29,6 +44,7 @@ pub(super) fn decode_chunks(
     dec: &mut Decoder,
     source: Bytes<'_>,
     ranges: &[(usize, usize)],
+    layout: Layout,
     threads: usize,
     max_in_flight: usize,
     merged: &mut dyn FnMut(&mut Decoder, usize) -> bool,
@@ -42,23 +58,35 @@ pub(super) fn decode_chunks(
     // Chunk decoders keep any session header raw: only the merge, in file order, knows
     // whether it is the first one (parsed) or a later one (ignored).
     let template = dec.worker();
+    // Merged chunks' decoders, waiting for a worker to reuse them.
+    let spare: Mutex<Vec<Decoder>> = Mutex::new(Vec::new());
+    let made = AtomicUsize::new(0);
     let mut outcome = Outcome {
         failure: None,
         undefined: false,
         peak_in_flight: 0,
+        decoders_made: 0,
     };
     std::thread::scope(|scope| {
         let (sender, decoded) = mpsc::channel();
         for _ in 0..threads.max(1) {
             let sender = sender.clone();
-            let (gate, template) = (&gate, &template);
+            let (gate, template, spare, made) = (&gate, &template, &spare, &made);
             scope.spawn(move || {
                 let mut sans = chunk_reader();
                 let mut stored = Vec::new();
                 while let Some((i, permit)) = gate.take() {
                     let (start, end) = ranges[i];
-                    let mut chunk = template.worker();
+                    let reused = lock(spare).pop();
+                    let mut chunk = match reused {
+                        Some(spent) => spent.recycled(template),
+                        None => {
+                            made.fetch_add(1, Ordering::Relaxed);
+                            template.worker()
+                        }
+                    };
                     let result = match source.range(start, end, &mut stored) {
+                        Ok(records) if layout == Layout::Records => chunk.feed_records(records),
                         Ok(record) => chunk.feed_whole_chunk(&mut sans, record),
                         Err(source) => Err(Failure::Fatal(ReadError::Io {
                             file: chunk.file.clone(),
@@ -86,13 +114,16 @@ pub(super) fn decode_chunks(
                 next += 1;
                 // The first failure in file order decides, as in a serial read.
                 if outcome.failure.is_none() && !stopped {
-                    outcome.failure = merge(dec, result, start, end);
+                    let (failure, spent) = merge(dec, result, start, end);
+                    outcome.failure = failure;
                     if outcome.failure.is_some() {
                         gate.stop();
                     } else if !merged(dec, next - 1) {
                         stopped = true;
                         gate.stop();
                     }
+                    // Back before its permit: decoders not spare never outnumber the permits.
+                    lock(&spare).extend(spent);
                 }
                 drop(permit);
             }
@@ -100,30 +131,37 @@ pub(super) fn decode_chunks(
     });
     outcome.undefined = dec.saw_undefined;
     outcome.peak_in_flight = gate.lock().peak;
+    outcome.decoders_made = made.into_inner();
     outcome
 }
 
-/// Merges one decoded chunk (or notes its damage) as a serial read would have fed it.
+fn lock<T>(mutex: &Mutex<T>) -> MutexGuard<'_, T> {
+    mutex.lock().unwrap_or_else(PoisonError::into_inner)
+}
+
+/// Merges one decoded chunk (or notes its damage) as a serial read would have fed it; gives
+/// back the chunk's emptied decoder for reuse.
 fn merge(
     dec: &mut Decoder,
     result: Result<Decoder, Failure>,
     start: usize,
     end: usize,
-) -> Option<ReadError> {
+) -> (Option<ReadError>, Option<Decoder>) {
     match result {
-        Ok(chunk) => {
+        Ok(mut chunk) => {
             dec.saw_undefined |= chunk.saw_undefined;
-            match dec.absorb(chunk) {
+            let failure = match dec.absorb(&mut chunk) {
                 Ok(()) | Err(Failure::Damaged(_)) => None,
                 Err(Failure::Fatal(err)) => Some(err),
-            }
+            };
+            (failure, Some(chunk))
         }
         Err(Failure::Damaged(why)) => {
             let why = format!("chunk at byte {start}: {why}");
             dec.damage(Damage::new(start, end - start, why));
-            None
+            (None, None)
         }
-        Err(Failure::Fatal(err)) => Some(err),
+        Err(Failure::Fatal(err)) => (Some(err), None),
     }
 }
 
@@ -158,7 +196,7 @@ impl Drop for Permit<'_> {
 
 impl Gate {
     fn lock(&self) -> MutexGuard<'_, GateState> {
-        self.state.lock().unwrap_or_else(PoisonError::into_inner)
+        lock(&self.state)
     }
 
     /// The next chunk in file order and its permit, once fewer than `bound` are alive; None

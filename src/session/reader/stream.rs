@@ -9,10 +9,17 @@
 //! and handed on: the concatenation of the hand-overs is exactly the stable sort of the whole
 //! stream that `read_session` gives. A chunk holding a message earlier than its index says
 //! ends the stream (the caller reads the whole session instead).
+//!
+//! A file without chunks is read in runs of whole records, which have no index: after run k
+//! is merged, what lies below its earliest message is handed on, and a later run holding a
+//! message below a bound already used ends the stream (as a misindexed chunk does).
+//!
+//! The messages move between the decoder, this reorder and the sink by exchanging buffers
+//! wherever the receiving one is empty (the common case), not by copying.
 
 use std::path::Path;
 
-use super::decoder::Decoder;
+use super::decoder::{take_or_append, Decoder};
 use super::Stamped;
 use crate::session::messages::{RunEvent, SessionHeader, TracerSample, TOPIC_EVENT};
 
@@ -88,11 +95,13 @@ pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streame
     }
     let peak_held_messages = reorder.peak_held;
     let peak_chunks_in_flight = dec.peak_chunks_in_flight;
+    let chunk_decoders_made = dec.chunk_decoders_made;
     let session = dec.into_session(&name, len).ok()?;
     Some(Streamed {
         session,
         peak_held_messages,
         peak_chunks_in_flight,
+        chunk_decoders_made,
     })
 }
 
@@ -107,16 +116,15 @@ pub struct Streamed {
     pub peak_held_messages: usize,
     /// The most decoded chunks alive at once.
     pub peak_chunks_in_flight: usize,
+    /// Chunk decoders (with their sample and event buffers) made; every other chunk reused a
+    /// merged one's.
+    pub chunk_decoders_made: usize,
 }
 
 /// Holds the tracer samples and events that a later chunk might still precede.
 pub(super) struct Reorder<'s> {
     sink: &'s mut dyn SessionSink,
-    /// For each chunk in file order: the earliest start among the chunks after it (beyond
-    /// every log time after the last chunk).
-    later_start_ns: Vec<u128>,
-    /// Each chunk's claimed earliest log time, in file order.
-    start_ns: Vec<u64>,
+    bounds: Bounds,
     /// The summary's count of run events, at most one per 16 bytes of the file.
     run_events: usize,
     begun: bool,
@@ -127,6 +135,20 @@ pub(super) struct Reorder<'s> {
     out_events: Vec<Stamped<RunEvent>>,
     /// The most tracer samples and events held here at once (tests).
     pub(super) peak_held: usize,
+}
+
+/// What bounds the log times of the chunks still to come.
+enum Bounds {
+    /// From the summary's chunk indexes.
+    Indexed {
+        /// For each chunk in file order: the earliest start among the chunks after it (beyond
+        /// every log time after the last chunk).
+        later_start_ns: Vec<u128>,
+        /// Each chunk's claimed earliest log time, in file order.
+        start_ns: Vec<u64>,
+    },
+    /// Runs of records without an index: the bound already handed on below.
+    Runs { released_ns: u64 },
 }
 
 impl<'s> Reorder<'s> {
@@ -140,17 +162,24 @@ impl<'s> Reorder<'s> {
                 .sum();
             counted.min(file_bytes / 16)
         });
-        let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
-        chunks.sort_by_key(|c| c.chunk_start_offset);
-        let start_ns: Vec<u64> = chunks.iter().map(|c| c.message_start_time).collect();
-        let mut later_start_ns = vec![u128::MAX; start_ns.len()];
-        for k in (0..start_ns.len().saturating_sub(1)).rev() {
-            later_start_ns[k] = later_start_ns[k + 1].min(u128::from(start_ns[k + 1]));
-        }
+        let bounds = if summary.chunk_indexes.is_empty() {
+            Bounds::Runs { released_ns: 0 }
+        } else {
+            let mut chunks: Vec<_> = summary.chunk_indexes.iter().collect();
+            chunks.sort_by_key(|c| c.chunk_start_offset);
+            let start_ns: Vec<u64> = chunks.iter().map(|c| c.message_start_time).collect();
+            let mut later_start_ns = vec![u128::MAX; start_ns.len()];
+            for k in (0..start_ns.len().saturating_sub(1)).rev() {
+                later_start_ns[k] = later_start_ns[k + 1].min(u128::from(start_ns[k + 1]));
+            }
+            Bounds::Indexed {
+                later_start_ns,
+                start_ns,
+            }
+        };
         Reorder {
             sink,
-            later_start_ns,
-            start_ns,
+            bounds,
             run_events: usize::try_from(run_events).unwrap_or(0),
             begun: false,
             stopped: false,
@@ -169,10 +198,6 @@ impl<'s> Reorder<'s> {
             self.stopped = true;
             return false;
         }
-        let Some(&claimed_start) = self.start_ns.get(k) else {
-            self.stopped = true;
-            return false;
-        };
         if self.tracers.len() < dec.tracers.streams.len() {
             self.tracers
                 .resize_with(dec.tracers.streams.len(), Vec::new);
@@ -180,14 +205,33 @@ impl<'s> Reorder<'s> {
         let mut earliest = u64::MAX;
         for (held, (_, new)) in self.tracers.iter_mut().zip(&mut dec.tracers.streams) {
             earliest = new.iter().map(|s| s.log_time_ns).fold(earliest, u64::min);
-            held.append(new);
+            take_or_append(held, new);
         }
         earliest = dec
             .events
             .iter()
             .map(|e| e.log_time_ns)
             .fold(earliest, u64::min);
-        self.events.append(&mut dec.events);
+        take_or_append(&mut self.events, &mut dec.events);
+        let (claimed_start, bound_ns) = match &mut self.bounds {
+            Bounds::Indexed {
+                later_start_ns,
+                start_ns,
+            } => match (start_ns.get(k), later_start_ns.get(k)) {
+                (Some(&start), Some(&later)) => (start, later),
+                _ => {
+                    self.stopped = true;
+                    return false;
+                }
+            },
+            Bounds::Runs { released_ns } => {
+                let claimed = *released_ns;
+                if earliest != u64::MAX && earliest >= claimed {
+                    *released_ns = earliest;
+                }
+                (claimed, u128::from(*released_ns))
+            }
+        };
         if earliest < claimed_start {
             tracing::debug!(
                 "{}: chunk {k} holds a message at {earliest} ns, before its index's start \
@@ -209,7 +253,7 @@ impl<'s> Reorder<'s> {
                 Some(true) => {}
             }
         }
-        self.release(self.later_start_ns[k])
+        self.release(bound_ns)
     }
 
     /// Hands the header and the tracer ids to the sink once the header is read: None before
@@ -258,7 +302,14 @@ impl<'s> Reorder<'s> {
 
 /// Moves the messages of `held` below `bound_ns` to `out`, sorted by log time (stable).
 fn take_below<T>(held: &mut Vec<Stamped<T>>, out: &mut Vec<Stamped<T>>, bound_ns: u128) {
-    held.sort_by_key(|s| s.log_time_ns);
+    // A recorder writes each stream in order: sorting it again would only copy it.
+    if !held.is_sorted_by_key(|s| s.log_time_ns) {
+        held.sort_by_key(|s| s.log_time_ns);
+    }
     let cut = held.partition_point(|s| u128::from(s.log_time_ns) < bound_ns);
-    out.extend(held.drain(..cut));
+    if cut == held.len() {
+        take_or_append(out, held);
+    } else {
+        out.extend(held.drain(..cut));
+    }
 }

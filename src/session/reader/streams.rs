@@ -99,11 +99,21 @@ impl<T> Streams<T> {
         }
     }
 
-    /// Append a worker's streams, which come later in the file.
-    pub(super) fn absorb(&mut self, other: Streams<T>) {
-        for (id, samples) in other.streams {
-            let i = self.index(&id);
-            self.streams[i].1.extend(samples);
+    /// Append a worker's streams, which come later in the file (they are left empty).
+    pub(super) fn absorb(&mut self, other: &mut Streams<T>) {
+        for (id, samples) in &mut other.streams {
+            let i = self.index(id);
+            self.streams[i].1.append(samples);
+        }
+    }
+
+    /// Takes over `spent`'s buffers, emptied, for the streams both have at the same index.
+    pub(super) fn reuse_buffers(&mut self, spent: &mut Streams<T>) {
+        for ((id, samples), (spent_id, buffer)) in self.streams.iter_mut().zip(&mut spent.streams) {
+            if id == spent_id {
+                buffer.clear();
+                std::mem::swap(samples, buffer);
+            }
         }
     }
 

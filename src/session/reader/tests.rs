@@ -576,6 +576,14 @@ fn parallel_read_holds_a_bounded_number_of_chunks() {
             (1..=bound).contains(&peak),
             "{threads} threads, bound {bound}: {peak} chunks alive at once"
         );
+        // Each merged chunk's decoder and buffers are reused: no more are made than can be
+        // alive at once, however many chunks the file has.
+        let made = dec.chunk_decoders_made;
+        assert!(
+            (1..=bound).contains(&made),
+            "{threads} threads, bound {bound}: {made} chunk decoders for {} chunks",
+            summary.chunk_indexes.len()
+        );
         assert_eq!(dec.into_session("x", 0).unwrap(), serial);
     }
     let dec = read_indexed_with(&r.bytes, "x", &summary, 2, false)
