@@ -252,9 +252,10 @@ const HELDOUT_VS_CLEAN_MAX: f64 = 1.3;
 /// The effect model leaves no residue: with the effect withheld, exactly that effect is
 /// selected and the held-out RMS after it is the clean session's. Air refraction at 5 times
 /// the Edlén index change (as a tracer without air compensation under a stronger cycle) shows
-/// a residue the nominal size hides: the counter is zeroed at the homing, ~1 s before the home
-/// dwell's middle, and a model zeroed at the dwell left a constant per pass (5 · L0 · dn/dt ·
-/// 1.3 s ≈ 40 nm) that dead_path or thermal_expansion took as a second effect.
+/// a residue the nominal size hides: the counter is zeroed at the homing, a second or more
+/// before the home dwell's middle, and a model zeroed at the dwell left a constant per pass
+/// (5 · L0 · dn/dt · ~1 s, up to ~40 nm) that dead_path or thermal_expansion took as a second
+/// effect (seeds 6000-6002 before the fix).
 #[test]
 fn gap_after_the_effect_is_the_clean_sessions_level() {
     let effects = [
