@@ -2,7 +2,7 @@
 //! dense oracle (the whole design's thin SVD, `diagnose::dense`) on sessions with effects in
 //! the data: every figure the diagnosis reports (χ² drops, p, ΔBIC, held-out RMS and ratios,
 //! the selection, the effects' estimates and σ, leave-one-station-out, the points level) must
-//! agree to 1e-9 relative. A clean session alone cannot show a departure that only the effect
+//! agree to 1e-9 relative (an estimate: relative to the larger of its value and its σ). A clean session alone cannot show a departure that only the effect
 //! columns cause (their scale is ~1e-7 of the stations' in the whitened design).
 
 mod common;
@@ -44,7 +44,16 @@ fn departures(path: &str, a: &Value, b: &Value, out: &mut Vec<String>) {
         }
         (Value::Object(x), Value::Object(y)) if x.len() == y.len() => {
             for (key, u) in x {
+                // An effect's estimate is rounded on the scale of its σ, not of its value: one
+                // near zero against its σ (a rejected candidate's, e.g. 0.015 σ) is compared
+                // relative to its σ.
+                let sigma = x.get(&format!("{key}.sigma")).and_then(Value::as_f64);
+                let within_sigma = match (sigma, u.as_f64(), y.get(key).and_then(Value::as_f64)) {
+                    (Some(s), Some(p), Some(q)) => (p - q).abs() <= RELATIVE * s.abs(),
+                    _ => false,
+                };
                 match y.get(key) {
+                    Some(_) if within_sigma => {}
                     Some(v) => departures(&format!("{path}.{key}"), u, v, out),
                     None => out.push(format!("{path}.{key}: only in the structured diagnosis")),
                 }

@@ -34,6 +34,18 @@ pub struct Obs {
     pub material_dt_k: Option<f64>,
     /// Commanded axis positions x, y, z (from `point_begin`; 0 for an axis not named).
     pub axes_m: [f64; 3],
+    /// When the counter was zeroed for this length's pass (the homing, just before the home
+    /// dwell begins), with the logged air and material temperature then: an effect that
+    /// changes in time is zeroed at that instant, not at the home dwell's middle.
+    pub zeroed: Zeroing,
+}
+
+/// The state of a pass's homing (the instant its counter was zeroed).
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Zeroing {
+    pub t_s: f64,
+    pub dn: Option<f64>,
+    pub material_dt_k: Option<f64>,
 }
 
 #[derive(Debug, Clone)]
@@ -214,6 +226,12 @@ impl Data {
         let mut passes: Vec<Vec<usize>> = Vec::new();
         let mut pass_names = Vec::new();
         let mut obs = Vec::with_capacity(extraction.measurements.len());
+        // Per observation: the first sample time after its `point_begin` (for the home dwell:
+        // the first sample after the zeroing).
+        let mut arrival_s = Vec::with_capacity(extraction.measurements.len());
+        let material_dt_k = |t_s: f64| {
+            interpolate(&material, t_s).map(|k| k - crate::sim::effects::REFERENCE_MATERIAL_TEMP_K)
+        };
         for (m, o) in extraction
             .measurements
             .iter()
@@ -238,6 +256,12 @@ impl Data {
             let t_s = 0.5 * (m.settled_from_s + m.settled_to_s);
             let sign = |axis: &str| m.approach.get(axis).map_or(0.0, |&s| f64::from(s));
             passes[pass_group].push(obs.len());
+            arrival_s.push(
+                windows
+                    .get(obs.len())
+                    .and_then(|w| w.as_ref())
+                    .map_or(m.settled_from_s, |w| w.arrival_s),
+            );
             obs.push(Obs {
                 station: m.station_index,
                 segment,
@@ -251,9 +275,13 @@ impl Data {
                 approach: [sign("x"), sign("y"), sign("z")],
                 nominal_m: m.nominal_m,
                 dn: air_at(&env, t_s),
-                material_dt_k: interpolate(&material, t_s)
-                    .map(|k| k - crate::sim::effects::REFERENCE_MATERIAL_TEMP_K),
+                material_dt_k: material_dt_k(t_s),
                 axes_m: ["x", "y", "z"].map(|a| m.axes.get(a).copied().unwrap_or(0.0)),
+                zeroed: Zeroing {
+                    t_s,
+                    dn: None,
+                    material_dt_k: None,
+                },
             });
         }
         for members in &mut passes {
@@ -265,8 +293,15 @@ impl Data {
                 .copied()
                 .find(|&i| built.points[obs[i].point].1 == 0)
                 .unwrap_or(members[0]);
+            let t_s = arrival_s[home];
+            let zeroed = Zeroing {
+                t_s,
+                dn: air_at(&env, t_s),
+                material_dt_k: material_dt_k(t_s),
+            };
             for &i in members.iter() {
                 obs[i].home = home;
+                obs[i].zeroed = zeroed;
             }
         }
         let m = extraction.stations.len();

@@ -5,7 +5,7 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, Vector3};
 
-use super::data::Data;
+use super::data::{Data, Obs};
 use crate::method::tracer_effects::{BeamObservation, LengthEffect, TracerNetworkDiagnosis};
 use crate::solve::multilateration::MultilaterationSolution;
 
@@ -29,7 +29,11 @@ impl Geometry {
     /// Unit vector from the target point to the station (a station shift δP changes the
     /// length by u·δP, a target shift δX by −u·δX) and the distance.
     pub fn beam(&self, data: &Data, i: usize) -> (Vector3<f64>, f64) {
-        let o = &data.obs[i];
+        self.beam_of(&data.obs[i])
+    }
+
+    /// [`Geometry::beam`] of one observation.
+    pub fn beam_of(&self, o: &Obs) -> (Vector3<f64>, f64) {
         let v = self.stations[o.station] - self.points[o.point];
         let d = v.norm();
         (v / d, d)
@@ -308,34 +312,60 @@ impl EffectModel {
         }
     }
 
-    /// Columns f(obs) − f(home of obs): the change of each measured relative length per unit
-    /// of each parameter. The homing zeroes the counter with the effect's value at the homing,
-    /// so the home term belongs to the model (it is what makes passes differ).
+    /// Columns f(obs) − f(zeroing of obs): the change of each measured relative length per
+    /// unit of each parameter. The homing zeroes the counter with the effect's value at that
+    /// instant (the home dwell's beam, the time, air and temperature of the zeroing), so the
+    /// zeroing term belongs to the model (it is what makes passes differ).
     pub fn columns(&self, data: &Data, geom: &Geometry) -> DMatrix<f64> {
-        let f = self.absolute(data, geom);
-        if self.kind == EffectKind::Settling {
+        match self.kind {
             // Already relative: the homing's own offset, constant over the pass.
-            return f;
+            EffectKind::Settling => return self.absolute(data, &data.obs, geom),
+            // Zero up to the step, which comes after the zeroing.
+            EffectKind::LengthStep => {
+                let mut f = DMatrix::zeros(data.obs.len(), 1);
+                if let Some((g, k)) = self.step {
+                    for &i in data.passes[g].iter().skip(k) {
+                        f[(i, 0)] = 1.0;
+                    }
+                }
+                return f;
+            }
+            _ => {}
         }
+        let f = self.absolute(data, &data.obs, geom);
+        // One zeroing state per pass: the home dwell as it stood when the counter was zeroed.
+        let zeroings: Vec<Obs> = data
+            .passes
+            .iter()
+            .map(|members| {
+                let home = &data.obs[data.obs[members[0]].home];
+                let z = home.zeroed;
+                Obs {
+                    t_s: z.t_s,
+                    dn: z.dn,
+                    material_dt_k: z.material_dt_k,
+                    ..home.clone()
+                }
+            })
+            .collect();
+        let f0 = self.absolute(data, &zeroings, geom);
         DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
-            f[(i, c)] - f[(data.obs[i].home, c)]
+            f[(i, c)] - f0[(data.obs[i].pass_group, c)]
         })
     }
 
     /// f(obs): the effect's error in the absolute optical distance per unit parameter.
-    fn absolute(&self, data: &Data, geom: &Geometry) -> DMatrix<f64> {
-        let nobs = data.obs.len();
+    fn absolute(&self, data: &Data, obs: &[Obs], geom: &Geometry) -> DMatrix<f64> {
+        let nobs = obs.len();
         let m = data.station_ids.len();
         match self.kind {
             EffectKind::Own(_) => match &self.own {
                 Some(model) => {
-                    let beams: Vec<BeamObservation> = data
-                        .obs
+                    let beams: Vec<BeamObservation> = obs
                         .iter()
-                        .enumerate()
-                        .map(|(i, o)| BeamObservation {
+                        .map(|o| BeamObservation {
                             station: o.station,
-                            beam: -geom.beam(data, i).0,
+                            beam: -geom.beam_of(o).0,
                             t_s: o.t_s,
                         })
                         .collect();
@@ -345,8 +375,8 @@ impl EffectModel {
             },
             EffectKind::StationDrift => {
                 let mut f = DMatrix::zeros(nobs, 3 * m);
-                for (i, o) in data.obs.iter().enumerate() {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     let dt = o.t_s - data.station_start_s[o.station];
                     for a in 0..3 {
                         f[(i, 3 * o.station + a)] = u[a] * dt;
@@ -356,31 +386,24 @@ impl EffectModel {
             }
             EffectKind::Reversal => {
                 let mut f = DMatrix::zeros(nobs, 3);
-                for (i, o) in data.obs.iter().enumerate() {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * 0.5 * o.approach[a];
                     }
                 }
                 f
             }
-            EffectKind::LengthStep => {
-                let mut f = DMatrix::zeros(nobs, 1);
-                if let Some((g, k)) = self.step {
-                    for &i in data.passes[g].iter().skip(k) {
-                        f[(i, 0)] = 1.0;
-                    }
-                }
-                f
-            }
+            // Relative by construction (`columns`).
+            EffectKind::LengthStep => DMatrix::zeros(nobs, 1),
             // The index error acts on the absolute optical path, the declared dead path included.
             EffectKind::AirRefraction => DMatrix::from_fn(nobs, 1, |i, _| {
-                data.obs[i].dn.unwrap_or(0.0) * (geom.beam(data, i).1 + data.declared_dead_path_m)
+                obs[i].dn.unwrap_or(0.0) * (geom.beam_of(&obs[i]).1 + data.declared_dead_path_m)
             }),
             EffectKind::TracerEccentricity => {
                 let mut f = DMatrix::zeros(nobs, 3 * m);
-                for (i, o) in data.obs.iter().enumerate() {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     // The beam leaves the station towards the target: direction −u.
                     let v = -u;
                     let az = v.y.atan2(v.x);
@@ -397,8 +420,8 @@ impl EffectModel {
             // parameters instead of 3 per station: BIC tells them apart.
             EffectKind::ThermalDrift => {
                 let mut f = DMatrix::zeros(nobs, 3);
-                for (i, o) in data.obs.iter().enumerate() {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.t_s;
                     }
@@ -409,7 +432,7 @@ impl EffectModel {
             // where the target is.
             EffectKind::DeadPath => {
                 let mut f = DMatrix::zeros(nobs, m);
-                for (i, o) in data.obs.iter().enumerate() {
+                for (i, o) in obs.iter().enumerate() {
                     f[(i, o.station)] = o.dn.unwrap_or(0.0);
                 }
                 f
@@ -419,8 +442,8 @@ impl EffectModel {
             // free points absorb: only the temperature's variation is seen.
             EffectKind::ThermalExpansion => {
                 let mut f = DMatrix::zeros(nobs, 3);
-                for (i, o) in data.obs.iter().enumerate() {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     let dt = o.material_dt_k.unwrap_or(0.0);
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.axes_m[a] * dt;
@@ -434,8 +457,8 @@ impl EffectModel {
             // candidate on lengths (docs/diagnosis.md). The column is the constant part.
             EffectKind::TargetOffset => {
                 let mut f = DMatrix::zeros(nobs, 3);
-                for i in 0..nobs {
-                    let (u, _) = geom.beam(data, i);
+                for (i, o) in obs.iter().enumerate() {
+                    let (u, _) = geom.beam_of(o);
                     for a in 0..3 {
                         f[(i, a)] = -u[a];
                     }
@@ -445,7 +468,7 @@ impl EffectModel {
             // −1 on every length of a pass: the settling offset at its homing.
             EffectKind::Settling => {
                 let mut f = DMatrix::zeros(nobs, data.passes.len());
-                for (i, o) in data.obs.iter().enumerate() {
+                for (i, o) in obs.iter().enumerate() {
                     f[(i, o.pass_group)] = -1.0;
                 }
                 f

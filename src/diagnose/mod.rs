@@ -15,6 +15,7 @@ pub mod plot;
 pub mod points;
 pub mod residual_model;
 pub mod schur;
+pub mod selection;
 pub mod settling;
 pub mod stations;
 pub mod stats;
@@ -44,7 +45,8 @@ use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
 use points::{points_level, PointsGap, PointsLevel};
 use schur::Design;
-use stats::{chi2_isf, chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL};
+use selection::{Round, Tests};
+use stats::{chi2_isf, chi2_sf, f_sf, Basis, EFFECT_RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -631,23 +633,13 @@ pub(crate) fn diagnose_data(
     match &settling_fit {
         Some(fit) => {
             let alpha_each = options.alpha / (available.len() + 1) as f64;
-            let improves = fit.heldout_ms_after_m2 < fit.heldout_ms_base_m2;
-            let passes = fit.p_value < alpha_each && fit.bic_delta < 0.0 && improves;
-            let status = if passes {
-                "selected".to_string()
-            } else {
-                let mut why = Vec::new();
-                if fit.p_value >= alpha_each {
-                    why.push(format!("p {:.2e} >= {:.2e}", fit.p_value, alpha_each));
-                }
-                if fit.bic_delta >= 0.0 {
-                    why.push("BIC does not improve".into());
-                }
-                if !improves {
-                    why.push("held-out RMS does not improve".into());
-                }
-                format!("rejected: {}", why.join("; "))
+            let tests = Tests {
+                p_value: fit.p_value,
+                bic_delta: fit.bic_delta,
+                heldout_improves: Some(fit.heldout_ms_after_m2 < fit.heldout_ms_base_m2),
             };
+            let passes = tests.passes(alpha_each);
+            let status = tests.alone_status(alpha_each);
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
                 gap_before = Some(engine.base(&nominal_design, &all_rows).2);
@@ -747,73 +739,37 @@ pub(crate) fn diagnose_data(
         // settling test): family-wise false selection ≤ alpha.
         let tested = candidates.len() + usize::from(round == 0 && settling_fit.is_some());
         let alpha_each = options.alpha / tested.max(1) as f64;
-        let passes = |t: &Trial| {
-            t.p_value < alpha_each
-                && t.bic_delta < 0.0
-                && (count == 0 || t.eval.heldout_z2 < base_heldout_z2)
-        };
-        let mut order: Vec<usize> = (0..trials.len()).collect();
-        order.sort_by(|&a, &b| trials[a].bic_delta.total_cmp(&trials[b].bic_delta));
-        let winner = order.iter().copied().find(|&t| passes(&trials[t]));
-        let mut confounded: Vec<usize> = Vec::new();
-        if let Some(best) = winner {
-            for &other in &order {
-                if other != best
-                    && passes(&trials[other])
-                    && trials[other].bic_delta - trials[best].bic_delta < DECISIVE_BIC
-                    && max_principal_cosine(&trials[best].eval.u_perp, &trials[other].eval.u_perp)
-                        > CONFOUNDED_COSINE
-                {
-                    confounded.push(other);
-                }
-            }
-        }
+        let tests: Vec<Tests> = trials
+            .iter()
+            .map(|t| Tests {
+                p_value: t.p_value,
+                bic_delta: t.bic_delta,
+                heldout_improves: (count > 0).then_some(t.eval.heldout_z2 < base_heldout_z2),
+            })
+            .collect();
+        let bases: Vec<&DMatrix<f64>> = trials.iter().map(|t| &t.eval.u_perp).collect();
+        let decided = Round::decide(&tests, &bases, alpha_each);
         for (t, trial) in trials.iter().enumerate() {
-            let status = if Some(t) == winner && confounded.is_empty() {
-                "selected".to_string()
-            } else if Some(t) == winner || confounded.contains(&t) {
-                "confounded".to_string()
-            } else if passes(trial) {
-                "passed, not the best this round".to_string()
-            } else {
-                let mut why = Vec::new();
-                if trial.p_value >= alpha_each {
-                    why.push(format!("p {:.2e} >= {:.2e}", trial.p_value, alpha_each));
-                }
-                if trial.bic_delta >= 0.0 {
-                    why.push("BIC does not improve".into());
-                }
-                if count > 0 && trial.eval.heldout_z2 >= base_heldout_z2 {
-                    why.push("held-out RMS does not improve".into());
-                }
-                format!("rejected: {}", why.join("; "))
-            };
-            let confounded_with = if status == "confounded" {
-                std::iter::once(winner)
-                    .flatten()
-                    .chain(confounded.iter().copied())
-                    .filter(|&o| o != t)
-                    .map(|o| trials[o].model.kind.name().to_string())
-                    .collect()
-            } else {
-                Vec::new()
-            };
+            let status = decided.status(t, &tests[t], alpha_each);
+            let confounded_with = decided
+                .confounded_with(t)
+                .into_iter()
+                .map(|o| trials[o].model.kind.name().to_string())
+                .collect();
             records.insert(
                 trial.model.kind,
                 candidate_record(data, trial, round, status, confounded_with),
             );
         }
-        match winner {
-            Some(best) if confounded.is_empty() => accepted.push(trials[best].model.clone()),
-            Some(best) => {
+        match (decided.selected(), decided.confounded_group()) {
+            (Some(best), _) => accepted.push(trials[best].model.clone()),
+            (None, Some(group)) => {
                 // None of the group is named, but the signal they share is in the data: the
                 // whole group joins the model (unnamed), so that the next rounds do not hand
                 // the same signal to a less likely neighbour (e.g. station_drift, which nests
                 // thermal_drift) and the gap after counts it as explained by the group.
-                let group: Vec<EffectModel> = std::iter::once(best)
-                    .chain(confounded.iter().copied())
-                    .map(|t| trials[t].model.clone())
-                    .collect();
+                let group: Vec<EffectModel> =
+                    group.into_iter().map(|t| trials[t].model.clone()).collect();
                 notes.push(format!(
                     "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
                     group.iter().map(|m| m.kind.name()).collect::<Vec<_>>().join(", ")
@@ -821,7 +777,7 @@ pub(crate) fn diagnose_data(
                 confounded_kinds.extend(group.iter().map(|m| m.kind));
                 accepted.extend(group);
             }
-            None => {
+            (None, None) => {
                 last_base = Some(base_gap);
                 break;
             }

@@ -19,7 +19,8 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::locate::WhereEntry;
-use super::stats::{chi2_sf, f_sf, max_principal_cosine, Basis, EFFECT_RANK_TOL, RANK_TOL};
+use super::selection::{Round, Tests};
+use super::stats::{chi2_sf, f_sf, Basis, EFFECT_RANK_TOL, RANK_TOL};
 use super::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, StandardisedResidual,
     StandardisedResiduals, CONFOUNDED_COSINE, DECISIVE_BIC, DIAGNOSIS_FORMAT,
@@ -431,55 +432,23 @@ pub fn diagnose(
             trials.push((e, eval, p_value, bic));
         }
         let alpha_each = options.alpha / candidates.len().max(1) as f64;
-        let passes = |t: &(usize, Eval, f64, f64)| {
-            t.2 < alpha_each && t.3 < 0.0 && (count == 0 || t.1.heldout_z2 < heldout_z2)
-        };
-        let mut order: Vec<usize> = (0..trials.len()).collect();
-        order.sort_by(|&a, &b| trials[a].3.total_cmp(&trials[b].3));
-        let winner = order.iter().copied().find(|&t| passes(&trials[t]));
-        let mut confounded = Vec::new();
-        if let Some(best) = winner {
-            for &other in &order {
-                if other != best
-                    && passes(&trials[other])
-                    && trials[other].3 - trials[best].3 < DECISIVE_BIC
-                    && max_principal_cosine(&trials[best].1.u_perp, &trials[other].1.u_perp)
-                        > CONFOUNDED_COSINE
-                {
-                    confounded.push(other);
-                }
-            }
-        }
+        let tests: Vec<Tests> = trials
+            .iter()
+            .map(|(_, eval, p, bic)| Tests {
+                p_value: *p,
+                bic_delta: *bic,
+                heldout_improves: (count > 0).then_some(eval.heldout_z2 < heldout_z2),
+            })
+            .collect();
+        let bases: Vec<&DMatrix<f64>> = trials.iter().map(|t| &t.1.u_perp).collect();
+        let decided = Round::decide(&tests, &bases, alpha_each);
         for (t, (e, eval, p, bic)) in trials.iter().enumerate() {
-            let status = if Some(t) == winner && confounded.is_empty() {
-                "selected".to_string()
-            } else if Some(t) == winner || confounded.contains(&t) {
-                "confounded".to_string()
-            } else if passes(&trials[t]) {
-                "passed, not the best this round".to_string()
-            } else {
-                let mut why = Vec::new();
-                if *p >= alpha_each {
-                    why.push(format!("p {p:.2e} >= {alpha_each:.2e}"));
-                }
-                if *bic >= 0.0 {
-                    why.push("BIC does not improve".into());
-                }
-                if count > 0 && eval.heldout_z2 >= heldout_z2 {
-                    why.push("held-out RMS does not improve".into());
-                }
-                format!("rejected: {}", why.join("; "))
-            };
-            let confounded_with = if status == "confounded" {
-                std::iter::once(winner)
-                    .flatten()
-                    .chain(confounded.iter().copied())
-                    .filter(|&o| o != t)
-                    .map(|o| library[trials[o].0].name().to_string())
-                    .collect()
-            } else {
-                Vec::new()
-            };
+            let status = decided.status(t, &tests[t], alpha_each);
+            let confounded_with = decided
+                .confounded_with(t)
+                .into_iter()
+                .map(|o| library[trials[o].0].name().to_string())
+                .collect();
             let mut params = BTreeMap::new();
             for (k, name) in library[*e].parameter_names().into_iter().enumerate() {
                 params.insert(name.clone(), Value::from(eval.theta[k]));
@@ -502,13 +471,10 @@ pub fn diagnose(
                 },
             );
         }
-        match winner {
-            Some(best) if confounded.is_empty() => accepted.push(trials[best].0),
-            Some(best) => {
-                let group: Vec<usize> = std::iter::once(best)
-                    .chain(confounded.iter().copied())
-                    .map(|t| trials[t].0)
-                    .collect();
+        match (decided.selected(), decided.confounded_group()) {
+            (Some(best), _) => accepted.push(trials[best].0),
+            (None, Some(group)) => {
+                let group: Vec<usize> = group.into_iter().map(|t| trials[t].0).collect();
                 notes.push(format!(
                     "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
                     group.iter().map(|&e| library[e].name()).collect::<Vec<_>>().join(", ")
@@ -516,7 +482,7 @@ pub fn diagnose(
                 confounded_set.extend(&group);
                 accepted.extend(group);
             }
-            None => {
+            (None, None) => {
                 last = Some(gap);
                 break;
             }
