@@ -106,6 +106,6 @@ impl Kind for RotarySphere {
         &self,
         session: &Session,
     ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
-        Ok(Box::new(diagnosis::SphereResidualModel::new(session)?))
+        Ok(Box::new(diagnosis::SphereResidualModel::with_axis(session)?))
     }
 }
