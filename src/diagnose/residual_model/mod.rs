@@ -271,10 +271,9 @@ fn whitened_columns(effect: &dyn Effect, p: &DVector<f64>, sigma: &DVector<f64>)
 
 /// The `where` groups of whitened residuals `rw` with leverages `h`: each group's Σ r² tested
 /// as χ² with Σ(1 − h) degrees of freedom, Bonferroni over the groups; those failing at
-/// `alpha`, largest excess first, or, given `explained` (the whitened part of `rw` the selected
-/// effects explain), largest mean explained square first: where the effect concentrates, not
-/// the largest group it spreads over (a drift over postures that follow each other in time is
-/// named by its latest time block, not by a posture holding two blocks).
+/// `alpha`, largest excess first, or, given `explained` (the accepted effects' fitted
+/// contribution, whitened), largest share of it times its mean square first: where the effect
+/// acts, not where the noise happens to add most.
 fn locate(
     model: &dyn ResidualModel,
     rw: &DVector<f64>,
@@ -311,8 +310,10 @@ fn locate(
             let rms =
                 (used.iter().map(|&i| raw[i] * raw[i]).sum::<f64>() / used.len() as f64).sqrt();
             let rank = match explained {
+                // Its share of the contribution times its concentration (mean square): a
+                // sub-group ranks above its group only where the effect concentrates in it.
                 Some(e) => {
-                    members.iter().map(|&i| e[i] * e[i]).sum::<f64>() / members.len() as f64
+                    members.iter().map(|&i| e[i] * e[i]).sum::<f64>().powi(2) / members.len() as f64
                 }
                 None => ss - dof,
             };
@@ -556,7 +557,8 @@ pub fn diagnose(
         Basis::new(&design, RANK_TOL, 0.0).leverages()
     };
     let nominal_leverage = Basis::new(&engine.x, RANK_TOL, 0.0).leverages();
-    let explained = (!accepted.is_empty()).then(|| &rw - &rw_after);
+    let explained =
+        (!accepted.is_empty()).then(|| final_fit.effect_contribution.component_div(&sigma));
     let where_ = locate(
         model,
         &rw,

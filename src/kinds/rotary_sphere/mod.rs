@@ -106,6 +106,8 @@ impl Kind for RotarySphere {
         &self,
         session: &Session,
     ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
-        Ok(Box::new(diagnosis::SphereResidualModel::with_axis(session)?))
+        Ok(Box::new(diagnosis::SphereResidualModel::with_axis(
+            session,
+        )?))
     }
 }
