@@ -68,14 +68,23 @@ fn summary(d: &Diagnosis) -> String {
     geocal::diagnose::summary(d).join("\n")
 }
 
-/// The diagnosis selects exactly `effect`, names a `where` group containing `where_key`, and
-/// closes the held-out gap to within 1.3× the clean session's.
+/// The diagnosis selects exactly `effect`, names in its summary's `where` (the first two
+/// groups) one of the coordinate `where_key` or whose key contains it, and closes the held-out
+/// gap to within 1.3× the clean session's.
 fn assert_selects(d: &Diagnosis, effect: &str, where_key: &str, clean_heldout: f64) {
     let text = summary(d);
     assert_eq!(d.selected, vec![effect.to_string()], "{text}");
     assert!(!d.unexplained, "{text}");
     assert!(
-        d.where_.iter().any(|w| w.key.contains(where_key)),
+        d.where_
+            .first()
+            .into_iter()
+            .chain(
+                d.where_
+                    .iter()
+                    .find(|w| Some(&w.group) != d.where_.first().map(|f| &f.group))
+            )
+            .any(|w| w.group == where_key || w.key.contains(where_key)),
         "where should name {where_key}: {text}"
     );
     assert!(
@@ -344,10 +353,12 @@ fn probe_install_effects_withheld_are_named_and_fitted() {
     let cases = [
         ("a_axis_tilt", "a_axis_tilt_rad = 3.0e-4", "posture"),
         ("reading_scale", "reading_scale = 2.0e-3", "reading"),
+        (
+            "thermal_drift",
+            "thermal_drift_m_per_s = [6.0e-8, -3.0e-8, 3.0e-8]",
+            "time",
+        ),
     ];
-    // Not among the cases, a known failure: a withheld `thermal_drift` is selected and fitted,
-    // but "where" names postures and reading ranges (the postures follow each other in time),
-    // never the time blocks.
     for (effect, switch, where_key) in cases {
         let (session, truth) = run(effect, switch);
         let d = diagnose(&session);
@@ -436,15 +447,21 @@ fn sphere(seed: u64, sim: &str) -> String {
         )
 }
 
-/// (centre errors / σ RMS, centre error RMS m) of a sphere results JSON against the truth.
-fn centre_errors(results: &Value, truth: &Value) -> (f64, f64) {
+/// (centre errors / σ RMS, centre error RMS m) of a sphere results JSON against the truth's
+/// centres moved by `shift` (what no reading can tell from the centres, e.g. a probe-tip offset).
+fn centre_errors(results: &Value, truth: &Value, shift: [f64; 3]) -> (f64, f64) {
     let (mut z2, mut e2, mut n) = (0.0, 0.0, 0.0);
     for s in results["spheres"].as_array().expect("spheres") {
         let h = s["height_index"].as_u64().expect("h") as usize;
         let a = s["angle_index"].as_u64().expect("a") as usize;
-        let t = &truth["centres_m"][h][a];
+        // geocal's truth: centres_m[h][a]; the outside generator's: centres_m[h].centres_m[a].
+        let height = &truth["centres_m"][h];
+        let t = match height.get("centres_m") {
+            Some(list) => &list[a],
+            None => &height[a],
+        };
         for k in 0..3 {
-            let e = number(&s["centre_m"][k]) - number(&t[k]);
+            let e = number(&s["centre_m"][k]) - number(&t[k]) - shift[k];
             z2 += (e / number(&s["centre_sigma_m"][k])).powi(2);
             e2 += e * e;
             n += 1.0;
@@ -453,11 +470,24 @@ fn centre_errors(results: &Value, truth: &Value) -> (f64, f64) {
     ((z2 / n).sqrt(), (e2 / n).sqrt())
 }
 
-/// Known failure, kept visible: `probe_lobing` is named, but `solve --effects probe_lobing`
-/// leaves the centres 3x the clean case's error with z RMS 3.2 (the effect's own uncertainty
-/// is not carried into the axis errors' σ). Run with `--ignored`.
+/// How far the simulator's lobing of amplitude `a` (docs/diagnosis.md, the `[sim]` switch)
+/// moves every fitted centre: its degree-1 part over the plan's 8 equally weighted probing
+/// directions, d_k ≈ n_k·v (least squares), reads as the centres at −v.
+fn lobing_centre_shift(a: f64) -> [f64; 3] {
+    let directions = geocal::solve::rotary_sphere::simulation::probe_directions(8);
+    let mut normal = nalgebra::Matrix3::zeros();
+    let mut rhs = nalgebra::Vector3::zeros();
+    for n in &directions {
+        let (az, el) = (n.y.atan2(n.x), n.z.clamp(-1.0, 1.0).asin());
+        let d = a * ((3.0 * az).cos() * el.cos() + 0.6 * (el.cos().powi(2) - 0.5));
+        normal += n * n.transpose();
+        rhs += n * d;
+    }
+    let v = normal.try_inverse().expect("directions span space") * rhs;
+    [-v.x, -v.y, -v.z]
+}
+
 #[test]
-#[ignore]
 fn rotary_sphere_effects_withheld_are_named_and_fitted() {
     let dir = tempfile::tempdir().expect("tempdir");
     let run =
@@ -466,7 +496,7 @@ fn rotary_sphere_effects_withheld_are_named_and_fitted() {
     let d = diagnose(&clean);
     assert_clean(&d);
     let clean_heldout = d.gap.heldout_ratio;
-    let (clean_z, clean_error) = centre_errors(&solve_with(&clean, &[]), &clean_truth);
+    let (clean_z, clean_error) = centre_errors(&solve_with(&clean, &[]), &clean_truth, [0.0; 3]);
     eprintln!(
         "clean: held-out {clean_heldout:.3}, centre error {clean_error:.2e} m, z RMS {clean_z:.2}"
     );
@@ -480,7 +510,9 @@ fn rotary_sphere_effects_withheld_are_named_and_fitted() {
         (
             "thermal_drift",
             "\nthermal_drift_m_per_s = [-3.0e-9, -1.7e-8, 1.3e-9]",
-            "",
+            // The heights are probed one after another (a remount between): the drift's
+            // contribution is largest at the last one.
+            "height",
         ),
     ];
     for (effect, sim, where_key) in cases {
@@ -491,7 +523,12 @@ fn rotary_sphere_effects_withheld_are_named_and_fitted() {
         if effect != "thermal_drift" {
             // The truth's centres are the drift-free ones: only the static effects compare.
             let corrected = solve_with(&session, &[effect]);
-            let (z, error) = centre_errors(&corrected, &truth);
+            let shift = if effect == "probe_lobing" {
+                lobing_centre_shift(2.0e-6)
+            } else {
+                [0.0; 3]
+            };
+            let (z, error) = centre_errors(&corrected, &truth, shift);
             eprintln!("{effect}: solve --effects centre error {error:.2e} m, z RMS {z:.2}");
             assert!(
                 error <= 2.0 * clean_error,
@@ -532,8 +569,33 @@ fn rotary_sphere_outside_sessions() {
         eprintln!("{name}:\n{}", summary(&d));
         assert_clean(&d);
     }
-    // outside-sphere-thermal-22 is not checked: its drift moves the centres between spheres,
-    // which the per-sphere centres of this model absorb (docs/diagnosis.md, "rotary_sphere").
+    // The drift moves the centres between spheres; the axis model (the diagnosis's nominal
+    // model) predicts them, so the drift stays in the residuals and is named, its velocity
+    // within its σ of the truth's.
+    let (name, effect) = ("outside-sphere-thermal-22", "thermal_drift");
+    let truth = outside_truth(name);
+    assert_eq!(truth["vocabulary_effects"][0], effect);
+    let d = diagnose(&outside(name).join("session.mcap"));
+    eprintln!("{name}:\n{}", summary(&d));
+    assert_eq!(d.selected, vec![effect.to_string()], "{}", summary(&d));
+    assert!(!d.unexplained, "{}", summary(&d));
+    let fitted = &d
+        .candidates
+        .iter()
+        .find(|c| c.effect == effect)
+        .expect("candidate")
+        .params;
+    let velocity = &truth["effect_params"][effect]["velocity_m_per_s"];
+    for (k, axis) in ["vx", "vy", "vz"].iter().enumerate() {
+        let v = number(&fitted[&format!("{axis}_m_per_s")]);
+        let sigma = number(&fitted[&format!("{axis}_m_per_s.sigma")]);
+        let t = number(&velocity[k]);
+        eprintln!("{name}: {axis} {v:.4e} ± {sigma:.1e}, truth {t:.4e}");
+        assert!(
+            ((v - t) / sigma).abs() < 4.0,
+            "{axis}: {v:.4e} ± {sigma:.1e} vs {t:.4e}"
+        );
+    }
     let (name, effect) = ("outside-sphere-lobing-21", "probe_lobing");
     let truth = outside_truth(name);
     assert_eq!(truth["vocabulary_effects"][0], effect);
@@ -542,21 +604,55 @@ fn rotary_sphere_outside_sessions() {
     eprintln!("{name}:\n{}", summary(&d));
     assert_eq!(d.selected, vec![effect.to_string()], "{}", summary(&d));
     assert!(!d.unexplained, "{}", summary(&d));
+    // The centres with the lobing fitted: the truth's, moved by the lobing's degree-1 part
+    // (the outside generator's `absorbed_centre_shift_m`, the same at every sphere), within
+    // honest σ.
+    let shift = &truth["effect_params"][effect]["absorbed_centre_shift_m"][0][0];
+    let shift = [number(&shift[0]), number(&shift[1]), number(&shift[2])];
+    let (z, error) = centre_errors(&solve_with(&session, &[effect]), &truth, shift);
+    let (z_raw, _) = centre_errors(&solve_with(&session, &[]), &truth, [0.0; 3]);
+    eprintln!(
+        "{name}: solve --effects centre error {error:.2e} m, z RMS {z:.2} (without: {z_raw:.2})"
+    );
+    assert!(z < 1.6, "{name}: σ not honest, z RMS {z:.2}");
 }
 
-/// Known failure, left for later: with a degree-2 form withheld, the diagnosis selects
-/// `sphere_form` and then `thermal_drift` as well (seed 3; fitted c2_xy 1.58 ± 0.59 µm against
-/// 2 µm). Run with `--ignored`.
+/// A degree-2 form withheld, over 8 seeds: `sphere_form` is named every time and alone in all
+/// but at most one. A further effect after it passes a round's tests with probability ≤ 1 %
+/// (Bonferroni over the round's candidates) where the model holds: 2 of 8 has probability
+/// ≤ 0.3 %. Measured over seeds 3–50: alone in 46 of 48 (seed 3 adds `thermal_drift`, p 1.3e-3
+/// in round 1; seed 44 `reading_scale`, which its effect-free twin of the same noise draw
+/// selects too).
 #[test]
-#[ignore]
 fn probe_install_sphere_form_alone_is_named() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let (clean, _) = simulate(&probe(3, ""), &dir.path().join("clean"), "probe.toml");
-    let clean_heldout = diagnose(&clean).gap.heldout_ratio;
-    let (session, _) = simulate(
-        &probe(3, "sphere_form_m = [2.0e-6, 0.0, 1.5e-6, 0.0, -1.0e-6]"),
-        &dir.path().join("form"),
-        "probe.toml",
-    );
-    assert_selects(&diagnose(&session), "sphere_form", "", clean_heldout);
+    let mut extra = 0;
+    for seed in 3..11 {
+        let run = |name: &str, effects: &str| {
+            simulate(
+                &probe(seed, effects),
+                &dir.path().join(format!("{name}{seed}")),
+                "probe.toml",
+            )
+            .0
+        };
+        let clean_heldout = diagnose(&run("clean", "")).gap.heldout_ratio;
+        let d = diagnose(&run(
+            "form",
+            "sphere_form_m = [2.0e-6, 0.0, 1.5e-6, 0.0, -1.0e-6]",
+        ));
+        let text = summary(&d);
+        assert_eq!(
+            d.selected.first().map(String::as_str),
+            Some("sphere_form"),
+            "{text}"
+        );
+        if d.selected.len() > 1 {
+            eprintln!("seed {seed}: {text}");
+            extra += 1;
+            continue;
+        }
+        assert_selects(&d, "sphere_form", "", clean_heldout);
+    }
+    assert!(extra <= 1, "{extra} of 8 seeds select a further effect");
 }

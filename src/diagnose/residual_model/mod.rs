@@ -272,13 +272,16 @@ fn whitened_columns(effect: &dyn Effect, p: &DVector<f64>, sigma: &DVector<f64>)
 
 /// The `where` groups of whitened residuals `rw` with leverages `h`: each group's Σ r² tested
 /// as χ² with Σ(1 − h) degrees of freedom, Bonferroni over the groups; those failing at
-/// `alpha`, largest excess first.
+/// `alpha`, largest excess first, or, given `explained` (the accepted effects' fitted
+/// contribution, whitened), largest share of it times its mean square first: where the effect
+/// acts, not where the noise happens to add most.
 fn locate(
     model: &dyn ResidualModel,
     rw: &DVector<f64>,
     raw: &DVector<f64>,
     leverage: &[f64],
     alpha: f64,
+    explained: Option<&DVector<f64>>,
 ) -> Vec<WhereEntry> {
     let mut groups: BTreeMap<(&'static str, String), Vec<usize>> = BTreeMap::new();
     for (i, label) in model.labels().iter().enumerate() {
@@ -307,8 +310,16 @@ fn locate(
             let used = if metres.is_empty() { members } else { &metres };
             let rms =
                 (used.iter().map(|&i| raw[i] * raw[i]).sum::<f64>() / used.len() as f64).sqrt();
+            let rank = match explained {
+                // Its share of the contribution times its concentration (mean square): a
+                // sub-group ranks above its group only where the effect concentrates in it.
+                Some(e) => {
+                    members.iter().map(|&i| e[i] * e[i]).sum::<f64>().powi(2) / members.len() as f64
+                }
+                None => ss - dof,
+            };
             out.push((
-                ss - dof,
+                rank,
                 WhereEntry {
                     level: "residuals".into(),
                     group: group.to_string(),
@@ -512,12 +523,15 @@ pub fn diagnose(
         Basis::new(&design, RANK_TOL, 0.0).leverages()
     };
     let nominal_leverage = Basis::new(&engine.x, RANK_TOL, 0.0).leverages();
+    let explained =
+        (!accepted.is_empty()).then(|| final_fit.effect_contribution.component_div(&sigma));
     let where_ = locate(
         model,
         &rw,
         &nominal.residuals,
         &nominal_leverage,
         options.alpha,
+        explained.as_ref(),
     );
     let alpha_part = options.alpha / 2.0;
     let remaining = locate(
@@ -526,6 +540,7 @@ pub fn diagnose(
         &final_fit.residuals,
         &leverage(&final_fit),
         alpha_part,
+        None,
     );
     let chi2_p = chi2_sf(final_fit.chi2, final_fit.dof.max(1) as f64);
     let unexplained = chi2_p < alpha_part || !remaining.is_empty();

@@ -110,6 +110,8 @@ impl Kind for RotarySphere {
         &self,
         session: &Session,
     ) -> anyhow::Result<Box<dyn crate::method::diagnosis::ResidualModel>> {
-        Ok(Box::new(diagnosis::SphereResidualModel::new(session)?))
+        Ok(Box::new(diagnosis::SphereResidualModel::with_axis(
+            session,
+        )?))
     }
 }

@@ -402,6 +402,20 @@ pub fn identify(
     noise_m: f64,
     probed: &[ProbedSphere],
 ) -> Result<Identified, RotarySphereMethodError> {
+    identify_with(plan_config, noise_m, probed, &BTreeMap::new())
+}
+
+/// Centre covariances by (height, angle) that replace the sphere fits' own (the centres fitted
+/// jointly with effects carry the effects' uncertainty too).
+pub type CentreCovariances = BTreeMap<(usize, usize), [[f64; 3]; 3]>;
+
+/// `identify`, with the centres' covariances taken from `covariances` where it has them.
+fn identify_with(
+    plan_config: &SpherePlanConfig,
+    noise_m: f64,
+    probed: &[ProbedSphere],
+    covariances: &CentreCovariances,
+) -> Result<Identified, RotarySphereMethodError> {
     let plan = SpherePlan::from_config(plan_config);
     let mut fits: Fits = BTreeMap::new();
     let mut incomplete = 0;
@@ -436,6 +450,10 @@ pub fn identify(
                 })
             }
         };
+        let mut fit = fit;
+        if let Some(c) = covariances.get(&(h, a)) {
+            fit.centre_covariance_m2 = *c;
+        }
         let n_readings = used.iter().map(|p| p.readings).sum();
         fits.insert((h, a), (sphere.commanded_rad, fit, n_readings));
     }
@@ -485,7 +503,7 @@ fn series_of(fits: &Fits, h: usize, angles: &[usize]) -> CentreSeries {
 /// Solve a rotary_sphere session.
 pub fn solve(session: &Session) -> Result<RotarySphereResults, RotarySphereMethodError> {
     let (plan_config, noise_m, probed) = probed(session)?;
-    solve_probed(session, plan_config, noise_m, probed)
+    solve_probed(session, plan_config, noise_m, probed, &BTreeMap::new())
 }
 
 /// Solve the probed spheres of a session (their readings as the session holds them, or
@@ -495,6 +513,7 @@ fn solve_probed(
     plan_config: SpherePlanConfig,
     noise_m: f64,
     probed: Vec<ProbedSphere>,
+    covariances: &CentreCovariances,
 ) -> Result<RotarySphereResults, RotarySphereMethodError> {
     let plan = SpherePlan::from_config(&plan_config);
     let Identified {
@@ -502,7 +521,7 @@ fn solve_probed(
         incomplete,
         common,
         identification: id,
-    } = identify(&plan_config, noise_m, &probed)?;
+    } = identify_with(&plan_config, noise_m, &probed, covariances)?;
     let mut notes = Vec::new();
     if incomplete > 0 {
         notes.push(format!(
@@ -641,7 +660,20 @@ pub fn solve_with_effects(
             }
         }
     }
-    let mut results = solve_probed(session, plan_config, noise_m, spheres)?;
+    // Each centre's covariance from the joint fit: the effects' uncertainty is in it (the
+    // correlation it gives between spheres is not carried into the axis fit).
+    let covariances: CentreCovariances = model
+        .sphere_keys()
+        .iter()
+        .enumerate()
+        .map(|(s, key)| {
+            let c = std::array::from_fn(|r| {
+                std::array::from_fn(|k| fit.covariance[(3 * s + r, 3 * s + k)])
+            });
+            (*key, c)
+        })
+        .collect();
+    let mut results = solve_probed(session, plan_config, noise_m, spheres, &covariances)?;
     results.effects = effect_parameters(&effects, &fit, fit.params.len());
     results.notes.push(format!(
         "with --effects {}: each reading corrected by the effects' contribution fitted jointly \
