@@ -15,23 +15,6 @@ use std::time::Instant;
 
 const TOKEN: &str = "console-test-token-0123456789abcdef";
 
-fn playwright_available() -> bool {
-    let found = Command::new("python3")
-        .args(["-c", "import playwright.sync_api"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if !found {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "playwright is not installed (pip install playwright), and CI is set"
-        );
-        println!("skipped: playwright is not installed (pip install playwright)");
-    }
-    found
-}
-
 fn chromium() -> PathBuf {
     for name in ["chromium", "chromium-browser"] {
         if let Ok(out) = Command::new("which").arg(name).output() {
@@ -89,7 +72,7 @@ fn trend_demo() -> String {
 
 #[test]
 fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
-    if !playwright_available() {
+    if !common::python_module_available("playwright.sync_api", "playwright") {
         return;
     }
     let started = Instant::now();

@@ -11,23 +11,6 @@ mod common;
 use std::path::Path;
 use std::process::{Command, Stdio};
 
-fn schemathesis_available() -> bool {
-    let found = Command::new("python3")
-        .args(["-c", "import schemathesis"])
-        .stdout(Stdio::null())
-        .stderr(Stdio::null())
-        .status()
-        .is_ok_and(|s| s.success());
-    if !found {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "schemathesis is not installed (pip install 'schemathesis>=4,<5'), and CI is set"
-        );
-        println!("skipped: schemathesis is not installed (pip install 'schemathesis>=4,<5')");
-    }
-    found
-}
-
 /// Run schemathesis against a daemon started with `extra` arguments; `token` is sent when set.
 fn fuzz(dir: &Path, extra: &[&str], token: Option<&str>) {
     let config = dir.join("serve.toml");
@@ -96,7 +79,7 @@ fn fuzz(dir: &Path, extra: &[&str], token: Option<&str>) {
 
 #[test]
 fn schemathesis_finds_nothing_without_a_token() {
-    if !schemathesis_available() {
+    if !common::python_module_available("schemathesis", "'schemathesis>=4,<5'") {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");
@@ -105,7 +88,7 @@ fn schemathesis_finds_nothing_without_a_token() {
 
 #[test]
 fn schemathesis_finds_nothing_with_a_token() {
-    if !schemathesis_available() {
+    if !common::python_module_available("schemathesis", "'schemathesis>=4,<5'") {
         return;
     }
     let dir = tempfile::tempdir().expect("tempdir");

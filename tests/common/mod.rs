@@ -808,3 +808,22 @@ pub fn one_pass_verification(text: String) -> String {
         "passes = [\"forward\"]",
     ))
 }
+
+/// Whether Python can import `module` (from the pip package `package`). Without it the test
+/// is skipped with a line, unless `CI` is set: CI installs it, so its absence is a failure.
+pub fn python_module_available(module: &str, package: &str) -> bool {
+    let found = std::process::Command::new("python3")
+        .args(["-c", &format!("import {module}")])
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if !found {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "{module} is not importable (pip install {package}), and CI is set"
+        );
+        println!("skipped: {module} is not importable (pip install {package})");
+    }
+    found
+}
