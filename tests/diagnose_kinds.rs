@@ -204,22 +204,25 @@ fn hexapod_effects_withheld_are_named_and_fitted() {
     assert_unexplained(&d);
 }
 
-#[test]
-fn hexapod_clean_sessions_raise_few_false_alarms() {
+/// Clean sessions of seeds 11–15 (`config` of a seed, written as `file`): how many selected
+/// an effect or were `unexplained`.
+fn clean_alarms(config: impl Fn(u64) -> String, file: &str) -> usize {
     let dir = tempfile::tempdir().expect("tempdir");
     let mut alarms = 0;
     for seed in 11..16 {
-        let (session, _) = simulate(
-            &hexapod(seed, ""),
-            &dir.path().join(format!("s{seed}")),
-            "hexapod.toml",
-        );
+        let (session, _) = simulate(&config(seed), &dir.path().join(format!("s{seed}")), file);
         let d = diagnose(&session);
         if !d.selected.is_empty() || d.unexplained {
             eprintln!("seed {seed}:\n{}", summary(&d));
             alarms += 1;
         }
     }
+    alarms
+}
+
+#[test]
+fn hexapod_clean_sessions_raise_few_false_alarms() {
+    let alarms = clean_alarms(|seed| hexapod(seed, ""), "hexapod.toml");
     // At α = 1 % per session, 5 sessions: one alarm has probability ~5 %, two ~0.1 %.
     assert!(alarms <= 1, "{alarms} false alarms in 5 clean sessions");
 }
@@ -382,20 +385,7 @@ fn probe_install_effects_withheld_are_named_and_fitted() {
 
 #[test]
 fn probe_install_clean_sessions_raise_few_false_alarms() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mut alarms = 0;
-    for seed in 11..16 {
-        let (session, _) = simulate(
-            &probe(seed, ""),
-            &dir.path().join(format!("s{seed}")),
-            "probe.toml",
-        );
-        let d = diagnose(&session);
-        if !d.selected.is_empty() || d.unexplained {
-            eprintln!("seed {seed}:\n{}", summary(&d));
-            alarms += 1;
-        }
-    }
+    let alarms = clean_alarms(|seed| probe(seed, ""), "probe.toml");
     assert!(alarms <= 1, "{alarms} false alarms in 5 clean sessions");
 }
 
@@ -545,20 +535,7 @@ fn rotary_sphere_effects_withheld_are_named_and_fitted() {
 
 #[test]
 fn rotary_sphere_clean_sessions_raise_few_false_alarms() {
-    let dir = tempfile::tempdir().expect("tempdir");
-    let mut alarms = 0;
-    for seed in 11..16 {
-        let (session, _) = simulate(
-            &sphere(seed, ""),
-            &dir.path().join(format!("s{seed}")),
-            "sphere.toml",
-        );
-        let d = diagnose(&session);
-        if !d.selected.is_empty() || d.unexplained {
-            eprintln!("seed {seed}:\n{}", summary(&d));
-            alarms += 1;
-        }
-    }
+    let alarms = clean_alarms(|seed| sphere(seed, ""), "sphere.toml");
     assert!(alarms <= 1, "{alarms} false alarms in 5 clean sessions");
 }
 

@@ -7,6 +7,8 @@
 
 mod common;
 
+use common::{target, wait_idle};
+
 use std::net::Shutdown;
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
@@ -52,25 +54,6 @@ fn config(home: HomePolicy) -> LinuxCncConfig {
         reply_timeout_s: 30.0,
         reconnect_timeout_s: 30.0,
         ..LinuxCncConfig::default()
-    }
-}
-
-fn target(x: f64, y: f64, z: f64) -> AxisPositions {
-    [("x", x), ("y", y), ("z", z)]
-        .into_iter()
-        .map(|(a, v)| (a.to_string(), v))
-        .collect()
-}
-
-/// Poll until Idle (or an error), at most `limit`.
-async fn wait_idle(m: &mut LinuxCncMachine, limit: Duration) -> Result<AxisPositions, DeviceError> {
-    let t0 = tokio::time::Instant::now();
-    loop {
-        if let MachineState::Idle { position } = m.state().await? {
-            return Ok(position);
-        }
-        assert!(t0.elapsed() < limit, "no arrival within {limit:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
 

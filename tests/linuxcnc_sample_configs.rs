@@ -8,6 +8,8 @@
 
 mod common;
 
+use common::{target, wait_idle};
+
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
 use std::path::{Path, PathBuf};
@@ -94,25 +96,6 @@ fn config(home: HomePolicy, power_on: bool) -> LinuxCncConfig {
         reply_timeout_s: 30.0,
         reconnect_timeout_s: 10.0,
         ..LinuxCncConfig::default()
-    }
-}
-
-fn target(x: f64, y: f64, z: f64) -> AxisPositions {
-    [("x", x), ("y", y), ("z", z)]
-        .into_iter()
-        .map(|(a, v)| (a.to_string(), v))
-        .collect()
-}
-
-/// Poll until Idle (or an error), at most `limit`.
-async fn wait_idle(m: &mut LinuxCncMachine, limit: Duration) -> Result<AxisPositions, DeviceError> {
-    let t0 = tokio::time::Instant::now();
-    loop {
-        if let MachineState::Idle { position } = m.state().await? {
-            return Ok(position);
-        }
-        assert!(t0.elapsed() < limit, "no arrival within {limit:?}");
-        tokio::time::sleep(Duration::from_millis(20)).await;
     }
 }
 

@@ -263,6 +263,15 @@ pub fn effects_named<'a>(
     Ok(out)
 }
 
+/// The effects' names, comma-separated (as `--effects` takes them).
+pub fn effect_names(effects: &[&dyn Effect]) -> String {
+    effects
+        .iter()
+        .map(|e| e.name())
+        .collect::<Vec<_>>()
+        .join(",")
+}
+
 /// One effect's fitted parameters: name → value, with `<name>.sigma` beside each.
 pub fn effect_parameters(
     effects: &[&dyn Effect],

@@ -1175,6 +1175,22 @@ mod tests {
     /// covariances varying with the angle (as a misplaced sphere's do): noise-free, the
     /// identification returns the physical axis and motion; noisy, their errors are
     /// consistent with the reported σ.
+    /// Spheres at two heights, 0.133 m off the axis at azimuth `nominal` (placed 0.3 mm off
+    /// their nominal), and the options that identify them with that radial direction.
+    fn two_heights_at(nominal: f64) -> (Vec<Vector3<f64>>, IdentifyOptions) {
+        let placement = Vector3::new(0.26e-3, -0.29e-3, 0.04e-3);
+        let q = [0.178, 0.084]
+            .iter()
+            .map(|&z| Vector3::new(0.133 * nominal.cos(), 0.133 * nominal.sin(), z) + placement)
+            .collect();
+        let opts = IdentifyOptions {
+            harmonics: HarmonicOrder::Fixed(4),
+            radial_azimuth_rad: Some(nominal),
+            ..Default::default()
+        };
+        (q, opts)
+    }
+
     #[test]
     fn sphere_at_any_azimuth_against_the_physical_truth() {
         let truth = unabsorbed_truth();
@@ -1185,16 +1201,7 @@ mod tests {
         let mut rng = ChaCha8Rng::seed_from_u64(41);
         let (mut z2, mut count) = (0.0, 0usize);
         for nominal in [0.0, 1.0, -1.4311699866353502, 2.5, std::f64::consts::PI] {
-            let placement = Vector3::new(0.26e-3, -0.29e-3, 0.04e-3);
-            let q: Vec<Vector3<f64>> = [0.178, 0.084]
-                .iter()
-                .map(|&z| Vector3::new(0.133 * nominal.cos(), 0.133 * nominal.sin(), z) + placement)
-                .collect();
-            let opts = IdentifyOptions {
-                harmonics: HarmonicOrder::Fixed(4),
-                radial_azimuth_rad: Some(nominal),
-                ..Default::default()
-            };
+            let (q, opts) = two_heights_at(nominal);
             let covariance =
                 |a: f64| Matrix3::identity() * (sigma * sigma) * (1.0 + 0.3 * (2.0 * a).cos());
             let series_of = |noisy: bool, rng: &mut ChaCha8Rng| -> Vec<CentreSeries> {
@@ -1278,16 +1285,7 @@ mod tests {
         let sigma = 0.05e-6;
         let base = Matrix3::new(1.0, 0.1, 0.45, 0.1, 1.2, -0.35, 0.45, -0.35, 0.8) * sigma * sigma;
         for nominal in [0.0f64, 1.0, 2.5] {
-            let placement = Vector3::new(0.26e-3, -0.29e-3, 0.04e-3);
-            let q: Vec<Vector3<f64>> = [0.178, 0.084]
-                .iter()
-                .map(|&z| Vector3::new(0.133 * nominal.cos(), 0.133 * nominal.sin(), z) + placement)
-                .collect();
-            let opts = IdentifyOptions {
-                harmonics: HarmonicOrder::Fixed(4),
-                radial_azimuth_rad: Some(nominal),
-                ..Default::default()
-            };
+            let (q, opts) = two_heights_at(nominal);
             let series: Vec<CentreSeries> = q
                 .iter()
                 .map(|qh| CentreSeries {

@@ -827,3 +827,26 @@ pub fn python_module_available(module: &str, package: &str) -> bool {
     }
     found
 }
+
+/// A machine target at (x, y, z), m.
+pub fn target(x: f64, y: f64, z: f64) -> geocal_drivers::AxisPositions {
+    [("x", x), ("y", y), ("z", z)]
+        .into_iter()
+        .map(|(a, v)| (a.to_string(), v))
+        .collect()
+}
+
+/// Poll the machine until Idle (or an error), at most `limit`.
+pub async fn wait_idle(
+    m: &mut impl geocal_drivers::Machine,
+    limit: std::time::Duration,
+) -> Result<geocal_drivers::AxisPositions, geocal_drivers::DeviceError> {
+    let t0 = tokio::time::Instant::now();
+    loop {
+        if let geocal_drivers::MachineState::Idle { position } = m.state().await? {
+            return Ok(position);
+        }
+        assert!(t0.elapsed() < limit, "no arrival within {limit:?}");
+        tokio::time::sleep(std::time::Duration::from_millis(20)).await;
+    }
+}

@@ -258,7 +258,8 @@ def main():
         shot(page, "login")
         page.fill("#login-token", "not-the-token-at-all")
         page.click("#login button[type=submit]")
-        page.wait_for_function("document.getElementById('login-error').textContent.length > 0")
+        # A locator, not wait_for_function: that polls with eval, which the page's CSP forbids.
+        page.locator("#login-error").filter(has_text=re.compile(r"\S")).wait_for()
         page.fill("#login-token", TOKEN)
         page.click("#login button[type=submit]")
         page.wait_for_selector("dialog#login", state="hidden")

@@ -558,11 +558,7 @@ pub fn solve_with_effects(
         "; with --effects {}: hinges, sigmas, covariance_m2 and chi2_per_dof from the joint fit \
          of the hinges, the legs' encoder constants, the measured poses and the effects (the \
          residual model of docs/diagnosis.md)",
-        effects
-            .iter()
-            .map(|e| e.name())
-            .collect::<Vec<_>>()
-            .join(",")
+        crate::method::diagnosis::effect_names(&effects)
     ));
     Ok(results)
 }

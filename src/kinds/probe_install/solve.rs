@@ -498,11 +498,7 @@ pub fn solve_with_effects(
     results.note.push_str(&format!(
         "; with --effects {}: parameters, sigmas and chi2_per_dof from the joint fit of the \
          installation and the effects (the residual model of docs/diagnosis.md)",
-        effects
-            .iter()
-            .map(|e| e.name())
-            .collect::<Vec<_>>()
-            .join(",")
+        crate::method::diagnosis::effect_names(&effects)
     ));
     Ok(results)
 }

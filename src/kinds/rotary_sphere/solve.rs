@@ -678,11 +678,7 @@ pub fn solve_with_effects(
     results.notes.push(format!(
         "with --effects {}: each reading corrected by the effects' contribution fitted jointly \
          with the sphere centres (the residual model of docs/diagnosis.md), then solved",
-        effects
-            .iter()
-            .map(|e| e.name())
-            .collect::<Vec<_>>()
-            .join(",")
+        crate::method::diagnosis::effect_names(&effects)
     ));
     Ok(results)
 }
