@@ -109,6 +109,12 @@ pub fn cross_origin(method: &axum::http::Method, headers: &axum::http::HeaderMap
     if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
         return false;
     }
+    from_another_origin(headers)
+}
+
+/// Whether a browser sent the request for a page of another web origin (see `cross_origin`),
+/// whatever its method: the live streams refuse such readers too.
+pub fn from_another_origin(headers: &axum::http::HeaderMap) -> bool {
     let text = |name: &str| {
         headers
             .get_all(name)

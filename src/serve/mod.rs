@@ -20,6 +20,7 @@ pub mod live_guard;
 pub mod machines;
 pub mod metrics;
 pub mod prompts;
+pub mod samples;
 pub mod schedule;
 pub mod status;
 
@@ -131,6 +132,7 @@ async fn run(
     let daemon = jobs::Daemon::open(config, registry, live_tap)?;
     let worker = tokio::spawn(daemon.clone().work());
     let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
+    let samples = tokio::spawn(daemon.samples.clone().run(daemon.shutdown.clone()));
 
     let app = api::router(daemon.clone(), options);
     // The line tools and tests wait for: the API is up.
@@ -158,6 +160,7 @@ async fn run(
     }
     watchdog.abort();
     schedules.abort();
+    samples.abort();
     tracing::info!("geocal serve stopped");
     Ok(())
 }
