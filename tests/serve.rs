@@ -1092,12 +1092,57 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         let _ = closed.send(());
     });
     let client = http();
+    // The live samples stream: one client that never reads (a small receive buffer, so the
+    // daemon's writes to it stall within the run) and one that reads every message.
+    let address = daemon.url.trim_start_matches("http://").to_owned();
+    let mut stalled = std::net::TcpStream::connect(&address).expect("connect");
+    shrink_receive_buffer(&stalled);
+    stalled
+        .write_all(
+            format!("GET /v1/devices/samples HTTP/1.1\r\nHost: {address}\r\n\r\n").as_bytes(),
+        )
+        .expect("request");
+    let samples = client
+        .get(daemon.at("/v1/devices/samples"))
+        .send()
+        .expect("the samples stream");
+    assert_eq!(samples.status(), StatusCode::OK);
+    let listening = Instant::now();
+    let reader = std::thread::spawn(move || {
+        // (event, data) pairs until the daemon goes away.
+        let mut events = Vec::new();
+        let mut name = String::new();
+        for line in BufReader::new(samples).lines().map_while(Result::ok) {
+            if let Some(event) = line.strip_prefix("event: ") {
+                name = event.to_owned();
+            } else if let Some(data) = line.strip_prefix("data: ") {
+                events.push((std::mem::take(&mut name), data.to_owned()));
+            }
+        }
+        events
+    });
     let id = submit(&client, &daemon, &hil());
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
+    let listened_s = listening.elapsed().as_secs_f64();
     disconnected
         .recv_timeout(Duration::from_secs(120))
         .expect("the live viewer is disconnected once the run has ended");
+    // The stalled client, reading at last, is told it lost the oldest messages.
+    stalled
+        .set_read_timeout(Some(Duration::from_secs(120)))
+        .expect("read timeout");
+    let mut seen = Vec::new();
+    let mut chunk = [0u8; 65536];
+    while !String::from_utf8_lossy(&seen).contains("event: lagged") {
+        match stalled.read(&mut chunk) {
+            Ok(n) if n > 0 => seen.extend_from_slice(&chunk[..n]),
+            other => panic!(
+                "the stalled samples client was not told of its lost messages ({other:?}, {} bytes)",
+                seen.len()
+            ),
+        }
+    }
     let stdout: Vec<String> = lines.map_while(Result::ok).collect();
     let output = watcher.wait_with_output().expect("the watcher ends");
     assert!(
@@ -1138,6 +1183,94 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .position(|r| *r == received[0])
         .expect("the first live sample is in the recording");
     assert_eq!(&recorded[first..first + WANTED], &received[..]);
+
+    // The reading samples client: batches of the tracer's readings, each sample a recorded
+    // one, in order, at most 20 messages a second.
+    daemon.kill_9();
+    let events = reader.join().expect("the samples reader");
+    let lagged = events.iter().any(|(name, _)| name == "lagged");
+    let batches: Vec<Value> = events
+        .iter()
+        .filter(|(name, _)| name == "samples")
+        .map(|(_, data)| serde_json::from_str(data).expect("a samples message"))
+        .filter(|b: &Value| b["device"] == "tracer0")
+        .collect();
+    let live: Vec<(f64, f64)> = batches
+        .iter()
+        .flat_map(|b| {
+            let t = b["t_s"].as_array().expect("t_s").clone();
+            let length = b["fields"]["length_m"]
+                .as_array()
+                .expect("length_m")
+                .clone();
+            t.into_iter()
+                .zip(length)
+                .map(|(t, l)| (t.as_f64().expect("t"), l.as_f64().expect("length")))
+        })
+        .collect();
+    let recorded: Vec<(f64, f64)> = recorded
+        .iter()
+        .map(|(t, data)| {
+            let reading: Value = serde_json::from_slice(data).expect("a recorded reading");
+            (
+                *t as f64 * 1e-9,
+                reading["length_m"].as_f64().expect("length_m"),
+            )
+        })
+        .collect();
+    assert!(
+        batches.len() as f64 <= 20.0 * listened_s + 5.0,
+        "{} tracer messages in {listened_s:.1} s",
+        batches.len()
+    );
+    assert!(
+        live.len() >= 10 * batches.len(),
+        "{} samples in {} messages: not batched",
+        live.len(),
+        batches.len()
+    );
+    assert!(
+        batches.iter().all(|b| b["skipped"] == 0),
+        "1 kHz is not thinned"
+    );
+    let start = recorded
+        .iter()
+        .position(|r| *r == live[0])
+        .expect("the first live sample is recorded");
+    if lagged {
+        let mut rest = recorded[start..].iter();
+        assert!(
+            live.iter().all(|l| rest.any(|r| r == l)),
+            "every live sample is a recorded one, in order"
+        );
+    } else {
+        // Every sample from the first on, to the run's last: the stalled client held up
+        // neither the run nor this one.
+        assert_eq!(&recorded[start..], &live[..]);
+    }
+    println!(
+        "samples stream: {} tracer samples in {} messages over {listened_s:.1} s (lagged: {lagged})",
+        live.len(),
+        batches.len()
+    );
+}
+
+/// A receive buffer of a few KiB: a client that does not read fills it, and the sender's,
+/// within seconds.
+fn shrink_receive_buffer(stream: &std::net::TcpStream) {
+    use std::os::fd::AsRawFd;
+    let size: libc::c_int = 4096;
+    // SAFETY: setsockopt on an open socket with a pointer to a local int and its size.
+    let result = unsafe {
+        libc::setsockopt(
+            stream.as_raw_fd(),
+            libc::SOL_SOCKET,
+            libc::SO_RCVBUF,
+            (&size as *const libc::c_int).cast(),
+            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
+        )
+    };
+    assert_eq!(result, 0, "SO_RCVBUF");
 }
 
 /// The operator's part of a real run through the daemon: every pending prompt of job `id` is

@@ -55,6 +55,11 @@ impl HostCheck {
     }
 }
 
+/// The host name of a Host header value (`[::1]:7878` → `[::1]`), lower case.
+pub fn host_name(host: &str) -> String {
+    split_host(&host.trim().to_ascii_lowercase()).0.to_owned()
+}
+
 /// `name` and `port` of a Host header value (`[::1]:7878`, `localhost:7878`, `localhost`).
 fn split_host(host: &str) -> (&str, Option<u16>) {
     if let Some(rest) = host.strip_prefix('[') {

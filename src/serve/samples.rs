@@ -148,9 +148,7 @@ fn batch(device: String, pending: Pending) -> SampleBatch {
             let Some(value) = value.as_f64() else {
                 continue;
             };
-            let column = fields
-                .entry(name)
-                .or_insert_with(|| vec![None; kept.len()]);
+            let column = fields.entry(name).or_insert_with(|| vec![None; kept.len()]);
             column[index] = Some(value);
         }
     }
@@ -206,7 +204,10 @@ mod tests {
             tracer.fields["length_m"],
             vec![Some(0.5), Some(1.5), Some(2.5)]
         );
-        assert_eq!(tracer.fields.keys().collect::<Vec<_>>(), ["length_m", "signal"]);
+        assert_eq!(
+            tracer.fields.keys().collect::<Vec<_>>(),
+            ["length_m", "signal"]
+        );
         assert_eq!(env.kind, "environment");
         assert_eq!(env.fields["air_temp_k"], vec![Some(293.15)]);
         assert!(!env.fields.contains_key("material_temp_k"));
@@ -242,6 +243,9 @@ mod tests {
             }
             other => panic!("expected a lag, got {other:?}"),
         }
-        assert_eq!(slow.try_recv().unwrap().t_s, vec![(2 * BACKLOG) as f64 * 1e-9]);
+        assert_eq!(
+            slow.try_recv().unwrap().t_s,
+            vec![(2 * BACKLOG) as f64 * 1e-9]
+        );
     }
 }
