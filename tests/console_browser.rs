@@ -104,7 +104,7 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
         &config,
         format!(
             "data_dir = \"{}\"\nplan_library = \"plans\"\n\n\
-             [history]\ntolerance_m = 2e-5\ntolerance_rad = 2e-5\n\n[[schedule]]\nname = \"nightly\"\n\
+             [history]\ntolerance_m = 5e-7\ntolerance_rad = 5e-7\n\n[[schedule]]\nname = \"nightly\"\n\
              cron = \"30 2 * * *\"\nplan = \"plans/demo.toml\"\ntime_zone = \"Europe/Berlin\"\n",
             dir.path().join("data").display()
         ),

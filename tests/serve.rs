@@ -1040,7 +1040,7 @@ fn schedules_submit_their_plan_and_skip_while_busy() {
 #[test]
 fn a_foxglove_client_watches_a_hil_run_live() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &["--live", "127.0.0.1:0"]);
+    let mut daemon = Daemon::start(&dir.path().join("data"), &["--live", "127.0.0.1:0"]);
     let live = daemon
         .live
         .clone()

@@ -75,7 +75,7 @@ const stateBadge = (state) => h("span", { class: `state state-${state}` }, state
 // A live series: every sample of its window as a line; where there are more samples than
 // pixels, each pixel column spans its samples' minimum to maximum, so none is left out.
 function linePlot(title, unit, series) {
-  const W = 320, H = 120, L = 8, R = 8, T = 22, B = 18;
+  const W = 320, H = 134, L = 8, R = 8, T = 22, B = 32;
   const n = series ? series.t.length : 0;
   const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img", "aria-label": title,
     "data-samples": n, "data-received": series ? series.received : 0,
@@ -108,7 +108,8 @@ function linePlot(title, unit, series) {
   svg.append(s("line", { class: "axis", x1: L, x2: W - R, y1: H - B, y2: H - B }));
   svg.append(s("polyline", { class: "line", points: points.join(" ") }));
   svg.append(s("text", { x: W - R, y: 14, "text-anchor": "end", class: "label" }, fmtNumber(vs[n - 1], unit)));
-  svg.append(s("text", { x: L, y: H - 4 }, `${fmtNumber(v0, unit)} … ${fmtNumber(v1, unit)}, ${n} samples in ${Math.round(t1 - t0)} s`));
+  svg.append(s("text", { x: L, y: H - 18 }, `${fmtNumber(v0, unit)} … ${fmtNumber(v1, unit)}`));
+  svg.append(s("text", { x: L, y: H - 4 }, `${n} samples in ${(t1 - t0).toFixed(1)} s`));
   return svg;
 }
 

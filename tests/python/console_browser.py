@@ -169,7 +169,7 @@ def main():
         bands = page.locator("#trend-plots svg[data-parameter] rect.band[data-band-source='tolerance']")
         assert bands.count() > 0, "no tolerance band drawn"
         band_title = bands.first.locator("title").text_content()
-        assert "tolerance band (tolerance)" in band_title and "± 20.00 µ" in band_title, band_title
+        assert "tolerance band (tolerance)" in band_title and "± 0.50 µ" in band_title, band_title
         assert page.locator("#compare-result tbody tr").count() > 0
         z = page.locator("#compare-result tbody tr td:last-child").first.inner_text()
         assert float(z) != 0.0, f"two runs with different noise compare equal: z {z}"
