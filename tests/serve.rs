@@ -1092,11 +1092,12 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         let _ = closed.send(());
     });
     let client = http();
-    // The live samples stream: one client that never reads (a small receive buffer, so the
-    // daemon's writes to it stall within the run) and one that reads every message.
+    // The live samples stream: one client that never reads during the run and one that reads
+    // every message. (Loopback's socket buffers take a megabyte or so, about what this run
+    // sends: how a client that stays behind loses the oldest messages is tested in
+    // `serve::samples`.)
     let address = daemon.url.trim_start_matches("http://").to_owned();
     let mut stalled = std::net::TcpStream::connect(&address).expect("connect");
-    shrink_receive_buffer(&stalled);
     stalled
         .write_all(
             format!("GET /v1/devices/samples HTTP/1.1\r\nHost: {address}\r\n\r\n").as_bytes(),
@@ -1128,21 +1129,6 @@ fn a_foxglove_client_watches_a_hil_run_live() {
     disconnected
         .recv_timeout(Duration::from_secs(120))
         .expect("the live viewer is disconnected once the run has ended");
-    // The stalled client, reading at last, is told it lost the oldest messages.
-    stalled
-        .set_read_timeout(Some(Duration::from_secs(120)))
-        .expect("read timeout");
-    let mut seen = Vec::new();
-    let mut chunk = [0u8; 65536];
-    while !String::from_utf8_lossy(&seen).contains("event: lagged") {
-        match stalled.read(&mut chunk) {
-            Ok(n) if n > 0 => seen.extend_from_slice(&chunk[..n]),
-            other => panic!(
-                "the stalled samples client was not told of its lost messages ({other:?}, {} bytes)",
-                seen.len()
-            ),
-        }
-    }
     let stdout: Vec<String> = lines.map_while(Result::ok).collect();
     let output = watcher.wait_with_output().expect("the watcher ends");
     assert!(
@@ -1244,8 +1230,8 @@ fn a_foxglove_client_watches_a_hil_run_live() {
             "every live sample is a recorded one, in order"
         );
     } else {
-        // Every sample from the first on, to the run's last: the stalled client held up
-        // neither the run nor this one.
+        // Every sample from the first on, to the run's last: the client that never read held
+        // up neither the run nor this one.
         assert_eq!(&recorded[start..], &live[..]);
     }
     println!(
@@ -1253,24 +1239,7 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         live.len(),
         batches.len()
     );
-}
-
-/// A receive buffer of a few KiB: a client that does not read fills it, and the sender's,
-/// within seconds.
-fn shrink_receive_buffer(stream: &std::net::TcpStream) {
-    use std::os::fd::AsRawFd;
-    let size: libc::c_int = 4096;
-    // SAFETY: setsockopt on an open socket with a pointer to a local int and its size.
-    let result = unsafe {
-        libc::setsockopt(
-            stream.as_raw_fd(),
-            libc::SOL_SOCKET,
-            libc::SO_RCVBUF,
-            (&size as *const libc::c_int).cast(),
-            std::mem::size_of::<libc::c_int>() as libc::socklen_t,
-        )
-    };
-    assert_eq!(result, 0, "SO_RCVBUF");
+    drop(stalled);
 }
 
 /// The operator's part of a real run through the daemon: every pending prompt of job `id` is
