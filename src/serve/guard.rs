@@ -45,14 +45,18 @@ impl HostCheck {
         if configured {
             return true;
         }
-        let loopback = name == "localhost"
-            || name
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .parse::<IpAddr>()
-                .is_ok_and(|ip| ip.is_loopback());
-        loopback && port_ok
+        is_loopback_name(name) && port_ok
     }
+}
+
+/// Whether a host name (`localhost`, `127.0.0.1`, `[::1]`) names this machine's loopback.
+pub fn is_loopback_name(name: &str) -> bool {
+    name.eq_ignore_ascii_case("localhost")
+        || name
+            .trim_start_matches('[')
+            .trim_end_matches(']')
+            .parse::<IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
 }
 
 /// The host name of a Host header value (`[::1]:7878` → `[::1]`), lower case.

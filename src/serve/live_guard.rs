@@ -56,12 +56,16 @@ impl LiveAccess {
     }
 
     /// Whether `origin` is the console's: `http(s)://` the host name the request was sent to,
-    /// with the API's port.
+    /// with the API's port. Without a token only a loopback name counts, as the API answers
+    /// no other then: a page whose name is rebound to 127.0.0.1 must not pass for it.
     fn is_console(&self, origin: &str, host: Option<&str>) -> bool {
         let (Some(port), Some(host)) = (self.console_port, host) else {
             return false;
         };
         let name = super::guard::host_name(host);
+        if self.token.is_none() && !super::guard::is_loopback_name(&name) {
+            return false;
+        }
         ["http://", "https://"].iter().any(|scheme| {
             origin
                 .get(..scheme.len())
@@ -411,5 +415,16 @@ mod tests {
             refusal(&open, &console("http://127.0.0.1:7878", "")),
             Some(403)
         );
+        // Without a token the console's origin needs no cookie, on loopback names only.
+        let open_console = LiveAccess {
+            console_port: Some(7878),
+            ..LiveAccess::default()
+        };
+        let rebound = |name: &str| {
+            format!("GET / HTTP/1.1\r\nHost: {name}:8765\r\nOrigin: http://{name}:7878\r\n\r\n")
+        };
+        assert_eq!(refusal(&open_console, &rebound("localhost")), None);
+        assert_eq!(refusal(&open_console, &rebound("127.0.0.1")), None);
+        assert_eq!(refusal(&open_console, &rebound("evil.example")), Some(403));
     }
 }
