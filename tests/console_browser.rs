@@ -80,7 +80,8 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
     let library = dir.path().join("plans");
     std::fs::create_dir(&library).expect("library");
     // Three runs of one machine, each with its own measurement noise (the machine's errors
-    // are drawn from `seed`, the same in all three), so the trend has scatter to show.
+    // are drawn from `seed`, the same in all three), so the trend has scatter to show; the
+    // daemon's tolerances give its parameters a tolerance band.
     std::fs::write(library.join("demo.toml"), trend_demo()).expect("demo plan");
     for (name, seed) in [("demo-2.toml", 202), ("demo-3.toml", 303)] {
         std::fs::write(
@@ -102,7 +103,8 @@ fn the_console_runs_watches_and_answers_a_calibration_in_a_browser() {
     std::fs::write(
         &config,
         format!(
-            "data_dir = \"{}\"\nplan_library = \"plans\"\n\n[[schedule]]\nname = \"nightly\"\n\
+            "data_dir = \"{}\"\nplan_library = \"plans\"\n\n\
+             [history]\ntolerance_m = 5e-7\ntolerance_rad = 5e-7\n\n[[schedule]]\nname = \"nightly\"\n\
              cron = \"30 2 * * *\"\nplan = \"plans/demo.toml\"\ntime_zone = \"Europe/Berlin\"\n",
             dir.path().join("data").display()
         ),

@@ -124,12 +124,26 @@ fn a_foxglove_client_receives_the_recorded_bytes_at_their_log_times() {
 /// What `handshake.py` got: the HTTP status (101 when admitted) and the first message's op or
 /// the refusal's body.
 fn handshake(url: &str, origin: Option<&str>, bearer: Option<&str>) -> serde_json::Value {
+    handshake_with_cookie(url, origin, bearer, None)
+}
+
+fn handshake_with_cookie(
+    url: &str,
+    origin: Option<&str>,
+    bearer: Option<&str>,
+    cookie: Option<&str>,
+) -> serde_json::Value {
     let output = Command::new("python3")
         .arg(concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/tests/live_view/handshake.py"
         ))
-        .args([url, origin.unwrap_or("-"), bearer.unwrap_or("-")])
+        .args([
+            url,
+            origin.unwrap_or("-"),
+            bearer.unwrap_or("-"),
+            cookie.unwrap_or("-"),
+        ])
         .output()
         .expect("python3");
     assert!(
@@ -152,9 +166,14 @@ fn a_foreign_origin_or_a_missing_token_gets_nothing_from_the_live_view() {
         std::fs::set_permissions(&token_file, std::fs::Permissions::from_mode(0o600))
             .expect("chmod");
     }
+    // The console's port: any, nothing listens there in this test.
+    const CONSOLE_PORT: u16 = 7878;
+    let loaded = geocal::serve::auth::Token::load(&token_file).expect("token");
+    let session = format!("geocal_session={}", loaded.session_value());
     let access = geocal::serve::live::LiveAccess {
-        token: Some(geocal::serve::auth::Token::load(&token_file).expect("token")),
+        token: Some(loaded),
         extra_origins: vec!["http://viewer.example:8080".into()],
+        console_port: Some(CONSOLE_PORT),
     };
     let view =
         LiveView::start_guarded("127.0.0.1:0".parse().expect("address"), access).expect("start");
@@ -184,12 +203,29 @@ fn a_foreign_origin_or_a_missing_token_gets_nothing_from_the_live_view() {
 
     // Admitted: the Foxglove app with the token in its URL, a configured origin, a native
     // client with the bearer header.
-    for (url, origin, bearer) in [
-        (&with_token, Some("https://app.foxglove.dev"), None),
-        (&with_token, Some("http://viewer.example:8080"), None),
-        (&base, None, Some(token)),
+    // The console's cookie: from the console's own origin (the live view's host name, the
+    // API's port) it is the token; from another port of the same host (the same site, so the
+    // browser sends the cookie) the Origin is refused; elsewhere it counts for nothing.
+    let console = format!("http://127.0.0.1:{CONSOLE_PORT}");
+    let same_site = format!("http://127.0.0.1:{}", CONSOLE_PORT + 1);
+    for (origin, cookie, status) in [
+        (console.as_str(), "geocal_session=0123", 401),
+        (console.as_str(), "", 401),
+        (same_site.as_str(), session.as_str(), 403),
+        ("http://localhost:7878", session.as_str(), 403),
+        ("https://app.foxglove.dev", session.as_str(), 401),
     ] {
-        let admitted = handshake(url, origin, bearer);
+        let refused = handshake_with_cookie(&base, Some(origin), None, Some(cookie));
+        assert_eq!(refused["status"], status, "{origin} {cookie}: {refused}");
+    }
+
+    for (url, origin, bearer, cookie) in [
+        (&with_token, Some("https://app.foxglove.dev"), None, None),
+        (&with_token, Some("http://viewer.example:8080"), None, None),
+        (&base, None, Some(token), None),
+        (&base, Some(console.as_str()), None, Some(session.as_str())),
+    ] {
+        let admitted = handshake_with_cookie(url, origin, bearer, cookie);
         assert_eq!(admitted["status"], 101, "{origin:?} {bearer:?}: {admitted}");
         assert_eq!(admitted["first_op"], "serverInfo", "{admitted}");
     }

@@ -1040,7 +1040,7 @@ fn schedules_submit_their_plan_and_skip_while_busy() {
 #[test]
 fn a_foxglove_client_watches_a_hil_run_live() {
     let dir = tempfile::tempdir().expect("tempdir");
-    let daemon = Daemon::start(&dir.path().join("data"), &["--live", "127.0.0.1:0"]);
+    let mut daemon = Daemon::start(&dir.path().join("data"), &["--live", "127.0.0.1:0"]);
     let live = daemon
         .live
         .clone()
@@ -1092,9 +1092,40 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         let _ = closed.send(());
     });
     let client = http();
+    // The live samples stream: one client that never reads during the run and one that reads
+    // every message. (Loopback's socket buffers take a megabyte or so, about what this run
+    // sends: how a client that stays behind loses the oldest messages is tested in
+    // `serve::samples`.)
+    let address = daemon.url.trim_start_matches("http://").to_owned();
+    let mut stalled = std::net::TcpStream::connect(&address).expect("connect");
+    stalled
+        .write_all(
+            format!("GET /v1/devices/samples HTTP/1.1\r\nHost: {address}\r\n\r\n").as_bytes(),
+        )
+        .expect("request");
+    let samples = client
+        .get(daemon.at("/v1/devices/samples"))
+        .send()
+        .expect("the samples stream");
+    assert_eq!(samples.status(), StatusCode::OK);
+    let listening = Instant::now();
+    let reader = std::thread::spawn(move || {
+        // (event, data) pairs until the daemon goes away.
+        let mut events = Vec::new();
+        let mut name = String::new();
+        for line in BufReader::new(samples).lines().map_while(Result::ok) {
+            if let Some(event) = line.strip_prefix("event: ") {
+                name = event.to_owned();
+            } else if let Some(data) = line.strip_prefix("data: ") {
+                events.push((std::mem::take(&mut name), data.to_owned()));
+            }
+        }
+        events
+    });
     let id = submit(&client, &daemon, &hil());
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
     assert_eq!(done["state"], "succeeded", "{done}");
+    let listened_s = listening.elapsed().as_secs_f64();
     disconnected
         .recv_timeout(Duration::from_secs(120))
         .expect("the live viewer is disconnected once the run has ended");
@@ -1138,6 +1169,77 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .position(|r| *r == received[0])
         .expect("the first live sample is in the recording");
     assert_eq!(&recorded[first..first + WANTED], &received[..]);
+
+    // The reading samples client: batches of the tracer's readings, each sample a recorded
+    // one, in order, at most 20 messages a second.
+    daemon.kill_9();
+    let events = reader.join().expect("the samples reader");
+    let lagged = events.iter().any(|(name, _)| name == "lagged");
+    let batches: Vec<Value> = events
+        .iter()
+        .filter(|(name, _)| name == "samples")
+        .map(|(_, data)| serde_json::from_str(data).expect("a samples message"))
+        .filter(|b: &Value| b["device"] == "tracer0")
+        .collect();
+    let live: Vec<(f64, f64)> = batches
+        .iter()
+        .flat_map(|b| {
+            let t = b["t_s"].as_array().expect("t_s").clone();
+            let length = b["fields"]["length_m"]
+                .as_array()
+                .expect("length_m")
+                .clone();
+            t.into_iter()
+                .zip(length)
+                .map(|(t, l)| (t.as_f64().expect("t"), l.as_f64().expect("length")))
+        })
+        .collect();
+    let recorded: Vec<(f64, f64)> = recorded
+        .iter()
+        .map(|(t, data)| {
+            let reading: Value = serde_json::from_slice(data).expect("a recorded reading");
+            (
+                *t as f64 * 1e-9,
+                reading["length_m"].as_f64().expect("length_m"),
+            )
+        })
+        .collect();
+    assert!(
+        batches.len() as f64 <= 20.0 * listened_s + 5.0,
+        "{} tracer messages in {listened_s:.1} s",
+        batches.len()
+    );
+    assert!(
+        live.len() >= 10 * batches.len(),
+        "{} samples in {} messages: not batched",
+        live.len(),
+        batches.len()
+    );
+    assert!(
+        batches.iter().all(|b| b["skipped"] == 0),
+        "1 kHz is not thinned"
+    );
+    let start = recorded
+        .iter()
+        .position(|r| *r == live[0])
+        .expect("the first live sample is recorded");
+    if lagged {
+        let mut rest = recorded[start..].iter();
+        assert!(
+            live.iter().all(|l| rest.any(|r| r == l)),
+            "every live sample is a recorded one, in order"
+        );
+    } else {
+        // Every sample from the first on, to the run's last: the client that never read held
+        // up neither the run nor this one.
+        assert_eq!(&recorded[start..], &live[..]);
+    }
+    println!(
+        "samples stream: {} tracer samples in {} messages over {listened_s:.1} s (lagged: {lagged})",
+        live.len(),
+        batches.len()
+    );
+    drop(stalled);
 }
 
 /// The operator's part of a real run through the daemon: every pending prompt of job `id` is

@@ -553,11 +553,12 @@ fn raise_open_files() {
     }
 }
 
-/// An open event stream: its answer's head read, the connection kept.
-fn open_stream(daemon: &Daemon, auth: &str) -> (u16, TcpStream) {
+/// An open event stream (`/v1/events`, or `/v1/devices/samples`): its answer's head read,
+/// the connection kept. `headers` end with `\r\n` each.
+fn open_stream(daemon: &Daemon, path: &str, headers: &str) -> (u16, TcpStream) {
     let mut stream = daemon.connect();
     let request = format!(
-        "GET /v1/events HTTP/1.1\r\nHost: {}\r\n{auth}\r\n\r\n",
+        "GET {path} HTTP/1.1\r\nHost: {}\r\n{headers}\r\n",
         daemon.address
     );
     stream.write_all(request.as_bytes()).expect("write");
@@ -588,23 +589,37 @@ fn streams_and_a_flood_of_idle_connections_do_not_lock_the_api_out() {
         "max_connections = 4\nmax_streams = 4\n",
         &["--token-file", file.to_str().expect("utf-8")],
     );
-    let auth = format!("Authorization: Bearer {token}");
-    // Four streams fill the stream cap (a fifth is refused) and hold no request slot.
-    let streams: Vec<TcpStream> = (0..4)
-        .map(|_| {
-            let (status, stream) = open_stream(&daemon, &auth);
-            assert_eq!(status, 200);
+    let auth = format!("Authorization: Bearer {token}\r\n");
+    const EVENTS: &str = "/v1/events";
+    const SAMPLES: &str = "/v1/devices/samples";
+    // A stream for another origin's page is refused, with the token and all.
+    for path in [EVENTS, SAMPLES] {
+        let foreign = format!("{auth}Origin: http://evil.example\r\n");
+        let (status, _) = open_stream(&daemon, path, &foreign);
+        assert_eq!(status, 403, "{path}");
+    }
+    // Four streams of both kinds fill the stream cap (a fifth of either is refused) and hold
+    // no request slot.
+    let streams: Vec<TcpStream> = [EVENTS, SAMPLES, EVENTS, SAMPLES]
+        .iter()
+        .map(|path| {
+            let (status, stream) = open_stream(&daemon, path, &auth);
+            assert_eq!(status, 200, "{path}");
             stream
         })
         .collect();
-    let (status, mut fifth) = open_stream(&daemon, &auth);
-    assert_eq!(status, 503);
-    let mut rest = Vec::new();
-    let _ = fifth.read_to_end(&mut rest);
-    assert!(String::from_utf8_lossy(&rest).contains("max_streams"));
+    for path in [EVENTS, SAMPLES] {
+        let (status, mut fifth) = open_stream(&daemon, path, &auth);
+        assert_eq!(status, 503, "{path}");
+        let mut rest = Vec::new();
+        let _ = fifth.read_to_end(&mut rest);
+        assert!(String::from_utf8_lossy(&rest).contains("max_streams"));
+    }
     // Unauthenticated peers: streams refused, and 1000 connections that send nothing.
-    let (status, _) = open_stream(&daemon, "");
-    assert_eq!(status, 401);
+    for path in [EVENTS, SAMPLES] {
+        let (status, _) = open_stream(&daemon, path, "");
+        assert_eq!(status, 401, "{path}");
+    }
     let flood: Vec<TcpStream> = (0..1000)
         .filter_map(|_| TcpStream::connect(&daemon.address).ok())
         .collect();

@@ -72,25 +72,44 @@ function fmtNumber(v, unit) {
 const stateBadge = (state) => h("span", { class: `state state-${state}` }, state);
 
 // ---- Small SVG plots ----
-// A time series: the last `points` [t, v] pairs as a line with its range.
-function linePlot(title, unit, points) {
-  const W = 320, H = 120, L = 8, R = 8, T = 22, B = 18;
-  const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img", "aria-label": title });
+// A live series: every sample of its window as a line; where there are more samples than
+// pixels, each pixel column spans its samples' minimum to maximum, so none is left out.
+function linePlot(title, unit, series) {
+  const W = 320, H = 134, L = 8, R = 8, T = 22, B = 32;
+  const n = series ? series.t.length : 0;
+  const svg = s("svg", { class: "plot", viewBox: `0 0 ${W} ${H}`, role: "img", "aria-label": title,
+    "data-samples": n, "data-received": series ? series.received : 0,
+    "data-span-s": n > 1 ? series.t[n - 1] - series.t[0] : 0 });
   svg.append(s("text", { x: L, y: 14 }, title));
-  if (points.length === 0) {
+  if (n === 0) {
     svg.append(s("text", { x: W / 2, y: H / 2, "text-anchor": "middle" }, "no reading yet"));
     return svg;
   }
-  const ts = points.map((p) => p[0]), vs = points.map((p) => p[1]);
-  const t0 = Math.min(...ts), t1 = Math.max(...ts, t0 + 1);
-  let v0 = Math.min(...vs), v1 = Math.max(...vs);
+  const ts = series.t, vs = series.v;
+  const t1 = ts[n - 1], t0 = Math.min(ts[0], t1 - 1);
+  let v0 = Infinity, v1 = -Infinity;
+  for (const v of vs) { if (v < v0) v0 = v; if (v > v1) v1 = v; }
   if (v1 - v0 < 1e-12 * Math.max(1, Math.abs(v1))) { v0 -= 0.5 * Math.abs(v0 || 1) * 1e-6 + 1e-12; v1 = 2 * vs[0] - v0; }
   const x = (t) => L + ((t - t0) / (t1 - t0)) * (W - L - R);
   const y = (v) => T + (1 - (v - v0) / (v1 - v0)) * (H - T - B);
+  const columns = W - L - R;
+  const points = [];
+  if (n <= 2 * columns) {
+    for (let i = 0; i < n; i++) points.push(`${x(ts[i]).toFixed(1)},${y(vs[i]).toFixed(1)}`);
+  } else {
+    let column = -1, lo = 0, hi = 0;
+    const flush = () => { if (column >= 0) points.push(`${L + column},${y(lo).toFixed(1)}`, `${L + column},${y(hi).toFixed(1)}`); };
+    for (let i = 0; i < n; i++) {
+      const c = Math.min(columns, Math.floor(x(ts[i]) - L));
+      if (c !== column) { flush(); column = c; lo = hi = vs[i]; } else { lo = Math.min(lo, vs[i]); hi = Math.max(hi, vs[i]); }
+    }
+    flush();
+  }
   svg.append(s("line", { class: "axis", x1: L, x2: W - R, y1: H - B, y2: H - B }));
-  svg.append(s("polyline", { class: "line", points: points.map((p) => `${x(p[0]).toFixed(1)},${y(p[1]).toFixed(1)}`).join(" ") }));
-  svg.append(s("text", { x: W - R, y: 14, "text-anchor": "end", class: "label" }, fmtNumber(vs[vs.length - 1], unit)));
-  svg.append(s("text", { x: L, y: H - 4 }, `${fmtNumber(v0, unit)} … ${fmtNumber(v1, unit)}, last ${Math.round(t1 - t0)} s`));
+  svg.append(s("polyline", { class: "line", points: points.join(" ") }));
+  svg.append(s("text", { x: W - R, y: 14, "text-anchor": "end", class: "label" }, fmtNumber(vs[n - 1], unit)));
+  svg.append(s("text", { x: L, y: H - 18 }, `${fmtNumber(v0, unit)} … ${fmtNumber(v1, unit)}`));
+  svg.append(s("text", { x: L, y: H - 4 }, `${n} samples in ${(t1 - t0).toFixed(1)} s`));
   return svg;
 }
 
@@ -115,7 +134,7 @@ function trendPlot(parameter, runs, events) {
   const x = (i) => L + (n === 1 ? 0.5 : i / (n - 1)) * (W - L - R - 10) + 5;
   const y = (v) => T + (1 - (v - v0) / (v1 - v0)) * (H - T - B);
   if (band && isFinite(band.half_width)) {
-    svg.append(s("rect", { class: "band", x: L, width: W - L - R, y: y(band.centre + band.half_width),
+    svg.append(s("rect", { class: "band", "data-band-source": band.source, x: L, width: W - L - R, y: y(band.centre + band.half_width),
       height: Math.max(1, y(band.centre - band.half_width) - y(band.centre + band.half_width)) },
       s("title", {}, `tolerance band (${band.source}): ${fmtNumber(band.centre, parameter.unit)} ± ${fmtNumber(band.half_width, parameter.unit)}`)));
   }
@@ -183,26 +202,67 @@ function layoutPlot(layout, nextStation) {
   return svg;
 }
 
-// ---- Shared state: prompts (the banner on every page), live readings ----
-const state = { prompts: [], announced: new Set(), readings: new Map(), route: "", refreshers: [] };
-const HISTORY_POINTS = 180;
+// ---- Shared state: prompts (the banner on every page), live samples ----
+const state = { prompts: [], announced: new Set(), series: new Map(), lost: 0, route: "", refreshers: [] };
 
-function recordReadings(devices) {
-  const now = Date.now() / 1000;
-  const put = (key, v) => {
-    if (typeof v !== "number" || !isFinite(v)) return;
-    const series = state.readings.get(key) || [];
-    series.push([now, v]);
-    while (series.length > HISTORY_POINTS) series.shift();
-    state.readings.set(key, series);
-  };
-  for (const d of devices) {
-    const r = d.last_reading || {};
-    if (d.kind === "tracer") { put(`${d.id} length`, r.length_m); put(`${d.id} signal`, r.signal); }
-    if (d.kind === "environment") {
-      put(`${d.id} air temperature`, r.air_temp_k); put(`${d.id} pressure`, r.pressure_pa);
-      put(`${d.id} humidity`, r.humidity_pct);
+// ---- Live samples: every reading of the running job's devices (/v1/devices/samples) ----
+const LIVE_WINDOW_S = 30;
+const LIVE_FIELDS = {
+  tracer: [["length_m", "length", "m"], ["signal", "signal", ""]],
+  environment: [["air_temp_k", "air temperature", "K"], ["pressure_pa", "pressure", "Pa"], ["humidity_pct", "humidity", "%"]],
+};
+
+function takeSamples(batch) {
+  for (const [field, label, unit] of LIVE_FIELDS[batch.kind] || []) {
+    const column = batch.fields[field];
+    if (!column) continue;
+    const key = `${batch.device} ${label}`;
+    let series = state.series.get(key);
+    // A new run's clock may start earlier than the last one's end: start the plot afresh.
+    if (!series || (series.t.length && batch.t_s[0] < series.t[series.t.length - 1] - LIVE_WINDOW_S)) {
+      series = { unit, t: [], v: [], received: series ? series.received : 0 };
+      state.series.set(key, series);
     }
+    column.forEach((v, i) => {
+      if (v === null || !isFinite(v)) return;
+      series.t.push(batch.t_s[i]); series.v.push(v); series.received++;
+    });
+    const newest = series.t[series.t.length - 1];
+    let old = 0;
+    while (old < series.t.length && series.t[old] < newest - LIVE_WINDOW_S) old++;
+    if (old) { series.t.splice(0, old); series.v.splice(0, old); }
+  }
+  drawLiveSoon();
+}
+
+// The live plots are redrawn in place, at most 4 times a second, without redrawing the page.
+let liveDraw = null;
+function drawLiveSoon() {
+  if (!liveDraw) liveDraw = setTimeout(() => { liveDraw = null; drawLive(); }, 250);
+}
+function drawLive(box = $("live-plots")) {
+  if (!box) return;
+  for (const [key, series] of state.series) {
+    let card = [...box.children].find((c) => c.dataset.series === key);
+    if (!card) { card = h("div", { class: "card", "data-series": key }); box.append(card); }
+    card.replaceChildren(linePlot(key, series.unit, series));
+  }
+  const note = box.previousElementSibling;
+  if (note && note.id === "live-note") note.textContent = state.series.size === 0 ? "No tracer or environment reading yet (they appear while a run records)."
+    : `Every sample of the last ${LIVE_WINDOW_S} s.` + (state.lost ? ` ${state.lost} messages lost (the link was too slow).` : "");
+}
+
+let samples = null;
+function followSamples(on) {
+  if (on && !samples) {
+    samples = new EventSource("/v1/devices/samples", { withCredentials: true });
+    samples.addEventListener("samples", (e) => takeSamples(JSON.parse(e.data)));
+    samples.addEventListener("lagged", (e) => { state.lost += JSON.parse(e.data).messages; drawLiveSoon(); });
+    // Refused (e.g. before the login): the browser gives up; the next redraw asks again.
+    samples.onerror = () => { if (samples && samples.readyState === EventSource.CLOSED) samples = null; };
+  } else if (!on && samples) {
+    samples.close();
+    samples = null;
   }
 }
 
@@ -293,6 +353,7 @@ function route() {
 let rendering = 0;
 async function rerender() {
   const [page, arg] = route();
+  followSamples(page === "now");
   for (const a of document.querySelectorAll("nav a")) {
     const here = a.dataset.page === page || a.dataset.page + "s" === page || (page === "job" && a.dataset.page === "jobs")
       || (page === "machine" && a.dataset.page === "machines");
@@ -343,7 +404,6 @@ function progressOf(job) {
 
 async function renderNow() {
   const [jobs, devices, health] = await Promise.all([api("/v1/jobs"), api("/v1/devices"), api("/v1/health")]);
-  recordReadings(devices);
   const running = jobs.find((j) => j.state === "running");
   const queued = jobs.filter((j) => j.state === "queued");
   const last = jobs.find((j) => !["running", "queued"].includes(j.state));
@@ -364,12 +424,9 @@ async function renderNow() {
   if (queued.length) jobCard.append(h("p", {}, `${queued.length} queued: `, queued.map((j) => `job ${j.id}`).join(", ")));
   out.append(jobCard);
 
-  const plots = h("div", { class: "plots" });
-  const unit = (key) => key.endsWith("length") ? "m" : key.endsWith("temperature") ? "K"
-    : key.endsWith("pressure") ? "Pa" : key.endsWith("humidity") ? "%" : "";
-  for (const [key, series] of state.readings) plots.append(h("div", { class: "card" }, linePlot(key, unit(key), series)));
-  out.append(h("h2", {}, "Live readings"),
-    state.readings.size ? plots : h("p", { class: "muted" }, "No tracer or environment reading yet (they appear while a run records)."));
+  const plots = h("div", { class: "plots", id: "live-plots" });
+  out.append(h("h2", {}, "Live readings"), h("p", { class: "muted", id: "live-note" }), plots);
+  drawLive(plots);
 
   out.append(h("h2", {}, "Devices"), devices.length === 0 ? h("p", { class: "muted" }, "No device seen yet.") :
     table(["device", "kind", "connected", "last reading", "age", "signal", "last fault"], devices.map((d) =>
@@ -640,7 +697,6 @@ async function tick() {
   try {
     await refreshPrompts();
     if (route()[0] === "now") soon();
-    else recordReadings(await api("/v1/devices"));
   } catch (_) { /* shown by the page */ }
 }
 

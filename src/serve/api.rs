@@ -28,6 +28,7 @@ use super::machines::{
     ComparisonSummary, HistoryEntry, MachineChange, MachineHistory, MachineView,
 };
 use super::prompts::PendingPrompt;
+use super::samples::SampleBatch;
 use super::schedule::{ScheduleView, ScheduledJob};
 use super::status::{DeviceStatus, Progress};
 
@@ -392,21 +393,14 @@ async fn ack_prompt(
 /// is the `type`).
 #[utoipa::path(get, path = "/v1/events",
     responses((status = 200, content_type = "text/event-stream", body = ServerEvent),
+        (status = 403, body = ErrorBody, description = "a browser asked for another web origin's page"),
         (status = 503, body = ErrorBody, description = "max_streams event streams are open")))]
 async fn events(
     State(daemon): State<Arc<Daemon>>,
     Extension(streams): Extension<StreamSlots>,
+    headers: HeaderMap,
 ) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
-    // A stream holds a slot of its own, not one of the request slots, for as long as it runs.
-    let slot = streams.0.clone().try_acquire_owned().map_err(|_| {
-        ApiError(
-            StatusCode::SERVICE_UNAVAILABLE,
-            format!(
-                "{} event streams are open, the daemon's max_streams: close one",
-                streams.1
-            ),
-        )
-    })?;
+    let slot = streams.open(&headers)?;
     let stream = tokio_stream::wrappers::BroadcastStream::new(daemon.events.subscribe())
         .filter_map(|event| async move {
             let event = event.ok()?;
@@ -421,9 +415,65 @@ async fn events(
     Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
 }
 
+/// The running job's device readings as Server-Sent Events: `samples`, one device's readings
+/// since its previous message (at most 20 messages a second per device, each with up to 200
+/// samples); `lagged`, `{"messages": n}` when this client read too slowly and lost the n
+/// oldest messages. Counted against `max_streams` with `/v1/events`.
+#[utoipa::path(get, path = "/v1/devices/samples",
+    responses((status = 200, content_type = "text/event-stream", body = SampleBatch),
+        (status = 403, body = ErrorBody, description = "a browser asked for another web origin's page"),
+        (status = 503, body = ErrorBody, description = "max_streams event streams are open")))]
+async fn device_samples(
+    State(daemon): State<Arc<Daemon>>,
+    Extension(streams): Extension<StreamSlots>,
+    headers: HeaderMap,
+) -> ApiResult<Sse<impl Stream<Item = Result<Event, Infallible>>>> {
+    use tokio_stream::wrappers::errors::BroadcastStreamRecvError;
+    let slot = streams.open(&headers)?;
+    let stream = tokio_stream::wrappers::BroadcastStream::new(daemon.samples.subscribe())
+        .filter_map(|message| async move {
+            match message {
+                Ok(batch) => Event::default().event("samples").json_data(&*batch).ok(),
+                Err(BroadcastStreamRecvError::Lagged(lost)) => Event::default()
+                    .event("lagged")
+                    .json_data(serde_json::json!({ "messages": lost }))
+                    .ok(),
+            }
+        })
+        .map(move |event| {
+            let _held = &slot;
+            Ok(event)
+        })
+        .take_until(daemon.shutdown.clone().cancelled_owned());
+    Ok(Sse::new(stream).keep_alive(KeepAlive::default()))
+}
+
 /// The event streams' own slots (`max_streams`) and their number.
 #[derive(Clone)]
 pub struct StreamSlots(Arc<Semaphore>, usize);
+
+impl StreamSlots {
+    /// A slot for a stream (held for as long as it runs, apart from the request slots); a
+    /// browser reading for another origin's page gets none (a stream is read, not changed,
+    /// but its data is the machine's).
+    fn open(&self, headers: &HeaderMap) -> ApiResult<tokio::sync::OwnedSemaphorePermit> {
+        if super::guard::from_another_origin(headers) {
+            return Err(ApiError(
+                StatusCode::FORBIDDEN,
+                "a stream for another web origin's page is refused".into(),
+            ));
+        }
+        self.0.clone().try_acquire_owned().map_err(|_| {
+            ApiError(
+                StatusCode::SERVICE_UNAVAILABLE,
+                format!(
+                    "{} event streams are open, the daemon's max_streams: close one",
+                    self.1
+                ),
+            )
+        })
+    }
+}
 
 /// After the Host and token checks: the connection is admitted (no longer pushed out by
 /// newer waiting ones) and its request takes one of the `max_connections` slots while its
@@ -643,6 +693,7 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         prompts,
         ack_prompt,
         events,
+        device_samples,
         list_plans,
         submit_library_plan,
         list_schedules,
@@ -675,6 +726,7 @@ async fn metrics(State(daemon): State<Arc<Daemon>>) -> ApiResult<Response> {
         crate::devices::held::HeldStatus,
         PendingPrompt,
         ServerEvent,
+        SampleBatch,
         MachineView,
         MachineHistory,
         HistoryEntry,
@@ -862,6 +914,7 @@ pub fn router(daemon: Arc<Daemon>, options: ApiOptions) -> Router {
         .route("/v1/jobs/{id}/report", get(job_report))
         .route("/v1/jobs/{id}/files/{name}", get(job_named_file))
         .route("/v1/devices", get(devices))
+        .route("/v1/devices/samples", get(device_samples))
         .route("/v1/prompts", get(prompts))
         .route("/v1/prompts/{id}/ack", post(ack_prompt))
         .route("/v1/events", get(events))

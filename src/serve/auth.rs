@@ -67,7 +67,7 @@ impl Token {
         digest.iter().map(|b| format!("{b:02x}")).collect()
     }
 
-    fn matches_session(&self, presented: &str) -> bool {
+    pub(super) fn matches_session(&self, presented: &str) -> bool {
         bool::from(self.session_value().as_bytes().ct_eq(presented.as_bytes()))
     }
 }

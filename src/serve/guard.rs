@@ -45,14 +45,23 @@ impl HostCheck {
         if configured {
             return true;
         }
-        let loopback = name == "localhost"
-            || name
-                .trim_start_matches('[')
-                .trim_end_matches(']')
-                .parse::<IpAddr>()
-                .is_ok_and(|ip| ip.is_loopback());
-        loopback && port_ok
+        is_loopback_name(name) && port_ok
     }
+}
+
+/// Whether a host name (`localhost`, `127.0.0.1`, `[::1]`) names this machine's loopback.
+pub fn is_loopback_name(name: &str) -> bool {
+    name.eq_ignore_ascii_case("localhost")
+        || name
+            .trim_start_matches('[')
+            .trim_end_matches(']')
+            .parse::<IpAddr>()
+            .is_ok_and(|ip| ip.is_loopback())
+}
+
+/// The host name of a Host header value (`[::1]:7878` → `[::1]`), lower case.
+pub fn host_name(host: &str) -> String {
+    split_host(&host.trim().to_ascii_lowercase()).0.to_owned()
 }
 
 /// `name` and `port` of a Host header value (`[::1]:7878`, `localhost:7878`, `localhost`).
@@ -109,6 +118,12 @@ pub fn cross_origin(method: &axum::http::Method, headers: &axum::http::HeaderMap
     if matches!(*method, Method::GET | Method::HEAD | Method::OPTIONS) {
         return false;
     }
+    from_another_origin(headers)
+}
+
+/// Whether a browser sent the request for a page of another web origin (see `cross_origin`),
+/// whatever its method: the live streams refuse such readers too.
+pub fn from_another_origin(headers: &axum::http::HeaderMap) -> bool {
     let text = |name: &str| {
         headers
             .get_all(name)

@@ -120,6 +120,8 @@ pub struct Daemon {
     running: Mutex<Vec<Running>>,
     pub events: broadcast::Sender<ServerEvent>,
     pub status: StatusBoard,
+    /// The running job's device readings for the live samples stream.
+    pub samples: Arc<super::samples::SampleFeed>,
     pub prompts: PromptBoard,
     accepting: AtomicBool,
     /// Stops the worker once the running job has ended.
@@ -175,6 +177,7 @@ impl Daemon {
             wake_sessions: Notify::new(),
             running: Mutex::new(Vec::new()),
             status: StatusBoard::default(),
+            samples: Arc::default(),
             prompts: PromptBoard::new(Arc::new(move |prompt: &PendingPrompt| {
                 let _ = prompt_events.send(ServerEvent::Prompt {
                     prompt: prompt.clone(),
@@ -614,6 +617,7 @@ impl Daemon {
                 };
                 let _ = events.send(event);
             }),
+            samples: self.samples.clone(),
             live: self.live.clone(),
         };
         let progress_events = self.events.clone();

@@ -31,21 +31,47 @@ const MAX_CONNECTIONS: usize = 32;
 /// Who may open the live view.
 #[derive(Clone, Default)]
 pub struct LiveAccess {
-    /// When set, a client must present it: `?token=…` in the URL (what the Foxglove app can
-    /// pass) or `Authorization: Bearer …` (native clients).
+    /// When set, a client must present it: `Authorization: Bearer …` (native clients), the
+    /// console's session cookie (pages of the console's own origin), or `?token=…` in the
+    /// URL (the Foxglove app: a browser WebSocket can set no header, and the app's origin
+    /// gets no cookie of ours).
     pub token: Option<Token>,
-    /// Origins allowed beside the Foxglove app's (e.g. `https://viewer.example:8443`).
+    /// Origins allowed beside the Foxglove app's and the console's (e.g.
+    /// `https://viewer.example:8443`).
     pub extra_origins: Vec<String>,
+    /// The daemon's API port: a page served there (the console) is of an allowed origin, as
+    /// long as it reached the daemon by the same host name as the live view.
+    pub console_port: Option<u16>,
 }
 
 impl LiveAccess {
-    fn origin_allowed(&self, origin: &str) -> bool {
+    fn origin_allowed(&self, origin: &str, host: Option<&str>) -> bool {
         let origin = origin.trim().trim_end_matches('/');
-        FOXGLOVE_ORIGINS
-            .iter()
-            .copied()
-            .chain(self.extra_origins.iter().map(String::as_str))
-            .any(|allowed| allowed.trim_end_matches('/').eq_ignore_ascii_case(origin))
+        self.is_console(origin, host)
+            || FOXGLOVE_ORIGINS
+                .iter()
+                .copied()
+                .chain(self.extra_origins.iter().map(String::as_str))
+                .any(|allowed| allowed.trim_end_matches('/').eq_ignore_ascii_case(origin))
+    }
+
+    /// Whether `origin` is the console's: `http(s)://` the host name the request was sent to,
+    /// with the API's port. Without a token only a loopback name counts, as the API answers
+    /// no other then: a page whose name is rebound to 127.0.0.1 must not pass for it.
+    fn is_console(&self, origin: &str, host: Option<&str>) -> bool {
+        let (Some(port), Some(host)) = (self.console_port, host) else {
+            return false;
+        };
+        let name = super::guard::host_name(host);
+        if self.token.is_none() && !super::guard::is_loopback_name(&name) {
+            return false;
+        }
+        ["http://", "https://"].iter().any(|scheme| {
+            origin
+                .get(..scheme.len())
+                .is_some_and(|s| s.eq_ignore_ascii_case(scheme))
+                && origin[scheme.len()..].eq_ignore_ascii_case(&format!("{name}:{port}"))
+        })
     }
 
     /// Why the request may not open the live view, or `None` when it may.
@@ -59,16 +85,18 @@ impl LiveAccess {
         };
         // Browsers always send Origin on a WebSocket handshake; native clients need not.
         let origins: Vec<&str> = header("origin").collect();
-        if origins.len() > 1 {
-            return Some((400, "several Origin headers".into()));
+        let hosts: Vec<&str> = header("host").collect();
+        if origins.len() > 1 || hosts.len() > 1 {
+            return Some((400, "several Origin or Host headers".into()));
         }
+        let host = hosts.first().copied();
         if let Some(origin) = origins.first() {
-            if !self.origin_allowed(origin) {
+            if !self.origin_allowed(origin, host) {
                 return Some((
                     403,
                     format!(
                         "Origin `{origin}` is not allowed on the live view (allowed: the \
-                         Foxglove app and the daemon's live_origins)"
+                         console's, the Foxglove app's and the daemon's live_origins)"
                     ),
                 ));
             }
@@ -90,6 +118,24 @@ impl LiveAccess {
                 .then(|| credentials.trim().to_owned())
         });
         let presented: Vec<String> = from_query.chain(from_header).collect();
+        // The console's cookie, only from the console's own pages: other sites on this host
+        // (another port of 127.0.0.1 is the same site) get the cookie sent too.
+        let from_console = origins
+            .first()
+            .is_some_and(|origin| self.is_console(origin.trim().trim_end_matches('/'), host));
+        if presented.is_empty() && from_console {
+            let cookies = header("cookie")
+                .flat_map(|v| v.split(';'))
+                .filter_map(|pair| {
+                    let (name, value) = pair.trim().split_once('=')?;
+                    (name == super::auth::SESSION_COOKIE).then_some(value.trim())
+                });
+            for cookie in cookies {
+                if token.matches_session(cookie) {
+                    return None;
+                }
+            }
+        }
         match presented.as_slice() {
             [one] if token.matches(one.as_bytes()) => None,
             [] => Some((
@@ -282,7 +328,9 @@ mod tests {
         let guarded = LiveAccess {
             token: Some(Token::load(&path).unwrap()),
             extra_origins: vec!["http://viewer.example:8080".into()],
+            console_port: Some(7878),
         };
+        let session = guarded.token.as_ref().unwrap().session_value();
         let get = |target: &str, headers: &str| {
             format!("GET {target} HTTP/1.1\r\nHost: x\r\n{headers}\r\n")
         };
@@ -336,5 +384,47 @@ mod tests {
             refusal(&guarded, &get("/?token=a&token=0123456789abcdef0123", "")),
             Some(400)
         );
+        // The console's cookie opens the live view from the console's own origin only.
+        let console = |origin: &str, cookie: &str| {
+            format!(
+                "GET / HTTP/1.1\r\nHost: 127.0.0.1:8765\r\nOrigin: {origin}\r\n\
+                 Cookie: a=b; geocal_session={cookie}\r\n\r\n"
+            )
+        };
+        assert_eq!(
+            refusal(&guarded, &console("http://127.0.0.1:7878", &session)),
+            None
+        );
+        assert_eq!(
+            refusal(&guarded, &console("http://127.0.0.1:7878", "00")),
+            Some(401)
+        );
+        assert_eq!(
+            refusal(&guarded, &console("http://127.0.0.1:7879", &session)),
+            Some(403)
+        );
+        assert_eq!(
+            refusal(&guarded, &console("http://localhost:7878", &session)),
+            Some(403)
+        );
+        assert_eq!(
+            refusal(&guarded, &console("https://app.foxglove.dev", &session)),
+            Some(401)
+        );
+        assert_eq!(
+            refusal(&open, &console("http://127.0.0.1:7878", "")),
+            Some(403)
+        );
+        // Without a token the console's origin needs no cookie, on loopback names only.
+        let open_console = LiveAccess {
+            console_port: Some(7878),
+            ..LiveAccess::default()
+        };
+        let rebound = |name: &str| {
+            format!("GET / HTTP/1.1\r\nHost: {name}:8765\r\nOrigin: http://{name}:7878\r\n\r\n")
+        };
+        assert_eq!(refusal(&open_console, &rebound("localhost")), None);
+        assert_eq!(refusal(&open_console, &rebound("127.0.0.1")), None);
+        assert_eq!(refusal(&open_console, &rebound("evil.example")), Some(403));
     }
 }

@@ -20,6 +20,7 @@ pub mod live_guard;
 pub mod machines;
 pub mod metrics;
 pub mod prompts;
+pub mod samples;
 pub mod schedule;
 pub mod status;
 
@@ -74,6 +75,16 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
     schedule::Scheduler::new(&config.schedule, &config.base_dir, chrono::Utc::now())?;
     std::fs::create_dir_all(&config.data_dir)
         .with_context(|| format!("creating the data dir {}", config.data_dir.display()))?;
+    // Bound before the live view starts, which needs the API's port (the console's origin).
+    let listener = std::net::TcpListener::bind(config.listen)
+        .with_context(|| format!("listening on {}", config.listen))?;
+    listener
+        .set_nonblocking(true)
+        .context("making the listener non-blocking")?;
+    let api_port = listener
+        .local_addr()
+        .context("reading the bound address")?
+        .port();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
@@ -84,11 +95,12 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
             let access = live::LiveAccess {
                 token: token.clone(),
                 extra_origins: config.live_origins.clone(),
+                console_port: Some(api_port),
             };
             live::LiveView::start_guarded(address, access).map(std::sync::Arc::new)
         })
         .transpose()?;
-    let result = runtime.block_on(run(config, registry, token, live.clone()));
+    let result = runtime.block_on(run(config, listener, registry, token, live.clone()));
     if let Some(live) = live {
         live.stop();
     }
@@ -97,12 +109,12 @@ pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
 
 async fn run(
     config: ServeConfig,
+    listener: std::net::TcpListener,
     registry: Registry,
     token: Option<auth::Token>,
     live: Option<std::sync::Arc<live::LiveView>>,
 ) -> anyhow::Result<()> {
-    let listener = tokio::net::TcpListener::bind(config.listen)
-        .await
+    let listener = tokio::net::TcpListener::from_std(listener)
         .with_context(|| format!("listening on {}", config.listen))?;
     let address = listener.local_addr().context("reading the bound address")?;
     let data_dir = config.data_dir.clone();
@@ -131,6 +143,7 @@ async fn run(
     let daemon = jobs::Daemon::open(config, registry, live_tap)?;
     let worker = tokio::spawn(daemon.clone().work());
     let schedules = tokio::spawn(run_schedules(daemon.clone(), scheduler));
+    let samples = tokio::spawn(daemon.samples.clone().run(daemon.shutdown.clone()));
 
     let app = api::router(daemon.clone(), options);
     // The line tools and tests wait for: the API is up.
@@ -158,6 +171,7 @@ async fn run(
     }
     watchdog.abort();
     schedules.abort();
+    samples.abort();
     tracing::info!("geocal serve stopped");
     Ok(())
 }

@@ -224,7 +224,7 @@ impl StatusBoard {
 }
 
 /// (device kind, id) of a device topic.
-fn device_of_topic(topic: &str) -> Option<(&'static str, &str)> {
+pub(super) fn device_of_topic(topic: &str) -> Option<(&'static str, &str)> {
     let parts: Vec<&str> = topic.trim_start_matches('/').split('/').collect();
     match parts.as_slice() {
         ["tracer", id, "range"] => Some(("tracer", id)),
@@ -236,11 +236,12 @@ fn device_of_topic(topic: &str) -> Option<(&'static str, &str)> {
     }
 }
 
-/// The tap a daemon's run records through: the status board, the event stream, and the live
-/// view when there is one.
+/// The tap a daemon's run records through: the status board, the event stream, the live
+/// samples stream, and the live view when there is one.
 pub struct DaemonTap {
     pub board: StatusBoard,
     pub on_change: Box<dyn Fn(Change) + Send + Sync>,
+    pub samples: Arc<super::samples::SampleFeed>,
     pub live: Option<Arc<dyn MessageTap>>,
 }
 
@@ -250,6 +251,8 @@ impl MessageTap for DaemonTap {
         if let Some(change) = self.board.observe(&message.channel.topic, message.data) {
             (self.on_change)(change);
         }
+        self.samples
+            .observe(&message.channel.topic, message.log_time_ns, message.data);
         if let Some(live) = &self.live {
             live.message(message);
         }

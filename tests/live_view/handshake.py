@@ -2,7 +2,7 @@
 {"status": 101, "first_op": "serverInfo"} when admitted (the first message's op), else
 {"status": <HTTP status>, "body": "..."} when the server refused the handshake.
 
-Usage: handshake.py ws://HOST:PORT/[?token=...] [ORIGIN|-] [BEARER|-]
+Usage: handshake.py ws://HOST:PORT/[?token=...] [ORIGIN|-] [BEARER|-] [COOKIE|-]
 """
 import asyncio
 import json
@@ -11,10 +11,12 @@ import sys
 import websockets
 
 
-async def main(url, origin, bearer):
+async def main(url, origin, bearer, cookie):
     headers = {}
     if bearer != "-":
         headers["Authorization"] = f"Bearer {bearer}"
+    if cookie not in ("-", ""):
+        headers["Cookie"] = cookie
     kwargs = {"subprotocols": ["foxglove.sdk.v1"], "additional_headers": headers}
     if origin != "-":
         kwargs["origin"] = origin
@@ -29,4 +31,4 @@ async def main(url, origin, bearer):
                           "body": response.body.decode("utf-8", "replace")}), flush=True)
 
 
-asyncio.run(main(sys.argv[1], sys.argv[2], sys.argv[3]))
+asyncio.run(main(sys.argv[1], sys.argv[2], sys.argv[3], (sys.argv[4:] or ["-"])[0]))

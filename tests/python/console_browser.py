@@ -165,11 +165,17 @@ def main():
         plots = page.locator("#trend-plots svg[data-parameter]").count()
         dots = page.locator("#trend-plots svg[data-parameter]").first.locator("circle.dot").count()
         assert plots > 0 and dots == 3, (plots, dots)
+        # The daemon's [history] tolerances (m and rad) give the parameters a tolerance band.
+        bands = page.locator("#trend-plots svg[data-parameter] rect.band[data-band-source='tolerance']")
+        assert bands.count() > 0, "no tolerance band drawn"
+        band_title = bands.first.locator("title").text_content()
+        assert "tolerance band (tolerance)" in band_title and "± 0.50 µ" in band_title, band_title
         assert page.locator("#compare-result tbody tr").count() > 0
         z = page.locator("#compare-result tbody tr td:last-child").first.inner_text()
         assert float(z) != 0.0, f"two runs with different noise compare equal: z {z}"
         machine_url = page.url
-        check(f"machine with 3 runs: trend of {plots} parameters drawn, 3 runs each, compare table")
+        check(f"machine with 3 runs: trend of {plots} parameters drawn, 3 runs each, "
+              f"{bands.count()} tolerance bands, compare table")
         shot(page, "machine")
 
         # A HIL run uploaded as TOML, its operator prompts answered by clicking Continue.
@@ -214,11 +220,19 @@ def main():
             if len(answered) == 2:
                 # Mid-run: the Now page with the devices and the live readings.
                 page.goto(OPEN + "/#/now")
-                page.wait_for_selector("svg.plot[aria-label$='length'] polyline", timeout=60_000)
+                length = "svg.plot[aria-label$='length']"
+                page.wait_for_selector(f"{length} polyline", timeout=60_000)
                 page.wait_for_selector("main[data-page='now'] progress")
                 page.wait_for_timeout(2500)
+                plot = page.locator(length).first
+                drawn = int(plot.get_attribute("data-samples"))
+                span = float(plot.get_attribute("data-span-s"))
+                received = int(plot.get_attribute("data-received"))
+                # The 1 kHz tracer's samples arrive from the daemon's stream, not once a second.
+                assert drawn > 1 and span > 0 and drawn / span > 10, (drawn, span, received)
                 shot(page, "now")
-                check("Now page: running job, devices and live plots of the tracer")
+                check(f"Now page: running job, devices and live plots of the tracer "
+                      f"({drawn} samples drawn over {span:.1f} s, {received} received)")
         final = wait_ended(OPEN, hil)
         assert final["state"] == "succeeded", final
         assert len(answered) == 5, answered
