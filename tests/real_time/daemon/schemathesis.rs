@@ -6,7 +6,7 @@
 //! move a machine; generated TOML is no valid plan and is refused before any job starts.
 //! `/v1/events` is left out: it is an endless stream, which a per-request check cannot end.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Command, Stdio};
