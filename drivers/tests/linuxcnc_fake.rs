@@ -1,7 +1,7 @@
 //! The LinuxCNC driver against a small fake linuxcncrsh on 127.0.0.1 (the fault cases the
 //! real LinuxCNC does not produce on demand): a refused enable password, garbage and
 //! mismatched replies, a connection dropped right after a move was accepted, and a server
-//! that does not come back. The real LinuxCNC is exercised in tests/linuxcnc_driver.rs.
+//! that does not come back. The real LinuxCNC is exercised in tests/real_time/controller/driver.rs.
 
 use std::sync::{Arc, Mutex};
 use std::time::Duration;

@@ -1,4 +1,4 @@
-"""An outside peer of `geocal serve`: submit a plan (a HIL run in tests/serve.rs) with `requests`, follow the job on the
+"""An outside peer of `geocal serve`: submit a plan (a HIL run in tests/real_time/daemon/api.rs) with `requests`, follow the job on the
 event stream and the job route, fetch its results and session, and check what came back."""
 
 import json

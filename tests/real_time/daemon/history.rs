@@ -4,7 +4,7 @@
 //! the Prometheus metrics and is posted to the configured URL (a listener on 127.0.0.1 here);
 //! `/v1/machines`, its history and its trend show it.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpListener;

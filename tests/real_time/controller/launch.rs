@@ -3,7 +3,7 @@
 //! leave no process, shared memory or lock behind, also when the test never calls shutdown.
 //! Skips without LinuxCNC (with the reason), fails instead when `CI` is set.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
@@ -44,8 +44,7 @@ fn nothing_left() {
     assert!(!std::path::Path::new("/tmp/linuxcnc.lock").exists());
 }
 
-#[test]
-fn linuxcnc_starts_moves_reports_trim_pins_and_shuts_down_clean() {
+pub fn linuxcnc_starts_moves_reports_trim_pins_and_shuts_down_clean() {
     if !common::linuxcnc_available() {
         return;
     }
@@ -113,8 +112,7 @@ fn linuxcnc_starts_moves_reports_trim_pins_and_shuts_down_clean() {
     nothing_left();
 }
 
-#[test]
-fn a_missing_comp_file_fails_fast_and_a_dropped_instance_leaves_nothing() {
+pub fn a_missing_comp_file_fails_fast_and_a_dropped_instance_leaves_nothing() {
     if !common::linuxcnc_available() {
         return;
     }

@@ -4,7 +4,7 @@
 //! emulated HPI-3D measures the result. Skips without LinuxCNC (saying why), fails when `CI`
 //! is set.
 
-mod common;
+use crate::common;
 
 use common::{
     assert_recovers_truth, calibrate_and_export, generous_timeouts, hil_config, pass_rule,
@@ -34,8 +34,7 @@ pub fn linuxcnc_config(extra: &str) -> String {
     format!("{text}\n[hil.linuxcnc]\nmax_acceleration_m_s2 = 40.0\nservo_period_s = 0.00025\n")
 }
 
-#[test]
-fn linuxcnc_hil_run_recovers_truth() {
+pub fn linuxcnc_hil_run_recovers_truth() {
     if !common::linuxcnc_available() {
         return;
     }
@@ -58,8 +57,7 @@ fn linuxcnc_hil_run_recovers_truth() {
 /// the real-time bound (`REAL_TIME_SIGMAS`·RMS(σ) + interpolation error) by LinuxCNC's own
 /// application. Then the x table with its sign flipped and the y table with a header line:
 /// both fail it.
-#[test]
-fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
+pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
     if !common::linuxcnc_available() {
         return;
     }

@@ -6,7 +6,7 @@
 //! per configuration. The operator is another linuxcncrsh client, as a pendant or the AXIS GUI
 //! would be. Skips without LinuxCNC or root (saying why), fails when `CI` is set.
 
-mod common;
+use crate::common;
 
 use common::{target, wait_idle};
 
@@ -216,8 +216,7 @@ impl Operator {
 /// by the operator in the middle of a run stops it (LinuxCNC stays in E-stop, geocal sends
 /// nothing that would release it); once the operator cleared it, a new connection (as
 /// `geocal run --resume` opens) finishes the moves.
-#[test]
-fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
+pub fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
     let Some(ini) = sample("axis_mm.ini") else {
         return;
     };
@@ -321,8 +320,7 @@ fn axis_mm_estop_stops_the_run_and_refusals_change_nothing() {
 /// The inch mill, found in G20 with the operator's G91 and in manual mode: geocal's moves
 /// arrive (positions in inches converted), and afterwards LinuxCNC is in G20, G91 and manual
 /// mode again.
-#[test]
-fn axis_inch_machine_ends_in_g20_with_its_modes() {
+pub fn axis_inch_machine_ends_in_g20_with_its_modes() {
     let Some(ini) = sample("axis.ini") else {
         return;
     };
@@ -366,8 +364,7 @@ fn axis_inch_machine_ends_in_g20_with_its_modes() {
 /// The gantry (4 joints XYYZ): the driver reads the joint count from LinuxCNC's INI (4;
 /// linuxcncrsh itself reports six), refuses with `home = "refuse"` naming all four joints,
 /// homes all four with `allow`, and moves; both Y joints follow the Y axis.
-#[test]
-fn gantry_runs_with_its_four_joints() {
+pub fn gantry_runs_with_its_four_joints() {
     let Some(ini) = sample("gantry/gantry_mm.ini") else {
         return;
     };
@@ -725,8 +722,7 @@ fn assert_tracer_windows_whole(session: &geocal::session::reader::Session, runs:
 /// machine on`, homing if lost), and `geocal run --resume` completes: every planned point,
 /// every message of the stopped session unchanged, no tracer sample lost from any point's
 /// window.
-#[test]
-fn axis_mm_whole_run_stopped_by_an_estop_resumes_with_nothing_lost() {
+pub fn axis_mm_whole_run_stopped_by_an_estop_resumes_with_nothing_lost() {
     use geocal::session::messages::RunEvent;
     use geocal::session::reader::{read_session, read_session_raw};
     let Some(ini) = sample("axis_mm.ini") else {

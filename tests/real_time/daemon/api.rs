@@ -3,7 +3,7 @@
 //! resumes after a kill -9, and fetches what the jobs left; bad requests are clear 4xx that
 //! write nothing.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::path::{Path, PathBuf};

@@ -6,7 +6,7 @@
 //! run and the results recover the truth. Skips without LinuxCNC or root (saying why), fails
 //! when `CI` is set.
 
-mod common;
+use crate::common;
 
 use std::io::{BufRead, BufReader, Write};
 use std::net::TcpStream;
@@ -26,7 +26,7 @@ use geocal::session::reader::{read_session, read_session_raw, Session};
 /// The example real-controller HIL configuration (the small demo, 4 stations x 18 points),
 /// with a short reconnect window so that a linuxcncrsh that is gone stops the run soon.
 fn config_text() -> String {
-    let text = include_str!("../config/linuxcnc/hil.toml");
+    let text = include_str!("../../../config/linuxcnc/hil.toml");
     let table = "[devices.machine.linuxcnc]\n";
     assert!(text.contains("driver = \"linuxcnc\"") && text.contains(table));
     text.replace(table, &format!("{table}reconnect_timeout_s = 5.0\n"))
@@ -251,8 +251,7 @@ fn assert_tracer_streams_whole(session: &Session) {
 /// The driver's connection cut at point 4 (`ss -K` in LinuxCNC's namespace): the driver
 /// reconnects (`disconnect`/`reconnect` faults), the run completes, every sample is
 /// recorded and the results recover the truth.
-#[test]
-fn linuxcnc_run_reconnects_after_a_cut_connection() {
+pub fn linuxcnc_run_reconnects_after_a_cut_connection() {
     if !common::linuxcnc_available() {
         return;
     }
@@ -303,8 +302,7 @@ fn linuxcnc_run_reconnects_after_a_cut_connection() {
 /// down; the E-stop is recorded as an `alarm` fault. `geocal run --resume DIR` (a fresh
 /// LinuxCNC: the HIL's controller is the run's own) finishes it with no sample lost, every
 /// message of the stopped session unchanged, and the results recover the truth.
-#[test]
-fn linuxcnc_run_stopped_by_an_estop_resumes() {
+pub fn linuxcnc_run_stopped_by_an_estop_resumes() {
     if !common::linuxcnc_available() {
         return;
     }
@@ -408,8 +406,7 @@ fn resume_and_check_prefix(dir: &Path) -> geocal::method::Results {
 /// the run stops with a message naming the lost connection, the session kept; `geocal run
 /// --resume DIR` starts a fresh LinuxCNC and finishes the plan with every message kept, and
 /// the results recover the truth.
-#[test]
-fn linuxcnc_run_stopped_by_a_killed_linuxcncrsh_resumes() {
+pub fn linuxcnc_run_stopped_by_a_killed_linuxcncrsh_resumes() {
     if !common::linuxcnc_available() {
         return;
     }

@@ -4,7 +4,7 @@
 //! with the real drivers. The stations, points and step angles must match the truth as in
 //! the virtual-time run (tests/rotary_run.rs), with and without injected faults.
 
-mod common;
+use crate::common;
 
 use common::{assert_recovers_truth, faults, run_with_truth};
 use common::{generous_timeouts, hil_rotary_config};

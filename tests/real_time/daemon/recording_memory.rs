@@ -9,7 +9,7 @@
 //! a leak in the pages the allocator keeps free (a recorder made to keep every sample left it
 //! flat); the heap in use is the figure that moves with what the daemon holds.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Child, Command, Stdio};

@@ -3,7 +3,7 @@
 //! drivers. The recovered geometry must match the truth as in the virtual-time demo run,
 //! with and without injected faults.
 
-mod common;
+use crate::common;
 
 use common::{
     assert_recovers_truth, calibrate_and_export, faults, generous_timeouts, hil_config,

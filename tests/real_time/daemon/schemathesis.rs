@@ -7,7 +7,7 @@
 //! `/v1/events` and `/v1/devices/samples` are left out: they are endless streams, which a
 //! per-request check cannot end.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Command, Stdio};

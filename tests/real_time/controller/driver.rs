@@ -5,7 +5,7 @@
 //! LinuxCNC instance for all of it (starting one takes seconds and holds a global lock).
 //! Skips without LinuxCNC (with the reason); fails instead when `CI` is set.
 
-mod common;
+use crate::common;
 
 use common::{target, wait_idle};
 
@@ -88,8 +88,7 @@ fn operator_sends(lcnc: &LinuxCnc, lines: &[&str]) {
     }
 }
 
-#[test]
-fn drives_the_real_linuxcnc_through_faults() {
+pub fn drives_the_real_linuxcnc_through_faults() {
     if !common::linuxcnc_available() {
         return;
     }
