@@ -7,7 +7,7 @@
 //! daemon, has a page of another origin POST to both daemons (refused), checks that a phone's
 //! viewport never scrolls sideways, and takes a screenshot of each page.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};

@@ -4,7 +4,7 @@
 //! case-insensitive and two `Authorization` headers are refused, every error answer is JSON,
 //! and the OpenAPI document says what the daemon as configured does.
 
-mod common;
+use crate::common;
 
 use std::io::{Read, Write};
 use std::net::TcpStream;
