@@ -451,7 +451,7 @@ impl Schur {
             .map(|p| self.m_pinv[p] * Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]))
             .collect();
         let reduced = v.rows(offset, d.n_global()) - self.ct_times(&vp);
-        let xg = &self.w_red * (self.w_red.transpose() * reduced);
+        let xg = &self.w_red * self.w_red.tr_mul(&reduced);
         let cx = self.c_times(&xg);
         let mut x = DVector::zeros(d.n_params());
         for p in 0..n {
@@ -520,7 +520,7 @@ impl Schur {
                 t[c] += x * tilde[pos];
             }
         }
-        let z = &self.w_red * (self.w_red.transpose() * t);
+        let z = &self.w_red * self.w_red.tr_mul(&t);
         let mut v = DVector::from_fn(self.rows.len(), |pos, _| {
             d.global_entries(self.rows[pos], &mut entries);
             entries.iter().map(|&(c, x)| x * z[c]).sum()
@@ -545,13 +545,65 @@ impl Schur {
         }
     }
 
-    /// Each column of m (rows by position) minus its projection on the column space.
+    /// Each column of m (rows by position) minus its projection on the column space: the
+    /// columns together, one walk over the rows per step (as `project_off_vec` does for one).
     pub fn project_off(&self, m: &DMatrix<f64>) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(m.nrows(), m.ncols());
-        for c in 0..m.ncols() {
-            out.set_column(c, &self.project_off_vec(&m.column(c).into_owned()));
+        let once = self.project_off_columns_once(m);
+        self.project_off_columns_once(&once)
+    }
+
+    fn project_off_columns_once(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+        let d = &self.design;
+        let k = y.ncols();
+        let mut tilde = y.clone();
+        self.project_off_points_columns(&mut tilde);
+        let mut entries = Vec::new();
+        let mut t = DMatrix::zeros(d.n_global(), k);
+        for (pos, &i) in self.rows.iter().enumerate() {
+            d.global_entries(i, &mut entries);
+            for j in 0..k {
+                let v = tilde[(pos, j)];
+                for &(c, x) in &entries {
+                    t[(c, j)] += x * v;
+                }
+            }
         }
-        out
+        let z = &self.w_red * self.w_red.tr_mul(&t);
+        let mut v = DMatrix::zeros(self.rows.len(), k);
+        for (pos, &i) in self.rows.iter().enumerate() {
+            d.global_entries(i, &mut entries);
+            for j in 0..k {
+                v[(pos, j)] = entries.iter().map(|&(c, x)| x * z[(c, j)]).sum();
+            }
+        }
+        self.project_off_points_columns(&mut v);
+        tilde - v
+    }
+
+    /// Each column of y ← (I − P_A) y, A the points' columns over the fit's rows.
+    fn project_off_points_columns(&self, y: &mut DMatrix<f64>) {
+        let d = &self.design;
+        let k = y.ncols();
+        let mut q = vec![Vector3::zeros(); k];
+        for p in 0..d.n_points {
+            let members = self.members(p);
+            q.iter_mut().for_each(|v| *v = Vector3::zeros());
+            for &pos in members {
+                let a = d.a(self.rows[pos]);
+                for (j, qj) in q.iter_mut().enumerate() {
+                    *qj += a * y[(pos, j)];
+                }
+            }
+            for qj in q.iter_mut() {
+                *qj = self.m_pinv[p] * *qj;
+            }
+            for &pos in members {
+                let a = d.a(self.rows[pos]);
+                for (j, qj) in q.iter().enumerate() {
+                    y[(pos, j)] -= a.dot(qj);
+                }
+            }
+        }
     }
 
     /// Whether design row i (any row, unwhitened) lies in the row space of the fit: its part in
@@ -614,7 +666,7 @@ impl Schur {
                 self.ct_point(r.point, &t, &mut ct);
                 let mut xg = d.global_dense(i) / r.w;
                 xg -= &ct;
-                xp.dot(&t) + (self.w_red.transpose() * xg).norm_squared()
+                xp.dot(&t) + self.w_red.tr_mul(&xg).norm_squared()
             })
             .collect()
     }
@@ -632,7 +684,7 @@ impl Schur {
                 for k in 0..3 {
                     let t = self.m_pinv[p].column(k).into_owned();
                     self.ct_point(p, &t, &mut ct);
-                    fp.set_column(k, &(self.w_red.transpose() * &ct));
+                    fp.set_column(k, &self.w_red.tr_mul(&ct));
                 }
             }
             f.push(fp);
