@@ -546,62 +546,60 @@ impl Schur {
     }
 
     /// Each column of m (rows by position) minus its projection on the column space: the
-    /// columns together, one walk over the rows per step (as `project_off_vec` does for one).
+    /// columns together, the rows' entries gathered once, each column walked contiguously (the
+    /// same sums in the same order as `project_off_vec` makes for one).
     pub fn project_off(&self, m: &DMatrix<f64>) -> DMatrix<f64> {
-        let once = self.project_off_columns_once(m);
-        self.project_off_columns_once(&once)
+        let d = &self.design;
+        let rows = RowEntries::of(d, &self.rows);
+        let once = self.project_off_columns_once(m, &rows);
+        self.project_off_columns_once(&once, &rows)
     }
 
-    fn project_off_columns_once(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
-        let d = &self.design;
-        let k = y.ncols();
+    fn project_off_columns_once(&self, y: &DMatrix<f64>, rows: &RowEntries) -> DMatrix<f64> {
+        let n = self.rows.len();
+        let (k, g, width) = (y.ncols(), self.design.n_global(), rows.width);
+        if n == 0 || k == 0 {
+            return y.clone();
+        }
         let mut tilde = y.clone();
-        self.project_off_points_columns(&mut tilde);
-        let mut entries = Vec::new();
-        let mut t = DMatrix::zeros(d.n_global(), k);
-        for (pos, &i) in self.rows.iter().enumerate() {
-            d.global_entries(i, &mut entries);
-            for j in 0..k {
-                let v = tilde[(pos, j)];
-                for &(c, x) in &entries {
-                    t[(c, j)] += x * v;
+        for column in tilde.as_mut_slice().chunks_mut(n) {
+            self.project_off_points_slice(column, &rows.a);
+        }
+        let mut t = DMatrix::<f64>::zeros(g, k);
+        for (column, tc) in tilde
+            .as_slice()
+            .chunks(n)
+            .zip(t.as_mut_slice().chunks_mut(g))
+        {
+            for (pos, &v) in column.iter().enumerate() {
+                let at = pos * width;
+                for e in at..at + width {
+                    tc[rows.cols[e]] += rows.vals[e] * v;
                 }
             }
         }
         let z = &self.w_red * self.w_red.tr_mul(&t);
-        let mut v = DMatrix::zeros(self.rows.len(), k);
-        for (pos, &i) in self.rows.iter().enumerate() {
-            d.global_entries(i, &mut entries);
-            for j in 0..k {
-                v[(pos, j)] = entries.iter().map(|&(c, x)| x * z[(c, j)]).sum();
+        let mut v = DMatrix::<f64>::zeros(n, k);
+        for (vc, zc) in v.as_mut_slice().chunks_mut(n).zip(z.as_slice().chunks(g)) {
+            for (pos, out) in vc.iter_mut().enumerate() {
+                let at = pos * width;
+                *out = (at..at + width)
+                    .map(|e| rows.vals[e] * zc[rows.cols[e]])
+                    .sum();
             }
+            self.project_off_points_slice(vc, &rows.a);
         }
-        self.project_off_points_columns(&mut v);
         tilde - v
     }
 
-    /// Each column of y ← (I − P_A) y, A the points' columns over the fit's rows.
-    fn project_off_points_columns(&self, y: &mut DMatrix<f64>) {
-        let d = &self.design;
-        let k = y.ncols();
-        let mut q = vec![Vector3::zeros(); k];
-        for p in 0..d.n_points {
+    /// y ← (I − P_A) y for one column over the fit's rows (`a`: each row's point coefficients).
+    fn project_off_points_slice(&self, y: &mut [f64], a: &[Vector3<f64>]) {
+        for p in 0..self.design.n_points {
             let members = self.members(p);
-            q.iter_mut().for_each(|v| *v = Vector3::zeros());
+            let q: Vector3<f64> = members.iter().map(|&pos| a[pos] * y[pos]).sum();
+            let t = self.m_pinv[p] * q;
             for &pos in members {
-                let a = d.a(self.rows[pos]);
-                for (j, qj) in q.iter_mut().enumerate() {
-                    *qj += a * y[(pos, j)];
-                }
-            }
-            for qj in q.iter_mut() {
-                *qj = self.m_pinv[p] * *qj;
-            }
-            for &pos in members {
-                let a = d.a(self.rows[pos]);
-                for (j, qj) in q.iter().enumerate() {
-                    y[(pos, j)] -= a.dot(qj);
-                }
+                y[pos] -= a[pos].dot(&t);
             }
         }
     }
@@ -748,6 +746,34 @@ impl Schur {
         let p = d.rows[i].point;
         let a = d.a(i);
         (self.m_pinv[p] * a, &red.f[p] * a)
+    }
+}
+
+/// A fit's rows' whitened coefficients gathered once: each row's point part, and its global
+/// entries (stations, segment, effects: the same number for every row) flat.
+struct RowEntries {
+    a: Vec<Vector3<f64>>,
+    width: usize,
+    cols: Vec<usize>,
+    vals: Vec<f64>,
+}
+
+impl RowEntries {
+    fn of(design: &Design, rows: &[usize]) -> RowEntries {
+        let width = 4 + design.effects.ncols();
+        let mut out = RowEntries {
+            a: rows.iter().map(|&i| design.a(i)).collect(),
+            width,
+            cols: Vec::with_capacity(width * rows.len()),
+            vals: Vec::with_capacity(width * rows.len()),
+        };
+        let mut entries = Vec::new();
+        for &i in rows {
+            design.global_entries(i, &mut entries);
+            out.cols.extend(entries.iter().map(|e| e.0));
+            out.vals.extend(entries.iter().map(|e| e.1));
+        }
+        out
     }
 }
 

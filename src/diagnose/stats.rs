@@ -211,7 +211,7 @@ pub fn gram_factor(
         if l <= GRAM_ROUNDING * top {
             // Rounding: the true singular value is below √(2 · rounding), which must be
             // well under the cut to call it null.
-            if cut * cut <= 100.0 * GRAM_ROUNDING * top {
+            if cut * cut <= 2.0 * GRAM_ROUNDING * top {
                 return None;
             }
         } else if l >= GRAM_CONDITION * top {
@@ -294,5 +294,41 @@ mod tests {
         // F quantiles: F(1, 100) 6.895 -> 0.01, F(3, 50) 2.790 -> 0.05.
         assert!((f_sf(6.895_2, 1.0, 100.0) - 0.01).abs() < 1e-4);
         assert!((f_sf(2.790_0, 3.0, 50.0) - 0.05).abs() < 1e-4);
+    }
+
+    /// A tall matrix with columns of different scales and one column a combination of
+    /// two others: the Gram route keeps the SVD's directions (same rank, singular values and
+    /// projector V Vᵀ); with a direction at 1e-4 of the largest singular value (Gram
+    /// eigenvalue 1e-8, outside its accurate range) it declines, for the SVD to decide.
+    #[test]
+    fn gram_factor_matches_the_svd_or_declines() {
+        let n = 5000;
+        let column = |i: usize, c: usize| -> f64 {
+            let x = i as f64 / n as f64;
+            match c {
+                0 => (7.0 * x).sin(),
+                1 => 0.03 * (3.0 * x).cos() + 0.03 * x * x,
+                2 => 2.0 * (7.0 * x).sin() - 3.0 * (0.03 * (3.0 * x).cos() + 0.03 * x * x),
+                _ => ((i * 7919 % 101) as f64 - 50.0) / 50.0,
+            }
+        };
+        let a = DMatrix::from_fn(n, 4, column);
+        let reference = (0..4).map(|c| a.column(c).norm()).fold(0.0, f64::max);
+        let (s, vt) = gram_factor(&a, EFFECT_RANK_TOL, reference).expect("well conditioned");
+        let basis = Basis::new(&a, EFFECT_RANK_TOL, reference);
+        assert_eq!(s.len(), 3);
+        assert_eq!(basis.rank(), 3);
+        for k in 0..3 {
+            assert!((s[k] - basis.s[k]).abs() <= 1e-11 * basis.s[0], "{s} vs {}", basis.s);
+        }
+        let projector = vt.transpose() * &vt;
+        let svd_projector = basis.vt.transpose() * &basis.vt;
+        assert!((projector - svd_projector).amax() <= 1e-10);
+        // Column 1 nearly a multiple of column 0: its part off column 0 is 1e-4 of it.
+        let b = DMatrix::from_fn(n, 2, |i, c| match c {
+            0 => (7.0 * i as f64 / n as f64).sin(),
+            _ => (7.0 * i as f64 / n as f64).sin() + 1e-4 * column(i, 3),
+        });
+        assert!(gram_factor(&b, EFFECT_RANK_TOL, b.column(0).norm()).is_none());
     }
 }
