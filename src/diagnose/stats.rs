@@ -319,7 +319,11 @@ mod tests {
         assert_eq!(s.len(), 3);
         assert_eq!(basis.rank(), 3);
         for k in 0..3 {
-            assert!((s[k] - basis.s[k]).abs() <= 1e-11 * basis.s[0], "{s} vs {}", basis.s);
+            assert!(
+                (s[k] - basis.s[k]).abs() <= 1e-11 * basis.s[0],
+                "{s} vs {}",
+                basis.s
+            );
         }
         let projector = vt.transpose() * &vt;
         let svd_projector = basis.vt.transpose() * &basis.vt;
