@@ -573,8 +573,9 @@ impl Schur {
         {
             for (pos, &v) in column.iter().enumerate() {
                 let at = pos * width;
-                for e in at..at + width {
-                    tc[rows.cols[e]] += rows.vals[e] * v;
+                let row = at..at + width;
+                for (&c, &x) in rows.cols[row.clone()].iter().zip(&rows.vals[row]) {
+                    tc[c] += x * v;
                 }
             }
         }

@@ -318,9 +318,9 @@ mod tests {
         let basis = Basis::new(&a, EFFECT_RANK_TOL, reference);
         assert_eq!(s.len(), 3);
         assert_eq!(basis.rank(), 3);
-        for k in 0..3 {
+        for (gram, svd) in s.iter().zip(basis.s.iter()) {
             assert!(
-                (s[k] - basis.s[k]).abs() <= 1e-11 * basis.s[0],
+                (gram - svd).abs() <= 1e-11 * basis.s[0],
                 "{s} vs {}",
                 basis.s
             );
