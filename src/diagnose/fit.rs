@@ -50,6 +50,11 @@ impl Fit {
         }
     }
 
+    /// Whether this is the dense oracle's fit (thin SVD of the whole design).
+    pub fn is_dense(&self) -> bool {
+        matches!(self, Fit::Dense(_))
+    }
+
     pub fn rank(&self) -> usize {
         match self {
             Fit::Structured(s) => s.rank(),

@@ -13,6 +13,7 @@ pub mod loso;
 mod oracle;
 pub mod plot;
 pub mod points;
+pub mod projected;
 pub mod residual_model;
 pub mod schur;
 pub mod selection;
@@ -44,9 +45,10 @@ use fit::Fit;
 use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
 use points::{points_level, PointsGap, PointsLevel};
+use projected::Projected;
 use schur::Design;
 use selection::{Round, Tests};
-use stats::{chi2_isf, chi2_sf, f_sf, Basis, EFFECT_RANK_TOL};
+use stats::{chi2_isf, chi2_sf, f_sf, EFFECT_RANK_TOL};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -344,8 +346,6 @@ struct Eval {
     /// variance (noise plus prediction): the selection's held-out criterion, which the few
     /// lengths with a long beam or a poorly determined prediction cannot dominate.
     heldout_z2: f64,
-    /// Orthonormal basis of the effect's projected columns (full data).
-    u_perp: DMatrix<f64>,
 }
 
 impl Engine {
@@ -383,11 +383,14 @@ impl Engine {
         let (beta, theta) = match a {
             None => (fit.basis.solve(&rw), None),
             Some(a) => {
-                let aw = self.rows_of(a, &fit.rows, true);
-                let reference = column_norm_max(&aw);
-                let perp = Basis::new(&fit.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
+                let perp = Projected::new(&fit.basis, self.rows_of(a, &fit.rows, true));
                 let theta = perp.solve(&fit.res_w);
-                let beta = fit.basis.solve(&(rw - &aw * &theta));
+                drop(perp);
+                let a_theta = DVector::from_fn(fit.rows.len(), |k, _| {
+                    let i = fit.rows[k];
+                    self.w[i] * (0..a.ncols()).map(|c| a[(i, c)] * theta[c]).sum::<f64>()
+                });
+                let beta = fit.basis.solve(&(rw - a_theta));
                 (beta, Some(theta))
             }
         };
@@ -453,12 +456,10 @@ impl Engine {
         fold_fits: &[BaseFit],
         a: &DMatrix<f64>,
     ) -> Eval {
-        let aw = self.rows_of(a, &full.rows, true);
-        let reference = column_norm_max(&aw);
-        let perp = Basis::new(&full.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
-        let coeff = perp.u.transpose() * &full.res_w;
+        let perp = Projected::new(&full.basis, self.rows_of(a, &full.rows, true));
+        let coeff = perp.ut(&full.res_w);
         let chi2_drop = coeff.norm_squared();
-        let after_w = &full.res_w - &perp.u * &coeff;
+        let after_w = &full.res_w - perp.u_times(&coeff);
         let rms_after_m = (after_w
             .iter()
             .zip(&full.rows)
@@ -484,6 +485,9 @@ impl Engine {
                     > EFFECT_RANK_TOL * EFFECT_RANK_TOL
             })
             .collect();
+        let df = perp.rank();
+        // The full fit's projected columns are not needed by the folds'.
+        drop(perp);
         let (mut ss, mut zz) = (0.0, 0.0);
         let mut count = 0;
         for fit in fold_fits {
@@ -494,22 +498,21 @@ impl Engine {
         }
         Eval {
             chi2_drop,
-            df: perp.rank(),
+            df,
             theta,
             theta_sigma,
             identifiable,
             rms_after_m,
             heldout_ms_m2: ss / count.max(1) as f64,
             heldout_z2: zz / count.max(1) as f64,
-            u_perp: perp.u,
         }
     }
-}
 
-fn column_norm_max(m: &DMatrix<f64>) -> f64 {
-    (0..m.ncols())
-        .map(|c| m.column(c).norm())
-        .fold(0.0, f64::max)
+    /// Orthonormal basis of the candidate's columns projected off the full fit (for the
+    /// confounding test).
+    fn projected_basis(&self, full: &BaseFit, a: &DMatrix<f64>) -> DMatrix<f64> {
+        Projected::new(&full.basis, self.rows_of(a, &full.rows, true)).into_u()
+    }
 }
 
 pub(crate) fn hcat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
@@ -747,7 +750,17 @@ pub(crate) fn diagnose_data(
                 heldout_improves: (count > 0).then_some(t.eval.heldout_z2 < base_heldout_z2),
             })
             .collect();
-        let bases: Vec<&DMatrix<f64>> = trials.iter().map(|t| &t.eval.u_perp).collect();
+        // The projected bases only of the candidates that pass: the confounding test compares
+        // no other (n × k each, so not kept for every candidate of the round).
+        let bases: Vec<DMatrix<f64>> = trials
+            .iter()
+            .zip(&tests)
+            .map(|(t, tests)| match tests.passes(alpha_each) {
+                true => engine.projected_basis(&full, &t.model.columns(data, &geom)),
+                false => DMatrix::zeros(nobs, 0),
+            })
+            .collect();
+        let bases: Vec<&DMatrix<f64>> = bases.iter().collect();
         let decided = Round::decide(&tests, &bases, alpha_each);
         for (t, trial) in trials.iter().enumerate() {
             let status = decided.status(t, &tests[t], alpha_each);

@@ -451,7 +451,7 @@ impl Schur {
             .map(|p| self.m_pinv[p] * Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]))
             .collect();
         let reduced = v.rows(offset, d.n_global()) - self.ct_times(&vp);
-        let xg = &self.w_red * (self.w_red.transpose() * reduced);
+        let xg = &self.w_red * self.w_red.tr_mul(&reduced);
         let cx = self.c_times(&xg);
         let mut x = DVector::zeros(d.n_params());
         for p in 0..n {
@@ -520,7 +520,7 @@ impl Schur {
                 t[c] += x * tilde[pos];
             }
         }
-        let z = &self.w_red * (self.w_red.transpose() * t);
+        let z = &self.w_red * self.w_red.tr_mul(&t);
         let mut v = DVector::from_fn(self.rows.len(), |pos, _| {
             d.global_entries(self.rows[pos], &mut entries);
             entries.iter().map(|&(c, x)| x * z[c]).sum()
@@ -545,13 +545,64 @@ impl Schur {
         }
     }
 
-    /// Each column of m (rows by position) minus its projection on the column space.
+    /// Each column of m (rows by position) minus its projection on the column space: the
+    /// columns together, the rows' entries gathered once, each column walked contiguously (the
+    /// same sums in the same order as `project_off_vec` makes for one).
     pub fn project_off(&self, m: &DMatrix<f64>) -> DMatrix<f64> {
-        let mut out = DMatrix::zeros(m.nrows(), m.ncols());
-        for c in 0..m.ncols() {
-            out.set_column(c, &self.project_off_vec(&m.column(c).into_owned()));
+        let d = &self.design;
+        let rows = RowEntries::of(d, &self.rows);
+        let once = self.project_off_columns_once(m, &rows);
+        self.project_off_columns_once(&once, &rows)
+    }
+
+    fn project_off_columns_once(&self, y: &DMatrix<f64>, rows: &RowEntries) -> DMatrix<f64> {
+        let n = self.rows.len();
+        let (k, g, width) = (y.ncols(), self.design.n_global(), rows.width);
+        if n == 0 || k == 0 {
+            return y.clone();
         }
-        out
+        let mut tilde = y.clone();
+        for column in tilde.as_mut_slice().chunks_mut(n) {
+            self.project_off_points_slice(column, &rows.a);
+        }
+        let mut t = DMatrix::<f64>::zeros(g, k);
+        for (column, tc) in tilde
+            .as_slice()
+            .chunks(n)
+            .zip(t.as_mut_slice().chunks_mut(g))
+        {
+            for (pos, &v) in column.iter().enumerate() {
+                let at = pos * width;
+                let row = at..at + width;
+                for (&c, &x) in rows.cols[row.clone()].iter().zip(&rows.vals[row]) {
+                    tc[c] += x * v;
+                }
+            }
+        }
+        let z = &self.w_red * self.w_red.tr_mul(&t);
+        let mut v = DMatrix::<f64>::zeros(n, k);
+        for (vc, zc) in v.as_mut_slice().chunks_mut(n).zip(z.as_slice().chunks(g)) {
+            for (pos, out) in vc.iter_mut().enumerate() {
+                let at = pos * width;
+                *out = (at..at + width)
+                    .map(|e| rows.vals[e] * zc[rows.cols[e]])
+                    .sum();
+            }
+            self.project_off_points_slice(vc, &rows.a);
+        }
+        tilde - v
+    }
+
+    /// y ← (I − P_A) y for one column over the fit's rows (`a`: each row's point coefficients).
+    fn project_off_points_slice(&self, y: &mut [f64], a: &[Vector3<f64>]) {
+        for p in 0..self.design.n_points {
+            let members = self.members(p);
+            let q: Vector3<f64> = members.iter().map(|&pos| a[pos] * y[pos]).sum();
+            let t = self.m_pinv[p] * q;
+            for &pos in members {
+                y[pos] -= a[pos].dot(&t);
+            }
+        }
     }
 
     /// Whether design row i (any row, unwhitened) lies in the row space of the fit: its part in
@@ -614,7 +665,7 @@ impl Schur {
                 self.ct_point(r.point, &t, &mut ct);
                 let mut xg = d.global_dense(i) / r.w;
                 xg -= &ct;
-                xp.dot(&t) + (self.w_red.transpose() * xg).norm_squared()
+                xp.dot(&t) + self.w_red.tr_mul(&xg).norm_squared()
             })
             .collect()
     }
@@ -632,7 +683,7 @@ impl Schur {
                 for k in 0..3 {
                     let t = self.m_pinv[p].column(k).into_owned();
                     self.ct_point(p, &t, &mut ct);
-                    fp.set_column(k, &(self.w_red.transpose() * &ct));
+                    fp.set_column(k, &self.w_red.tr_mul(&ct));
                 }
             }
             f.push(fp);
@@ -696,6 +747,34 @@ impl Schur {
         let p = d.rows[i].point;
         let a = d.a(i);
         (self.m_pinv[p] * a, &red.f[p] * a)
+    }
+}
+
+/// A fit's rows' whitened coefficients gathered once: each row's point part, and its global
+/// entries (stations, segment, effects: the same number for every row) flat.
+struct RowEntries {
+    a: Vec<Vector3<f64>>,
+    width: usize,
+    cols: Vec<usize>,
+    vals: Vec<f64>,
+}
+
+impl RowEntries {
+    fn of(design: &Design, rows: &[usize]) -> RowEntries {
+        let width = 4 + design.effects.ncols();
+        let mut out = RowEntries {
+            a: rows.iter().map(|&i| design.a(i)).collect(),
+            width,
+            cols: Vec::with_capacity(width * rows.len()),
+            vals: Vec::with_capacity(width * rows.len()),
+        };
+        let mut entries = Vec::new();
+        for &i in rows {
+            design.global_entries(i, &mut entries);
+            out.cols.extend(entries.iter().map(|e| e.0));
+            out.vals.extend(entries.iter().map(|e| e.1));
+        }
+        out
     }
 }
 

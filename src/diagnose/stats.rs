@@ -167,6 +167,68 @@ impl Basis {
     }
 }
 
+/// Eigenvalues of a Gram matrix AᵀA below this fraction of its largest are rounding (its sums
+/// over the rows leave ~k ε of the largest): directions there have no singular value of A.
+const GRAM_ROUNDING: f64 = 1e-14;
+/// Smallest kept eigenvalue of a Gram matrix, relative to its largest, for which the Gram
+/// route is as accurate as the SVD: the normal equations square the condition number, so a
+/// kept direction at 1e-5 of the largest (singular values 3e-3) is resolved to ~2e-11.
+const GRAM_CONDITION: f64 = 1e-5;
+
+/// The right factor (singular values and Vᵀ, the directions above the rank cut as
+/// `Basis::new` keeps them) of a tall `a` from the eigen-decomposition of its k × k Gram
+/// matrix, in time n k² without the n × k orthonormal factor. None when some direction is
+/// between the Gram's rounding and its accurate range (an effect the model nearly absorbs): the
+/// caller then takes the SVD.
+pub fn gram_factor(
+    a: &DMatrix<f64>,
+    tol: f64,
+    reference: f64,
+) -> Option<(DVector<f64>, DMatrix<f64>)> {
+    let (n, k) = a.shape();
+    if n == 0 || k == 0 {
+        return Some((DVector::zeros(0), DMatrix::zeros(0, k)));
+    }
+    let mut g = DMatrix::<f64>::zeros(k, k);
+    // Blocks of rows: each block's transpose is small, and the product runs in the blocked
+    // matrix multiplication.
+    const BLOCK: usize = 2048;
+    let mut start = 0;
+    while start < n {
+        let len = BLOCK.min(n - start);
+        let block = a.rows(start, len);
+        let bt = block.transpose();
+        g.gemm(1.0, &bt, &block, 1.0);
+        start += len;
+    }
+    let g = DMatrix::from_fn(k, k, |r, c| 0.5 * (g[(r, c)] + g[(c, r)]));
+    let eig = g.symmetric_eigen();
+    let top = eig.eigenvalues.iter().copied().fold(0.0, f64::max);
+    let smax = top.sqrt().max(reference);
+    let cut = tol * smax;
+    let mut keep = Vec::new();
+    for (j, &l) in eig.eigenvalues.iter().enumerate() {
+        if l <= GRAM_ROUNDING * top {
+            // Rounding: the true singular value is below √(2 · rounding), which must be
+            // well under the cut to call it null.
+            if cut * cut <= 2.0 * GRAM_ROUNDING * top {
+                return None;
+            }
+        } else if l >= GRAM_CONDITION * top {
+            if l.sqrt() > cut && smax > 0.0 {
+                keep.push(j);
+            }
+        } else {
+            return None;
+        }
+    }
+    // Largest first, as the SVD orders them.
+    keep.sort_by(|&x, &y| eig.eigenvalues[y].total_cmp(&eig.eigenvalues[x]));
+    let s = DVector::from_fn(keep.len(), |r, _| eig.eigenvalues[keep[r]].sqrt());
+    let vt = DMatrix::from_fn(keep.len(), k, |r, c| eig.eigenvectors[(c, keep[r])]);
+    Some((s, vt))
+}
+
 /// Convergence tolerances of the SVD's bidiagonal iteration, tried in turn. nalgebra's
 /// default (5 ε, with an absolute test on the bidiagonal scaled to its largest entry) stops
 /// early on rank-deficient designs (the gauge's null directions): U S Vᵀ then misses the matrix
@@ -232,5 +294,45 @@ mod tests {
         // F quantiles: F(1, 100) 6.895 -> 0.01, F(3, 50) 2.790 -> 0.05.
         assert!((f_sf(6.895_2, 1.0, 100.0) - 0.01).abs() < 1e-4);
         assert!((f_sf(2.790_0, 3.0, 50.0) - 0.05).abs() < 1e-4);
+    }
+
+    /// A tall matrix with columns of different scales and one column a combination of
+    /// two others: the Gram route keeps the SVD's directions (same rank, singular values and
+    /// projector V Vᵀ); with a direction at 1e-4 of the largest singular value (Gram
+    /// eigenvalue 1e-8, outside its accurate range) it declines, for the SVD to decide.
+    #[test]
+    fn gram_factor_matches_the_svd_or_declines() {
+        let n = 5000;
+        let column = |i: usize, c: usize| -> f64 {
+            let x = i as f64 / n as f64;
+            match c {
+                0 => (7.0 * x).sin(),
+                1 => 0.03 * (3.0 * x).cos() + 0.03 * x * x,
+                2 => 2.0 * (7.0 * x).sin() - 3.0 * (0.03 * (3.0 * x).cos() + 0.03 * x * x),
+                _ => ((i * 7919 % 101) as f64 - 50.0) / 50.0,
+            }
+        };
+        let a = DMatrix::from_fn(n, 4, column);
+        let reference = (0..4).map(|c| a.column(c).norm()).fold(0.0, f64::max);
+        let (s, vt) = gram_factor(&a, EFFECT_RANK_TOL, reference).expect("well conditioned");
+        let basis = Basis::new(&a, EFFECT_RANK_TOL, reference);
+        assert_eq!(s.len(), 3);
+        assert_eq!(basis.rank(), 3);
+        for (gram, svd) in s.iter().zip(basis.s.iter()) {
+            assert!(
+                (gram - svd).abs() <= 1e-11 * basis.s[0],
+                "{s} vs {}",
+                basis.s
+            );
+        }
+        let projector = vt.transpose() * &vt;
+        let svd_projector = basis.vt.transpose() * &basis.vt;
+        assert!((projector - svd_projector).amax() <= 1e-10);
+        // Column 1 nearly a multiple of column 0: its part off column 0 is 1e-4 of it.
+        let b = DMatrix::from_fn(n, 2, |i, c| match c {
+            0 => (7.0 * i as f64 / n as f64).sin(),
+            _ => (7.0 * i as f64 / n as f64).sin() + 1e-4 * column(i, 3),
+        });
+        assert!(gram_factor(&b, EFFECT_RANK_TOL, b.column(0).norm()).is_none());
     }
 }
