@@ -13,7 +13,7 @@ use geocal::run::{RunOptions, RunOutput};
 use geocal::session::reader::read_session;
 use serde_json::Value;
 
-const EXAMPLE: &str = include_str!("../../../config/probe-install.toml");
+const EXAMPLE: &str = include_str!("../../config/probe-install.toml");
 
 /// The example with a fast machine (the emulators run in real time) and a short GA (the GA
 /// is not what this test is about).

@@ -14,7 +14,7 @@ use geocal::session::kind_messages::{hexapod_legs_topic, hexapod_pose_topic};
 use geocal::session::reader::read_session;
 use serde_json::Value;
 
-const EXAMPLE: &str = include_str!("../../../config/hexapod.toml");
+const EXAMPLE: &str = include_str!("../../config/hexapod.toml");
 
 /// The example with the hexapod over Modbus TCP (emulated under `[hil]`), a fast simulated
 /// platform, and `faults` for the emulator. The platform's poses are measured by the example's
