@@ -19,6 +19,7 @@ use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::locate::WhereEntry;
+use super::projected::column_norm_max;
 use super::selection::{Round, Tests};
 use super::stats::{chi2_sf, f_sf, Basis, EFFECT_RANK_TOL, RANK_TOL};
 use super::{
@@ -121,12 +122,6 @@ struct Eval {
 
 fn rows_of(m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
     DMatrix::from_fn(rows.len(), m.ncols(), |r, c| m[(rows[r], c)])
-}
-
-fn column_norm_max(m: &DMatrix<f64>) -> f64 {
-    (0..m.ncols())
-        .map(|c| m.column(c).norm())
-        .fold(0.0, f64::max)
 }
 
 impl Engine {
