@@ -490,8 +490,10 @@ async function renderJobs() {
   const [jobs, plans] = await Promise.all([api("/v1/jobs"), api("/v1/plans")]);
   const out = h("div", {}, h("h1", {}, "Jobs"));
   const message = h("p", { role: "status", id: "submit-message" });
+  // A redraw (a job queued or ended) keeps the operator's choice of plan.
+  const chosen = document.getElementById("plan-select")?.value;
   const choose = h("select", { id: "plan-select", "aria-label": "plan from the library" },
-    plans.map((p) => h("option", { value: p.name }, `${p.name}${p.kind ? ` (${p.kind}${p.machine ? `, ${p.machine}` : ""})` : ""}`)));
+    plans.map((p) => h("option", { value: p.name, selected: p.name === chosen }, `${p.name}${p.kind ? ` (${p.kind}${p.machine ? `, ${p.machine}` : ""})` : ""}`)));
   const submitted = (id) => { message.textContent = `Submitted as job ${id}.`; location.hash = `#/jobs/${id}`; };
   const fail = (e) => { if (!(e instanceof Unauthorized)) message.textContent = `Not submitted: ${e.message}`; };
   const upload = h("input", { type: "file", id: "plan-file", accept: ".toml,application/toml" });

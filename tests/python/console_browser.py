@@ -70,6 +70,10 @@ def submit_demo(page, plan="demo.toml"):
     page.goto(OPEN + "/#/jobs")
     page.wait_for_selector(f"#plan-select option[value='{plan}']", state="attached")
     page.select_option("#plan-select", plan)
+    # A redraw (a job queued or ended elsewhere) must keep the operator's choice.
+    page.evaluate("rerender()")
+    chosen = page.locator("#plan-select").input_value()
+    assert chosen == plan, f"a redraw of the jobs page reset the chosen plan to {chosen}"
     page.click("#submit-library")
     return job_id_of(page)
 
