@@ -77,10 +77,19 @@ pub const SESSION_COOKIE: &str = "geocal_session";
 
 /// The session cookie's values in a request's `Cookie` headers.
 fn session_cookies(headers: &axum::http::HeaderMap) -> impl Iterator<Item = &str> {
-    headers
-        .get_all(header::COOKIE)
-        .iter()
-        .filter_map(|v| v.to_str().ok())
+    session_cookie_values(
+        headers
+            .get_all(header::COOKIE)
+            .iter()
+            .filter_map(|v| v.to_str().ok()),
+    )
+}
+
+/// The values of the console's session cookie in `Cookie` header values.
+pub fn session_cookie_values<'a>(
+    cookie_headers: impl Iterator<Item = &'a str>,
+) -> impl Iterator<Item = &'a str> {
+    cookie_headers
         .flat_map(|v| v.split(';'))
         .filter_map(|pair| {
             let (name, value) = pair.trim().split_once('=')?;

@@ -111,12 +111,9 @@ impl LiveAccess {
             .flat_map(|(_, query)| form_urlencoded::parse(query.as_bytes()))
             .filter(|(key, _)| key == "token")
             .map(|(_, value)| value.into_owned());
-        let from_header = header("authorization").filter_map(|v| {
-            let (scheme, credentials) = v.trim().split_once(' ')?;
-            scheme
-                .eq_ignore_ascii_case("bearer")
-                .then(|| credentials.trim().to_owned())
-        });
+        let from_header = header("authorization")
+            .filter_map(super::auth::bearer_credentials)
+            .map(str::to_owned);
         let presented: Vec<String> = from_query.chain(from_header).collect();
         // The console's cookie, only from the console's own pages: other sites on this host
         // (another port of 127.0.0.1 is the same site) get the cookie sent too.
@@ -124,16 +121,10 @@ impl LiveAccess {
             .first()
             .is_some_and(|origin| self.is_console(origin.trim().trim_end_matches('/'), host));
         if presented.is_empty() && from_console {
-            let cookies = header("cookie")
-                .flat_map(|v| v.split(';'))
-                .filter_map(|pair| {
-                    let (name, value) = pair.trim().split_once('=')?;
-                    (name == super::auth::SESSION_COOKIE).then_some(value.trim())
-                });
-            for cookie in cookies {
-                if token.matches_session(cookie) {
-                    return None;
-                }
+            if super::auth::session_cookie_values(header("cookie"))
+                .any(|cookie| token.matches_session(cookie))
+            {
+                return None;
             }
         }
         match presented.as_slice() {
