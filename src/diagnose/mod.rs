@@ -775,7 +775,11 @@ pub(crate) fn diagnose_data(
             );
         }
         match (decided.selected(), decided.confounded_group()) {
-            (Some(best), _) => accepted.push(trials[best].model.clone()),
+            (Some(best), _) => accepted.push(
+                trials[best]
+                    .model
+                    .linearised_at(trials[best].eval.theta.as_slice()),
+            ),
             (None, Some(group)) => {
                 // None of the group is named, but the signal they share is in the data: the
                 // whole group joins the model (unnamed), so that the next rounds do not hand
@@ -810,7 +814,11 @@ pub(crate) fn diagnose_data(
         }
         _ => std::borrow::Cow::Borrowed(data),
     };
-    let final_fit = joint_fit(&fit_data, &geom, &accepted);
+    let mut final_fit = joint_fit(&fit_data, &geom, &accepted);
+    if accepted.iter().any(EffectModel::is_linearised) {
+        accepted = EffectModel::all_linearised_at(&accepted, data, final_fit.theta.as_slice());
+        final_fit = joint_fit(&fit_data, &geom, &accepted);
+    }
     let residuals =
         standardised_residuals(data, &solution.residuals_m, &final_fit.resid_m, &accepted);
     let chi2: f64 = final_fit
