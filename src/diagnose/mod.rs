@@ -707,7 +707,24 @@ pub(crate) fn diagnose_data(
                 (candidate.clone(), 1)
             };
             let a = model.columns(data, &geom);
-            let eval = engine.evaluate(&design, &full, &fold_fits, &a);
+            let mut eval = engine.evaluate(&design, &full, &fold_fits, &a);
+            // A model with a constraint linearised at its own estimate (the eccentricity's
+            // one size) is tested free (F test, BIC: no parameter chosen from the data) and
+            // predicts the held-out lengths constrained, as it enters the model.
+            let model = match model.linearised_at(eval.theta.as_slice()) {
+                constrained if constrained.is_linearised() => {
+                    let held = engine.evaluate(
+                        &design,
+                        &full,
+                        &fold_fits,
+                        &constrained.columns(data, &geom),
+                    );
+                    eval.heldout_ms_m2 = held.heldout_ms_m2;
+                    eval.heldout_z2 = held.heldout_z2;
+                    constrained
+                }
+                free => free,
+            };
             if eval.df == 0 {
                 if round == 0 {
                     notes.push(format!(
@@ -775,11 +792,7 @@ pub(crate) fn diagnose_data(
             );
         }
         match (decided.selected(), decided.confounded_group()) {
-            (Some(best), _) => accepted.push(
-                trials[best]
-                    .model
-                    .linearised_at(trials[best].eval.theta.as_slice()),
-            ),
+            (Some(best), _) => accepted.push(trials[best].model.clone()),
             (None, Some(group)) => {
                 // None of the group is named, but the signal they share is in the data: the
                 // whole group joins the model (unnamed), so that the next rounds do not hand
