@@ -572,3 +572,41 @@ impl EffectModel {
         }
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The one-size projector keeps every per-placement eccentricity of the same size at the
+    /// phases it is linearised at, and removes a difference of sizes between placements.
+    #[test]
+    fn one_size_keeps_equal_sizes_and_removes_their_difference() {
+        let (e, phases) = (4e-6, [0.4, 2.9, -1.3]);
+        let theta: Vec<f64> = phases
+            .iter()
+            .flat_map(|p: &f64| [e * p.cos(), e * p.sin(), 1e-6])
+            .collect();
+        let model = EffectModel::plain(EffectKind::TracerEccentricity).linearised_at(&theta);
+        assert!(model.is_linearised());
+        let p = model.shared_size(DMatrix::identity(9, 9));
+        let t = DVector::from_column_slice(&theta);
+        assert!((&p * &t - &t).amax() < 1e-18, "kept");
+        assert!((&p * &p - &p).amax() < 1e-12, "a projector");
+        // The first placement larger by 1 µm along its own phase: only the mean size stays.
+        let mut bigger = theta.clone();
+        bigger[0] += 1e-6 * phases[0].cos();
+        bigger[1] += 1e-6 * phases[0].sin();
+        let kept = &p * DVector::from_column_slice(&bigger);
+        let size = |b: usize| kept[3 * b].hypot(kept[3 * b + 1]);
+        for b in 0..3 {
+            assert!((size(b) - (e + 1e-6 / 3.0)).abs() < 1e-15, "block {b}");
+        }
+        // Another effect, or parameters not in blocks of three, are left free.
+        assert!(!EffectModel::plain(EffectKind::Reversal)
+            .linearised_at(&theta)
+            .is_linearised());
+        assert!(!EffectModel::plain(EffectKind::TracerEccentricity)
+            .linearised_at(&theta[..4])
+            .is_linearised());
+    }
+}
