@@ -306,7 +306,11 @@ const HELDOUT_VS_CLEAN_MAX: f64 = 1.3;
 /// The stations level's held-out ratio where the model holds: 12 table stations, each
 /// predicted from the others, z²/2 per station ~ χ²(2)/2 (variance 1), so the mean over 12 has
 /// a standard deviation of 0.29 and the ratio √(mean) of 0.14: one clean draw lies anywhere in
-/// 0.7-1.3 (outside-rotary-clean-2: 0.70). The bound is 3 of those above 1.
+/// 0.7-1.3 (outside-rotary-clean-2: 0.70). The bound is 3 of those above 1. Against one clean
+/// draw the level is the clean session's held-out ratio under the same model (its
+/// `table_error_motion` candidate, fitted though not selected): the nominal model's predicts
+/// from other columns, another random variable of the same noise (seeds 31-36: 0.58-1.44 of
+/// it after the effect, 0.999-1.001 of the same model's).
 const HELDOUT_STATIONS_MAX: f64 = 1.43;
 
 #[test]
@@ -317,7 +321,7 @@ fn simulated_effects_are_named_against_the_clean_case() {
     assert!(clean.selected.is_empty(), "{}", text(&clean));
     assert!(!clean.unexplained, "{}", text(&clean));
     let clean_lengths = clean.gap_after.heldout_ratio;
-    let clean_stations = stations_heldout(&clean).0;
+    let (clean_stations, clean_stations_same_model) = stations_heldout(&clean);
 
     let ecc = common::run_and_diagnose(&simulated(
         seed,
@@ -341,11 +345,15 @@ fn simulated_effects_are_named_against_the_clean_case() {
     assert!(!motion.unexplained, "{}", text(&motion));
     let (before, after) = stations_heldout(&motion);
     println!(
-        "stations held-out ratio: clean {clean_stations:.3}, table motion {before:.3} -> {after:.3}"
+        "stations held-out ratio: clean {clean_stations:.3} ({clean_stations_same_model:.3} with the motion's harmonics), table motion {before:.3} -> {after:.3}"
     );
     assert!(
         after <= HELDOUT_STATIONS_MAX,
         "held-out ratio after {after}"
+    );
+    assert!(
+        after <= HELDOUT_VS_CLEAN_MAX * clean_stations_same_model,
+        "held-out ratio after {after}, clean {clean_stations_same_model} under the same model"
     );
 
     let outside_library = common::run_and_diagnose(&simulated(

@@ -8,8 +8,9 @@ use common::{diagnose_demo, rigid_fit, rms_after, run_with_truth, truth_point, w
 use geocal::diagnose::correct::parse_effects;
 use geocal::method::SolveSettings;
 
-/// Point RMS error (m) after the best rigid fit onto the truth.
-fn point_error_m(config: &str, effects: &str) -> (f64, f64) {
+/// Point RMS error (m) after the best rigid fit onto the truth, χ²/dof, and the RMS of each
+/// coordinate's error over its σ (1 when the σ are honest).
+fn point_error_m(config: &str, effects: &str) -> (f64, f64, f64) {
     let dir = tempfile::tempdir().expect("tempdir");
     let (output, truth) = run_with_truth(config, dir.path());
     let settings = SolveSettings {
@@ -25,16 +26,30 @@ fn point_error_m(config: &str, effects: &str) -> (f64, f64) {
         .collect();
     let estimated: Vec<[f64; 3]> = results.points.iter().map(|p| p.actual_m).collect();
     let (r, t) = rigid_fit(&estimated, &truth_points);
+    let z2: Vec<f64> = results
+        .points
+        .iter()
+        .zip(&truth_points)
+        .flat_map(|(p, truth)| {
+            let moved = r * nalgebra::Vector3::from(p.actual_m) + t;
+            (0..3).map(move |k| ((moved[k] - truth[k]) / p.sigma_m[k]).powi(2))
+        })
+        .collect();
     (
         rms_after(&r, &t, &estimated, &truth_points),
         results.chi2_per_dof,
+        (z2.iter().sum::<f64>() / z2.len() as f64).sqrt(),
     )
 }
 
 #[test]
 fn each_effect_modelled_restores_the_points() {
     let seed = 41;
-    let (clean_m, _) = point_error_m(&with_effects(&diagnose_demo(), seed, ""), "");
+    let (clean_m, _, clean_z) = point_error_m(&with_effects(&diagnose_demo(), seed, ""), "");
+    println!(
+        "effect-free point RMS error {:.3} um, error/sigma RMS {clean_z:.2}",
+        clean_m * 1e6
+    );
     let cases = [
         (
             "station_drift",
@@ -66,16 +81,24 @@ fn each_effect_modelled_restores_the_points() {
     let mut failures = Vec::new();
     for (effect, line) in cases {
         let config = with_effects(&diagnose_demo(), seed, line);
-        let (plain_m, _) = point_error_m(&config, "");
-        let (modelled_m, chi2) = point_error_m(&config, effect);
+        let (plain_m, _, _) = point_error_m(&config, "");
+        let (modelled_m, chi2, z) = point_error_m(&config, effect);
         println!(
-            "{effect:<20} point RMS error {:.3} um unmodelled, {:.3} um modelled (effect-free {:.3} um), chi2/dof {chi2:.2}",
+            "{effect:<20} point RMS error {:.3} um unmodelled, {:.3} um modelled (effect-free {:.3} um), chi2/dof {chi2:.2}, error/sigma RMS {z:.2}",
             plain_m * 1e6,
             modelled_m * 1e6,
             clean_m * 1e6
         );
         if modelled_m > 2.0 * clean_m {
             failures.push(effect);
+        }
+        // Honest sigma with the eccentricity fitted (its parameters' covariance in the
+        // points'): error/sigma as on the same machine without the effect (0.78 there: the
+        // points' sigma in the solve's datum against errors after a rigid fit), neither
+        // overconfident nor inflated beyond a quarter.
+        let ratio = z / clean_z;
+        if effect == "tracer_eccentricity" && !(0.75..=1.3).contains(&ratio) {
+            failures.push("tracer_eccentricity sigma");
         }
     }
     assert!(failures.is_empty(), "not restored: {failures:?}");

@@ -115,7 +115,18 @@ pub fn correction_named(
             })
         })
         .collect::<Result<_, CorrectionError>>()?;
-    let fit = joint_fit(&data, &geom, &models);
+    // A model linearised about its own parameters (the eccentricity's shared size) is
+    // fitted free first, then at that estimate, then once more at the refined one.
+    let mut models: Vec<EffectModel> = models;
+    let mut fit = joint_fit(&data, &geom, &models);
+    for _ in 0..2 {
+        let refined = EffectModel::all_linearised_at(&models, &data, fit.theta.as_slice());
+        if !refined.iter().any(EffectModel::is_linearised) {
+            break;
+        }
+        models = refined;
+        fit = joint_fit(&data, &geom, &models);
+    }
     let np = fit.geom.len();
     let parameters = fit.theta.len();
     // Covariance of the effects' parameters: their block of the joint pseudo-inverse.

@@ -3,7 +3,7 @@
 
 use std::sync::Arc;
 
-use nalgebra::{DMatrix, Vector3};
+use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::data::{Data, Obs};
 use crate::method::tracer_effects::{BeamObservation, LengthEffect, TracerNetworkDiagnosis};
@@ -240,20 +240,31 @@ pub fn effect_by_name(name: &str) -> Result<EffectKind, String> {
 
 /// One effect as a model: its kind and, for a length step, where the step is (pass group and
 /// position in the pass's time order from which the lengths are shifted); for settling, its
-/// time constant; for an effect the plan kind models, that model.
+/// time constant; for an effect the plan kind models, that model; for the eccentricity, the
+/// phases its shared size is linearised about.
 #[derive(Debug, Clone)]
 pub struct EffectModel {
     pub kind: EffectKind,
     pub step: Option<(usize, usize)>,
     pub tau_s: Option<f64>,
     pub own: Option<Arc<dyn LengthEffect>>,
+    /// `tracer_eccentricity` with one size e for the instrument: each block's (station's, or
+    /// the table's) phase φ0 the constraint is linearised about (see [`EffectModel::columns`]).
+    pub phases: Option<Vec<f64>>,
 }
 
 impl PartialEq for EffectModel {
     fn eq(&self, other: &Self) -> bool {
-        self.kind == other.kind && self.step == other.step && self.tau_s == other.tau_s
+        self.kind == other.kind
+            && self.step == other.step
+            && self.tau_s == other.tau_s
+            && self.phases == other.phases
     }
 }
+
+/// The eccentricity's parameters come in blocks of three per placement of the tracer (a
+/// station, or the table it turns with): e cos φ0, e sin φ0, ez.
+const ECCENTRICITY_BLOCK: usize = 3;
 
 impl EffectModel {
     pub fn plain(kind: EffectKind) -> EffectModel {
@@ -262,7 +273,92 @@ impl EffectModel {
             step: None,
             tau_s: None,
             own: None,
+            phases: None,
         }
+    }
+
+    fn is_eccentricity(&self) -> bool {
+        self.kind.name() == EffectKind::TracerEccentricity.name()
+    }
+
+    /// The eccentricity with one size e shared by every placement of the tracer, linearised
+    /// about the phases of `theta` (the per-placement fit, e cos φ0, e sin φ0, ez per block):
+    /// e is the instrument's (its beam pivot's offset from its rotation centre), φ0 depends on
+    /// how the tracer was set down at each station (one for the table it turns with). Other
+    /// models, and a `theta` that is not in blocks of three, are returned as they are.
+    pub fn linearised_at(&self, theta: &[f64]) -> EffectModel {
+        if !self.is_eccentricity() || theta.is_empty() || theta.len() % ECCENTRICITY_BLOCK != 0 {
+            return self.clone();
+        }
+        let phases = theta
+            .chunks(ECCENTRICITY_BLOCK)
+            .map(|b| b[1].atan2(b[0]))
+            .collect();
+        EffectModel {
+            phases: Some(phases),
+            ..self.clone()
+        }
+    }
+
+    /// Each model linearised at its part of `theta` (the models' parameters in column order).
+    pub fn all_linearised_at(
+        models: &[EffectModel],
+        data: &Data,
+        theta: &[f64],
+    ) -> Vec<EffectModel> {
+        let mut at = 0;
+        models
+            .iter()
+            .map(|m| {
+                let width = m.param_names(data).len();
+                let part = theta.get(at..at + width).unwrap_or(&[]);
+                at += width;
+                m.linearised_at(part)
+            })
+            .collect()
+    }
+
+    /// Whether a model is linearised about an estimate of its own parameters (its fit is then
+    /// refined by fitting again at the estimate).
+    pub fn is_linearised(&self) -> bool {
+        self.phases.is_some()
+    }
+
+    /// Columns in blocks of (cos az, sin az, sin el) restricted to one shared size e:
+    /// f·P with P the projector onto the parameters e (cos φ_b, sin φ_b) + t_b (−sin φ_b,
+    /// cos φ_b) and ez_b, the constraint |(e cos φ0, e sin φ0)| equal in every block,
+    /// linearised at φ_b. The parameters keep their names and units; a minimum-norm fit lies
+    /// on that set.
+    fn shared_size(&self, f: DMatrix<f64>) -> DMatrix<f64> {
+        let Some(phases) = &self.phases else {
+            return f;
+        };
+        if f.ncols() != ECCENTRICITY_BLOCK * phases.len() {
+            return f;
+        }
+        let k = f.ncols();
+        let mut p = DMatrix::zeros(k, k);
+        let norm = (phases.len() as f64).sqrt();
+        let radial = DVector::from_fn(k, |c, _| {
+            let phi = phases[c / ECCENTRICITY_BLOCK];
+            match c % ECCENTRICITY_BLOCK {
+                0 => phi.cos() / norm,
+                1 => phi.sin() / norm,
+                _ => 0.0,
+            }
+        });
+        p += &radial * radial.transpose();
+        for (b, phi) in phases.iter().enumerate() {
+            let c = ECCENTRICITY_BLOCK * b;
+            let tangential = [-phi.sin(), phi.cos()];
+            for r in 0..2 {
+                for s in 0..2 {
+                    p[(c + r, c + s)] += tangential[r] * tangential[s];
+                }
+            }
+            p[(c + 2, c + 2)] = 1.0;
+        }
+        f * p
     }
 
     /// An effect the session's plan kind models.
@@ -349,9 +445,9 @@ impl EffectModel {
             })
             .collect();
         let f0 = self.absolute(data, &zeroings, geom);
-        DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
+        self.shared_size(DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
             f[(i, c)] - f0[(data.obs[i].pass_group, c)]
-        })
+        }))
     }
 
     /// f(obs): the effect's error in the absolute optical distance per unit parameter.
@@ -474,5 +570,43 @@ impl EffectModel {
                 f
             }
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The one-size projector keeps every per-placement eccentricity of the same size at the
+    /// phases it is linearised at, and removes a difference of sizes between placements.
+    #[test]
+    fn one_size_keeps_equal_sizes_and_removes_their_difference() {
+        let (e, phases) = (4e-6, [0.4, 2.9, -1.3]);
+        let theta: Vec<f64> = phases
+            .iter()
+            .flat_map(|p: &f64| [e * p.cos(), e * p.sin(), 1e-6])
+            .collect();
+        let model = EffectModel::plain(EffectKind::TracerEccentricity).linearised_at(&theta);
+        assert!(model.is_linearised());
+        let p = model.shared_size(DMatrix::identity(9, 9));
+        let t = DVector::from_column_slice(&theta);
+        assert!((&p * &t - &t).amax() < 1e-18, "kept");
+        assert!((&p * &p - &p).amax() < 1e-12, "a projector");
+        // The first placement larger by 1 µm along its own phase: only the mean size stays.
+        let mut bigger = theta.clone();
+        bigger[0] += 1e-6 * phases[0].cos();
+        bigger[1] += 1e-6 * phases[0].sin();
+        let kept = &p * DVector::from_column_slice(&bigger);
+        let size = |b: usize| kept[3 * b].hypot(kept[3 * b + 1]);
+        for b in 0..3 {
+            assert!((size(b) - (e + 1e-6 / 3.0)).abs() < 1e-15, "block {b}");
+        }
+        // Another effect, or parameters not in blocks of three, are left free.
+        assert!(!EffectModel::plain(EffectKind::Reversal)
+            .linearised_at(&theta)
+            .is_linearised());
+        assert!(!EffectModel::plain(EffectKind::TracerEccentricity)
+            .linearised_at(&theta[..4])
+            .is_linearised());
     }
 }

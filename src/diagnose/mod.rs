@@ -707,7 +707,24 @@ pub(crate) fn diagnose_data(
                 (candidate.clone(), 1)
             };
             let a = model.columns(data, &geom);
-            let eval = engine.evaluate(&design, &full, &fold_fits, &a);
+            let mut eval = engine.evaluate(&design, &full, &fold_fits, &a);
+            // A model with a constraint linearised at its own estimate (the eccentricity's
+            // one size) is tested free (F test, BIC: no parameter chosen from the data) and
+            // predicts the held-out lengths constrained, as it enters the model.
+            let model = match model.linearised_at(eval.theta.as_slice()) {
+                constrained if constrained.is_linearised() => {
+                    let held = engine.evaluate(
+                        &design,
+                        &full,
+                        &fold_fits,
+                        &constrained.columns(data, &geom),
+                    );
+                    eval.heldout_ms_m2 = held.heldout_ms_m2;
+                    eval.heldout_z2 = held.heldout_z2;
+                    constrained
+                }
+                free => free,
+            };
             if eval.df == 0 {
                 if round == 0 {
                     notes.push(format!(
@@ -810,7 +827,11 @@ pub(crate) fn diagnose_data(
         }
         _ => std::borrow::Cow::Borrowed(data),
     };
-    let final_fit = joint_fit(&fit_data, &geom, &accepted);
+    let mut final_fit = joint_fit(&fit_data, &geom, &accepted);
+    if accepted.iter().any(EffectModel::is_linearised) {
+        accepted = EffectModel::all_linearised_at(&accepted, data, final_fit.theta.as_slice());
+        final_fit = joint_fit(&fit_data, &geom, &accepted);
+    }
     let residuals =
         standardised_residuals(data, &solution.residuals_m, &final_fit.resid_m, &accepted);
     let chi2: f64 = final_fit
