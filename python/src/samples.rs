@@ -10,7 +10,13 @@ use arrow_array::builder::{Float64Builder, ListBuilder};
 use arrow_array::{
     ArrayRef, BooleanArray, Float64Array, RecordBatch, StringArray, UInt32Array, UInt64Array,
 };
+use geocal::session::messages::{
+    EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, TracerSample,
+};
 use geocal::session::reader::{Completeness, Session, Stamped};
+
+/// A record batch's columns by name.
+type Columns = Vec<(&'static str, ArrayRef)>;
 
 /// The session's parts, ready for Python.
 pub struct SessionRead {
@@ -78,12 +84,12 @@ fn losses(session: &Session) -> serde_json::Value {
 
 fn batches<T>(
     by_id: &BTreeMap<String, Vec<Stamped<T>>>,
-    columns: fn(&[Stamped<T>]) -> Vec<(&'static str, ArrayRef)>,
+    columns: fn(&[Stamped<T>]) -> Columns,
 ) -> anyhow::Result<Vec<(String, RecordBatch)>> {
     by_id
         .iter()
         .map(|(id, samples)| {
-            let mut all: Vec<(&'static str, ArrayRef)> = vec![
+            let mut all: Columns = vec![
                 (
                     "log_time_ns",
                     Arc::new(UInt64Array::from_iter_values(
@@ -142,11 +148,7 @@ fn strings<T>(samples: &[Stamped<T>], field: impl Fn(&T) -> &str) -> ArrayRef {
     )
 }
 
-use geocal::session::messages::{
-    EnvSample, MachineStateSample, ProbeSample, RotaryStateSample, TracerSample,
-};
-
-fn tracer(s: &[Stamped<TracerSample>]) -> Vec<(&'static str, ArrayRef)> {
+fn tracer(s: &[Stamped<TracerSample>]) -> Columns {
     vec![
         ("seq", u64s(s, |m| m.seq)),
         ("t_s", f64s(s, |m| m.t_s)),
@@ -162,7 +164,7 @@ fn tracer(s: &[Stamped<TracerSample>]) -> Vec<(&'static str, ArrayRef)> {
     ]
 }
 
-fn env(s: &[Stamped<EnvSample>]) -> Vec<(&'static str, ArrayRef)> {
+fn env(s: &[Stamped<EnvSample>]) -> Columns {
     let mut material = ListBuilder::new(Float64Builder::new());
     for sample in s {
         material.values().append_slice(&sample.msg.material_temp_k);
@@ -177,7 +179,7 @@ fn env(s: &[Stamped<EnvSample>]) -> Vec<(&'static str, ArrayRef)> {
     ]
 }
 
-fn rotary(s: &[Stamped<RotaryStateSample>]) -> Vec<(&'static str, ArrayRef)> {
+fn rotary(s: &[Stamped<RotaryStateSample>]) -> Columns {
     vec![
         ("t_s", f64s(s, |m| m.t_s)),
         ("commanded_rad", f64s(s, |m| m.commanded_rad)),
@@ -186,7 +188,7 @@ fn rotary(s: &[Stamped<RotaryStateSample>]) -> Vec<(&'static str, ArrayRef)> {
     ]
 }
 
-fn machine(s: &[Stamped<MachineStateSample>]) -> Vec<(&'static str, ArrayRef)> {
+fn machine(s: &[Stamped<MachineStateSample>]) -> Columns {
     vec![
         ("t_s", f64s(s, |m| m.t_s)),
         ("state", strings(s, |m| &m.state)),
@@ -198,7 +200,7 @@ fn machine(s: &[Stamped<MachineStateSample>]) -> Vec<(&'static str, ArrayRef)> {
     ]
 }
 
-fn probe(s: &[Stamped<ProbeSample>]) -> Vec<(&'static str, ArrayRef)> {
+fn probe(s: &[Stamped<ProbeSample>]) -> Columns {
     vec![
         ("seq", u64s(s, |m| m.seq)),
         ("t_s", f64s(s, |m| m.t_s)),
@@ -207,7 +209,7 @@ fn probe(s: &[Stamped<ProbeSample>]) -> Vec<(&'static str, ArrayRef)> {
 }
 
 /// A plan kind's own topic: each message's JSON text (the kind's method parses it).
-fn topic(s: &[Stamped<serde_json::Value>]) -> Vec<(&'static str, ArrayRef)> {
+fn topic(s: &[Stamped<serde_json::Value>]) -> Columns {
     let texts: Vec<String> = s.iter().map(|m| m.msg.to_string()).collect();
     vec![("json", Arc::new(StringArray::from(texts)))]
 }
