@@ -9,10 +9,10 @@ mod samples;
 use std::path::{Path, PathBuf};
 
 use arrow_array::RecordBatch;
+use arrow_pyarrow::ToPyArrow;
 use pyo3::exceptions::PyException;
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
-use pyo3_arrow::PyRecordBatch;
 
 use progress::Callback;
 
@@ -31,7 +31,7 @@ fn to_py_err(e: anyhow::Error) -> PyErr {
 }
 
 fn pyarrow(py: Python<'_>, batch: RecordBatch) -> PyResult<Bound<'_, PyAny>> {
-    PyRecordBatch::new(batch).into_pyarrow(py)
+    batch.to_pyarrow(py)
 }
 
 /// A results document's tables (parameters with σ, points, error functions) as the fleet
