@@ -46,3 +46,28 @@ pub fn is_broken_pipe(error: &anyhow::Error) -> bool {
             .is_some_and(|e| e.kind() == std::io::ErrorKind::BrokenPipe)
     })
 }
+
+/// What the command line prints for an error (the Python package raises the same text): the
+/// error and its causes, one cause per line, outermost first. Many messages embed their
+/// source's text as a suffix: that suffix is cut from the line, so no cause shows twice.
+pub fn error_text(e: &anyhow::Error) -> String {
+    let mut lines: Vec<String> = Vec::new();
+    for cause in e.chain() {
+        let text = cause.to_string();
+        if let Some(last) = lines.last_mut() {
+            if let Some(head) = last.strip_suffix(&format!(": {text}")) {
+                *last = head.to_owned();
+            } else if last.contains(&text) {
+                continue;
+            }
+        }
+        lines.push(text);
+    }
+    let mut out = String::new();
+    for (i, line) in lines.iter().enumerate() {
+        out += if i == 0 { "error: " } else { "  because: " };
+        out += line;
+        out += "\n";
+    }
+    out
+}

@@ -322,34 +322,10 @@ fn main() -> ExitCode {
         // The reader of stdout has gone (`geocal check X | head -1`): nothing left to say.
         Err(e) if geocal::console::is_broken_pipe(&e) => ExitCode::SUCCESS,
         Err(e) => {
-            geocal::console::write_err(format_args!("{}", error_text(&e)));
+            geocal::console::write_err(format_args!("{}", geocal::console::error_text(&e)));
             ExitCode::FAILURE
         }
     }
-}
-
-/// The error and its causes, one cause per line, outermost first. Many messages embed their
-/// source's text as a suffix: that suffix is cut from the line, so no cause shows twice.
-fn error_text(e: &anyhow::Error) -> String {
-    let mut lines: Vec<String> = Vec::new();
-    for cause in e.chain() {
-        let text = cause.to_string();
-        if let Some(last) = lines.last_mut() {
-            if let Some(head) = last.strip_suffix(&format!(": {text}")) {
-                *last = head.to_owned();
-            } else if last.contains(&text) {
-                continue;
-            }
-        }
-        lines.push(text);
-    }
-    let mut out = String::new();
-    for (i, line) in lines.iter().enumerate() {
-        out += if i == 0 { "error: " } else { "  because: " };
-        out += line;
-        out += "\n";
-    }
-    out
 }
 
 /// Ctrl-C (SIGINT) or SIGTERM during `geocal run` cancels the run as the daemon's cancel
