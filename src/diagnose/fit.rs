@@ -92,6 +92,14 @@ impl Fit {
         }
     }
 
+    /// [`Fit::project_off`] in place of `m` (structured: no copy of it).
+    pub fn project_off_owned(&self, m: DMatrix<f64>) -> DMatrix<f64> {
+        match self {
+            Fit::Structured(s) => s.project_off_owned(m),
+            Fit::Dense(d) => d.project_off(&m),
+        }
+    }
+
     /// Whether design row i lies in the row space of the fit (its length is predictable).
     pub fn in_row_space(&self, i: usize) -> bool {
         match self {

@@ -36,7 +36,6 @@ use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use crate::extract::SettledSession;
 use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
@@ -237,12 +236,18 @@ pub fn diagnose_file_detailed(
         .with_context(|| format!("reading {}", path.display()))?
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
-    let detailed = Data::from_settled(settled.clone())
+    // The settled session is consumed by the observations (not kept beside them): the
+    // corrected calibration, when an effect is selected, reads the file again.
+    let data = Data::from_settled(settled)
         .map_err(DiagnoseError::from)
-        .and_then(|data| diagnose_data(&data, options))
         .with_context(|| format!("diagnosing {}", path.display()))?;
+    let detailed = diagnose_data(&data, options)
+        .map_err(anyhow::Error::from)
+        .with_context(|| format!("diagnosing {}", path.display()))?;
+    let kind = data.header.kind.clone();
+    drop(data);
     let mut diagnosis = detailed.diagnosis;
-    match corrected_calibration(&settled, path, &diagnosis.selected) {
+    match corrected_calibration(&kind, path, &diagnosis.selected) {
         Ok(corrected) => diagnosis.corrected = corrected,
         Err(why) => diagnosis
             .notes
@@ -252,15 +257,16 @@ pub fn diagnose_file_detailed(
 }
 
 /// The calibration re-solved with the selected effects that the solve can model, and how far
-/// its points moved from the nominal calibration's; None when none was selected.
+/// its points moved from the nominal calibration's; None when none was selected. The file's
+/// settled windows are read again (only then).
 fn corrected_calibration(
-    settled: &SettledSession,
+    kind: &str,
     path: &Path,
     selected: &[String],
 ) -> Result<Option<CorrectedCalibration>, String> {
     // The effects the solve models: those on the lengths (not the raw windows' settling, the
     // points level's target offset or an effect on the stations).
-    let stations_effect = crate::kinds::kind_named(&settled.header.kind)
+    let stations_effect = crate::kinds::kind_named(kind)
         .and_then(|k| k.tracer_diagnosis())
         .and_then(|n| n.stations_effect());
     let known = effects::known_names();
@@ -274,6 +280,12 @@ fn corrected_calibration(
     if kinds.is_empty() {
         return Ok(None);
     }
+    let settled = match data::settled_of_file(path) {
+        Ok(Ok(settled)) => settled,
+        Ok(Err(why)) => return Err(why.to_string()),
+        Err(why) => return Err(format!("reading {}: {why}", path.display())),
+    };
+    let settled = &settled;
     let solve_with = |effects: Vec<&'static str>| {
         let settings = crate::method::SolveSettings {
             effects: correct::fit_named(effects),

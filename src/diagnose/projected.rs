@@ -1,45 +1,58 @@
 //! A candidate effect's whitened columns projected off a base fit, and their factorisation:
 //! from the k × k Gram matrix where that is as accurate as the SVD (time n k², no n × k
-//! orthonormal factor, no SVD of a tall matrix), else by the thin SVD; always by the SVD when
-//! the diagnosis runs as its dense oracle, so that the oracle checks the Gram route.
+//! orthonormal factor, no SVD of a tall matrix), else through the columns' Householder QR and
+//! the SVD of its k × k factor (`stats::QrBasis`, as accurate as the SVD of the tall matrix);
+//! always by the SVD of the tall matrix when the diagnosis runs as its dense oracle, so that
+//! the oracle checks both routes.
 
 use nalgebra::{DMatrix, DVector};
 
 use super::fit::Fit;
-use super::stats::{gram_factor, Basis, EFFECT_RANK_TOL};
+use super::stats::{gram_factor, Basis, QrBasis, EFFECT_RANK_TOL};
 
 pub struct Projected {
-    /// The projected columns over the fit's rows (by position).
-    columns: DMatrix<f64>,
     /// Singular values and right singular vectors of the kept directions.
     pub s: DVector<f64>,
     pub vt: DMatrix<f64>,
-    /// The orthonormal left factor, when the SVD gave it.
-    u: Option<DMatrix<f64>>,
+    left: Left,
+}
+
+/// What gives the left factor U.
+enum Left {
+    /// The projected columns over the fit's rows (by position): U = columns V S⁻¹.
+    Columns(DMatrix<f64>),
+    /// Their QR: U = Q U_R.
+    Qr(QrBasis),
+    /// U itself (the dense oracle's SVD).
+    U(DMatrix<f64>),
 }
 
 impl Projected {
-    /// `aw`: the candidate's whitened columns over the fit's rows (dropped once projected).
+    /// `aw`: the candidate's whitened columns over the fit's rows (projected in place).
     pub fn new(fit: &Fit, aw: DMatrix<f64>) -> Projected {
         let reference = column_norm_max(&aw);
-        let columns = fit.project_off(&aw);
-        drop(aw);
-        if !fit.is_dense() {
-            if let Some((s, vt)) = gram_factor(&columns, EFFECT_RANK_TOL, reference) {
-                return Projected {
-                    columns,
-                    s,
-                    vt,
-                    u: None,
-                };
-            }
+        let columns = fit.project_off_owned(aw);
+        if fit.is_dense() {
+            let basis = Basis::new(&columns, EFFECT_RANK_TOL, reference);
+            return Projected {
+                s: basis.s,
+                vt: basis.vt,
+                left: Left::U(basis.u),
+            };
         }
-        let basis = Basis::new(&columns, EFFECT_RANK_TOL, reference);
+        if let Some((s, vt)) = gram_factor(&columns, EFFECT_RANK_TOL, reference) {
+            return Projected {
+                s,
+                vt,
+                left: Left::Columns(columns),
+            };
+        }
+        // A direction the model nearly absorbs: the Gram matrix cannot resolve it.
+        let basis = QrBasis::new(columns, EFFECT_RANK_TOL, reference);
         Projected {
-            columns,
-            s: basis.s,
-            vt: basis.vt,
-            u: Some(basis.u),
+            s: basis.s.clone(),
+            vt: basis.vt.clone(),
+            left: Left::Qr(basis),
         }
     }
 
@@ -48,19 +61,21 @@ impl Projected {
         self.s.len()
     }
 
-    /// Uᵀ b, b over the fit's rows: S⁻¹ Vᵀ (columnsᵀ b) without U.
+    /// Uᵀ b, b over the fit's rows (for the Gram route S⁻¹ Vᵀ (columnsᵀ b), without U).
     pub fn ut(&self, b: &DVector<f64>) -> DVector<f64> {
-        match &self.u {
-            Some(u) => u.transpose() * b,
-            None => (&self.vt * self.columns.tr_mul(b)).component_div(&self.s),
+        match &self.left {
+            Left::Columns(columns) => (&self.vt * columns.tr_mul(b)).component_div(&self.s),
+            Left::Qr(qr) => qr.ut(b),
+            Left::U(u) => u.tr_mul(b),
         }
     }
 
-    /// U c over the fit's rows: columns V S⁻¹ c.
+    /// U c over the fit's rows.
     pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
-        match &self.u {
-            Some(u) => u * c,
-            None => &self.columns * self.v_scaled(c),
+        match &self.left {
+            Left::Columns(columns) => columns * self.v_scaled(c),
+            Left::Qr(qr) => qr.u() * c,
+            Left::U(u) => u * c,
         }
     }
 
@@ -76,14 +91,15 @@ impl Projected {
 
     /// The orthonormal basis U of the projected columns' span.
     pub fn into_u(self) -> DMatrix<f64> {
-        match self.u {
-            Some(u) => u,
-            None => {
+        match self.left {
+            Left::Columns(columns) => {
                 let scaled = DMatrix::from_fn(self.vt.ncols(), self.vt.nrows(), |c, k| {
                     self.vt[(k, c)] / self.s[k]
                 });
-                &self.columns * scaled
+                columns * scaled
             }
+            Left::Qr(qr) => qr.u(),
+            Left::U(u) => u,
         }
     }
 }

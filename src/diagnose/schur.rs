@@ -549,19 +549,23 @@ impl Schur {
     /// columns together, the rows' entries gathered once, each column walked contiguously (the
     /// same sums in the same order as `project_off_vec` makes for one).
     pub fn project_off(&self, m: &DMatrix<f64>) -> DMatrix<f64> {
+        self.project_off_owned(m.clone())
+    }
+
+    /// [`Schur::project_off`] in place of `m`: besides it, one column's scratch.
+    pub fn project_off_owned(&self, m: DMatrix<f64>) -> DMatrix<f64> {
         let d = &self.design;
         let rows = RowEntries::of(d, &self.rows);
         let once = self.project_off_columns_once(m, &rows);
-        self.project_off_columns_once(&once, &rows)
+        self.project_off_columns_once(once, &rows)
     }
 
-    fn project_off_columns_once(&self, y: &DMatrix<f64>, rows: &RowEntries) -> DMatrix<f64> {
+    fn project_off_columns_once(&self, mut tilde: DMatrix<f64>, rows: &RowEntries) -> DMatrix<f64> {
         let n = self.rows.len();
-        let (k, g, width) = (y.ncols(), self.design.n_global(), rows.width);
+        let (k, g, width) = (tilde.ncols(), self.design.n_global(), rows.width);
         if n == 0 || k == 0 {
-            return y.clone();
+            return tilde;
         }
-        let mut tilde = y.clone();
         for column in tilde.as_mut_slice().chunks_mut(n) {
             self.project_off_points_slice(column, &rows.a);
         }
@@ -580,17 +584,24 @@ impl Schur {
             }
         }
         let z = &self.w_red * self.w_red.tr_mul(&t);
-        let mut v = DMatrix::<f64>::zeros(n, k);
-        for (vc, zc) in v.as_mut_slice().chunks_mut(n).zip(z.as_slice().chunks(g)) {
+        let mut vc = vec![0.0; n];
+        for (column, zc) in tilde
+            .as_mut_slice()
+            .chunks_mut(n)
+            .zip(z.as_slice().chunks(g))
+        {
             for (pos, out) in vc.iter_mut().enumerate() {
                 let at = pos * width;
                 *out = (at..at + width)
                     .map(|e| rows.vals[e] * zc[rows.cols[e]])
                     .sum();
             }
-            self.project_off_points_slice(vc, &rows.a);
+            self.project_off_points_slice(&mut vc, &rows.a);
+            for (y, v) in column.iter_mut().zip(&vc) {
+                *y -= v;
+            }
         }
-        tilde - v
+        tilde
     }
 
     /// y ← (I − P_A) y for one column over the fit's rows (`a`: each row's point coefficients).

@@ -229,6 +229,46 @@ pub fn gram_factor(
     Some((s, vt))
 }
 
+/// The thin SVD of a tall matrix (n × k, n ≫ k) through its Householder QR: the SVD of the
+/// k × k factor R gives the singular values and right vectors, U = Q U_R. Backward stable as
+/// the SVD of the whole matrix (the same directions above the rank cut to rounding), but the
+/// SVD's iterations run on k × k instead of rotating n-long columns, and Q is formed only when
+/// U itself is asked for: Uᵀ b applies the reflectors.
+pub struct QrBasis {
+    qr: nalgebra::QR<f64, nalgebra::Dyn, nalgebra::Dyn>,
+    /// Left singular vectors of R kept (min(n, k) × rank).
+    u_r: DMatrix<f64>,
+    pub s: DVector<f64>,
+    pub vt: DMatrix<f64>,
+}
+
+impl QrBasis {
+    /// Directions with singular value > tol · max(reference, largest singular value), as
+    /// [`Basis::new`] keeps them.
+    pub fn new(a: DMatrix<f64>, tol: f64, reference: f64) -> QrBasis {
+        let qr = a.qr();
+        let inner = Basis::new(&qr.r(), tol, reference);
+        QrBasis {
+            qr,
+            u_r: inner.u,
+            s: inner.s,
+            vt: inner.vt,
+        }
+    }
+
+    /// Uᵀ b.
+    pub fn ut(&self, b: &DVector<f64>) -> DVector<f64> {
+        let mut y = b.clone();
+        self.qr.q_tr_mul(&mut y);
+        self.u_r.tr_mul(&y.rows(0, self.u_r.nrows()))
+    }
+
+    /// The orthonormal left factor U (n × rank).
+    pub fn u(&self) -> DMatrix<f64> {
+        self.qr.q() * &self.u_r
+    }
+}
+
 /// Convergence tolerances of the SVD's bidiagonal iteration, tried in turn. nalgebra's
 /// default (5 ε, with an absolute test on the bidiagonal scaled to its largest entry) stops
 /// early on rank-deficient designs (the gauge's null directions): U S Vᵀ then misses the matrix
@@ -334,5 +374,30 @@ mod tests {
             _ => (7.0 * i as f64 / n as f64).sin() + 1e-4 * column(i, 3),
         });
         assert!(gram_factor(&b, EFFECT_RANK_TOL, b.column(0).norm()).is_none());
+        // There the QR route keeps the SVD's directions: singular values, V Vᵀ, U Uᵀ y, Uᵀ y.
+        let qr = QrBasis::new(b.clone(), EFFECT_RANK_TOL, b.column(0).norm());
+        let svd = Basis::new(&b, EFFECT_RANK_TOL, b.column(0).norm());
+        assert_eq!(qr.s.len(), 2);
+        assert_eq!(svd.rank(), 2);
+        assert!(
+            (&qr.s - &svd.s).amax() <= 1e-12 * svd.s[0],
+            "{} vs {}",
+            qr.s,
+            svd.s
+        );
+        let projector = qr.vt.transpose() * &qr.vt;
+        assert!((projector - svd.vt.transpose() * &svd.vt).amax() <= 1e-10);
+        let y = DVector::from_fn(n, |i, _| column(i, 3) + (5.0 * i as f64 / n as f64).cos());
+        // Both are backward stable: the fitted values agree to rounding times the condition.
+        let tol = 1e-14 * (svd.s[0] / svd.s[1]) * y.norm();
+        let (u, svd_ut) = (qr.u(), svd.u.tr_mul(&y));
+        let fitted = &u * qr.ut(&y);
+        let gap = (&fitted - &svd.u * &svd_ut).amax();
+        assert!(
+            gap <= tol,
+            "fitted values {gap:e} apart (tolerance {tol:e})"
+        );
+        assert!((qr.ut(&y).norm() - svd_ut.norm()).abs() <= tol);
+        assert!((u.tr_mul(&u) - DMatrix::identity(2, 2)).amax() <= 1e-13);
     }
 }
