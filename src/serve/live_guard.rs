@@ -120,12 +120,12 @@ impl LiveAccess {
         let from_console = origins
             .first()
             .is_some_and(|origin| self.is_console(origin.trim().trim_end_matches('/'), host));
-        if presented.is_empty() && from_console {
-            if super::auth::session_cookie_values(header("cookie"))
+        if presented.is_empty()
+            && from_console
+            && super::auth::session_cookie_values(header("cookie"))
                 .any(|cookie| token.matches_session(cookie))
-            {
-                return None;
-            }
+        {
+            return None;
         }
         match presented.as_slice() {
             [one] if token.matches(one.as_bytes()) => None,
