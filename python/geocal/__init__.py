@@ -201,7 +201,24 @@ def _covariances(value: Any, prefix: str = "") -> Dict[str, Any]:
 
 
 @dataclass
-class Results:
+class _CommandOutput:
+    """What a command prints: its JSON (``data`` parsed) and its text report."""
+
+    json_text: str
+    text: Optional[str]
+    data: Dict[str, Any] = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.data = json.loads(self.json_text)
+
+    def to_json(self) -> str:
+        """The command's JSON exactly as the command line writes it (``--out FILE`` for
+        results; ``--json`` without its final newline for the others)."""
+        return self.json_text
+
+
+@dataclass
+class Results(_CommandOutput):
     """A calibration's results (``geocal-results/1``) of any plan kind.
 
     ``parameters`` (every estimate with its σ), ``points`` (nominal, error and σ per axis) and
@@ -210,19 +227,9 @@ class Results:
     (docs/fleet.md); ``data`` is the parsed JSON; ``text`` the command line's report.
     """
 
-    json_text: str
-    text: Optional[str]
     parameters: Any
     points: Any
     error_functions: Any
-    data: Dict[str, Any] = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = json.loads(self.json_text)
-
-    def to_json(self) -> str:
-        """The results JSON exactly as ``geocal solve --out FILE`` writes it."""
-        return self.json_text
 
     @property
     def kind(self) -> str:
@@ -281,19 +288,8 @@ def solve(
 
 
 @dataclass
-class Diagnosis:
+class Diagnosis(_CommandOutput):
     """The sim-to-real gap diagnosis of a session (``geocal diagnose``)."""
-
-    json_text: str
-    text: str
-    data: Dict[str, Any] = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = json.loads(self.json_text)
-
-    def to_json(self) -> str:
-        """The JSON of ``geocal diagnose --json`` (without its final newline)."""
-        return self.json_text
 
     @property
     def selected(self) -> List[str]:
@@ -321,19 +317,8 @@ def diagnose(path: PathLike, progress: Progress = None) -> Diagnosis:
 
 
 @dataclass
-class PlanCheck:
+class PlanCheck(_CommandOutput):
     """What a plan predicts before it runs (``geocal check``)."""
-
-    json_text: str
-    text: str
-    data: Dict[str, Any] = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = json.loads(self.json_text)
-
-    def to_json(self) -> str:
-        """The JSON of ``geocal check --json`` (without its final newline)."""
-        return self.json_text
 
 
 def check(config: PathLike) -> PlanCheck:
@@ -343,19 +328,8 @@ def check(config: PathLike) -> PlanCheck:
 
 
 @dataclass
-class Comparison:
+class Comparison(_CommandOutput):
     """Whether a machine changed between two runs (``geocal compare``, ``geocal-compare/1``)."""
-
-    json_text: str
-    text: str
-    data: Dict[str, Any] = field(init=False)
-
-    def __post_init__(self) -> None:
-        self.data = json.loads(self.json_text)
-
-    def to_json(self) -> str:
-        """The JSON of ``geocal compare --json`` (without its final newline)."""
-        return self.json_text
 
     def table(self) -> Any:
         """One row per parameter compared, as a ``pyarrow.Table``."""
