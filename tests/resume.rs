@@ -1,7 +1,9 @@
 //! Durability: a simulated run (paced to 300x real time) is killed with SIGKILL at a seeded
 //! random moment, then `geocal run --resume DIR` completes it. The killed file must still
 //! read; every message it holds must appear unchanged in the final file; the results must
-//! recover the truth as an unbroken run does, and agree with the unbroken run's.
+//! recover the truth as an unbroken run does, and agree with the unbroken run's. A run
+//! cancelled through its control (the daemon's cancel, a progress callback's) stops at the
+//! point it was cancelled at, for every kind, simulated devices included.
 
 mod common;
 
@@ -202,4 +204,69 @@ fn killed_runs_resume_and_match_an_unbroken_run() {
             resumed.extraction.windows_repeated
         );
     }
+}
+
+#[test]
+fn a_cancelled_run_stops_at_the_point_it_was_cancelled_at_for_every_kind() {
+    use std::sync::{Arc, Mutex};
+
+    use geocal::kinds::Registry;
+    use geocal::run::control::RunControl;
+    use geocal::run::RunOptions;
+
+    let configs = Path::new(env!("CARGO_MANIFEST_DIR")).join("config");
+    let mut kinds = Vec::new();
+    for entry in std::fs::read_dir(&configs).expect("config/") {
+        let config = entry.expect("entry").path();
+        if config.extension().is_none_or(|e| e != "toml") {
+            continue;
+        }
+        let dir = tempfile::tempdir().expect("tempdir");
+        let reported = Arc::new(Mutex::new(Vec::new()));
+        let cancel = tokio_util::sync::CancellationToken::new();
+        let (seen, token) = (reported.clone(), cancel.clone());
+        let control = RunControl {
+            cancel: cancel.clone(),
+            progress: Some(Arc::new(move |done: u64, _total: u64| {
+                seen.lock().expect("progress").push(done);
+                if done == 3 {
+                    token.cancel();
+                }
+            })),
+            ..Default::default()
+        };
+        let options = RunOptions {
+            out_dir: dir.path().join("run"),
+            truth: None,
+            progress: false,
+            settings: Default::default(),
+            control,
+        };
+        let kind = Registry::standard().of_config(&config).expect("kind");
+        let outcome = kind.run(&config, &options, &Default::default());
+        let error = match outcome {
+            Ok(_) => panic!("{}: ran to its end after a cancel", config.display()),
+            Err(e) => format!("{e:#}"),
+        };
+        assert!(
+            error.contains("run cancelled"),
+            "{}: {error}",
+            config.display()
+        );
+        let reported = reported.lock().expect("progress").clone();
+        assert_eq!(reported, [1, 2, 3], "{}", config.display());
+        assert!(dir.path().join("run/session.mcap").is_file());
+        kinds.push(kind.name());
+    }
+    kinds.sort_unstable();
+    assert_eq!(
+        kinds,
+        [
+            "hexapod",
+            "multilateration",
+            "probe_install",
+            "rotary_sphere",
+            "rotary_tracer"
+        ]
+    );
 }

@@ -105,10 +105,11 @@ def test_a_progress_callback_that_raises_stops_reporting_and_raises(tmp_path):
 
     with pytest.raises(RuntimeError, match="enough"):
         geocal.run(DEMO, tmp_path / "cut", progress=stop)
-    # Called no more once it raised; the run was cancelled as Ctrl-C cancels `geocal run`
-    # (a simulated run on its virtual clock never waits, so it may finish first).
+    # Called no more once it raised; the run was cancelled as Ctrl-C cancels `geocal run`:
+    # its session is kept (to resume) and nothing was solved.
     assert calls == [1, 2, 3]
     assert (tmp_path / "cut" / "session.mcap").is_file()
+    assert not (tmp_path / "cut" / "results.json").exists()
 
 
 # --- solve --------------------------------------------------------------------------------

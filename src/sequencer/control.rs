@@ -15,3 +15,10 @@ pub type OperatorSource = Arc<dyn Fn() -> Box<dyn Operator> + Send + Sync>;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
 #[error("run cancelled (the session recorded so far is kept; resume it to finish the plan)")]
 pub struct Cancelled;
+
+/// Called after each point: gives the runtime a turn so that a cancel (the daemon's, Ctrl-C,
+/// a progress callback's) is seen at once. Simulated devices answer without ever waiting, so
+/// without it a simulated run would only notice a cancel when it ended.
+pub async fn cancellation_point() {
+    tokio::task::yield_now().await;
+}

@@ -309,6 +309,7 @@ impl<'a> Sequencer<'a> {
                                 next += 1;
                                 done += 1;
                                 progress(done, total);
+                                control::cancellation_point().await;
                             }
                             Step::BeamBroken => {
                                 breaks += 1;

@@ -325,6 +325,7 @@ impl Sequencer<'_> {
                                 self.summary.points_measured += 1;
                                 done += 1;
                                 progress(done, total);
+                                super::control::cancellation_point().await;
                             }
                         }
                         Action::Unplanned { index, message } => {

@@ -144,6 +144,7 @@ impl<'a> HexapodSequencer<'a> {
             self.log.recorder.checkpoint();
             self.summary.points_measured += 1;
             progress(pose as u64 + 1, total);
+            crate::sequencer::control::cancellation_point().await;
         }
         self.summary.faults = self.log.faults;
         Ok(self.summary)

@@ -104,6 +104,7 @@ impl<'a> ProbeInstallSequencer<'a> {
             });
             self.summary.points_measured += 1;
             progress(done as u64 + 1, total);
+            crate::sequencer::control::cancellation_point().await;
         }
         if let Some(prev) = current {
             self.end_posture(prev);

@@ -126,6 +126,7 @@ impl<'a> SphereSequencer<'a> {
                     self.probe_point(h, a, k).await?;
                     done += 1;
                     progress(done, total);
+                    crate::sequencer::control::cancellation_point().await;
                 }
                 self.event(RunEvent::SphereEnd {
                     height_index: h,
