@@ -229,9 +229,9 @@ fn hexapod_clean_sessions_raise_few_false_alarms() {
 
 #[test]
 fn hexapod_outside_sessions() {
-    assert_clean(&diagnose(
-        &outside("outside-hexapod-clean-2").join("session.mcap"),
-    ));
+    for clean in ["outside-hexapod-clean-2", "outside-hexapod-sensor-topic-3"] {
+        assert_clean(&diagnose(&outside(clean).join("session.mcap")));
+    }
     let name = "outside-hexapod-leg-scale-21";
     let truth = outside_truth(name);
     assert_eq!(truth["vocabulary_effects"][0], "leg_scale");

@@ -14,9 +14,7 @@ use crate::run::replay::{
     config_from_header, device_id, ended, replay_runtime, sequence_end, stream, ReplayClock,
     SequenceEnd,
 };
-use crate::session::kind_messages::{
-    hexapod_legs_topic, hexapod_pose_topic, LegSample, PlatformPoseSample,
-};
+use crate::session::kind_messages::{hexapod_legs_topic, LegSample, PlatformPoseSample};
 use crate::session::messages::RunEvent;
 use crate::session::reader::Session;
 use crate::session::recorder::RecorderHandle;
@@ -53,10 +51,11 @@ pub fn replay(session: &Session, handle: RecorderHandle) -> anyhow::Result<Seque
             .filter(|e| matches!(e.msg, RunEvent::PoseBegin { .. }))
             .map(|e| e.log_time_ns)
             .collect();
+        let pose_topic = super::solve::measured_pose_topic(session, &id, sensor.as_deref())?;
         let pose_sensor = match sensor {
             Some(sid) => Some(Box::new(ReplayPoseSensor {
                 clock: clock.clone(),
-                poses: stream(session, &hexapod_pose_topic(&id))?,
+                poses: stream(session, &pose_topic)?,
                 id: sid,
             }) as Box<dyn PoseSensor>),
             None => None,

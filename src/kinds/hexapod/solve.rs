@@ -58,9 +58,15 @@ pub enum HexapodMethodError {
     },
     #[error(
         "poses published on {found}: the contract (docs/session-format.md) is \
-         `/hexapod/<hexapod id>/pose`, here {expected}; no pose is taken from another topic"
+         `/hexapod/<hexapod id>/pose` or `/hexapod/<pose sensor id>/pose`, here {expected}; \
+         no pose is taken from another topic"
     )]
     MisplacedPoses { found: String, expected: String },
+    #[error(
+        "poses published on both {first} and {second}: which of them measures the platform is \
+         ambiguous; no pose is taken"
+    )]
+    AmbiguousPoses { first: String, second: String },
     #[error(
         "session header: pose sensor `{sensor}` measures the poses but {topic} holds no pose in \
          any pose window: commanded poses would be used as exact"
@@ -182,12 +188,51 @@ pub(crate) struct PoseData {
     pub(crate) t_s: f64,
 }
 
-fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
+/// The topic of the measured poses: the hexapod's own (`/hexapod/<hexapod id>/pose`, what
+/// geocal records) or, as devices name their topics by their own id, the pose sensor's
+/// (`/hexapod/<pose sensor id>/pose`). Poses on any other `/hexapod/*/pose` topic, or on
+/// both, are refused rather than ignored: commanded poses would silently count as exact.
+pub(crate) fn measured_pose_topic(
+    session: &Session,
+    hexapod_id: &str,
+    pose_sensor_id: Option<&str>,
+) -> Result<String, HexapodMethodError> {
+    let own = hexapod_pose_topic(hexapod_id);
+    let sensors = pose_sensor_id.map(hexapod_pose_topic);
+    let mut holding = None;
+    for topic in session
+        .topics
+        .iter()
+        .filter(|(t, messages)| {
+            t.starts_with("/hexapod/") && t.ends_with("/pose") && !messages.is_empty()
+        })
+        .map(|(t, _)| t)
+    {
+        if *topic != own && Some(topic) != sensors.as_ref() {
+            return Err(HexapodMethodError::MisplacedPoses {
+                found: topic.clone(),
+                expected: own,
+            });
+        }
+        if let Some(first) = holding.replace(topic.clone()) {
+            return Err(HexapodMethodError::AmbiguousPoses {
+                first,
+                second: topic.clone(),
+            });
+        }
+    }
+    Ok(holding.unwrap_or(own))
+}
+
+fn pose_data(
+    session: &Session,
+    id: &str,
+    pose_topic: &str,
+) -> Result<(Vec<PoseData>, bool), HexapodMethodError> {
     let legs_topic = hexapod_legs_topic(id);
-    let pose_topic = hexapod_pose_topic(id);
     let empty = Vec::new();
     let legs = session.topics.get(&legs_topic).unwrap_or(&empty);
-    let measured = session.topics.get(&pose_topic).unwrap_or(&empty);
+    let measured = session.topics.get(pose_topic).unwrap_or(&empty);
     let mut open: Option<(usize, u64, Pose)> = None;
     let mut out = Vec::new();
     let mut any_measured = false;
@@ -247,7 +292,7 @@ fn pose_data(session: &Session, id: &str) -> Result<(Vec<PoseData>, bool), Hexap
                 let mut w_sum = [0.0; 3];
                 let mut k = 0usize;
                 for m in measured.iter().filter(|m| within(m.log_time_ns)) {
-                    let s: PlatformPoseSample = parse(&pose_topic, m.log_time_ns, &m.msg)?;
+                    let s: PlatformPoseSample = parse(pose_topic, m.log_time_ns, &m.msg)?;
                     for c in 0..3 {
                         t_sum[c] += s.translation_m[c];
                         w_sum[c] += s.rotation_vector_rad[c];
@@ -319,25 +364,14 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
         )));
     }
     let nominal = machine.nominal();
-    let expected_topic = hexapod_pose_topic(&hexapod.id);
-    // Poses anywhere else (e.g. under the pose sensor's own id) are refused, not ignored.
-    if let Some(found) = session
-        .topics
-        .keys()
-        .find(|t| t.starts_with("/hexapod/") && t.ends_with("/pose") && **t != expected_topic)
-    {
-        return Err(HexapodMethodError::MisplacedPoses {
-            found: found.clone(),
-            expected: expected_topic,
-        });
-    }
-    // The pose sensor's declared noise applies to the measured poses; a sensor that measures
-    // (any driver but `given`, which takes the commanded poses as exact) must declare it.
     let sensor = session
         .header
         .devices
         .iter()
         .find(|d| d.kind == "pose_sensor");
+    let pose_topic = measured_pose_topic(session, &hexapod.id, sensor.map(|d| d.id.as_str()))?;
+    // The pose sensor's declared noise applies to the measured poses; a sensor that measures
+    // (any driver but `given`, which takes the commanded poses as exact) must declare it.
     let measuring = sensor.filter(|d| d.driver != "given");
     let (pose_sigma_m, pose_sigma_rad) = match measuring {
         Some(d) => {
@@ -359,11 +393,11 @@ pub fn prepare(session: &Session) -> Result<Prepared, HexapodMethodError> {
         }
         None => (0.0, 0.0),
     };
-    let (data, any_measured) = pose_data(session, &hexapod.id)?;
+    let (data, any_measured) = pose_data(session, &hexapod.id, &pose_topic)?;
     if let (Some(d), false) = (measuring, any_measured) {
         return Err(HexapodMethodError::NoMeasuredPoses {
             sensor: d.id.clone(),
-            topic: expected_topic,
+            topic: pose_topic,
         });
     }
     let Some(reference) = data.first() else {
