@@ -53,6 +53,9 @@ pub struct BaseFit<F> {
     pub res_w: DVector<f64>,
 }
 
+/// A base design's fit on all rows, its fits per fold and the folds' held-out residuals.
+pub type Bases<F> = (BaseFit<F>, Vec<BaseFit<F>>, HeldOut);
+
 /// The held-out residuals of the folds: Σ r², Σ (σ² + prediction variance), Σ r²/that, and
 /// how many were predicted.
 #[derive(Debug, Clone, Copy, Default, PartialEq)]
@@ -211,11 +214,7 @@ impl Engine {
     }
 
     /// The base fit on `all_rows` and per fold, and the folds' held-out residuals.
-    pub fn base<D: LinearDesign>(
-        &self,
-        design: &D,
-        all_rows: &[usize],
-    ) -> (BaseFit<D::Fit>, Vec<BaseFit<D::Fit>>, HeldOut) {
+    pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
         let full = self.fit_base(design, all_rows.to_vec(), &[]);
         let fold_fits: Vec<BaseFit<D::Fit>> = self
             .folds
