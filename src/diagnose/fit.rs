@@ -9,6 +9,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::data::Data;
 use super::dense::{self, DenseFit};
+use super::engine::{LinearDesign, LinearFit};
 use super::loso::{self, HeldOutStation};
 use super::schur::{Design, Schur};
 
@@ -130,6 +131,48 @@ impl Fit {
             Fit::Structured(s) => s.pinv_block(cols),
             Fit::Dense(d) => d.pinv_block(cols),
         }
+    }
+}
+
+impl LinearFit for Fit {
+    fn rank(&self) -> usize {
+        Fit::rank(self)
+    }
+
+    fn solve(&self, y: &DVector<f64>) -> DVector<f64> {
+        Fit::solve(self, y)
+    }
+
+    fn project_off_vec(&self, y: &DVector<f64>) -> DVector<f64> {
+        Fit::project_off_vec(self, y)
+    }
+
+    fn project_off_owned(&self, m: DMatrix<f64>) -> DMatrix<f64> {
+        Fit::project_off_owned(self, m)
+    }
+
+    fn in_row_space(&self, i: usize) -> bool {
+        Fit::in_row_space(self, i)
+    }
+
+    fn prediction_variances(&self, held: &[usize]) -> Vec<f64> {
+        Fit::prediction_variances(self, held)
+    }
+
+    fn factorises_by_svd(&self) -> bool {
+        self.is_dense()
+    }
+}
+
+impl LinearDesign for Arc<Design> {
+    type Fit = Fit;
+
+    fn fit(&self, rows: Vec<usize>) -> Fit {
+        Fit::new(self.clone(), rows)
+    }
+
+    fn predict(&self, i: usize, x: &DVector<f64>) -> f64 {
+        Design::predict(self, i, x)
     }
 }
 

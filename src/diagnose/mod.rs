@@ -6,13 +6,16 @@ pub mod correct;
 pub mod data;
 pub mod dense;
 pub mod effects;
+pub mod engine;
 pub mod fit;
+pub mod forward;
 pub mod locate;
 pub mod loso;
 #[cfg(test)]
 mod oracle;
 pub mod plot;
 pub mod points;
+pub mod progress;
 pub mod projected;
 pub mod residual_model;
 pub mod schur;
@@ -22,6 +25,7 @@ pub mod stations;
 pub mod stats;
 mod text;
 pub mod twin;
+pub mod whitened;
 
 pub use text::{
     details, key_parameters, summary, text, verdict, SUMMARY_MAX_LINES, TABLE_MAX_ROWS,
@@ -40,14 +44,16 @@ use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
 use effects::{EffectKind, EffectModel, Geometry, Library};
+use engine::{BaseFit, Engine, HeldOut};
 use fit::Fit;
+use forward::{Selection, Start, Trial};
 use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
 use points::{points_level, PointsGap, PointsLevel};
-use projected::Projected;
+use progress::{selection_units, Counter};
 use schur::Design;
-use selection::{Round, Tests};
-use stats::{chi2_isf, chi2_sf, f_sf, EFFECT_RANK_TOL};
+use selection::Tests;
+use stats::{chi2_isf, chi2_sf};
 
 pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 
@@ -62,6 +68,9 @@ pub struct DiagnoseOptions {
     /// (`MemAvailable` in /proc/meminfo). A diagnosis estimated to need more is refused
     /// before any work (`budget`).
     pub memory_limit_bytes: Option<u64>,
+    /// Called as (done, total) while the diagnosis works: the total is fixed at the start,
+    /// done only grows and ends at the total (`progress::Counter`).
+    pub progress: Option<progress::ProgressHook>,
 }
 
 impl Default for DiagnoseOptions {
@@ -70,6 +79,7 @@ impl Default for DiagnoseOptions {
             alpha: 0.01,
             folds: 5,
             memory_limit_bytes: None,
+            progress: None,
         }
     }
 }
@@ -241,7 +251,7 @@ pub fn diagnose_file_detailed(
     let data = Data::from_settled(settled)
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
-    let detailed = diagnose_data(&data, options)
+    let mut detailed = diagnose_data(&data, options)
         .map_err(anyhow::Error::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
     let kind = data.header.kind.clone();
@@ -253,6 +263,7 @@ pub fn diagnose_file_detailed(
             .notes
             .push(format!("the calibration with the selected effects: {why}")),
     }
+    detailed.progress.finish();
     Ok((diagnosis, detailed.residuals))
 }
 
@@ -319,211 +330,15 @@ fn corrected_calibration(
     }))
 }
 
-/// The linearised model around the nominal optimum: a base design (nominal parameters plus
-/// accepted effects) fitted on a set of rows.
-struct BaseFit {
-    rows: Vec<usize>,
-    /// Held-out rows whose length the training rows determine (estimable: in the row space
-    /// of the training design); a length whose point or station the training rows leave
-    /// undetermined cannot be predicted, only guessed by the minimum-norm solution.
-    held: Vec<usize>,
-    /// Variance of each held-out row's prediction (m², the noise not included).
-    held_var: Vec<f64>,
-    basis: Fit,
-    /// Whitened residual of the base fit on `rows` (orthogonal to the basis).
-    res_w: DVector<f64>,
-}
-
-struct Engine {
-    /// Whitening weights 1/σ and the nominal residuals (m).
-    w: DVector<f64>,
-    r: DVector<f64>,
-    /// Per fold: training rows and held-out rows.
-    folds: Vec<(Vec<usize>, Vec<usize>)>,
-}
-
-/// The evaluation of adding one effect to a base.
-struct Eval {
-    chi2_drop: f64,
-    df: usize,
-    theta: DVector<f64>,
-    theta_sigma: DVector<f64>,
-    /// Per parameter: whether the lengths determine it. One whose every direction the model
-    /// absorbs (e.g. the vertical eccentricity: the station's height) has an estimate and σ
-    /// that are rounding (~1e-21 m), reported as null rather than as a figure.
-    identifiable: Vec<bool>,
-    rms_after_m: f64,
-    heldout_ms_m2: f64,
-    /// Mean of the held-out residuals squared, each in units of the base model's predicted
-    /// variance (noise plus prediction): the selection's held-out criterion, which the few
-    /// lengths with a long beam or a poorly determined prediction cannot dominate.
-    heldout_z2: f64,
-}
-
-impl Engine {
-    fn rows_of(&self, m: &DMatrix<f64>, rows: &[usize], whiten: bool) -> DMatrix<f64> {
-        DMatrix::from_fn(rows.len(), m.ncols(), |r, c| {
-            m[(rows[r], c)] * if whiten { self.w[rows[r]] } else { 1.0 }
-        })
-    }
-
-    fn fit_base(&self, design: &Arc<Design>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
-        let basis = Fit::new(design.clone(), rows.clone());
-        let rw = DVector::from_fn(rows.len(), |k, _| self.r[rows[k]] * self.w[rows[k]]);
-        let res_w = basis.project_off_vec(&rw);
-        let held: Vec<usize> = held
-            .iter()
-            .copied()
-            .filter(|&h| basis.in_row_space(h))
-            .collect();
-        let held_var = basis.prediction_variances(&held);
-        BaseFit {
-            rows,
-            held,
-            held_var,
-            basis,
-            res_w,
-        }
-    }
-
-    /// Held-out residuals of a base fit with an optional extra effect (`a`: unwhitened columns
-    /// of all rows) on the fold's held-out rows: returns (Σ r², Σ (σ² + prediction variance)).
-    fn heldout(&self, design: &Design, fit: &BaseFit, a: Option<&DMatrix<f64>>) -> (f64, f64, f64) {
-        let rw = DVector::from_fn(fit.rows.len(), |k, _| {
-            self.r[fit.rows[k]] * self.w[fit.rows[k]]
-        });
-        let (beta, theta) = match a {
-            None => (fit.basis.solve(&rw), None),
-            Some(a) => {
-                let perp = Projected::new(&fit.basis, self.rows_of(a, &fit.rows, true));
-                let theta = perp.solve(&fit.res_w);
-                drop(perp);
-                let a_theta = DVector::from_fn(fit.rows.len(), |k, _| {
-                    let i = fit.rows[k];
-                    self.w[i] * (0..a.ncols()).map(|c| a[(i, c)] * theta[c]).sum::<f64>()
-                });
-                let beta = fit.basis.solve(&(rw - a_theta));
-                (beta, Some(theta))
-            }
-        };
-        let (mut ss, mut floor, mut zz) = (0.0, 0.0, 0.0);
-        for (&h, prediction_var) in fit.held.iter().zip(&fit.held_var) {
-            let mut pred = design.predict(h, &beta);
-            if let (Some(a), Some(theta)) = (a, &theta) {
-                pred += (0..a.ncols()).map(|c| a[(h, c)] * theta[c]).sum::<f64>();
-            }
-            let sigma = 1.0 / self.w[h];
-            let var = sigma * sigma + prediction_var;
-            ss += (self.r[h] - pred).powi(2);
-            floor += var;
-            zz += (self.r[h] - pred).powi(2) / var;
-        }
-        (ss, floor, zz)
-    }
-
-    /// The base fit on all rows and per fold, its gap and the number of held-out lengths
-    /// scored.
-    fn base(
-        &self,
-        design: &Arc<Design>,
-        all_rows: &[usize],
-    ) -> (BaseFit, Vec<BaseFit>, Gap, usize) {
-        let nobs = all_rows.len();
-        let full = self.fit_base(design, all_rows.to_vec(), &[]);
-        let fold_fits: Vec<BaseFit> = self
-            .folds
-            .iter()
-            .map(|(train, held)| self.fit_base(design, train.clone(), held))
-            .collect();
-        let (mut ss, mut floor, mut zz, mut count) = (0.0, 0.0, 0.0, 0);
-        for fit in &fold_fits {
-            let (s, f, z) = self.heldout(design, fit, None);
-            ss += s;
-            floor += f;
-            zz += z;
-            count += fit.held.len();
-        }
-        let base_heldout_ms = ss / count.max(1) as f64;
-        let base_gap = Gap {
-            rms_m: (full
-                .res_w
-                .iter()
-                .zip(&full.rows)
-                .map(|(r, &i)| (r / self.w[i]).powi(2))
-                .sum::<f64>()
-                / nobs as f64)
-                .sqrt(),
-            heldout_rms_m: base_heldout_ms.sqrt(),
-            chi2_per_dof: full.res_w.norm_squared() / (nobs - full.basis.rank()).max(1) as f64,
-            heldout_floor_m: (floor / count.max(1) as f64).sqrt(),
-            heldout_ratio: (zz / count.max(1) as f64).sqrt(),
-        };
-        (full, fold_fits, base_gap, count)
-    }
-
-    fn evaluate(
-        &self,
-        design: &Design,
-        full: &BaseFit,
-        fold_fits: &[BaseFit],
-        a: &DMatrix<f64>,
-    ) -> Eval {
-        let perp = Projected::new(&full.basis, self.rows_of(a, &full.rows, true));
-        let coeff = perp.ut(&full.res_w);
-        let chi2_drop = coeff.norm_squared();
-        let after_w = &full.res_w - perp.u_times(&coeff);
-        let rms_after_m = (after_w
-            .iter()
-            .zip(&full.rows)
-            .map(|(r, &i)| (r / self.w[i]).powi(2))
-            .sum::<f64>()
-            / full.rows.len() as f64)
-            .sqrt();
-        let theta = perp.solve(&full.res_w);
-        // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
-        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
-            (0..perp.rank())
-                .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
-                .sum::<f64>()
-                .sqrt()
-        });
-        // The parameter's unit direction inside the identified row space (1 when fully
-        // determined), against the same cut as the directions'.
-        let identifiable = (0..a.ncols())
-            .map(|c| {
-                (0..perp.rank())
-                    .map(|k| perp.vt[(k, c)].powi(2))
-                    .sum::<f64>()
-                    > EFFECT_RANK_TOL * EFFECT_RANK_TOL
-            })
-            .collect();
-        let df = perp.rank();
-        // The full fit's projected columns are not needed by the folds'.
-        drop(perp);
-        let (mut ss, mut zz) = (0.0, 0.0);
-        let mut count = 0;
-        for fit in fold_fits {
-            let (s, _, z) = self.heldout(design, fit, Some(a));
-            ss += s;
-            zz += z;
-            count += fit.held.len();
-        }
-        Eval {
-            chi2_drop,
-            df,
-            theta,
-            theta_sigma,
-            identifiable,
-            rms_after_m,
-            heldout_ms_m2: ss / count.max(1) as f64,
-            heldout_z2: zz / count.max(1) as f64,
-        }
-    }
-
-    /// Orthonormal basis of the candidate's columns projected off the full fit (for the
-    /// confounding test).
-    fn projected_basis(&self, full: &BaseFit, a: &DMatrix<f64>) -> DMatrix<f64> {
-        Projected::new(&full.basis, self.rows_of(a, &full.rows, true)).into_u()
+/// The base fit's gap: the fitted RMS and χ²/dof, the held-out RMS, floor and ratio.
+fn gap_of(engine: &Engine, full: &BaseFit<Fit>, heldout: &HeldOut) -> Gap {
+    let n = full.rows.len();
+    Gap {
+        rms_m: engine.rms_reported(&full.res_w, &full.rows),
+        heldout_rms_m: heldout.mean_square().sqrt(),
+        chi2_per_dof: full.res_w.norm_squared() / (n - full.basis.rank()).max(1) as f64,
+        heldout_floor_m: heldout.mean_floor().sqrt(),
+        heldout_ratio: heldout.mean_z2().sqrt(),
     }
 }
 
@@ -534,20 +349,101 @@ pub(crate) fn hcat(a: &DMatrix<f64>, b: &DMatrix<f64>) -> DMatrix<f64> {
     out
 }
 
-/// One round's bookkeeping of a candidate.
-struct Trial {
-    model: EffectModel,
-    eval: Eval,
-    p_value: f64,
-    bic_delta: f64,
-    /// Number of positions a change point was searched over (1 for the others).
-    searched: usize,
+/// The forward selection's view of the lengths: the nominal design at the nominal geometry
+/// and the effect models' columns there.
+struct LengthsClient<'a> {
+    data: &'a Data,
+    geom: &'a Geometry,
+    nominal: &'a Arc<Design>,
+}
+
+impl forward::Client for LengthsClient<'_> {
+    type Design = Arc<Design>;
+    type Effect = EffectModel;
+    type Key = EffectKind;
+
+    fn key(&self, effect: &EffectModel) -> EffectKind {
+        effect.kind
+    }
+
+    fn name(&self, effect: &EffectModel) -> String {
+        effect.kind.name().to_string()
+    }
+
+    fn design(&self, accepted: &[EffectModel]) -> Arc<Design> {
+        let nobs = self.data.obs.len();
+        Arc::new(self.nominal.with_effects(
+            accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
+                hcat(&d, &m.columns(self.data, self.geom))
+            }),
+        ))
+    }
+
+    fn columns(&self, effect: &EffectModel) -> DMatrix<f64> {
+        effect.columns(self.data, self.geom)
+    }
+
+    /// A length step's change point: the best position over the passes (Bonferroni over the
+    /// positions tried).
+    fn search(&self, effect: &EffectModel, full: &BaseFit<Fit>) -> Option<(EffectModel, usize)> {
+        if effect.kind != EffectKind::LengthStep {
+            return Some((effect.clone(), 1));
+        }
+        best_step(self.data, &full.basis, &full.res_w, None).map(|(g, k, _, tried)| {
+            (
+                EffectModel {
+                    step: Some((g, k)),
+                    ..effect.clone()
+                },
+                tried,
+            )
+        })
+    }
+
+    /// The eccentricity's one size, linearised at the free estimate's phases.
+    fn constrained(&self, effect: &EffectModel, theta: &[f64]) -> Option<EffectModel> {
+        Some(effect.linearised_at(theta)).filter(EffectModel::is_linearised)
+    }
+
+    fn gap(&self, engine: &Engine, full: &BaseFit<Fit>, heldout: &HeldOut) -> Gap {
+        gap_of(engine, full, heldout)
+    }
+
+    fn cross_validation_notes(&self, engine: &Engine, count: usize) -> Vec<String> {
+        let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
+        let mut notes = vec![format!(
+            "cross-validation: {} folds of (point, station) pairs; {count} of {held_total} held-out lengths are determined by the rest and predicted",
+            engine.folds.len()
+        )];
+        if count == 0 {
+            notes.push("no held-out length is predictable: the plan has too few points or stations for cross-validation, so held-out RMS is not a criterion".into());
+        }
+        notes
+    }
+
+    fn absorbed_note(&self, name: &str) -> String {
+        format!(
+            "{name}: absorbed by the nominal model (projected rank 0), not identifiable from these lengths"
+        )
+    }
+
+    fn record(
+        &self,
+        trial: &Trial<EffectModel>,
+        round: usize,
+        status: String,
+        confounded_with: Vec<String>,
+    ) -> Candidate {
+        candidate_record(self.data, trial, round, status, confounded_with)
+    }
 }
 
 /// Diagnose a multilateration session: reads only the session.
 pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
     let data = Data::from_session(session)?;
-    Ok(diagnose_data(&data, options)?.diagnosis)
+    let mut detailed = diagnose_data(&data, options)?;
+    detailed.progress.finish();
+    Ok(detailed.diagnosis)
 }
 
 /// A diagnosis with what the twin comparison needs of its final model.
@@ -560,6 +456,8 @@ pub(crate) struct DataDiagnosis {
     /// parameter) at the final geometry: what their estimates' uncertainty moves.
     pub effect_columns: DMatrix<f64>,
     pub residuals: StandardisedResiduals,
+    /// The progress so far; the caller finishes it (the corrected calibration's unit is its).
+    pub progress: Counter,
 }
 
 /// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
@@ -589,8 +487,10 @@ pub(crate) fn diagnose_data(
             (train, held)
         })
         .collect();
+    let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let mut engine = Engine {
-        w: DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m)),
+        w_report: w.clone(),
+        w,
         r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
         folds,
     };
@@ -624,15 +524,18 @@ pub(crate) fn diagnose_data(
         notes.push("no material temperature in the log: thermal_expansion cannot be tested".into());
     }
     let settling_in_library = in_library(&available, EffectKind::Settling);
+    // Units of work: the settling test, every round the selection may run, the final fit and
+    // its levels, the corrected calibration (the caller's).
+    let lengths_candidates = available.len() - usize::from(settling_in_library);
+    let selection_end = u64::from(settling_in_library) + selection_units(lengths_candidates);
+    let mut progress = Counter::new(options.progress.as_ref(), selection_end + 3);
     let offset_in_library = in_library(&available, EffectKind::TargetOffset);
     let nominal_design = Arc::new(Design::nominal(data, &geom));
     let all_rows: Vec<usize> = (0..nobs).collect();
-    let ln_n = (nobs as f64).ln();
 
-    // Effects in the model: the named ones and the members of confounded groups (in the model
-    // so that later rounds see the residual without their shared signal, never named).
+    // Effects in the model before the selection on the means (settling, tested on the raw
+    // samples).
     let mut accepted: Vec<EffectModel> = Vec::new();
-    let mut confounded_kinds: Vec<EffectKind> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
     let mut gap_before: Option<Gap> = None;
 
@@ -641,7 +544,9 @@ pub(crate) fn diagnose_data(
     // once accepted its bias is taken off the window means before the selection on the means.
     available.retain(|m| m.kind != EffectKind::Settling);
     let settling_fit = if settling_in_library {
-        settling::evaluate(data, &geom)
+        let fit = settling::evaluate(data, &geom);
+        progress.tick(1);
+        fit
     } else {
         None
     };
@@ -657,7 +562,8 @@ pub(crate) fn diagnose_data(
             let status = tests.alone_status(alpha_each);
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
-                gap_before = Some(engine.base(&nominal_design, &all_rows).2);
+                let (full, _, heldout) = engine.base(&nominal_design, &all_rows);
+                gap_before = Some(gap_of(&engine, &full, &heldout));
                 for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
                     *r -= b;
                 }
@@ -672,160 +578,37 @@ pub(crate) fn diagnose_data(
         ),
         None => {}
     }
-    let mut last_base = None;
-    let mut final_round = 0;
-    for round in 0..=library.names.len() {
-        final_round = round;
-        let design = Arc::new(nominal_design.with_effects(
-            accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
-                hcat(&d, &m.columns(data, &geom))
-            }),
-        ));
-        let (full, fold_fits, base_gap, count) = engine.base(&design, &all_rows);
-        let base_heldout_z2 = base_gap.heldout_ratio.powi(2);
-        if round == 0 {
-            let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
-            notes.push(format!(
-                "cross-validation: {} folds of (point, station) pairs; {count} of {held_total} held-out lengths are determined by the rest and predicted",
-                engine.folds.len()
-            ));
-            if count == 0 {
-                notes.push("no held-out length is predictable: the plan has too few points or stations for cross-validation, so held-out RMS is not a criterion".into());
-            }
-        }
-        if gap_before.is_none() {
-            gap_before = Some(base_gap.clone());
-        }
-        let candidates: Vec<EffectModel> = available
-            .iter()
-            .filter(|k| !accepted.iter().any(|m| m.kind == k.kind))
-            .cloned()
-            .collect();
-        let mut trials = Vec::new();
-        for candidate in &candidates {
-            let kind = &candidate.kind;
-            let (model, searched) = if *kind == EffectKind::LengthStep {
-                match best_step(data, &full.basis, &full.res_w, None) {
-                    Some((g, k, _, tried)) => (
-                        EffectModel {
-                            step: Some((g, k)),
-                            ..candidate.clone()
-                        },
-                        tried,
-                    ),
-                    None => continue,
-                }
-            } else {
-                (candidate.clone(), 1)
-            };
-            let a = model.columns(data, &geom);
-            let mut eval = engine.evaluate(&design, &full, &fold_fits, &a);
-            // A model with a constraint linearised at its own estimate (the eccentricity's
-            // one size) is tested free (F test, BIC: no parameter chosen from the data) and
-            // predicts the held-out lengths constrained, as it enters the model.
-            let model = match model.linearised_at(eval.theta.as_slice()) {
-                constrained if constrained.is_linearised() => {
-                    let held = engine.evaluate(
-                        &design,
-                        &full,
-                        &fold_fits,
-                        &constrained.columns(data, &geom),
-                    );
-                    eval.heldout_ms_m2 = held.heldout_ms_m2;
-                    eval.heldout_z2 = held.heldout_z2;
-                    constrained
-                }
-                free => free,
-            };
-            if eval.df == 0 {
-                if round == 0 {
-                    notes.push(format!(
-                        "{}: absorbed by the nominal model (projected rank 0), not identifiable from these lengths",
-                        kind.name()
-                    ));
-                }
-                continue;
-            }
-            // The test scales by the residual variance left after the candidate (F test,
-            // likelihood ratio with the noise scale profiled out): structure that no
-            // candidate expresses then inflates the denominator instead of making every
-            // flexible candidate look significant. A change point's location is a searched
-            // parameter: Bonferroni over the positions tried, one more parameter in the BIC.
-            let chi2_base = full.res_w.norm_squared();
-            let chi2_after = (chi2_base - eval.chi2_drop).max(f64::MIN_POSITIVE);
-            let dof_after = nobs.saturating_sub(full.basis.rank() + eval.df).max(1) as f64;
-            let f_stat = (eval.chi2_drop / eval.df as f64) / (chi2_after / dof_after);
-            let p_value = (f_sf(f_stat, eval.df as f64, dof_after) * searched as f64).min(1.0);
-            let params_counted = eval.df + usize::from(searched > 1);
-            let bic_delta =
-                nobs as f64 * (chi2_after / chi2_base).ln() + params_counted as f64 * ln_n;
-            trials.push(Trial {
-                model,
-                eval,
-                p_value,
-                bic_delta,
-                searched,
-            });
-        }
-        // Bonferroni over the candidates of this round (the first round's family includes the
-        // settling test): family-wise false selection ≤ alpha.
-        let tested = candidates.len() + usize::from(round == 0 && settling_fit.is_some());
-        let alpha_each = options.alpha / tested.max(1) as f64;
-        let tests: Vec<Tests> = trials
-            .iter()
-            .map(|t| Tests {
-                p_value: t.p_value,
-                bic_delta: t.bic_delta,
-                heldout_improves: (count > 0).then_some(t.eval.heldout_z2 < base_heldout_z2),
-            })
-            .collect();
-        // The projected bases only of the candidates that pass: the confounding test compares
-        // no other (n × k each, so not kept for every candidate of the round).
-        let bases: Vec<DMatrix<f64>> = trials
-            .iter()
-            .zip(&tests)
-            .map(|(t, tests)| match tests.passes(alpha_each) {
-                true => engine.projected_basis(&full, &t.model.columns(data, &geom)),
-                false => DMatrix::zeros(nobs, 0),
-            })
-            .collect();
-        let bases: Vec<&DMatrix<f64>> = bases.iter().collect();
-        let decided = Round::decide(&tests, &bases, alpha_each);
-        for (t, trial) in trials.iter().enumerate() {
-            let status = decided.status(t, &tests[t], alpha_each);
-            let confounded_with = decided
-                .confounded_with(t)
-                .into_iter()
-                .map(|o| trials[o].model.kind.name().to_string())
-                .collect();
-            records.insert(
-                trial.model.kind,
-                candidate_record(data, trial, round, status, confounded_with),
-            );
-        }
-        match (decided.selected(), decided.confounded_group()) {
-            (Some(best), _) => accepted.push(trials[best].model.clone()),
-            (None, Some(group)) => {
-                // None of the group is named, but the signal they share is in the data: the
-                // whole group joins the model (unnamed), so that the next rounds do not hand
-                // the same signal to a less likely neighbour (e.g. station_drift, which nests
-                // thermal_drift) and the gap after counts it as explained by the group.
-                let group: Vec<EffectModel> =
-                    group.into_iter().map(|t| trials[t].model.clone()).collect();
-                notes.push(format!(
-                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
-                    group.iter().map(|m| m.kind.name()).collect::<Vec<_>>().join(", ")
-                ));
-                confounded_kinds.extend(group.iter().map(|m| m.kind));
-                accepted.extend(group);
-            }
-            (None, None) => {
-                last_base = Some(base_gap);
-                break;
-            }
-        }
-    }
-
+    let client = LengthsClient {
+        data,
+        geom: &geom,
+        nominal: &nominal_design,
+    };
+    let start = Start {
+        accepted,
+        records,
+        gap_before,
+        // The first round's family includes the settling test.
+        extra_first_round_tests: usize::from(settling_fit.is_some()),
+    };
+    let Selection {
+        mut accepted,
+        confounded: confounded_kinds,
+        records,
+        gap_before,
+        last_base,
+        final_round,
+        notes: selection_notes,
+    } = forward::select(
+        &client,
+        &engine,
+        &available,
+        start,
+        options.alpha,
+        library.names.len(),
+        &mut progress,
+    );
+    notes.extend(selection_notes);
+    progress.advance_to(selection_end);
     // The final model: joint Gauss–Newton of geometry and accepted effects, on the window
     // means with the settling bias (when accepted) taken off.
     let settled = accepted.iter().any(|m| m.kind == EffectKind::Settling);
@@ -844,6 +627,7 @@ pub(crate) fn diagnose_data(
         accepted = EffectModel::all_linearised_at(&accepted, data, final_fit.theta.as_slice());
         final_fit = joint_fit(&fit_data, &geom, &accepted);
     }
+    progress.tick(1);
     let residuals =
         standardised_residuals(data, &solution.residuals_m, &final_fit.resid_m, &accepted);
     let chi2: f64 = final_fit
@@ -853,7 +637,6 @@ pub(crate) fn diagnose_data(
         .map(|(r, o)| (r / o.sigma_m).powi(2))
         .sum();
     let dof = nobs.saturating_sub(final_fit.basis.rank()).max(1);
-    let gap_before = gap_before.unwrap_or_else(|| empty_gap(f64::NAN));
     let cv_after = last_base.unwrap_or_else(|| empty_gap(f64::NAN));
     let gap_after = Gap {
         rms_m: rms(&final_fit.resid_m),
@@ -1101,17 +884,7 @@ pub(crate) fn diagnose_data(
             confounded_with: Vec::new(),
         });
     }
-    let rank_of = |c: &Candidate| {
-        selected
-            .iter()
-            .position(|s| *s == c.effect)
-            .unwrap_or(usize::MAX)
-    };
-    candidates.sort_by(|a, b| {
-        rank_of(a)
-            .cmp(&rank_of(b))
-            .then(a.bic_delta.total_cmp(&b.bic_delta))
-    });
+    forward::report_order(&mut candidates, &selected);
     let diagnosis = Diagnosis {
         format: DIAGNOSIS_FORMAT.into(),
         session_id: data.session_id.clone(),
@@ -1140,11 +913,13 @@ pub(crate) fn diagnose_data(
             *e += b;
         }
     }
+    progress.tick(1);
     Ok(DataDiagnosis {
         diagnosis,
         effect_m,
         effect_columns,
         residuals,
+        progress,
     })
 }
 
@@ -1236,14 +1011,14 @@ fn rms(v: &[f64]) -> f64 {
 
 fn candidate_record(
     data: &Data,
-    trial: &Trial,
+    trial: &Trial<EffectModel>,
     round: usize,
     status: String,
     confounded_with: Vec<String>,
 ) -> Candidate {
     let mut params: BTreeMap<String, Value> = BTreeMap::new();
     for (((name, v), s), identifiable) in trial
-        .model
+        .effect
         .param_names(data)
         .into_iter()
         .zip(trial.eval.theta.iter())
@@ -1258,16 +1033,16 @@ fn candidate_record(
         params.insert(name.clone(), v);
         params.insert(format!("{name}.sigma"), s);
     }
-    if let Some((g, k)) = trial.model.step {
+    if let Some((g, k)) = trial.effect.step {
         params.insert("pass".into(), data.pass_names[g].clone().into());
         params.insert("after_t_s".into(), data.obs[data.passes[g][k]].t_s.into());
         params.insert("positions_searched".into(), trial.searched.into());
     }
     Candidate {
-        effect: trial.model.kind.name().into(),
+        effect: trial.effect.kind.name().into(),
         params,
-        rms_after_m: trial.eval.rms_after_m,
-        heldout_rms_after_m: trial.eval.heldout_ms_m2.sqrt(),
+        rms_after_m: trial.eval.rms_after,
+        heldout_rms_after_m: trial.eval.heldout_ms.sqrt(),
         bic_delta: trial.bic_delta,
         p_value: trial.p_value,
         round,

@@ -7,7 +7,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::fit::Fit;
+use super::engine::LinearFit;
 use super::stats::{gram_factor, Basis, QrBasis, EFFECT_RANK_TOL};
 
 pub struct Projected {
@@ -29,10 +29,10 @@ enum Left {
 
 impl Projected {
     /// `aw`: the candidate's whitened columns over the fit's rows (projected in place).
-    pub fn new(fit: &Fit, aw: DMatrix<f64>) -> Projected {
+    pub fn new<F: LinearFit + ?Sized>(fit: &F, aw: DMatrix<f64>) -> Projected {
         let reference = column_norm_max(&aw);
         let columns = fit.project_off_owned(aw);
-        if fit.is_dense() {
+        if fit.factorises_by_svd() {
             let basis = Basis::new(&columns, EFFECT_RANK_TOL, reference);
             return Projected {
                 s: basis.s,

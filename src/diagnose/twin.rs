@@ -231,6 +231,7 @@ pub fn diagnose_against_twin_detailed(
         effect_m,
         effect_columns,
         residuals,
+        mut progress,
     } = diagnose_data(&data, options)?;
 
     let recorded: Vec<f64> = rec.obs.iter().map(|o| o.length_m).collect();
@@ -316,6 +317,7 @@ pub fn diagnose_against_twin_detailed(
         tw.session_id
     ));
     diagnosis.twin = Some(report);
+    progress.finish();
     Ok((diagnosis, residuals))
 }
 

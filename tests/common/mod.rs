@@ -240,7 +240,28 @@ pub fn record_session(config_text: &str, dir: &Path) -> std::path::PathBuf {
 pub fn run_and_diagnose(config_text: &str) -> geocal::diagnose::Diagnosis {
     let dir = tempfile::tempdir().expect("tempdir");
     let session = record_session(config_text, dir.path());
-    geocal::diagnose::diagnose_file(&session, &Default::default()).expect("diagnose")
+    diagnose_checking_progress(&session)
+}
+
+/// Diagnose a session file with a progress hook, and check what it was told: a total fixed
+/// from the first call, done never going back, ending at (total, total).
+pub fn diagnose_checking_progress(session: &Path) -> geocal::diagnose::Diagnosis {
+    let calls = std::sync::Arc::new(std::sync::Mutex::new(Vec::<(u64, u64)>::new()));
+    let seen = calls.clone();
+    let options = geocal::diagnose::DiagnoseOptions {
+        progress: Some(geocal::diagnose::progress::ProgressHook::new(
+            move |d, t| seen.lock().expect("progress calls").push((d, t)),
+        )),
+        ..Default::default()
+    };
+    let d = geocal::diagnose::diagnose_file(session, &options).expect("diagnose");
+    let calls = calls.lock().expect("progress calls");
+    let total = calls.first().expect("progress reported").1;
+    assert!(total > 1, "{calls:?}");
+    assert!(calls.iter().all(|&(_, t)| t == total), "{calls:?}");
+    assert!(calls.windows(2).all(|w| w[0].0 < w[1].0), "{calls:?}");
+    assert_eq!(calls.last(), Some(&(total, total)), "{calls:?}");
+    d
 }
 
 /// A geocal-diagnosis/1 object with every field SESSION_FORMAT.md requires.

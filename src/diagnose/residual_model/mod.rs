@@ -12,19 +12,22 @@ pub use text::{details, summary};
 
 use std::collections::BTreeMap;
 use std::path::Path;
+use std::sync::Arc;
 
 use anyhow::Context;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+use super::engine::{BaseFit, Engine, HeldOut, LinearFit};
+use super::forward::{self, Selection, Start, Trial};
 use super::locate::WhereEntry;
-use super::projected::column_norm_max;
-use super::selection::{Round, Tests};
-use super::stats::{chi2_sf, f_sf, Basis, EFFECT_RANK_TOL, RANK_TOL};
+use super::progress::{selection_units, Counter};
+use super::stats::{chi2_sf, Basis, RANK_TOL};
+use super::whitened::{WhitenedDesign, WhitenedFit};
 use super::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, StandardisedResidual,
-    StandardisedResiduals, CONFOUNDED_COSINE, DECISIVE_BIC, DIAGNOSIS_FORMAT,
+    StandardisedResiduals, DIAGNOSIS_FORMAT,
 };
 use crate::method::diagnosis::{
     concat, effect_parameters, joint_fit, Effect, JointFit, ResidualModel,
@@ -90,168 +93,92 @@ pub fn diagnose_file(
     Ok(Some((diagnosis, residuals)))
 }
 
-/// The linearised model around the nominal optimum, whitened.
-struct Engine {
-    /// Whitened nominal residuals and the whitened Jacobian of the nominal model.
-    rw: DVector<f64>,
-    x: DMatrix<f64>,
-    sigma: DVector<f64>,
-    folds: Vec<(Vec<usize>, Vec<usize>)>,
+/// The forward selection's view of a residual model: its whitened Jacobian at the nominal
+/// parameters and its library's whitened columns there (a candidate is its library index).
+struct ResidualsClient<'a> {
+    model: &'a dyn ResidualModel,
+    library: &'a [Box<dyn Effect + 'a>],
+    x: &'a DMatrix<f64>,
+    columns: &'a [DMatrix<f64>],
+    sigma: &'a DVector<f64>,
 }
 
-/// A base design (the nominal model and the accepted effects) fitted on a set of rows.
-struct BaseFit {
-    rows: Vec<usize>,
-    /// Held-out rows the training rows determine, and their prediction variance (whitened).
-    held: Vec<usize>,
-    held_var: Vec<f64>,
-    basis: Basis,
-    res_w: DVector<f64>,
-}
+impl forward::Client for ResidualsClient<'_> {
+    type Design = WhitenedDesign;
+    type Effect = usize;
+    type Key = usize;
 
-struct Eval {
-    chi2_drop: f64,
-    df: usize,
-    theta: DVector<f64>,
-    theta_sigma: DVector<f64>,
-    rms_after: f64,
-    heldout_z2: f64,
-    heldout_ms: f64,
-    u_perp: DMatrix<f64>,
-}
+    fn key(&self, effect: &usize) -> usize {
+        *effect
+    }
 
-fn rows_of(m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
-    DMatrix::from_fn(rows.len(), m.ncols(), |r, c| m[(rows[r], c)])
-}
+    fn name(&self, effect: &usize) -> String {
+        self.library[*effect].name().to_string()
+    }
 
-impl Engine {
-    fn fit_base(&self, design: &DMatrix<f64>, rows: Vec<usize>, held: &[usize]) -> BaseFit {
-        let d = rows_of(design, &rows);
-        let basis = Basis::new(&d, RANK_TOL, 0.0);
-        let rw = DVector::from_fn(rows.len(), |k, _| self.rw[rows[k]]);
-        let res_w = basis.project_off_vec(&rw);
-        let mut kept = Vec::new();
-        let mut held_var = Vec::new();
-        for &h in held {
-            let row: Vec<f64> = design.row(h).iter().copied().collect();
-            // In the training design's row space: its prediction is determined.
-            let norm2: f64 = row.iter().map(|v| v * v).sum();
-            let inside: f64 = (0..basis.rank())
-                .map(|k| {
-                    (0..row.len())
-                        .map(|j| basis.vt[(k, j)] * row[j])
-                        .sum::<f64>()
-                        .powi(2)
-                })
-                .sum();
-            if norm2 == 0.0 || norm2 - inside <= 1e-12 * norm2 {
-                kept.push(h);
-                held_var.push(basis.prediction_variance(&row));
-            }
-        }
-        BaseFit {
-            rows,
-            held: kept,
-            held_var,
-            basis,
-            res_w,
+    fn design(&self, accepted: &[usize]) -> WhitenedDesign {
+        WhitenedDesign(Arc::new(
+            accepted
+                .iter()
+                .fold(self.x.clone(), |d, &e| concat(&d, &self.columns[e])),
+        ))
+    }
+
+    fn columns(&self, effect: &usize) -> DMatrix<f64> {
+        self.columns[*effect].clone()
+    }
+
+    fn gap(&self, _engine: &Engine, full: &BaseFit<WhitenedFit>, heldout: &HeldOut) -> Gap {
+        let n = self.sigma.len();
+        Gap {
+            rms_m: rms_in_metres(self.model, &full.res_w.component_mul(self.sigma)),
+            heldout_rms_m: heldout.mean_square().sqrt(),
+            chi2_per_dof: full.res_w.norm_squared()
+                / n.saturating_sub(full.basis.rank()).max(1) as f64,
+            heldout_floor_m: 1.0,
+            heldout_ratio: heldout.mean_z2().sqrt(),
         }
     }
 
-    /// Held-out (Σ r², Σ r²/var) in whitened units of a fold's fit, with an optional effect.
-    fn heldout(
+    fn cross_validation_notes(&self, _engine: &Engine, count: usize) -> Vec<String> {
+        vec![format!(
+            "cross-validation: {count} held-out residuals determined by the rest and predicted (held-out figures are in units of each residual's σ)"
+        )]
+    }
+
+    fn absorbed_note(&self, name: &str) -> String {
+        format!("{name}: absorbed by the nominal model (projected rank 0), not identifiable here")
+    }
+
+    fn record(
         &self,
-        design: &DMatrix<f64>,
-        fit: &BaseFit,
-        a: Option<&DMatrix<f64>>,
-    ) -> (f64, f64) {
-        let rw = DVector::from_fn(fit.rows.len(), |k, _| self.rw[fit.rows[k]]);
-        let d = rows_of(design, &fit.rows);
-        let (beta, theta) = match a {
-            None => (fit.basis.solve(&rw), None),
-            Some(a) => {
-                let aw = rows_of(a, &fit.rows);
-                let reference = column_norm_max(&aw);
-                let perp = Basis::new(&fit.basis.project_off(&aw), EFFECT_RANK_TOL, reference);
-                let theta = perp.solve(&fit.res_w);
-                let beta = fit.basis.solve(&(rw - &aw * &theta));
-                (beta, Some(theta))
-            }
-        };
-        let _ = d;
-        let (mut ss, mut zz) = (0.0, 0.0);
-        for (&h, var) in fit.held.iter().zip(&fit.held_var) {
-            let mut pred = design.row(h).transpose().dot(&beta);
-            if let (Some(a), Some(theta)) = (a, &theta) {
-                pred += a.row(h).transpose().dot(theta);
-            }
-            let r = self.rw[h] - pred;
-            ss += r * r;
-            zz += r * r / (1.0 + var);
+        trial: &Trial<usize>,
+        round: usize,
+        status: String,
+        confounded_with: Vec<String>,
+    ) -> Candidate {
+        let eval = &trial.eval;
+        let mut params = BTreeMap::new();
+        for (k, name) in self.library[trial.effect]
+            .parameter_names()
+            .into_iter()
+            .enumerate()
+        {
+            params.insert(name.clone(), Value::from(eval.theta[k]));
+            params.insert(format!("{name}.sigma"), Value::from(eval.theta_sigma[k]));
         }
-        (ss, zz)
-    }
-
-    fn base(&self, design: &DMatrix<f64>) -> (BaseFit, Vec<BaseFit>, f64, f64, usize) {
-        let n = self.rw.len();
-        let full = self.fit_base(design, (0..n).collect(), &[]);
-        let folds: Vec<BaseFit> = self
-            .folds
-            .iter()
-            .map(|(train, held)| self.fit_base(design, train.clone(), held))
-            .collect();
-        let (mut ss, mut zz, mut count) = (0.0, 0.0, 0);
-        for f in &folds {
-            let (s, z) = self.heldout(design, f, None);
-            ss += s;
-            zz += z;
-            count += f.held.len();
-        }
-        let c = count.max(1) as f64;
-        (full, folds, ss / c, zz / c, count)
-    }
-
-    fn evaluate(
-        &self,
-        design: &DMatrix<f64>,
-        full: &BaseFit,
-        folds: &[BaseFit],
-        a: &DMatrix<f64>,
-    ) -> Eval {
-        let reference = column_norm_max(a);
-        let perp = Basis::new(&full.basis.project_off(a), EFFECT_RANK_TOL, reference);
-        let coeff = perp.u.transpose() * &full.res_w;
-        let chi2_drop = coeff.norm_squared();
-        let after = &full.res_w - &perp.u * &coeff;
-        let rms_after = after
-            .iter()
-            .zip(self.sigma.iter())
-            .map(|(r, s)| (r * s).powi(2))
-            .sum::<f64>();
-        let theta = perp.solve(&full.res_w);
-        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
-            (0..perp.rank())
-                .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
-                .sum::<f64>()
-                .sqrt()
-        });
-        let (mut ss, mut zz, mut count) = (0.0, 0.0, 0);
-        for f in folds {
-            let (s, z) = self.heldout(design, f, Some(a));
-            ss += s;
-            zz += z;
-            count += f.held.len();
-        }
-        let c = count.max(1) as f64;
-        Eval {
-            chi2_drop,
-            df: perp.rank(),
-            theta,
-            theta_sigma,
-            rms_after: (rms_after / self.rw.len() as f64).sqrt(),
-            heldout_z2: zz / c,
-            heldout_ms: ss / c,
-            u_perp: perp.u,
+        Candidate {
+            effect: self.name(&trial.effect),
+            params,
+            rms_after_m: eval.rms_after,
+            heldout_rms_after_m: eval.heldout_ms.sqrt(),
+            bic_delta: trial.bic_delta,
+            p_value: trial.p_value,
+            round,
+            df: eval.df,
+            chi2_drop: eval.chi2_drop,
+            status,
+            confounded_with,
         }
     }
 }
@@ -347,10 +274,14 @@ pub fn diagnose(
     options: &DiagnoseOptions,
 ) -> (Diagnosis, StandardisedResiduals) {
     let library = model.effects();
+    // Units of work: the nominal fit, every round the selection may run, the final fit.
+    let selection_end = 1 + selection_units(library.len());
+    let mut progress = Counter::new(options.progress.as_ref(), selection_end + 1);
     let sigma = DVector::from_column_slice(model.sigma());
     let n = sigma.len();
     let start = model.start();
     let nominal = joint_fit(model, &[], &start);
+    progress.tick(1);
     let p0 = nominal.params.clone();
     let mut x = model.jacobian(&p0);
     for (i, s) in sigma.iter().enumerate() {
@@ -373,128 +304,49 @@ pub fn diagnose(
             (train, held)
         })
         .collect();
+    // The rows are whitened already: the held-out figures are in units of each σ.
     let engine = Engine {
-        rw: rw.clone(),
-        x: x.clone(),
-        sigma: sigma.clone(),
+        w: DVector::repeat(n, 1.0),
+        r: rw.clone(),
+        w_report: sigma.map(|s| 1.0 / s),
         folds,
     };
     let columns: Vec<DMatrix<f64>> = library
         .iter()
         .map(|e| whitened_columns(e.as_ref(), &p0, &sigma))
         .collect();
-    let ln_n = (n as f64).ln();
     let mut notes = vec![format!(
         "{n} residuals of kind {} against {} parameters; {} held-out groups in {k_folds} folds",
         model.kind(),
         p0.len(),
         groups.len()
     )];
-    let mut accepted: Vec<usize> = Vec::new();
-    let mut confounded_set: Vec<usize> = Vec::new();
-    let mut records: BTreeMap<usize, Candidate> = BTreeMap::new();
-    let mut gap_before = None;
-    let mut last = None;
-    for round in 0..=library.len() {
-        let design = accepted
-            .iter()
-            .fold(engine.x.clone(), |d, &e| concat(&d, &columns[e]));
-        let (full, fold_fits, heldout_ms, heldout_z2, count) = engine.base(&design);
-        let gap = Gap {
-            rms_m: rms_in_metres(model, &full.res_w.component_mul(&sigma)),
-            heldout_rms_m: heldout_ms.sqrt(),
-            chi2_per_dof: full.res_w.norm_squared()
-                / n.saturating_sub(full.basis.rank()).max(1) as f64,
-            heldout_floor_m: 1.0,
-            heldout_ratio: heldout_z2.sqrt(),
-        };
-        if round == 0 {
-            notes.push(format!(
-                "cross-validation: {count} held-out residuals determined by the rest and predicted (held-out figures are in units of each residual's σ)"
-            ));
-        }
-        gap_before.get_or_insert_with(|| gap.clone());
-        let candidates: Vec<usize> = (0..library.len())
-            .filter(|e| !accepted.contains(e))
-            .collect();
-        let mut trials: Vec<(usize, Eval, f64, f64)> = Vec::new();
-        for &e in &candidates {
-            let eval = engine.evaluate(&design, &full, &fold_fits, &columns[e]);
-            if eval.df == 0 {
-                if round == 0 {
-                    notes.push(format!(
-                        "{}: absorbed by the nominal model (projected rank 0), not identifiable here",
-                        library[e].name()
-                    ));
-                }
-                continue;
-            }
-            let chi2_base = full.res_w.norm_squared();
-            let chi2_after = (chi2_base - eval.chi2_drop).max(f64::MIN_POSITIVE);
-            let dof_after = n.saturating_sub(full.basis.rank() + eval.df).max(1) as f64;
-            let f_stat = (eval.chi2_drop / eval.df as f64) / (chi2_after / dof_after);
-            let p_value = f_sf(f_stat, eval.df as f64, dof_after);
-            let bic = n as f64 * (chi2_after / chi2_base).ln() + eval.df as f64 * ln_n;
-            trials.push((e, eval, p_value, bic));
-        }
-        let alpha_each = options.alpha / candidates.len().max(1) as f64;
-        let tests: Vec<Tests> = trials
-            .iter()
-            .map(|(_, eval, p, bic)| Tests {
-                p_value: *p,
-                bic_delta: *bic,
-                heldout_improves: (count > 0).then_some(eval.heldout_z2 < heldout_z2),
-            })
-            .collect();
-        let bases: Vec<&DMatrix<f64>> = trials.iter().map(|t| &t.1.u_perp).collect();
-        let decided = Round::decide(&tests, &bases, alpha_each);
-        for (t, (e, eval, p, bic)) in trials.iter().enumerate() {
-            let status = decided.status(t, &tests[t], alpha_each);
-            let confounded_with = decided
-                .confounded_with(t)
-                .into_iter()
-                .map(|o| library[trials[o].0].name().to_string())
-                .collect();
-            let mut params = BTreeMap::new();
-            for (k, name) in library[*e].parameter_names().into_iter().enumerate() {
-                params.insert(name.clone(), Value::from(eval.theta[k]));
-                params.insert(format!("{name}.sigma"), Value::from(eval.theta_sigma[k]));
-            }
-            records.insert(
-                *e,
-                Candidate {
-                    effect: library[*e].name().to_string(),
-                    params,
-                    rms_after_m: eval.rms_after,
-                    heldout_rms_after_m: eval.heldout_ms.sqrt(),
-                    bic_delta: *bic,
-                    p_value: *p,
-                    round,
-                    df: eval.df,
-                    chi2_drop: eval.chi2_drop,
-                    status,
-                    confounded_with,
-                },
-            );
-        }
-        match (decided.selected(), decided.confounded_group()) {
-            (Some(best), _) => accepted.push(trials[best].0),
-            (None, Some(group)) => {
-                let group: Vec<usize> = group.into_iter().map(|t| trials[t].0).collect();
-                notes.push(format!(
-                    "confounded in this session (projected columns cosine > {CONFOUNDED_COSINE}, BIC within {DECISIVE_BIC}): {}; none is named, their common signal is fitted by the group",
-                    group.iter().map(|&e| library[e].name()).collect::<Vec<_>>().join(", ")
-                ));
-                confounded_set.extend(&group);
-                accepted.extend(group);
-            }
-            (None, None) => {
-                last = Some(gap);
-                break;
-            }
-        }
-    }
-
+    let client = ResidualsClient {
+        model,
+        library: &library,
+        x: &x,
+        columns: &columns,
+        sigma: &sigma,
+    };
+    let Selection {
+        accepted,
+        confounded: confounded_set,
+        records,
+        gap_before,
+        last_base: last,
+        notes: selection_notes,
+        ..
+    } = forward::select(
+        &client,
+        &engine,
+        &(0..library.len()).collect::<Vec<usize>>(),
+        Start::default(),
+        options.alpha,
+        library.len(),
+        &mut progress,
+    );
+    notes.extend(selection_notes);
+    progress.advance_to(selection_end);
     // The final model: the model's parameters and the accepted effects fitted jointly.
     let accepted_effects: Vec<&dyn Effect> =
         accepted.iter().map(|&e| library[e].as_ref()).collect();
@@ -517,7 +369,7 @@ pub fn diagnose(
         }
         Basis::new(&design, RANK_TOL, 0.0).leverages()
     };
-    let nominal_leverage = Basis::new(&engine.x, RANK_TOL, 0.0).leverages();
+    let nominal_leverage = Basis::new(&x, RANK_TOL, 0.0).leverages();
     let explained =
         (!accepted.is_empty()).then(|| final_fit.effect_contribution.component_div(&sigma));
     let where_ = locate(
@@ -550,7 +402,7 @@ pub fn diagnose(
                 .unwrap_or_default()
         ));
     }
-    let cv_after = last.unwrap_or_else(|| gap_before.clone().expect("round 0 ran"));
+    let cv_after = last.unwrap_or_else(|| gap_before.clone());
     let gap_after = Gap {
         rms_m: rms_in_metres(model, &final_fit.residuals),
         heldout_rms_m: cv_after.heldout_rms_m,
@@ -558,7 +410,6 @@ pub fn diagnose(
         heldout_floor_m: 1.0,
         heldout_ratio: cv_after.heldout_ratio,
     };
-    let gap_before = gap_before.expect("round 0 ran");
     let noise_floor_m = {
         let metres: Vec<f64> = model
             .labels()
@@ -637,18 +488,8 @@ pub fn diagnose(
             }
         }
     }
-    let rank_of = |c: &Candidate| {
-        selected
-            .iter()
-            .position(|s| *s == c.effect)
-            .unwrap_or(usize::MAX)
-    };
     let mut candidates: Vec<Candidate> = records.into_values().collect();
-    candidates.sort_by(|a, b| {
-        rank_of(a)
-            .cmp(&rank_of(b))
-            .then(a.bic_delta.total_cmp(&b.bic_delta))
-    });
+    forward::report_order(&mut candidates, &selected);
     let mut residual_units = BTreeMap::new();
     let mut coordinates: Vec<String> = Vec::new();
     for l in model.labels() {
@@ -721,6 +562,7 @@ pub fn diagnose(
             parameters_after,
         }),
     };
+    progress.finish();
     (diagnosis, residuals)
 }
 

@@ -1,0 +1,284 @@
+//! The linearised model every diagnosis selects effects in, whatever its structure: a base
+//! design (the nominal parameters and the accepted effects) fitted on all rows and per
+//! cross-validation fold, the held-out prediction with and without a candidate effect, and a
+//! candidate's evaluation (χ² drop, identifiable parameters, θ ± σ, RMS after, held-out mean
+//! square and z²). The fits come from a [`LinearDesign`]: the points eliminated block by block
+//! for a large network (`schur`), or the dense SVD of a small design (`dense_design`).
+
+use nalgebra::{DMatrix, DVector};
+
+use super::projected::Projected;
+use super::stats::EFFECT_RANK_TOL;
+
+/// The least-squares fit of a whitened design on a set of its rows.
+pub trait LinearFit {
+    /// Rank of the design on the fit's rows.
+    fn rank(&self) -> usize;
+    /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
+    fn solve(&self, y: &DVector<f64>) -> DVector<f64>;
+    /// y minus its projection on the design's column space (over the fit's rows).
+    fn project_off_vec(&self, y: &DVector<f64>) -> DVector<f64>;
+    /// Each column of `m` (over the fit's rows) minus its projection, in place where it can.
+    fn project_off_owned(&self, m: DMatrix<f64>) -> DMatrix<f64>;
+    /// Whether design row i lies in the fit's row space (its prediction is determined).
+    fn in_row_space(&self, i: usize) -> bool;
+    /// Variance of each held row's prediction under unit whitened noise (in the squared
+    /// units of the rows' prediction).
+    fn prediction_variances(&self, held: &[usize]) -> Vec<f64>;
+    /// Whether a candidate's projected columns are factorised by the SVD of the tall matrix
+    /// (a dense fit) rather than from their Gram matrix or QR.
+    fn factorises_by_svd(&self) -> bool;
+}
+
+/// A linearised design over all rows of a diagnosis.
+pub trait LinearDesign {
+    type Fit: LinearFit;
+    /// Its fit on `rows`.
+    fn fit(&self, rows: Vec<usize>) -> Self::Fit;
+    /// Row i (in the residuals' units, not whitened) times the parameters x.
+    fn predict(&self, i: usize, x: &DVector<f64>) -> f64;
+}
+
+/// A base design fitted on a set of rows.
+pub struct BaseFit<F> {
+    pub rows: Vec<usize>,
+    /// Held-out rows whose residual the training rows determine (in the row space of the
+    /// training design); a row the training rows leave undetermined cannot be predicted,
+    /// only guessed by the minimum-norm solution.
+    pub held: Vec<usize>,
+    /// Variance of each held-out row's prediction (the noise not included).
+    pub held_var: Vec<f64>,
+    pub basis: F,
+    /// Whitened residual of the fit on `rows` (orthogonal to the basis).
+    pub res_w: DVector<f64>,
+}
+
+/// A base design's fit on all rows, its fits per fold and the folds' held-out residuals.
+pub type Bases<F> = (BaseFit<F>, Vec<BaseFit<F>>, HeldOut);
+
+/// The held-out residuals of the folds: Σ r², Σ (σ² + prediction variance), Σ r²/that, and
+/// how many were predicted.
+#[derive(Debug, Clone, Copy, Default, PartialEq)]
+pub struct HeldOut {
+    pub ss: f64,
+    pub floor: f64,
+    pub z2: f64,
+    pub count: usize,
+}
+
+impl HeldOut {
+    pub fn mean_square(&self) -> f64 {
+        self.ss / self.count.max(1) as f64
+    }
+
+    pub fn mean_floor(&self) -> f64 {
+        self.floor / self.count.max(1) as f64
+    }
+
+    pub fn mean_z2(&self) -> f64 {
+        self.z2 / self.count.max(1) as f64
+    }
+}
+
+/// The evaluation of adding one effect to a base.
+pub struct Eval {
+    pub chi2_drop: f64,
+    pub df: usize,
+    pub theta: DVector<f64>,
+    pub theta_sigma: DVector<f64>,
+    /// Per parameter: whether the data determine it. One whose every direction the model
+    /// absorbs has an estimate and σ that are rounding, reported as null rather than a figure.
+    pub identifiable: Vec<bool>,
+    /// RMS of the residuals after the effect, in the reported units.
+    pub rms_after: f64,
+    /// Mean square of the held-out residuals after the effect (the residuals' units).
+    pub heldout_ms: f64,
+    /// Mean of the held-out residuals squared, each in units of the base model's predicted
+    /// variance (noise plus prediction): the selection's held-out criterion, which the few
+    /// rows with a poorly determined prediction cannot dominate.
+    pub heldout_z2: f64,
+}
+
+/// The residuals of the nominal model and the cross-validation folds.
+pub struct Engine {
+    /// Whitening weights: r_i · w_i is in units of the row's σ.
+    pub w: DVector<f64>,
+    /// Residuals of the nominal model (the units the held-out figures are in).
+    pub r: DVector<f64>,
+    /// The reported units' whitening: a whitened residual over this weight is in the units
+    /// RMS figures are reported in.
+    pub w_report: DVector<f64>,
+    /// Per fold: training rows and held-out rows.
+    pub folds: Vec<(Vec<usize>, Vec<usize>)>,
+}
+
+impl Engine {
+    fn whitened_rows(&self, m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
+        DMatrix::from_fn(rows.len(), m.ncols(), |r, c| {
+            m[(rows[r], c)] * self.w[rows[r]]
+        })
+    }
+
+    fn rw(&self, rows: &[usize]) -> DVector<f64> {
+        DVector::from_fn(rows.len(), |k, _| self.r[rows[k]] * self.w[rows[k]])
+    }
+
+    /// RMS in the reported units of whitened residuals over `rows`.
+    pub fn rms_reported(&self, res_w: &DVector<f64>, rows: &[usize]) -> f64 {
+        (res_w
+            .iter()
+            .zip(rows)
+            .map(|(r, &i)| (r / self.w_report[i]).powi(2))
+            .sum::<f64>()
+            / rows.len().max(1) as f64)
+            .sqrt()
+    }
+
+    pub fn fit_base<D: LinearDesign>(
+        &self,
+        design: &D,
+        rows: Vec<usize>,
+        held: &[usize],
+    ) -> BaseFit<D::Fit> {
+        let basis = design.fit(rows.clone());
+        let res_w = basis.project_off_vec(&self.rw(&rows));
+        let held: Vec<usize> = held
+            .iter()
+            .copied()
+            .filter(|&h| basis.in_row_space(h))
+            .collect();
+        let held_var = basis.prediction_variances(&held);
+        BaseFit {
+            rows,
+            held,
+            held_var,
+            basis,
+            res_w,
+        }
+    }
+
+    /// Held-out residuals of a fold's fit with an optional extra effect (`a`: its columns
+    /// over all rows, not whitened).
+    pub fn heldout<D: LinearDesign>(
+        &self,
+        design: &D,
+        fit: &BaseFit<D::Fit>,
+        a: Option<&DMatrix<f64>>,
+    ) -> HeldOut {
+        let rw = self.rw(&fit.rows);
+        let (beta, theta) = match a {
+            None => (fit.basis.solve(&rw), None),
+            Some(a) => {
+                let perp = Projected::new(&fit.basis, self.whitened_rows(a, &fit.rows));
+                let theta = perp.solve(&fit.res_w);
+                drop(perp);
+                let a_theta = DVector::from_fn(fit.rows.len(), |k, _| {
+                    let i = fit.rows[k];
+                    self.w[i] * (0..a.ncols()).map(|c| a[(i, c)] * theta[c]).sum::<f64>()
+                });
+                let beta = fit.basis.solve(&(rw - a_theta));
+                (beta, Some(theta))
+            }
+        };
+        let mut out = HeldOut::default();
+        for (&h, prediction_var) in fit.held.iter().zip(&fit.held_var) {
+            let mut pred = design.predict(h, &beta);
+            if let (Some(a), Some(theta)) = (a, &theta) {
+                pred += (0..a.ncols()).map(|c| a[(h, c)] * theta[c]).sum::<f64>();
+            }
+            let sigma = 1.0 / self.w[h];
+            let var = sigma * sigma + prediction_var;
+            out.ss += (self.r[h] - pred).powi(2);
+            out.floor += var;
+            out.z2 += (self.r[h] - pred).powi(2) / var;
+            out.count += 1;
+        }
+        out
+    }
+
+    fn heldout_sum<D: LinearDesign>(
+        &self,
+        design: &D,
+        fits: &[BaseFit<D::Fit>],
+        a: Option<&DMatrix<f64>>,
+    ) -> HeldOut {
+        let mut sum = HeldOut::default();
+        for fit in fits {
+            let h = self.heldout(design, fit, a);
+            sum.ss += h.ss;
+            sum.floor += h.floor;
+            sum.z2 += h.z2;
+            sum.count += fit.held.len();
+        }
+        sum
+    }
+
+    /// The base fit on `all_rows` and per fold, and the folds' held-out residuals.
+    pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
+        let full = self.fit_base(design, all_rows.to_vec(), &[]);
+        let fold_fits: Vec<BaseFit<D::Fit>> = self
+            .folds
+            .iter()
+            .map(|(train, held)| self.fit_base(design, train.clone(), held))
+            .collect();
+        let heldout = self.heldout_sum(design, &fold_fits, None);
+        (full, fold_fits, heldout)
+    }
+
+    /// Adding the effect with columns `a` (all rows, not whitened) to the base.
+    pub fn evaluate<D: LinearDesign>(
+        &self,
+        design: &D,
+        full: &BaseFit<D::Fit>,
+        fold_fits: &[BaseFit<D::Fit>],
+        a: &DMatrix<f64>,
+    ) -> Eval {
+        let perp = Projected::new(&full.basis, self.whitened_rows(a, &full.rows));
+        let coeff = perp.ut(&full.res_w);
+        let chi2_drop = coeff.norm_squared();
+        let after_w = &full.res_w - perp.u_times(&coeff);
+        let rms_after = self.rms_reported(&after_w, &full.rows);
+        let theta = perp.solve(&full.res_w);
+        // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
+        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
+            (0..perp.rank())
+                .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
+                .sum::<f64>()
+                .sqrt()
+        });
+        // The parameter's unit direction inside the identified row space (1 when fully
+        // determined), against the same cut as the directions'.
+        let identifiable = (0..a.ncols())
+            .map(|c| {
+                (0..perp.rank())
+                    .map(|k| perp.vt[(k, c)].powi(2))
+                    .sum::<f64>()
+                    > EFFECT_RANK_TOL * EFFECT_RANK_TOL
+            })
+            .collect();
+        let df = perp.rank();
+        // The full fit's projected columns are not needed by the folds'.
+        drop(perp);
+        let heldout = self.heldout_sum(design, fold_fits, Some(a));
+        Eval {
+            chi2_drop,
+            df,
+            theta,
+            theta_sigma,
+            identifiable,
+            rms_after,
+            heldout_ms: heldout.mean_square(),
+            heldout_z2: heldout.mean_z2(),
+        }
+    }
+
+    /// Orthonormal basis of the candidate's columns projected off the full fit (for the
+    /// confounding test).
+    pub fn projected_basis<F: LinearFit>(
+        &self,
+        full: &BaseFit<F>,
+        a: &DMatrix<f64>,
+    ) -> DMatrix<f64> {
+        Projected::new(&full.basis, self.whitened_rows(a, &full.rows)).into_u()
+    }
+}
