@@ -116,10 +116,16 @@ fn diagnose(
     let callback = Callback::new(progress);
     let (json, text) = py
         .detach(|| -> anyhow::Result<(String, String)> {
-            callback.report(0, 1);
-            let (diagnosis, _) =
-                geocal::diagnose::diagnose_file_detailed(&path, &Default::default())?;
-            callback.report(1, 1);
+            let hook = callback.clone();
+            let options = geocal::diagnose::DiagnoseOptions {
+                progress: Some(geocal::diagnose::progress::ProgressHook::new(
+                    move |done, total| {
+                        hook.report(done, total);
+                    },
+                )),
+                ..Default::default()
+            };
+            let (diagnosis, _) = geocal::diagnose::diagnose_file_detailed(&path, &options)?;
             Ok((
                 serde_json::to_string_pretty(&diagnosis)?,
                 geocal::diagnose::text(&diagnosis),
