@@ -406,10 +406,18 @@ pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Resul
     let kind = crate::session::file_stream::read_header(path)
         .ok()
         .and_then(|header| kind_named(&header.kind));
+    // The streamed read reports its progress; a whole read only its end.
+    let read_done = || {
+        if let (Some(progress), Ok(meta)) = (&settings.read_progress, std::fs::metadata(path)) {
+            progress.finish(meta.len());
+        }
+    };
     if let Some(solved) = kind.and_then(|kind| kind.solve_streamed(path, settings)) {
+        read_done();
         return solved.with_context(|| format!("solving {}", path.display()));
     }
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    read_done();
     solve_session(&session, settings).with_context(|| {
         let file = path.display();
         let damage = match (&session.completeness, session.damaged.len()) {
