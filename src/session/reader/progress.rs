@@ -1,7 +1,6 @@
 //! How far a read of a session file is: bytes of the file done of its size, reported to a
 //! caller's function (a progress bar, the Python package's callback) as the chunks are merged.
 
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 
 /// A caller's function of (bytes done, bytes in all). It sees `done` grow and never fall
@@ -10,16 +9,18 @@ use std::sync::{Arc, Mutex, PoisonError};
 #[derive(Clone)]
 pub struct ReadProgress {
     report: Arc<dyn Fn(u64, u64) + Send + Sync>,
-    /// The last `done` reported, plus one (0: nothing reported yet).
-    last: Arc<AtomicU64>,
-    /// Serialises the calls so that the function sees them in order.
-    calling: Arc<Mutex<()>>,
+    /// The last `done` reported; held while the function runs, so that it sees the reports
+    /// in order.
+    last: Arc<Mutex<Option<u64>>>,
 }
 
 impl std::fmt::Debug for ReadProgress {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         f.debug_struct("ReadProgress")
-            .field("last", &self.last.load(Ordering::Relaxed).checked_sub(1))
+            .field(
+                "last",
+                &*self.last.lock().unwrap_or_else(PoisonError::into_inner),
+            )
             .finish()
     }
 }
@@ -29,7 +30,6 @@ impl ReadProgress {
         ReadProgress {
             report: Arc::new(report),
             last: Arc::default(),
-            calling: Arc::default(),
         }
     }
 
@@ -37,12 +37,11 @@ impl ReadProgress {
     /// always goes out, even at 0).
     pub fn report(&self, done: u64, total: u64) {
         let done = done.min(total);
-        let _order = self.calling.lock().unwrap_or_else(PoisonError::into_inner);
-        let last = self.last.load(Ordering::Relaxed);
-        if last != 0 && done < last {
+        let mut last = self.last.lock().unwrap_or_else(PoisonError::into_inner);
+        if last.is_some_and(|last| done <= last) {
             return;
         }
-        self.last.store(done.saturating_add(1), Ordering::Relaxed);
+        *last = Some(done);
         (self.report)(done, total);
     }
 
