@@ -304,25 +304,19 @@ fn outside_sessions_stream_as_read_whole() {
 }
 
 /// The streamed read reports the bytes merged: from 0, growing, several times for a file of
-/// many chunks, ending at the file's size; `kinds::solve_file` passes it on and ends it even
-/// when the file is read whole (a cut copy).
+/// many chunks, ending at the file's size.
 #[test]
 fn the_streamed_read_reports_its_progress() {
     use crate::session::reader::{stream_session_reporting, ReadProgress};
     use std::sync::{Arc, Mutex};
 
-    let reporting = || {
-        let seen = Arc::new(Mutex::new(Vec::<(u64, u64)>::new()));
-        let log = seen.clone();
-        let progress =
-            ReadProgress::new(move |done, total| log.lock().unwrap().push((done, total)));
-        (seen, progress)
-    };
+    let seen = Arc::new(Mutex::new(Vec::<(u64, u64)>::new()));
+    let log = seen.clone();
+    let progress = ReadProgress::new(move |done, total| log.lock().unwrap().push((done, total)));
     let dir = tempfile::tempdir().expect("tempdir");
     let path = dir.path().join("s.mcap");
     record(&path, 60);
     let len = std::fs::metadata(&path).expect("size").len();
-    let (seen, progress) = reporting();
     let mut sink = LengthStream::new("multilateration");
     stream_session_reporting(&path, &mut sink, Some(&progress)).expect("a clean file streams");
     let seen = seen.lock().unwrap().clone();
@@ -331,22 +325,4 @@ fn the_streamed_read_reports_its_progress() {
     assert_eq!(seen.last(), Some(&(len, len)));
     assert!(seen.iter().all(|&(_, total)| total == len));
     assert!(seen.windows(2).all(|w| w[0].0 < w[1].0), "{seen:?}");
-
-    let outside = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/outside");
-    let whole = outside.join("outside-clean-7/session.mcap");
-    let cut = dir.path().join("cut.mcap");
-    let bytes = std::fs::read(&whole).expect("read");
-    std::fs::write(&cut, &bytes[..bytes.len() - 100]).expect("write");
-    for path in [whole, cut] {
-        let len = std::fs::metadata(&path).expect("size").len();
-        let (seen, progress) = reporting();
-        let settings = crate::method::SolveSettings {
-            read_progress: Some(progress),
-            ..Default::default()
-        };
-        crate::kinds::solve_file(&path, &settings).expect("solved");
-        let seen = seen.lock().unwrap().clone();
-        assert_eq!(seen.last(), Some(&(len, len)), "{}", path.display());
-        assert!(seen.windows(2).all(|w| w[0].0 < w[1].0), "{seen:?}");
-    }
 }
