@@ -196,13 +196,16 @@ impl SessionSink for LengthStream {
         let mut make = |m: Measured| length_measurement(m, noise, targets);
         // A clean file's stream: no message is lost.
         let lost = |_: u64, _: u64| false;
-        for event in events.iter() {
-            if matches!(event.msg, RunEvent::DataLost { .. }) {
-                return false;
-            }
+        if events
+            .iter()
+            .any(|e| matches!(e.msg, RunEvent::DataLost { .. }))
+        {
+            return false;
+        }
+        for event in events.drain(..) {
             started
                 .pairing
-                .event(event, &self.samples, &lost, &mut make);
+                .event_owned(event, &self.samples, &lost, &mut make);
         }
         // Every later event lies at or after this batch's bound, beyond every sample held:
         // only an open window still needs its samples.

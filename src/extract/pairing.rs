@@ -71,7 +71,6 @@ impl<M> StreamStart<M> {
 /// Event-by-event state of the extraction; `M` is what a measured window becomes.
 pub(crate) struct Pairing<M> {
     noise: Option<NoiseModel>,
-    options: ExtractOptions,
     previous_ns: u64,
     open: Option<OpenWindow>,
     station_index: BTreeMap<String, usize>,
@@ -79,13 +78,14 @@ pub(crate) struct Pairing<M> {
     pub(crate) measurements: Vec<M>,
     pub(crate) dropped: Vec<DroppedWindow>,
     pub(crate) repeated: Vec<DroppedWindow>,
+    /// Reset for every window: its queues keep their room instead of growing anew.
+    detector: StillstandDetector,
 }
 
 impl<M> Pairing<M> {
     pub(crate) fn new(noise: Option<NoiseModel>, options: ExtractOptions) -> Self {
         Pairing {
             noise,
-            options,
             previous_ns: 0,
             open: None,
             station_index: BTreeMap::new(),
@@ -93,6 +93,7 @@ impl<M> Pairing<M> {
             measurements: Vec::new(),
             dropped: Vec::new(),
             repeated: Vec::new(),
+            detector: StillstandDetector::new(options.window_s, options.tolerance_m),
         }
     }
 
@@ -146,11 +147,7 @@ impl<M> Pairing<M> {
                 axes,
                 approach,
             } => {
-                if let Some(w) = self.open.take() {
-                    let why = reason(&w, event.log_time_ns, "point_begin without point_end");
-                    self.dropped.push(dropped(&w, why));
-                }
-                self.open = Some(OpenWindow {
+                let window = OpenWindow {
                     log_time_ns: event.log_time_ns,
                     station: station.clone(),
                     point: *point,
@@ -159,7 +156,8 @@ impl<M> Pairing<M> {
                     nominal_m: *nominal_m,
                     axes: axes.clone(),
                     approach: approach.clone(),
-                });
+                };
+                self.open_window(window, lost);
             }
             RunEvent::Rehome { .. } => {
                 if let Some(w) = self.open.take() {
@@ -208,7 +206,7 @@ impl<M> Pairing<M> {
                 }
                 let station_index = self.index_of(&w.station, None);
                 let window = in_window(samples, w.log_time_ns, event.log_time_ns);
-                match settle(window, self.noise, &self.options) {
+                match settle(window, self.noise, &mut self.detector) {
                     Ok(settled) => {
                         let measured = make(Measured {
                             window: w,
@@ -222,6 +220,67 @@ impl<M> Pairing<M> {
             }
             _ => {}
         }
+    }
+
+    /// As `event`, taking the event: a `point_begin`'s names and maps move into the open
+    /// window instead of being copied.
+    pub(crate) fn event_owned(
+        &mut self,
+        event: Stamped<RunEvent>,
+        samples: &[Stamped<TracerSample>],
+        lost: &impl Fn(u64, u64) -> bool,
+        make: &mut impl FnMut(Measured) -> M,
+    ) {
+        let Stamped {
+            log_time_ns,
+            publish_time_ns,
+            msg,
+        } = event;
+        match msg {
+            RunEvent::PointBegin {
+                station,
+                point,
+                pass,
+                target,
+                nominal_m,
+                axes,
+                approach,
+            } => {
+                self.previous_ns = log_time_ns;
+                let window = OpenWindow {
+                    log_time_ns,
+                    station,
+                    point,
+                    pass,
+                    target,
+                    nominal_m,
+                    axes,
+                    approach,
+                };
+                self.open_window(window, lost);
+            }
+            msg => {
+                let event = Stamped {
+                    log_time_ns,
+                    publish_time_ns,
+                    msg,
+                };
+                self.event(&event, samples, lost, make);
+            }
+        }
+    }
+
+    /// A `point_begin` opens `window`; a window still open never closed.
+    fn open_window(&mut self, window: OpenWindow, lost: &impl Fn(u64, u64) -> bool) {
+        if let Some(w) = self.open.take() {
+            let why = if lost(w.log_time_ns, window.log_time_ns) {
+                DAMAGED_CHUNK
+            } else {
+                "point_begin without point_end"
+            };
+            self.dropped.push(dropped(&w, why));
+        }
+        self.open = Some(window);
     }
 
     /// The session is over: a window still open never closed.
@@ -261,7 +320,7 @@ fn in_window(
 fn settle(
     window: &[Stamped<TracerSample>],
     noise: Option<NoiseModel>,
-    options: &ExtractOptions,
+    detector: &mut StillstandDetector,
 ) -> Result<Settled, &'static str> {
     let first = window.first().ok_or("no tracer samples in the window")?;
     let beam_segment = first.msg.beam_segment;
@@ -271,7 +330,7 @@ fn settle(
     {
         return Err("beam broken inside the window");
     }
-    let mut detector = StillstandDetector::new(options.window_s, options.tolerance_m);
+    detector.reset();
     let mut stretch: Option<(f64, f64)> = None;
     for s in window {
         if let Stillstand::Settled { since_s } = detector.push(s.msg.t_s, s.msg.length_m) {

@@ -302,3 +302,27 @@ fn outside_sessions_stream_as_read_whole() {
         assert_eq!(streamed.session.header, session.header);
     }
 }
+
+/// The streamed read reports the bytes merged: from 0, growing, several times for a file of
+/// many chunks, ending at the file's size.
+#[test]
+fn the_streamed_read_reports_its_progress() {
+    use crate::session::reader::{stream_session_reporting, ReadProgress};
+    use std::sync::{Arc, Mutex};
+
+    let seen = Arc::new(Mutex::new(Vec::<(u64, u64)>::new()));
+    let log = seen.clone();
+    let progress = ReadProgress::new(move |done, total| log.lock().unwrap().push((done, total)));
+    let dir = tempfile::tempdir().expect("tempdir");
+    let path = dir.path().join("s.mcap");
+    record(&path, 60);
+    let len = std::fs::metadata(&path).expect("size").len();
+    let mut sink = LengthStream::new("multilateration");
+    stream_session_reporting(&path, &mut sink, Some(&progress)).expect("a clean file streams");
+    let seen = seen.lock().unwrap().clone();
+    assert!(seen.len() > 5, "{seen:?}");
+    assert_eq!(seen.first(), Some(&(0, len)));
+    assert_eq!(seen.last(), Some(&(len, len)));
+    assert!(seen.iter().all(|&(_, total)| total == len));
+    assert!(seen.windows(2).all(|w| w[0].0 < w[1].0), "{seen:?}");
+}

@@ -406,10 +406,18 @@ pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Resul
     let kind = crate::session::file_stream::read_header(path)
         .ok()
         .and_then(|header| kind_named(&header.kind));
+    // The streamed read reports its progress; a whole read only its end.
+    let read_done = || {
+        if let (Some(progress), Ok(meta)) = (&settings.read_progress, std::fs::metadata(path)) {
+            progress.finish(meta.len());
+        }
+    };
     if let Some(solved) = kind.and_then(|kind| kind.solve_streamed(path, settings)) {
+        read_done();
         return solved.with_context(|| format!("solving {}", path.display()));
     }
     let session = read_session(path).with_context(|| format!("reading {}", path.display()))?;
+    read_done();
     solve_session(&session, settings).with_context(|| {
         let file = path.display();
         let damage = match (&session.completeness, session.damaged.len()) {
@@ -422,4 +430,39 @@ pub fn solve_file(path: &Path, settings: &SolveSettings) -> anyhow::Result<Resul
         };
         format!("solving {file}{damage}")
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use std::path::Path;
+    use std::sync::{Arc, Mutex};
+
+    use crate::session::reader::ReadProgress;
+
+    /// `solve_file` passes the read's progress on, growing, and ends it at the file's size,
+    /// also when the file is read whole (a cut copy).
+    #[test]
+    fn solving_a_file_reports_the_read_to_its_end() {
+        let outside = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/outside");
+        let whole = outside.join("outside-clean-7/session.mcap");
+        let dir = tempfile::tempdir().expect("tempdir");
+        let cut = dir.path().join("cut.mcap");
+        let bytes = std::fs::read(&whole).expect("read");
+        std::fs::write(&cut, &bytes[..bytes.len() - 100]).expect("write");
+        for path in [whole, cut] {
+            let len = std::fs::metadata(&path).expect("size").len();
+            let seen = Arc::new(Mutex::new(Vec::<(u64, u64)>::new()));
+            let log = seen.clone();
+            let settings = super::SolveSettings {
+                read_progress: Some(ReadProgress::new(move |done, total| {
+                    log.lock().unwrap().push((done, total))
+                })),
+                ..Default::default()
+            };
+            super::solve_file(&path, &settings).expect("solved");
+            let seen = seen.lock().unwrap().clone();
+            assert_eq!(seen.last(), Some(&(len, len)), "{}", path.display());
+            assert!(seen.windows(2).all(|w| w[0].0 < w[1].0), "{seen:?}");
+        }
+    }
 }

@@ -130,6 +130,9 @@ pub struct SolveSettings {
     /// Effects of the kind's own library (kinds with a residual model, `diagnosis`), fitted
     /// jointly with its calibration; empty: none.
     pub effect_names: Vec<String>,
+    /// Told how much of the session file is read (bytes done of its size) while it is read;
+    /// no bearing on the results.
+    pub read_progress: Option<crate::session::reader::ReadProgress>,
 }
 
 impl PartialEq for SolveSettings {

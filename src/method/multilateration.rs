@@ -237,7 +237,11 @@ pub fn solve_file_streaming_detailed(
         return None;
     }
     let mut sink = KeepingEvents::new(LengthStream::new(kind), keep);
-    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
+    let streamed = crate::session::reader::stream_session_reporting(
+        path,
+        &mut sink,
+        settings.read_progress.as_ref(),
+    )?;
     let (lengths, tracer_id, declared_noise) = sink.inner.finish()?;
     let mut session = streamed.session;
     session.events = sink.kept;

@@ -205,7 +205,7 @@ impl Decoder {
     /// replaced (its state is undefined).
     pub(super) fn feed_whole_chunk(
         &mut self,
-        sans: &mut LinearReader,
+        sans: &mut ChunkReader,
         record: &[u8],
     ) -> Result<(), Failure> {
         if record.len() >= RECORD_PREFIX + 24 {
@@ -348,9 +348,18 @@ impl Decoder {
     /// Feeds one whole chunk record (opcode and length included) and takes its records.
     pub(super) fn feed_chunk(
         &mut self,
-        sans: &mut LinearReader,
+        reader: &mut ChunkReader,
         record: &[u8],
     ) -> Result<(), Failure> {
+        if let Some(records) = reader.records_of(record) {
+            let mut pos = 0;
+            while let Some((opcode, end)) = framed(records, pos) {
+                self.on_record(opcode, &records[pos + RECORD_PREFIX..end])?;
+                pos = end;
+            }
+            return Ok(());
+        }
+        let sans = &mut reader.sans;
         sans.insert(record.len()).copy_from_slice(record);
         sans.notify_read(record.len());
         while let Some(event) = sans.next_event() {
@@ -439,16 +448,94 @@ pub(super) fn take_or_append<T>(into: &mut Vec<T>, more: &mut Vec<T>) {
     }
 }
 
-pub(super) fn chunk_reader() -> LinearReader {
+/// Decodes whole chunk records. The common chunk — zstd, lz4 or uncompressed, whose records fill
+/// exactly the size it claims, CRC right — is decompressed into a buffer kept from chunk to
+/// chunk; any other goes through the `mcap` reader, whose verdict and errors it keeps.
+pub(super) struct ChunkReader {
+    sans: LinearReader,
+    zstd: Option<zstd::bulk::Decompressor<'static>>,
+    decompressed: Vec<u8>,
+}
+
+pub(super) fn chunk_reader() -> ChunkReader {
     // Only whole records are ever fed in, so a chunk is decoded only once complete; its CRC is
     // checked before any of its messages is used.
-    LinearReader::new_with_options(
+    let sans = LinearReader::new_with_options(
         LinearReaderOptions::default()
             .with_skip_start_magic(true)
             .with_skip_end_magic(true)
             .with_prevalidate_chunk_crcs(true)
             .with_record_length_limit(MAX_RECORD_BYTES),
-    )
+    );
+    ChunkReader {
+        sans,
+        zstd: None,
+        decompressed: Vec::new(),
+    }
+}
+
+impl ChunkReader {
+    /// The records of a whole chunk record (opcode and length included) when the chunk is
+    /// the common one, every record framed whole: None for anything else (the `mcap` reader
+    /// then decides).
+    fn records_of<'a>(&'a mut self, record: &'a [u8]) -> Option<&'a [u8]> {
+        if record.first() != Some(&op::CHUNK)
+            || usize::try_from(le_u64(record.get(1..RECORD_PREFIX)?)).ok()?
+                != record.len() - RECORD_PREFIX
+        {
+            return None;
+        }
+        // message start and end times, uncompressed size, CRC, compression, compressed size.
+        let body = &record[RECORD_PREFIX..];
+        let uncompressed = usize::try_from(le_u64(body.get(16..24)?)).ok()?;
+        let crc = u32::from_le_bytes(body.get(24..28)?.try_into().ok()?);
+        let name_len =
+            usize::try_from(u32::from_le_bytes(body.get(28..32)?.try_into().ok()?)).ok()?;
+        let name_end = 32usize.checked_add(name_len)?;
+        let compression = body.get(32..name_end)?;
+        let size_end = name_end.checked_add(8)?;
+        let compressed = usize::try_from(le_u64(body.get(name_end..size_end)?)).ok()?;
+        let stored = body.get(size_end..size_end.checked_add(compressed)?)?;
+        if uncompressed > MAX_RECORD_BYTES {
+            return None;
+        }
+        if compression.is_empty() {
+            return self::records(stored, crc).filter(|_| compressed == uncompressed);
+        }
+        // Zeroed only where it grows: the decompression overwrites what is used.
+        if self.decompressed.len() < uncompressed {
+            self.decompressed.resize(uncompressed, 0);
+        }
+        let out = &mut self.decompressed[..uncompressed];
+        match compression {
+            b"zstd" => {
+                let zstd = match &mut self.zstd {
+                    Some(zstd) => zstd,
+                    none => none.insert(zstd::bulk::Decompressor::new().ok()?),
+                };
+                let wrote = zstd.decompress_to_buffer(stored, out).ok()?;
+                (wrote == uncompressed).then_some(())?;
+            }
+            b"lz4" => {
+                let mut lz4 = lz4::Decoder::new(stored).ok()?;
+                std::io::Read::read_exact(&mut lz4, out).ok()?;
+            }
+            _ => return None,
+        }
+        self::records(&self.decompressed[..uncompressed], crc)
+    }
+}
+
+/// `records` when their CRC (0: none) is right and they are whole records end to end.
+fn records(records: &[u8], crc: u32) -> Option<&[u8]> {
+    if crc != 0 && crc32fast::hash(records) != crc {
+        return None;
+    }
+    let mut pos = 0;
+    while pos < records.len() {
+        pos = framed(records, pos)?.1;
+    }
+    Some(records)
 }
 
 /// Bound on a chunk's (de)compressed size: the sizes come from the file, and a corrupt one

@@ -172,8 +172,16 @@ fn read_indexed_from(
     let (failure, undefined) = if let Some(buf) = serial {
         (dec.feed_chunks(buf, &ranges).err(), false)
     } else {
+        let file_bytes = source.len();
+        let ranges_done = &ranges;
         let mut merged = |dec: &mut Decoder, k: usize| match reorder.as_deref_mut() {
-            Some(reorder) => reorder.merged(dec, k),
+            Some(reorder) => {
+                let go_on = reorder.merged(dec, k);
+                if let (Some(progress), Some(&(_, end))) = (reorder.progress, ranges_done.get(k)) {
+                    progress.report(end as u64, file_bytes);
+                }
+                go_on
+            }
             None => true,
         };
         let outcome = decode_chunks(

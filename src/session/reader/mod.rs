@@ -8,6 +8,7 @@ mod event_json;
 mod indexed;
 mod linear;
 mod pipeline;
+mod progress;
 mod runs;
 mod source;
 mod stream;
@@ -32,7 +33,8 @@ use super::summary::{trusted_summary, trusted_summary_of_file};
 use decoder::Decoder;
 use indexed::{read_indexed, read_indexed_file, read_indexed_with};
 use linear::{read_linear, read_linear_dated};
-pub use stream::{stream_session, KeepingEvents, SessionSink, Streamed};
+pub use progress::ReadProgress;
+pub use stream::{stream_session, stream_session_reporting, KeepingEvents, SessionSink, Streamed};
 use streams::RawLog;
 
 /// A message with its MCAP times.

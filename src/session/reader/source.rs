@@ -29,10 +29,14 @@ impl<'a> Bytes<'a> {
         match self {
             Bytes::Memory(buf) => Ok(&buf[start..end]),
             Bytes::File { file, .. } => {
-                scratch.clear();
-                scratch.resize(end - start, 0);
-                file.read_exact_at(scratch, start as u64)?;
-                Ok(scratch)
+                // Zeroed only where it grows: the read overwrites what it returns.
+                let len = end - start;
+                if scratch.len() < len {
+                    scratch.resize(len, 0);
+                }
+                let bytes = &mut scratch[..len];
+                file.read_exact_at(bytes, start as u64)?;
+                Ok(bytes)
             }
         }
     }

@@ -20,6 +20,7 @@
 use std::path::Path;
 
 use super::decoder::{take_or_append, Decoder};
+use super::progress::ReadProgress;
 use super::Stamped;
 use crate::session::messages::{RunEvent, SessionHeader, TracerSample, TOPIC_EVENT};
 
@@ -78,6 +79,17 @@ impl<S: SessionSink> SessionSink for KeepingEvents<S> {
 /// chunks, chunks out of their index's order, a sink that stopped, odd writers): the caller
 /// then discards what the sink saw and reads the whole session.
 pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streamed> {
+    stream_session_reporting(path, sink, None)
+}
+
+/// As `stream_session`, reporting the bytes of the file read to `progress` as the chunks are
+/// merged, and the whole file once the stream is complete (a stream that gives up leaves
+/// the last report short of the total: the caller's whole read finishes it).
+pub fn stream_session_reporting(
+    path: &Path,
+    sink: &mut dyn SessionSink,
+    progress: Option<&ReadProgress>,
+) -> Option<Streamed> {
     let name = path.display().to_string();
     let file = std::fs::File::open(path).ok()?;
     let len = file.metadata().ok()?.len();
@@ -86,8 +98,12 @@ pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streame
     if magic[..] != mcap::MAGIC[..] {
         return None;
     }
+    if let Some(progress) = progress {
+        progress.report(0, len);
+    }
     let summary = crate::session::summary::trusted_summary_of_file(&file, len, &name)?;
     let mut reorder = Reorder::new(sink, &summary, len);
+    reorder.progress = progress;
     let decoded = super::indexed::stream_indexed_file(&file, len, &name, &summary, &mut reorder);
     let mut dec = decoded.ok().flatten()?;
     if !dec.damages.is_empty() || !reorder.finish(&mut dec) {
@@ -97,6 +113,9 @@ pub fn stream_session(path: &Path, sink: &mut dyn SessionSink) -> Option<Streame
     let peak_chunks_in_flight = dec.peak_chunks_in_flight;
     let chunk_decoders_made = dec.chunk_decoders_made;
     let session = dec.into_session(&name, len).ok()?;
+    if let Some(progress) = progress {
+        progress.finish(len);
+    }
     Some(Streamed {
         session,
         peak_held_messages,
@@ -135,6 +154,8 @@ pub(super) struct Reorder<'s> {
     out_events: Vec<Stamped<RunEvent>>,
     /// The most tracer samples and events held here at once (tests).
     pub(super) peak_held: usize,
+    /// Told the bytes of the file merged so far.
+    pub(super) progress: Option<&'s ReadProgress>,
 }
 
 /// What bounds the log times of the chunks still to come.
@@ -188,6 +209,7 @@ impl<'s> Reorder<'s> {
             out_tracers: Vec::new(),
             out_events: Vec::new(),
             peak_held: 0,
+            progress: None,
         }
     }
 

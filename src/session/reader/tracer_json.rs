@@ -46,6 +46,8 @@ pub(super) struct Cursor<'a> {
 }
 
 impl Cursor<'_> {
+    // Inlined, each call compares a constant number of bytes without a call to memcmp.
+    #[inline]
     pub(super) fn literal(&mut self, text: &[u8]) -> Option<()> {
         let rest = self.data.get(self.at..)?;
         rest.starts_with(text).then(|| self.at += text.len())
@@ -107,10 +109,9 @@ impl Cursor<'_> {
         if !real {
             return None;
         }
-        let value: f64 = std::str::from_utf8(&self.data[start..self.at])
-            .ok()?
-            .parse()
-            .ok()?;
+        // The bytes are a JSON number (checked above), which lexical reads exactly as
+        // `str::parse` does, without the UTF-8 check and ~30 % faster.
+        let value: f64 = lexical_core::parse(&self.data[start..self.at]).ok()?;
         // serde_json refuses numbers beyond f64's range.
         value.is_finite().then_some(value)
     }
@@ -159,6 +160,30 @@ mod tests {
     }
 
     proptest! {
+        /// Numbers as other writers may print them (long mantissas, exponents up to f64's
+        /// limits and beyond, halfway cases): the fast path reads serde_json's value or none.
+        #[test]
+        fn numbers_read_as_serde_json_reads_them(
+            negative in any::<bool>(),
+            int in "[1-9][0-9]{0,25}|0",
+            frac in "[0-9]{1,30}",
+            exp in proptest::option::of(-340i32..320),
+        ) {
+            let number = format!(
+                "{}{int}.{frac}{}",
+                if negative { "-" } else { "" },
+                exp.map_or(String::new(), |e| format!("e{e}"))
+            );
+            let text = format!(
+                r#"{{"seq":1,"t_s":{number},"length_m":2.0,"signal":1.0,"tracking":true,"beam_segment":0}}"#
+            );
+            let fast = parse_compact(text.as_bytes());
+            match serde(text.as_bytes()) {
+                Some(slow) => prop_assert_eq!(fast.map(|f| f.t_s.to_bits()), Some(slow.t_s.to_bits())),
+                None => prop_assert!(fast.is_none()),
+            }
+        }
+
         /// Whenever the fast path answers, serde_json gives the same sample, bit for bit.
         #[test]
         fn agrees_with_serde_json(
