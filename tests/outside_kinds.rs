@@ -178,7 +178,11 @@ fn hexapod_z(name: &str) -> Vec<f64> {
         ] {
             for k in 0..3 {
                 let v = (f(&h[est][k]) - f(&th[truth][k])) / f(&h[sigma][k]);
-                assert!(v.abs() <= 4.0, "{name}: leg {}: {est}[{k}] {v:.2} σ", h["leg"]);
+                assert!(
+                    v.abs() <= 4.0,
+                    "{name}: leg {}: {est}[{k}] {v:.2} σ",
+                    h["leg"]
+                );
                 z.push(v);
             }
         }

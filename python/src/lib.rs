@@ -69,14 +69,24 @@ fn solve_json(
     effects: &[String],
     callback: &Callback,
 ) -> anyhow::Result<(String, String)> {
+    // Progress in bytes of the file read, plus one step for the solve after the read.
+    let total = std::fs::metadata(path).map_or(0, |m| m.len()) + 1;
+    let reader = callback.clone();
     let settings = geocal::diagnose::residual_model::solve_settings(
         path,
         effects,
-        geocal::method::SolveSettings::default(),
+        geocal::method::SolveSettings {
+            read_progress: Some(geocal::session::reader::ReadProgress::new(
+                move |done, _| {
+                    reader.report(done, total);
+                },
+            )),
+            ..Default::default()
+        },
     )?;
-    callback.report(0, 1);
+    callback.report(0, total);
     let results = geocal::kinds::solve_file(path, &settings)?;
-    callback.report(1, 1);
+    callback.report(total, total);
     Ok((results.to_json_pretty(), results.report()))
 }
 

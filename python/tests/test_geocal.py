@@ -127,7 +127,11 @@ def test_a_progress_callback_that_raises_stops_reporting_and_raises(tmp_path):
 
 @pytest.mark.parametrize("name", OUTSIDE)
 def test_solve_outside_sessions_equals_the_command_line(name, tmp_path):
-    results = geocal.solve(session(name))
+    calls = []
+    results = geocal.solve(session(name), progress=lambda d, t: calls.append((d, t)))
+    assert_steady_progress(calls)
+    # In bytes of the file read, and one more step for the solve.
+    assert calls[-1][1] == os.path.getsize(session(name)) + 1
     assert results.to_json() == cli_solve_file(session(name), tmp_path / "r.json")
     assert results.text == cli("solve", session(name)).stdout
     assert results.parameters.num_rows > 0
@@ -259,8 +263,8 @@ def test_solve_releases_the_gil():
     while worker.is_alive():
         log.append(("main", None))
         worker.join(0.002)
-    begin = log.index(("solve", 0))
-    end = log.index(("solve", 1))
+    solving = [k for k, (who, _) in enumerate(log) if who == "solve"]
+    begin, end = solving[0], solving[-1]
     # Python ran in this thread while the Rust core solved in the other.
     assert ("main", None) in log[begin:end], "the GIL was held during the solve"
 
