@@ -30,6 +30,8 @@ struct Faults {
     stuck_mdi: Option<u32>,
     /// The move stays PAUSED (the operator's feed hold) at its target instead.
     paused_at_target: bool,
+    /// The move stays RUNNING within 1 µm of its target, still creeping (1 nm per poll).
+    creeping_at_target: bool,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -61,6 +63,8 @@ struct Machine3 {
     received: Vec<(u32, String)>,
     /// The interpreter keeps the current move's command RUNNING (or PAUSED) at its target.
     stuck: bool,
+    /// Polls of a creeping move so far.
+    creep_polls: u32,
 }
 
 /// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
@@ -187,7 +191,10 @@ fn answer(
             }
             s.polls_left = faults.running_polls.unwrap_or(3);
             s.mdi_seen += 1;
-            s.stuck = faults.stuck_mdi == Some(s.mdi_seen) || faults.paused_at_target;
+            s.stuck = faults.stuck_mdi == Some(s.mdi_seen)
+                || faults.paused_at_target
+                || faults.creeping_at_target;
+            s.creep_polls = 0;
             let close = faults.drop_after_first_mdi && first && s.mdi_seen == 1;
             if close {
                 match faults.stop_while_away {
@@ -231,6 +238,11 @@ fn answer(
                 "program_status" => {
                     if s.stuck {
                         s.pos = s.target;
+                        if faults.creeping_at_target {
+                            // mm: from 0.9 µm short, 1 nm closer at every poll.
+                            s.creep_polls += 1;
+                            s.pos[0] -= 0.0009 - 1e-6 * f64::from(s.creep_polls.min(900));
+                        }
                         if faults.paused_at_target {
                             "PROGRAM_STATUS PAUSED".into()
                         } else {
@@ -695,22 +707,39 @@ async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
         .iter()
         .any(|l| l.eq_ignore_ascii_case("set abort")));
 
-    // The operator's pause (PAUSED) at the target is theirs: no abort, still moving.
-    let (port, state) = fake(Faults {
-        paused_at_target: true,
-        ..Faults::default()
-    })
-    .await;
-    let mut m = LinuxCncMachine::connect(stall(port))
-        .await
-        .expect("connects");
-    m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
-    let at = idle_within(&mut m, Duration::from_secs(1))
-        .await
-        .expect("polls");
-    assert!(at.is_none(), "a paused move has not arrived");
-    assert!(m.take_link_faults().is_empty());
-    assert!(!lines_from_mdi(&state, 1)
-        .iter()
-        .any(|l| l.eq_ignore_ascii_case("set abort")));
+    // The operator's pause (PAUSED) at the target is theirs, and a move still creeping
+    // within the tolerance is moving: no abort, not arrived.
+    for (faults, what) in [
+        (
+            Faults {
+                paused_at_target: true,
+                ..Faults::default()
+            },
+            "paused",
+        ),
+        (
+            Faults {
+                creeping_at_target: true,
+                ..Faults::default()
+            },
+            "creeping",
+        ),
+    ] {
+        let (port, state) = fake(faults).await;
+        let mut m = LinuxCncMachine::connect(stall(port))
+            .await
+            .expect("connects");
+        m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
+        let at = idle_within(&mut m, Duration::from_secs(1))
+            .await
+            .expect("polls");
+        assert!(at.is_none(), "a {what} move has not arrived");
+        assert!(m.take_link_faults().is_empty(), "{what}");
+        assert!(
+            !lines_from_mdi(&state, 1)
+                .iter()
+                .any(|l| l.eq_ignore_ascii_case("set abort")),
+            "{what}"
+        );
+    }
 }

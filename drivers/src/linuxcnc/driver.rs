@@ -394,8 +394,9 @@ pub struct LinuxCncMachine {
     idle_short_since: Option<Instant>,
     /// When the last move was accepted (`SET MDI ACK`).
     move_accepted_at: Option<Instant>,
-    /// Since when LinuxCNC reports the move running while the machine stands at its target.
-    running_at_target_since: Option<Instant>,
+    /// Since when LinuxCNC reports the move running while the machine stands at its target,
+    /// and where it stands (a move still creeping within the tolerance is not standing).
+    running_at_target_since: Option<(Instant, [Option<f64>; N_AXES])>,
     last_state: Option<MachineState>,
     last_poll: Option<Instant>,
     server: String,
@@ -1280,12 +1281,12 @@ impl LinuxCncMachine {
             .all(|(c, a)| c.is_none_or(|c| a.is_some_and(|a| (c - a).abs() <= tol)))
     }
 
-    /// LinuxCNC reports the move running or paused. Moving, unless the machine has stood at
-    /// the target for `stall_timeout_s` (checked once the move is that old) while LinuxCNC
-    /// keeps the MDI command RUNNING: then the command is stuck (docs/linuxcnc.md). `set
-    /// abort` ends it — LinuxCNC's way to end an MDI command; the machine stands, nothing
-    /// moves — recorded as an `mdi_stuck` link fault; the next poll then finds LinuxCNC idle
-    /// at the target. A pause is the operator's and is left alone.
+    /// LinuxCNC reports the move running or paused. Moving, unless the machine has stood
+    /// still at the target for `stall_timeout_s` (checked once the move is that old) while
+    /// LinuxCNC keeps the MDI command RUNNING: then the command is stuck (docs/linuxcnc.md).
+    /// `set abort` ends it — LinuxCNC's way to end an MDI command; the machine stands,
+    /// nothing moves — recorded as an `mdi_stuck` link fault; the next poll then finds
+    /// LinuxCNC idle at the target. A pause is the operator's and is left alone.
     async fn running(&mut self, status: ProgramStatus) -> Result<MachineState, DeviceError> {
         let stall = Duration::from_secs_f64(self.cfg.stall_timeout_s);
         if status != ProgramStatus::Running
@@ -1300,9 +1301,13 @@ impl LinuxCncMachine {
             self.running_at_target_since = None;
             return Ok(MachineState::Moving);
         }
-        let since = *self
-            .running_at_target_since
-            .get_or_insert_with(Instant::now);
+        let since = match self.running_at_target_since {
+            Some((since, at)) if at == actual => since,
+            _ => {
+                self.running_at_target_since = Some((Instant::now(), actual));
+                return Ok(MachineState::Moving);
+            }
+        };
         if since.elapsed() <= stall {
             return Ok(MachineState::Moving);
         }
