@@ -730,7 +730,7 @@ async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
             .await
             .expect("connects");
         m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
-        let at = idle_within(&mut m, Duration::from_secs(1))
+        let at = idle_within(&mut m, Duration::from_millis(700))
             .await
             .expect("polls");
         assert!(at.is_none(), "a {what} move has not arrived");
