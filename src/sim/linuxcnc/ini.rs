@@ -104,8 +104,11 @@ pub const HAL_FILE: &str = "geocal.hal";
 /// controller to take a command. Without a realtime kernel a loaded computer stalls the servo
 /// thread for seconds (1.8 s measured on 2 cores); past this wait the task drops the command
 /// ("USRMOT: ERROR: command timeout" in its log) and an MDI move is lost or ends early
-/// without an error (docs/linuxcnc.md). LinuxCNC's own configs say 1.0.
-pub const COMM_TIMEOUT_S: f64 = 30.0;
+/// without an error (docs/linuxcnc.md). LinuxCNC's own configs say 1.0. Not more: at start-up
+/// the task's first command can be lost to the motion module's initialisation, and the task
+/// then waits this long before it publishes a status; linuxcncrsh gives up (and LinuxCNC
+/// with it) when no status came within 10 s.
+pub const COMM_TIMEOUT_S: f64 = 5.0;
 
 /// `[DISPLAY] DISPLAY = linuxcncrsh`: the text interface on port 5007 is the only user
 /// interface (no X display); it starts once the task is up.
@@ -193,7 +196,7 @@ mod tests {
         assert!(ini.contains("[JOINT_2]\nTYPE = LINEAR\nMIN_LIMIT = -500\nMAX_LIMIT = 1000\n"));
         assert!(ini.contains("MAX_ACCELERATION = 1000\n"));
         assert!(ini.contains("SERVO_PERIOD = 1000000\n"));
-        assert!(ini.contains("COMM_TIMEOUT = 30.0\n"));
+        assert!(ini.contains("COMM_TIMEOUT = 5.0\n"));
         assert!(
             ini.contains("HOME_SEQUENCE = 0\nCOMP_FILE = /tmp/comp-y.txt\nCOMP_FILE_TYPE = 1\n")
         );
