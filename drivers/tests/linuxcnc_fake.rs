@@ -23,6 +23,15 @@ struct Faults {
     /// With that close, the operator presses E-stop (or turns the machine off) while the
     /// driver is away.
     stop_while_away: Option<Stop>,
+    /// Every move reports RUNNING for this many polls with the machine short of its target
+    /// (a long move) instead of 3.
+    running_polls: Option<u32>,
+    /// The move with this number (1, 2, ...) stays RUNNING at its target until `set abort`.
+    stuck_mdi: Option<u32>,
+    /// The move stays PAUSED (the operator's feed hold) at its target instead.
+    paused_at_target: bool,
+    /// The move stays RUNNING within 1 µm of its target, still creeping (1 nm per poll).
+    creeping_at_target: bool,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -52,6 +61,10 @@ struct Machine3 {
     mdi_lines: Vec<String>,
     /// Every line received, with the number of its connection (1, 2, ...).
     received: Vec<(u32, String)>,
+    /// The interpreter keeps the current move's command RUNNING (or PAUSED) at its target.
+    stuck: bool,
+    /// Polls of a creeping move so far.
+    creep_polls: u32,
 }
 
 /// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
@@ -176,8 +189,12 @@ fn answer(
             if !moves {
                 return (ack("mdi"), false);
             }
-            s.polls_left = 3;
+            s.polls_left = faults.running_polls.unwrap_or(3);
             s.mdi_seen += 1;
+            s.stuck = faults.stuck_mdi == Some(s.mdi_seen)
+                || faults.paused_at_target
+                || faults.creeping_at_target;
+            s.creep_polls = 0;
             let close = faults.drop_after_first_mdi && first && s.mdi_seen == 1;
             if close {
                 match faults.stop_while_away {
@@ -190,6 +207,11 @@ fn answer(
                 }
             }
             (ack("mdi"), close)
+        }
+        ("set", "abort") => {
+            s.stuck = false;
+            s.polls_left = 0;
+            (ack("abort"), false)
         }
         ("set", sub) => (ack(sub), false),
         ("get", key) => {
@@ -214,7 +236,19 @@ fn answer(
                 ),
                 "error" => "ERROR OK".into(),
                 "program_status" => {
-                    if s.polls_left > 0 {
+                    if s.stuck {
+                        s.pos = s.target;
+                        if faults.creeping_at_target {
+                            // mm: from 0.9 µm short, 1 nm closer at every poll.
+                            s.creep_polls += 1;
+                            s.pos[0] -= 0.0009 - 1e-6 * f64::from(s.creep_polls.min(900));
+                        }
+                        if faults.paused_at_target {
+                            "PROGRAM_STATUS PAUSED".into()
+                        } else {
+                            "PROGRAM_STATUS RUNNING".into()
+                        }
+                    } else if s.polls_left > 0 {
                         s.polls_left -= 1;
                         "PROGRAM_STATUS RUNNING".into()
                     } else {
@@ -567,5 +601,145 @@ async fn a_reconnect_finds_the_operators_stop_and_changes_nothing() {
             "the reconnect sent {commands:?} (all: {after:?})"
         );
         assert!(s.estop || !s.machine_on, "still stopped");
+    }
+}
+
+/// Poll until the machine reports Idle, at most `limit`; None if it did not.
+async fn idle_within(
+    m: &mut LinuxCncMachine,
+    limit: Duration,
+) -> Result<Option<AxisPositions>, DeviceError> {
+    let start = std::time::Instant::now();
+    while start.elapsed() < limit {
+        if let MachineState::Idle { position } = m.state().await? {
+            return Ok(Some(position));
+        }
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    Ok(None)
+}
+
+/// The lines of connection 1 from the `n`-th `set mdi` on.
+fn lines_from_mdi(state: &Arc<Mutex<Machine3>>, n: usize) -> Vec<String> {
+    let s = state.lock().unwrap();
+    let first = s
+        .received
+        .iter()
+        .enumerate()
+        .filter(|(_, (_, l))| l.to_ascii_lowercase().starts_with("set mdi"))
+        .nth(n - 1)
+        .map(|(i, _)| i)
+        .expect("that MDI line");
+    s.received[first..].iter().map(|(_, l)| l.clone()).collect()
+}
+
+/// LinuxCNC keeps a move's MDI command RUNNING with the machine standing at its target (as
+/// LinuxCNC 2.9.0~pre1 does now and then on a loaded computer): once the machine has stood
+/// there for `stall_timeout_s`, the driver ends the command with `set abort` (and nothing
+/// else: no E-stop, power, mode or homing command), records an `mdi_stuck` link fault, and
+/// the move arrives. A long move short of its target and an operator's pause at the target
+/// are never aborted.
+#[tokio::test]
+async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
+    let limit = Duration::from_secs(20);
+    let stall = |port| LinuxCncConfig {
+        stall_timeout_s: 0.2,
+        ..config(port)
+    };
+    let (port, state) = fake(Faults {
+        stuck_mdi: Some(2),
+        ..Faults::default()
+    })
+    .await;
+    let mut m = LinuxCncMachine::connect(stall(port))
+        .await
+        .expect("connects");
+    m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move 1");
+    idle_within(&mut m, limit)
+        .await
+        .expect("polls")
+        .expect("move 1 arrives");
+    m.start_move(&target(0.3, 0.2, 0.1)).await.expect("move 2");
+    let at = idle_within(&mut m, limit)
+        .await
+        .expect("polls")
+        .expect("the stuck move arrives once aborted");
+    assert!((at["x"] - 0.3).abs() < 1e-12 && (at["z"] - 0.1).abs() < 1e-12);
+    let faults = m.take_link_faults();
+    assert_eq!(faults.len(), 1, "{faults:?}");
+    assert_eq!(faults[0].code, "mdi_stuck");
+    assert!(
+        faults[0].message.contains("RUNNING") && faults[0].message.contains("set abort"),
+        "{}",
+        faults[0].message
+    );
+    let commands: Vec<String> = lines_from_mdi(&state, 2)
+        .into_iter()
+        .filter(|l| l.to_ascii_lowercase().starts_with("set "))
+        .collect();
+    assert_eq!(commands.len(), 2, "the move and one abort: {commands:?}");
+    assert!(
+        commands[1].eq_ignore_ascii_case("set abort"),
+        "{commands:?}"
+    );
+
+    // A long move, short of its target for longer than `stall_timeout_s`: no abort.
+    let (port, state) = fake(Faults {
+        running_polls: Some(100),
+        ..Faults::default()
+    })
+    .await;
+    let mut m = LinuxCncMachine::connect(stall(port))
+        .await
+        .expect("connects");
+    let started = std::time::Instant::now();
+    m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
+    idle_within(&mut m, limit)
+        .await
+        .expect("polls")
+        .expect("the long move arrives");
+    assert!(
+        started.elapsed() > Duration::from_secs_f64(0.4),
+        "longer than the stall"
+    );
+    assert!(m.take_link_faults().is_empty());
+    assert!(!lines_from_mdi(&state, 1)
+        .iter()
+        .any(|l| l.eq_ignore_ascii_case("set abort")));
+
+    // The operator's pause (PAUSED) at the target is theirs, and a move still creeping
+    // within the tolerance is moving: no abort, not arrived.
+    for (faults, what) in [
+        (
+            Faults {
+                paused_at_target: true,
+                ..Faults::default()
+            },
+            "paused",
+        ),
+        (
+            Faults {
+                creeping_at_target: true,
+                ..Faults::default()
+            },
+            "creeping",
+        ),
+    ] {
+        let (port, state) = fake(faults).await;
+        let mut m = LinuxCncMachine::connect(stall(port))
+            .await
+            .expect("connects");
+        m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
+        let at = idle_within(&mut m, Duration::from_millis(700))
+            .await
+            .expect("polls");
+        assert!(at.is_none(), "a {what} move has not arrived");
+        assert!(m.take_link_faults().is_empty(), "{what}");
+        assert!(
+            !lines_from_mdi(&state, 1)
+                .iter()
+                .any(|l| l.eq_ignore_ascii_case("set abort")),
+            "{what}"
+        );
     }
 }

@@ -392,6 +392,11 @@ pub struct LinuxCncMachine {
     /// When the last move was accepted; LinuxCNC idle short of it for `stall_timeout_s`
     /// after that is a stalled move.
     idle_short_since: Option<Instant>,
+    /// When the last move was accepted (`SET MDI ACK`).
+    move_accepted_at: Option<Instant>,
+    /// Since when LinuxCNC reports the move running while the machine stands at its target,
+    /// and where it stands (a move still creeping within the tolerance is not standing).
+    running_at_target_since: Option<(Instant, [Option<f64>; N_AXES])>,
     last_state: Option<MachineState>,
     last_poll: Option<Instant>,
     server: String,
@@ -676,6 +681,8 @@ impl LinuxCncMachine {
             commanded: [None; N_AXES],
             last_move: None,
             idle_short_since: None,
+            move_accepted_at: None,
+            running_at_target_since: None,
             last_state: None,
             last_poll: None,
             server: String::new(),
@@ -1260,7 +1267,66 @@ impl LinuxCncMachine {
         self.last_state = None;
         self.last_poll = None;
         self.idle_short_since = None;
+        self.move_accepted_at = Some(Instant::now());
+        self.running_at_target_since = None;
         Ok(())
+    }
+
+    /// Whether every commanded axis is within `position_tolerance_m` of its target.
+    fn at_target(&self, actual: &[Option<f64>; N_AXES]) -> bool {
+        let tol = self.cfg.position_tolerance_m;
+        self.commanded
+            .iter()
+            .zip(actual)
+            .all(|(c, a)| c.is_none_or(|c| a.is_some_and(|a| (c - a).abs() <= tol)))
+    }
+
+    /// LinuxCNC reports the move running or paused. Moving, unless the machine has stood
+    /// still at the target for `stall_timeout_s` (checked once the move is that old) while
+    /// LinuxCNC keeps the MDI command RUNNING: then the command is stuck (docs/linuxcnc.md).
+    /// `set abort` ends it — LinuxCNC's way to end an MDI command; the machine stands,
+    /// nothing moves — recorded as an `mdi_stuck` link fault; the next poll then finds
+    /// LinuxCNC idle at the target. A pause is the operator's and is left alone.
+    async fn running(&mut self, status: ProgramStatus) -> Result<MachineState, DeviceError> {
+        let stall = Duration::from_secs_f64(self.cfg.stall_timeout_s);
+        if status != ProgramStatus::Running
+            || self.observer
+            || self.move_accepted_at.is_none_or(|t| t.elapsed() <= stall)
+        {
+            self.running_at_target_since = None;
+            return Ok(MachineState::Moving);
+        }
+        let actual = self.actual_position().await?;
+        if !self.at_target(&actual) {
+            self.running_at_target_since = None;
+            return Ok(MachineState::Moving);
+        }
+        let since = match self.running_at_target_since {
+            Some((since, at)) if at == actual => since,
+            _ => {
+                self.running_at_target_since = Some((Instant::now(), actual));
+                return Ok(MachineState::Moving);
+            }
+        };
+        if since.elapsed() <= stall {
+            return Ok(MachineState::Moving);
+        }
+        self.running_at_target_since = None;
+        let shown = self.last_move.clone().unwrap_or_default();
+        self.link_faults.push(LinkFault {
+            code: "mdi_stuck".into(),
+            message: format!(
+                "LinuxCNC kept `{shown}` running (`get program_status` RUNNING) for {:.1} s with \
+                 the machine standing at its target; `set abort` ends the command",
+                since.elapsed().as_secs_f64()
+            ),
+        });
+        self.abort().await?;
+        self.wait_program_idle(&format!(
+            "`set abort` to end `{shown}`, which LinuxCNC kept running at its target"
+        ))
+        .await?;
+        Ok(MachineState::Moving)
     }
 
     async fn poll(&mut self) -> Result<MachineState, DeviceError> {
@@ -1271,16 +1337,11 @@ impl LinuxCncMachine {
             .map_err(|e| self.protocol(format!("`get program_status`: {e}")))?;
         if status != ProgramStatus::Idle {
             self.idle_short_since = None;
-            return Ok(MachineState::Moving);
+            return self.running(status).await;
         }
+        self.running_at_target_since = None;
         let actual = self.actual_position().await?;
-        let tol = self.cfg.position_tolerance_m;
-        let arrived = self
-            .commanded
-            .iter()
-            .zip(&actual)
-            .all(|(c, a)| c.is_none_or(|c| a.is_some_and(|a| (c - a).abs() <= tol)));
-        if arrived {
+        if self.at_target(&actual) {
             self.idle_short_since = None;
             // The operator's G91/G93/G95 again while the machine stands.
             if self.modes_changed {
@@ -1311,7 +1372,10 @@ impl LinuxCncMachine {
             return Err(DeviceError::Timeout {
                 device: self.cfg.id.clone(),
                 what: format!(
-                    "arrival: LinuxCNC is idle short of the target without an error {context}"
+                    "arrival: LinuxCNC is idle short of the target without an error {context}: \
+                     it ended or dropped the move (an abort from another client, or a command \
+                     its motion controller did not take within [EMCMOT] COMM_TIMEOUT, which \
+                     LinuxCNC's log shows as `USRMOT: ERROR: command timeout`)"
                 ),
                 after_s: self.cfg.stall_timeout_s,
             });
@@ -1587,6 +1651,7 @@ impl Machine for LinuxCncMachine {
         self.last_state = None;
         self.last_poll = None;
         self.idle_short_since = None;
+        self.running_at_target_since = None;
         Ok(())
     }
 

@@ -100,6 +100,16 @@ const AXIS_LETTERS: [char; 3] = ['X', 'Y', 'Z'];
 /// The HAL file's name in the INI's directory.
 pub const HAL_FILE: &str = "geocal.hal";
 
+/// `[EMCMOT] COMM_TIMEOUT`, seconds: how long LinuxCNC's task waits for the motion
+/// controller to take a command. Without a realtime kernel a loaded computer stalls the servo
+/// thread for seconds (1.8 s measured on 2 cores); past this wait the task drops the command
+/// ("USRMOT: ERROR: command timeout" in its log) and an MDI move is lost or ends early
+/// without an error (docs/linuxcnc.md). LinuxCNC's own configs say 1.0. Not more: at start-up
+/// the task's first command can be lost to the motion module's initialisation, and the task
+/// then waits this long before it publishes a status; linuxcncrsh gives up (and LinuxCNC
+/// with it) when no status came within 10 s.
+pub const COMM_TIMEOUT_S: f64 = 5.0;
+
 /// `[DISPLAY] DISPLAY = linuxcncrsh`: the text interface on port 5007 is the only user
 /// interface (no X display); it starts once the task is up.
 pub fn ini_text(setup: &MachineSetup) -> String {
@@ -115,7 +125,7 @@ pub fn ini_text(setup: &MachineSetup) -> String {
          [DISPLAY]\nDISPLAY = linuxcncrsh\n\n\
          [TASK]\nTASK = milltask\nCYCLE_TIME = 0.010\n\n\
          [RS274NGC]\nPARAMETER_FILE = geocal.var\n\n\
-         [EMCMOT]\nEMCMOT = motmod\nCOMM_TIMEOUT = 1.0\nSERVO_PERIOD = {servo_ns}\n\n\
+         [EMCMOT]\nEMCMOT = motmod\nCOMM_TIMEOUT = {COMM_TIMEOUT_S:.1}\nSERVO_PERIOD = {servo_ns}\n\n\
          [EMCIO]\nEMCIO = io\nCYCLE_TIME = 0.100\nTOOL_TABLE = geocal.tbl\n\n\
          [HAL]\nHALFILE = {HAL_FILE}\n\n\
          [TRAJ]\nCOORDINATES = XYZ\nLINEAR_UNITS = mm\nANGULAR_UNITS = degree\n\
@@ -186,6 +196,7 @@ mod tests {
         assert!(ini.contains("[JOINT_2]\nTYPE = LINEAR\nMIN_LIMIT = -500\nMAX_LIMIT = 1000\n"));
         assert!(ini.contains("MAX_ACCELERATION = 1000\n"));
         assert!(ini.contains("SERVO_PERIOD = 1000000\n"));
+        assert!(ini.contains("COMM_TIMEOUT = 5.0\n"));
         assert!(
             ini.contains("HOME_SEQUENCE = 0\nCOMP_FILE = /tmp/comp-y.txt\nCOMP_FILE_TYPE = 1\n")
         );
