@@ -8,10 +8,11 @@
 
 use std::path::{Path, PathBuf};
 
-use geocal::diagnose::progress::ProgressHook;
-use geocal::diagnose::{diagnose_file, DiagnoseOptions, Diagnosis};
+use geocal::diagnose::Diagnosis;
 use geocal::method::SolveSettings;
 use serde_json::Value;
+
+mod common;
 
 /// An outside session's folder: `../shared/sessions` beside the checkout, or the folder
 /// `GEOCAL_OUTSIDE_SESSIONS` names (a worktree elsewhere).
@@ -27,26 +28,11 @@ fn outside_truth(name: &str) -> Value {
     serde_json::from_str(&text).expect("truth json")
 }
 
-/// The diagnosis of a session file, its progress checked: a total fixed from the first call,
-/// done never going back, ending at (total, total).
+/// The diagnosis of a session file, its progress checked (`common::diagnose_checking_progress`).
 fn diagnose(session: &Path) -> Diagnosis {
     let start = std::time::Instant::now();
-    let calls = std::sync::Arc::new(std::sync::Mutex::new(Vec::<(u64, u64)>::new()));
-    let seen = calls.clone();
-    let options = DiagnoseOptions {
-        progress: Some(ProgressHook::new(move |d, t| {
-            seen.lock().expect("progress calls").push((d, t))
-        })),
-        ..Default::default()
-    };
-    let d = diagnose_file(session, &options).expect("diagnose");
+    let d = common::diagnose_checking_progress(session);
     eprintln!("diagnosed in {:.1} s", start.elapsed().as_secs_f64());
-    let calls = calls.lock().expect("progress calls");
-    let total = calls.first().expect("progress reported").1;
-    assert!(total > 1, "{calls:?}");
-    assert!(calls.iter().all(|&(_, t)| t == total), "{calls:?}");
-    assert!(calls.windows(2).all(|w| w[0].0 < w[1].0), "{calls:?}");
-    assert_eq!(calls.last(), Some(&(total, total)), "{calls:?}");
     d
 }
 

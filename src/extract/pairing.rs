@@ -124,6 +124,9 @@ impl<M> Pairing<M> {
         lost: &impl Fn(u64, u64) -> bool,
         make: &mut impl FnMut(Measured) -> M,
     ) {
+        if matches!(event.msg, RunEvent::PointBegin { .. }) {
+            return self.event_owned(event.clone(), samples, lost, make);
+        }
         let since_ns = std::mem::replace(&mut self.previous_ns, event.log_time_ns);
         let reason = |w: &OpenWindow, to_ns: u64, otherwise: &'static str| {
             if lost(w.log_time_ns, to_ns) {
@@ -137,27 +140,6 @@ impl<M> Pairing<M> {
                 station, hint_m, ..
             } => {
                 self.index_of(station, *hint_m);
-            }
-            RunEvent::PointBegin {
-                station,
-                point,
-                pass,
-                target,
-                nominal_m,
-                axes,
-                approach,
-            } => {
-                let window = OpenWindow {
-                    log_time_ns: event.log_time_ns,
-                    station: station.clone(),
-                    point: *point,
-                    pass: *pass,
-                    target: target.clone(),
-                    nominal_m: *nominal_m,
-                    axes: axes.clone(),
-                    approach: approach.clone(),
-                };
-                self.open_window(window, lost);
             }
             RunEvent::Rehome { .. } => {
                 if let Some(w) = self.open.take() {
