@@ -18,6 +18,7 @@ pub mod model;
 pub mod monitor;
 pub mod plan;
 pub mod progress;
+pub mod progress_sink;
 pub mod replay;
 pub mod report;
 pub mod run;

@@ -10,7 +10,7 @@ use std::time::{Duration, Instant};
 
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 
-use crate::sequencer::control::ProgressSink;
+use crate::progress_sink::ProgressSink;
 use crate::session::tap::{MessageTap, Tap, TappedMessage};
 
 /// How progress is shown on stderr.
@@ -266,7 +266,7 @@ impl Progress {
     /// A sink for a run's `RunControl::progress`.
     pub fn sink(&self) -> ProgressSink {
         let progress = self.clone();
-        Arc::new(move |done, total| progress.update(done, total))
+        ProgressSink::new(move |done, total| progress.update(done, total))
     }
 
     /// A recorder tap that shows the station and point each run event names, then hands the

@@ -9,7 +9,14 @@ use std::path::{Path, PathBuf};
 
 /// Top-level folders (or files) of `src/` by layer, lowest first.
 const LAYERS: &[&[&str]] = &[
-    &["clock", "console", "solve", "model", "compensate"],
+    &[
+        "clock",
+        "console",
+        "solve",
+        "model",
+        "compensate",
+        "progress_sink",
+    ],
     &["session"],
     &["config"],
     &["plan"],

@@ -227,12 +227,14 @@ fn a_cancelled_run_stops_at_the_point_it_was_cancelled_at_for_every_kind() {
         let (seen, token) = (reported.clone(), cancel.clone());
         let control = RunControl {
             cancel: cancel.clone(),
-            progress: Some(Arc::new(move |done: u64, _total: u64| {
-                seen.lock().expect("progress").push(done);
-                if done == 3 {
-                    token.cancel();
-                }
-            })),
+            progress: Some(geocal::progress_sink::ProgressSink::new(
+                move |done: u64, _total: u64| {
+                    seen.lock().expect("progress").push(done);
+                    if done == 3 {
+                        token.cancel();
+                    }
+                },
+            )),
             ..Default::default()
         };
         let options = RunOptions {

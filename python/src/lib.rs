@@ -128,7 +128,7 @@ fn diagnose(
         .detach(|| -> anyhow::Result<(String, String)> {
             let hook = callback.clone();
             let options = geocal::diagnose::DiagnoseOptions {
-                progress: Some(geocal::diagnose::progress::ProgressHook::new(
+                progress: Some(geocal::progress_sink::ProgressSink::new(
                     move |done, total| {
                         hook.report(done, total);
                     },

@@ -46,9 +46,9 @@ impl Callback {
     }
 
     /// A run's progress sink: a callback that raised cancels the run.
-    pub fn sink(&self, cancel: CancellationToken) -> geocal::sequencer::control::ProgressSink {
+    pub fn sink(&self, cancel: CancellationToken) -> geocal::progress_sink::ProgressSink {
         let callback = self.clone();
-        Arc::new(move |done, total| {
+        geocal::progress_sink::ProgressSink::new(move |done, total| {
             if !callback.report(done, total) {
                 cancel.cancel();
             }

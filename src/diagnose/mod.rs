@@ -70,7 +70,7 @@ pub struct DiagnoseOptions {
     pub memory_limit_bytes: Option<u64>,
     /// Called as (done, total) while the diagnosis works: the total is fixed at the start,
     /// done only grows and ends at the total (`progress::Counter`).
-    pub progress: Option<progress::ProgressHook>,
+    pub progress: Option<crate::progress_sink::ProgressSink>,
 }
 
 impl Default for DiagnoseOptions {

@@ -2,30 +2,7 @@
 //! package's callback), the total fixed when the work starts, done never going back and
 //! ending at the total.
 
-use std::sync::Arc;
-
-/// A caller's progress hook, called as (done, total).
-#[derive(Clone)]
-pub struct ProgressHook(pub Arc<dyn Fn(u64, u64) + Send + Sync>);
-
-impl ProgressHook {
-    pub fn new(f: impl Fn(u64, u64) + Send + Sync + 'static) -> ProgressHook {
-        ProgressHook(Arc::new(f))
-    }
-}
-
-impl std::fmt::Debug for ProgressHook {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str("ProgressHook")
-    }
-}
-
-/// Two hooks are equal when they are the same closure.
-impl PartialEq for ProgressHook {
-    fn eq(&self, other: &Self) -> bool {
-        Arc::ptr_eq(&self.0, &other.0)
-    }
-}
+use crate::progress_sink::ProgressSink;
 
 /// Counts the units of work done against a total fixed at the start: the base fits and the
 /// candidate evaluations of every round the selection may run, and the final steps. Work
@@ -33,14 +10,14 @@ impl PartialEq for ProgressHook {
 /// when it is skipped, so `done` only grows and ends at `total`.
 #[derive(Debug)]
 pub struct Counter {
-    hook: Option<ProgressHook>,
+    hook: Option<ProgressSink>,
     done: u64,
     total: u64,
 }
 
 impl Counter {
     /// Starts at (0, total), reported at once.
-    pub fn new(hook: Option<&ProgressHook>, total: u64) -> Counter {
+    pub fn new(hook: Option<&ProgressSink>, total: u64) -> Counter {
         let counter = Counter {
             hook: hook.cloned(),
             done: 0,
@@ -52,7 +29,7 @@ impl Counter {
 
     fn report(&self) {
         if let Some(hook) = &self.hook {
-            (hook.0)(self.done, self.total);
+            hook.report(self.done, self.total);
         }
     }
 
@@ -90,13 +67,13 @@ pub fn selection_units(candidates: usize) -> u64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use std::sync::Mutex;
+    use std::sync::{Arc, Mutex};
 
     #[test]
     fn counts_only_forward_and_ends_at_the_total() {
         let calls = Arc::new(Mutex::new(Vec::new()));
         let seen = calls.clone();
-        let hook = ProgressHook::new(move |d, t| seen.lock().expect("lock").push((d, t)));
+        let hook = ProgressSink::new(move |d, t| seen.lock().expect("lock").push((d, t)));
         let mut counter = Counter::new(Some(&hook), 10);
         counter.tick(3);
         counter.advance_to(2);
@@ -109,6 +86,5 @@ mod tests {
         assert_eq!(selection_units(0), 1);
         // 3 candidates: rounds of 1 + 3, 1 + 2, 1 + 1, 1 + 0.
         assert_eq!(selection_units(3), 10);
-        assert_eq!(hook, hook.clone());
     }
 }

@@ -7,7 +7,8 @@ use std::sync::Arc;
 
 use tokio_util::sync::CancellationToken;
 
-use crate::sequencer::control::{Cancelled, OperatorSource, ProgressSink};
+use crate::progress_sink::ProgressSink;
+use crate::sequencer::control::{Cancelled, OperatorSource};
 use crate::session::tap::Tap;
 
 #[derive(Clone, Default)]
@@ -39,7 +40,7 @@ impl RunControl {
 
     pub fn report_progress(&self, done: u64, total: u64) {
         if let Some(progress) = &self.progress {
-            progress(done, total);
+            progress.report(done, total);
         }
     }
 }

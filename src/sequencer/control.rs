@@ -5,9 +5,6 @@ use std::sync::Arc;
 
 use geocal_drivers::Operator;
 
-/// Points (or postures, poses, spheres) done and in all.
-pub type ProgressSink = Arc<dyn Fn(u64, u64) + Send + Sync>;
-
 /// Builds the operator of a real run (default: the console's, `ConsoleOperator::stdin`).
 pub type OperatorSource = Arc<dyn Fn() -> Box<dyn Operator> + Send + Sync>;
 

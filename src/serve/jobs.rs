@@ -627,33 +627,35 @@ impl Daemon {
         RunControl {
             cancel,
             tap: Tap::new(Arc::new(tap)),
-            progress: Some(Arc::new(move |done, total| {
-                let before = board.progress();
-                let progress = board.set_progress(done, total);
-                if cadence.lock().is_ok_and(|mut c| c.progress(done, total)) {
-                    tracing::info!(
-                        job = id,
-                        done,
-                        total,
-                        station = progress.station.as_deref().unwrap_or(""),
-                        eta_s = progress.eta_s.map_or(-1.0, |e| e.round()),
-                        "progress"
-                    );
-                }
-                // Kept in the catalog as points finish, so a daemon killed mid-job shows how
-                // far its job came.
-                if (before.done, before.total) != (done, total) {
-                    if let Some(daemon) = daemon.upgrade() {
-                        if let Err(e) = daemon
-                            .catalog()
-                            .and_then(|mut c| c.set_progress(id, done, total))
-                        {
-                            tracing::warn!(job = id, "recording progress: {e:#}");
+            progress: Some(crate::progress_sink::ProgressSink::new(
+                move |done, total| {
+                    let before = board.progress();
+                    let progress = board.set_progress(done, total);
+                    if cadence.lock().is_ok_and(|mut c| c.progress(done, total)) {
+                        tracing::info!(
+                            job = id,
+                            done,
+                            total,
+                            station = progress.station.as_deref().unwrap_or(""),
+                            eta_s = progress.eta_s.map_or(-1.0, |e| e.round()),
+                            "progress"
+                        );
+                    }
+                    // Kept in the catalog as points finish, so a daemon killed mid-job shows how
+                    // far its job came.
+                    if (before.done, before.total) != (done, total) {
+                        if let Some(daemon) = daemon.upgrade() {
+                            if let Err(e) = daemon
+                                .catalog()
+                                .and_then(|mut c| c.set_progress(id, done, total))
+                            {
+                                tracing::warn!(job = id, "recording progress: {e:#}");
+                            }
                         }
                     }
-                }
-                let _ = progress_events.send(ServerEvent::Progress { id, progress });
-            })),
+                    let _ = progress_events.send(ServerEvent::Progress { id, progress });
+                },
+            )),
             operator: Some(Arc::new(move || prompts.operator(id))),
             devices: self.devices.clone(),
         }

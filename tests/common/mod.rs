@@ -249,9 +249,9 @@ pub fn diagnose_checking_progress(session: &Path) -> geocal::diagnose::Diagnosis
     let calls = std::sync::Arc::new(std::sync::Mutex::new(Vec::<(u64, u64)>::new()));
     let seen = calls.clone();
     let options = geocal::diagnose::DiagnoseOptions {
-        progress: Some(geocal::diagnose::progress::ProgressHook::new(
-            move |d, t| seen.lock().expect("progress calls").push((d, t)),
-        )),
+        progress: Some(geocal::progress_sink::ProgressSink::new(move |d, t| {
+            seen.lock().expect("progress calls").push((d, t))
+        })),
         ..Default::default()
     };
     let d = geocal::diagnose::diagnose_file(session, &options).expect("diagnose");

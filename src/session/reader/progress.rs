@@ -3,12 +3,14 @@
 
 use std::sync::{Arc, Mutex, PoisonError};
 
+use crate::progress_sink::ProgressSink;
+
 /// A caller's function of (bytes done, bytes in all). It sees `done` grow and never fall
 /// (a read that starts over, whole, after a streamed attempt is not reported again from
 /// its start) and ends at `done == total`.
 #[derive(Clone)]
 pub struct ReadProgress {
-    report: Arc<dyn Fn(u64, u64) + Send + Sync>,
+    sink: ProgressSink,
     /// The last `done` reported; held while the function runs, so that it sees the reports
     /// in order.
     last: Arc<Mutex<Option<u64>>>,
@@ -28,7 +30,7 @@ impl std::fmt::Debug for ReadProgress {
 impl ReadProgress {
     pub fn new(report: impl Fn(u64, u64) + Send + Sync + 'static) -> ReadProgress {
         ReadProgress {
-            report: Arc::new(report),
+            sink: ProgressSink::new(report),
             last: Arc::default(),
         }
     }
@@ -42,7 +44,7 @@ impl ReadProgress {
             return;
         }
         *last = Some(done);
-        (self.report)(done, total);
+        self.sink.report(done, total);
     }
 
     /// The read of `total` bytes is over.

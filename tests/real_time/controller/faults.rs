@@ -13,7 +13,6 @@ use std::net::TcpStream;
 use std::os::fd::AsRawFd;
 use std::path::Path;
 use std::sync::mpsc;
-use std::sync::Arc;
 use std::time::Duration;
 
 use common::{assert_recovers_truth, faults, resume_cli};
@@ -182,9 +181,11 @@ fn run_with_injections(
     let (progress_tx, progress_rx) = mpsc::channel::<u64>();
     let progress_tx = std::sync::Mutex::new(progress_tx);
     let control = geocal::run::control::RunControl {
-        progress: Some(Arc::new(move |done, _total| {
-            let _ = progress_tx.lock().map(|tx| tx.send(done));
-        })),
+        progress: Some(geocal::progress_sink::ProgressSink::new(
+            move |done, _total| {
+                let _ = progress_tx.lock().map(|tx| tx.send(done));
+            },
+        )),
         ..Default::default()
     };
     let injector = std::thread::spawn(move || {

@@ -1,6 +1,7 @@
 //! The LinuxCNC driver against LinuxCNC started from the sample configurations Debian ships
 //! (`/usr/share/doc/linuxcnc/examples/sample-configs/sim/axis/`), copied with only `[DISPLAY]
-//! DISPLAY = linuxcncrsh` changed, as a machine shop's LinuxCNC would be found rather than as
+//! DISPLAY = linuxcncrsh` changed (and `[EMCMOT] COMM_TIMEOUT` raised for a computer without
+//! realtime, `LinuxCnc::start_config`), as a machine shop's LinuxCNC would be found rather than as
 //! geocal writes it: the metric mill with home switches (`axis_mm.ini`), the inch mill
 //! (`axis.ini`) and the gantry with 4 joints XYYZ (`gantry/gantry_mm.ini`). One LinuxCNC start
 //! per configuration. The operator is another linuxcncrsh client, as a pendant or the AXIS GUI
@@ -593,7 +594,7 @@ impl TracerRig {
             settings: Default::default(),
             control: geocal::run::control::RunControl {
                 cancel,
-                progress: Some(std::sync::Arc::new(move |done, _| {
+                progress: Some(geocal::progress_sink::ProgressSink::new(move |done, _| {
                     let _ = progress.lock().map(|tx| tx.send(done));
                 })),
                 operator: Some(std::sync::Arc::new(move || {
