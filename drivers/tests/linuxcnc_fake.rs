@@ -4,7 +4,7 @@
 //! that does not come back. The real LinuxCNC is exercised in tests/real_time/controller/driver.rs.
 
 use std::sync::{Arc, Mutex};
-use std::time::Duration;
+use std::time::{Duration, Instant};
 
 use geocal_drivers::linuxcnc::{
     tcp_connector, HomePolicy, LinuxCncConfig, LinuxCncMachine, StreamConnector,
@@ -30,8 +30,10 @@ struct Faults {
     stuck_mdi: Option<u32>,
     /// The move stays PAUSED (the operator's feed hold) at its target instead.
     paused_at_target: bool,
-    /// The move stays RUNNING within 1 µm of its target, still creeping (1 nm per poll).
+    /// The move stays RUNNING within 1 µm of its target, still creeping (1 µm/s).
     creeping_at_target: bool,
+    /// The stuck move's position reads with the noise of a standing servo (±0.1 µm).
+    noisy_standstill: bool,
 }
 
 #[derive(Clone, Copy, PartialEq)]
@@ -63,8 +65,10 @@ struct Machine3 {
     received: Vec<(u32, String)>,
     /// The interpreter keeps the current move's command RUNNING (or PAUSED) at its target.
     stuck: bool,
-    /// Polls of a creeping move so far.
-    creep_polls: u32,
+    /// When the current move started to creep.
+    creep_started: Option<std::time::Instant>,
+    /// Polls of a stuck move so far (the noise's sign).
+    stuck_polls: u32,
 }
 
 /// Serve linuxcncrsh's protocol (as LinuxCNC 2.9 answers it) on an ephemeral port.
@@ -194,7 +198,8 @@ fn answer(
             s.stuck = faults.stuck_mdi == Some(s.mdi_seen)
                 || faults.paused_at_target
                 || faults.creeping_at_target;
-            s.creep_polls = 0;
+            s.creep_started = None;
+            s.stuck_polls = 0;
             let close = faults.drop_after_first_mdi && first && s.mdi_seen == 1;
             if close {
                 match faults.stop_while_away {
@@ -239,9 +244,14 @@ fn answer(
                     if s.stuck {
                         s.pos = s.target;
                         if faults.creeping_at_target {
-                            // mm: from 0.9 µm short, 1 nm closer at every poll.
-                            s.creep_polls += 1;
-                            s.pos[0] -= 0.0009 - 1e-6 * f64::from(s.creep_polls.min(900));
+                            // mm: from 0.9 µm short, 1 µm/s closer.
+                            let started = *s.creep_started.get_or_insert_with(Instant::now);
+                            s.pos[0] -= 0.0009 - 1e-3 * started.elapsed().as_secs_f64().min(0.9);
+                        }
+                        if faults.noisy_standstill {
+                            // mm: ±0.1 µm about the target, alternating.
+                            s.stuck_polls += 1;
+                            s.pos[0] += if s.stuck_polls % 2 == 0 { 1e-4 } else { -1e-4 };
                         }
                         if faults.paused_at_target {
                             "PROGRAM_STATUS PAUSED".into()
@@ -683,6 +693,34 @@ async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
         "{commands:?}"
     );
 
+    // The same with the position reading the noise of a standing servo (±0.1 µm, inside the
+    // standstill band): still standing, aborted once.
+    let (port, state) = fake(Faults {
+        stuck_mdi: Some(1),
+        noisy_standstill: true,
+        ..Faults::default()
+    })
+    .await;
+    let mut m = LinuxCncMachine::connect(stall(port))
+        .await
+        .expect("connects");
+    m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
+    let at = idle_within(&mut m, limit)
+        .await
+        .expect("polls")
+        .expect("the noisy stuck move arrives once aborted");
+    assert!((at["x"] - 0.1).abs() <= 1e-6, "{at:?}");
+    let faults = m.take_link_faults();
+    assert_eq!(faults.len(), 1, "{faults:?}");
+    assert_eq!(faults[0].code, "mdi_stuck");
+    assert_eq!(
+        lines_from_mdi(&state, 1)
+            .iter()
+            .filter(|l| l.eq_ignore_ascii_case("set abort"))
+            .count(),
+        1
+    );
+
     // A long move, short of its target for longer than `stall_timeout_s`: no abort.
     let (port, state) = fake(Faults {
         running_polls: Some(100),
@@ -708,7 +746,8 @@ async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
         .any(|l| l.eq_ignore_ascii_case("set abort")));
 
     // The operator's pause (PAUSED) at the target is theirs, and a move still creeping
-    // within the tolerance is moving: no abort, not arrived.
+    // within the tolerance (1 µm/s) is moving on a machine whose feedback resolves 0.05 µm:
+    // no abort, not arrived.
     for (faults, what) in [
         (
             Faults {
@@ -726,9 +765,11 @@ async fn a_move_kept_running_at_its_target_is_aborted_and_arrives() {
         ),
     ] {
         let (port, state) = fake(faults).await;
-        let mut m = LinuxCncMachine::connect(stall(port))
-            .await
-            .expect("connects");
+        let fine = LinuxCncConfig {
+            standstill_band_m: 0.05e-6,
+            ..stall(port)
+        };
+        let mut m = LinuxCncMachine::connect(fine).await.expect("connects");
         m.start_move(&target(0.1, 0.2, 0.3)).await.expect("move");
         let at = idle_within(&mut m, Duration::from_millis(700))
             .await

@@ -135,6 +135,11 @@ pub struct LinuxCncConfig {
     /// position is within this distance of the target on every commanded axis, metres.
     #[serde(default = "default_tolerance_m")]
     pub position_tolerance_m: f64,
+    /// The machine counts as standing while every axis stays within this distance of where
+    /// it stood: a few counts of the position feedback, so that its noise is not motion,
+    /// metres.
+    #[serde(default = "default_standstill_band_m")]
+    pub standstill_band_m: f64,
     /// LinuxCNC idle short of the target without an error for this long is reported as a
     /// stalled move, seconds.
     #[serde(default = "default_stall_s")]
@@ -178,6 +183,9 @@ fn default_status_interval_s() -> f64 {
 fn default_tolerance_m() -> f64 {
     1e-6
 }
+fn default_standstill_band_m() -> f64 {
+    0.25e-6
+}
 fn default_stall_s() -> f64 {
     2.0
 }
@@ -208,6 +216,7 @@ impl Default for LinuxCncConfig {
             home_timeout_s: default_home_timeout_s(),
             status_interval_s: default_status_interval_s(),
             position_tolerance_m: default_tolerance_m(),
+            standstill_band_m: default_standstill_band_m(),
             stall_timeout_s: default_stall_s(),
             reconnect_timeout_s: default_reconnect_timeout_s(),
             axis_letters: default_axis_letters(),
@@ -250,11 +259,13 @@ impl LinuxCncConfig {
                 self.feed_m_s
             )));
         }
-        if !(self.position_tolerance_m.is_finite() && self.position_tolerance_m >= 0.0) {
-            return Err(bad(format!(
-                "position_tolerance_m must be >= 0, got {}",
-                self.position_tolerance_m
-            )));
+        for (name, v) in [
+            ("position_tolerance_m", self.position_tolerance_m),
+            ("standstill_band_m", self.standstill_band_m),
+        ] {
+            if !(v.is_finite() && v >= 0.0) {
+                return Err(bad(format!("{name} must be >= 0, got {v}")));
+            }
         }
         if let Some(joints) = self.joints.filter(|j| !(1..=MAX_JOINTS).contains(j)) {
             return Err(bad(format!(
@@ -395,7 +406,7 @@ pub struct LinuxCncMachine {
     /// When the last move was accepted (`SET MDI ACK`).
     move_accepted_at: Option<Instant>,
     /// Since when LinuxCNC reports the move running while the machine stands at its target,
-    /// and where it stands (a move still creeping within the tolerance is not standing).
+    /// and where it stood (a move still creeping beyond `standstill_band_m` is not standing).
     running_at_target_since: Option<(Instant, [Option<f64>; N_AXES])>,
     last_state: Option<MachineState>,
     last_poll: Option<Instant>,
@@ -1281,6 +1292,16 @@ impl LinuxCncMachine {
             .all(|(c, a)| c.is_none_or(|c| a.is_some_and(|a| (c - a).abs() <= tol)))
     }
 
+    /// Whether every axis is within `standstill_band_m` of where it stood.
+    fn standing(&self, stood: &[Option<f64>; N_AXES], actual: &[Option<f64>; N_AXES]) -> bool {
+        let band = self.cfg.standstill_band_m;
+        stood.iter().zip(actual).all(|(s, a)| match (s, a) {
+            (Some(s), Some(a)) => (s - a).abs() <= band,
+            (None, None) => true,
+            _ => false,
+        })
+    }
+
     /// LinuxCNC reports the move running or paused. Moving, unless the machine has stood
     /// still at the target for `stall_timeout_s` (checked once the move is that old) while
     /// LinuxCNC keeps the MDI command RUNNING: then the command is stuck (docs/linuxcnc.md).
@@ -1302,7 +1323,7 @@ impl LinuxCncMachine {
             return Ok(MachineState::Moving);
         }
         let since = match self.running_at_target_since {
-            Some((since, at)) if at == actual => since,
+            Some((since, at)) if self.standing(&at, &actual) => since,
             _ => {
                 self.running_at_target_since = Some((Instant::now(), actual));
                 return Ok(MachineState::Moving);

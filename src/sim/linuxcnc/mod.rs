@@ -160,7 +160,8 @@ impl LinuxCnc {
 
     /// Start LinuxCNC from someone else's configuration, e.g. one of the sample configs Debian
     /// ships: the files of `ini`'s directory are copied (symbolic links followed) into the
-    /// scratch directory with only `[DISPLAY] DISPLAY` changed to `linuxcncrsh`.
+    /// scratch directory with only `[DISPLAY] DISPLAY` changed to `linuxcncrsh` and a shorter
+    /// `[EMCMOT] COMM_TIMEOUT` raised to [`ini::COMM_TIMEOUT_S`] (`as_started_here`).
     pub fn start_config(ini: &Path, timeout: Duration) -> anyhow::Result<Self> {
         if let Some(why) = unavailable() {
             bail!("LinuxCNC cannot run here: {why}");
@@ -173,7 +174,7 @@ impl LinuxCnc {
             .with_context(|| format!("{} names no file", ini.display()))?;
         let text = std::fs::read_to_string(ini)
             .with_context(|| format!("reading LinuxCNC configuration {}", ini.display()))?;
-        let text = with_display_linuxcncrsh(&text)
+        let text = as_started_here(&text)
             .with_context(|| format!("{}: no [DISPLAY] DISPLAY line", ini.display()))?;
         Self::launch(timeout, |dir| {
             let config = dir.join("config");
@@ -438,9 +439,11 @@ impl Drop for LinuxCnc {
     }
 }
 
-/// `text` (an INI file) with its `[DISPLAY]` section's `DISPLAY` set to `linuxcncrsh`; None
-/// without such a line.
-fn with_display_linuxcncrsh(text: &str) -> Option<String> {
+/// `text` (an INI file) as it starts on this computer: its `[DISPLAY]` section's `DISPLAY`
+/// set to `linuxcncrsh`, and an `[EMCMOT] COMM_TIMEOUT` below [`ini::COMM_TIMEOUT_S`] raised
+/// to it (without a realtime kernel a loaded computer stalls the servo thread past LinuxCNC's
+/// own 1.0 s, and the task drops the command); None without a `DISPLAY` line.
+fn as_started_here(text: &str) -> Option<String> {
     let mut section = "";
     let mut changed = false;
     let mut out = String::with_capacity(text.len());
@@ -449,12 +452,21 @@ fn with_display_linuxcncrsh(text: &str) -> Option<String> {
         if t.starts_with('[') {
             section = t;
         }
-        let is_display = section == "[DISPLAY]"
-            && t.split_once('=')
-                .is_some_and(|(k, _)| k.trim() == "DISPLAY");
+        let value_of = |key: &str| {
+            t.split_once('=')
+                .filter(|(k, _)| k.trim() == key)
+                .map(|(_, v)| v.trim())
+        };
+        let is_display = section == "[DISPLAY]" && value_of("DISPLAY").is_some();
+        let short_wait = section == "[EMCMOT]"
+            && value_of("COMM_TIMEOUT")
+                .and_then(|v| v.parse::<f64>().ok())
+                .is_some_and(|s| s < ini::COMM_TIMEOUT_S);
         if is_display && !changed {
             out.push_str("DISPLAY = linuxcncrsh");
             changed = true;
+        } else if short_wait {
+            out.push_str(&format!("COMM_TIMEOUT = {:.1}", ini::COMM_TIMEOUT_S));
         } else {
             out.push_str(line);
         }
@@ -645,15 +657,20 @@ pub fn linuxcnc_shared_memory() -> Vec<String> {
 
 #[cfg(test)]
 mod tests {
-    use super::with_display_linuxcncrsh;
+    use super::as_started_here;
 
     #[test]
-    fn only_the_display_line_changes() {
-        let ini = "[EMC]\nDISPLAY = x\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = axis\nCYCLE_TIME = 0.1\n";
+    fn only_the_display_line_and_a_short_motion_wait_change() {
+        let ini = "[EMC]\nDISPLAY = x\nCOMM_TIMEOUT = 1.0\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = axis\nCYCLE_TIME = 0.1\n[EMCMOT]\nCOMM_TIMEOUT = 1.0\nSERVO_PERIOD = 1000000\n";
         assert_eq!(
-            with_display_linuxcncrsh(ini).as_deref(),
-            Some("[EMC]\nDISPLAY = x\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = linuxcncrsh\nCYCLE_TIME = 0.1\n")
+            as_started_here(ini).as_deref(),
+            Some("[EMC]\nDISPLAY = x\nCOMM_TIMEOUT = 1.0\n[DISPLAY]\n# DISPLAY = tklinuxcnc\nDISPLAY = linuxcncrsh\nCYCLE_TIME = 0.1\n[EMCMOT]\nCOMM_TIMEOUT = 5.0\nSERVO_PERIOD = 1000000\n")
         );
-        assert_eq!(with_display_linuxcncrsh("[EMC]\nDISPLAY = axis\n"), None);
+        let longer = "[DISPLAY]\nDISPLAY = axis\n[EMCMOT]\nCOMM_TIMEOUT = 8\n";
+        assert_eq!(
+            as_started_here(longer).as_deref(),
+            Some("[DISPLAY]\nDISPLAY = linuxcncrsh\n[EMCMOT]\nCOMM_TIMEOUT = 8\n")
+        );
+        assert_eq!(as_started_here("[EMC]\nDISPLAY = axis\n"), None);
     }
 }
