@@ -133,8 +133,8 @@ pub struct Diagnosis {
     /// Observations used and what the tests assumed.
     pub observations: usize,
     pub notes: Vec<String>,
-    /// For a kind with a residual model (hexapod, probe_install, rotary_sphere): its kind,
-    /// residual units, coordinates, library and the parameters with the effects fitted.
+    /// For a kind with a residual model: its kind, residual units, coordinates, library and
+    /// the parameters with the effects fitted.
     #[serde(default, flatten, skip_serializing_if = "Option::is_none")]
     pub model: Option<residual_model::ModelDiagnosis>,
 }

@@ -41,7 +41,7 @@ use fit::Fit;
 use forward::{Selection, Start, Trial};
 use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
-use points::{points_level, PointsGap, PointsLevel};
+use points::{points_level, PointsGap};
 use progress::{selection_units, Counter};
 use schur::Design;
 use selection::Tests;

@@ -10,9 +10,7 @@ use anyhow::{bail, Context};
 use nalgebra::{DMatrix, DVector};
 
 use super::data::Data;
-use super::points::{
-    effect_point_move, per_pass_points, point_departures, test_groups, PointDeparture, PointMeta,
-};
+use super::points::{effect_point_move, per_pass_points, point_departures, test_groups, PointMeta};
 use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
 use super::{
     diagnose_data, hcat, DataDiagnosis, DiagnoseError, DiagnoseOptions, Diagnosis,
