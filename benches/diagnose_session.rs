@@ -13,7 +13,8 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use common::{fmt_time, measure, mib};
-use geocal::diagnose::{diagnose_file, DiagnoseOptions};
+use geocal::diagnose::DiagnoseOptions;
+use geocal::kinds::diagnosis::diagnose_file;
 
 /// Bump when the generator changes, so a stale cached file is not reused.
 const DATA_VERSION: u32 = 1;

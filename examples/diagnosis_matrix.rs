@@ -61,7 +61,8 @@ const TWO_TARGET_CASES: [(&str, &str); 2] = [
     ),
 ];
 
-use geocal::diagnose::{twin::diagnose_file_with_twin, Diagnosis};
+use geocal::diagnose::Diagnosis;
+use geocal::kinds::tracer_plan::diagnosis::twin::diagnose_file_with_twin;
 
 /// Family-wise level of the diagnosis' tests (its default), for "points level clean after".
 const ALPHA: f64 = 0.01;
@@ -157,7 +158,11 @@ fn main() {
     let one_target = common::diagnose_demo();
     let two_targets = common::two_target_diagnose_demo();
     let names: Vec<&str> = std::iter::once("none")
-        .chain(geocal::diagnose::effects::LIBRARY.iter().map(|k| k.name()))
+        .chain(
+            geocal::kinds::tracer_plan::diagnosis::effects::LIBRARY
+                .iter()
+                .map(|k| k.name()),
+        )
         .collect();
     let only = std::env::var("ONLY").ok();
     let cases = CASES
@@ -178,8 +183,8 @@ fn main() {
             let text = common::with_effects(base, 5000 + seed, line);
             let dir = tempfile::tempdir().expect("tempdir");
             let session = common::record_session(&text, &dir.path().join("rec"));
-            let d =
-                geocal::diagnose::diagnose_file(&session, &Default::default()).expect("diagnose");
+            let d = geocal::kinds::diagnosis::diagnose_file(&session, &Default::default())
+                .expect("diagnose");
             alone.add(&d, truth, &names);
             if std::env::var("VERBOSE").is_ok() {
                 println!("{}", geocal::diagnose::text(&d));

@@ -461,11 +461,8 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
             huber,
             effects,
         } => {
-            let settings = geocal::diagnose::residual_model::solve_settings(
-                &session,
-                &effects,
-                settings(huber),
-            )?;
+            let settings =
+                geocal::kinds::diagnosis::solve_settings(&session, &effects, settings(huber))?;
             let spinner = geocal::progress::spinner(
                 progress,
                 &format!("solve: reading and solving {}", session.display()),
@@ -527,17 +524,17 @@ fn dispatch(command: Command, progress: geocal::progress::Mode) -> anyhow::Resul
                 ),
             );
             let diagnosed = match twin {
-                None => geocal::diagnose::diagnose_file_detailed(&session, &Default::default()),
-                Some(twin) => {
-                    geocal::diagnose::residual_model::refuse_twin(&session).and_then(|()| {
-                        geocal::diagnose::twin::diagnose_file_with_twin_detailed(
-                            &session,
-                            &twin,
-                            twin_out.as_deref(),
-                            &Default::default(),
-                        )
-                    })
+                None => {
+                    geocal::kinds::diagnosis::diagnose_file_detailed(&session, &Default::default())
                 }
+                Some(twin) => geocal::kinds::diagnosis::refuse_twin(&session).and_then(|()| {
+                    geocal::kinds::tracer_plan::diagnosis::twin::diagnose_file_with_twin_detailed(
+                        &session,
+                        &twin,
+                        twin_out.as_deref(),
+                        &Default::default(),
+                    )
+                }),
             };
             spinner.finish_and_clear();
             let (diagnosis, residuals) = diagnosed?;

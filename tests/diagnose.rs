@@ -456,11 +456,11 @@ fn reads_only_the_session() {
     std::fs::copy(&output.session_path, &copy).expect("copy");
     drop(dir);
     let options = Default::default();
-    let d = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
+    let d = geocal::kinds::diagnosis::diagnose_file(&copy, &options).expect("diagnose");
     let json: serde_json::Value = serde_json::to_value(&d).expect("json");
     common::assert_diagnosis_format(&json);
     assert_eq!(d.selected.first().map(String::as_str), Some("reversal"));
-    let again = geocal::diagnose::diagnose_file(&copy, &options).expect("diagnose");
+    let again = geocal::kinds::diagnosis::diagnose_file(&copy, &options).expect("diagnose");
     assert_eq!(d, again);
 }
 

@@ -147,7 +147,7 @@ fn against_twin(seed: u64, effects: &str) -> geocal::diagnose::Diagnosis {
     // The twin's config: the same file the run used (its effects are switched off for the twin).
     let config_path = dir.path().join("rec.toml");
     std::fs::write(&config_path, &recorded_config).expect("write config");
-    geocal::diagnose::twin::diagnose_file_with_twin(
+    geocal::kinds::tracer_plan::diagnosis::twin::diagnose_file_with_twin(
         &output.session_path,
         &config_path,
         Some(&dir.path().join("twin")),

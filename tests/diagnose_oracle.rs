@@ -1,5 +1,5 @@
-//! The structured diagnosis (points eliminated block by block, `diagnose::schur`) against its
-//! dense oracle (the whole design's thin SVD, `diagnose::dense`) on sessions with effects in
+//! The structured diagnosis (points eliminated block by block, `kinds::tracer_plan::diagnosis::schur`) against its
+//! dense oracle (the whole design's thin SVD, `kinds::tracer_plan::diagnosis::dense`) on sessions with effects in
 //! the data: every figure the diagnosis reports (χ² drops, p, ΔBIC, held-out RMS and ratios,
 //! the selection, the effects' estimates and σ, leave-one-station-out, the points level) must
 //! agree to 1e-9 relative (an estimate: relative to the larger of its value and its σ). A clean session alone cannot show a departure that only the effect
@@ -10,8 +10,9 @@ mod common;
 use std::path::Path;
 
 use common::{diagnose_demo, record_session, with_effects};
-use geocal::diagnose::fit::dense_oracle;
-use geocal::diagnose::{diagnose_file, DiagnoseOptions};
+use geocal::diagnose::DiagnoseOptions;
+use geocal::kinds::diagnosis::diagnose_file;
+use geocal::kinds::tracer_plan::diagnosis::fit::dense_oracle;
 use serde_json::Value;
 
 /// Relative agreement of every number: far above the rounding of either path (~1e-12), far

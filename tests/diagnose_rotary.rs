@@ -8,7 +8,8 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use geocal::diagnose::{diagnose_file, text, Diagnosis};
+use geocal::diagnose::{text, Diagnosis};
+use geocal::kinds::diagnosis::diagnose_file;
 use geocal::kinds::rotary_tracer::solve::RotaryTracerResults;
 use geocal::method::SolveSettings;
 use serde_json::Value;
@@ -46,7 +47,7 @@ fn param(d: &Diagnosis, effect: &str, name: &str) -> (f64, f64) {
 
 fn solved(session: &Path, effects: &[&str]) -> RotaryTracerResults {
     let settings = SolveSettings {
-        effects: geocal::diagnose::correct::fit_named(
+        effects: geocal::kinds::tracer_plan::diagnosis::correct::fit_named(
             effects
                 .iter()
                 .map(|e| match *e {

@@ -10,7 +10,8 @@ mod session;
 
 use std::process::Command;
 
-use geocal::diagnose::{diagnose_file, DiagnoseOptions};
+use geocal::diagnose::DiagnoseOptions;
+use geocal::kinds::diagnosis::diagnose_file;
 
 #[test]
 fn diagnose_of_a_large_clean_session_completes_and_selects_nothing() {

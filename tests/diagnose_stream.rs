@@ -8,8 +8,8 @@ mod common;
 use std::path::{Path, PathBuf};
 
 use common::{diagnose_demo, record_session, two_target_diagnose_demo, with_effects};
-use geocal::diagnose::data::Data;
 use geocal::extract::{stream_settled, SettledSession};
+use geocal::kinds::tracer_plan::diagnosis::data::Data;
 use geocal::session::reader::read_session;
 
 /// Every field of `streamed` equals the whole read's (compared by their exact `{:?}`: every
@@ -130,8 +130,10 @@ fn streamed_observations_equal_the_whole_read() {
 fn effects_fit_of_the_stream_equals_the_whole_read() {
     let path = outside("outside-reversal-8");
     let settings = geocal::method::SolveSettings {
-        effects: geocal::diagnose::correct::parse_effects(&["reversal".to_string()])
-            .expect("effects"),
+        effects: geocal::kinds::tracer_plan::diagnosis::correct::parse_effects(&[
+            "reversal".to_string()
+        ])
+        .expect("effects"),
         ..Default::default()
     };
     let streamed = geocal::method::multilateration::solve_file_streaming(&path, &settings)
@@ -156,7 +158,7 @@ fn a_cut_file_is_read_whole() {
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() * 3 / 4]).expect("write");
     assert!(stream_settled(&cut, is_multilateration).is_none());
-    let settled = geocal::diagnose::data::settled_of_file(&cut)
+    let settled = geocal::kinds::tracer_plan::diagnosis::data::settled_of_file(&cut)
         .expect("read")
         .expect("settled");
     let whole = SettledSession::of_session(&read_session(&cut).expect("session")).expect("whole");

@@ -45,7 +45,8 @@ fn effect_free_session_summary_and_plot() {
     let dir = tempfile::tempdir().expect("tempdir");
     let session = record_session(&with_effects(&diagnose_demo(), 102, ""), dir.path());
     let (d, residuals) =
-        geocal::diagnose::diagnose_file_detailed(&session, &Default::default()).expect("diagnose");
+        geocal::kinds::diagnosis::diagnose_file_detailed(&session, &Default::default())
+            .expect("diagnose");
     let report = geocal::diagnose::text(&d);
     let lines = summary(&d);
     assert!(lines.len() <= SUMMARY_MAX_LINES, "{report}");

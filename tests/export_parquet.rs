@@ -237,7 +237,7 @@ fn duckdb_reads_the_export_as_the_results_say() {
         });
     }
     let bridge = &runs[2];
-    let (diagnosis, _) = geocal::diagnose::diagnose_file_detailed(
+    let (diagnosis, _) = geocal::kinds::diagnosis::diagnose_file_detailed(
         &bridge.dir.join("session.mcap"),
         &Default::default(),
     )

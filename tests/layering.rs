@@ -23,10 +23,9 @@ const LAYERS: &[&[&str]] = &[
     &["extract"],
     &["sim", "sequencer", "devices"],
     &["method", "run", "document", "evaluate", "progress"],
+    &["diagnose"],
     &["kinds"],
-    &[
-        "diagnose", "replay", "monitor", "report", "history", "lib", "main",
-    ],
+    &["replay", "monitor", "report", "history", "lib", "main"],
     &["serve", "export"],
 ];
 

@@ -7,7 +7,7 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use geocal::diagnose::effects::EffectKind;
+use geocal::kinds::tracer_plan::diagnosis::effects::EffectKind;
 use geocal::method::multilateration::MultilaterationResults;
 use geocal::method::SolveSettings;
 use serde_json::Value;
@@ -26,7 +26,7 @@ fn truth(name: &str) -> Value {
 
 fn solve(name: &str, effects: Vec<EffectKind>) -> MultilaterationResults {
     let settings = SolveSettings {
-        effects: geocal::diagnose::correct::fit(effects),
+        effects: geocal::kinds::tracer_plan::diagnosis::correct::fit(effects),
         ..Default::default()
     };
     let results = geocal::kinds::solve_file(&session_dir(name).join("session.mcap"), &settings)
@@ -100,7 +100,7 @@ fn clean_session_fits_its_declared_noise_and_its_sigmas_are_honest() {
 
 #[test]
 fn clean_session_diagnosis_finds_nothing() {
-    let d = geocal::diagnose::diagnose_file(
+    let d = geocal::kinds::diagnosis::diagnose_file(
         &session_dir("outside-clean-7").join("session.mcap"),
         &Default::default(),
     )
@@ -118,7 +118,7 @@ fn reversal_is_found_alone_and_modelling_it_restores_the_calibration() {
     let backlash_m = truth_reversal["effect_params"]["reversal"]["backlash_m"]
         .as_f64()
         .expect("backlash");
-    let d = geocal::diagnose::diagnose_file(
+    let d = geocal::kinds::diagnosis::diagnose_file(
         &session_dir("outside-reversal-8").join("session.mcap"),
         &Default::default(),
     )

@@ -5,7 +5,7 @@
 mod common;
 
 use common::{diagnose_demo, rigid_fit, rms_after, run_with_truth, truth_point, with_effects, xyz};
-use geocal::diagnose::correct::parse_effects;
+use geocal::kinds::tracer_plan::diagnosis::correct::parse_effects;
 use geocal::method::SolveSettings;
 
 /// Point RMS error (m) after the best rigid fit onto the truth, χ²/dof, and the RMS of each

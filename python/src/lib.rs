@@ -72,7 +72,7 @@ fn solve_json(
     // Progress in bytes of the file read, plus one step for the solve after the read.
     let total = std::fs::metadata(path).map_or(0, |m| m.len()) + 1;
     let reader = callback.clone();
-    let settings = geocal::diagnose::residual_model::solve_settings(
+    let settings = geocal::kinds::diagnosis::solve_settings(
         path,
         effects,
         geocal::method::SolveSettings {
@@ -135,7 +135,7 @@ fn diagnose(
                 )),
                 ..Default::default()
             };
-            let (diagnosis, _) = geocal::diagnose::diagnose_file_detailed(&path, &options)?;
+            let (diagnosis, _) = geocal::kinds::diagnosis::diagnose_file_detailed(&path, &options)?;
             Ok((
                 serde_json::to_string_pretty(&diagnosis)?,
                 geocal::diagnose::text(&diagnosis),

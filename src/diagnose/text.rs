@@ -6,8 +6,7 @@ use std::fmt::Write;
 
 use serde_json::Value;
 
-use super::locate::WhereEntry;
-use super::{Candidate, Diagnosis, Gap};
+use super::{Candidate, Diagnosis, Gap, WhereEntry};
 
 /// The summary's length at most, in lines.
 pub const SUMMARY_MAX_LINES: usize = 10;
@@ -438,7 +437,7 @@ fn points_line(d: &Diagnosis) -> Option<String> {
         ));
     }
     if let Some(t) = &d.twin {
-        let of = |g: &Option<super::twin::TwinPointsGap>| {
+        let of = |g: &Option<super::lengths::TwinPointsGap>| {
             g.as_ref()
                 .map_or_else(|| "n/a".to_string(), |g| ratio(g.chi2_per_dof))
         };
@@ -716,7 +715,7 @@ fn selected_parameters(s: &mut String, d: &Diagnosis) {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::diagnose::loso::HeldOutStation;
+    use crate::diagnose::lengths::HeldOutStation;
 
     fn gap(ratio: f64) -> Gap {
         Gap {

@@ -2,6 +2,7 @@
 //! of the kinds with their own configuration layout (`probe_install`, `hexapod`: config ->
 //! plan -> simulated devices -> kind sequencer -> recorded session -> solve).
 
+pub mod diagnosis;
 pub mod hexapod;
 pub mod multilateration;
 pub mod probe_install;

@@ -125,7 +125,7 @@ pub struct SolveSettings {
     /// Down-weight outlier lengths with a Huber loss (threshold in sigmas).
     pub huber: Option<crate::solve::robust::Huber>,
     /// Unmodelled effects fitted jointly with the geometry (the diagnosis's models:
-    /// `diagnose::correct::parse_effects`); None: none.
+    /// `kinds::tracer_plan::diagnosis::correct::parse_effects`); None: none.
     pub effects: Option<std::sync::Arc<dyn effects::EffectsFit>>,
     /// Effects of the kind's own library (kinds with a residual model, `diagnosis`), fitted
     /// jointly with its calibration; empty: none.

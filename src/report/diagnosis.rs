@@ -27,7 +27,7 @@ pub fn section(inputs: &Inputs, _: &KindReport) -> anyhow::Result<Vec<Section>> 
     match &inputs.session_path {
         Some(path) => {
             let (_, residuals) =
-                crate::diagnose::diagnose_file_detailed(path, &Default::default())?;
+                crate::kinds::diagnosis::diagnose_file_detailed(path, &Default::default())?;
             section = section.plot(Plot {
                 id: "diagnosis-residuals".into(),
                 caption: crate::diagnose::plot::title(&d.session_id, &residuals),

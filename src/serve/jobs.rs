@@ -712,7 +712,7 @@ impl Daemon {
                 self.write_report(job, Some(&session));
             }
             JobType::Diagnose => {
-                let (diagnosis, residuals) = crate::diagnose::diagnose_file_detailed(
+                let (diagnosis, residuals) = crate::kinds::diagnosis::diagnose_file_detailed(
                     &session_of(job.source_job)?,
                     &Default::default(),
                 )?;

@@ -254,7 +254,7 @@ pub fn diagnose_checking_progress(session: &Path) -> geocal::diagnose::Diagnosis
         })),
         ..Default::default()
     };
-    let d = geocal::diagnose::diagnose_file(session, &options).expect("diagnose");
+    let d = geocal::kinds::diagnosis::diagnose_file(session, &options).expect("diagnose");
     let calls = calls.lock().expect("progress calls");
     let total = calls.first().expect("progress reported").1;
     assert!(total > 1, "{calls:?}");

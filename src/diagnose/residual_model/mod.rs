@@ -11,23 +11,20 @@ mod text;
 pub use text::{details, summary};
 
 use std::collections::BTreeMap;
-use std::path::Path;
 use std::sync::Arc;
 
-use anyhow::Context;
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
 use super::engine::{BaseFit, Engine, HeldOut, LinearFit};
 use super::forward::{self, Selection, Start, Trial};
-use super::locate::WhereEntry;
 use super::progress::{selection_units, Counter};
 use super::stats::{chi2_sf, Basis, RANK_TOL};
 use super::whitened::{WhitenedDesign, WhitenedFit};
 use super::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, StandardisedResidual,
-    StandardisedResiduals, DIAGNOSIS_FORMAT,
+    StandardisedResiduals, WhereEntry, DIAGNOSIS_FORMAT,
 };
 use crate::method::diagnosis::{
     concat, effect_parameters, joint_fit, Effect, JointFit, ResidualModel,
@@ -60,37 +57,6 @@ pub struct ParameterAfter {
     pub nominal_sigma: f64,
     pub corrected: f64,
     pub sigma: f64,
-}
-
-/// Whether the session at `path` is of a kind with a residual model; then its diagnosis and
-/// standardised residuals (None: another diagnosis applies).
-pub fn diagnose_file(
-    path: &Path,
-    options: &DiagnoseOptions,
-) -> anyhow::Result<Option<(Diagnosis, StandardisedResiduals)>> {
-    let Ok(header) = crate::session::file_stream::read_header(path) else {
-        return Ok(None);
-    };
-    let Some(kind) = crate::kinds::kind_named(&header.kind) else {
-        return Ok(None);
-    };
-    if !kind.has_residual_model() {
-        return Ok(None);
-    }
-    let session = crate::session::reader::read_session(path)
-        .with_context(|| format!("reading {}", path.display()))?;
-    let model = kind
-        .residual_model(&session)
-        .with_context(|| format!("diagnosing {}", path.display()))?;
-    let (mut diagnosis, residuals) = diagnose(model.as_ref(), options);
-    if let Some(c) = &mut diagnosis.corrected {
-        c.command = format!(
-            "geocal solve {} --effects {}",
-            path.display(),
-            c.effects.join(",")
-        );
-    }
-    Ok(Some((diagnosis, residuals)))
 }
 
 /// The forward selection's view of a residual model: its whitened Jacobian at the nominal
@@ -564,53 +530,4 @@ pub fn diagnose(
     };
     progress.finish();
     (diagnosis, residuals)
-}
-
-/// The settings of `geocal solve SESSION --effects NAMES`: the names of a kind with a residual
-/// model go to its own solve (which checks them against its library); the multilateration
-/// effects are parsed as before.
-pub fn solve_settings(
-    session: &Path,
-    names: &[String],
-    base: crate::method::SolveSettings,
-) -> anyhow::Result<crate::method::SolveSettings> {
-    let own_library = crate::session::file_stream::read_header(session)
-        .ok()
-        .and_then(|h| crate::kinds::kind_named(&h.kind))
-        .is_some_and(|k| k.has_residual_model());
-    Ok(if own_library {
-        crate::method::SolveSettings {
-            effect_names: names
-                .iter()
-                .flat_map(|n| n.split(','))
-                .map(|n| n.trim().to_string())
-                .filter(|n| !n.is_empty())
-                .collect(),
-            ..base
-        }
-    } else {
-        crate::method::SolveSettings {
-            effects: super::correct::parse_effects(names)?,
-            ..base
-        }
-    })
-}
-
-/// `--twin` compares a tracer session with its twin's lengths; a session of a kind with a
-/// residual model is diagnosed without it (a clear error, not the tracer kinds' refusal).
-pub fn refuse_twin(session: &Path) -> anyhow::Result<()> {
-    let kind = crate::session::file_stream::read_header(session)
-        .ok()
-        .and_then(|h| crate::kinds::kind_named(&h.kind))
-        .filter(|k| k.has_residual_model());
-    match kind {
-        Some(k) => anyhow::bail!(
-            "{}: --twin compares tracer lengths with a twin's; a {} session is diagnosed \
-             against its own model: run `geocal diagnose {}` without --twin",
-            session.display(),
-            k.name(),
-            session.display()
-        ),
-        None => Ok(()),
-    }
 }

@@ -4,8 +4,7 @@
 
 use std::fmt::Write;
 
-use super::super::locate::WhereEntry;
-use super::super::{verdict, Diagnosis, TABLE_MAX_ROWS};
+use super::super::{verdict, Diagnosis, WhereEntry, TABLE_MAX_ROWS};
 
 /// A residual in its unit: nm for metres, µrad for radians.
 fn value(v: f64, unit: &str) -> String {

@@ -3,6 +3,7 @@
 //! tracer run (`run`), its resume and its emulator hosting. A kind's `Kind` implementation
 //! calls these; only its solve and report are its own.
 
+pub mod diagnosis;
 pub mod resume;
 pub mod run;
 pub mod simulate;

@@ -1,35 +1,22 @@
-//! Sim-to-real gap diagnosis (`geocal diagnose`): where the lengths depart from the nominal
-//! multilateration model, which unmodelled effect explains it, and how far the gap shrinks.
+//! Sim-to-real gap diagnosis of a tracer network (`geocal diagnose` of the multilateration
+//! and rotary_tracer kinds): where the lengths depart from the nominal multilateration model,
+//! which unmodelled effect explains it, and how far the gap shrinks.
 
 pub mod budget;
 pub mod correct;
 pub mod data;
 pub mod dense;
 pub mod effects;
-pub mod engine;
 pub mod fit;
-pub mod forward;
 pub mod locate;
 pub mod loso;
 #[cfg(test)]
 mod oracle;
-pub mod plot;
 pub mod points;
-pub mod progress;
-pub mod projected;
-pub mod residual_model;
 pub mod schur;
-pub mod selection;
 pub mod settling;
 pub mod stations;
-pub mod stats;
-mod text;
 pub mod twin;
-pub mod whitened;
-
-pub use text::{
-    details, key_parameters, summary, text, verdict, SUMMARY_MAX_LINES, TABLE_MAX_ROWS,
-};
 
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -37,9 +24,14 @@ use std::sync::Arc;
 
 use anyhow::Context;
 use nalgebra::{DMatrix, DVector};
-use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
+// The shared machinery, named from this library's modules as their siblings.
+use crate::diagnose::{engine, forward, progress, selection, stats};
+use crate::diagnose::{
+    Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, NoiseScale,
+    StandardisedResidual, StandardisedResiduals, DIAGNOSIS_FORMAT,
+};
 use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
@@ -49,150 +41,11 @@ use fit::Fit;
 use forward::{Selection, Start, Trial};
 use locate::{best_step, locate, WhereEntry};
 use loso::HeldOutStation;
-use points::{points_level, PointsGap, PointsLevel};
+use points::{points_level, PointsGap};
 use progress::{selection_units, Counter};
 use schur::Design;
 use selection::Tests;
 use stats::{chi2_isf, chi2_sf};
-
-pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
-
-/// Settings of the tests; the defaults are the documented ones.
-#[derive(Debug, Clone, PartialEq)]
-pub struct DiagnoseOptions {
-    /// Family-wise false-alarm level of each round of selection and of the `where` tests.
-    pub alpha: f64,
-    /// Minimum number of cross-validation folds (at least the number of stations is used).
-    pub folds: usize,
-    /// Memory the diagnosis may use (bytes); None: the machine's available memory
-    /// (`MemAvailable` in /proc/meminfo). A diagnosis estimated to need more is refused
-    /// before any work (`budget`).
-    pub memory_limit_bytes: Option<u64>,
-    /// Called as (done, total) while the diagnosis works: the total is fixed at the start,
-    /// done only grows and ends at the total (`progress::Counter`).
-    pub progress: Option<crate::progress_sink::ProgressSink>,
-}
-
-impl Default for DiagnoseOptions {
-    fn default() -> Self {
-        Self {
-            alpha: 0.01,
-            folds: 5,
-            memory_limit_bytes: None,
-            progress: None,
-        }
-    }
-}
-
-/// Two candidates are confounded when their projected column spaces are this close (largest
-/// principal angle cosine) and the data do not prefer one strongly (BIC difference below 10,
-/// "very strong evidence" on the Kass–Raftery scale).
-pub const CONFOUNDED_COSINE: f64 = 0.95;
-pub const DECISIVE_BIC: f64 = 10.0;
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct Gap {
-    pub rms_m: f64,
-    pub heldout_rms_m: f64,
-    pub chi2_per_dof: f64,
-    /// Held-out RMS expected from the noise model alone (noise plus prediction uncertainty).
-    pub heldout_floor_m: f64,
-    /// RMS of the held-out residuals each in units of its own predicted standard deviation
-    /// (noise and prediction): 1 when the model holds. Steadier than the ratio of RMS values,
-    /// which a few high-leverage lengths dominate.
-    pub heldout_ratio: f64,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct Candidate {
-    pub effect: String,
-    pub params: BTreeMap<String, Value>,
-    pub rms_after_m: f64,
-    pub heldout_rms_after_m: f64,
-    pub bic_delta: f64,
-    pub p_value: f64,
-    /// Selection round (0 = against the nominal model) of this evaluation.
-    pub round: usize,
-    /// Identifiable parameters (projected rank) and the χ² drop when added.
-    pub df: usize,
-    pub chi2_drop: f64,
-    /// selected | rejected (why) | confounded.
-    pub status: String,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub confounded_with: Vec<String>,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct Diagnosis {
-    pub format: String,
-    pub session_id: String,
-    pub noise_floor_m: f64,
-    pub gap: Gap,
-    #[serde(rename = "where")]
-    pub where_: Vec<WhereEntry>,
-    pub candidates: Vec<Candidate>,
-    pub selected: Vec<String>,
-    pub gap_after: Gap,
-    pub unexplained: bool,
-    /// The declared noise model is off by a common scale: residuals uniformly too large (or
-    /// small) with no group structure beyond it. A statement about the noise declaration,
-    /// kept apart from the effects; `unexplained` is then decided on the rescaled residuals.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub noise_scale: Option<NoiseScale>,
-    /// The calibration with the selected effects modelled (`geocal solve --effects`) and how
-    /// far its points moved from the nominal model's.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub corrected: Option<CorrectedCalibration>,
-    /// The points level (solved points against the quasi-rigid 21-error model) of the nominal
-    /// model; absent when the session's points cannot be tested (the reason is in `notes`).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub points_level: Option<PointsLevel>,
-    /// The points level after the selected effects: the lengths minus their fitted
-    /// contribution re-solved and fitted again (with `target_offset` selected, χ², dof, rank
-    /// and p with its shifts fitted; `rms_m` and `floor_m` without them).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub points_level_after: Option<PointsGap>,
-    /// Each station's lengths predicted from the points of the others (nominal model).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub leave_one_station_out: Vec<HeldOutStation>,
-    /// The twin comparison, when the diagnosis is of a recording against its twin.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub twin: Option<twin::TwinReport>,
-    /// Observations used and what the tests assumed.
-    pub observations: usize,
-    pub notes: Vec<String>,
-    /// For a kind with a residual model (hexapod, probe_install, rotary_sphere): its kind,
-    /// residual units, coordinates, library and the parameters with the effects fitted.
-    #[serde(default, flatten, skip_serializing_if = "Option::is_none")]
-    pub model: Option<residual_model::ModelDiagnosis>,
-}
-
-/// The `noise_scale` finding: the declared per-length σ times `k` fits the residuals.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct NoiseScale {
-    /// √(χ²/dof) of the final model, and its two-sided confidence interval.
-    pub k: f64,
-    pub k_low: f64,
-    pub k_high: f64,
-    /// Confidence level of [k_low, k_high] (e.g. 0.95).
-    pub confidence: f64,
-    /// Degrees of freedom of the χ² that k comes from.
-    pub dof: usize,
-    /// "the declared noise model is k× too small|large".
-    pub statement: String,
-}
-
-/// The calibration re-solved with the selected effects modelled.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct CorrectedCalibration {
-    /// The command that gives it, e.g. `geocal solve SESSION --effects reversal`.
-    pub command: String,
-    pub effects: Vec<String>,
-    /// RMS over points and coordinates of (corrected − nominal-model) point positions, in
-    /// metres and in units of the corrected points' σ.
-    pub points_moved_rms_m: f64,
-    pub points_moved_rms_sigma: f64,
-}
 
 #[derive(Debug, thiserror::Error)]
 pub enum DiagnoseError {
@@ -204,44 +57,13 @@ pub enum DiagnoseError {
     TooLarge(#[from] budget::TooLarge),
 }
 
-/// Each length's residual in units of its σ, before (nominal model) and after the final model
-/// (the selected effects and any confounded group fitted): what `geocal diagnose --plot` draws.
-/// Not part of geocal-diagnosis/1.
-#[derive(Debug, Clone, PartialEq)]
-pub struct StandardisedResiduals {
-    pub station_ids: Vec<String>,
-    pub lengths: Vec<StandardisedResidual>,
-    /// The effects in the final model; empty when it is the nominal model (`after` = `before`).
-    pub final_effects: Vec<String>,
-    /// The x axis when it is not time (a kind's residual model: its coordinate), and then
-    /// `station_ids` are the plot's rows (legs, directions, ...).
-    pub x_axis: Option<String>,
-}
-
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct StandardisedResidual {
-    /// Index into `station_ids`.
-    pub station: usize,
-    /// Seconds since the session's first settled length.
-    pub t_s: f64,
-    pub before: f64,
-    pub after: f64,
-}
-
-/// Read a session file and diagnose it.
-pub fn diagnose_file(path: &Path, options: &DiagnoseOptions) -> anyhow::Result<Diagnosis> {
-    Ok(diagnose_file_detailed(path, options)?.0)
-}
-
-/// [`diagnose_file`] with the standardised residuals of every length. A clean file is
-/// streamed: its tracer samples are never held whole, only each window's settled stretch.
+/// Read a tracer session file and diagnose it, with the standardised residuals of every
+/// length. A clean file is streamed: its tracer samples are never held whole, only each
+/// window's settled stretch.
 pub fn diagnose_file_detailed(
     path: &Path,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
-    if let Some(diagnosed) = residual_model::diagnose_file(path, options)? {
-        return Ok(diagnosed);
-    }
     let settled = data::settled_of_file(path)
         .with_context(|| format!("reading {}", path.display()))?
         .map_err(DiagnoseError::from)

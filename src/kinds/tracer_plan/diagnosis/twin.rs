@@ -1,17 +1,16 @@
 //! Twin comparison: a recording diagnosed against its simulated twin (a second session, or a
 //! config simulated with the recording's solved stations and effects off), lengths and points.
 
+pub use crate::diagnose::lengths::{TwinPointsGap, TwinReport};
+
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
 
 use anyhow::{bail, Context};
 use nalgebra::{DMatrix, DVector};
-use serde::{Deserialize, Serialize};
 
 use super::data::Data;
-use super::points::{
-    effect_point_move, per_pass_points, point_departures, test_groups, PointDeparture, PointMeta,
-};
+use super::points::{effect_point_move, per_pass_points, point_departures, test_groups, PointMeta};
 use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
 use super::{
     diagnose_data, hcat, DataDiagnosis, DiagnoseError, DiagnoseOptions, Diagnosis,
@@ -23,39 +22,6 @@ use crate::solve::multilateration::{solve, SolveOptions};
 
 /// Noise seed of a twin simulated from a config: its own draws, the config's machine.
 const TWIN_NOISE_SEED: u64 = 0x5457_494e; // "TWIN"
-
-/// The recording's points minus the twin's (per pass), whitened by both covariances.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct TwinPointsGap {
-    pub chi2: f64,
-    pub dof: usize,
-    pub chi2_per_dof: f64,
-    pub p_value: f64,
-    /// RMS of the difference components (m) and the RMS both noise models predict.
-    pub rms_m: f64,
-    pub floor_m: f64,
-    pub points: usize,
-}
-
-/// `twin` in geocal-diagnosis/1 (an extension): what the recording was compared with.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct TwinReport {
-    pub session_id: String,
-    /// `session` (a second recording) or `config` (simulated here).
-    pub source: String,
-    /// Recorded lengths with a twin length at the same station, target, point, pass and
-    /// occurrence; the others are diagnosed against the model alone.
-    pub matched_lengths: usize,
-    pub unmatched_lengths: usize,
-    /// Points before and after removing the selected effects' fitted contribution.
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub points_before: Option<TwinPointsGap>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub points_after: Option<TwinPointsGap>,
-    /// Points of the recording that depart from the twin's, largest χ² first.
-    #[serde(default)]
-    pub departures: Vec<PointDeparture>,
-}
 
 /// Key of a length across two sessions of the same plan.
 type LengthKey = (String, String, usize, usize, usize);

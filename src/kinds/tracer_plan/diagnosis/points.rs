@@ -1,10 +1,11 @@
 //! The points level of the diagnosis: the solved points (one set per pass, full covariance)
 //! fitted by the machine's quasi-rigid 21-error model; whitened residuals, χ², and where they depart.
 
+pub use crate::diagnose::lengths::{PointDeparture, PointsGap, PointsLevel, TargetOffsetTest};
+
 use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, DVector, Vector3};
-use serde::{Deserialize, Serialize};
 
 use super::data::Data;
 use super::effects::Geometry;
@@ -23,69 +24,6 @@ use crate::solve::multilateration::{
 const RANK_TOL: f64 = 1e-9;
 /// Largest decomposition fitted (unknowns), as `geocal solve` bounds its dense decomposition.
 const MAX_PARAMETERS: usize = 1500;
-
-/// The points level's fit against the noise model.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct PointsGap {
-    /// Σ of the whitened residuals squared and its degrees of freedom (3·points − rank).
-    pub chi2: f64,
-    pub dof: usize,
-    pub chi2_per_dof: f64,
-    pub p_value: f64,
-    /// RMS of the residual components (m), and the RMS the noise model expects of them.
-    pub rms_m: f64,
-    pub floor_m: f64,
-    /// Points fitted (per target, plan point and pass) and identifiable model parameters.
-    pub points: usize,
-    pub rank: usize,
-}
-
-/// One point whose residual fails the noise model (Bonferroni over the points).
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct PointDeparture {
-    pub target: String,
-    pub point: usize,
-    pub pass: usize,
-    pub nominal_m: [f64; 3],
-    pub residual_m: [f64; 3],
-    /// χ² of its 3 residual components under their covariance, and the corrected p-value.
-    pub chi2: f64,
-    pub p_value: f64,
-}
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct PointsLevel {
-    pub gap: PointsGap,
-    /// Points failing the noise model, largest χ² first.
-    #[serde(default)]
-    pub departures: Vec<PointDeparture>,
-    /// The `target_offset` candidate at this level (plans with two or more targets).
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub target_offset: Option<TargetOffsetTest>,
-}
-
-/// The `target_offset` candidate at the points level: a constant error in the offset of each
-/// reflector after the first shifts that target's points by a constant, which the quasi-rigid
-/// model cannot express (the lengths level cannot see it: every point is free there, and with
-/// one target the shift is the gauge's). Score test of the shifts projected off the model.
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct TargetOffsetTest {
-    /// Identifiable shift parameters (projected rank) and the χ² drop when they are added.
-    pub df: usize,
-    pub chi2_drop: f64,
-    pub p_value: f64,
-    /// BIC change when added (negative: better).
-    pub bic_delta: f64,
-    /// χ² of the points level and its degrees of freedom with the shifts fitted.
-    pub chi2_after: f64,
-    pub dof_after: usize,
-    /// The fitted offset error of each target relative to the first (m): its identifiable part
-    /// (minimum norm; with two targets the component along o₂ − o₁), and its standard
-    /// deviation per component.
-    pub offsets_m: BTreeMap<String, [f64; 3]>,
-    #[serde(default)]
-    pub offsets_sigma_m: BTreeMap<String, [f64; 3]>,
-}
 
 /// Score test of per-target constant shifts (targets after the first) against the points
 /// level's model `basis`, on the whitened residuals `r_w` (whitening factor `l`).

@@ -1,33 +1,16 @@
 //! Leave-one-station-out: each station's lengths predicted from the points the other stations
 //! determine (its own position and homing distances refitted), tested against the noise model.
 
+pub use crate::diagnose::lengths::HeldOutStation;
+
 use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Vector3};
-use serde::{Deserialize, Serialize};
 
 use super::data::Data;
 use super::schur::{Design, Schur};
 use super::stats::{chi2_sf, Basis, RANK_TOL};
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct HeldOutStation {
-    pub station: String,
-    /// Held-out lengths and the degrees of freedom left after refitting the station's own
-    /// position and homing distances (lengths − 3 − segments).
-    pub lengths: usize,
-    pub dof: usize,
-    /// RMS of the held-out residuals (m) and the RMS the noise model predicts for them (noise
-    /// plus the uncertainty of the points fitted without this station).
-    pub heldout_rms_m: f64,
-    pub floor_m: f64,
-    /// sqrt(χ²/dof) of the held-out residuals under their predicted covariance: 1 when the
-    /// station agrees with the others, its sampling spread about sqrt(1/(2·dof)).
-    pub ratio: f64,
-    /// P(χ² ≥ observed), Bonferroni over the stations.
-    pub p_value: f64,
-}
 
 /// Per station, in the linearised nominal model around the full fit (`design`: the nominal
 /// design at the full fit; `resid_m` its residuals). Stations whose removal leaves the points

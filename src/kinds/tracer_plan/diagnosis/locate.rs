@@ -1,25 +1,13 @@
 //! "Where": splits the whitened residual sum of squares into groups (station, time block,
 //! approach direction, workspace octant, beam axis, pass) and tests each against the noise model.
 
-use serde::{Deserialize, Serialize};
+pub use crate::diagnose::WhereEntry;
 
 use super::data::Data;
 use super::dense;
 use super::effects::Geometry;
 use super::fit::Fit;
 use super::stats::chi2_sf;
-
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
-pub struct WhereEntry {
-    pub level: String,
-    pub group: String,
-    pub key: String,
-    /// Share of the residual sum of squares (m²) in this group.
-    pub share: f64,
-    pub rms_m: f64,
-    /// Bonferroni-corrected P(χ² ≥ observed) of the group under the noise model.
-    pub p_value: f64,
-}
 
 /// Time blocks: enough that a ramp or a step is localised, few enough that each block holds
 /// tens of lengths (the χ² test of a block needs more than a handful of degrees of freedom).
