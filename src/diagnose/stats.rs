@@ -273,7 +273,11 @@ impl QrBasis {
         // (never 0), or + for a column already zero (a zero reflector).
         for i in (0..qr.nrows().min(qr.ncols())).rev() {
             let axis = qr.view_range(i.., i);
-            let sign = if axis[0] == 0.0 { 1.0 } else { -axis[0].signum() };
+            let sign = if axis[0] == 0.0 {
+                1.0
+            } else {
+                -axis[0].signum()
+            };
             let reflection = nalgebra::Reflection::new(nalgebra::Unit::new_unchecked(axis), 0.0);
             reflection.reflect_with_sign(&mut y.rows_range_mut(i..), sign);
         }
