@@ -74,7 +74,7 @@ impl Projected {
     pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
         match &self.left {
             Left::Columns(columns) => columns * self.v_scaled(c),
-            Left::Qr(qr) => qr.u() * c,
+            Left::Qr(qr) => qr.u_times(c),
             Left::U(u) => u * c,
         }
     }

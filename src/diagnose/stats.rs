@@ -263,6 +263,27 @@ impl QrBasis {
         self.u_r.tr_mul(&y.rows(0, self.u_r.nrows()))
     }
 
+    /// U c, without forming Q (n × k): Q applied to (U_R c, 0) by its reflectors.
+    pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
+        let qr = self.qr.qr_internal();
+        let mut y = DVector::zeros(qr.nrows());
+        y.rows_mut(0, self.u_r.nrows()).copy_from(&(&self.u_r * c));
+        // Q = H_0 S_0 ⋯ H_(m−1) S_(m−1) (`QR::q` applies the same steps to the identity), each
+        // sign that of R's diagonal entry: the opposite of its unit reflector's first component
+        // (never 0), or + for a column already zero (a zero reflector).
+        for i in (0..qr.nrows().min(qr.ncols())).rev() {
+            let axis = qr.view_range(i.., i);
+            let sign = if axis[0] == 0.0 {
+                1.0
+            } else {
+                -axis[0].signum()
+            };
+            let reflection = nalgebra::Reflection::new(nalgebra::Unit::new_unchecked(axis), 0.0);
+            reflection.reflect_with_sign(&mut y.rows_range_mut(i..), sign);
+        }
+        y
+    }
+
     /// The orthonormal left factor U (n × rank).
     pub fn u(&self) -> DMatrix<f64> {
         self.qr.q() * &self.u_r
@@ -399,5 +420,13 @@ mod tests {
         );
         assert!((qr.ut(&y).norm() - svd_ut.norm()).abs() <= tol);
         assert!((u.tr_mul(&u) - DMatrix::identity(2, 2)).amax() <= 1e-13);
+        // U c by the reflectors is U (formed) times c, also past a column that is zero.
+        let c = DVector::from_vec(vec![0.7, -1.3]);
+        assert!((qr.u_times(&c) - &u * &c).amax() <= 1e-14 * c.norm());
+        let mut with_zero = b.clone();
+        with_zero.column_mut(0).fill(0.0);
+        let qr = QrBasis::new(with_zero, EFFECT_RANK_TOL, b.column(1).norm());
+        let c = DVector::from_element(qr.s.len(), 0.5);
+        assert!((qr.u_times(&c) - qr.u() * &c).amax() <= 1e-14 * c.norm());
     }
 }

@@ -92,3 +92,15 @@ pub fn check(data: &Data, folds: usize, limit: Option<u64>) -> Result<(), TooLar
         available_from: source,
     })
 }
+
+/// Returns the heap's free pages to the system. Reading a session frees many small blocks (its
+/// measurements' strings and maps) inside the heap, where the allocator keeps them resident;
+/// the diagnosis's large matrices are mapped apart from them, so without this the resident
+/// memory carries the reading's peak through every later stage.
+pub fn return_freed_memory() {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    // SAFETY: malloc_trim only releases free memory of glibc's own heap.
+    unsafe {
+        libc::malloc_trim(0);
+    }
+}

@@ -73,6 +73,7 @@ pub fn diagnose_file_detailed(
     let data = Data::from_settled(settled)
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
+    budget::return_freed_memory();
     let mut detailed = diagnose_data(&data, options)
         .map_err(anyhow::Error::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;

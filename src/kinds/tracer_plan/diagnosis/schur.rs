@@ -310,9 +310,14 @@ impl Schur {
             point_null.extend(null.into_iter().map(|v| (p, v)));
             // S −= C_pᵀ M_p⁺ C_p on the touched columns.
             let h: Vec<Vector3<f64>> = c_local.iter().map(|c| inv * c).collect();
+            // Symmetric: each pair once (the symmetrisation below averages the two triangles).
             for (x, &cx) in cols.iter().enumerate() {
-                for (y, &cy) in cols.iter().enumerate() {
-                    s[(cx, cy)] -= c_local[x].dot(&h[y]);
+                for (y, &cy) in cols.iter().enumerate().skip(x) {
+                    let v = c_local[x].dot(&h[y]);
+                    s[(cx, cy)] -= v;
+                    if cx != cy {
+                        s[(cy, cx)] -= v;
+                    }
                 }
             }
             for &c in &cols {

@@ -135,29 +135,61 @@ fn home_biases(data: &Data, tau_s: f64, bias_m: &mut [f64]) {
     }
 }
 
-/// Normal equations (XᵀX, Xᵀd, dᵀd, samples) over the windows `keep` selects.
-fn normal(
-    rows: &[WindowRows],
-    keep: impl Fn(usize) -> bool,
-) -> (Matrix3<f64>, Vector3<f64>, f64, usize) {
-    let (mut xtx, mut xtd, mut dtd, mut n) = (Matrix3::zeros(), Vector3::zeros(), 0.0, 0);
-    for (k, w) in rows.iter().enumerate() {
-        if !keep(k) {
-            continue;
-        }
-        for (d, x) in w.d.iter().zip(&w.x) {
-            let x = Vector3::from(*x);
-            xtx += x * x.transpose();
-            xtd += x * *d;
-            dtd += d * d;
-            n += 1;
-        }
-    }
-    (xtx, xtd, dtd, n)
+/// XᵀX, Xᵀd, dᵀd and the sample count of a set of windows' rows.
+#[derive(Clone, Copy)]
+struct Normal {
+    xtx: Matrix3<f64>,
+    xtd: Vector3<f64>,
+    dtd: f64,
+    n: usize,
 }
 
-/// Minimum-norm solution on the identifiable axes (an axis that never moved into a window
-/// has a zero column) and the covariance's diagonal.
+impl Normal {
+    fn zero() -> Normal {
+        Normal {
+            xtx: Matrix3::zeros(),
+            xtd: Vector3::zeros(),
+            dtd: 0.0,
+            n: 0,
+        }
+    }
+
+    fn add(&mut self, other: &Normal) {
+        self.xtx += other.xtx;
+        self.xtd += other.xtd;
+        self.dtd += other.dtd;
+        self.n += other.n;
+    }
+}
+
+/// The normal equations of each fold's windows (window k in fold k mod `FOLDS`), built in one
+/// pass: the full fit's and every fold's training set are sums of them.
+fn fold_normals(rows: &[WindowRows]) -> [Normal; FOLDS] {
+    let mut out = [Normal::zero(); FOLDS];
+    for (k, w) in rows.iter().enumerate() {
+        let part = &mut out[k % FOLDS];
+        for (d, x) in w.d.iter().zip(&w.x) {
+            let x = Vector3::from(*x);
+            part.xtx += x * x.transpose();
+            part.xtd += x * *d;
+            part.dtd += d * d;
+            part.n += 1;
+        }
+    }
+    out
+}
+
+/// The sum of the folds' normal equations, fold `skip` left out.
+fn sum_normals(parts: &[Normal; FOLDS], skip: Option<usize>) -> Normal {
+    let mut sum = Normal::zero();
+    for (f, part) in parts.iter().enumerate() {
+        if Some(f) != skip {
+            sum.add(part);
+        }
+    }
+    sum
+}
+
 fn solve3(xtx: &Matrix3<f64>, xtd: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>, usize) {
     let eig = xtx.symmetric_eigen();
     let top = eig.eigenvalues.amax();
@@ -184,7 +216,8 @@ pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
         if rows.is_empty() {
             return None;
         }
-        let (xtx, xtd, dtd, n) = normal(&rows, |_| true);
+        let parts = fold_normals(&rows);
+        let Normal { xtx, xtd, dtd, n } = sum_normals(&parts, None);
         let (s, var, df) = solve3(&xtx, &xtd);
         if df == 0 {
             return None;
@@ -203,8 +236,8 @@ pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
         // Held out: fit on the other windows, score each fold's windows.
         let (mut ms_base, mut ms_after, mut held) = (0.0, 0.0, 0usize);
         for f in 0..FOLDS {
-            let (a, b, _, _) = normal(&rows, |k| k % FOLDS != f);
-            let (sf, _, _) = solve3(&a, &b);
+            let train = sum_normals(&parts, Some(f));
+            let (sf, _, _) = solve3(&train.xtx, &train.xtd);
             for w in rows.iter().skip(f).step_by(FOLDS) {
                 let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
                 for (d, x) in w.d.iter().zip(&w.x) {
