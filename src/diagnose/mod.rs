@@ -1,6 +1,7 @@
 //! Sim-to-real gap diagnosis (`geocal diagnose`): where the lengths depart from the nominal
 //! multilateration model, which unmodelled effect explains it, and how far the gap shrinks.
 
+pub mod blocked;
 pub mod budget;
 pub mod correct;
 pub mod data;
