@@ -51,8 +51,8 @@ impl BlockedDesign {
                 }
             }
         }
-        for c in 0..p {
-            if let Some(b) = column_owner[c] {
+        for (c, owner) in column_owner.iter().enumerate() {
+            if let Some(b) = *owner {
                 if (0..n).any(|r| row_owner[r] != Some(b) && design[(r, c)] != 0.0) {
                     return None;
                 }

@@ -62,8 +62,8 @@ pub fn solve_blocked(
             }
         }
     }
-    for c in 0..p {
-        if let Some(k) = column_block[c] {
+    for (c, owner) in column_block.iter().enumerate() {
+        if let Some(k) = *owner {
             if (0..n).any(|r| row_block[r] != Some(k) && x[(r, c)] != 0.0) {
                 return None;
             }
@@ -116,7 +116,8 @@ pub fn solve_blocked(
     // σ_min(X) ≥ min(σ_min(G̃), σ_min(L)) / (1 + ‖T‖), σ_max(X) ≤ √(‖G‖² + ‖L‖²).
     let smallest = reduced_min.min(local_min) / (1.0 + carried_norm2.sqrt());
     let largest = (global_norm * global_norm + local_norm * local_norm).sqrt();
-    if !(smallest > FULL_RANK_MARGIN * largest) {
+    let proven = smallest > FULL_RANK_MARGIN * largest;
+    if !proven {
         return None;
     }
     // Global part: θ_G = V S⁻¹ Uᵀ (P b), covariance C_G = V S⁻² Vᵀ.
