@@ -4,6 +4,7 @@
 //! and effect library sit in its own folder under `kinds/`; `kinds::diagnosis` picks the one
 //! that reads a session.
 
+pub mod blocked;
 pub mod engine;
 pub mod forward;
 pub mod lengths;

@@ -636,3 +636,186 @@ fn probe_install_sphere_form_alone_is_named() {
     }
     assert!(extra <= 1, "{extra} of 8 seeds select a further effect");
 }
+
+// ---------------------------------------------------------------------------------------
+// The local parameters eliminated group by group (a hexapod's measured poses) against the
+// dense design: the same fits on random designs, full rank and rank-deficient.
+
+mod blocked {
+    use std::sync::Arc;
+
+    use geocal::diagnose::blocked::{BlockedDesign, LocalBlock, ModelDesign};
+    use geocal::diagnose::engine::{LinearDesign, LinearFit};
+    use geocal::diagnose::whitened::WhitenedDesign;
+    use geocal::method::blocked_lsq::solve_blocked;
+    use nalgebra::{DMatrix, DVector};
+
+    /// Uniform in [−1, 1) (xorshift).
+    struct Noise(u64);
+
+    impl Noise {
+        fn next(&mut self) -> f64 {
+            self.0 ^= self.0 << 13;
+            self.0 ^= self.0 >> 7;
+            self.0 ^= self.0 << 17;
+            (self.0 >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+        }
+    }
+
+    /// `groups` groups of `per` rows with `width` local columns each, `global` columns and
+    /// `free` rows in no group; `deficient` makes it rank-deficient three ways: a global column
+    /// repeated, a local column repeated in one block, a global column in the blocks' span (a
+    /// null direction with local parts).
+    fn design(
+        seed: u64,
+        (groups, per, width, global, free): (usize, usize, usize, usize, usize),
+        deficient: bool,
+    ) -> (DMatrix<f64>, Vec<LocalBlock>) {
+        let mut noise = Noise(seed);
+        let n = groups * per + free;
+        let mut x = DMatrix::zeros(n, global + groups * width);
+        let mut blocks = Vec::new();
+        for r in 0..n {
+            for c in 0..global {
+                x[(r, c)] = noise.next() * 10f64.powi((c % 3) as i32);
+            }
+        }
+        for g in 0..groups {
+            let columns = global + g * width..global + (g + 1) * width;
+            let rows: Vec<usize> = (g * per..(g + 1) * per).collect();
+            for &r in &rows {
+                for c in columns.clone() {
+                    x[(r, c)] = noise.next() * 1e3;
+                }
+            }
+            blocks.push(LocalBlock { columns, rows });
+        }
+        if deficient {
+            for r in 0..n {
+                x[(r, 1)] = 2.0 * x[(r, 0)];
+                x[(r, global - 1)] = 0.0;
+            }
+            for g in 0..groups {
+                for r in g * per..(g + 1) * per {
+                    x[(r, global - 1)] = 1e-3 * x[(r, global + g * width)];
+                }
+            }
+            for r in 0..per {
+                x[(r, global + 1)] = -x[(r, global)];
+            }
+        }
+        (x, blocks)
+    }
+
+    fn relative(a: &DVector<f64>, b: &DVector<f64>) -> f64 {
+        (a - b).amax() / b.amax().max(f64::MIN_POSITIVE)
+    }
+
+    const TOL: f64 = 1e-10;
+
+    fn compare(x: &DMatrix<f64>, blocks: &[LocalBlock], rows: Vec<usize>, seed: u64) {
+        let x = Arc::new(x.clone());
+        let dense = WhitenedDesign(x.clone()).fit(rows.clone());
+        let blocked = BlockedDesign::new(x.clone(), blocks.to_vec())
+            .expect("valid blocks")
+            .fit(rows.clone());
+        assert_eq!(blocked.rank(), dense.rank());
+        let mut noise = Noise(seed);
+        let y = DVector::from_fn(rows.len(), |_, _| noise.next());
+        // The minimum-norm solution itself.
+        let (xb, xd) = (blocked.solve(&y), dense.solve(&y));
+        assert!(relative(&xb, &xd) < TOL, "solve {:e}", relative(&xb, &xd));
+        let (pb, pd) = (blocked.project_off_vec(&y), dense.project_off_vec(&y));
+        assert!(
+            relative(&pb, &pd) < TOL,
+            "project_off {:e}",
+            relative(&pb, &pd)
+        );
+        let m = DMatrix::from_fn(rows.len(), 3, |_, _| noise.next());
+        let (mb, md) = (
+            blocked.project_off_owned(m.clone()),
+            dense.project_off_owned(m),
+        );
+        assert!((&mb - &md).amax() < TOL * md.amax());
+        let mut held = Vec::new();
+        let mut outside = 0;
+        for i in 0..x.nrows() {
+            assert_eq!(blocked.in_row_space(i), dense.in_row_space(i), "row {i}");
+            match dense.in_row_space(i) {
+                true => held.push(i),
+                false => outside += 1,
+            }
+        }
+        let vb = DVector::from_vec(blocked.prediction_variances(&held));
+        let vd = DVector::from_vec(dense.prediction_variances(&held));
+        assert!(
+            relative(&vb, &vd) < TOL,
+            "variances {:e}",
+            relative(&vb, &vd)
+        );
+        let lb = DVector::from_vec(blocked.leverages());
+        let ld = DVector::from_vec(dense.basis.leverages());
+        assert!(
+            relative(&lb, &ld) < TOL,
+            "leverages {:e}",
+            relative(&lb, &ld)
+        );
+        assert_eq!(blocked.factorises_by_svd(), dense.factorises_by_svd());
+        eprintln!(
+            "rows {} rank {} outside the row space {outside}: solve {:.1e}, variances {:.1e}",
+            rows.len(),
+            dense.rank(),
+            relative(&xb, &xd),
+            relative(&vb, &vd)
+        );
+    }
+
+    #[test]
+    fn blocked_fits_equal_the_dense_fits() {
+        let shape = (9, 8, 4, 7, 5);
+        let per = shape.1;
+        for (seed, deficient) in [(3, false), (5, false), (7, true), (11, true)] {
+            let (x, blocks) = design(seed, shape, deficient);
+            let n = x.nrows();
+            compare(&x, &blocks, (0..n).collect(), seed + 1);
+            // A fold: rows of several blocks held out, one block held out whole (its local
+            // columns then have no training row), one left with fewer rows than columns.
+            let training: Vec<usize> = (0..n)
+                .filter(|&r| r % 5 != 2 && !(per..2 * per).contains(&r))
+                .filter(|&r| !(2 * per + 2..3 * per).contains(&r))
+                .collect();
+            compare(&x, &blocks, training, seed + 2);
+        }
+    }
+
+    #[test]
+    fn blocks_that_do_not_hold_fall_back_to_dense() {
+        let (mut x, blocks) = design(13, (3, 4, 2, 3, 0), false);
+        // A local column non-zero on another group's row.
+        x[(blocks[1].rows[0], blocks[0].columns.start)] = 1.0;
+        assert!(matches!(
+            ModelDesign::new(x.clone(), blocks.clone()),
+            ModelDesign::Dense(_)
+        ));
+        let b = DVector::from_element(x.nrows(), 1.0);
+        assert!(solve_blocked(&x, &b, &blocks).is_none());
+    }
+
+    /// The joint fit's least squares block by block: solution and covariance equal the dense
+    /// inverse's; a design not of full rank is left to the dense pseudo-inverse.
+    #[test]
+    fn blocked_least_squares_equals_the_dense_inverse() {
+        let (x, blocks) = design(17, (7, 9, 3, 5, 4), false);
+        let mut noise = Noise(19);
+        let b = DVector::from_fn(x.nrows(), |_, _| noise.next());
+        let (theta, cov, rank) = solve_blocked(&x, &b, &blocks).expect("full rank");
+        assert_eq!(rank, x.ncols());
+        let pinv = x.clone().pseudo_inverse(1e-12).expect("svd");
+        let dense_theta = &pinv * &b;
+        let dense_cov = &pinv * pinv.transpose();
+        assert!(relative(&theta, &dense_theta) < 1e-9);
+        assert!((&cov - &dense_cov).amax() < 1e-9 * dense_cov.amax());
+        let (deficient, blocks) = design(17, (7, 9, 3, 5, 4), true);
+        assert!(solve_blocked(&deficient, &b, &blocks).is_none());
+    }
+}

@@ -63,6 +63,18 @@ pub trait ResidualModel: Send + Sync {
     }
     /// The kind's effect library (the effects this session can show).
     fn effects(&self) -> Vec<Box<dyn Effect + '_>>;
+    /// Parameters that touch only the residuals of one group (e.g. a measured pose's six:
+    /// its own rows only), which the diagnosis eliminates group by group. None by default.
+    fn local_blocks(&self) -> Vec<LocalBlock> {
+        Vec::new()
+    }
+}
+
+/// Columns of the Jacobian that are zero outside the rows `rows`.
+#[derive(Debug, Clone, PartialEq)]
+pub struct LocalBlock {
+    pub columns: std::ops::Range<usize>,
+    pub rows: Vec<usize>,
 }
 
 /// One unmodelled effect: linear in its parameters θ, it adds A(p) θ to the modelled
@@ -105,8 +117,13 @@ impl JointFit {
 const RANK_CUT: f64 = 1e-9;
 
 /// Minimum-norm least squares of the whitened design `x` against `b`, and the pseudo-inverse
-/// covariance (xᵀx)⁺ with the rank.
-fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>) -> (DVector<f64>, DMatrix<f64>, usize) {
+/// covariance (xᵀx)⁺ with the rank; block by block when the model's local `blocks` give a
+/// design of full rank.
+fn pinv_solve(
+    x: &DMatrix<f64>,
+    b: &DVector<f64>,
+    blocks: &[LocalBlock],
+) -> (DVector<f64>, DMatrix<f64>, usize) {
     // Columns scaled to unit norm so that the rank cut does not depend on their units.
     let norms: Vec<f64> = (0..x.ncols())
         .map(|c| x.column(c).norm().max(f64::MIN_POSITIVE))
@@ -114,6 +131,10 @@ fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>) -> (DVector<f64>, DMatrix<f64>
     let mut scaled = x.clone();
     for (c, n) in norms.iter().enumerate() {
         scaled.column_mut(c).scale_mut(1.0 / n);
+    }
+    if let Some((mut sol, mut cov, rank)) = super::blocked_lsq::solve_blocked(&scaled, b, blocks) {
+        unscale(&mut sol, &mut cov, &norms);
+        return (sol, cov, rank);
     }
     let svd = scaled.svd(true, true);
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
@@ -134,13 +155,19 @@ fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>) -> (DVector<f64>, DMatrix<f64>
         sol += &v * coeff;
         cov += &v * v.transpose() / (s * s);
     }
+    unscale(&mut sol, &mut cov, &norms);
+    (sol, cov, keep.len())
+}
+
+/// The solution and covariance of the design with unit columns back in the columns' units.
+fn unscale(sol: &mut DVector<f64>, cov: &mut DMatrix<f64>, norms: &[f64]) {
+    let p = sol.len();
     for i in 0..p {
         sol[i] /= norms[i];
         for j in 0..p {
             cov[(i, j)] /= norms[i] * norms[j];
         }
     }
-    (sol, cov, keep.len())
 }
 
 /// Gauss–Newton on the model's parameters and the effects' together, from `start` (the
@@ -174,6 +201,7 @@ pub fn joint_fit(
         }
         m
     };
+    let blocks = model.local_blocks();
     let mut iterations = 0;
     let mut cost = f64::INFINITY;
     for _ in 0..30 {
@@ -183,7 +211,7 @@ pub fn joint_fit(
         let rw = r.component_div(&sigma);
         cost = cost.min(rw.norm_squared());
         let design = whitened(concat(&model.jacobian(&params), &a));
-        let (step, _, _) = pinv_solve(&design, &rw);
+        let (step, _, _) = pinv_solve(&design, &rw, &blocks);
         // Halve a step that raises the cost (a poor start far from the optimum).
         let mut scale = 1.0;
         let mut accepted = false;
@@ -212,7 +240,7 @@ pub fn joint_fit(
     let r = residual(&params, &a, &theta);
     let rw = r.component_div(&sigma);
     let design = whitened(concat(&model.jacobian(&params), &a));
-    let (_, covariance, rank) = pinv_solve(&design, &rw);
+    let (_, covariance, rank) = pinv_solve(&design, &rw, &blocks);
     let chi2 = rw.norm_squared();
     JointFit {
         effect_contribution: &a * &theta,

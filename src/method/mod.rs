@@ -1,6 +1,7 @@
 //! Methods: each wires the session reader, point extraction, a model and a solver into
 //! results for one plan kind (`kinds::registry::solve_session` picks it from the session's kind).
 
+pub mod blocked_lsq;
 pub mod diagnosis;
 pub mod effects;
 pub mod multilateration;

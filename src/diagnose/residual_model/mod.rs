@@ -11,23 +11,22 @@ mod text;
 pub use text::{details, summary};
 
 use std::collections::BTreeMap;
-use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 use serde::{Deserialize, Serialize};
 use serde_json::Value;
 
-use super::engine::{BaseFit, Engine, HeldOut, LinearFit};
+use super::blocked::{ModelDesign, ModelFit};
+use super::engine::{BaseFit, Engine, HeldOut, LinearDesign, LinearFit};
 use super::forward::{self, Selection, Start, Trial};
 use super::progress::{selection_units, Counter};
-use super::stats::{chi2_sf, Basis, RANK_TOL};
-use super::whitened::{WhitenedDesign, WhitenedFit};
+use super::stats::chi2_sf;
 use super::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, StandardisedResidual,
     StandardisedResiduals, WhereEntry, DIAGNOSIS_FORMAT,
 };
 use crate::method::diagnosis::{
-    concat, effect_parameters, joint_fit, Effect, JointFit, ResidualModel,
+    concat, effect_parameters, joint_fit, Effect, JointFit, LocalBlock, ResidualModel,
 };
 
 /// What a diagnosis of a kind's residual model adds to geocal-diagnosis/1.
@@ -67,10 +66,12 @@ struct ResidualsClient<'a> {
     x: &'a DMatrix<f64>,
     columns: &'a [DMatrix<f64>],
     sigma: &'a DVector<f64>,
+    /// The model's local parameter blocks (eliminated group by group).
+    blocks: &'a [LocalBlock],
 }
 
 impl forward::Client for ResidualsClient<'_> {
-    type Design = WhitenedDesign;
+    type Design = ModelDesign;
     type Effect = usize;
     type Key = usize;
 
@@ -82,19 +83,20 @@ impl forward::Client for ResidualsClient<'_> {
         self.library[*effect].name().to_string()
     }
 
-    fn design(&self, accepted: &[usize]) -> WhitenedDesign {
-        WhitenedDesign(Arc::new(
+    fn design(&self, accepted: &[usize]) -> ModelDesign {
+        ModelDesign::new(
             accepted
                 .iter()
                 .fold(self.x.clone(), |d, &e| concat(&d, &self.columns[e])),
-        ))
+            self.blocks.to_vec(),
+        )
     }
 
     fn columns(&self, effect: &usize) -> DMatrix<f64> {
         self.columns[*effect].clone()
     }
 
-    fn gap(&self, _engine: &Engine, full: &BaseFit<WhitenedFit>, heldout: &HeldOut) -> Gap {
+    fn gap(&self, _engine: &Engine, full: &BaseFit<ModelFit>, heldout: &HeldOut) -> Gap {
         let n = self.sigma.len();
         Gap {
             rms_m: rms_in_metres(self.model, &full.res_w.component_mul(self.sigma)),
@@ -287,12 +289,14 @@ pub fn diagnose(
         p0.len(),
         groups.len()
     )];
+    let blocks = model.local_blocks();
     let client = ResidualsClient {
         model,
         library: &library,
         x: &x,
         columns: &columns,
         sigma: &sigma,
+        blocks: &blocks,
     };
     let Selection {
         accepted,
@@ -333,9 +337,13 @@ pub fn diagnose(
         for (i, s) in sigma.iter().enumerate() {
             design.row_mut(i).scale_mut(1.0 / s);
         }
-        Basis::new(&design, RANK_TOL, 0.0).leverages()
+        ModelDesign::new(design, blocks.clone())
+            .fit((0..n).collect())
+            .leverages()
     };
-    let nominal_leverage = Basis::new(&x, RANK_TOL, 0.0).leverages();
+    let nominal_leverage = ModelDesign::new(x.clone(), blocks.clone())
+        .fit((0..n).collect())
+        .leverages();
     let explained =
         (!accepted.is_empty()).then(|| final_fit.effect_contribution.component_div(&sigma));
     let where_ = locate(

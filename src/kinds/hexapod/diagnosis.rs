@@ -11,7 +11,7 @@
 use nalgebra::{DMatrix, DVector, Rotation3, Vector3};
 
 use crate::kinds::hexapod::solve::{prepare, HexapodMethodError, HexapodResults, PoseData};
-use crate::method::diagnosis::{Effect, ResidualLabel, ResidualModel};
+use crate::method::diagnosis::{Effect, LocalBlock, ResidualLabel, ResidualModel};
 use crate::model::hexapod::{leg_length, pose_jacobian, HexapodGeometry, Pose, LEGS};
 use crate::session::reader::Session;
 
@@ -293,6 +293,22 @@ impl ResidualModel for HexapodResidualModel {
             }
         }
         jac
+    }
+
+    /// Each measured pose's six parameters: its leg rows and its sensor rows.
+    fn local_blocks(&self) -> Vec<LocalBlock> {
+        if !self.free_poses {
+            return Vec::new();
+        }
+        (0..self.poses.len())
+            .map(|k| LocalBlock {
+                columns: CONSTANTS + 6 * k..CONSTANTS + 6 * (k + 1),
+                rows: (0..LEGS)
+                    .map(|i| Self::leg_row(k, i))
+                    .chain((0..6).map(|j| self.sensor_row(k, j)))
+                    .collect(),
+            })
+            .collect()
     }
 
     fn effects(&self) -> Vec<Box<dyn Effect + '_>> {
