@@ -14,6 +14,7 @@ use nalgebra::{DMatrix, DVector};
 use super::engine::{LinearDesign, LinearFit};
 use super::stats::{Basis, RANK_TOL};
 use super::whitened::{WhitenedDesign, WhitenedFit};
+use crate::method::diagnosis::BlockLayout;
 pub use crate::method::diagnosis::LocalBlock;
 
 /// The whitened design over all rows with its local blocks (disjoint in rows and columns).
@@ -30,40 +31,12 @@ impl BlockedDesign {
     /// The blocked design of `design`; None when the blocks are empty, overlap, or a block's
     /// columns are non-zero outside its rows (then the dense design applies).
     pub fn new(design: Arc<DMatrix<f64>>, blocks: Vec<LocalBlock>) -> Option<BlockedDesign> {
-        let (n, p) = design.shape();
-        if blocks.is_empty() {
-            return None;
-        }
-        let mut column_owner = vec![None; p];
-        let mut row_owner = vec![None; n];
-        for (b, block) in blocks.iter().enumerate() {
-            if block.columns.end > p || block.columns.is_empty() {
-                return None;
-            }
-            for c in block.columns.clone() {
-                if column_owner[c].replace(b).is_some() {
-                    return None;
-                }
-            }
-            for &r in &block.rows {
-                if r >= n || row_owner[r].replace(b).is_some() {
-                    return None;
-                }
-            }
-        }
-        for (c, owner) in column_owner.iter().enumerate() {
-            if let Some(b) = *owner {
-                if (0..n).any(|r| row_owner[r] != Some(b) && design[(r, c)] != 0.0) {
-                    return None;
-                }
-            }
-        }
-        let global = (0..p).filter(|&c| column_owner[c].is_none()).collect();
+        let layout = BlockLayout::of(&design, &blocks)?;
         Some(BlockedDesign {
             design,
             blocks: Arc::new(blocks),
-            global: Arc::new(global),
-            row_block: Arc::new(row_owner),
+            global: Arc::new(layout.global),
+            row_block: Arc::new(layout.row_block),
         })
     }
 }

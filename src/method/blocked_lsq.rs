@@ -8,7 +8,7 @@
 
 use nalgebra::{DMatrix, DVector};
 
-use super::diagnosis::LocalBlock;
+use super::diagnosis::{BlockLayout, LocalBlock};
 
 /// A direction counts as determined when the design's smallest singular value is above this
 /// fraction of its largest: ten times the dense route's rank cut, so both keep every one.
@@ -42,34 +42,7 @@ pub fn solve_blocked(
     blocks: &[LocalBlock],
 ) -> Option<(DVector<f64>, DMatrix<f64>, usize)> {
     let (n, p) = x.shape();
-    if blocks.is_empty() {
-        return None;
-    }
-    let mut column_block = vec![None; p];
-    let mut row_block = vec![None; n];
-    for (k, block) in blocks.iter().enumerate() {
-        if block.columns.end > p {
-            return None;
-        }
-        for c in block.columns.clone() {
-            if column_block[c].replace(k).is_some() {
-                return None;
-            }
-        }
-        for &r in &block.rows {
-            if r >= n || row_block[r].replace(k).is_some() {
-                return None;
-            }
-        }
-    }
-    for (c, owner) in column_block.iter().enumerate() {
-        if let Some(k) = *owner {
-            if (0..n).any(|r| row_block[r] != Some(k) && x[(r, c)] != 0.0) {
-                return None;
-            }
-        }
-    }
-    let global: Vec<usize> = (0..p).filter(|&c| column_block[c].is_none()).collect();
+    let global = BlockLayout::of(x, blocks)?.global;
     let g = global.len();
     let g_all = DMatrix::from_fn(n, g, |r, j| x[(r, global[j])]);
     let mut factors = Vec::with_capacity(blocks.len());

@@ -77,6 +77,50 @@ pub struct LocalBlock {
     pub rows: Vec<usize>,
 }
 
+/// How local blocks lay over a design: each row's block, if any, and the columns in no block
+/// (in order).
+pub struct BlockLayout {
+    pub row_block: Vec<Option<usize>>,
+    pub global: Vec<usize>,
+}
+
+impl BlockLayout {
+    /// The layout of `blocks` over `x`; None when a block is empty or reaches past `x`, the
+    /// blocks overlap, or a block's columns are non-zero outside its rows (they are not local).
+    pub fn of(x: &DMatrix<f64>, blocks: &[LocalBlock]) -> Option<BlockLayout> {
+        let (n, p) = x.shape();
+        if blocks.is_empty() {
+            return None;
+        }
+        let mut column_block = vec![None; p];
+        let mut row_block = vec![None; n];
+        for (k, block) in blocks.iter().enumerate() {
+            if block.columns.end > p || block.columns.is_empty() {
+                return None;
+            }
+            for c in block.columns.clone() {
+                if column_block[c].replace(k).is_some() {
+                    return None;
+                }
+            }
+            for &r in &block.rows {
+                if r >= n || row_block[r].replace(k).is_some() {
+                    return None;
+                }
+            }
+        }
+        for (c, owner) in column_block.iter().enumerate() {
+            if let Some(k) = *owner {
+                if (0..n).any(|r| row_block[r] != Some(k) && x[(r, c)] != 0.0) {
+                    return None;
+                }
+            }
+        }
+        let global = (0..p).filter(|&c| column_block[c].is_none()).collect();
+        Some(BlockLayout { row_block, global })
+    }
+}
+
 /// One unmodelled effect: linear in its parameters θ, it adds A(p) θ to the modelled
 /// quantities.
 pub trait Effect {

@@ -74,6 +74,19 @@ pub fn best_step(
     best.map(|(g, k, s)| (g, k, s, tried))
 }
 
+/// The octant's name by the sign of each axis from the mean, e.g. `x+y-z+`.
+pub fn octant_key(octant: usize) -> String {
+    (0..3)
+        .map(|a| {
+            format!(
+                "{}{}",
+                ["x", "y", "z"][a],
+                if octant >> a & 1 == 1 { "+" } else { "-" }
+            )
+        })
+        .collect()
+}
+
 /// Groups whose whitened residuals exceed the noise model (family-wise level `alpha`).
 pub fn locate(
     data: &Data,
@@ -119,15 +132,7 @@ pub fn locate(
         data.obs.iter().map(|o| o.nominal_m[a]).sum::<f64>() / nobs.max(1) as f64
     });
     for octant in 0..8 {
-        let key: String = (0..3)
-            .map(|a| {
-                format!(
-                    "{}{}",
-                    ["x", "y", "z"][a],
-                    if octant >> a & 1 == 1 { "+" } else { "-" }
-                )
-            })
-            .collect();
+        let key = octant_key(octant);
         let members = (0..nobs)
             .filter(|&i| {
                 (0..3).all(|a| (data.obs[i].nominal_m[a] > centre[a]) == (octant >> a & 1 == 1))

@@ -9,7 +9,7 @@ use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::data::Data;
 use super::effects::Geometry;
-use super::locate::WhereEntry;
+use super::locate::{octant_key, WhereEntry};
 use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL, RANK_TOL as GEOMETRY_RANK_TOL};
 use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
@@ -376,15 +376,7 @@ pub fn test_groups(
         std::array::from_fn(|a| (0..n).map(|k| nominal(k)[a]).sum::<f64>() / n.max(1) as f64);
     let mut groups: Vec<(&str, String, Vec<usize>)> = Vec::new();
     for octant in 0..8 {
-        let key: String = (0..3)
-            .map(|a| {
-                format!(
-                    "{}{}",
-                    ["x", "y", "z"][a],
-                    if octant >> a & 1 == 1 { "+" } else { "-" }
-                )
-            })
-            .collect();
+        let key = octant_key(octant);
         let members =
             all_rows(&|k| (0..3).all(|a| (nominal(k)[a] > centre[a]) == (octant >> a & 1 == 1)));
         groups.push(("region", key, members));
