@@ -2,7 +2,7 @@
 //! reads it (round trip), the parsers fuzzed, and the closed loop: the demo machine calibrated,
 //! LinuxCNC and SINUMERIK tables applied by the simulated controller, the same plan run again.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

@@ -3,7 +3,7 @@
 //! repair` turns damaged, truncated and killed recordings into complete files that the
 //! independent Python reader reads to the end, holding exactly the readable messages.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};

@@ -2,7 +2,7 @@
 //! within what the noise model predicts, the replay must give identical results, and an
 //! independent reader must accept the session.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

@@ -167,13 +167,22 @@ fn dead_path_matches_the_dense_oracle() {
     simulated(17, "dead_path = { enabled = true, size = 2.0 }");
 }
 
-/// The sessions of the independent recorder (one with a reversal in the data).
-#[test]
-fn outside_sessions_match_the_dense_oracle() {
+/// A session of the independent recorder (each in its own test: they run side by side).
+fn assert_outside_session_matches_the_dense_oracle(name: &str) {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("tests/data/outside");
-    for name in ["outside-reversal-8", "outside-clean-7"] {
-        assert_matches_the_dense_oracle(&root.join(name).join("session.mcap"));
-    }
+    assert_matches_the_dense_oracle(&root.join(name).join("session.mcap"));
+}
+
+/// The independent recorder's session with a reversal in the data.
+#[test]
+fn outside_session_with_a_reversal_matches_the_dense_oracle() {
+    assert_outside_session_matches_the_dense_oracle("outside-reversal-8");
+}
+
+/// The independent recorder's clean session.
+#[test]
+fn outside_clean_session_matches_the_dense_oracle() {
+    assert_outside_session_matches_the_dense_oracle("outside-clean-7");
 }
 
 /// Every effect case of `tests/diagnose.rs` (its seeds and sizes) and the shipped

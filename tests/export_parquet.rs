@@ -4,7 +4,7 @@
 //! sessions' raw samples; the DuckDB queries of docs/fleet.md run against it; docs/fleet.md
 //! lists every column of every table; a damaged results file is skipped with a warning.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};

@@ -307,7 +307,7 @@ fn fuzz_modbus_hexapod_map() {
     });
 }
 
-/// Writes the seeds: `cargo test --test fuzz -- --ignored write_seeds`.
+/// Writes the seeds: `cargo test --test integration fuzz::write_seeds -- --ignored`.
 #[test]
 #[ignore = "regenerates fuzz/corpus"]
 fn write_seeds() {

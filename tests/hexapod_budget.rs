@@ -11,7 +11,7 @@
 //! least squares and the grid search before it only find the basin, the same one in every
 //! draw, and repeating them 200 times would only make the test slow.
 
-mod budget_mc;
+use crate::budget_mc;
 
 use budget_mc::{ratios, TOLERANCE};
 use geocal::kinds::hexapod::budget::budgets;

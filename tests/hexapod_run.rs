@@ -3,7 +3,7 @@
 //! the two-stage result must never be worse than its start or plain LM, the replay of the
 //! recorded session must give identical results, and bad configurations clear errors.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

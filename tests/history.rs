@@ -6,7 +6,7 @@
 //! error → a drift with its rate. And `geocal compare` on real demo runs: different noise
 //! seeds → no significant change; a changed `[sim]` squareness → the squareness errors only.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::Command;

@@ -1,7 +1,7 @@
 //! ISO 230-2 figures of `geocal::evaluate::iso230_2` against an independent numpy
 //! implementation (tests/python/iso230_2.py) on the same curves.
 
-mod iso230_2_common;
+use crate::iso230_2_common;
 
 use geocal::evaluate::iso230_2::{evaluate, AxisType, Curves};
 use iso230_2_common::assert_agree;

@@ -3,8 +3,8 @@
 //! random positioning scatter: the table's figures from `evaluate::of_results` against the
 //! simulated truth, within the noise model.
 
-mod common;
-mod iso230_2_common;
+use crate::common;
+use crate::iso230_2_common;
 
 use common::run_with_truth;
 use geocal::evaluate::of_results;

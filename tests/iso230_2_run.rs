@@ -2,8 +2,8 @@
 //! targets) and a reversal on the axes: the x axis's figures from `evaluate::of_results`
 //! against the simulated truth, within the noise model.
 
-mod common;
-mod iso230_2_common;
+use crate::common;
+use crate::iso230_2_common;
 
 use common::{run_with_truth, small_demo, truth_point, xyz};
 use geocal::evaluate::of_results;

@@ -2,7 +2,7 @@
 //! monitor runs as another process with the real driver for 1.5 s and records a session, and
 //! the session read back holds what the emulator's source said, in SI units.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

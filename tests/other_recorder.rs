@@ -2,7 +2,7 @@
 //! chunking, field order, extra fields, channel order, no summary, a lower sample rate, no
 //! declared noise model) must solve just like geocal's own recording.
 
-mod common;
+use crate::common;
 
 use std::collections::BTreeMap;
 use std::io::Cursor;

@@ -3,7 +3,7 @@
 //! their declared noise model, its σ are honest against the truth, and the diagnosis neither
 //! cries wolf on the clean one nor misses the reversal in the other.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

@@ -2,7 +2,7 @@
 //! unplanned stops and dwell jitter; the sequencer only watches the tracer. The run must
 //! recover the truth like the active demo, and report every unplanned stop.
 
-mod common;
+use crate::common;
 
 use common::{assert_recovers_truth, run_with_truth, small_demo};
 use geocal::config::Config;

@@ -2,7 +2,7 @@
 //! is efficient and honest: over many seeds, the actual errors of points and stations match
 //! the uncertainties the results report (ratio of RMS within [0.8, 1.25]).
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

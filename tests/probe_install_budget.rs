@@ -11,7 +11,7 @@
 //! recording, so that 200 solves stay quick; the GA is left out (it reports beside LM, its
 //! values have no budget).
 
-mod budget_mc;
+use crate::budget_mc;
 
 use budget_mc::{ratios, TOLERANCE};
 use geocal::kinds::probe_install::budget::budgets;

@@ -3,7 +3,7 @@
 //! uncertainties allow, the replay of the recorded session must give identical results, every
 //! raw reading must be in the session, and bad configurations must give clear errors.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 

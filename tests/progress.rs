@@ -3,7 +3,7 @@
 //! terminal the progress is one line redrawn in place (carriage returns, a handful of line
 //! feeds, not one per point); on the pipe a line per station or per tenth, at most 15.
 
-mod common;
+use crate::common;
 
 use std::io::Read;
 use std::os::fd::{FromRawFd, OwnedFd};

@@ -1,7 +1,7 @@
 //! `geocal report` streams a clean multilateration session (the tracer samples never held):
 //! the same document as from the session read whole.
 
-mod common;
+use crate::common;
 
 use geocal::kinds::registry::Registry;
 use geocal::report::Inputs;

@@ -6,7 +6,7 @@
 //!
 //! The session id holds the wall-clock start, so it is blanked before hashing. After an
 //! intended change of results, store the new digests with
-//! `GEOCAL_STORE_DIGESTS=1 cargo test --test results_digests` and say why in the commit.
+//! `GEOCAL_STORE_DIGESTS=1 cargo test --test integration results_digests::` and say why in the commit.
 
 use std::collections::BTreeMap;
 use std::path::Path;

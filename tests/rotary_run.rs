@@ -2,7 +2,7 @@
 //! the stations, points, table axis and true step angles must match the simulated truth
 //! within what the reported uncertainties allow; the replay must give identical results.
 
-mod common;
+use crate::common;
 
 use common::{assert_recovers_truth, run_with_truth, xyz};
 use geocal::kinds::solve_file;

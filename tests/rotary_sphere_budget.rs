@@ -16,7 +16,7 @@
 //! (docs/uncertainty.md: a sphere that keeps its orientation between heights makes the budget
 //! conservative).
 
-mod budget_mc;
+use crate::budget_mc;
 
 use budget_mc::{mean, std, TOLERANCE};
 use geocal::kinds::rotary_sphere::budget::budgets;

@@ -2,7 +2,7 @@
 //! extraction; the table's events and states are kept) and gives the whole read's results to
 //! the bit; a cut copy is not streamed.
 
-mod common;
+use crate::common;
 
 use geocal::kinds::rotary_tracer::solve::{solve, solve_file_streaming};
 use geocal::method::SolveSettings;

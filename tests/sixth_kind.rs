@@ -2,7 +2,7 @@
 //! registry with one line and is then checked, run, solved and reported through it as the
 //! five built-in kinds are: the commands' dispatch needs nothing else of a kind.
 
-mod ball_bar;
+use crate::ball_bar;
 
 use geocal::kinds::{Registry, RunFlags};
 use geocal::run::RunOptions;

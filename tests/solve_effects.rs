@@ -2,7 +2,7 @@
 //! calibration with that effect fitted brings the points back to within 2x the error of the
 //! same machine measured without the effect.
 
-mod common;
+use crate::common;
 
 use common::{diagnose_demo, rigid_fit, rms_after, run_with_truth, truth_point, with_effects, xyz};
 use geocal::kinds::tracer_plan::diagnosis::correct::parse_effects;

@@ -13,7 +13,7 @@
 //! would hand on. This keeps 500 draws well under a second and tests what the budget claims:
 //! which inputs act, through which sensitivity, on the reported (normalised) value.
 
-mod common;
+use crate::common;
 
 use geocal::config::sim::{EffectSwitch, EffectsConfig};
 use geocal::config::uncertainty::{NormalisationConfig, UncertaintyConfig};
