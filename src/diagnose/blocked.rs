@@ -13,7 +13,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::engine::{LinearDesign, LinearFit};
 use super::stats::{Basis, RANK_TOL};
-use super::whitened::{WhitenedDesign, WhitenedFit};
+use super::whitened::{tall_basis, WhitenedDesign, WhitenedFit};
 use crate::method::diagnosis::BlockLayout;
 pub use crate::method::diagnosis::LocalBlock;
 
@@ -161,7 +161,7 @@ impl LinearDesign for BlockedDesign {
 /// The basis of `a` above the rank cut, and an orthonormal basis (rows) of the directions it
 /// leaves out (its null space, to the cut).
 fn basis_with_null(a: &DMatrix<f64>, reference: f64) -> (Basis, DMatrix<f64>) {
-    let basis = Basis::new(a, RANK_TOL, reference);
+    let basis = tall_basis(a, RANK_TOL, reference);
     let p = a.ncols();
     if basis.rank() == p {
         return (basis, DMatrix::zeros(0, p));

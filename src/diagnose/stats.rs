@@ -111,7 +111,17 @@ impl Basis {
                 vt: DMatrix::zeros(0, p),
             };
         }
-        let svd = accurate_svd(a);
+        Basis::from_svd(accurate_svd(a), n, p, tol, reference)
+    }
+
+    /// The directions of `svd` (of an n × p matrix) kept by the rule of [`Basis::new`].
+    pub fn from_svd(
+        svd: nalgebra::SVD<f64, nalgebra::Dyn, nalgebra::Dyn>,
+        n: usize,
+        p: usize,
+        tol: f64,
+        reference: f64,
+    ) -> Basis {
         let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
             return Basis {
                 u: DMatrix::zeros(n, 0),

@@ -1,13 +1,15 @@
 //! A small whitened design held whole (hundreds to thousands of rows, tens to a few hundred
-//! parameters), fitted by the thin SVD of its rows: the [`LinearDesign`] of the residual
-//! models the kinds hand over (`method::diagnosis::ResidualModel`).
+//! parameters), fitted by the thin SVD of its rows (through their QR when they are many more
+//! than the columns, `method::tall_svd`): the [`LinearDesign`] of the residual models the
+//! kinds hand over (`method::diagnosis::ResidualModel`).
 
 use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
 use super::engine::{LinearDesign, LinearFit};
-use super::stats::{Basis, RANK_TOL};
+use super::stats::{accurate_svd, Basis, RANK_TOL};
+use crate::method::tall_svd::thin_svd;
 
 /// The whitened design over all rows; its residuals are whitened too.
 #[derive(Clone)]
@@ -19,6 +21,15 @@ pub struct WhitenedFit {
     pub basis: Basis,
 }
 
+/// [`Basis::new`] of `a`, its SVD through the QR when `a` is tall.
+pub fn tall_basis(a: &DMatrix<f64>, tol: f64, reference: f64) -> Basis {
+    let (n, p) = a.shape();
+    if n == 0 || p == 0 {
+        return Basis::new(a, tol, reference);
+    }
+    Basis::from_svd(thin_svd(a, accurate_svd), n, p, tol, reference)
+}
+
 fn rows_of(m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
     DMatrix::from_fn(rows.len(), m.ncols(), |r, c| m[(rows[r], c)])
 }
@@ -28,7 +39,7 @@ impl LinearDesign for WhitenedDesign {
 
     fn fit(&self, rows: Vec<usize>) -> WhitenedFit {
         WhitenedFit {
-            basis: Basis::new(&rows_of(&self.0, &rows), RANK_TOL, 0.0),
+            basis: tall_basis(&rows_of(&self.0, &rows), RANK_TOL, 0.0),
             design: self.0.clone(),
         }
     }
@@ -57,26 +68,20 @@ impl LinearFit for WhitenedFit {
 
     /// Inside the training rows' span to 1e-12 of the row's squared norm.
     fn in_row_space(&self, i: usize) -> bool {
-        let row: Vec<f64> = self.design.row(i).iter().copied().collect();
-        let norm2: f64 = row.iter().map(|v| v * v).sum();
-        let inside: f64 = (0..self.basis.rank())
-            .map(|k| {
-                (0..row.len())
-                    .map(|j| self.basis.vt[(k, j)] * row[j])
-                    .sum::<f64>()
-                    .powi(2)
-            })
-            .sum();
+        let row = self.design.row(i).transpose();
+        let norm2 = row.norm_squared();
+        let inside = (&self.basis.vt * &row).norm_squared();
         norm2 == 0.0 || norm2 - inside <= 1e-12 * norm2
     }
 
+    /// |S⁻¹ Vᵀ row|² of every held row at once.
     fn prediction_variances(&self, held: &[usize]) -> Vec<f64> {
-        held.iter()
-            .map(|&h| {
-                let row: Vec<f64> = self.design.row(h).iter().copied().collect();
-                self.basis.prediction_variance(&row)
-            })
-            .collect()
+        let rows = rows_of(&self.design, held);
+        let mut along = &self.basis.vt * rows.transpose();
+        for (k, mut direction) in along.row_iter_mut().enumerate() {
+            direction /= self.basis.s[k];
+        }
+        along.column_iter().map(|c| c.norm_squared()).collect()
     }
 
     fn factorises_by_svd(&self) -> bool {

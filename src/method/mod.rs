@@ -9,6 +9,7 @@ pub mod plan_check;
 pub mod plan_check_kinds;
 pub mod report;
 pub mod report_document;
+pub mod tall_svd;
 pub mod tracer_effects;
 
 use std::any::Any;
