@@ -1,7 +1,7 @@
 //! `geocal diagnose` on simulated sessions with unmodelled effects switched on: the right
 //! effect is named, the held-out gap falls to the noise floor, and effect-free data stay clean.
 
-mod common;
+use crate::common;
 
 use common::{diagnose_demo, run_and_diagnose, two_target_diagnose_demo, with_effects};
 

@@ -12,7 +12,7 @@ use geocal::diagnose::Diagnosis;
 use geocal::method::SolveSettings;
 use serde_json::Value;
 
-mod common;
+use crate::common;
 
 /// An outside session's folder: `../shared/sessions` beside the checkout, or the folder
 /// `GEOCAL_OUTSIDE_SESSIONS` names (a worktree elsewhere).

@@ -1,7 +1,7 @@
 //! `geocal diagnose` beyond the lengths: the points level (solved points against the
 //! quasi-rigid 21-error model), leave-one-station-out and the twin comparison.
 
-mod common;
+use crate::common;
 
 use common::{diagnose_demo, run_and_diagnose, with_effects};
 

@@ -5,7 +5,7 @@
 //! agree to 1e-9 relative (an estimate: relative to the larger of its value and its σ). A clean session alone cannot show a departure that only the effect
 //! columns cause (their scale is ~1e-7 of the stations' in the whitened design).
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 
@@ -187,7 +187,7 @@ fn outside_clean_session_matches_the_dense_oracle() {
 
 /// Every effect case of `tests/diagnose.rs` (its seeds and sizes) and the shipped
 /// multilateration example (`config/demo-multilateration.toml`): a longer check, run by hand
-/// after a change to the structured algebra (`cargo test --test diagnose_oracle -- --ignored`).
+/// after a change to the structured algebra (`cargo test --test integration diagnose_oracle:: -- --ignored`).
 #[test]
 #[ignore = "about 20 simulated runs and dense diagnoses; run by hand"]
 fn every_effect_case_matches_the_dense_oracle() {

@@ -4,7 +4,7 @@
 //! library is `unexplained`; `geocal solve --effects tracer_eccentricity` gives step angles as
 //! good as a clean session's, with honest σ.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

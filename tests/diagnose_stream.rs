@@ -3,7 +3,7 @@
 //! simulated sessions of the demo and on another recorder's sessions (tests/data/outside,
 //! copies of ../shared/sessions); the effects' fit gives the same calibration.
 
-mod common;
+use crate::common;
 
 use std::path::{Path, PathBuf};
 

@@ -2,7 +2,7 @@
 //! how far) on effect-free and effect data, and `geocal diagnose --plot` writing the
 //! standardised residuals as SVG, one row per station, before and after the selected effects.
 
-mod common;
+use crate::common;
 
 use std::path::Path;
 use std::process::{Command, Output};

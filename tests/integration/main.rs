@@ -1,4 +1,4 @@
-//! The tests that neither wait on real time nor are the diagnosis's, as modules of one binary:
+//! The tests that do not wait on real time, as modules of one binary:
 //! one link instead of one per file, and their longest tests (the Python package's suite, the
 //! reports in a browser, the fleet export in Spark, the budgets' Monte Carlo runs) run beside
 //! the others instead of each leaving a core idle. Each file in `tests/` named below is one
@@ -25,6 +25,22 @@ mod config_rotary_table;
 mod damaged_session;
 #[path = "../demo_run.rs"]
 mod demo_run;
+#[path = "../diagnose.rs"]
+mod diagnose;
+#[path = "../diagnose_kinds.rs"]
+mod diagnose_kinds;
+#[path = "../diagnose_levels.rs"]
+mod diagnose_levels;
+#[path = "../diagnose_oracle.rs"]
+mod diagnose_oracle;
+#[path = "../diagnose_rotary.rs"]
+mod diagnose_rotary;
+#[path = "../diagnose_scale.rs"]
+mod diagnose_scale;
+#[path = "../diagnose_stream.rs"]
+mod diagnose_stream;
+#[path = "../diagnose_text.rs"]
+mod diagnose_text;
 #[path = "../export_parquet.rs"]
 mod export_parquet;
 #[path = "../fuzz.rs"]
