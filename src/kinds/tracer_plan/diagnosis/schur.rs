@@ -571,75 +571,52 @@ impl Schur {
         if n == 0 || k == 0 {
             return tilde;
         }
-        // The columns go through in blocks held row by row (a row's entries of the block
-        // adjacent): each point's scattered rows are then read once per block, not once per
-        // column. Every column's sums are those of the column alone, in the same order.
-        let mut block = vec![0.0; n * PROJECTION_BLOCK.min(k)];
-        let mut scratch = Vec::new();
+        for column in tilde.as_mut_slice().chunks_mut(n) {
+            self.project_off_points_slice(column, &rows.a);
+        }
         let mut t = DMatrix::<f64>::zeros(g, k);
-        for c0 in (0..k).step_by(PROJECTION_BLOCK) {
-            let kb = PROJECTION_BLOCK.min(k - c0);
-            let y = gather_rows(&tilde, c0, kb, &mut block);
-            self.project_off_points_block(y, kb, &rows.a, &mut scratch);
-            // B̃ᵀ y = Bᵀ ỹ.
-            for (pos, row) in y.chunks(kb).enumerate() {
+        for (column, tc) in tilde
+            .as_slice()
+            .chunks(n)
+            .zip(t.as_mut_slice().chunks_mut(g))
+        {
+            for (pos, &v) in column.iter().enumerate() {
                 let at = pos * width;
-                let entries = at..at + width;
-                for (&c, &x) in rows.cols[entries.clone()].iter().zip(&rows.vals[entries]) {
-                    for (j, &v) in row.iter().enumerate() {
-                        t[(c, c0 + j)] += x * v;
-                    }
+                let row = at..at + width;
+                for (&c, &x) in rows.cols[row.clone()].iter().zip(&rows.vals[row]) {
+                    tc[c] += x * v;
                 }
             }
-            scatter_rows(y, &mut tilde, c0, kb);
         }
         let z = &self.w_red * self.w_red.tr_mul(&t);
-        for c0 in (0..k).step_by(PROJECTION_BLOCK) {
-            let kb = PROJECTION_BLOCK.min(k - c0);
-            let v = &mut block[..n * kb];
-            for (pos, row) in v.chunks_mut(kb).enumerate() {
+        let mut vc = vec![0.0; n];
+        for (column, zc) in tilde
+            .as_mut_slice()
+            .chunks_mut(n)
+            .zip(z.as_slice().chunks(g))
+        {
+            for (pos, out) in vc.iter_mut().enumerate() {
                 let at = pos * width;
-                for (j, out) in row.iter_mut().enumerate() {
-                    *out = (at..at + width)
-                        .map(|e| rows.vals[e] * z[(rows.cols[e], c0 + j)])
-                        .sum();
-                }
+                *out = (at..at + width)
+                    .map(|e| rows.vals[e] * zc[rows.cols[e]])
+                    .sum();
             }
-            self.project_off_points_block(v, kb, &rows.a, &mut scratch);
-            for j in 0..kb {
-                for (pos, y) in tilde.column_mut(c0 + j).iter_mut().enumerate() {
-                    *y -= v[pos * kb + j];
-                }
+            self.project_off_points_slice(&mut vc, &rows.a);
+            for (y, v) in column.iter_mut().zip(&vc) {
+                *y -= v;
             }
         }
         tilde
     }
 
-    /// y ← (I − P_A) y for a block of columns held row by row (`kb` entries per row, rows by
-    /// position; `a`: each row's point coefficients), each column as on its own.
-    fn project_off_points_block(
-        &self,
-        y: &mut [f64],
-        kb: usize,
-        a: &[Vector3<f64>],
-        q: &mut Vec<Vector3<f64>>,
-    ) {
+    /// y ← (I − P_A) y for one column over the fit's rows (`a`: each row's point coefficients).
+    fn project_off_points_slice(&self, y: &mut [f64], a: &[Vector3<f64>]) {
         for p in 0..self.design.n_points {
             let members = self.members(p);
-            q.clear();
-            q.resize(kb, Vector3::zeros());
+            let q: Vector3<f64> = members.iter().map(|&pos| a[pos] * y[pos]).sum();
+            let t = self.m_pinv[p] * q;
             for &pos in members {
-                for (qc, &v) in q.iter_mut().zip(&y[pos * kb..(pos + 1) * kb]) {
-                    *qc += a[pos] * v;
-                }
-            }
-            for qc in q.iter_mut() {
-                *qc = self.m_pinv[p] * *qc;
-            }
-            for &pos in members {
-                for (v, t) in y[pos * kb..(pos + 1) * kb].iter_mut().zip(q.iter()) {
-                    *v -= a[pos].dot(t);
-                }
+                y[pos] -= a[pos].dot(&t);
             }
         }
     }
@@ -814,30 +791,6 @@ impl RowEntries {
             out.vals.extend(entries.iter().map(|e| e.1));
         }
         out
-    }
-}
-
-/// Columns projected together (`Schur::project_off_owned`): a block of them over 160 000 rows
-/// is 10 MB beside the columns themselves.
-const PROJECTION_BLOCK: usize = 8;
-
-/// Columns `c0..c0 + kb` of `m` into `buf`, row by row.
-fn gather_rows<'b>(m: &DMatrix<f64>, c0: usize, kb: usize, buf: &'b mut [f64]) -> &'b mut [f64] {
-    let y = &mut buf[..m.nrows() * kb];
-    for j in 0..kb {
-        for (pos, &v) in m.column(c0 + j).iter().enumerate() {
-            y[pos * kb + j] = v;
-        }
-    }
-    y
-}
-
-/// The inverse of `gather_rows`.
-fn scatter_rows(y: &[f64], m: &mut DMatrix<f64>, c0: usize, kb: usize) {
-    for j in 0..kb {
-        for (pos, v) in m.column_mut(c0 + j).iter_mut().enumerate() {
-            *v = y[pos * kb + j];
-        }
     }
 }
 
