@@ -1,8 +1,9 @@
 //! What the diagnosis and the effects' fit read of a session beside the solve's lengths: the
 //! extraction with its names and maps, each measurement's raw settled samples and arrival
-//! time, the environment log and the header (`SettledSession`). From a whole session, or
-//! straight from a streamed session file (`WindowStream`), which holds only the open dwell
-//! window's tracer samples and each measured window's settled (t, length) pairs.
+//! time, the environment log and the header (`SettledSession`; `SettledDwells` keeps the
+//! solve's compact lengths instead of the names and maps). From a whole session, or straight
+//! from a streamed session file (`WindowStream`), which holds only the open dwell window's
+//! tracer samples and each measured window's settled (t, length) pairs.
 
 use std::collections::{BTreeMap, HashMap};
 
