@@ -8,7 +8,7 @@ use crate::common;
 use std::path::{Path, PathBuf};
 
 use common::{diagnose_demo, record_session, two_target_diagnose_demo, with_effects};
-use geocal::extract::{stream_settled, SettledSession};
+use geocal::extract::{stream_dwells, stream_settled, SettledDwells, SettledSession};
 use geocal::kinds::tracer_plan::diagnosis::data::Data;
 use geocal::session::reader::read_session;
 
@@ -86,6 +86,12 @@ fn check_session(path: &Path, name: &str) -> SettledSession {
     let from_whole = Data::from_session(&session).expect("data");
     let from_stream = Data::from_settled(streamed.clone()).expect("data");
     assert_same_data(&from_stream, &from_whole, name);
+    // The compact form the diagnosis reads: streamed as the whole read's, the same data.
+    let compact = stream_dwells(path, is_multilateration)
+        .unwrap_or_else(|| panic!("{} does not stream compact", path.display()));
+    assert_eq!(compact, SettledDwells::of_settled(whole.clone()), "{name}");
+    let from_compact = Data::from_dwells(compact).expect("data");
+    assert_same_data(&from_compact, &from_whole, name);
     assert!(
         from_whole.obs.len() > 100,
         "{name}: {}",

@@ -82,14 +82,15 @@ impl Lengths {
     }
 }
 
+/// Target ids numbered in order of first appearance.
 #[derive(Default)]
-struct TargetNames {
-    names: Vec<String>,
+pub(crate) struct TargetNames {
+    pub(crate) names: Vec<String>,
     index: HashMap<String, usize>,
 }
 
 impl TargetNames {
-    fn index(&mut self, name: &str) -> usize {
+    pub(crate) fn index(&mut self, name: &str) -> usize {
         if let Some(&i) = self.index.get(name) {
             return i;
         }
@@ -99,7 +100,7 @@ impl TargetNames {
     }
 }
 
-fn length_measurement(
+pub(crate) fn length_measurement(
     m: Measured,
     noise: Option<NoiseModel>,
     targets: &mut TargetNames,

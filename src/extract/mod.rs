@@ -16,4 +16,7 @@ pub use points::{
     extract_points, DroppedWindow, ExtractOptions, Extraction, NoiseModel, PointMeasurement,
 };
 pub use stillstand::{Stillstand, StillstandDetector};
-pub use windows::{stream_settled, RawWindow, SettledSession, WindowStream};
+pub use windows::{
+    stream_dwells, stream_settled, DwellMeasurement, RawWindow, SettledDwells, SettledSession,
+    WindowStream,
+};

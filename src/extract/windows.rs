@@ -1,13 +1,15 @@
 //! What the diagnosis and the effects' fit read of a session beside the solve's lengths: the
 //! extraction with its names and maps, each measurement's raw settled samples and arrival
-//! time, the environment log and the header (`SettledSession`). From a whole session, or
-//! straight from a streamed session file (`WindowStream`), which holds only the open dwell
-//! window's tracer samples and each measured window's settled (t, length) pairs.
+//! time, the environment log and the header (`SettledSession`; `SettledDwells` keeps the
+//! solve's compact lengths instead of the names and maps). From a whole session, or straight
+//! from a streamed session file (`WindowStream`), which holds only the open dwell window's
+//! tracer samples and each measured window's settled (t, length) pairs.
 
 use std::collections::{BTreeMap, HashMap};
 
+use super::lengths::{length_measurement, LengthMeasurement, Lengths, TargetNames};
 use super::pairing::{Measured, StreamStart};
-use super::points::{point_measurement, ExtractError, PointMeasurement};
+use super::points::{point_measurement, ExtractError, PointMeasurement, StationSeen};
 use super::{extract_points, ExtractOptions, Extraction, NoiseModel};
 use crate::session::messages::{EnvSample, RunEvent, SessionHeader, TracerSample};
 use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped, Streamed};
@@ -42,6 +44,141 @@ pub struct SettledSession {
     /// The stations that stood on a rotary table: (station, commanded table angle of its last
     /// `rotation` event), in the session's order; empty without a table.
     pub rotations: Vec<(String, f64)>,
+}
+
+/// What the diagnosis reads of a dwell beside its length (`LengthMeasurement`): the approach
+/// signs and commanded axes of its `point_begin` and its settled stretch.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Dwell {
+    /// Sign of the last move of x, y, z before the dwell (0 for an axis not named).
+    pub approach: [i8; 3],
+    /// Commanded x, y, z (0 for an axis not named).
+    pub axes_m: [f64; 3],
+    /// Device time of the settled stretch.
+    pub settled_from_s: f64,
+    pub settled_to_s: f64,
+}
+
+impl Dwell {
+    fn of(m: &PointMeasurement) -> Dwell {
+        Dwell {
+            approach: xyz(&m.approach),
+            axes_m: xyz(&m.axes),
+            settled_from_s: m.settled_from_s,
+            settled_to_s: m.settled_to_s,
+        }
+    }
+}
+
+/// A streamed measured window in the compact form (`WindowStream::compact`).
+pub struct DwellMeasurement {
+    length: LengthMeasurement,
+    dwell: Dwell,
+}
+
+/// Per axis x, y, z: its entry of a `point_begin`'s map, 0 for an axis not named.
+fn xyz<T: Copy + Default>(map: &BTreeMap<String, T>) -> [T; 3] {
+    XYZ.map(|a| map.get(a).copied().unwrap_or_default())
+}
+
+const XYZ: [&str; 3] = ["x", "y", "z"];
+
+/// A session reduced to its settled windows in the compact form of the solve's lengths
+/// (`SettledSession` without the per-window names and maps): what the diagnosis holds.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SettledDwells {
+    pub header: SessionHeader,
+    /// Key: id from the topic `/env/<id>` (as `Session::env`).
+    pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    pub tracer_id: String,
+    pub noise: Option<NoiseModel>,
+    /// The solve's lengths (`Lengths::of_extraction` of the session's extraction).
+    pub lengths: Lengths,
+    /// Per measurement: the rest of its dwell.
+    pub dwells: Vec<Dwell>,
+    /// Per measurement: its raw settled window, as `SettledSession::windows`.
+    pub windows: Vec<Option<RawWindow>>,
+    pub rotations: Vec<(String, f64)>,
+}
+
+impl SettledDwells {
+    /// The compact form of a settled session (a whole read's).
+    pub fn of_settled(settled: SettledSession) -> SettledDwells {
+        SettledDwells {
+            lengths: Lengths::of_extraction(&settled.extraction),
+            dwells: settled
+                .extraction
+                .measurements
+                .iter()
+                .map(Dwell::of)
+                .collect(),
+            header: settled.header,
+            env: settled.env,
+            tracer_id: settled.tracer_id,
+            noise: settled.noise,
+            windows: settled.windows,
+            rotations: settled.rotations,
+        }
+    }
+}
+
+/// Streams the session at `path` to its `SettledDwells` when its kind passes `accept_kind`;
+/// None as `stream_settled`.
+pub fn stream_dwells(
+    path: &std::path::Path,
+    accept_kind: fn(&str) -> bool,
+) -> Option<SettledDwells> {
+    let mut sink = WindowStream::compact(accept_kind);
+    let streamed = crate::session::reader::stream_session(path, &mut sink)?;
+    sink.finish_compact(streamed)
+}
+
+/// What a streamed measured window becomes (`WindowStream`'s measurements).
+pub(crate) trait WindowRecord: Sized {
+    fn of_measured(m: Measured, noise: Option<NoiseModel>, targets: &mut TargetNames) -> Self;
+    /// The settled stretch (device seconds).
+    fn settled_s(&self) -> (f64, f64);
+    fn station_index(&self) -> usize;
+    fn point_pass(&self) -> (usize, usize);
+}
+
+impl WindowRecord for PointMeasurement {
+    fn of_measured(m: Measured, noise: Option<NoiseModel>, _: &mut TargetNames) -> Self {
+        point_measurement(m, noise)
+    }
+    fn settled_s(&self) -> (f64, f64) {
+        (self.settled_from_s, self.settled_to_s)
+    }
+    fn station_index(&self) -> usize {
+        self.station_index
+    }
+    fn point_pass(&self) -> (usize, usize) {
+        (self.point, self.pass)
+    }
+}
+
+impl WindowRecord for DwellMeasurement {
+    fn of_measured(m: Measured, noise: Option<NoiseModel>, targets: &mut TargetNames) -> Self {
+        let dwell = Dwell {
+            approach: xyz(&m.window.approach),
+            axes_m: xyz(&m.window.axes),
+            settled_from_s: m.settled.from_s,
+            settled_to_s: m.settled.to_s,
+        };
+        DwellMeasurement {
+            length: length_measurement(m, noise, targets),
+            dwell,
+        }
+    }
+    fn settled_s(&self) -> (f64, f64) {
+        (self.dwell.settled_from_s, self.dwell.settled_to_s)
+    }
+    fn station_index(&self) -> usize {
+        self.length.station_index
+    }
+    fn point_pass(&self) -> (usize, usize) {
+        (self.length.point, self.length.pass)
+    }
 }
 
 /// The `rotation` events of a session, each with the station it happened in.
@@ -140,7 +277,7 @@ fn raw_windows(
         .iter()
         .map(|m| {
             let begin = *begins.get(&(m.station.as_str(), m.point, m.pass))?;
-            let mut window = WindowCollector::new(begin, m);
+            let mut window = WindowCollector::new(begin, m.settled_s());
             let from = samples.partition_point(|s| s.log_time_ns < begin);
             for s in &samples[from..] {
                 if !window.push(&s.msg) {
@@ -166,11 +303,11 @@ struct WindowCollector {
 }
 
 impl WindowCollector {
-    fn new(begin_ns: u64, m: &PointMeasurement) -> Self {
+    fn new(begin_ns: u64, (from_s, to_s): (f64, f64)) -> Self {
         WindowCollector {
             begin_ns,
-            from_s: m.settled_from_s,
-            to_s: m.settled_to_s,
+            from_s,
+            to_s,
             arrival_s: None,
             samples: Vec::new(),
             done: false,
@@ -211,8 +348,10 @@ impl WindowCollector {
         }
     }
 
-    fn finish(self) -> Option<RawWindow> {
+    fn finish(mut self) -> Option<RawWindow> {
         let arrival_s = self.arrival_s?;
+        // Held to the end of the diagnosis: no room left from the gathering's growth.
+        self.samples.shrink_to_fit();
         (self.samples.len() >= 2).then_some(RawWindow {
             arrival_s,
             samples: self.samples,
@@ -221,51 +360,42 @@ impl WindowCollector {
 }
 
 /// The `SettledSession` of a streamed session file (`session::reader::stream_session`) with
-/// exactly one tracer, as `SettledSession::of_session` gives it of the whole read. It declines
-/// a session whose kind `accept_kind` refuses or with another number of tracers, and stops at
-/// a `data_lost` event (a repaired copy: its windows need the whole session's lost spans).
-pub struct WindowStream {
+/// exactly one tracer, as `SettledSession::of_session` gives it of the whole read (or its
+/// compact `SettledDwells`, `WindowStream::compact`). It declines a session whose kind
+/// `accept_kind` refuses or with another number of tracers, and stops at a `data_lost` event
+/// (a repaired copy: its windows need the whole session's lost spans).
+pub struct WindowStream<M = PointMeasurement> {
     accept_kind: fn(&str) -> bool,
-    started: Option<Started>,
+    started: Option<StreamStart<M>>,
     /// Samples of the tracer from the open window's begin (or the current batch) on.
     samples: Vec<Stamped<TracerSample>>,
     /// Per measurement: its raw window being gathered.
     windows: Vec<WindowCollector>,
     /// Measurements whose window still takes samples.
     gathering: Vec<usize>,
-    /// Measurements by (station, point, pass): a later `point_begin` restarts their windows.
-    by_key: HashMap<(String, usize, usize), Vec<usize>>,
+    /// Measurements by (station index, point, pass): a later `point_begin` restarts their
+    /// windows.
+    by_key: HashMap<(usize, usize, usize), Vec<usize>>,
     /// The most tracer samples held at once, the gathered windows' pairs aside (tests).
     pub peak_samples: usize,
     rotations: Rotations,
+    targets: TargetNames,
 }
 
-type Started = StreamStart<PointMeasurement>;
-
-impl WindowStream {
+impl WindowStream<PointMeasurement> {
     /// For sessions whose plan kind passes `accept_kind`.
     pub fn new(accept_kind: fn(&str) -> bool) -> Self {
-        WindowStream {
-            accept_kind,
-            started: None,
-            samples: Vec::new(),
-            windows: Vec::new(),
-            gathering: Vec::new(),
-            by_key: HashMap::new(),
-            peak_samples: 0,
-            rotations: Rotations::default(),
-        }
+        WindowStream::with_kind(accept_kind)
     }
 
     /// The settled session, with the header, environment and damage of the streamed read's
     /// session; None when the stream never began.
     pub fn finish(self, streamed: Streamed) -> Option<SettledSession> {
-        let mut started = self.started?;
-        started.pairing.finish(&|_, _| false);
+        let (started, windows, rotations) = self.into_parts()?;
         let pairing = started.pairing;
         let session = streamed.session;
         Some(SettledSession {
-            rotations: self.rotations.found,
+            rotations,
             header: session.header,
             env: session.env,
             damaged: session.damaged,
@@ -277,18 +407,94 @@ impl WindowStream {
                 repeated: pairing.repeated,
                 stations: pairing.stations,
             },
-            windows: self
-                .windows
-                .into_iter()
-                .map(WindowCollector::finish)
-                .collect(),
+            windows,
         })
     }
+}
 
-    /// A `point_begin` of `key` at `begin_ns`: the windows of its earlier measurements start
-    /// again there (the whole read takes a measurement's window from its key's last begin).
-    fn restart_windows(&mut self, key: (String, usize, usize), begin_ns: u64) {
-        let Some(measured) = self.by_key.get(&key) else {
+impl WindowStream<DwellMeasurement> {
+    /// The compact form: each measured window kept as the solve's length and its few extras.
+    pub fn compact(accept_kind: fn(&str) -> bool) -> Self {
+        WindowStream::with_kind(accept_kind)
+    }
+
+    /// As `finish`, compact.
+    pub fn finish_compact(mut self, streamed: Streamed) -> Option<SettledDwells> {
+        let targets = std::mem::take(&mut self.targets.names);
+        let (started, windows, rotations) = self.into_parts()?;
+        let pairing = started.pairing;
+        let (measurements, dwells) = pairing
+            .measurements
+            .into_iter()
+            .map(|m| (m.length, m.dwell))
+            .unzip();
+        let session = streamed.session;
+        Some(SettledDwells {
+            rotations,
+            header: session.header,
+            env: session.env,
+            tracer_id: started.tracer_id,
+            noise: started.noise,
+            lengths: Lengths {
+                measurements,
+                targets,
+                dropped: pairing.dropped,
+                repeated: pairing.repeated,
+                stations: pairing.stations,
+            },
+            dwells,
+            windows,
+        })
+    }
+}
+
+type StreamParts<M> = (StreamStart<M>, Vec<Option<RawWindow>>, Vec<(String, f64)>);
+
+/// The gathering shared by both forms (a trait: its bound is crate-private).
+trait Gathering<M>: Sized {
+    fn with_kind(accept_kind: fn(&str) -> bool) -> Self;
+    fn into_parts(self) -> Option<StreamParts<M>>;
+    fn restart_windows(&mut self, station: &str, point: usize, pass: usize, begin_ns: u64);
+}
+
+impl<M: WindowRecord> Gathering<M> for WindowStream<M> {
+    fn with_kind(accept_kind: fn(&str) -> bool) -> Self {
+        WindowStream {
+            accept_kind,
+            started: None,
+            samples: Vec::new(),
+            windows: Vec::new(),
+            gathering: Vec::new(),
+            by_key: HashMap::new(),
+            peak_samples: 0,
+            rotations: Rotations::default(),
+            targets: TargetNames::default(),
+        }
+    }
+
+    /// The finished pairing, the windows and the rotations; None when the stream never began.
+    fn into_parts(self) -> Option<StreamParts<M>> {
+        let mut started = self.started?;
+        started.pairing.finish(&|_, _| false);
+        let windows = self
+            .windows
+            .into_iter()
+            .map(WindowCollector::finish)
+            .collect();
+        Some((started, windows, self.rotations.found))
+    }
+
+    /// A `point_begin` of `station`'s (point, pass) at `begin_ns`: the windows of its earlier
+    /// measurements start again there (the whole read takes a measurement's window from its
+    /// key's last begin).
+    fn restart_windows(&mut self, station: &str, point: usize, pass: usize, begin_ns: u64) {
+        let Some(stations) = self.started.as_ref().map(|s| &s.pairing.stations) else {
+            return;
+        };
+        let Some(station) = station_position(stations, station) else {
+            return;
+        };
+        let Some(measured) = self.by_key.get(&(station, point, pass)) else {
             return;
         };
         for &i in measured {
@@ -302,12 +508,17 @@ impl WindowStream {
     }
 }
 
-impl SessionSink for WindowStream {
+/// A station's index among those seen (the pairing numbers them in order of appearance).
+fn station_position(stations: &[StationSeen], id: &str) -> Option<usize> {
+    stations.iter().position(|s| s.id == id)
+}
+
+impl<M: WindowRecord> SessionSink for WindowStream<M> {
     fn begin(&mut self, header: &SessionHeader, tracers: &[String], run_events: usize) -> bool {
         if !(self.accept_kind)(&header.kind) {
             return false;
         }
-        self.started = Started::of_header(header, tracers, run_events);
+        self.started = StreamStart::of_header(header, tracers, run_events);
         self.started.is_some()
     }
 
@@ -344,7 +555,7 @@ impl SessionSink for WindowStream {
                     point,
                     pass,
                     ..
-                } => self.restart_windows((station.clone(), *point, *pass), event.log_time_ns),
+                } => self.restart_windows(station, *point, *pass, event.log_time_ns),
                 _ => {}
             }
             let Some(started) = self.started.as_mut() else {
@@ -352,7 +563,8 @@ impl SessionSink for WindowStream {
             };
             let begin_ns = started.pairing.open_since_ns();
             let noise = started.noise;
-            let mut make = |m: Measured| point_measurement(m, noise);
+            let targets = &mut self.targets;
+            let mut make = |m: Measured| M::of_measured(m, noise, targets);
             started
                 .pairing
                 .event(event, &self.samples, &lost, &mut make);
@@ -360,13 +572,14 @@ impl SessionSink for WindowStream {
             // samples are kept from the open window's begin).
             for i in self.windows.len()..started.pairing.measurements.len() {
                 let m = &started.pairing.measurements[i];
-                let mut window = WindowCollector::new(begin_ns.unwrap_or(0), m);
+                let mut window = WindowCollector::new(begin_ns.unwrap_or(0), m.settled_s());
                 window.push_from_begin(&self.samples);
                 if !window.done {
                     self.gathering.push(i);
                 }
+                let (point, pass) = m.point_pass();
                 self.by_key
-                    .entry((m.station.clone(), m.point, m.pass))
+                    .entry((m.station_index(), point, pass))
                     .or_default()
                     .push(i);
                 self.windows.push(window);

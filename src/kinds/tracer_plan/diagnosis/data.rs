@@ -5,7 +5,7 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 pub use crate::extract::RawWindow;
-use crate::extract::{stream_settled, SettledSession};
+use crate::extract::{stream_dwells, Lengths, SettledDwells, SettledSession};
 use crate::session::reader::{read_session, ReadError, Session};
 use crate::sim::effects::edlen_dn;
 use crate::solve::multilateration::{solve, MultilaterationProblem, SolveOptions};
@@ -147,15 +147,29 @@ pub fn check_kind(kind: &str) -> Result<(), DataError> {
     Err(DataError::Kind(kind.to_string(), supported))
 }
 
-/// A session file's settled windows for the diagnosis: streamed when the file is clean (its
-/// tracer stream never held whole), else from the whole read (damaged, cut short, repaired,
-/// of another kind). The outer error: the file could not be read.
+/// A session file's settled windows for the corrected calibration: streamed when the file is
+/// clean (its tracer stream never held whole), else from the whole read (damaged, cut short,
+/// repaired, of another kind). The outer error: the file could not be read.
 pub fn settled_of_file(path: &Path) -> Result<Result<SettledSession, DataError>, ReadError> {
-    if let Some(settled) = stream_settled(path, diagnosable) {
+    if let Some(settled) = crate::extract::stream_settled(path, diagnosable) {
         return Ok(Ok(settled));
     }
     let session = read_session(path)?;
     Ok(check_kind(&session.header.kind).and_then(|()| Ok(SettledSession::of_session(&session)?)))
+}
+
+/// A session file's settled windows in the compact form the diagnosis holds (`SettledDwells`:
+/// the solve's lengths, no per-window names or maps), read as `settled_of_file` reads.
+pub fn dwells_of_file(path: &Path) -> Result<Result<SettledDwells, DataError>, ReadError> {
+    if let Some(dwells) = stream_dwells(path, diagnosable) {
+        return Ok(Ok(dwells));
+    }
+    let session = read_session(path)?;
+    Ok(check_kind(&session.header.kind).and_then(|()| {
+        Ok(SettledDwells::of_settled(SettledSession::of_session(
+            &session,
+        )?))
+    }))
 }
 
 fn diagnosable(kind: &str) -> bool {
@@ -172,17 +186,25 @@ impl Data {
     /// read): the same observations as `from_session` of that session.
     pub fn from_settled(settled: SettledSession) -> Result<Data, DataError> {
         check_kind(&settled.header.kind)?;
-        let SettledSession {
+        Data::from_dwells(SettledDwells::of_settled(settled))
+    }
+
+    /// From the compact settled windows (`SettledDwells`): the same observations as
+    /// `from_settled` of the session they were read from.
+    pub fn from_dwells(settled: SettledDwells) -> Result<Data, DataError> {
+        check_kind(&settled.header.kind)?;
+        let SettledDwells {
             header,
             env: env_log,
             noise,
-            extraction,
+            lengths: extraction,
+            dwells,
             windows,
             rotations,
             ..
         } = settled;
         let full_header = header.clone();
-        if extraction.measurements.is_empty() {
+        if dwells.is_empty() {
             return Err(DataError::NoPoints(extraction.dropped.len()));
         }
         let mut env: Vec<(f64, f64, f64, f64)> = env_log
@@ -221,8 +243,8 @@ impl Data {
         material.sort_by(|a, b| a.0.total_cmp(&b.0));
 
         // The same adjustment problem `geocal solve` builds; observation i is measurement i.
-        let built = crate::method::multilateration::Problem::build(&extraction);
-        let mut pass_index: BTreeMap<(usize, String, usize, u32), usize> = BTreeMap::new();
+        let built = crate::method::multilateration::Problem::of_lengths(&extraction);
+        let mut pass_index: BTreeMap<(usize, usize, usize, u32), usize> = BTreeMap::new();
         let mut passes: Vec<Vec<usize>> = Vec::new();
         let mut pass_names = Vec::new();
         let mut obs = Vec::with_capacity(extraction.measurements.len());
@@ -232,18 +254,19 @@ impl Data {
         let material_dt_k = |t_s: f64| {
             interpolate(&material, t_s).map(|k| k - crate::sim::effects::REFERENCE_MATERIAL_TEMP_K)
         };
-        for (m, o) in extraction
+        for ((m, d), o) in extraction
             .measurements
             .iter()
+            .zip(&dwells)
             .zip(&built.problem.observations)
         {
             let (segment, point) = (o.segment, o.point);
-            let pass_key = (m.station_index, m.target.clone(), m.pass, m.beam_segment);
+            let pass_key = (m.station_index, m.target, m.pass, m.beam_segment);
             let pass_group = *pass_index.entry(pass_key).or_insert_with(|| {
                 passes.push(Vec::new());
                 pass_names.push(format!(
                     "{} pass {}{}",
-                    m.station,
+                    extraction.station(m),
                     m.pass,
                     if m.beam_segment > 0 {
                         format!(" segment {}", m.beam_segment)
@@ -253,14 +276,13 @@ impl Data {
                 ));
                 passes.len() - 1
             });
-            let t_s = 0.5 * (m.settled_from_s + m.settled_to_s);
-            let sign = |axis: &str| m.approach.get(axis).map_or(0.0, |&s| f64::from(s));
+            let t_s = 0.5 * (d.settled_from_s + d.settled_to_s);
             passes[pass_group].push(obs.len());
             arrival_s.push(
                 windows
                     .get(obs.len())
                     .and_then(|w| w.as_ref())
-                    .map_or(m.settled_from_s, |w| w.arrival_s),
+                    .map_or(d.settled_from_s, |w| w.arrival_s),
             );
             obs.push(Obs {
                 station: m.station_index,
@@ -272,11 +294,11 @@ impl Data {
                 t_s,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,
-                approach: [sign("x"), sign("y"), sign("z")],
+                approach: d.approach.map(f64::from),
                 nominal_m: m.nominal_m,
                 dn: air_at(&env, t_s),
                 material_dt_k: material_dt_k(t_s),
-                axes_m: ["x", "y", "z"].map(|a| m.axes.get(a).copied().unwrap_or(0.0)),
+                axes_m: d.axes_m,
                 zeroed: Zeroing {
                     t_s,
                     dn: None,
@@ -284,6 +306,14 @@ impl Data {
                 },
             });
         }
+        // Held once, in the observations and the problem, before the solve below.
+        let Lengths {
+            measurements,
+            stations,
+            dropped,
+            ..
+        } = extraction;
+        drop((measurements, dwells));
         for members in &mut passes {
             members.sort_by(|&a, &b| obs[a].t_s.total_cmp(&obs[b].t_s));
             // The homing point's dwell comes first after homing; if it was dropped, the
@@ -304,7 +334,7 @@ impl Data {
                 obs[i].zeroed = zeroed;
             }
         }
-        let m = extraction.stations.len();
+        let m = stations.len();
         let mut station_start_s = vec![f64::INFINITY; m];
         for o in &obs {
             station_start_s[o.station] = station_start_s[o.station].min(o.t_s);
@@ -330,12 +360,12 @@ impl Data {
             has_material: obs.iter().all(|o| o.material_dt_k.is_some()),
             windows,
             obs,
-            station_ids: extraction.stations.iter().map(|s| s.id.clone()).collect(),
+            station_ids: stations.iter().map(|s| s.id.clone()).collect(),
             passes,
             pass_names,
             problem,
             station_start_s,
-            dropped_windows: extraction.dropped.len(),
+            dropped_windows: dropped.len(),
         })
     }
 }

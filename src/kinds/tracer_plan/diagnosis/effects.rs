@@ -358,7 +358,17 @@ impl EffectModel {
             }
             p[(c + 2, c + 2)] = 1.0;
         }
-        f * p
+        // f·P by blocks of rows, in place (each entry's sum as of the whole product).
+        let mut f = f;
+        const ROWS: usize = 4096;
+        let mut start = 0;
+        while start < f.nrows() {
+            let len = ROWS.min(f.nrows() - start);
+            let block = f.rows(start, len) * &p;
+            f.rows_mut(start, len).copy_from(&block);
+            start += len;
+        }
+        f
     }
 
     /// An effect the session's plan kind models.
@@ -428,7 +438,7 @@ impl EffectModel {
             }
             _ => {}
         }
-        let f = self.absolute(data, &data.obs, geom);
+        let mut f = self.absolute(data, &data.obs, geom);
         // One zeroing state per pass: the home dwell as it stood when the counter was zeroed.
         let zeroings: Vec<Obs> = data
             .passes
@@ -445,9 +455,13 @@ impl EffectModel {
             })
             .collect();
         let f0 = self.absolute(data, &zeroings, geom);
-        self.shared_size(DMatrix::from_fn(f.nrows(), f.ncols(), |i, c| {
-            f[(i, c)] - f0[(data.obs[i].pass_group, c)]
-        }))
+        // In place: a candidate's columns (lengths × up to 3 per station) are held once.
+        for (c, mut column) in f.column_iter_mut().enumerate() {
+            for (x, o) in column.iter_mut().zip(&data.obs) {
+                *x -= f0[(o.pass_group, c)];
+            }
+        }
+        self.shared_size(f)
     }
 
     /// f(obs): the effect's error in the absolute optical distance per unit parameter.

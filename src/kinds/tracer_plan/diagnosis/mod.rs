@@ -64,17 +64,17 @@ pub fn diagnose_file_detailed(
     path: &Path,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
-    let settled = data::settled_of_file(path)
+    let settled = data::dwells_of_file(path)
         .with_context(|| format!("reading {}", path.display()))?
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
-    // The settled session is consumed by the observations (not kept beside them): the
+    // The settled windows are consumed by the observations (not kept beside them): the
     // corrected calibration, when an effect is selected, reads the file again.
-    let data = Data::from_settled(settled)
+    let mut data = Data::from_dwells(settled)
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
     budget::return_freed_memory();
-    let mut detailed = diagnose_data(&data, options)
+    let mut detailed = diagnose_data(&mut data, options)
         .map_err(anyhow::Error::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
     let kind = data.header.kind.clone();
@@ -263,8 +263,8 @@ impl forward::Client for LengthsClient<'_> {
 
 /// Diagnose a multilateration session: reads only the session.
 pub fn diagnose(session: &Session, options: &DiagnoseOptions) -> Result<Diagnosis, DiagnoseError> {
-    let data = Data::from_session(session)?;
-    let mut detailed = diagnose_data(&data, options)?;
+    let mut data = Data::from_session(session)?;
+    let mut detailed = diagnose_data(&mut data, options)?;
     detailed.progress.finish();
     Ok(detailed.diagnosis)
 }
@@ -285,8 +285,9 @@ pub(crate) struct DataDiagnosis {
 
 /// The diagnosis of a session's observations (possibly with lengths and sigmas changed, as
 /// the twin comparison does).
+/// The raw windows (`Data::windows`) are read by the settling test alone and freed after it.
 pub(crate) fn diagnose_data(
-    data: &Data,
+    data: &mut Data,
     options: &DiagnoseOptions,
 ) -> Result<DataDiagnosis, DiagnoseError> {
     let k_folds = options.folds.max(data.station_ids.len());
@@ -373,6 +374,9 @@ pub(crate) fn diagnose_data(
     } else {
         None
     };
+    // Not needed by the rounds: their memory is the candidates'.
+    data.windows = Vec::new();
+    let data: &Data = data;
     match &settling_fit {
         Some(fit) => {
             let alpha_each = options.alpha / (available.len() + 1) as f64;

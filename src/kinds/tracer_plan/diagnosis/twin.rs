@@ -198,7 +198,7 @@ pub fn diagnose_against_twin_detailed(
         effect_columns,
         residuals,
         mut progress,
-    } = diagnose_data(&data, options)?;
+    } = diagnose_data(&mut data, options)?;
 
     let recorded: Vec<f64> = rec.obs.iter().map(|o| o.length_m).collect();
     let twin_lengths: Vec<f64> = tw.obs.iter().map(|o| o.length_m).collect();
