@@ -239,7 +239,15 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
             rms_after * 1e6,
             bound * 1e6
         );
-        assert!(rms_after > bound, "{} with a {what} passed", POSITIONING[k]);
+        assert!(
+            rms_after > bound,
+            "{} with a {what} passed: the bad-tables run's curve {:?}, {} points measured",
+            POSITIONING[k],
+            wrong_cal
+                .positioning(k)
+                .map(|c| (c.positions_m, c.values, c.sigma)),
+            wrong.summary.points_measured
+        );
     }
     let flipped = pass_rule(&cal, &wrong_cal, 0, interp[0]);
     let (flipped_after, before_x) = (flipped.rms_after_m, flipped.rms_before_m);
