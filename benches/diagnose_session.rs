@@ -1,8 +1,11 @@
 //! `geocal diagnose` at scale: clean 1 000- and 10 000-point × 16-station sessions (the solve
 //! benchmark's plan) diagnosed end to end, each in a fresh child process so that its peak
 //! resident memory (VmHWM) is the diagnosis's own: wall time, CPU time, peak RSS, heap peak.
+//! The same file is solved the same way beside it, and the diagnosis's ratios to the solve
+//! are printed (the goal: ≤ 10× its wall time, ≤ 2× its peak memory).
 //!
-//! `cargo bench --bench diagnose_session` (sizes: `DIAGNOSE_BENCH_POINTS=1000,10000`).
+//! `cargo bench --bench diagnose_session` (sizes: `DIAGNOSE_BENCH_POINTS=1000,10000`;
+//! `DIAGNOSE_BENCH_NO_BUDGET=1` runs a size the diagnosis's memory estimate would refuse).
 
 mod common;
 
@@ -48,14 +51,39 @@ fn vm_hwm_kib() -> Option<u64> {
         .and_then(|v| v.trim().trim_end_matches("kB").trim().parse().ok())
 }
 
+fn cpu_seconds_since(cpu0: Option<std::time::Duration>) -> f64 {
+    match (cpu0, common::cpu_time()) {
+        (Some(a), Some(b)) => b.saturating_sub(a).as_secs_f64(),
+        _ => f64::NAN,
+    }
+}
+
+/// The solve child: solve one file as `geocal solve` does, print "wall_s cpu_s heap_peak_bytes
+/// vm_hwm_kib".
+fn solve_child(path: &Path) {
+    let cpu0 = common::cpu_time();
+    let (results, dt, heap) = measure(|| geocal::kinds::solve_file(path, &Default::default()));
+    let cpu = cpu_seconds_since(cpu0);
+    results.expect("solve");
+    println!(
+        "RESULT {} {} {} {}",
+        dt.as_secs_f64(),
+        cpu,
+        heap,
+        vm_hwm_kib().unwrap_or(0)
+    );
+}
+
 /// The child: diagnose one file, print "wall_s cpu_s heap_peak_bytes vm_hwm_kib selected".
 fn child(path: &Path) {
     let cpu0 = common::cpu_time();
-    let (diagnosis, dt, heap) = measure(|| diagnose_file(path, &DiagnoseOptions::default()));
-    let cpu = match (cpu0, common::cpu_time()) {
-        (Some(a), Some(b)) => b.saturating_sub(a).as_secs_f64(),
-        _ => f64::NAN,
-    };
+    let mut options = DiagnoseOptions::default();
+    if std::env::var_os("DIAGNOSE_BENCH_NO_BUDGET").is_some() {
+        // The peak the diagnosis reaches, whatever its estimate before the work says.
+        options.memory_limit_bytes = Some(u64::MAX);
+    }
+    let (diagnosis, dt, heap) = measure(|| diagnose_file(path, &options));
+    let cpu = cpu_seconds_since(cpu0);
     let d = diagnosis.expect("diagnose");
     println!(
         "RESULT {} {} {} {} {} {} {}",
@@ -79,15 +107,19 @@ fn main() {
         child(Path::new(&args[k + 1]));
         return;
     }
+    if let Some(k) = args.iter().position(|a| a == "--solve-child") {
+        solve_child(Path::new(&args[k + 1]));
+        return;
+    }
     let sizes: Vec<usize> = std::env::var("DIAGNOSE_BENCH_POINTS")
         .unwrap_or_else(|_| "1000,10000".into())
         .split(',')
         .filter_map(|s| s.trim().parse().ok())
         .collect();
     println!(
-        "| points × stations | lengths | wall | CPU | peak RSS | heap peak | chi²/dof | selected |"
+        "| points × stations | lengths | command | wall | CPU | peak RSS | heap peak | chi²/dof | selected | wall / solve | peak RSS / solve |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for points in sizes {
         let grid = grid_for(points);
         let path = data_path(grid);
@@ -97,35 +129,55 @@ fn main() {
             session::generate(&tmp, grid, 20260101);
             std::fs::rename(&tmp, &path).expect("rename session");
         }
-        let exe = std::env::current_exe().expect("bench executable");
-        let out = Command::new(exe)
-            .arg("--child")
-            .arg(&path)
-            .output()
-            .expect("run the child");
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        let Some(line) = stdout.lines().find_map(|l| l.strip_prefix("RESULT ")) else {
-            println!(
-                "| {} × {} | failed: {} |",
-                grid.iter().product::<usize>(),
-                session::STATIONS,
-                String::from_utf8_lossy(&out.stderr).trim()
-            );
-            continue;
+        let size = format!("{} × {}", grid.iter().product::<usize>(), session::STATIONS);
+        let solve = match run_child("--solve-child", &path) {
+            Ok(f) => f,
+            Err(e) => {
+                println!("| {size} | | solve | failed: {e} |");
+                continue;
+            }
         };
-        let f: Vec<&str> = line.split_whitespace().collect();
-        let num = |k: usize| f[k].parse::<f64>().unwrap_or(f64::NAN);
+        let num = |f: &[String], k: usize| f[k].parse::<f64>().unwrap_or(f64::NAN);
         println!(
-            "| {} × {} | {} | {} | {:.1} s | {:.0} MiB | {:.0} MiB | {:.3} | {} |",
-            grid.iter().product::<usize>(),
-            session::STATIONS,
-            f[4],
-            fmt_time(std::time::Duration::from_secs_f64(num(0))),
-            num(1),
-            num(3) / 1024.0,
-            mib(num(2) as usize),
-            num(5),
-            f[6]
+            "| {size} | | solve | {} | {:.1} s | {:.0} MiB | {:.0} MiB | | | | |",
+            fmt_time(std::time::Duration::from_secs_f64(num(&solve, 0))),
+            num(&solve, 1),
+            num(&solve, 3) / 1024.0,
+            mib(num(&solve, 2) as usize),
         );
+        let f = match run_child("--child", &path) {
+            Ok(f) => f,
+            Err(e) => {
+                println!("| {size} | | diagnose | failed: {e} |");
+                continue;
+            }
+        };
+        println!(
+            "| {size} | {} | diagnose | {} | {:.1} s | {:.0} MiB | {:.0} MiB | {:.3} | {} | {:.1}× | {:.2}× |",
+            f[4],
+            fmt_time(std::time::Duration::from_secs_f64(num(&f, 0))),
+            num(&f, 1),
+            num(&f, 3) / 1024.0,
+            mib(num(&f, 2) as usize),
+            num(&f, 5),
+            f[6],
+            num(&f, 0) / num(&solve, 0),
+            num(&f, 3) / num(&solve, 3),
+        );
+    }
+}
+
+/// Runs this benchmark as a child in `mode` on `path`; its RESULT line's fields.
+fn run_child(mode: &str, path: &Path) -> Result<Vec<String>, String> {
+    let exe = std::env::current_exe().map_err(|e| e.to_string())?;
+    let out = Command::new(exe)
+        .arg(mode)
+        .arg(path)
+        .output()
+        .map_err(|e| e.to_string())?;
+    let stdout = String::from_utf8_lossy(&out.stdout);
+    match stdout.lines().find_map(|l| l.strip_prefix("RESULT ")) {
+        Some(line) => Ok(line.split_whitespace().map(str::to_string).collect()),
+        None => Err(String::from_utf8_lossy(&out.stderr).trim().to_string()),
     }
 }

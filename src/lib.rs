@@ -16,6 +16,7 @@ pub mod kinds;
 pub mod method;
 pub mod model;
 pub mod monitor;
+pub mod parallel;
 pub mod plan;
 pub mod progress;
 pub mod progress_sink;

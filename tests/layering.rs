@@ -16,6 +16,7 @@ const LAYERS: &[&[&str]] = &[
         "model",
         "compensate",
         "progress_sink",
+        "parallel",
     ],
     &["session"],
     &["config"],

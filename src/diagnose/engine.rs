@@ -7,11 +7,19 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::parallel;
+
 use super::projected::Projected;
 use super::stats::EFFECT_RANK_TOL;
 
+/// Below this many entries of a candidate's columns (rows × columns) the folds run one after
+/// another: threads would cost more than they save. Each fold on its own thread holds its
+/// copy of the columns, so the threads cost memory too.
+const THREADED_FOLD_ENTRIES: usize = 20_000;
+pub const MAX_FOLD_THREADS: usize = 2;
+
 /// The least-squares fit of a whitened design on a set of its rows.
-pub trait LinearFit {
+pub trait LinearFit: Sync {
     /// Rank of the design on the fit's rows.
     fn rank(&self) -> usize;
     /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
@@ -31,10 +39,15 @@ pub trait LinearFit {
 }
 
 /// A linearised design over all rows of a diagnosis.
-pub trait LinearDesign {
-    type Fit: LinearFit;
+pub trait LinearDesign: Sync {
+    type Fit: LinearFit + Send;
     /// Its fit on `rows`.
     fn fit(&self, rows: Vec<usize>) -> Self::Fit;
+    /// Whether its fits may be made on any thread (false where a fit depends on the calling
+    /// thread's state).
+    fn fits_on_any_thread(&self) -> bool {
+        true
+    }
     /// Row i (in the residuals' units, not whitened) times the parameters x.
     fn predict(&self, i: usize, x: &DVector<f64>) -> f64;
 }
@@ -196,15 +209,23 @@ impl Engine {
         out
     }
 
+    /// The folds' held-out residuals summed in the folds' order. With a candidate on many
+    /// rows the folds run on their own threads, each fold's figures computed as alone.
     fn heldout_sum<D: LinearDesign>(
         &self,
         design: &D,
         fits: &[BaseFit<D::Fit>],
         a: Option<&DMatrix<f64>>,
     ) -> HeldOut {
+        let work = a.map_or(0, |a| a.nrows() * a.ncols());
+        let threads = if work >= THREADED_FOLD_ENTRIES {
+            parallel::threads(MAX_FOLD_THREADS)
+        } else {
+            1
+        };
+        let per_fold = in_groups(fits, threads, |fit| self.heldout(design, fit, a));
         let mut sum = HeldOut::default();
-        for fit in fits {
-            let h = self.heldout(design, fit, a);
+        for (h, fit) in per_fold.iter().zip(fits) {
             sum.ss += h.ss;
             sum.floor += h.floor;
             sum.z2 += h.z2;
@@ -215,12 +236,27 @@ impl Engine {
 
     /// The base fit on `all_rows` and per fold, and the folds' held-out residuals.
     pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
-        let full = self.fit_base(design, all_rows.to_vec(), &[]);
-        let fold_fits: Vec<BaseFit<D::Fit>> = self
-            .folds
-            .iter()
-            .map(|(train, held)| self.fit_base(design, train.clone(), held))
+        // The full fit and the folds' are independent: on the cores, in this order.
+        let jobs: Vec<(&[usize], &[usize])> = std::iter::once((all_rows, &[][..]))
+            .chain(
+                self.folds
+                    .iter()
+                    .map(|(train, held)| (train.as_slice(), held.as_slice())),
+            )
             .collect();
+        let threads = if design.fits_on_any_thread() {
+            parallel::threads(MAX_FOLD_THREADS)
+        } else {
+            1
+        };
+        let mut fits = in_groups(&jobs, threads, |&(rows, held)| {
+            self.fit_base(design, rows.to_vec(), held)
+        })
+        .into_iter();
+        let Some(full) = fits.next() else {
+            unreachable!("the full fit is the first job");
+        };
+        let fold_fits: Vec<BaseFit<D::Fit>> = fits.collect();
         let heldout = self.heldout_sum(design, &fold_fits, None);
         (full, fold_fits, heldout)
     }
@@ -281,4 +317,24 @@ impl Engine {
     ) -> DMatrix<f64> {
         Projected::new(&full.basis, self.whitened_rows(a, &full.rows)).into_u()
     }
+}
+
+/// `job` on every item, the items in at most `threads` consecutive groups each on its own
+/// thread; the results in the items' order.
+fn in_groups<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    job: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let mut groups = Vec::new();
+    let mut rest = items;
+    for size in parallel::balanced_groups(items.len(), threads) {
+        let (group, tail) = rest.split_at(size);
+        groups.push(group);
+        rest = tail;
+    }
+    parallel::in_parallel(groups, |group| group.iter().map(&job).collect::<Vec<_>>())
+        .into_iter()
+        .flatten()
+        .collect()
 }

@@ -3,6 +3,8 @@
 
 use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6, Vector3};
 
+use crate::parallel::{in_parallel, split_lengths};
+
 /// One relative length: |station − point| − d(segment), measured by the tracer.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct LengthObservation {
@@ -245,39 +247,7 @@ fn solve_threads(point_cols_start: &[usize]) -> usize {
     if work < THREADED_ELIMINATION_WORK {
         return 1;
     }
-    std::thread::available_parallelism().map_or(1, |t| t.get().min(MAX_SOLVE_THREADS))
-}
-
-/// Runs `job` on every part, the first on this thread and the others on their own; the
-/// results in the parts' order.
-fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync) -> Vec<R> {
-    let mut parts = parts.into_iter();
-    let Some(first) = parts.next() else {
-        return Vec::new();
-    };
-    let job = &job;
-    std::thread::scope(|scope| {
-        let others: Vec<_> = parts.map(|p| scope.spawn(move || job(p))).collect();
-        let mut results = vec![job(first)];
-        for handle in others {
-            match handle.join() {
-                Ok(r) => results.push(r),
-                Err(panic) => std::panic::resume_unwind(panic),
-            }
-        }
-        results
-    })
-}
-
-/// Splits `data` into consecutive pieces of the given lengths.
-fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
-    let mut pieces = Vec::new();
-    for len in lengths {
-        let (piece, rest) = data.split_at_mut(len);
-        pieces.push(piece);
-        data = rest;
-    }
-    pieces
+    crate::parallel::threads(MAX_SOLVE_THREADS)
 }
 
 fn validate(problem: &MultilaterationProblem) -> Result<(), SolveError> {

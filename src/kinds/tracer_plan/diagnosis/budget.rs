@@ -1,6 +1,9 @@
 //! The memory a diagnosis needs, estimated from the session's size before any of its work, and
 //! a clear refusal of a request the machine cannot hold (rather than an allocation failure).
 
+use crate::diagnose::engine::MAX_FOLD_THREADS;
+use crate::parallel;
+
 use super::data::Data;
 use super::effects::{EffectModel, LIBRARY};
 
@@ -28,8 +31,9 @@ pub struct TooLarge {
 /// Bytes the diagnosis of `data` with `folds` cross-validation folds allocates at its peak
 /// (beyond the session and its extracted data, already in memory): the fits of every fold
 /// (points eliminated: a 3 × 3 block per point and the reduced system of stations, segments
-/// and effects), the candidates' effect columns and their projections, and the
-/// leave-one-station-out blocks.
+/// and effects), the design with every effect of the library accepted (the worst case), the
+/// candidate under evaluation with its projections on the threads that evaluate the folds,
+/// and the leave-one-station-out blocks.
 pub fn estimate_bytes(data: &Data, folds: usize) -> u64 {
     let n = data.obs.len() as u64;
     let points = data.problem.nominal_points.len() as u64;
@@ -49,15 +53,18 @@ pub fn estimate_bytes(data: &Data, folds: usize) -> u64 {
         + 4 * global * global * F64
         + 8 * (3 * points + global) * F64;
     let fits = (folds as u64 + 3) * fit;
-    // Designs alive at once (rows and effect columns) and every candidate's projected basis.
-    let designs = 3 * n * (8 * F64 + all_effects * F64);
-    let candidates = n * all_effects * F64 + 6 * n * widest * F64;
+    // The design: 7 words of geometry per row and the accepted effects' columns.
+    let design = n * (7 + all_effects) * F64;
+    // The candidate's columns, the full fit's projection of them, and per fold thread its
+    // projected copy with the rows' entries gathered for the projection (11 words a row).
+    let threads = parallel::threads(MAX_FOLD_THREADS) as u64;
+    let candidates = (2 + threads) * n * widest * F64 + threads * 11 * n * F64;
     // The change-point search's and leverages' per-point rows of the reduced system.
     let reduced = 3 * points * global * F64;
     // Leave one station out: its held lengths against the reduced system.
     let held = n.div_ceil(stations.max(1));
     let loso = 4 * held * global * F64;
-    ((fits + designs + candidates + reduced + loso) as f64 * MARGIN) as u64
+    ((fits + design + candidates + reduced + loso) as f64 * MARGIN) as u64
 }
 
 /// `MemAvailable` of /proc/meminfo in bytes, when the system reports it.

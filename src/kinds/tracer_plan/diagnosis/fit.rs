@@ -171,6 +171,11 @@ impl LinearDesign for Arc<Design> {
         Fit::new(self.clone(), rows)
     }
 
+    /// The dense oracle is chosen per thread ([`dense_oracle`]): its fits stay on the caller's.
+    fn fits_on_any_thread(&self) -> bool {
+        !dense_mode()
+    }
+
     fn predict(&self, i: usize, x: &DVector<f64>) -> f64 {
         Design::predict(self, i, x)
     }

@@ -14,8 +14,15 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
+use crate::parallel::{self, in_parallel, split_lengths};
+
 use super::data::Data;
 use super::effects::Geometry;
+
+/// Below this many entries (rows × columns) a projection runs on one thread: threads would
+/// cost more than they save.
+const THREADED_PROJECTION_ENTRIES: usize = 200_000;
+const MAX_PROJECTION_THREADS: usize = 8;
 
 /// Relative eigenvalue below which a direction of a point's 3 × 3 block or of the reduced
 /// system is not identifiable. Eigenvalues are squared singular values: 1e-12 is a singular
@@ -565,47 +572,69 @@ impl Schur {
         self.project_off_columns_once(once, &rows)
     }
 
+    /// One pass of the projection over every column. The columns are independent: groups of
+    /// them run on their own threads, each column's sums in the same order as alone.
     fn project_off_columns_once(&self, mut tilde: DMatrix<f64>, rows: &RowEntries) -> DMatrix<f64> {
         let n = self.rows.len();
         let (k, g, width) = (tilde.ncols(), self.design.n_global(), rows.width);
         if n == 0 || k == 0 {
             return tilde;
         }
-        for column in tilde.as_mut_slice().chunks_mut(n) {
-            self.project_off_points_slice(column, &rows.a);
-        }
+        let threads = if n * k >= THREADED_PROJECTION_ENTRIES {
+            parallel::threads(MAX_PROJECTION_THREADS)
+        } else {
+            1
+        };
+        let groups = parallel::balanced_groups(k, threads);
+        // Off the points' columns, then each column's global sums Bᵀ ỹ.
         let mut t = DMatrix::<f64>::zeros(g, k);
-        for (column, tc) in tilde
-            .as_slice()
-            .chunks(n)
-            .zip(t.as_mut_slice().chunks_mut(g))
-        {
-            for (pos, &v) in column.iter().enumerate() {
-                let at = pos * width;
-                let row = at..at + width;
-                for (&c, &x) in rows.cols[row.clone()].iter().zip(&rows.vals[row]) {
-                    tc[c] += x * v;
+        let parts: Vec<_> = split_lengths(tilde.as_mut_slice(), groups.iter().map(|c| c * n))
+            .into_iter()
+            .zip(split_lengths(
+                t.as_mut_slice(),
+                groups.iter().map(|c| c * g),
+            ))
+            .collect();
+        in_parallel(parts, |(columns, ts)| {
+            for (column, tc) in columns.chunks_mut(n).zip(ts.chunks_mut(g)) {
+                self.project_off_points_slice(column, &rows.a);
+                for (pos, &v) in column.iter().enumerate() {
+                    let at = pos * width;
+                    let row = at..at + width;
+                    for (&c, &x) in rows.cols[row.clone()].iter().zip(&rows.vals[row]) {
+                        tc[c] += x * v;
+                    }
                 }
             }
-        }
+        });
         let z = &self.w_red * self.w_red.tr_mul(&t);
-        let mut vc = vec![0.0; n];
-        for (column, zc) in tilde
-            .as_mut_slice()
-            .chunks_mut(n)
-            .zip(z.as_slice().chunks(g))
-        {
-            for (pos, out) in vc.iter_mut().enumerate() {
-                let at = pos * width;
-                *out = (at..at + width)
-                    .map(|e| rows.vals[e] * zc[rows.cols[e]])
-                    .sum();
-            }
-            self.project_off_points_slice(&mut vc, &rows.a);
-            for (y, v) in column.iter_mut().zip(&vc) {
-                *y -= v;
-            }
+        // Off B̃ = (I − P_A) B.
+        let mut starts = Vec::with_capacity(groups.len());
+        let mut start = 0;
+        for &c in &groups {
+            starts.push(start);
+            start += c;
         }
+        let parts: Vec<_> = split_lengths(tilde.as_mut_slice(), groups.iter().map(|c| c * n))
+            .into_iter()
+            .zip(starts)
+            .collect();
+        in_parallel(parts, |(columns, first)| {
+            let mut vc = vec![0.0; n];
+            for (j, column) in columns.chunks_mut(n).enumerate() {
+                let zc = &z.as_slice()[(first + j) * g..(first + j + 1) * g];
+                for (pos, out) in vc.iter_mut().enumerate() {
+                    let at = pos * width;
+                    *out = (at..at + width)
+                        .map(|e| rows.vals[e] * zc[rows.cols[e]])
+                        .sum();
+                }
+                self.project_off_points_slice(&mut vc, &rows.a);
+                for (y, v) in column.iter_mut().zip(&vc) {
+                    *y -= v;
+                }
+            }
+        });
         tilde
     }
 

@@ -1,0 +1,71 @@
+//! Independent parts of one computation run on the machine's cores: scoped threads, the
+//! results in the parts' order, so that a threaded run computes exactly what a serial one does.
+
+/// Threads for work that splits into independent parts: the machine's cores, at most `cap`.
+pub fn threads(cap: usize) -> usize {
+    std::thread::available_parallelism().map_or(1, |t| t.get().min(cap))
+}
+
+/// Runs `job` on every part, the first on this thread and the others on their own; the
+/// results in the parts' order.
+pub fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync) -> Vec<R> {
+    let mut parts = parts.into_iter();
+    let Some(first) = parts.next() else {
+        return Vec::new();
+    };
+    let job = &job;
+    std::thread::scope(|scope| {
+        let others: Vec<_> = parts.map(|p| scope.spawn(move || job(p))).collect();
+        let mut results = vec![job(first)];
+        for handle in others {
+            match handle.join() {
+                Ok(r) => results.push(r),
+                Err(panic) => std::panic::resume_unwind(panic),
+            }
+        }
+        results
+    })
+}
+
+/// Splits `data` into consecutive pieces of the given lengths.
+pub fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
+    let mut pieces = Vec::new();
+    for len in lengths {
+        let (piece, rest) = data.split_at_mut(len);
+        pieces.push(piece);
+        data = rest;
+    }
+    pieces
+}
+
+/// `count` items in at most `parts` consecutive groups of nearly equal size (none empty).
+pub fn balanced_groups(count: usize, parts: usize) -> Vec<usize> {
+    let parts = parts.clamp(1, count.max(1));
+    (0..parts)
+        .map(|k| (k + 1) * count / parts - k * count / parts)
+        .filter(|&size| size > 0)
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn groups_cover_every_item_once() {
+        for count in 0..20 {
+            for parts in 1..6 {
+                let groups = balanced_groups(count, parts);
+                assert_eq!(groups.iter().sum::<usize>(), count);
+                assert!(groups.len() <= parts);
+                assert!(groups.iter().all(|&g| g > 0));
+            }
+        }
+    }
+
+    #[test]
+    fn results_come_in_the_parts_order() {
+        let out = in_parallel((0..7).collect(), |k: usize| k * k);
+        assert_eq!(out, vec![0, 1, 4, 9, 16, 25, 36]);
+    }
+}
