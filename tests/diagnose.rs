@@ -301,7 +301,8 @@ fn gap_after_the_effect_is_the_clean_sessions_level() {
 /// tracer (the simulator's and the outside recorder's physics): on the demo's full plan (5
 /// stations x 100 points) the held-out RMS after it is the clean session's. On the 27-point
 /// diagnosis plan the per-station phases' prediction variance keeps it 1.3-2.1x the clean
-/// level (docs/diagnosis.md, Residue), as geocal's own held-out floor predicts.
+/// level (docs/diagnosis.md, Residue), as geocal's own held-out floor predicts: there it is
+/// held to that floor.
 #[test]
 fn eccentricity_gap_after_is_the_clean_sessions_level() {
     let line = "tracer_eccentricity = { enabled = true, size_m = 4e-6, z_size_m = 2e-6 }";
@@ -329,12 +330,27 @@ fn eccentricity_gap_after_is_the_clean_sessions_level() {
             "seed {seed}: held-out after {ratio:.3} of the clean level\n{text}"
         );
     }
-    // Seed 14 of the diagnosis plan: the free per-station model's held-out prediction got
-    // worse (1705 against 958 nm) and nothing was selected; the one-size model predicts.
-    let d = run_and_diagnose(&with_effects(&diagnose_demo(), 14, line));
-    let text = geocal::diagnose::text(&d);
-    assert_eq!(d.selected, ["tracer_eccentricity"], "{text}");
-    assert!(!d.unexplained, "{text}");
+    // The 27-point diagnosis plan: the held-out RMS after the effect is what geocal's noise
+    // model predicts for it (σ and the fitted model's prediction variance), the level no
+    // model with a phase per placement can go below there. Seed 14: the free per-station
+    // model's held-out prediction got worse (1705 against 958 nm) and nothing was selected;
+    // the one-size model predicts.
+    for seed in [13, 14, 15] {
+        let d = run_and_diagnose(&with_effects(&diagnose_demo(), seed, line));
+        let text = geocal::diagnose::text(&d);
+        let to_floor = d.gap_after.heldout_rms_m / d.gap_after.heldout_floor_m;
+        println!(
+            "seed {seed} (diagnosis plan) tracer_eccentricity: held-out after {:.1} nm, its floor {:.1} nm: {to_floor:.3}",
+            d.gap_after.heldout_rms_m * 1e9,
+            d.gap_after.heldout_floor_m * 1e9
+        );
+        assert_eq!(d.selected, ["tracer_eccentricity"], "seed {seed}\n{text}");
+        assert!(!d.unexplained, "seed {seed}\n{text}");
+        assert!(
+            to_floor <= HELDOUT_VS_CLEAN_MAX,
+            "seed {seed}: held-out after {to_floor:.3} of its predicted floor\n{text}"
+        );
+    }
 }
 
 /// Each round's family-wise false-selection level is 1 %; over 20 seeds at most one seed may
