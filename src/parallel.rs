@@ -27,6 +27,26 @@ pub fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync)
     })
 }
 
+/// `job` on every item, the items in at most `threads` consecutive groups each on its own
+/// thread; the results in the items' order.
+pub fn in_groups<T: Sync, R: Send>(
+    items: &[T],
+    threads: usize,
+    job: impl Fn(&T) -> R + Sync,
+) -> Vec<R> {
+    let mut groups = Vec::new();
+    let mut rest = items;
+    for size in balanced_groups(items.len(), threads) {
+        let (group, tail) = rest.split_at(size);
+        groups.push(group);
+        rest = tail;
+    }
+    in_parallel(groups, |group| group.iter().map(&job).collect::<Vec<_>>())
+        .into_iter()
+        .flatten()
+        .collect()
+}
+
 /// Splits `data` into consecutive pieces of the given lengths.
 pub fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
     let mut pieces = Vec::new();
@@ -67,5 +87,10 @@ mod tests {
     fn results_come_in_the_parts_order() {
         let out = in_parallel((0..7).collect(), |k: usize| k * k);
         assert_eq!(out, vec![0, 1, 4, 9, 16, 25, 36]);
+        let items: Vec<usize> = (0..17).collect();
+        for threads in 1..5 {
+            let out = in_groups(&items, threads, |k| k * k);
+            assert_eq!(out, items.iter().map(|k| k * k).collect::<Vec<_>>());
+        }
     }
 }

@@ -223,7 +223,7 @@ impl Engine {
         } else {
             1
         };
-        let per_fold = in_groups(fits, threads, |fit| self.heldout(design, fit, a));
+        let per_fold = parallel::in_groups(fits, threads, |fit| self.heldout(design, fit, a));
         let mut sum = HeldOut::default();
         for (h, fit) in per_fold.iter().zip(fits) {
             sum.ss += h.ss;
@@ -249,7 +249,7 @@ impl Engine {
         } else {
             1
         };
-        let mut fits = in_groups(&jobs, threads, |&(rows, held)| {
+        let mut fits = parallel::in_groups(&jobs, threads, |&(rows, held)| {
             self.fit_base(design, rows.to_vec(), held)
         })
         .into_iter();
@@ -317,24 +317,4 @@ impl Engine {
     ) -> DMatrix<f64> {
         Projected::new(&full.basis, self.whitened_rows(a, &full.rows)).into_u()
     }
-}
-
-/// `job` on every item, the items in at most `threads` consecutive groups each on its own
-/// thread; the results in the items' order.
-fn in_groups<T: Sync, R: Send>(
-    items: &[T],
-    threads: usize,
-    job: impl Fn(&T) -> R + Sync,
-) -> Vec<R> {
-    let mut groups = Vec::new();
-    let mut rest = items;
-    for size in parallel::balanced_groups(items.len(), threads) {
-        let (group, tail) = rest.split_at(size);
-        groups.push(group);
-        rest = tail;
-    }
-    parallel::in_parallel(groups, |group| group.iter().map(&job).collect::<Vec<_>>())
-        .into_iter()
-        .flatten()
-        .collect()
 }
