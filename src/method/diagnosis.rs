@@ -180,21 +180,30 @@ fn pinv_solve(
         unscale(&mut sol, &mut cov, &norms);
         return (sol, cov, rank);
     }
-    let svd = scaled.svd(true, true);
+    let p = x.ncols();
+    // Only Uᵀb is needed: for a tall design, from the SVD of its factor R and Qᵀb, the SVD's
+    // iterations on p × p and Q never formed (`tall_svd`: the same singular values and
+    // pseudo-inverse to rounding).
+    let (svd, ub) = if super::tall_svd::is_tall(scaled.nrows(), p) {
+        let qr = scaled.qr();
+        let mut qtb = b.clone();
+        qr.q_tr_mul(&mut qtb);
+        (qr.r().svd(true, true), qtb.rows(0, p).into_owned())
+    } else {
+        (scaled.svd(true, true), b.clone())
+    };
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        let p = x.ncols();
         return (DVector::zeros(p), DMatrix::zeros(p, p), 0);
     };
     let smax = svd.singular_values.max();
     let keep: Vec<usize> = (0..svd.singular_values.len())
         .filter(|&k| smax > 0.0 && svd.singular_values[k] > RANK_CUT * smax)
         .collect();
-    let p = x.ncols();
     let mut sol = DVector::zeros(p);
     let mut cov = DMatrix::zeros(p, p);
     for &k in &keep {
         let s = svd.singular_values[k];
-        let coeff = u.column(k).dot(b) / s;
+        let coeff = u.column(k).dot(&ub) / s;
         let v = vt.row(k).transpose();
         sol += &v * coeff;
         cov += &v * v.transpose() / (s * s);
