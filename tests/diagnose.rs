@@ -347,7 +347,7 @@ fn eccentricity_gap_after_is_the_clean_sessions_level() {
         assert_eq!(d.selected, ["tracer_eccentricity"], "seed {seed}\n{text}");
         assert!(!d.unexplained, "seed {seed}\n{text}");
         assert!(
-            to_floor <= HELDOUT_VS_CLEAN_MAX,
+            to_floor <= HELDOUT_RATIO_MAX,
             "seed {seed}: held-out after {to_floor:.3} of its predicted floor\n{text}"
         );
     }

@@ -609,20 +609,18 @@ impl Schur {
         });
         let z = &self.w_red * self.w_red.tr_mul(&t);
         // Off B̃ = (I − P_A) B.
-        let mut starts = Vec::with_capacity(groups.len());
-        let mut start = 0;
-        for &c in &groups {
-            starts.push(start);
-            start += c;
-        }
+        let z_groups = groups.iter().scan(z.as_slice(), |rest, &c| {
+            let (group, tail) = rest.split_at(c * g);
+            *rest = tail;
+            Some(group)
+        });
         let parts: Vec<_> = split_lengths(tilde.as_mut_slice(), groups.iter().map(|c| c * n))
             .into_iter()
-            .zip(starts)
+            .zip(z_groups)
             .collect();
-        in_parallel(parts, |(columns, first)| {
+        in_parallel(parts, |(columns, zs)| {
             let mut vc = vec![0.0; n];
-            for (j, column) in columns.chunks_mut(n).enumerate() {
-                let zc = &z.as_slice()[(first + j) * g..(first + j + 1) * g];
+            for (column, zc) in columns.chunks_mut(n).zip(zs.chunks(g)) {
                 for (pos, out) in vc.iter_mut().enumerate() {
                     let at = pos * width;
                     *out = (at..at + width)
