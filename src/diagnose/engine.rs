@@ -9,6 +9,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::parallel;
 
+use super::downdate::{FoldDowndate, HatRows};
 use super::projected::Projected;
 use super::stats::EFFECT_RANK_TOL;
 
@@ -36,6 +37,12 @@ pub trait LinearFit: Sync {
     /// Whether a candidate's projected columns are factorised by the SVD of the tall matrix
     /// (a dense fit) rather than from their Gram matrix or QR.
     fn factorises_by_svd(&self) -> bool;
+    /// The hat matrix on each set of the fit's rows (design rows) as blocks plus low rank,
+    /// where the fit gives it cheaply: each fold's held-out residuals are then downdated from
+    /// this fit instead of refitted. None: the folds are refitted.
+    fn hat_rows(&self, _sets: &[&[usize]]) -> Option<Vec<HatRows>> {
+        None
+    }
 }
 
 /// A linearised design over all rows of a diagnosis.
@@ -66,8 +73,25 @@ pub struct BaseFit<F> {
     pub res_w: DVector<f64>,
 }
 
-/// A base design's fit on all rows, its fits per fold and the folds' held-out residuals.
-pub type Bases<F> = (BaseFit<F>, Vec<BaseFit<F>>, HeldOut);
+/// A cross-validation fold's prediction of its held rows from its training rows.
+pub enum FoldFit<F> {
+    /// Downdated from the fit on all rows: every held row is predicted.
+    Downdated(FoldDowndate),
+    /// Fitted on the training rows.
+    Refit(BaseFit<F>),
+}
+
+/// A base design's fit on all rows, its folds and the folds' held-out residuals.
+pub type Bases<F> = (BaseFit<F>, Vec<FoldFit<F>>, HeldOut);
+
+/// A candidate effect in the folds' held-out fits: its columns (all rows, not whitened), the
+/// orthonormal basis of its whitened columns projected off the full fit and the full fit's
+/// whitened residuals with it (both over all rows).
+struct Candidate<'a> {
+    a: &'a DMatrix<f64>,
+    u: &'a DMatrix<f64>,
+    res_w: &'a DVector<f64>,
+}
 
 /// The held-out residuals of the folds: Σ r², Σ (σ² + prediction variance), Σ r²/that, and
 /// how many were predicted.
@@ -209,55 +233,110 @@ impl Engine {
         out
     }
 
+    /// One fold's held-out residuals: downdated from the full fit where the fold is, else (or
+    /// where the training rows nearly lose one of the candidate's directions) refitted.
+    fn heldout_fold<D: LinearDesign>(
+        &self,
+        design: &D,
+        fold: usize,
+        fit: &FoldFit<D::Fit>,
+        full_res_w: &DVector<f64>,
+        candidate: Option<&Candidate>,
+    ) -> HeldOut {
+        let (train, held) = &self.folds[fold];
+        let downdated = match fit {
+            FoldFit::Refit(fit) => return self.heldout(design, fit, candidate.map(|c| c.a)),
+            FoldFit::Downdated(downdate) => match candidate {
+                None => Some(downdate.residuals(&full_res_w.select_rows(held))),
+                Some(c) => downdate
+                    .residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held)),
+            }
+            .map(|residuals| (downdate, residuals)),
+        };
+        let Some((downdate, residuals)) = downdated else {
+            let refit = self.fit_base(design, train.clone(), held);
+            return self.heldout(design, &refit, candidate.map(|c| c.a));
+        };
+        let mut out = HeldOut::default();
+        for ((&h, x), inflation) in held.iter().zip(residuals.iter()).zip(downdate.inflation()) {
+            let w2 = self.w[h] * self.w[h];
+            out.ss += x * x / w2;
+            out.floor += inflation / w2;
+            out.z2 += x * x / inflation;
+            out.count += 1;
+        }
+        out
+    }
+
     /// The folds' held-out residuals summed in the folds' order. With a candidate on many
     /// rows the folds run on their own threads, each fold's figures computed as alone.
     fn heldout_sum<D: LinearDesign>(
         &self,
         design: &D,
-        fits: &[BaseFit<D::Fit>],
-        a: Option<&DMatrix<f64>>,
+        fits: &[FoldFit<D::Fit>],
+        full_res_w: &DVector<f64>,
+        candidate: Option<&Candidate>,
     ) -> HeldOut {
-        let work = a.map_or(0, |a| a.nrows() * a.ncols());
+        let work = candidate.map_or(0, |c| c.a.nrows() * c.a.ncols());
         let threads = if work >= THREADED_FOLD_ENTRIES {
             parallel::threads(MAX_FOLD_THREADS)
         } else {
             1
         };
-        let per_fold = parallel::in_groups(fits, threads, |fit| self.heldout(design, fit, a));
+        let jobs: Vec<(usize, &FoldFit<D::Fit>)> = fits.iter().enumerate().collect();
+        let per_fold = parallel::in_groups(&jobs, threads, |&(fold, fit)| {
+            self.heldout_fold(design, fold, fit, full_res_w, candidate)
+        });
         let mut sum = HeldOut::default();
-        for (h, fit) in per_fold.iter().zip(fits) {
+        for h in &per_fold {
             sum.ss += h.ss;
             sum.floor += h.floor;
             sum.z2 += h.z2;
-            sum.count += fit.held.len();
+            sum.count += h.count;
         }
         sum
     }
 
-    /// The base fit on `all_rows` and per fold, and the folds' held-out residuals.
-    pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
-        // The full fit and the folds' are independent: on the cores, in this order.
-        let jobs: Vec<(&[usize], &[usize])> = std::iter::once((all_rows, &[][..]))
-            .chain(
-                self.folds
-                    .iter()
-                    .map(|(train, held)| (train.as_slice(), held.as_slice())),
-            )
-            .collect();
+    /// The folds of a base: downdated from the full fit (on all rows, in order) where its hat
+    /// matrix is at hand and the fold keeps every direction, else refitted; on the cores.
+    fn fold_fits<D: LinearDesign>(
+        &self,
+        design: &D,
+        full: &BaseFit<D::Fit>,
+    ) -> Vec<FoldFit<D::Fit>> {
+        let on_all_rows = full.rows.iter().enumerate().all(|(k, &i)| k == i)
+            && full.rows.len() == self.r.len();
+        let sets: Vec<&[usize]> = self.folds.iter().map(|(_, held)| held.as_slice()).collect();
+        let hats = on_all_rows
+            .then(|| full.basis.hat_rows(&sets))
+            .flatten()
+            .filter(|hats| hats.len() == self.folds.len());
         let threads = if design.fits_on_any_thread() {
             parallel::threads(MAX_FOLD_THREADS)
         } else {
             1
         };
-        let mut fits = parallel::in_groups(&jobs, threads, |&(rows, held)| {
-            self.fit_base(design, rows.to_vec(), held)
-        })
-        .into_iter();
-        let Some(full) = fits.next() else {
-            unreachable!("the full fit is the first job");
+        let jobs: Vec<(usize, Option<HatRows>)> = match hats {
+            Some(hats) => hats.into_iter().map(Some).enumerate().collect(),
+            None => (0..self.folds.len()).map(|k| (k, None)).collect(),
         };
-        let fold_fits: Vec<BaseFit<D::Fit>> = fits.collect();
-        let heldout = self.heldout_sum(design, &fold_fits, None);
+        parallel::in_groups(&jobs, threads, |(fold, hat)| {
+            let downdate = hat.as_ref().and_then(FoldDowndate::new);
+            match downdate {
+                Some(downdate) => FoldFit::Downdated(downdate),
+                None => {
+                    let (train, held) = &self.folds[*fold];
+                    FoldFit::Refit(self.fit_base(design, train.clone(), held))
+                }
+            }
+        })
+    }
+
+    /// The base fit on `all_rows` and per fold, and the folds' held-out residuals.
+    pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
+        let full = self.fit_base(design, all_rows.to_vec(), &[]);
+        let fold_fits = self.fold_fits(design, &full);
+        let heldout = self.heldout_sum(design, &fold_fits, &full.res_w, None);
         (full, fold_fits, heldout)
     }
 
@@ -266,7 +345,7 @@ impl Engine {
         &self,
         design: &D,
         full: &BaseFit<D::Fit>,
-        fold_fits: &[BaseFit<D::Fit>],
+        fold_fits: &[FoldFit<D::Fit>],
         a: &DMatrix<f64>,
     ) -> Eval {
         let perp = Projected::new(&full.basis, self.whitened_rows(a, &full.rows));
@@ -293,9 +372,23 @@ impl Engine {
             })
             .collect();
         let df = perp.rank();
-        // The full fit's projected columns are not needed by the folds'.
-        drop(perp);
-        let heldout = self.heldout_sum(design, fold_fits, Some(a));
+        // The downdated folds need the projected columns' basis, the refitted ones nothing of
+        // the full fit's.
+        let any_downdated = fold_fits
+            .iter()
+            .any(|f| matches!(f, FoldFit::Downdated(_)));
+        let u = if any_downdated {
+            perp.into_u()
+        } else {
+            drop(perp);
+            DMatrix::zeros(0, 0)
+        };
+        let candidate = Candidate {
+            a,
+            u: &u,
+            res_w: &after_w,
+        };
+        let heldout = self.heldout_sum(design, fold_fits, &full.res_w, Some(&candidate));
         Eval {
             chi2_drop,
             df,

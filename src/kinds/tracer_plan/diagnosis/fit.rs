@@ -9,6 +9,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::data::Data;
 use super::dense::{self, DenseFit};
+use crate::diagnose::downdate::HatRows;
 use super::engine::{LinearDesign, LinearFit};
 use super::loso::{self, HeldOutStation};
 use super::schur::{Design, Schur};
@@ -161,6 +162,14 @@ impl LinearFit for Fit {
 
     fn factorises_by_svd(&self) -> bool {
         self.is_dense()
+    }
+
+    /// Structured only: the dense oracle refits every fold, and so checks the downdates.
+    fn hat_rows(&self, sets: &[&[usize]]) -> Option<Vec<HatRows>> {
+        match self {
+            Fit::Structured(s) => Some(s.hat_rows(sets)),
+            Fit::Dense(_) => None,
+        }
     }
 }
 

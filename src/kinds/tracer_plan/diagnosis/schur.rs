@@ -10,10 +10,12 @@
 //! col(A) ⊕ col(B̃), B̃ = (I − P_A) B, and the reduced matrix S = B̃ᵀB̃ = Σ_p (B_pᵀB_p −
 //! C_pᵀ M_p⁺ C_p) with M_p = A_pᵀA_p and C_p = A_pᵀB_p summed over point p's rows.
 
+use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
+use crate::diagnose::downdate::HatRows;
 use crate::parallel::{self, in_parallel, split_lengths};
 
 use super::data::Data;
@@ -751,6 +753,37 @@ impl Schur {
 
     pub fn m_pinv(&self, p: usize) -> &Matrix3<f64> {
         &self.m_pinv[p]
+    }
+
+    /// The hat matrix on each set of design rows (each among the fit's rows): H_ij =
+    /// a_iᵀ M_p⁺ a_j for two rows of point p, plus ρ_iᵀ ρ_j (`row_parts`).
+    pub fn hat_rows(&self, sets: &[&[usize]]) -> Vec<HatRows> {
+        let red = self.reduced();
+        sets.iter()
+            .map(|set| {
+                let mut low = DMatrix::zeros(set.len(), red.dim());
+                let mut coefficients = Vec::with_capacity(set.len());
+                let mut by_point: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
+                for (k, &i) in set.iter().enumerate() {
+                    let (p, a, rho) = self.row_parts(&red, i);
+                    low.set_row(k, &rho.transpose());
+                    coefficients.push(a);
+                    by_point.entry(p).or_default().push(k);
+                }
+                let groups = by_point
+                    .into_iter()
+                    .map(|(p, positions)| {
+                        let n = positions.len();
+                        let block = DMatrix::from_fn(n, n, |x, y| {
+                            coefficients[positions[x]]
+                                .dot(&(self.m_pinv[p] * coefficients[positions[y]]))
+                        });
+                        (positions, block)
+                    })
+                    .collect();
+                HatRows { groups, low }
+            })
+            .collect()
     }
 
     /// Diagonal of the hat matrix over the fit's rows (by position).

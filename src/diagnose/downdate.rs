@@ -1,0 +1,288 @@
+//! A cross-validation fold's held-out residuals from the fit on all rows, without refitting on
+//! the fold's training rows. For least squares with hat matrix H, the residuals of held rows k
+//! predicted from the other rows are (I − H_kk)⁻¹ e_k (e: the residuals of the fit on all
+//! rows), and the variance of those predictions under unit noise is diag((I − H_kk)⁻¹) − 1.
+//! Where the hat matrix is block diagonal plus low rank on the held rows (H_kk = B + L Lᵀ: a
+//! point's own block and the reduced system's part), I − H_kk = D − L Lᵀ with D = I − B is
+//! inverted by Woodbury: (D − L Lᵀ)⁻¹ = D⁻¹ + D⁻¹L K⁻¹ LᵀD⁻¹, K = I − LᵀD⁻¹L. A candidate
+//! effect adds its projected columns' orthonormal basis U to L. The two are invertible exactly
+//! when the training rows determine what all rows do (the same rank); where they are not
+//! (or nearly not) the caller refits.
+
+use nalgebra::{DMatrix, DVector};
+
+/// Smallest eigenvalue of D and of K (their eigenvalues lie in (0, 1]: the share of a
+/// direction's information the training rows keep) for which the fold is downdated; below it
+/// the fold is refitted, so that a direction the training rows nearly lose is decided by the
+/// refit's own rank cut. The Woodbury inverse's rounding grows as 1 / that eigenvalue: 1e-8
+/// keeps it ~1e-8 relative at worst, ~1e-13 for this problem's folds (eigenvalues ≳ 0.5).
+const MIN_KEPT_INFORMATION: f64 = 1e-8;
+
+/// The hat matrix of a fit on a set of its rows: H = blockdiag(groups' blocks) + L Lᵀ.
+pub struct HatRows {
+    /// Positions (in the set) of each group, with its block of H minus L Lᵀ.
+    pub groups: Vec<(Vec<usize>, DMatrix<f64>)>,
+    /// L: one row per position.
+    pub low: DMatrix<f64>,
+}
+
+/// A symmetric matrix's inverse from its eigen-decomposition, if every eigenvalue is at least
+/// `MIN_KEPT_INFORMATION`.
+fn inverse_if_kept(m: DMatrix<f64>) -> Option<DMatrix<f64>> {
+    let n = m.nrows();
+    if n == 0 {
+        return Some(m);
+    }
+    let eig = m.symmetric_eigen();
+    if eig.eigenvalues.iter().any(|&l| l.is_nan() || l < MIN_KEPT_INFORMATION) {
+        return None;
+    }
+    let v = &eig.eigenvectors;
+    let scaled = DMatrix::from_fn(n, n, |r, c| v[(r, c)] / eig.eigenvalues[c]);
+    Some(&scaled * v.transpose())
+}
+
+/// One fold's held rows downdated from the full fit.
+pub struct FoldDowndate {
+    /// D⁻¹ per group (positions among the held rows).
+    d_inv: Vec<(Vec<usize>, DMatrix<f64>)>,
+    /// G = D⁻¹ L.
+    g: DMatrix<f64>,
+    /// K⁻¹.
+    k_inv: DMatrix<f64>,
+    /// diag((D − L Lᵀ)⁻¹): 1 plus each held row's prediction variance, whitened.
+    inflation: Vec<f64>,
+}
+
+impl FoldDowndate {
+    /// None where the training rows lose (nearly) a direction that all rows determine.
+    pub fn new(hat: &HatRows) -> Option<FoldDowndate> {
+        let m = hat.low.nrows();
+        let mut d_inv = Vec::with_capacity(hat.groups.len());
+        for (positions, block) in &hat.groups {
+            let n = positions.len();
+            let d = DMatrix::identity(n, n) - block;
+            d_inv.push((positions.clone(), inverse_if_kept(d)?));
+        }
+        let g = apply_blocks(&d_inv, &hat.low);
+        let r = hat.low.ncols();
+        let k = DMatrix::identity(r, r) - hat.low.tr_mul(&g);
+        let k_inv = inverse_if_kept(symmetrised(k))?;
+        let mut inflation = vec![0.0; m];
+        for (positions, inv) in &d_inv {
+            for (x, &pos) in positions.iter().enumerate() {
+                inflation[pos] = inv[(x, x)];
+            }
+        }
+        let gk = &g * &k_inv;
+        for (pos, out) in inflation.iter_mut().enumerate() {
+            *out += gk.row(pos).dot(&g.row(pos));
+        }
+        Some(FoldDowndate {
+            d_inv,
+            g,
+            k_inv,
+            inflation,
+        })
+    }
+
+    /// diag((I − H_kk)⁻¹) of the base: each held row's σ² plus prediction variance, in units of
+    /// its σ².
+    pub fn inflation(&self) -> &[f64] {
+        &self.inflation
+    }
+
+    /// The held rows' residuals predicted from the training rows: (I − H_kk)⁻¹ e.
+    pub fn residuals(&self, e: &DVector<f64>) -> DVector<f64> {
+        let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
+        let d_e = apply_blocks(&self.d_inv, &e_m).column(0).into_owned();
+        let correction = &self.g * (&self.k_inv * self.g.tr_mul(e));
+        d_e + correction
+    }
+
+    /// The same with a candidate's projected columns' orthonormal basis `u` (held rows) added
+    /// to the model, `e` the residuals of the full fit with the candidate; None where the
+    /// training rows nearly lose one of the candidate's directions.
+    pub fn residuals_with(&self, u: &DMatrix<f64>, e: &DVector<f64>) -> Option<DVector<f64>> {
+        let (r, c) = (self.g.ncols(), u.ncols());
+        let gu = apply_blocks(&self.d_inv, u);
+        // K_aug = I − [L U]ᵀ D⁻¹ [L U] = [[K, −X], [−Xᵀ, C]], X = LᵀD⁻¹U.
+        let cross = self.g.tr_mul(u);
+        let corner = DMatrix::identity(c, c) - u.tr_mul(&gu);
+        // Through the Schur complement of K in K_aug, C − XᵀK⁻¹X.
+        let k_cross = &self.k_inv * &cross;
+        let schur = symmetrised(corner - cross.tr_mul(&k_cross));
+        let schur_inv = inverse_if_kept(schur)?;
+        // y = K_aug⁻¹ [Gᵀe; (D⁻¹U)ᵀe] by blocks.
+        let top = self.g.tr_mul(e);
+        let bottom = gu.tr_mul(e);
+        let k_top = &self.k_inv * &top;
+        let y_bottom = &schur_inv * (&bottom + cross.tr_mul(&k_top));
+        let y_top = &k_top + &k_cross * &y_bottom;
+        debug_assert_eq!((y_top.len(), y_bottom.len()), (r, c));
+        let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
+        let d_e = apply_blocks(&self.d_inv, &e_m).column(0).into_owned();
+        Some(d_e + &self.g * y_top + gu * y_bottom)
+    }
+}
+
+fn symmetrised(m: DMatrix<f64>) -> DMatrix<f64> {
+    let t = m.transpose();
+    (m + t) * 0.5
+}
+
+/// blockdiag(blocks) · v (v one row per position).
+fn apply_blocks(blocks: &[(Vec<usize>, DMatrix<f64>)], v: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(v.nrows(), v.ncols());
+    for c in 0..v.ncols() {
+        for (positions, block) in blocks {
+            for (x, &px) in positions.iter().enumerate() {
+                out[(px, c)] = positions
+                    .iter()
+                    .enumerate()
+                    .map(|(y, &py)| block[(x, y)] * v[(py, c)])
+                    .sum();
+            }
+        }
+    }
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Entries of a fixed pseudo-random sequence in [−1, 1).
+    fn noise(n: usize, seed: u64) -> Vec<f64> {
+        let mut state = seed;
+        (0..n)
+            .map(|_| {
+                state = state
+                    .wrapping_mul(6364136223846793005)
+                    .wrapping_add(1442695040888963407);
+                (state >> 11) as f64 / (1u64 << 52) as f64 - 1.0
+            })
+            .collect()
+    }
+
+    /// A tall design of full column rank.
+    fn design() -> DMatrix<f64> {
+        DMatrix::from_vec(40, 5, noise(200, 1))
+    }
+
+    /// The held-out residuals refitted on the training rows.
+    fn refit(x: &DMatrix<f64>, y: &DVector<f64>, held: &[usize]) -> DVector<f64> {
+        let train: Vec<usize> = (0..x.nrows()).filter(|r| !held.contains(r)).collect();
+        let xt = x.select_rows(&train);
+        let yt = y.select_rows(&train);
+        let beta = xt.svd(true, true).solve(&yt, 1e-12).expect("solve");
+        DVector::from_fn(held.len(), |k, _| y[held[k]] - x.row(held[k]).dot(&beta.transpose()))
+    }
+
+    /// H_kk of a dense fit: no blocks, L the held rows of U.
+    fn hat_rows(u: &DMatrix<f64>, held: &[usize]) -> HatRows {
+        HatRows {
+            groups: (0..held.len())
+                .map(|k| (vec![k], DMatrix::zeros(1, 1)))
+                .collect(),
+            low: u.select_rows(held),
+        }
+    }
+
+    #[test]
+    fn downdated_residuals_equal_the_refit() {
+        let x = design();
+        let y = DVector::from_vec(noise(40, 3));
+        let svd = x.clone().svd(true, true);
+        let beta = svd.solve(&y, 1e-12).expect("solve");
+        let u = svd.u.expect("u");
+        let e = &y - &x * beta;
+        let held = [1, 6, 11, 17, 30, 33];
+        let fold = FoldDowndate::new(&hat_rows(&u, &held)).expect("kept");
+        let got = fold.residuals(&e.select_rows(&held));
+        let want = refit(&x, &y, &held);
+        assert!((&got - &want).norm() <= 1e-12 * want.norm(), "{got} {want}");
+        // The prediction variances: x_h (X_trᵀX_tr)⁻¹ x_hᵀ.
+        let train: Vec<usize> = (0..40).filter(|r| !held.contains(r)).collect();
+        let xt = x.select_rows(&train);
+        let n_inv = (xt.transpose() * &xt).try_inverse().expect("inverse");
+        for (k, &h) in held.iter().enumerate() {
+            let row = x.row(h);
+            let var = (&row * &n_inv * row.transpose())[(0, 0)];
+            assert!((fold.inflation()[k] - 1.0 - var).abs() <= 1e-12 * (1.0 + var));
+        }
+    }
+
+    #[test]
+    fn a_candidates_columns_downdate_like_the_refit_of_the_wider_design() {
+        let x = design();
+        let extra = DMatrix::from_vec(40, 2, noise(80, 2));
+        let wide = DMatrix::from_fn(40, 7, |r, c| if c < 5 { x[(r, c)] } else { extra[(r, c - 5)] });
+        let y = DVector::from_vec(noise(40, 4));
+        let held = [0, 4, 9, 21, 22, 39];
+        let u = x.clone().svd(true, false).u.expect("u");
+        let wide_svd = wide.clone().svd(true, true);
+        let e = &y - &wide * wide_svd.solve(&y, 1e-12).expect("solve");
+        // The candidate's columns projected off X, orthonormalised.
+        let p = &extra - &u * u.tr_mul(&extra);
+        let q = p.svd(true, false).u.expect("q");
+        let fold = FoldDowndate::new(&hat_rows(&u, &held)).expect("kept");
+        let got = fold
+            .residuals_with(&q.select_rows(&held), &e.select_rows(&held))
+            .expect("kept");
+        let want = refit(&wide, &y, &held);
+        assert!((&got - &want).norm() <= 1e-12 * want.norm(), "{got} {want}");
+    }
+
+    #[test]
+    fn a_point_block_and_the_low_rank_part_together() {
+        // H = P_A + P_B̃ split between blocks (A: two columns nonzero on three rows each, like
+        // a point's) and L (B̃ = (I − P_A) B), as the points' elimination gives it.
+        let mut x = design();
+        for r in 0..40 {
+            for c in 0..2 {
+                x[(r, c)] = 0.0;
+            }
+        }
+        for (c, rows) in [(0usize, [3usize, 8, 12]), (1, [5, 14, 20])] {
+            for (k, &r) in rows.iter().enumerate() {
+                x[(r, c)] = 1.0 + k as f64 * 0.3;
+            }
+        }
+        let y = DVector::from_vec(noise(40, 5));
+        let beta = x.clone().svd(true, true).solve(&y, 1e-12).expect("solve");
+        let e = &y - &x * beta;
+        // Held: one row of each "point", and two rows of neither.
+        let held = [3usize, 5, 10, 25];
+        let a = x.columns(0, 2).into_owned();
+        let b = x.columns(2, 3).into_owned();
+        let pa = &a * (a.transpose() * &a).try_inverse().expect("inverse") * a.transpose();
+        let bt = &b - &pa * &b;
+        let ub = bt.svd(true, false).u.expect("u");
+        let groups = held
+            .iter()
+            .enumerate()
+            .map(|(k, &h)| (vec![k], DMatrix::from_element(1, 1, pa[(h, h)])))
+            .collect();
+        let hat = HatRows {
+            groups,
+            low: ub.select_rows(&held),
+        };
+        let fold = FoldDowndate::new(&hat).expect("kept");
+        let got = fold.residuals(&e.select_rows(&held));
+        let want = refit(&x, &y, &held);
+        assert!((&got - &want).norm() <= 1e-12 * want.norm(), "{got} {want}");
+    }
+
+    #[test]
+    fn a_fold_that_holds_a_direction_alone_is_not_downdated() {
+        let mut x = design();
+        // Column 0 nonzero on row 2 only: holding row 2 out loses that direction.
+        for r in 0..40 {
+            x[(r, 0)] = if r == 2 { 1.0 } else { 0.0 };
+        }
+        let u = x.svd(true, false).u.expect("u");
+        assert!(FoldDowndate::new(&hat_rows(&u, &[2, 7])).is_none());
+        assert!(FoldDowndate::new(&hat_rows(&u, &[3, 7])).is_some());
+    }
+}
