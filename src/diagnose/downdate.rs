@@ -34,7 +34,11 @@ fn inverse_if_kept(m: DMatrix<f64>) -> Option<DMatrix<f64>> {
         return Some(m);
     }
     let eig = m.symmetric_eigen();
-    if eig.eigenvalues.iter().any(|&l| l.is_nan() || l < MIN_KEPT_INFORMATION) {
+    if eig
+        .eigenvalues
+        .iter()
+        .any(|&l| l.is_nan() || l < MIN_KEPT_INFORMATION)
+    {
         return None;
     }
     let v = &eig.eigenvectors;
@@ -176,7 +180,9 @@ mod tests {
         let xt = x.select_rows(&train);
         let yt = y.select_rows(&train);
         let beta = xt.svd(true, true).solve(&yt, 1e-12).expect("solve");
-        DVector::from_fn(held.len(), |k, _| y[held[k]] - x.row(held[k]).dot(&beta.transpose()))
+        DVector::from_fn(held.len(), |k, _| {
+            y[held[k]] - x.row(held[k]).dot(&beta.transpose())
+        })
     }
 
     /// H_kk of a dense fit: no blocks, L the held rows of U.
@@ -217,7 +223,11 @@ mod tests {
     fn a_candidates_columns_downdate_like_the_refit_of_the_wider_design() {
         let x = design();
         let extra = DMatrix::from_vec(40, 2, noise(80, 2));
-        let wide = DMatrix::from_fn(40, 7, |r, c| if c < 5 { x[(r, c)] } else { extra[(r, c - 5)] });
+        let wide = DMatrix::from_fn(
+            40,
+            7,
+            |r, c| if c < 5 { x[(r, c)] } else { extra[(r, c - 5)] },
+        );
         let y = DVector::from_vec(noise(40, 4));
         let held = [0, 4, 9, 21, 22, 39];
         let u = x.clone().svd(true, false).u.expect("u");

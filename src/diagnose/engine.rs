@@ -145,11 +145,20 @@ pub struct Engine {
     /// The reported units' whitening: a whitened residual over this weight is in the units
     /// RMS figures are reported in.
     pub w_report: DVector<f64>,
-    /// Per fold: training rows and held-out rows.
-    pub folds: Vec<(Vec<usize>, Vec<usize>)>,
+    /// Per fold: its held-out rows (ascending); the fold trains on all the others.
+    pub folds: Vec<Vec<usize>>,
 }
 
 impl Engine {
+    /// A fold's training rows: every row it does not hold out, ascending.
+    pub fn training_rows(&self, fold: usize) -> Vec<usize> {
+        let mut held = vec![false; self.r.len()];
+        for &h in &self.folds[fold] {
+            held[h] = true;
+        }
+        (0..self.r.len()).filter(|&i| !held[i]).collect()
+    }
+
     fn whitened_rows(&self, m: &DMatrix<f64>, rows: &[usize]) -> DMatrix<f64> {
         DMatrix::from_fn(rows.len(), m.ncols(), |r, c| {
             m[(rows[r], c)] * self.w[rows[r]]
@@ -243,18 +252,19 @@ impl Engine {
         full_res_w: &DVector<f64>,
         candidate: Option<&Candidate>,
     ) -> HeldOut {
-        let (train, held) = &self.folds[fold];
+        let held = &self.folds[fold];
         let downdated = match fit {
             FoldFit::Refit(fit) => return self.heldout(design, fit, candidate.map(|c| c.a)),
             FoldFit::Downdated(downdate) => match candidate {
                 None => Some(downdate.residuals(&full_res_w.select_rows(held))),
-                Some(c) => downdate
-                    .residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held)),
+                Some(c) => {
+                    downdate.residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held))
+                }
             }
             .map(|residuals| (downdate, residuals)),
         };
         let Some((downdate, residuals)) = downdated else {
-            let refit = self.fit_base(design, train.clone(), held);
+            let refit = self.fit_base(design, self.training_rows(fold), held);
             return self.heldout(design, &refit, candidate.map(|c| c.a));
         };
         let mut out = HeldOut::default();
@@ -304,9 +314,9 @@ impl Engine {
         design: &D,
         full: &BaseFit<D::Fit>,
     ) -> Vec<FoldFit<D::Fit>> {
-        let on_all_rows = full.rows.iter().enumerate().all(|(k, &i)| k == i)
-            && full.rows.len() == self.r.len();
-        let sets: Vec<&[usize]> = self.folds.iter().map(|(_, held)| held.as_slice()).collect();
+        let on_all_rows =
+            full.rows.iter().enumerate().all(|(k, &i)| k == i) && full.rows.len() == self.r.len();
+        let sets: Vec<&[usize]> = self.folds.iter().map(Vec::as_slice).collect();
         let hats = on_all_rows
             .then(|| full.basis.hat_rows(&sets))
             .flatten()
@@ -324,10 +334,11 @@ impl Engine {
             let downdate = hat.as_ref().and_then(FoldDowndate::new);
             match downdate {
                 Some(downdate) => FoldFit::Downdated(downdate),
-                None => {
-                    let (train, held) = &self.folds[*fold];
-                    FoldFit::Refit(self.fit_base(design, train.clone(), held))
-                }
+                None => FoldFit::Refit(self.fit_base(
+                    design,
+                    self.training_rows(*fold),
+                    &self.folds[*fold],
+                )),
             }
         })
     }
@@ -374,9 +385,7 @@ impl Engine {
         let df = perp.rank();
         // The downdated folds need the projected columns' basis, the refitted ones nothing of
         // the full fit's.
-        let any_downdated = fold_fits
-            .iter()
-            .any(|f| matches!(f, FoldFit::Downdated(_)));
+        let any_downdated = fold_fits.iter().any(|f| matches!(f, FoldFit::Downdated(_)));
         let u = if any_downdated {
             perp.into_u()
         } else {

@@ -275,12 +275,25 @@ impl QrBasis {
 
     /// U c, without forming Q (n × k): Q applied to (U_R c, 0) by its reflectors.
     pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
+        let u_c = &self.u_r * c;
+        let top = DMatrix::from_column_slice(u_c.len(), 1, u_c.as_slice());
+        let y = self.q_times_top(&top);
+        DVector::from_column_slice(y.as_slice())
+    }
+
+    /// The orthonormal left factor U (n × rank), without forming Q.
+    pub fn u(&self) -> DMatrix<f64> {
+        self.q_times_top(&self.u_r)
+    }
+
+    /// Q (top; 0) by Q's reflectors, `top` k × m: Q = H_0 S_0 ⋯ H_(m−1) S_(m−1) (`QR::q`
+    /// applies the same steps to the identity), each sign that of R's diagonal entry: the
+    /// opposite of its unit reflector's first component (never 0), or + for a column already
+    /// zero (a zero reflector).
+    fn q_times_top(&self, top: &DMatrix<f64>) -> DMatrix<f64> {
         let qr = self.qr.qr_internal();
-        let mut y = DVector::zeros(qr.nrows());
-        y.rows_mut(0, self.u_r.nrows()).copy_from(&(&self.u_r * c));
-        // Q = H_0 S_0 ⋯ H_(m−1) S_(m−1) (`QR::q` applies the same steps to the identity), each
-        // sign that of R's diagonal entry: the opposite of its unit reflector's first component
-        // (never 0), or + for a column already zero (a zero reflector).
+        let mut y = DMatrix::zeros(qr.nrows(), top.ncols());
+        y.rows_mut(0, top.nrows()).copy_from(top);
         for i in (0..qr.nrows().min(qr.ncols())).rev() {
             let axis = qr.view_range(i.., i);
             let sign = if axis[0] == 0.0 {
@@ -292,11 +305,6 @@ impl QrBasis {
             reflection.reflect_with_sign(&mut y.rows_range_mut(i..), sign);
         }
         y
-    }
-
-    /// The orthonormal left factor U (n × rank).
-    pub fn u(&self) -> DMatrix<f64> {
-        self.qr.q() * &self.u_r
     }
 }
 

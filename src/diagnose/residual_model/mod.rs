@@ -260,16 +260,11 @@ pub fn diagnose(
     let groups: std::collections::BTreeSet<usize> =
         model.labels().iter().filter_map(|l| l.holdout).collect();
     let k_folds = options.folds.max(2).min(groups.len().max(1));
-    let folds: Vec<(Vec<usize>, Vec<usize>)> = (0..k_folds)
+    let folds: Vec<Vec<usize>> = (0..k_folds)
         .map(|f| {
-            let (mut train, mut held) = (Vec::new(), Vec::new());
-            for (i, l) in model.labels().iter().enumerate() {
-                match l.holdout {
-                    Some(g) if g % k_folds == f => held.push(i),
-                    _ => train.push(i),
-                }
-            }
-            (train, held)
+            (0..n)
+                .filter(|&i| matches!(model.labels()[i].holdout, Some(g) if g % k_folds == f))
+                .collect()
         })
         .collect();
     // The rows are whitened already: the held-out figures are in units of each σ.

@@ -9,10 +9,10 @@ use nalgebra::{DMatrix, DVector};
 
 use super::data::Data;
 use super::dense::{self, DenseFit};
-use crate::diagnose::downdate::HatRows;
 use super::engine::{LinearDesign, LinearFit};
 use super::loso::{self, HeldOutStation};
 use super::schur::{Design, Schur};
+use crate::diagnose::downdate::HatRows;
 
 thread_local! {
     static DENSE_ORACLE: Cell<bool> = const { Cell::new(false) };

@@ -233,7 +233,7 @@ impl forward::Client for LengthsClient<'_> {
     }
 
     fn cross_validation_notes(&self, engine: &Engine, count: usize) -> Vec<String> {
-        let held_total: usize = engine.folds.iter().map(|f| f.1.len()).sum();
+        let held_total: usize = engine.folds.iter().map(Vec::len).sum();
         let mut notes = vec![format!(
             "cross-validation: {} folds of (point, station) pairs; {count} of {held_total} held-out lengths are determined by the rest and predicted",
             engine.folds.len()
@@ -300,15 +300,9 @@ pub(crate) fn diagnose_data(
     // loses at most one station per fold).
     let folds = (0..k_folds)
         .map(|f| {
-            let (mut train, mut held) = (Vec::new(), Vec::new());
-            for (i, o) in data.obs.iter().enumerate() {
-                if (o.point + o.station) % k_folds == f {
-                    held.push(i);
-                } else {
-                    train.push(i);
-                }
-            }
-            (train, held)
+            (0..nobs)
+                .filter(|&i| (data.obs[i].point + data.obs[i].station) % k_folds == f)
+                .collect()
         })
         .collect();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));

@@ -25,6 +25,9 @@ use super::effects::Geometry;
 /// cost more than they save.
 const THREADED_PROJECTION_ENTRIES: usize = 200_000;
 const MAX_PROJECTION_THREADS: usize = 8;
+/// Points whose C_pᵀ M_p⁺ are gathered for one product by Wᵀ in [`Schur::reduced`]: a dense
+/// product instead of one per point, in a buffer of global columns × 3 × this (~1 MB).
+const REDUCED_CHUNK_POINTS: usize = 512;
 
 /// Relative eigenvalue below which a direction of a point's 3 × 3 block or of the reduced
 /// system is not identifiable. Eigenvalues are squared singular values: 1e-12 is a singular
@@ -719,21 +722,30 @@ impl Schur {
     /// the change-point search: per point F_p = Wᵀ C_pᵀ M_p⁺ (reduced × 3).
     pub fn reduced(&self) -> Reduced {
         let d = &self.design;
-        let r = self.w_red.ncols();
-        let mut f = Vec::with_capacity(d.n_points);
-        let mut ct = DVector::zeros(d.n_global());
-        for p in 0..d.n_points {
-            let mut fp = DMatrix::zeros(r, 3);
-            if !self.members(p).is_empty() {
-                for k in 0..3 {
-                    let t = self.m_pinv[p].column(k).into_owned();
-                    self.ct_point(p, &t, &mut ct);
-                    fp.set_column(k, &self.w_red.tr_mul(&ct));
+        let (n, g, r) = (d.n_points, d.n_global(), self.w_red.ncols());
+        let wt = self.w_red.transpose();
+        let mut f = DMatrix::zeros(r, 3 * n);
+        let mut entries = Vec::new();
+        // C_pᵀ M_p⁺ (g × 3) of a chunk of points side by side, then one product by Wᵀ.
+        for first in (0..n).step_by(REDUCED_CHUNK_POINTS) {
+            let points = REDUCED_CHUNK_POINTS.min(n - first);
+            let mut ct = DMatrix::zeros(g, 3 * points);
+            for p in first..first + points {
+                for &pos in self.members(p) {
+                    let i = self.rows[pos];
+                    let at = self.m_pinv[p] * d.a(i);
+                    d.global_entries(i, &mut entries);
+                    for &(c, x) in &entries {
+                        for k in 0..3 {
+                            ct[(c, 3 * (p - first) + k)] += x * at[k];
+                        }
+                    }
                 }
             }
-            f.push(fp);
+            f.columns_mut(3 * first, 3 * points)
+                .copy_from(&(&wt * ct));
         }
-        Reduced { f, dim: r }
+        Reduced { f, wt, dim: r }
     }
 
     /// Row i's coordinates in the column space: (point, a_i, M_p⁺, ρ_i) with
@@ -744,9 +756,9 @@ impl Schur {
         let a = d.a(i);
         let mut entries = Vec::new();
         d.global_entries(i, &mut entries);
-        let mut rho = -(&red.f[p] * a);
+        let mut rho = -(red.f_point(p) * a);
         for &(c, x) in &entries {
-            rho += self.w_red.row(c).transpose() * x;
+            rho.axpy(x, &red.wt.column(c), 1.0);
         }
         (p, a, rho)
     }
@@ -822,7 +834,7 @@ impl Schur {
         let d = &self.design;
         let p = d.rows[i].point;
         let a = d.a(i);
-        (self.m_pinv[p] * a, &red.f[p] * a)
+        (self.m_pinv[p] * a, red.f_point(p) * a)
     }
 }
 
@@ -854,13 +866,19 @@ impl RowEntries {
     }
 }
 
-/// Per point F_p = Wᵀ C_pᵀ M_p⁺ of a fit.
+/// Per point F_p = Wᵀ C_pᵀ M_p⁺ of a fit (side by side: point p's are columns 3p..3p + 3),
+/// and Wᵀ.
 pub struct Reduced {
-    f: Vec<DMatrix<f64>>,
+    f: DMatrix<f64>,
+    wt: DMatrix<f64>,
     dim: usize,
 }
 
 impl Reduced {
+    fn f_point(&self, p: usize) -> nalgebra::DMatrixView<'_, f64> {
+        self.f.columns(3 * p, 3)
+    }
+
     /// Rank of the reduced system (rows of each F_p).
     pub fn dim(&self) -> usize {
         self.dim
@@ -960,6 +978,68 @@ mod tests {
         let design = Arc::new(small(true));
         let cols = [design.n_params() - 2, design.n_params() - 1];
         check_against_the_dense_svd(design, false, &cols);
+    }
+
+    /// The hat rows of a fold (one station's lengths of every sixth point, like a
+    /// cross-validation fold) are the dense hat matrix's block, and the fold's downdated
+    /// held-out residuals and prediction variances are the structured refit's.
+    #[test]
+    fn a_folds_hat_rows_and_downdate_match_the_refit() {
+        use crate::diagnose::downdate::FoldDowndate;
+        let design = Arc::new(small(false));
+        let n = design.lengths();
+        let all: Vec<usize> = (0..n).collect();
+        let held: Vec<usize> = all
+            .iter()
+            .copied()
+            .filter(|&i| (design.point_of(i) + design.station_of(i)) % 6 == 1)
+            .collect();
+        let full = Schur::new(design.clone(), all.clone());
+        let Some(hat) = full.hat_rows(&[&held]).pop() else {
+            panic!("one set, one hat");
+        };
+        let dense = design.to_dense();
+        let xw = DMatrix::from_fn(n, dense.ncols(), |r, c| dense[(r, c)] * design.weight(r));
+        let u = Basis::new(&xw, RANK_TOL, 0.0).u;
+        let mut assembled = &hat.low * hat.low.transpose();
+        for (positions, block) in &hat.groups {
+            for (x, &px) in positions.iter().enumerate() {
+                for (y, &py) in positions.iter().enumerate() {
+                    assembled[(px, py)] += block[(x, y)];
+                }
+            }
+        }
+        let want = u.select_rows(&held) * u.select_rows(&held).transpose();
+        assert!(
+            (&assembled - &want).amax() <= 1e-10,
+            "{assembled} vs {want}"
+        );
+
+        let y = DVector::from_fn(n, |k, _| ((k * 37 % 11) as f64 - 5.0) * 0.3);
+        let e = full.project_off_vec(&y);
+        let Some(fold) = FoldDowndate::new(&hat) else {
+            panic!("the fold keeps every direction");
+        };
+        let got = fold.residuals(&e.select_rows(&held));
+        let train: Vec<usize> = all.iter().copied().filter(|i| !held.contains(i)).collect();
+        let refit = Schur::new(design.clone(), train.clone());
+        let beta = refit.solve(&y.select_rows(&train));
+        let variances = refit.prediction_variances(&held);
+        for (k, &h) in held.iter().enumerate() {
+            let w = design.weight(h);
+            let predicted = y[h] - w * design.predict(h, &beta);
+            assert!(
+                (got[k] - predicted).abs() <= 1e-9,
+                "row {h}: {} vs {predicted}",
+                got[k]
+            );
+            let variance = (fold.inflation()[k] - 1.0) / (w * w);
+            assert!(
+                (variance - variances[k]).abs() <= 1e-9 * variances[k],
+                "row {h}: {variance} vs {}",
+                variances[k]
+            );
+        }
     }
 
     fn check_against_the_dense_svd(design: Arc<Design>, min_norm: bool, pinv_cols: &[usize]) {
