@@ -214,7 +214,7 @@ mod tests {
         let n_inv = (xt.transpose() * &xt).try_inverse().expect("inverse");
         for (k, &h) in held.iter().enumerate() {
             let row = x.row(h);
-            let var = (&row * &n_inv * row.transpose())[(0, 0)];
+            let var = (row * &n_inv * row.transpose())[(0, 0)];
             assert!((fold.inflation()[k] - 1.0 - var).abs() <= 1e-12 * (1.0 + var));
         }
     }
