@@ -11,6 +11,7 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
+use super::downdate::HatRows;
 use super::engine::{LinearDesign, LinearFit};
 use super::stats::{Basis, RANK_TOL};
 use super::whitened::{tall_basis, WhitenedDesign, WhitenedFit};
@@ -451,5 +452,11 @@ impl LinearFit for ModelFit {
     }
     fn factorises_by_svd(&self) -> bool {
         both!(self, f => f.factorises_by_svd())
+    }
+    fn hat_rows(&self, sets: &[&[usize]]) -> Option<Vec<HatRows>> {
+        match self {
+            ModelFit::Dense(f) => f.hat_rows(sets),
+            ModelFit::Blocked(_) => None,
+        }
     }
 }

@@ -7,6 +7,7 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector};
 
+use super::downdate::HatRows;
 use super::engine::{LinearDesign, LinearFit};
 use super::stats::{accurate_svd, Basis, RANK_TOL};
 use crate::method::tall_svd::thin_svd;
@@ -18,6 +19,8 @@ pub struct WhitenedDesign(pub Arc<DMatrix<f64>>);
 /// Its fit on a set of rows.
 pub struct WhitenedFit {
     design: Arc<DMatrix<f64>>,
+    /// The fit's rows (design rows), by position in the basis.
+    rows: Vec<usize>,
     pub basis: Basis,
 }
 
@@ -41,6 +44,7 @@ impl LinearDesign for WhitenedDesign {
         WhitenedFit {
             basis: tall_basis(&rows_of(&self.0, &rows), RANK_TOL, 0.0),
             design: self.0.clone(),
+            rows,
         }
     }
 
@@ -86,5 +90,27 @@ impl LinearFit for WhitenedFit {
 
     fn factorises_by_svd(&self) -> bool {
         true
+    }
+
+    /// H = U Uᵀ: no blocks, L the sets' rows of U. None if a set's row is not the fit's.
+    fn hat_rows(&self, sets: &[&[usize]]) -> Option<Vec<HatRows>> {
+        let mut position = vec![usize::MAX; self.design.nrows()];
+        for (k, &i) in self.rows.iter().enumerate() {
+            position[i] = k;
+        }
+        sets.iter()
+            .map(|set| {
+                let positions = set
+                    .iter()
+                    .map(|&i| position.get(i).copied().filter(|&k| k != usize::MAX))
+                    .collect::<Option<Vec<usize>>>()?;
+                Some(HatRows {
+                    groups: (0..set.len())
+                        .map(|k| (vec![k], DMatrix::zeros(1, 1)))
+                        .collect(),
+                    low: self.basis.u.select_rows(&positions),
+                })
+            })
+            .collect()
     }
 }

@@ -7,6 +7,7 @@ use super::data::Data;
 use super::dense;
 use super::effects::Geometry;
 use super::fit::Fit;
+use super::schur::{Reduced, Schur};
 use super::stats::chi2_sf;
 
 /// Time blocks: enough that a ramp or a step is localised, few enough that each block holds
@@ -21,12 +22,41 @@ pub fn best_step(
     res_w: &nalgebra::DVector<f64>,
     station: Option<usize>,
 ) -> Option<(usize, usize, f64, usize)> {
+    best_steps(data, basis, res_w, &[station]).pop().flatten()
+}
+
+/// [`best_step`] for each of `stations`, the fit's split form computed once.
+pub fn best_steps(
+    data: &Data,
+    basis: &Fit,
+    res_w: &nalgebra::DVector<f64>,
+    stations: &[Option<usize>],
+) -> Vec<Option<(usize, usize, f64, usize)>> {
     let basis = match basis {
         Fit::Structured(s) => s,
-        Fit::Dense(d) => return dense::best_step(data, d.basis(), res_w, station),
+        Fit::Dense(d) => {
+            return stations
+                .iter()
+                .map(|&station| dense::best_step(data, d.basis(), res_w, station))
+                .collect()
+        }
     };
     let w: Vec<f64> = data.obs.iter().map(|o| 1.0 / o.sigma_m).collect();
     let reduced = basis.reduced();
+    stations
+        .iter()
+        .map(|&station| best_step_in(data, basis, &reduced, &w, res_w, station))
+        .collect()
+}
+
+fn best_step_in(
+    data: &Data,
+    basis: &Schur,
+    reduced: &Reduced,
+    w: &[f64],
+    res_w: &nalgebra::DVector<f64>,
+    station: Option<usize>,
+) -> Option<(usize, usize, f64, usize)> {
     let mut best: Option<(usize, usize, f64)> = None;
     let mut tried = 0;
     // The suffix indicator's projection on the model, |P v|², in the split form of the
@@ -43,7 +73,7 @@ pub fn best_step(
         let (mut cc, mut cr) = (0.0, 0.0);
         for k in (1..members.len()).rev() {
             let i = members[k];
-            let (p, a, rho) = basis.row_parts(&reduced, i);
+            let (p, a, rho) = basis.row_parts(reduced, i);
             let m = basis.m_pinv(p);
             let old = q[p];
             let new = old + a * w[i];
@@ -182,24 +212,26 @@ pub fn locate(
     }
     // Change points in each station's passes (a fringe loss, a bump of the stand).
     let res_w = nalgebra::DVector::from_fn(nobs, |i, _| resid_m[i] / data.obs[i].sigma_m);
-    for j in 0..data.station_ids.len() {
-        if let Some((g, k, stat, tried)) = best_step(data, basis, &res_w, Some(j)) {
-            let p = (chi2_sf(stat, 1.0) * (tried * tests) as f64).min(1.0);
-            if p < alpha {
-                let members = &data.passes[g][k..];
-                let ss: f64 = members.iter().map(|&i| resid_m[i].powi(2)).sum();
-                out.push(WhereEntry {
-                    level: "lengths".into(),
-                    group: "time".into(),
-                    key: format!(
-                        "change point in {} at {:.1} s",
-                        data.pass_names[g], data.obs[members[0]].t_s
-                    ),
-                    share: ss / total_m2,
-                    rms_m: (ss / members.len() as f64).sqrt(),
-                    p_value: p,
-                });
-            }
+    let stations: Vec<Option<usize>> = (0..data.station_ids.len()).map(Some).collect();
+    for (g, k, stat, tried) in best_steps(data, basis, &res_w, &stations)
+        .into_iter()
+        .flatten()
+    {
+        let p = (chi2_sf(stat, 1.0) * (tried * tests) as f64).min(1.0);
+        if p < alpha {
+            let members = &data.passes[g][k..];
+            let ss: f64 = members.iter().map(|&i| resid_m[i].powi(2)).sum();
+            out.push(WhereEntry {
+                level: "lengths".into(),
+                group: "time".into(),
+                key: format!(
+                    "change point in {} at {:.1} s",
+                    data.pass_names[g], data.obs[members[0]].t_s
+                ),
+                share: ss / total_m2,
+                rms_m: (ss / members.len() as f64).sqrt(),
+                p_value: p,
+            });
         }
     }
     out.sort_by(|a, b| b.share.total_cmp(&a.share));

@@ -742,8 +742,7 @@ impl Schur {
                     }
                 }
             }
-            f.columns_mut(3 * first, 3 * points)
-                .copy_from(&(&wt * ct));
+            f.columns_mut(3 * first, 3 * points).copy_from(&(&wt * ct));
         }
         Reduced { f, wt, dim: r }
     }
