@@ -33,6 +33,10 @@ fn inverse_if_kept(m: DMatrix<f64>) -> Option<DMatrix<f64>> {
     if n == 0 {
         return Some(m);
     }
+    if n == 1 {
+        let d = m[(0, 0)];
+        return (d >= MIN_KEPT_INFORMATION).then(|| DMatrix::from_element(1, 1, 1.0 / d));
+    }
     let eig = m.symmetric_eigen();
     if eig
         .eigenvalues

@@ -200,14 +200,16 @@ fn pinv_solve(
         .filter(|&k| smax > 0.0 && svd.singular_values[k] > RANK_CUT * smax)
         .collect();
     let mut sol = DVector::zeros(p);
-    let mut cov = DMatrix::zeros(p, p);
-    for &k in &keep {
+    // V S⁻¹ over the kept directions: the covariance V S⁻² Vᵀ is one product.
+    let mut v_scaled = DMatrix::zeros(p, keep.len());
+    for (j, &k) in keep.iter().enumerate() {
         let s = svd.singular_values[k];
         let coeff = u.column(k).dot(&ub) / s;
         let v = vt.row(k).transpose();
         sol += &v * coeff;
-        cov += &v * v.transpose() / (s * s);
+        v_scaled.set_column(j, &(v / s));
     }
+    let mut cov = &v_scaled * v_scaled.transpose();
     unscale(&mut sol, &mut cov, &norms);
     (sol, cov, keep.len())
 }
