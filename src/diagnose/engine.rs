@@ -84,11 +84,13 @@ pub enum FoldFit<F> {
 /// A base design's fit on all rows, its folds and the folds' held-out residuals.
 pub type Bases<F> = (BaseFit<F>, Vec<FoldFit<F>>, HeldOut);
 
-/// A candidate effect in the folds' held-out fits: its columns (all rows, not whitened), the
-/// orthonormal basis of its whitened columns projected off the full fit and the full fit's
-/// whitened residuals with it (both over all rows).
+/// A candidate effect in the folds' held-out fits: its columns (all rows, not whitened; held
+/// where a fold is refitted), their number of entries, the orthonormal basis of its whitened
+/// columns projected off the full fit and the full fit's whitened residuals with it (both over
+/// all rows).
 struct Candidate<'a> {
-    a: &'a DMatrix<f64>,
+    a: Option<&'a DMatrix<f64>>,
+    entries: usize,
     u: &'a DMatrix<f64>,
     res_w: &'a DVector<f64>,
 }
@@ -242,8 +244,9 @@ impl Engine {
         out
     }
 
-    /// One fold's held-out residuals: downdated from the full fit where the fold is, else (or
-    /// where the training rows nearly lose one of the candidate's directions) refitted.
+    /// One fold's held-out residuals: downdated from the full fit where the fold is, else
+    /// refitted. None where the training rows nearly lose one of the candidate's directions:
+    /// the caller refits that fold with the candidate's columns.
     fn heldout_fold<D: LinearDesign>(
         &self,
         design: &D,
@@ -251,21 +254,20 @@ impl Engine {
         fit: &FoldFit<D::Fit>,
         full_res_w: &DVector<f64>,
         candidate: Option<&Candidate>,
-    ) -> HeldOut {
+    ) -> Option<HeldOut> {
         let held = &self.folds[fold];
-        let downdated = match fit {
-            FoldFit::Refit(fit) => return self.heldout(design, fit, candidate.map(|c| c.a)),
-            FoldFit::Downdated(downdate) => match candidate {
-                None => Some(downdate.residuals(&full_res_w.select_rows(held))),
-                Some(c) => {
-                    downdate.residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held))
-                }
+        let (downdate, residuals) = match fit {
+            FoldFit::Refit(fit) => {
+                return Some(self.heldout(design, fit, candidate.and_then(|c| c.a)))
             }
-            .map(|residuals| (downdate, residuals)),
-        };
-        let Some((downdate, residuals)) = downdated else {
-            let refit = self.fit_base(design, self.training_rows(fold), held);
-            return self.heldout(design, &refit, candidate.map(|c| c.a));
+            FoldFit::Downdated(downdate) => {
+                let residuals = match candidate {
+                    None => downdate.residuals(&full_res_w.select_rows(held)),
+                    Some(c) => downdate
+                        .residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held))?,
+                };
+                (downdate, residuals)
+            }
         };
         let mut out = HeldOut::default();
         for ((&h, x), inflation) in held.iter().zip(residuals.iter()).zip(downdate.inflation()) {
@@ -275,30 +277,43 @@ impl Engine {
             out.z2 += x * x / inflation;
             out.count += 1;
         }
-        out
+        Some(out)
     }
 
     /// The folds' held-out residuals summed in the folds' order. With a candidate on many
-    /// rows the folds run on their own threads, each fold's figures computed as alone.
+    /// rows the folds run on their own threads, each fold's figures computed as alone; a fold
+    /// the candidate cannot be downdated in is refitted here, with `columns` (the candidate's,
+    /// made again unless held).
     fn heldout_sum<D: LinearDesign>(
         &self,
         design: &D,
         fits: &[FoldFit<D::Fit>],
         full_res_w: &DVector<f64>,
-        candidate: Option<&Candidate>,
+        candidate: Option<(&Candidate, &dyn Fn() -> DMatrix<f64>)>,
     ) -> HeldOut {
-        let work = candidate.map_or(0, |c| c.a.nrows() * c.a.ncols());
+        let work = candidate.map_or(0, |(c, _)| c.entries);
         let threads = if work >= THREADED_FOLD_ENTRIES {
             parallel::threads(MAX_FOLD_THREADS)
         } else {
             1
         };
         let jobs: Vec<(usize, &FoldFit<D::Fit>)> = fits.iter().enumerate().collect();
+        let in_folds = candidate.map(|(c, _)| c);
         let per_fold = parallel::in_groups(&jobs, threads, |&(fold, fit)| {
-            self.heldout_fold(design, fold, fit, full_res_w, candidate)
+            self.heldout_fold(design, fold, fit, full_res_w, in_folds)
         });
+        let mut columns: Option<DMatrix<f64>> = None;
         let mut sum = HeldOut::default();
-        for h in &per_fold {
+        for (fold, h) in per_fold.into_iter().enumerate() {
+            let h = h.unwrap_or_else(|| {
+                let refit = self.fit_base(design, self.training_rows(fold), &self.folds[fold]);
+                let a = match candidate {
+                    Some((Candidate { a: Some(a), .. }, _)) => a,
+                    Some((_, make)) => &*columns.get_or_insert_with(make),
+                    None => unreachable!("a base's downdated fold needs no refit"),
+                };
+                self.heldout(design, &refit, Some(a))
+            });
             sum.ss += h.ss;
             sum.floor += h.floor;
             sum.z2 += h.z2;
@@ -351,22 +366,38 @@ impl Engine {
         (full, fold_fits, heldout)
     }
 
-    /// Adding the effect with columns `a` (all rows, not whitened) to the base.
+    /// Adding the effect whose columns `columns` makes (all rows, not whitened) to the base.
+    /// Where every fold is downdated the columns are whitened in place and not kept.
     pub fn evaluate<D: LinearDesign>(
         &self,
         design: &D,
         full: &BaseFit<D::Fit>,
         fold_fits: &[FoldFit<D::Fit>],
-        a: &DMatrix<f64>,
+        columns: &dyn Fn() -> DMatrix<f64>,
     ) -> Eval {
-        let perp = Projected::new(&full.basis, self.whitened_rows(a, &full.rows));
+        let any_refit = fold_fits.iter().any(|f| matches!(f, FoldFit::Refit(_)));
+        let on_all_rows =
+            full.rows.iter().enumerate().all(|(k, &i)| k == i) && full.rows.len() == self.r.len();
+        let (a, aw) = if any_refit || !on_all_rows {
+            let a = columns();
+            let aw = self.whitened_rows(&a, &full.rows);
+            (Some(a), aw)
+        } else {
+            let mut aw = columns();
+            for (i, mut row) in aw.row_iter_mut().enumerate() {
+                row *= self.w[i];
+            }
+            (None, aw)
+        };
+        let (n_columns, entries) = (aw.ncols(), aw.nrows() * aw.ncols());
+        let perp = Projected::new(&full.basis, aw);
         let coeff = perp.ut(&full.res_w);
         let chi2_drop = coeff.norm_squared();
         let after_w = &full.res_w - perp.u_times(&coeff);
         let rms_after = self.rms_reported(&after_w, &full.rows);
         let theta = perp.solve(&full.res_w);
         // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
-        let theta_sigma = DVector::from_fn(a.ncols(), |c, _| {
+        let theta_sigma = DVector::from_fn(n_columns, |c, _| {
             (0..perp.rank())
                 .map(|k| (perp.vt[(k, c)] / perp.s[k]).powi(2))
                 .sum::<f64>()
@@ -374,7 +405,7 @@ impl Engine {
         });
         // The parameter's unit direction inside the identified row space (1 when fully
         // determined), against the same cut as the directions'.
-        let identifiable = (0..a.ncols())
+        let identifiable = (0..n_columns)
             .map(|c| {
                 (0..perp.rank())
                     .map(|k| perp.vt[(k, c)].powi(2))
@@ -393,11 +424,12 @@ impl Engine {
             DMatrix::zeros(0, 0)
         };
         let candidate = Candidate {
-            a,
+            a: a.as_ref(),
+            entries,
             u: &u,
             res_w: &after_w,
         };
-        let heldout = self.heldout_sum(design, fold_fits, &full.res_w, Some(&candidate));
+        let heldout = self.heldout_sum(design, fold_fits, &full.res_w, Some((&candidate, columns)));
         Eval {
             chi2_drop,
             df,

@@ -163,11 +163,11 @@ pub fn select<C: Client>(
             let Some((effect, searched)) = client.search(candidate, &full) else {
                 continue;
             };
-            let mut eval = engine.evaluate(&design, &full, &fold_fits, &client.columns(&effect));
+            let mut eval = engine.evaluate(&design, &full, &fold_fits, &|| client.columns(&effect));
             let effect = match client.constrained(&effect, eval.theta.as_slice()) {
                 Some(constrained) => {
-                    let held =
-                        engine.evaluate(&design, &full, &fold_fits, &client.columns(&constrained));
+                    let held = engine
+                        .evaluate(&design, &full, &fold_fits, &|| client.columns(&constrained));
                     eval.heldout_ms = held.heldout_ms;
                     eval.heldout_z2 = held.heldout_z2;
                     constrained
