@@ -5,7 +5,9 @@
 //! are printed (the goal: ≤ 10× its wall time, ≤ 2× its peak memory).
 //!
 //! `cargo bench --bench diagnose_session` (sizes: `DIAGNOSE_BENCH_POINTS=1000,10000`;
-//! `DIAGNOSE_BENCH_NO_BUDGET=1` runs a size the diagnosis's memory estimate would refuse).
+//! `DIAGNOSE_BENCH_NO_BUDGET=1` runs a size the diagnosis's memory estimate would refuse;
+//! `DIAGNOSE_BENCH_MEMORY_LIMIT=BYTES` diagnoses under that limit: 0 shows each size's estimate
+//! in its refusal).
 
 mod common;
 
@@ -81,6 +83,12 @@ fn child(path: &Path) {
     if std::env::var_os("DIAGNOSE_BENCH_NO_BUDGET").is_some() {
         // The peak the diagnosis reaches, whatever its estimate before the work says.
         options.memory_limit_bytes = Some(u64::MAX);
+    }
+    if let Some(limit) = std::env::var("DIAGNOSE_BENCH_MEMORY_LIMIT")
+        .ok()
+        .and_then(|v| v.parse().ok())
+    {
+        options.memory_limit_bytes = Some(limit);
     }
     let (diagnosis, dt, heap) = measure(|| diagnose_file(path, &options));
     let cpu = cpu_seconds_since(cpu0);

@@ -28,13 +28,13 @@ pub struct TooLarge {
     pub available_from: String,
 }
 
-/// Bytes the diagnosis of `data` with `folds` cross-validation folds allocates at its peak
-/// (beyond the session and its extracted data, already in memory): the fits of every fold
-/// (points eliminated: a 3 × 3 block per point and the reduced system of stations, segments
-/// and effects), the design with every effect of the library accepted (the worst case), the
-/// candidate under evaluation with its projections on the threads that evaluate the folds,
-/// and the leave-one-station-out blocks.
-pub fn estimate_bytes(data: &Data, folds: usize) -> u64 {
+/// Bytes the diagnosis of `data` allocates at its peak (beyond the session and its extracted
+/// data, already in memory): a few fits at once (points eliminated: a 3 × 3 block per point
+/// and the reduced system of stations, segments and effects), the design with every effect of
+/// the library accepted (the worst case), the folds downdated from the full fit (each length's
+/// row of the reduced system's part, with its point's block), the candidate under evaluation
+/// with its projection and that projection's basis, and the leave-one-station-out blocks.
+pub fn estimate_bytes(data: &Data) -> u64 {
     let n = data.obs.len() as u64;
     let points = data.problem.nominal_points.len() as u64;
     let segments = data.problem.segments.len() as u64;
@@ -52,19 +52,26 @@ pub fn estimate_bytes(data: &Data, folds: usize) -> u64 {
         + 9 * points * F64
         + 4 * global * global * F64
         + 8 * (3 * points + global) * F64;
-    let fits = (folds as u64 + 3) * fit;
+    // The full fit, leave one station out's on its threads, a fold refitted.
+    let threads = parallel::threads(MAX_FOLD_THREADS) as u64;
+    let fits = (2 + threads) * fit;
     // The design: 7 words of geometry per row and the accepted effects' columns.
     let design = n * (7 + all_effects) * F64;
-    // The candidate's columns, the full fit's projection of them, and per fold thread its
-    // projected copy with the rows' entries gathered for the projection (11 words a row).
-    let threads = parallel::threads(MAX_FOLD_THREADS) as u64;
-    let candidates = (2 + threads) * n * widest * F64 + threads * 11 * n * F64;
+    // The folds' downdates: every length is held out once, with its row of D⁻¹L (at most the
+    // reduced system's width) and its point's block in its fold.
+    let downdates = n * (global + 12) * F64;
+    // The candidate's columns, their whitened projection (factorised in place) and its
+    // orthonormal basis, with the rows' entries gathered for the projection (11 words a row).
+    let candidates = 3 * n * widest * F64 + 11 * n * F64;
     // The change-point search's and leverages' per-point rows of the reduced system.
     let reduced = 3 * points * global * F64;
-    // Leave one station out: its held lengths against the reduced system.
+    // Leave one station out: its held lengths against the reduced system, on its threads.
     let held = n.div_ceil(stations.max(1));
-    let loso = 4 * held * global * F64;
-    ((fits + design + candidates + reduced + loso) as f64 * MARGIN) as u64
+    let loso = threads * 4 * held * global * F64;
+    // A candidate's evaluation, the change-point search and leave one station out come one
+    // after another: the largest of them is what the peak holds.
+    let phase = candidates.max(reduced).max(loso);
+    ((fits + design + downdates + phase) as f64 * MARGIN) as u64
 }
 
 /// `MemAvailable` of /proc/meminfo in bytes, when the system reports it.
@@ -78,7 +85,7 @@ pub fn available_bytes() -> Option<u64> {
 
 /// Refuse, before any work, a diagnosis estimated to need more than `limit` bytes (None: the
 /// machine's available memory; no check where the system does not report it).
-pub fn check(data: &Data, folds: usize, limit: Option<u64>) -> Result<(), TooLarge> {
+pub fn check(data: &Data, limit: Option<u64>) -> Result<(), TooLarge> {
     let (available, source) = match limit {
         Some(l) => (l, "the memory limit of the options".to_string()),
         None => match available_bytes() {
@@ -86,7 +93,7 @@ pub fn check(data: &Data, folds: usize, limit: Option<u64>) -> Result<(), TooLar
             None => return Ok(()),
         },
     };
-    let needed = estimate_bytes(data, folds);
+    let needed = estimate_bytes(data);
     if needed <= available {
         return Ok(());
     }

@@ -291,7 +291,7 @@ pub(crate) fn diagnose_data(
     options: &DiagnoseOptions,
 ) -> Result<DataDiagnosis, DiagnoseError> {
     let k_folds = options.folds.max(data.station_ids.len());
-    budget::check(data, k_folds, options.memory_limit_bytes)?;
+    budget::check(data, options.memory_limit_bytes)?;
     let solution = solve(&data.problem, &SolveOptions::default())?;
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
