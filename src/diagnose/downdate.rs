@@ -72,7 +72,7 @@ impl FoldDowndate {
             let d = DMatrix::identity(n, n) - block;
             d_inv.push((positions.clone(), inverse_if_kept(d)?));
         }
-        let g = apply_blocks(&d_inv, &hat.low);
+        let g = apply_d_inv(&d_inv, &hat.low);
         let r = hat.low.ncols();
         let k = DMatrix::identity(r, r) - hat.low.tr_mul(&g);
         let k_inv = inverse_if_kept(symmetrised(k))?;
@@ -103,7 +103,7 @@ impl FoldDowndate {
     /// The held rows' residuals predicted from the training rows: (I − H_kk)⁻¹ e.
     pub fn residuals(&self, e: &DVector<f64>) -> DVector<f64> {
         let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-        let d_e = apply_blocks(&self.d_inv, &e_m).column(0).into_owned();
+        let d_e = apply_d_inv(&self.d_inv, &e_m).column(0).into_owned();
         let correction = &self.g * (&self.k_inv * self.g.tr_mul(e));
         d_e + correction
     }
@@ -113,7 +113,7 @@ impl FoldDowndate {
     /// training rows nearly lose one of the candidate's directions.
     pub fn residuals_with(&self, u: &DMatrix<f64>, e: &DVector<f64>) -> Option<DVector<f64>> {
         let (r, c) = (self.g.ncols(), u.ncols());
-        let gu = apply_blocks(&self.d_inv, u);
+        let gu = apply_d_inv(&self.d_inv, u);
         // K_aug = I − [L U]ᵀ D⁻¹ [L U] = [[K, −X], [−Xᵀ, C]], X = LᵀD⁻¹U.
         let cross = self.g.tr_mul(u);
         let corner = DMatrix::identity(c, c) - u.tr_mul(&gu);
@@ -129,7 +129,7 @@ impl FoldDowndate {
         let y_top = &k_top + &k_cross * &y_bottom;
         debug_assert_eq!((y_top.len(), y_bottom.len()), (r, c));
         let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-        let d_e = apply_blocks(&self.d_inv, &e_m).column(0).into_owned();
+        let d_e = apply_d_inv(&self.d_inv, &e_m).column(0).into_owned();
         Some(d_e + &self.g * y_top + gu * y_bottom)
     }
 }
@@ -139,11 +139,14 @@ fn symmetrised(m: DMatrix<f64>) -> DMatrix<f64> {
     (m + t) * 0.5
 }
 
-/// blockdiag(blocks) · v (v one row per position).
-fn apply_blocks(blocks: &[(Vec<usize>, DMatrix<f64>)], v: &DMatrix<f64>) -> DMatrix<f64> {
+/// blockdiag(blocks) · v (v one row per position; each block with its positions).
+pub fn apply_blocks<'a>(
+    blocks: impl IntoIterator<Item = (&'a [usize], &'a DMatrix<f64>)>,
+    v: &DMatrix<f64>,
+) -> DMatrix<f64> {
     let mut out = DMatrix::zeros(v.nrows(), v.ncols());
-    for c in 0..v.ncols() {
-        for (positions, block) in blocks {
+    for (positions, block) in blocks {
+        for c in 0..v.ncols() {
             for (x, &px) in positions.iter().enumerate() {
                 out[(px, c)] = positions
                     .iter()
@@ -154,6 +157,11 @@ fn apply_blocks(blocks: &[(Vec<usize>, DMatrix<f64>)], v: &DMatrix<f64>) -> DMat
         }
     }
     out
+}
+
+/// [`apply_blocks`] of a fold's D⁻¹.
+fn apply_d_inv(d_inv: &[(Vec<usize>, DMatrix<f64>)], v: &DMatrix<f64>) -> DMatrix<f64> {
+    apply_blocks(d_inv.iter().map(|(p, b)| (p.as_slice(), b)), v)
 }
 
 #[cfg(test)]

@@ -86,6 +86,29 @@ pub struct HeldOutStation {
     pub p_value: f64,
 }
 
+impl HeldOutStation {
+    /// A station's figures from its held-out sums: the residuals' and the predicted floor's
+    /// sums of squares (m²), χ² with `dof`, Bonferroni over `stations`.
+    pub fn from_sums(
+        station: String,
+        lengths: usize,
+        dof: usize,
+        (ss_m2, floor_m2): (f64, f64),
+        chi2: f64,
+        stations: usize,
+    ) -> HeldOutStation {
+        HeldOutStation {
+            station,
+            lengths,
+            dof,
+            heldout_rms_m: (ss_m2 / lengths as f64).sqrt(),
+            floor_m: (floor_m2 / lengths as f64).sqrt(),
+            ratio: (chi2 / dof.max(1) as f64).sqrt(),
+            p_value: (super::stats::chi2_sf(chi2, dof as f64) * stations as f64).min(1.0),
+        }
+    }
+}
+
 /// The recording's points minus the twin's (per pass), whitened by both covariances.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
 pub struct TwinPointsGap {

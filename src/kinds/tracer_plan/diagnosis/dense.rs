@@ -10,7 +10,7 @@ use nalgebra::{DMatrix, DVector};
 use super::data::Data;
 use super::loso::HeldOutStation;
 use super::schur::Design;
-use super::stats::{chi2_sf, Basis, RANK_TOL};
+use super::stats::{Basis, RANK_TOL};
 
 /// The least-squares fit of a design on a set of its rows by the dense thin SVD.
 pub struct DenseFit {
@@ -171,15 +171,14 @@ pub fn leave_one_station_out(
         }
         let ss_m2: f64 = (0..nh).map(|r| (rz[r] / w[held[r]]).powi(2)).sum();
         let floor_m2: f64 = (0..nh).map(|r| c[(r, r)] / w[held[r]].powi(2)).sum();
-        out.push(HeldOutStation {
-            station: id.clone(),
-            lengths: nh,
+        out.push(HeldOutStation::from_sums(
+            id.clone(),
+            nh,
             dof,
-            heldout_rms_m: (ss_m2 / nh as f64).sqrt(),
-            floor_m: (floor_m2 / nh as f64).sqrt(),
-            ratio: (stat / dof.max(1) as f64).sqrt(),
-            p_value: (chi2_sf(stat, dof as f64) * m as f64).min(1.0),
-        });
+            (ss_m2, floor_m2),
+            stat,
+            m,
+        ));
     }
     (out, skipped)
 }

@@ -8,11 +8,12 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Vector3};
 
+use crate::diagnose::downdate::apply_blocks;
 use crate::parallel;
 
 use super::data::Data;
 use super::schur::{Design, Schur};
-use super::stats::{chi2_sf, Basis, RANK_TOL};
+use super::stats::{Basis, RANK_TOL};
 
 /// Per station, in the linearised nominal model around the full fit (`design`: the nominal
 /// design at the full fit; `resid_m` its residuals). Stations whose removal leaves the points
@@ -128,20 +129,13 @@ fn held_out_station(
         })
         .collect();
     let e_apply = |v: &DMatrix<f64>, inverse: bool| {
-        let mut outm = DMatrix::zeros(v.nrows(), v.ncols());
-        for (rows, e, inv) in &blocks {
-            let mat = if inverse { inv } else { e };
-            for c in 0..v.ncols() {
-                for (x, &rx) in rows.iter().enumerate() {
-                    outm[(rx, c)] = rows
-                        .iter()
-                        .enumerate()
-                        .map(|(y, &ry)| mat[(x, y)] * v[(ry, c)])
-                        .sum();
-                }
-            }
-        }
-        outm
+        apply_blocks(
+            blocks.iter().map(|(rows, e, inv)| {
+                let mat = if inverse { inv } else { e };
+                (rows.as_slice(), mat)
+            }),
+            v,
+        )
     };
     // Q⁻¹ = E⁻¹ − E⁻¹F (I + FᵀE⁻¹F)⁻¹ FᵀE⁻¹ (Woodbury).
     let einv_f = e_apply(&f, true);
@@ -195,13 +189,12 @@ fn held_out_station(
     };
     let ss_m2: f64 = (0..nh).map(|r| (rz[r] / w[held[r]]).powi(2)).sum();
     let floor_m2: f64 = (0..nh).map(|r| c_diag(r) / w[held[r]].powi(2)).sum();
-    StationOut::Held(HeldOutStation {
-        station: id.clone(),
-        lengths: nh,
+    StationOut::Held(HeldOutStation::from_sums(
+        id.clone(),
+        nh,
         dof,
-        heldout_rms_m: (ss_m2 / nh as f64).sqrt(),
-        floor_m: (floor_m2 / nh as f64).sqrt(),
-        ratio: (stat / dof.max(1) as f64).sqrt(),
-        p_value: (chi2_sf(stat, dof as f64) * m as f64).min(1.0),
-    })
+        (ss_m2, floor_m2),
+        stat,
+        m,
+    ))
 }
