@@ -102,17 +102,20 @@ impl FoldDowndate {
 
     /// The held rows' residuals predicted from the training rows: (I − H_kk)⁻¹ e.
     pub fn residuals(&self, e: &DVector<f64>) -> DVector<f64> {
+        self.d_inv_times(e) + &self.g * (&self.k_inv * self.g.tr_mul(e))
+    }
+
+    /// D⁻¹ e.
+    fn d_inv_times(&self, e: &DVector<f64>) -> DVector<f64> {
         let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-        let d_e = apply_d_inv(&self.d_inv, &e_m).column(0).into_owned();
-        let correction = &self.g * (&self.k_inv * self.g.tr_mul(e));
-        d_e + correction
+        apply_d_inv(&self.d_inv, &e_m).column(0).into_owned()
     }
 
     /// The same with a candidate's projected columns' orthonormal basis `u` (held rows) added
     /// to the model, `e` the residuals of the full fit with the candidate; None where the
     /// training rows nearly lose one of the candidate's directions.
     pub fn residuals_with(&self, u: &DMatrix<f64>, e: &DVector<f64>) -> Option<DVector<f64>> {
-        let (r, c) = (self.g.ncols(), u.ncols());
+        let c = u.ncols();
         let gu = apply_d_inv(&self.d_inv, u);
         // K_aug = I − [L U]ᵀ D⁻¹ [L U] = [[K, −X], [−Xᵀ, C]], X = LᵀD⁻¹U.
         let cross = self.g.tr_mul(u);
@@ -127,10 +130,7 @@ impl FoldDowndate {
         let k_top = &self.k_inv * &top;
         let y_bottom = &schur_inv * (&bottom + cross.tr_mul(&k_top));
         let y_top = &k_top + &k_cross * &y_bottom;
-        debug_assert_eq!((y_top.len(), y_bottom.len()), (r, c));
-        let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-        let d_e = apply_d_inv(&self.d_inv, &e_m).column(0).into_owned();
-        Some(d_e + &self.g * y_top + gu * y_bottom)
+        Some(self.d_inv_times(e) + &self.g * y_top + gu * y_bottom)
     }
 }
 

@@ -152,6 +152,11 @@ pub struct Engine {
 }
 
 impl Engine {
+    /// Whether `rows` are every row, in order (then a position is a row).
+    fn is_every_row(&self, rows: &[usize]) -> bool {
+        rows.len() == self.r.len() && rows.iter().enumerate().all(|(k, &i)| k == i)
+    }
+
     /// A fold's training rows: every row it does not hold out, ascending.
     pub fn training_rows(&self, fold: usize) -> Vec<usize> {
         let mut held = vec![false; self.r.len()];
@@ -329,8 +334,7 @@ impl Engine {
         design: &D,
         full: &BaseFit<D::Fit>,
     ) -> Vec<FoldFit<D::Fit>> {
-        let on_all_rows =
-            full.rows.iter().enumerate().all(|(k, &i)| k == i) && full.rows.len() == self.r.len();
+        let on_all_rows = self.is_every_row(&full.rows);
         let sets: Vec<&[usize]> = self.folds.iter().map(Vec::as_slice).collect();
         let hats = on_all_rows
             .then(|| full.basis.hat_rows(&sets))
@@ -376,9 +380,7 @@ impl Engine {
         columns: &dyn Fn() -> DMatrix<f64>,
     ) -> Eval {
         let any_refit = fold_fits.iter().any(|f| matches!(f, FoldFit::Refit(_)));
-        let on_all_rows =
-            full.rows.iter().enumerate().all(|(k, &i)| k == i) && full.rows.len() == self.r.len();
-        let (a, aw) = if any_refit || !on_all_rows {
+        let (a, aw) = if any_refit || !self.is_every_row(&full.rows) {
             let a = columns();
             let aw = self.whitened_rows(&a, &full.rows);
             (Some(a), aw)
