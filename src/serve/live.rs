@@ -12,7 +12,7 @@ use anyhow::Context as _;
 use foxglove::{Context, PartialMetadata, RawChannel, Schema, WebSocketServerHandle};
 
 pub use super::live_guard::LiveAccess;
-use super::live_guard::{front, RunEnds};
+use super::live_guard::{front, ChannelCreation, Front, RunEnds};
 use crate::session::tap::{MessageTap, TapChannel, TappedMessage};
 
 /// Messages waiting for the publisher thread; beyond this the live view drops (the recorded
@@ -94,7 +94,16 @@ impl LiveView {
             .context("reading the live view's bound address")?;
         let inner = SocketAddr::from(([127, 0, 0, 1], started.port()));
         let run_ends = Arc::new(RunEnds::default());
-        handle.spawn(front(listener, inner, Arc::new(access), run_ends.clone()));
+        let creation = Arc::new(ChannelCreation::default());
+        handle.spawn(front(
+            listener,
+            Arc::new(Front {
+                inner,
+                access,
+                run_ends: run_ends.clone(),
+                creation: creation.clone(),
+            }),
+        ));
 
         let (sender, receiver) = sync_channel(QUEUE_CAPACITY);
         let published = Arc::new(AtomicU64::new(0));
@@ -102,7 +111,7 @@ impl LiveView {
             let published = published.clone();
             std::thread::Builder::new()
                 .name("geocal-live-publish".into())
-                .spawn(move || publish(context, receiver, published))
+                .spawn(move || publish(context, receiver, published, &creation))
                 .context("starting the live view's publisher thread")?
         };
         tracing::info!(address = %bound, "live view: Foxglove WebSocket server listening");
@@ -196,12 +205,17 @@ impl MessageTap for LiveView {
 }
 
 /// The publisher thread: one Foxglove channel per recorded channel, created on first use.
-fn publish(context: Arc<Context>, receiver: Receiver<Pending>, published: Arc<AtomicU64>) {
+fn publish(
+    context: Arc<Context>,
+    receiver: Receiver<Pending>,
+    published: Arc<AtomicU64>,
+    creation: &ChannelCreation,
+) {
     let mut channels: HashMap<u16, Option<Arc<RawChannel>>> = HashMap::new();
     while let Ok(message) = receiver.recv() {
-        let channel = channels
-            .entry(message.channel.id)
-            .or_insert_with(|| live_channel(&context, &message.channel));
+        let channel = channels.entry(message.channel.id).or_insert_with(|| {
+            creation.hold_clients_during(|| live_channel(&context, &message.channel))
+        });
         if let Some(channel) = channel {
             channel.log_with_meta(
                 &message.data,

@@ -160,16 +160,11 @@ impl RunEnds {
     }
 }
 
-/// Accept on `listener` and splice every admitted connection to `inner` (the Foxglove
-/// server's internal loopback address). A connection waits (`door`) until its handshake has
+/// Accept on `listener` and splice every admitted connection to the Foxglove server
+/// (`Front::inner`). A connection waits (`door`) until its handshake has
 /// passed the checks, and only then takes one of the `MAX_CONNECTIONS` slots: a peer without
 /// the token holds none. Runs until its runtime stops.
-pub async fn front(
-    listener: TcpListener,
-    inner: SocketAddr,
-    access: Arc<LiveAccess>,
-    run_ends: Arc<RunEnds>,
-) {
+pub async fn front(listener: TcpListener, shared: Arc<Front>) {
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     let waiting = Waiting::new(super::http::MAX_WAITING);
     loop {
@@ -182,15 +177,14 @@ pub async fn front(
             }
         };
         let entry = waiting.enter();
-        let access = access.clone();
+        let shared = shared.clone();
         let slots = slots.clone();
-        let run_ends = run_ends.clone();
         tokio::spawn(async move {
             tokio::select! {
                 _ = entry.pushed_out() => {
                     tracing::debug!(%peer, "live view: a waiting connection pushed out by newer ones");
                 }
-                _ = connection(stream, peer, inner, &access, &entry, &slots, &run_ends) => {}
+                _ = connection(stream, peer, &shared, &entry, &slots) => {}
             }
         });
     }
@@ -199,12 +193,17 @@ pub async fn front(
 async fn connection(
     mut stream: TcpStream,
     peer: SocketAddr,
-    inner: SocketAddr,
-    access: &LiveAccess,
+    shared: &Front,
     entry: &Entry,
     slots: &Arc<tokio::sync::Semaphore>,
-    run_ends: &RunEnds,
 ) {
+    let Front {
+        inner,
+        access,
+        run_ends,
+        creation,
+    } = shared;
+    let inner = *inner;
     let head = match tokio::time::timeout(HANDSHAKE_TIMEOUT, read_head(&mut stream)).await {
         Ok(Ok(head)) => head,
         Ok(Err(reason)) => {
@@ -247,11 +246,60 @@ async fn connection(
         return;
     }
     tokio::select! {
-        _ = tokio::io::copy_bidirectional(&mut stream, &mut upstream) => {}
+        _ = splice(&mut stream, &mut upstream, creation) => {}
         _ = run_ended.cancelled() => {
             tracing::debug!(%peer, "live view: the run ended, disconnecting");
         }
     }
+}
+
+/// What the front's connections share.
+pub struct Front {
+    /// The Foxglove server's internal loopback address.
+    pub inner: SocketAddr,
+    pub access: LiveAccess,
+    pub run_ends: Arc<RunEnds>,
+    pub creation: Arc<ChannelCreation>,
+}
+
+/// Held for writing while the live view creates a channel. The Foxglove server (0.30) sends
+/// a new channel's advertisement to its clients before it files the channel as advertised to
+/// them; a client that answers with a subscription within that moment is told "unknown
+/// channel" and never gets the channel's messages. The front forwards nothing from a client
+/// to the server while a channel is being created, so every subscription arrives after.
+#[derive(Default)]
+pub struct ChannelCreation(tokio::sync::RwLock<()>);
+
+impl ChannelCreation {
+    /// Create a channel (`create`) with the clients' messages held back meanwhile. Blocks:
+    /// for a plain thread, never an async task.
+    pub fn hold_clients_during<T>(&self, create: impl FnOnce() -> T) -> T {
+        let _creating = self.0.blocking_write();
+        create()
+    }
+}
+
+/// Copy both ways until both sides have closed (as `tokio::io::copy_bidirectional`), holding
+/// the client's bytes back while a channel is being created.
+async fn splice(client: &mut TcpStream, server: &mut TcpStream, creation: &ChannelCreation) {
+    let (mut from_client, mut to_client) = client.split();
+    let (mut from_server, mut to_server) = server.split();
+    let downstream = async {
+        tokio::io::copy(&mut from_server, &mut to_client).await?;
+        to_client.shutdown().await
+    };
+    let upstream = async {
+        let mut buffer = vec![0u8; 16 * 1024];
+        loop {
+            let n = from_client.read(&mut buffer).await?;
+            if n == 0 {
+                return to_server.shutdown().await;
+            }
+            let _no_channel_being_created = creation.0.read().await;
+            to_server.write_all(&buffer[..n]).await?;
+        }
+    };
+    let _ = tokio::try_join!(downstream, upstream);
 }
 
 /// The request's bytes up to and including the blank line ending its headers. Clients wait
@@ -417,5 +465,67 @@ mod tests {
         assert_eq!(refusal(&open_console, &rebound("localhost")), None);
         assert_eq!(refusal(&open_console, &rebound("127.0.0.1")), None);
         assert_eq!(refusal(&open_console, &rebound("evil.example")), Some(403));
+    }
+
+    /// A client's subscription must not reach the server while a channel is being created
+    /// (its advertisement may be out before the server knows it sent it), and must once the
+    /// creation is done.
+    #[test]
+    fn client_bytes_wait_while_a_channel_is_created() {
+        let runtime = tokio::runtime::Runtime::new().unwrap();
+        let server = runtime.block_on(TcpListener::bind("127.0.0.1:0")).unwrap();
+        let listener = runtime.block_on(TcpListener::bind("127.0.0.1:0")).unwrap();
+        let address = listener.local_addr().unwrap();
+        let creation = Arc::new(ChannelCreation::default());
+        runtime.spawn(front(
+            listener,
+            Arc::new(Front {
+                inner: server.local_addr().unwrap(),
+                access: LiveAccess::default(),
+                run_ends: Arc::new(RunEnds::default()),
+                creation: creation.clone(),
+            }),
+        ));
+        // What the server receives after the handshake, as it arrives.
+        let (received, arrivals) = std::sync::mpsc::channel::<Vec<u8>>();
+        runtime.spawn(async move {
+            let (mut upstream, _) = server.accept().await.unwrap();
+            let head = read_head(&mut upstream).await.unwrap();
+            assert!(head.starts_with(b"GET / HTTP/1.1"));
+            let mut buffer = [0u8; 256];
+            loop {
+                let n = upstream.read(&mut buffer).await.unwrap();
+                if n == 0 || received.send(buffer[..n].to_vec()).is_err() {
+                    break;
+                }
+            }
+        });
+        let mut client = std::net::TcpStream::connect(address).unwrap();
+        client
+            .write_all(format!("GET / HTTP/1.1\r\nHost: {address}\r\n\r\n").as_bytes())
+            .unwrap();
+        let (release, released) = std::sync::mpsc::channel::<()>();
+        let (holding, held) = std::sync::mpsc::channel::<()>();
+        let creator = std::thread::spawn(move || {
+            creation.hold_clients_during(|| {
+                holding.send(()).unwrap();
+                released.recv().unwrap();
+            })
+        });
+        held.recv().unwrap();
+        use std::io::Write as _;
+        client.write_all(b"subscribe").unwrap();
+        assert_eq!(
+            arrivals.recv_timeout(Duration::from_millis(300)),
+            Err(std::sync::mpsc::RecvTimeoutError::Timeout),
+            "forwarded while a channel was being created"
+        );
+        release.send(()).unwrap();
+        creator.join().unwrap();
+        let mut forwarded = Vec::new();
+        while forwarded.len() < b"subscribe".len() {
+            forwarded.extend(arrivals.recv_timeout(Duration::from_secs(30)).unwrap());
+        }
+        assert_eq!(forwarded, b"subscribe");
     }
 }

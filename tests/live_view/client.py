@@ -1,6 +1,7 @@
 """A minimal Foxglove WebSocket client (subprotocol foxglove.sdk.v1, which the foxglove 0.30 server speaks): subscribe to one topic and
 print every message data frame received on it as a JSON line {log_time_ns, payload_hex}
-(after a line {"connected": true} once the server accepted the connection).
+(after a line {"connected": true} once the server accepted the connection; the server's
+status messages, e.g. a refused subscription, as lines {"status": ...}).
 
 Usage: client.py ws://HOST:PORT TOPIC COUNT
 """
@@ -30,6 +31,8 @@ async def main(url, topic, count):
                                 "subscriptions": [{"id": 7, "channelId": channel["id"]}],
                             }))
                             subscribed = 7
+                elif message.get("op") == "status":
+                    print(json.dumps({"status": message}), flush=True)
                 continue
             # Binary: opcode 1 = message data: u32 subscription id, u64 log time, payload.
             if frame[0] != 1:

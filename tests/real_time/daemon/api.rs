@@ -1066,6 +1066,8 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         first.contains("connected"),
         "the Foxglove client: {first:?}"
     );
+    // Read as it comes: a client blocked on a full pipe would stop reading its socket.
+    let watched = std::thread::spawn(move || lines.map_while(Result::ok).collect::<Vec<_>>());
     // A second viewer, on a raw socket: it must be disconnected when the run ends.
     let live_address = live
         .trim_start_matches("ws://")
@@ -1129,13 +1131,16 @@ fn a_foxglove_client_watches_a_hil_run_live() {
     disconnected
         .recv_timeout(Duration::from_secs(120))
         .expect("the live viewer is disconnected once the run has ended");
-    let stdout: Vec<String> = lines.map_while(Result::ok).collect();
     let output = watcher.wait_with_output().expect("the watcher ends");
+    let stdout = watched.join().expect("the watcher's reader");
     assert!(
         output.status.success(),
-        "the Foxglove client failed after {} lines (first: {:?}): {}",
+        "the Foxglove client failed after {} lines (those without data: {:?}): {}",
         stdout.len(),
-        stdout.first(),
+        stdout
+            .iter()
+            .filter(|l| !l.contains("payload_hex"))
+            .collect::<Vec<_>>(),
         String::from_utf8_lossy(&output.stderr)
     );
     let received: Vec<(u64, Vec<u8>)> = stdout
