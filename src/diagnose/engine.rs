@@ -91,7 +91,9 @@ pub type Bases<F> = (BaseFit<F>, Vec<FoldFit<F>>, HeldOut);
 struct Candidate<'a> {
     a: Option<&'a DMatrix<f64>>,
     entries: usize,
-    u: &'a DMatrix<f64>,
+    /// Its columns projected off the full fit, for their orthonormal basis U's rows (where a
+    /// fold is downdated).
+    projected: Option<&'a Projected>,
     res_w: &'a DVector<f64>,
 }
 
@@ -268,8 +270,10 @@ impl Engine {
             FoldFit::Downdated(downdate) => {
                 let residuals = match candidate {
                     None => downdate.residuals(&full_res_w.select_rows(held)),
-                    Some(c) => downdate
-                        .residuals_with(&c.u.select_rows(held), &c.res_w.select_rows(held))?,
+                    Some(c) => {
+                        let u = c.projected?.u_rows(held);
+                        downdate.residuals_with(&u, &c.res_w.select_rows(held))?
+                    }
                 };
                 (downdate, residuals)
             }
@@ -416,19 +420,14 @@ impl Engine {
             })
             .collect();
         let df = perp.rank();
-        // The downdated folds need the projected columns' basis, the refitted ones nothing of
-        // the full fit's.
+        // The downdated folds need the projected columns, the refitted ones nothing of the
+        // full fit's.
         let any_downdated = fold_fits.iter().any(|f| matches!(f, FoldFit::Downdated(_)));
-        let u = if any_downdated {
-            perp.into_u()
-        } else {
-            drop(perp);
-            DMatrix::zeros(0, 0)
-        };
+        let perp = any_downdated.then_some(perp);
         let candidate = Candidate {
             a: a.as_ref(),
             entries,
-            u: &u,
+            projected: perp.as_ref(),
             res_w: &after_w,
         };
         let heldout = self.heldout_sum(design, fold_fits, &full.res_w, Some((&candidate, columns)));

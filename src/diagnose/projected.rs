@@ -1,14 +1,15 @@
 //! A candidate effect's whitened columns projected off a base fit, and their factorisation:
-//! from the k × k Gram matrix where that is as accurate as the SVD (time n k², no n × k
-//! orthonormal factor, no SVD of a tall matrix), else through the columns' Householder QR and
-//! the SVD of its k × k factor (`stats::QrBasis`, as accurate as the SVD of the tall matrix);
-//! always by the SVD of the tall matrix when the diagnosis runs as its dense oracle, so that
+//! the singular values and right vectors from the k × k Gram matrix where that is as accurate
+//! as the SVD (time n k², no n × k orthonormal factor, no SVD of a tall matrix), else from the
+//! SVD of the columns' QR factor R (`stats::qr_right_factor`, as accurate as the SVD of the
+//! tall matrix); U = columns V S⁻¹ is never formed whole, only a fold's rows of it at a time.
+//! Always by the SVD of the tall matrix when the diagnosis runs as its dense oracle, so that
 //! the oracle checks both routes.
 
 use nalgebra::{DMatrix, DVector};
 
 use super::engine::LinearFit;
-use super::stats::{gram_factor, Basis, QrBasis, EFFECT_RANK_TOL};
+use super::stats::{gram_factor, qr_right_factor, Basis, EFFECT_RANK_TOL};
 
 pub struct Projected {
     /// Singular values and right singular vectors of the kept directions.
@@ -21,8 +22,6 @@ pub struct Projected {
 enum Left {
     /// The projected columns over the fit's rows (by position): U = columns V S⁻¹.
     Columns(DMatrix<f64>),
-    /// Their QR: U = Q U_R.
-    Qr(QrBasis),
     /// U itself (the dense oracle's SVD).
     U(DMatrix<f64>),
 }
@@ -40,19 +39,13 @@ impl Projected {
                 left: Left::U(basis.u),
             };
         }
-        if let Some((s, vt)) = gram_factor(&columns, EFFECT_RANK_TOL, reference) {
-            return Projected {
-                s,
-                vt,
-                left: Left::Columns(columns),
-            };
-        }
-        // A direction the model nearly absorbs: the Gram matrix cannot resolve it.
-        let basis = QrBasis::new(columns, EFFECT_RANK_TOL, reference);
+        // Else a direction the model nearly absorbs: the Gram matrix cannot resolve it.
+        let (s, vt) = gram_factor(&columns, EFFECT_RANK_TOL, reference)
+            .unwrap_or_else(|| qr_right_factor(&columns, EFFECT_RANK_TOL, reference));
         Projected {
-            s: basis.s.clone(),
-            vt: basis.vt.clone(),
-            left: Left::Qr(basis),
+            s,
+            vt,
+            left: Left::Columns(columns),
         }
     }
 
@@ -65,7 +58,6 @@ impl Projected {
     pub fn ut(&self, b: &DVector<f64>) -> DVector<f64> {
         match &self.left {
             Left::Columns(columns) => (&self.vt * columns.tr_mul(b)).component_div(&self.s),
-            Left::Qr(qr) => qr.ut(b),
             Left::U(u) => u.tr_mul(b),
         }
     }
@@ -74,7 +66,6 @@ impl Projected {
     pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
         match &self.left {
             Left::Columns(columns) => columns * self.v_scaled(c),
-            Left::Qr(qr) => qr.u_times(c),
             Left::U(u) => u * c,
         }
     }
@@ -92,15 +83,24 @@ impl Projected {
     /// The orthonormal basis U of the projected columns' span.
     pub fn into_u(self) -> DMatrix<f64> {
         match self.left {
-            Left::Columns(columns) => {
-                let scaled = DMatrix::from_fn(self.vt.ncols(), self.vt.nrows(), |c, k| {
-                    self.vt[(k, c)] / self.s[k]
-                });
-                columns * scaled
-            }
-            Left::Qr(qr) => qr.u(),
+            Left::Columns(ref columns) => columns * self.v_over_s(),
             Left::U(u) => u,
         }
+    }
+
+    /// Rows of U (positions among the fit's rows).
+    pub fn u_rows(&self, rows: &[usize]) -> DMatrix<f64> {
+        match &self.left {
+            Left::Columns(columns) => columns.select_rows(rows) * self.v_over_s(),
+            Left::U(u) => u.select_rows(rows),
+        }
+    }
+
+    /// V S⁻¹ (k × rank).
+    fn v_over_s(&self) -> DMatrix<f64> {
+        DMatrix::from_fn(self.vt.ncols(), self.vt.nrows(), |c, k| {
+            self.vt[(k, c)] / self.s[k]
+        })
     }
 }
 

@@ -239,73 +239,31 @@ pub fn gram_factor(
     Some((s, vt))
 }
 
-/// The thin SVD of a tall matrix (n × k, n ≫ k) through its Householder QR: the SVD of the
-/// k × k factor R gives the singular values and right vectors, U = Q U_R. Backward stable as
-/// the SVD of the whole matrix (the same directions above the rank cut to rounding), but the
-/// SVD's iterations run on k × k instead of rotating n-long columns, and Q is formed only when
-/// U itself is asked for: Uᵀ b applies the reflectors.
-pub struct QrBasis {
-    qr: nalgebra::QR<f64, nalgebra::Dyn, nalgebra::Dyn>,
-    /// Left singular vectors of R kept (min(n, k) × rank).
-    u_r: DMatrix<f64>,
-    pub s: DVector<f64>,
-    pub vt: DMatrix<f64>,
-}
-
-impl QrBasis {
-    /// Directions with singular value > tol · max(reference, largest singular value), as
-    /// [`Basis::new`] keeps them.
-    pub fn new(a: DMatrix<f64>, tol: f64, reference: f64) -> QrBasis {
-        let qr = a.qr();
-        let inner = Basis::new(&qr.r(), tol, reference);
-        QrBasis {
-            qr,
-            u_r: inner.u,
-            s: inner.s,
-            vt: inner.vt,
-        }
+/// Singular values and right vectors (Vᵀ) of a tall `a` (n × k, n ≫ k), the directions
+/// above the rank cut as [`Basis::new`] keeps them, from the SVD of the triangular factor R of
+/// its Householder QR. R is taken block of rows by block of rows (the R of [R so far; the next
+/// rows]): as backward stable as the SVD of the whole matrix, with one block in memory beside
+/// `a`, which stays as it is.
+pub fn qr_right_factor(a: &DMatrix<f64>, tol: f64, reference: f64) -> (DVector<f64>, DMatrix<f64>) {
+    const BLOCK: usize = 4096;
+    let (n, k) = a.shape();
+    if n == 0 || k == 0 {
+        return (DVector::zeros(0), DMatrix::zeros(0, k));
     }
-
-    /// Uᵀ b.
-    pub fn ut(&self, b: &DVector<f64>) -> DVector<f64> {
-        let mut y = b.clone();
-        self.qr.q_tr_mul(&mut y);
-        self.u_r.tr_mul(&y.rows(0, self.u_r.nrows()))
+    let mut r = DMatrix::<f64>::zeros(0, k);
+    let mut start = 0;
+    while start < n {
+        let len = BLOCK.min(n - start);
+        let mut stacked = DMatrix::zeros(r.nrows() + len, k);
+        stacked.rows_mut(0, r.nrows()).copy_from(&r);
+        stacked
+            .rows_mut(r.nrows(), len)
+            .copy_from(&a.rows(start, len));
+        r = stacked.qr().r();
+        start += len;
     }
-
-    /// U c, without forming Q (n × k): Q applied to (U_R c, 0) by its reflectors.
-    pub fn u_times(&self, c: &DVector<f64>) -> DVector<f64> {
-        let u_c = &self.u_r * c;
-        let top = DMatrix::from_column_slice(u_c.len(), 1, u_c.as_slice());
-        let y = self.q_times_top(&top);
-        DVector::from_column_slice(y.as_slice())
-    }
-
-    /// The orthonormal left factor U (n × rank), without forming Q.
-    pub fn u(&self) -> DMatrix<f64> {
-        self.q_times_top(&self.u_r)
-    }
-
-    /// Q (top; 0) by Q's reflectors, `top` k × m: Q = H_0 S_0 ⋯ H_(m−1) S_(m−1) (`QR::q`
-    /// applies the same steps to the identity), each sign that of R's diagonal entry: the
-    /// opposite of its unit reflector's first component (never 0), or + for a column already
-    /// zero (a zero reflector).
-    fn q_times_top(&self, top: &DMatrix<f64>) -> DMatrix<f64> {
-        let qr = self.qr.qr_internal();
-        let mut y = DMatrix::zeros(qr.nrows(), top.ncols());
-        y.rows_mut(0, top.nrows()).copy_from(top);
-        for i in (0..qr.nrows().min(qr.ncols())).rev() {
-            let axis = qr.view_range(i.., i);
-            let sign = if axis[0] == 0.0 {
-                1.0
-            } else {
-                -axis[0].signum()
-            };
-            let reflection = nalgebra::Reflection::new(nalgebra::Unit::new_unchecked(axis), 0.0);
-            reflection.reflect_with_sign(&mut y.rows_range_mut(i..), sign);
-        }
-        y
-    }
+    let basis = Basis::new(&r, tol, reference);
+    (basis.s, basis.vt)
 }
 
 /// Convergence tolerances of the SVD's bidiagonal iteration, tried in turn. nalgebra's
@@ -413,38 +371,38 @@ mod tests {
             _ => (7.0 * i as f64 / n as f64).sin() + 1e-4 * column(i, 3),
         });
         assert!(gram_factor(&b, EFFECT_RANK_TOL, b.column(0).norm()).is_none());
-        // There the QR route keeps the SVD's directions: singular values, V Vᵀ, U Uᵀ y, Uᵀ y.
-        let qr = QrBasis::new(b.clone(), EFFECT_RANK_TOL, b.column(0).norm());
+        // There the QR route keeps the SVD's directions: singular values, V Vᵀ, and with
+        // U = B V S⁻¹ the fitted values U Uᵀ y and Uᵀ y.
+        let (s, vt) = qr_right_factor(&b, EFFECT_RANK_TOL, b.column(0).norm());
         let svd = Basis::new(&b, EFFECT_RANK_TOL, b.column(0).norm());
-        assert_eq!(qr.s.len(), 2);
+        assert_eq!(s.len(), 2);
         assert_eq!(svd.rank(), 2);
-        assert!(
-            (&qr.s - &svd.s).amax() <= 1e-12 * svd.s[0],
-            "{} vs {}",
-            qr.s,
-            svd.s
-        );
-        let projector = qr.vt.transpose() * &qr.vt;
+        assert!((&s - &svd.s).amax() <= 1e-12 * svd.s[0], "{s} vs {}", svd.s);
+        let projector = vt.transpose() * &vt;
         assert!((projector - svd.vt.transpose() * &svd.vt).amax() <= 1e-10);
         let y = DVector::from_fn(n, |i, _| column(i, 3) + (5.0 * i as f64 / n as f64).cos());
-        // Both are backward stable: the fitted values agree to rounding times the condition.
-        let tol = 1e-14 * (svd.s[0] / svd.s[1]) * y.norm();
-        let (u, svd_ut) = (qr.u(), svd.u.tr_mul(&y));
-        let fitted = &u * qr.ut(&y);
-        let gap = (&fitted - &svd.u * &svd_ut).amax();
+        // Both are backward stable; U from B's columns loses orthogonality by rounding times
+        // the condition.
+        let condition = svd.s[0] / svd.s[1];
+        let tol = 1e-14 * condition * y.norm();
+        let u = &b * DMatrix::from_fn(2, 2, |c, k| vt[(k, c)] / s[k]);
+        let svd_ut = svd.u.tr_mul(&y);
+        let gap = (&u * u.tr_mul(&y) - &svd.u * &svd_ut).amax();
         assert!(
             gap <= tol,
             "fitted values {gap:e} apart (tolerance {tol:e})"
         );
-        assert!((qr.ut(&y).norm() - svd_ut.norm()).abs() <= tol);
-        assert!((u.tr_mul(&u) - DMatrix::identity(2, 2)).amax() <= 1e-13);
-        // U c by the reflectors is U (formed) times c, also past a column that is zero.
-        let c = DVector::from_vec(vec![0.7, -1.3]);
-        assert!((qr.u_times(&c) - &u * &c).amax() <= 1e-14 * c.norm());
-        let mut with_zero = b.clone();
-        with_zero.column_mut(0).fill(0.0);
-        let qr = QrBasis::new(with_zero, EFFECT_RANK_TOL, b.column(1).norm());
-        let c = DVector::from_element(qr.s.len(), 0.5);
-        assert!((qr.u_times(&c) - qr.u() * &c).amax() <= 1e-14 * c.norm());
+        assert!((u.tr_mul(&y).norm() - svd_ut.norm()).abs() <= tol);
+        assert!((u.tr_mul(&u) - DMatrix::identity(2, 2)).amax() <= 1e-14 * condition);
+        // Blocks of rows: a matrix over several of them, with a zero column, keeps the SVD's
+        // singular values.
+        let tall = DMatrix::from_fn(10_000, 3, |i, c| match c {
+            1 => 0.0,
+            _ => column(i, c) + (c as f64 * i as f64 / 10_000.0).sin(),
+        });
+        let (s, _) = qr_right_factor(&tall, EFFECT_RANK_TOL, tall.column(0).norm());
+        let svd = Basis::new(&tall, EFFECT_RANK_TOL, tall.column(0).norm());
+        assert_eq!(s.len(), svd.rank());
+        assert!((&s - &svd.s).amax() <= 1e-12 * svd.s[0], "{s} vs {}", svd.s);
     }
 }
