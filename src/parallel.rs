@@ -47,6 +47,25 @@ pub fn in_groups<T: Sync, R: Send>(
         .collect()
 }
 
+/// [`in_groups`] on owned items: `job` takes each item by value.
+pub fn in_groups_owned<T: Send, R: Send>(
+    items: Vec<T>,
+    threads: usize,
+    job: impl Fn(T) -> R + Sync,
+) -> Vec<R> {
+    let mut groups = Vec::new();
+    let mut rest = items.into_iter();
+    for size in balanced_groups(rest.len(), threads) {
+        groups.push(rest.by_ref().take(size).collect::<Vec<T>>());
+    }
+    in_parallel(groups, |group| {
+        group.into_iter().map(&job).collect::<Vec<_>>()
+    })
+    .into_iter()
+    .flatten()
+    .collect()
+}
+
 /// Splits `data` into consecutive pieces of the given lengths.
 pub fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
     let mut pieces = Vec::new();

@@ -63,25 +63,35 @@ pub struct FoldDowndate {
 }
 
 impl FoldDowndate {
-    /// None where the training rows lose (nearly) a direction that all rows determine.
-    pub fn new(hat: &HatRows) -> Option<FoldDowndate> {
-        let m = hat.low.nrows();
-        let mut d_inv = Vec::with_capacity(hat.groups.len());
-        for (positions, block) in &hat.groups {
-            let n = positions.len();
-            let d = DMatrix::identity(n, n) - block;
-            d_inv.push((positions.clone(), inverse_if_kept(d)?));
-        }
-        let g = apply_d_inv(&d_inv, &hat.low);
-        let r = hat.low.ncols();
-        let k = DMatrix::identity(r, r) - hat.low.tr_mul(&g);
-        let k_inv = inverse_if_kept(symmetrised(k))?;
+    /// None where the training rows lose (nearly) a direction that all rows determine. L's
+    /// storage becomes G's: a fold holds one of the two.
+    pub fn new(hat: HatRows) -> Option<FoldDowndate> {
+        let HatRows { groups, mut low } = hat;
+        let (m, r) = low.shape();
+        let mut d_inv = Vec::with_capacity(groups.len());
+        let mut k = DMatrix::identity(r, r);
         let mut inflation = vec![0.0; m];
-        for (positions, inv) in &d_inv {
+        let mut covered = vec![false; m];
+        for (positions, block) in groups {
+            let n = positions.len();
+            let inv = inverse_if_kept(DMatrix::identity(n, n) - block)?;
+            // K = I − Lᵀ D⁻¹ L by groups; the group's rows of L replaced by those of D⁻¹ L.
+            let l = low.select_rows(&positions);
+            let g = &inv * &l;
+            k -= l.tr_mul(&g);
             for (x, &pos) in positions.iter().enumerate() {
+                low.row_mut(pos).copy_from(&g.row(x));
                 inflation[pos] = inv[(x, x)];
+                covered[pos] = true;
             }
+            d_inv.push((positions, inv));
         }
+        // A row in no group has no block of D⁻¹ (as `apply_blocks` takes it).
+        for (pos, _) in covered.iter().enumerate().filter(|(_, &c)| !c) {
+            low.row_mut(pos).fill(0.0);
+        }
+        let g = low;
+        let k_inv = inverse_if_kept(symmetrised(k))?;
         let gk = &g * &k_inv;
         for (pos, out) in inflation.iter_mut().enumerate() {
             *out += gk.row(pos).dot(&g.row(pos));
@@ -216,7 +226,7 @@ mod tests {
         let u = svd.u.expect("u");
         let e = &y - &x * beta;
         let held = [1, 6, 11, 17, 30, 33];
-        let fold = FoldDowndate::new(&hat_rows(&u, &held)).expect("kept");
+        let fold = FoldDowndate::new(hat_rows(&u, &held)).expect("kept");
         let got = fold.residuals(&e.select_rows(&held));
         let want = refit(&x, &y, &held);
         assert!((&got - &want).norm() <= 1e-12 * want.norm(), "{got} {want}");
@@ -248,7 +258,7 @@ mod tests {
         // The candidate's columns projected off X, orthonormalised.
         let p = &extra - &u * u.tr_mul(&extra);
         let q = p.svd(true, false).u.expect("q");
-        let fold = FoldDowndate::new(&hat_rows(&u, &held)).expect("kept");
+        let fold = FoldDowndate::new(hat_rows(&u, &held)).expect("kept");
         let got = fold
             .residuals_with(&q.select_rows(&held), &e.select_rows(&held))
             .expect("kept");
@@ -290,7 +300,7 @@ mod tests {
             groups,
             low: ub.select_rows(&held),
         };
-        let fold = FoldDowndate::new(&hat).expect("kept");
+        let fold = FoldDowndate::new(hat).expect("kept");
         let got = fold.residuals(&e.select_rows(&held));
         let want = refit(&x, &y, &held);
         assert!((&got - &want).norm() <= 1e-12 * want.norm(), "{got} {want}");
@@ -304,7 +314,7 @@ mod tests {
             x[(r, 0)] = if r == 2 { 1.0 } else { 0.0 };
         }
         let u = x.svd(true, false).u.expect("u");
-        assert!(FoldDowndate::new(&hat_rows(&u, &[2, 7])).is_none());
-        assert!(FoldDowndate::new(&hat_rows(&u, &[3, 7])).is_some());
+        assert!(FoldDowndate::new(hat_rows(&u, &[2, 7])).is_none());
+        assert!(FoldDowndate::new(hat_rows(&u, &[3, 7])).is_some());
     }
 }

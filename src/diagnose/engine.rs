@@ -353,14 +353,13 @@ impl Engine {
             Some(hats) => hats.into_iter().map(Some).enumerate().collect(),
             None => (0..self.folds.len()).map(|k| (k, None)).collect(),
         };
-        parallel::in_groups(&jobs, threads, |(fold, hat)| {
-            let downdate = hat.as_ref().and_then(FoldDowndate::new);
-            match downdate {
+        parallel::in_groups_owned(jobs, threads, |(fold, hat)| {
+            match hat.and_then(FoldDowndate::new) {
                 Some(downdate) => FoldFit::Downdated(downdate),
                 None => FoldFit::Refit(self.fit_base(
                     design,
-                    self.training_rows(*fold),
-                    &self.folds[*fold],
+                    self.training_rows(fold),
+                    &self.folds[fold],
                 )),
             }
         })

@@ -33,7 +33,7 @@ pub struct TooLarge {
 /// and the reduced system of stations, segments and effects), the design with every effect of
 /// the library accepted (the worst case), the folds downdated from the full fit (each length's
 /// row of the reduced system's part, with its point's block), the candidate under evaluation
-/// with its projection and that projection's basis, and the leave-one-station-out blocks.
+/// with its projection, and the leave-one-station-out blocks.
 pub fn estimate_bytes(data: &Data) -> u64 {
     let n = data.obs.len() as u64;
     let points = data.problem.nominal_points.len() as u64;
@@ -60,9 +60,10 @@ pub fn estimate_bytes(data: &Data) -> u64 {
     // The folds' downdates: every length is held out once, with its row of D⁻¹L (at most the
     // reduced system's width) and its point's block in its fold.
     let downdates = n * (global + 12) * F64;
-    // The candidate's columns, their whitened projection (factorised in place) and its
-    // orthonormal basis, with the rows' entries gathered for the projection (11 words a row).
-    let candidates = 3 * n * widest * F64 + 11 * n * F64;
+    // The candidate's columns, whitened and projected in place (its basis is formed a fold's
+    // rows at a time), made again for a fold that is refitted, with the rows' entries gathered
+    // for the projection (11 words a row).
+    let candidates = 2 * n * widest * F64 + 11 * n * F64;
     // The change-point search's and leverages' per-point rows of the reduced system.
     let reduced = 3 * points * global * F64;
     // Leave one station out: its held lengths against the reduced system, on its threads.

@@ -1016,7 +1016,7 @@ mod tests {
 
         let y = DVector::from_fn(n, |k, _| ((k * 37 % 11) as f64 - 5.0) * 0.3);
         let e = full.project_off_vec(&y);
-        let Some(fold) = FoldDowndate::new(&hat) else {
+        let Some(fold) = FoldDowndate::new(hat) else {
             panic!("the fold keeps every direction");
         };
         let got = fold.residuals(&e.select_rows(&held));
