@@ -7,7 +7,8 @@
 //! `cargo bench --bench diagnose_session` (sizes: `DIAGNOSE_BENCH_POINTS=1000,10000`;
 //! `DIAGNOSE_BENCH_NO_BUDGET=1` runs a size the diagnosis's memory estimate would refuse;
 //! `DIAGNOSE_BENCH_MEMORY_LIMIT=BYTES` diagnoses under that limit: 0 shows each size's estimate
-//! in its refusal).
+//! in its refusal; `DIAGNOSE_BENCH_EFFECTS=NAMES` the effects of the `solve --effects` row,
+//! `station_drift` by default (the widest: 3 per station), empty for no such row).
 
 mod common;
 
@@ -60,11 +61,13 @@ fn cpu_seconds_since(cpu0: Option<std::time::Duration>) -> f64 {
     }
 }
 
-/// The solve child: solve one file as `geocal solve` does, print "wall_s cpu_s heap_peak_bytes
-/// vm_hwm_kib".
-fn solve_child(path: &Path) {
+/// The solve child: solve one file as `geocal solve --effects EFFECTS` does (none: as `geocal
+/// solve`), print "wall_s cpu_s heap_peak_bytes vm_hwm_kib".
+fn solve_child(path: &Path, effects: &[String]) {
     let cpu0 = common::cpu_time();
-    let (results, dt, heap) = measure(|| geocal::kinds::solve_file(path, &Default::default()));
+    let settings = geocal::kinds::diagnosis::solve_settings(path, effects, Default::default())
+        .expect("the effects' names");
+    let (results, dt, heap) = measure(|| geocal::kinds::solve_file(path, &settings));
     let cpu = cpu_seconds_since(cpu0);
     results.expect("solve");
     println!(
@@ -116,9 +119,11 @@ fn main() {
         return;
     }
     if let Some(k) = args.iter().position(|a| a == "--solve-child") {
-        solve_child(Path::new(&args[k + 1]));
+        solve_child(Path::new(&args[k + 1]), &args[k + 2..]);
         return;
     }
+    let effects =
+        std::env::var("DIAGNOSE_BENCH_EFFECTS").unwrap_or_else(|_| "station_drift".into());
     let sizes: Vec<usize> = std::env::var("DIAGNOSE_BENCH_POINTS")
         .unwrap_or_else(|_| "1000,10000".into())
         .split(',')
@@ -138,7 +143,7 @@ fn main() {
             std::fs::rename(&tmp, &path).expect("rename session");
         }
         let size = format!("{} × {}", grid.iter().product::<usize>(), session::STATIONS);
-        let solve = match run_child("--solve-child", &path) {
+        let solve = match run_child("--solve-child", &path, &[]) {
             Ok(f) => f,
             Err(e) => {
                 println!("| {size} | | solve | failed: {e} |");
@@ -153,7 +158,7 @@ fn main() {
             num(&solve, 3) / 1024.0,
             mib(num(&solve, 2) as usize),
         );
-        let f = match run_child("--child", &path) {
+        let f = match run_child("--child", &path, &[]) {
             Ok(f) => f,
             Err(e) => {
                 println!("| {size} | | diagnose | failed: {e} |");
@@ -172,15 +177,32 @@ fn main() {
             num(&f, 0) / num(&solve, 0),
             num(&f, 3) / num(&solve, 3),
         );
+        if effects.is_empty() {
+            continue;
+        }
+        let command = format!("solve --effects {effects}");
+        match run_child("--solve-child", &path, &[effects.as_str()]) {
+            Ok(f) => println!(
+                "| {size} | | {command} | {} | {:.1} s | {:.0} MiB | {:.0} MiB | | | {:.1}× | {:.2}× |",
+                fmt_time(std::time::Duration::from_secs_f64(num(&f, 0))),
+                num(&f, 1),
+                num(&f, 3) / 1024.0,
+                mib(num(&f, 2) as usize),
+                num(&f, 0) / num(&solve, 0),
+                num(&f, 3) / num(&solve, 3),
+            ),
+            Err(e) => println!("| {size} | | {command} | failed: {e} |"),
+        }
     }
 }
 
-/// Runs this benchmark as a child in `mode` on `path`; its RESULT line's fields.
-fn run_child(mode: &str, path: &Path) -> Result<Vec<String>, String> {
+/// Runs this benchmark as a child in `mode` on `path` (then `extra`); its RESULT line's fields.
+fn run_child(mode: &str, path: &Path, extra: &[&str]) -> Result<Vec<String>, String> {
     let exe = std::env::current_exe().map_err(|e| e.to_string())?;
     let out = Command::new(exe)
         .arg(mode)
         .arg(path)
+        .args(extra)
         .output()
         .map_err(|e| e.to_string())?;
     let stdout = String::from_utf8_lossy(&out.stdout);

@@ -346,7 +346,7 @@ fn solve_extracted(
     // The effects' uncertainty moves the points too.
     if let Some(c) = &correction {
         for (i, cov) in solution.point_covariance.iter_mut().enumerate() {
-            *cov += c.point_covariance_m2.fixed_view::<3, 3>(3 * i, 3 * i);
+            *cov += c.point_covariance_block(i);
         }
         if c.station_covariance_m2.shape() == solution.station_joint_covariance.shape() {
             solution.station_joint_covariance += &c.station_covariance_m2;
@@ -423,9 +423,8 @@ fn solve_extracted(
         })
         .collect();
     let mut notes = Vec::new();
-    let extra_covariance = correction.as_ref().map(|c| &c.point_covariance_m2);
     let geometric_errors =
-        match geometric_errors(header, &problem, &solution, extra_covariance, &mut notes) {
+        match geometric_errors(header, &problem, &solution, correction.as_ref(), &mut notes) {
             Ok(value) => Some(value),
             Err(why) => {
                 notes.push(format!("no geometric errors: {why}"));
@@ -487,7 +486,7 @@ fn geometric_errors(
     header: &SessionHeader,
     problem: &Problem,
     solution: &MultilaterationSolution,
-    extra_covariance: Option<&nalgebra::DMatrix<f64>>,
+    effect_correction: Option<&crate::method::effects::EffectCorrection>,
     notes: &mut Vec<String>,
 ) -> Result<serde_json::Value, String> {
     let machine = &header.machine;
@@ -519,10 +518,13 @@ fn geometric_errors(
     }
     // The points share stations, so their errors are correlated: use the full covariance
     // where the dense algebra is affordable, else the per-point blocks (and say so).
-    let full = dense_point_covariance(&problem.problem, solution).map(|q| match extra_covariance {
-        Some(extra) if extra.shape() == q.shape() => q + extra,
-        _ => q,
-    });
+    let full =
+        dense_point_covariance(&problem.problem, solution).map(|q| match effect_correction {
+            Some(extra) if extra.point_response.nrows() == q.nrows() => {
+                q + extra.point_covariance_m2()
+            }
+            _ => q,
+        });
     if full.is_none() {
         notes.push(
             "geometric error sigmas use per-point covariance blocks only (the plan is too large for \

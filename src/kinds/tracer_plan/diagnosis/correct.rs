@@ -149,14 +149,9 @@ pub fn correction_named(
         }
     }
     // How each parameter moves the points when the lengths are corrected by its column
-    // (the geometry's least-squares response, S-transformed to the points' datum).
-    let columns = models.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
-        let a = m.columns(&data, &fit.geom);
-        let mut joined = DMatrix::zeros(nobs, d.ncols() + a.ncols());
-        joined.columns_mut(0, d.ncols()).copy_from(&d);
-        joined.columns_mut(d.ncols(), a.ncols()).copy_from(&a);
-        joined
-    });
+    // (the geometry's least-squares response, S-transformed to the points' datum); the
+    // columns are the joint fit's, at its geometry.
+    let columns = fit.basis.design().effects();
     let geometry_basis = Fit::new(
         Arc::new(Design::nominal(&data, &fit.geom)),
         (0..nobs).collect(),
@@ -176,13 +171,13 @@ pub fn correction_named(
         response.column_mut(c).copy_from(&moved);
         station_response.column_mut(c).copy_from(&stations);
     }
-    let point_covariance_m2 = &response * &theta_cov * response.transpose();
     let station_covariance_m2 = &station_response * &theta_cov * station_response.transpose();
     Ok(EffectCorrection {
         length_correction_m: fit.effect_m,
         effects,
         parameters,
-        point_covariance_m2,
+        point_response: response,
+        parameter_covariance: theta_cov,
         station_covariance_m2,
     })
 }

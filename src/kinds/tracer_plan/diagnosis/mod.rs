@@ -925,9 +925,12 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     let mut theta = DVector::zeros(widths.iter().sum());
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let design = |geom: &Geometry| {
-        let effects = models.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
-            hcat(&d, &m.columns(data, geom))
-        });
+        // Side by side; one model's columns as they are made (they are the widest matrix).
+        let effects = models
+            .iter()
+            .map(|m| m.columns(data, geom))
+            .reduce(|d, a| hcat(&d, &a))
+            .unwrap_or_else(|| DMatrix::zeros(nobs, 0));
         Arc::new(Design::nominal(data, geom).with_effects(effects))
     };
     let residual = |geom: &Geometry, a: &Design, theta: &DVector<f64>| {

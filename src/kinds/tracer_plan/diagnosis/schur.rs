@@ -120,6 +120,11 @@ impl Design {
         self.effects.ncols()
     }
 
+    /// The effect columns, unwhitened (one row per length).
+    pub fn effects(&self) -> &DMatrix<f64> {
+        &self.effects
+    }
+
     pub fn point_of(&self, i: usize) -> usize {
         self.rows[i].point
     }
