@@ -68,6 +68,9 @@ fn unsupported(name: &'static str) -> Option<CorrectionError> {
     Some(CorrectionError::Unsupported(name, why))
 }
 
+/// Threads for the effect parameters' responses (one geometry solve each).
+const MAX_RESPONSE_THREADS: usize = 8;
+
 /// Fit `kinds` jointly with the geometry of a multilateration session (its settled windows).
 pub fn correction(
     settled: &SettledSession,
@@ -159,17 +162,22 @@ pub fn correction_named(
     let (n, m) = (fit.geom.points.len(), fit.geom.stations.len());
     let mut response = DMatrix::zeros(3 * n, parameters);
     let mut station_response = DMatrix::zeros(3 * m, parameters);
-    for c in 0..parameters {
-        let a_w = DVector::from_fn(nobs, |i, _| columns[(i, c)] * w[i]);
-        let step = geometry_basis.solve(&a_w);
-        let (moved, stations) = without_rigid_motion(
-            &data,
-            &step.as_slice()[..3 * n],
-            &fit.geom.stations,
-            &step.as_slice()[3 * n..3 * n + 3 * m],
-        );
-        response.column_mut(c).copy_from(&moved);
-        station_response.column_mut(c).copy_from(&stations);
+    // Each parameter's solve a walk over the lengths: the parameters on the cores.
+    let all: Vec<usize> = (0..parameters).collect();
+    let moves =
+        crate::parallel::in_groups(&all, crate::parallel::threads(MAX_RESPONSE_THREADS), |&c| {
+            let a_w = DVector::from_fn(nobs, |i, _| columns[(i, c)] * w[i]);
+            let step = geometry_basis.solve(&a_w);
+            without_rigid_motion(
+                &data,
+                &step.as_slice()[..3 * n],
+                &fit.geom.stations,
+                &step.as_slice()[3 * n..3 * n + 3 * m],
+            )
+        });
+    for (c, (moved, stations)) in moves.iter().enumerate() {
+        response.column_mut(c).copy_from(moved);
+        station_response.column_mut(c).copy_from(stations);
     }
     let station_covariance_m2 = &station_response * &theta_cov * station_response.transpose();
     Ok(EffectCorrection {

@@ -818,17 +818,16 @@ impl Schur {
     /// the covariance of those parameters under unit whitened noise.
     pub fn pinv_block(&self, cols: &[usize]) -> DMatrix<f64> {
         let np = self.design.n_params();
-        let mut out = DMatrix::zeros(cols.len(), cols.len());
-        for (k, &c) in cols.iter().enumerate() {
+        // Each column a walk over the rows: the columns on the cores.
+        let threads = parallel::threads(MAX_PROJECTION_THREADS);
+        let columns = parallel::in_groups(cols, threads, |&c| {
             let mut e = DVector::zeros(np);
             e[c] = 1.0;
             self.remove_null(&mut e);
             let x = self.normal_solve(&e);
-            for (l, &c2) in cols.iter().enumerate() {
-                out[(l, k)] = x[c2];
-            }
-        }
-        out
+            cols.iter().map(|&c2| x[c2]).collect::<Vec<f64>>()
+        });
+        DMatrix::from_fn(cols.len(), cols.len(), |l, k| columns[k][l])
     }
 
     /// For leave-one-station-out: the point parts of the held rows' prediction covariance,
