@@ -68,8 +68,8 @@ fn unsupported(name: &'static str) -> Option<CorrectionError> {
     Some(CorrectionError::Unsupported(name, why))
 }
 
-/// Threads for the effect parameters' responses (one geometry solve each).
-const MAX_RESPONSE_THREADS: usize = 8;
+/// Effect parameters whose responses are solved together.
+const SOLVED_TOGETHER: usize = 8;
 
 /// Fit `kinds` jointly with the geometry of a multilateration session (its settled windows).
 pub fn correction(
@@ -162,22 +162,27 @@ pub fn correction_named(
     let (n, m) = (fit.geom.points.len(), fit.geom.stations.len());
     let mut response = DMatrix::zeros(3 * n, parameters);
     let mut station_response = DMatrix::zeros(3 * m, parameters);
-    // Each parameter's solve a walk over the lengths: the parameters on the cores.
+    // The parameters' columns solved a group at a time (one walk over the lengths per step
+    // for the group; a group's right-hand sides and residuals in memory, not all of them),
+    // the groups on the cores.
     let all: Vec<usize> = (0..parameters).collect();
-    let moves =
-        crate::parallel::in_groups(&all, crate::parallel::threads(MAX_RESPONSE_THREADS), |&c| {
-            let a_w = DVector::from_fn(nobs, |i, _| columns[(i, c)] * w[i]);
-            let step = geometry_basis.solve(&a_w);
-            without_rigid_motion(
+    let groups: Vec<&[usize]> = all.chunks(SOLVED_TOGETHER).collect();
+    let solved =
+        crate::parallel::in_groups(&groups, crate::parallel::threads(groups.len()), |group| {
+            let a_w = DMatrix::from_fn(nobs, group.len(), |i, k| columns[(i, group[k])] * w[i]);
+            geometry_basis.solve_columns(&a_w)
+        });
+    for (steps, group) in solved.iter().zip(&groups) {
+        for (step, &c) in steps.column_iter().zip(group.iter()) {
+            let (moved, stations) = without_rigid_motion(
                 &data,
                 &step.as_slice()[..3 * n],
                 &fit.geom.stations,
                 &step.as_slice()[3 * n..3 * n + 3 * m],
-            )
-        });
-    for (c, (moved, stations)) in moves.iter().enumerate() {
-        response.column_mut(c).copy_from(moved);
-        station_response.column_mut(c).copy_from(stations);
+            );
+            response.column_mut(c).copy_from(&moved);
+            station_response.column_mut(c).copy_from(&stations);
+        }
     }
     let station_covariance_m2 = &station_response * &theta_cov * station_response.transpose();
     Ok(EffectCorrection {

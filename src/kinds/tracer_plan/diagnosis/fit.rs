@@ -79,6 +79,19 @@ impl Fit {
         }
     }
 
+    /// [`Fit::solve`] of every column of `y` (structured: together, one walk over the rows
+    /// per step).
+    pub fn solve_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+        match self {
+            Fit::Structured(s) => s.solve_columns(y),
+            Fit::Dense(d) => {
+                let columns: Vec<DVector<f64>> =
+                    y.column_iter().map(|c| d.solve(&c.into_owned())).collect();
+                DMatrix::from_columns(&columns)
+            }
+        }
+    }
+
     /// y minus its projection on the design's column space (over the fit's rows).
     pub fn project_off_vec(&self, y: &DVector<f64>) -> DVector<f64> {
         match self {

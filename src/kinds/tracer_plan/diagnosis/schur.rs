@@ -25,6 +25,9 @@ use super::effects::Geometry;
 /// cost more than they save.
 const THREADED_PROJECTION_ENTRIES: usize = 200_000;
 const MAX_PROJECTION_THREADS: usize = 8;
+/// Columns of a pseudo-inverse block solved together (each group holds a few parameter-long
+/// columns).
+const PINV_SOLVED_TOGETHER: usize = 8;
 /// Points whose C_pᵀ M_p⁺ are gathered for one product by Wᵀ in [`Schur::reduced`]: a dense
 /// product instead of one per point, in a buffer of global columns × 3 × this (~1 MB).
 const REDUCED_CHUNK_POINTS: usize = 512;
@@ -498,6 +501,68 @@ impl Schur {
         }
     }
 
+    /// [`Schur::normal_solve`] of every column of `v` together: one walk over the rows for
+    /// all of them (each row's entries made once), each column's sums in the same order as
+    /// alone.
+    pub fn normal_solve_columns(&self, v: &DMatrix<f64>) -> DMatrix<f64> {
+        let d = &self.design;
+        let (n, k, g) = (d.n_points, v.ncols(), d.n_global());
+        let offset = 3 * n;
+        let mut vp = DMatrix::zeros(offset, k);
+        for p in 0..n {
+            let block = self.m_pinv[p] * v.fixed_rows::<3>(3 * p);
+            vp.fixed_rows_mut::<3>(3 * p).copy_from(&block);
+        }
+        // Σ_p C_pᵀ (M_p⁺ v_p), as `ct_times` per column.
+        let mut ct = DMatrix::zeros(g, k);
+        let mut entries = Vec::new();
+        let mut at = vec![0.0; k];
+        for &i in &self.rows {
+            let a = d.a(i);
+            let p = d.rows[i].point;
+            for (col, out) in at.iter_mut().enumerate() {
+                *out = a.dot(&vp.fixed_view::<3, 1>(3 * p, col));
+            }
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                for (col, &t) in at.iter().enumerate() {
+                    if t != 0.0 {
+                        ct[(c, col)] += x * t;
+                    }
+                }
+            }
+        }
+        let reduced = v.rows(offset, g) - ct;
+        let xg = &self.w_red * self.w_red.tr_mul(&reduced);
+        // C_p xg per point, as `c_times` per column.
+        let mut cx = DMatrix::zeros(offset, k);
+        let mut bv = vec![0.0; k];
+        for &i in &self.rows {
+            d.global_entries(i, &mut entries);
+            for (col, out) in bv.iter_mut().enumerate() {
+                *out = entries.iter().map(|&(c, x)| x * xg[(c, col)]).sum();
+            }
+            let a = d.a(i);
+            let p = d.rows[i].point;
+            for (col, &b) in bv.iter().enumerate() {
+                let mut target = cx.fixed_view_mut::<3, 1>(3 * p, col);
+                target += a * b;
+            }
+        }
+        let mut x = DMatrix::zeros(d.n_params(), k);
+        for p in 0..n {
+            let block = self.m_pinv[p] * (v.fixed_rows::<3>(3 * p) - cx.fixed_rows::<3>(3 * p));
+            x.fixed_rows_mut::<3>(3 * p).copy_from(&block);
+        }
+        x.rows_mut(offset, g).copy_from(&xg);
+        for mut column in x.column_iter_mut() {
+            let mut owned = column.clone_owned();
+            self.remove_null(&mut owned);
+            column.copy_from(&owned);
+        }
+        x
+    }
+
     /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
     pub fn solve(&self, y: &DVector<f64>) -> DVector<f64> {
         let mut x = self.normal_solve(&self.xt(y));
@@ -505,6 +570,60 @@ impl Schur {
         let r = y - self.times(&x);
         x += self.normal_solve(&self.xt(&r));
         x
+    }
+
+    /// [`Schur::solve`] of every column of `y` together (one walk over the rows per step for
+    /// all of them).
+    pub fn solve_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+        let mut x = self.normal_solve_columns(&self.xt_columns(y));
+        let r = y - self.times_columns(&x);
+        x += self.normal_solve_columns(&self.xt_columns(&r));
+        x
+    }
+
+    /// [`Schur::xt`] of every column of `y`.
+    fn xt_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+        let d = &self.design;
+        let offset = 3 * d.n_points;
+        let mut out = DMatrix::zeros(d.n_params(), y.ncols());
+        let mut entries = Vec::new();
+        for (pos, &i) in self.rows.iter().enumerate() {
+            let a = d.a(i);
+            let p = d.rows[i].point;
+            d.global_entries(i, &mut entries);
+            for col in 0..y.ncols() {
+                let yv = y[(pos, col)];
+                for k in 0..3 {
+                    out[(3 * p + k, col)] += a[k] * yv;
+                }
+                for &(c, x) in &entries {
+                    out[(offset + c, col)] += x * yv;
+                }
+            }
+        }
+        out
+    }
+
+    /// [`Schur::times`] of every column of `x`.
+    fn times_columns(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
+        let d = &self.design;
+        let offset = 3 * d.n_points;
+        let mut out = DMatrix::zeros(self.rows.len(), x.ncols());
+        let mut entries = Vec::new();
+        for (pos, &i) in self.rows.iter().enumerate() {
+            let p = d.rows[i].point;
+            let a = d.a(i);
+            d.global_entries(i, &mut entries);
+            for col in 0..x.ncols() {
+                let xp = x.fixed_view::<3, 1>(3 * p, col);
+                out[(pos, col)] = a.dot(&xp)
+                    + entries
+                        .iter()
+                        .map(|&(c, v)| v * x[(offset + c, col)])
+                        .sum::<f64>();
+            }
+        }
+        out
     }
 
     /// X x over the fit's rows (whitened, by position).
@@ -818,16 +937,31 @@ impl Schur {
     /// the covariance of those parameters under unit whitened noise.
     pub fn pinv_block(&self, cols: &[usize]) -> DMatrix<f64> {
         let np = self.design.n_params();
-        // Each column a walk over the rows: the columns on the cores.
-        let threads = parallel::threads(MAX_PROJECTION_THREADS);
-        let columns = parallel::in_groups(cols, threads, |&c| {
-            let mut e = DVector::zeros(np);
-            e[c] = 1.0;
-            self.remove_null(&mut e);
-            let x = self.normal_solve(&e);
-            cols.iter().map(|&c2| x[c2]).collect::<Vec<f64>>()
-        });
-        DMatrix::from_fn(cols.len(), cols.len(), |l, k| columns[k][l])
+        // The unit vectors solved a group at a time (one walk over the rows per group), the
+        // groups on the cores.
+        let groups: Vec<&[usize]> = cols.chunks(PINV_SOLVED_TOGETHER).collect();
+        let solved = parallel::in_groups(
+            &groups,
+            parallel::threads(MAX_PROJECTION_THREADS),
+            |group| {
+                let mut units = DMatrix::zeros(np, group.len());
+                for (k, &c) in group.iter().enumerate() {
+                    let mut e = DVector::zeros(np);
+                    e[c] = 1.0;
+                    self.remove_null(&mut e);
+                    units.column_mut(k).copy_from(&e);
+                }
+                let x = self.normal_solve_columns(&units);
+                DMatrix::from_fn(cols.len(), group.len(), |l, k| x[(cols[l], k)])
+            },
+        );
+        let mut out = DMatrix::zeros(cols.len(), cols.len());
+        let mut at = 0;
+        for block in solved {
+            out.columns_mut(at, block.ncols()).copy_from(&block);
+            at += block.ncols();
+        }
+        out
     }
 
     /// For leave-one-station-out: the point parts of the held rows' prediction covariance,
@@ -981,6 +1115,41 @@ mod tests {
         let design = Arc::new(small(true));
         let cols = [design.n_params() - 2, design.n_params() - 1];
         check_against_the_dense_svd(design, false, &cols);
+    }
+
+    /// The columns solved together are each solved alone (points', stations' and the
+    /// effect's coordinates, and a mixed right-hand side).
+    #[test]
+    fn normal_equations_solved_together_equal_each_alone() {
+        let design = Arc::new(small(false));
+        let all: Vec<usize> = (0..design.lengths()).collect();
+        let fit = Schur::new(design.clone(), all);
+        let np = design.n_params();
+        let v = DMatrix::from_fn(np, 4, |r, c| match c {
+            0 => f64::from(u8::from(r == 5)),
+            1 => f64::from(u8::from(r == 3 * 30 + 4)),
+            2 => f64::from(u8::from(r == np - 1)),
+            _ => ((r * 7 % 13) as f64 - 6.0) * 0.1,
+        });
+        let together = fit.normal_solve_columns(&v);
+        for c in 0..v.ncols() {
+            let alone = fit.normal_solve(&v.column(c).into_owned());
+            let gap = (together.column(c) - &alone).amax();
+            assert!(gap <= 1e-12 * alone.amax(), "column {c}: {gap:e}");
+        }
+        // Least squares likewise: lengths-long right-hand sides.
+        let y = DMatrix::from_fn(design.lengths(), 3, |r, c| {
+            ((r * (c + 3) % 11) as f64 - 5.0) * 0.2
+        });
+        let together = fit.solve_columns(&y);
+        for c in 0..y.ncols() {
+            let alone = fit.solve(&y.column(c).into_owned());
+            let gap = (together.column(c) - &alone).amax();
+            assert!(
+                gap <= 1e-12 * alone.amax(),
+                "least squares column {c}: {gap:e}"
+            );
+        }
     }
 
     /// The hat rows of a fold (one station's lengths of every sixth point, like a
