@@ -429,63 +429,11 @@ impl Schur {
         out
     }
 
-    /// Σ_p C_pᵀ t_p (t per point): Σ over the rows of b_i (a_i · t_p).
-    fn ct_times(&self, t: &[Vector3<f64>]) -> DVector<f64> {
-        let d = &self.design;
-        let mut out = DVector::zeros(d.n_global());
-        let mut entries = Vec::new();
-        for &i in &self.rows {
-            let at = d.a(i).dot(&t[d.rows[i].point]);
-            if at == 0.0 {
-                continue;
-            }
-            d.global_entries(i, &mut entries);
-            for &(c, x) in &entries {
-                out[c] += x * at;
-            }
-        }
-        out
-    }
-
-    /// Xᵀ y over the fit's rows (y by position): the normal equations' right-hand side.
-    fn xt(&self, y: &DVector<f64>) -> DVector<f64> {
-        let d = &self.design;
-        let offset = 3 * d.n_points;
-        let mut out = DVector::zeros(d.n_params());
-        let mut entries = Vec::new();
-        for (pos, &i) in self.rows.iter().enumerate() {
-            let a = d.a(i) * y[pos];
-            let p = d.rows[i].point;
-            for k in 0..3 {
-                out[3 * p + k] += a[k];
-            }
-            d.global_entries(i, &mut entries);
-            for &(c, x) in &entries {
-                out[offset + c] += x * y[pos];
-            }
-        }
-        out
-    }
-
     /// The minimum-norm x with N x = v, N = XᵀX over the fit's rows (v in its range).
     pub fn normal_solve(&self, v: &DVector<f64>) -> DVector<f64> {
-        let d = &self.design;
-        let n = d.n_points;
-        let offset = 3 * n;
-        let vp: Vec<Vector3<f64>> = (0..n)
-            .map(|p| self.m_pinv[p] * Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]))
-            .collect();
-        let reduced = v.rows(offset, d.n_global()) - self.ct_times(&vp);
-        let xg = &self.w_red * self.w_red.tr_mul(&reduced);
-        let cx = self.c_times(&xg);
-        let mut x = DVector::zeros(d.n_params());
-        for p in 0..n {
-            let xp = self.m_pinv[p] * (Vector3::new(v[3 * p], v[3 * p + 1], v[3 * p + 2]) - cx[p]);
-            x.fixed_rows_mut::<3>(3 * p).copy_from(&xp);
-        }
-        x.rows_mut(offset, d.n_global()).copy_from(&xg);
-        self.remove_null(&mut x);
-        x
+        self.normal_solve_columns(&DMatrix::from_column_slice(v.len(), 1, v.as_slice()))
+            .column(0)
+            .into_owned()
     }
 
     /// x minus its part in the null space (the minimum-norm representative).
@@ -501,9 +449,8 @@ impl Schur {
         }
     }
 
-    /// [`Schur::normal_solve`] of every column of `v` together: one walk over the rows for
-    /// all of them (each row's entries made once), each column's sums in the same order as
-    /// alone.
+    /// [`Schur::normal_solve`] of every column of `v` together: one walk over the rows per
+    /// step for all of them (each row's entries made once), each column's sums as alone.
     pub fn normal_solve_columns(&self, v: &DMatrix<f64>) -> DMatrix<f64> {
         let d = &self.design;
         let (n, k, g) = (d.n_points, v.ncols(), d.n_global());
@@ -513,7 +460,7 @@ impl Schur {
             let block = self.m_pinv[p] * v.fixed_rows::<3>(3 * p);
             vp.fixed_rows_mut::<3>(3 * p).copy_from(&block);
         }
-        // Σ_p C_pᵀ (M_p⁺ v_p), as `ct_times` per column.
+        // Σ_p C_pᵀ (M_p⁺ v_p): Σ over the rows of b_i (a_i · (M_p⁺ v_p)).
         let mut ct = DMatrix::zeros(g, k);
         let mut entries = Vec::new();
         let mut at = vec![0.0; k];
@@ -565,23 +512,23 @@ impl Schur {
 
     /// Least-squares minimum-norm x of X x ≈ y over the fit's rows (y whitened, by position).
     pub fn solve(&self, y: &DVector<f64>) -> DVector<f64> {
-        let mut x = self.normal_solve(&self.xt(y));
-        // One step of iterative refinement: the normal equations square the condition number.
-        let r = y - self.times(&x);
-        x += self.normal_solve(&self.xt(&r));
-        x
+        self.solve_columns(&DMatrix::from_column_slice(y.len(), 1, y.as_slice()))
+            .column(0)
+            .into_owned()
     }
 
     /// [`Schur::solve`] of every column of `y` together (one walk over the rows per step for
     /// all of them).
     pub fn solve_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
         let mut x = self.normal_solve_columns(&self.xt_columns(y));
+        // One step of iterative refinement: the normal equations square the condition number.
         let r = y - self.times_columns(&x);
         x += self.normal_solve_columns(&self.xt_columns(&r));
         x
     }
 
-    /// [`Schur::xt`] of every column of `y`.
+    /// Xᵀ y over the fit's rows for every column of `y` (by position): the normal equations'
+    /// right-hand sides.
     fn xt_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
         let d = &self.design;
         let offset = 3 * d.n_points;
@@ -604,7 +551,7 @@ impl Schur {
         out
     }
 
-    /// [`Schur::times`] of every column of `x`.
+    /// X x over the fit's rows for every column of `x` (whitened, by position).
     fn times_columns(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
         let d = &self.design;
         let offset = 3 * d.n_points;
@@ -624,20 +571,6 @@ impl Schur {
             }
         }
         out
-    }
-
-    /// X x over the fit's rows (whitened, by position).
-    fn times(&self, x: &DVector<f64>) -> DVector<f64> {
-        let d = &self.design;
-        let offset = 3 * d.n_points;
-        let mut entries = Vec::new();
-        DVector::from_fn(self.rows.len(), |pos, _| {
-            let i = self.rows[pos];
-            let p = d.rows[i].point;
-            let xp = Vector3::new(x[3 * p], x[3 * p + 1], x[3 * p + 2]);
-            d.global_entries(i, &mut entries);
-            d.a(i).dot(&xp) + entries.iter().map(|&(c, v)| v * x[offset + c]).sum::<f64>()
-        })
     }
 
     /// y minus its projection on the design's column space (over the fit's rows).
@@ -1241,7 +1174,13 @@ mod tests {
         if min_norm {
             close(&x, &dense_x, "minimum-norm solve");
         }
-        close(&fit.times(&x), &(&xw * &dense_x), "fitted values");
+        close(
+            &fit.times_columns(&DMatrix::from_column_slice(x.len(), 1, x.as_slice()))
+                .column(0)
+                .into_owned(),
+            &(&xw * &dense_x),
+            "fitted values",
+        );
         let lev = DVector::from_vec(fit.leverages());
         close(&lev, &DVector::from_vec(basis.leverages()), "leverages");
         for &h in &held {
