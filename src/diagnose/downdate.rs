@@ -23,7 +23,66 @@ pub struct HatRows {
     /// Positions (in the set) of each group, with its block of H minus L Lᵀ.
     pub groups: Vec<(Vec<usize>, DMatrix<f64>)>,
     /// L: one row per position.
-    pub low: DMatrix<f64>,
+    pub low: Box<dyn LowRank>,
+}
+
+/// The low-rank part L of a hat matrix over a set of rows (one row per position): held as a
+/// matrix, or made a few rows at a time from a form the fit shares between its folds, so that
+/// a fold does not hold a row of the reduced system's width for each of its rows.
+pub trait LowRank: Send + Sync {
+    /// Rows (positions).
+    fn row_count(&self) -> usize;
+    /// Columns (the rank of the low-rank part).
+    fn dim(&self) -> usize;
+    /// Lᵀ's columns at `positions`, in that order (dim × positions: each row of L contiguous).
+    fn transposed_rows(&self, positions: &[usize]) -> DMatrix<f64>;
+}
+
+impl LowRank for DMatrix<f64> {
+    fn row_count(&self) -> usize {
+        self.nrows()
+    }
+
+    fn dim(&self) -> usize {
+        self.ncols()
+    }
+
+    fn transposed_rows(&self, positions: &[usize]) -> DMatrix<f64> {
+        self.select_rows(positions).transpose()
+    }
+}
+
+/// Rows of L made at once by [`low_tr_mul`] and [`low_mul`]: large enough for the products to
+/// run as matrix products, small enough to stay in cache.
+const LOW_ROWS_AT_ONCE: usize = 256;
+
+/// The position ranges L is walked in.
+fn low_chunks(low: &dyn LowRank) -> impl Iterator<Item = Vec<usize>> {
+    let m = low.row_count();
+    (0..m)
+        .step_by(LOW_ROWS_AT_ONCE)
+        .map(move |first| (first..(first + LOW_ROWS_AT_ONCE).min(m)).collect())
+}
+
+/// Lᵀ v (v one row per position).
+fn low_tr_mul(low: &dyn LowRank, v: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(low.dim(), v.ncols());
+    for positions in low_chunks(low) {
+        let lt = low.transposed_rows(&positions);
+        out.gemm(1.0, &lt, &v.rows(positions[0], positions.len()), 1.0);
+    }
+    out
+}
+
+/// L y (one row per position).
+fn low_mul(low: &dyn LowRank, y: &DMatrix<f64>) -> DMatrix<f64> {
+    let mut out = DMatrix::zeros(low.row_count(), y.ncols());
+    for positions in low_chunks(low) {
+        let lt = low.transposed_rows(&positions);
+        out.rows_mut(positions[0], positions.len())
+            .copy_from(&lt.tr_mul(y));
+    }
+    out
 }
 
 /// A symmetric matrix's inverse from its eigen-decomposition, if every eigenvalue is at least
@@ -54,8 +113,8 @@ fn inverse_if_kept(m: DMatrix<f64>) -> Option<DMatrix<f64>> {
 pub struct FoldDowndate {
     /// D⁻¹ per group (positions among the held rows).
     d_inv: Vec<(Vec<usize>, DMatrix<f64>)>,
-    /// G = D⁻¹ L.
-    g: DMatrix<f64>,
+    /// L; G = D⁻¹ L is applied, not held.
+    low: Box<dyn LowRank>,
     /// K⁻¹.
     k_inv: DMatrix<f64>,
     /// diag((D − L Lᵀ)⁻¹): 1 plus each held row's prediction variance, whitened.
@@ -63,42 +122,39 @@ pub struct FoldDowndate {
 }
 
 impl FoldDowndate {
-    /// None where the training rows lose (nearly) a direction that all rows determine. L's
-    /// storage becomes G's: a fold holds one of the two.
+    /// None where the training rows lose (nearly) a direction that all rows determine. A row
+    /// in no group has no block of D⁻¹ (as `apply_blocks` takes it): its row of G is zero.
     pub fn new(hat: HatRows) -> Option<FoldDowndate> {
-        let HatRows { groups, mut low } = hat;
-        let (m, r) = low.shape();
+        let HatRows { groups, low } = hat;
+        let r = low.dim();
+        let mut inflation = vec![0.0; low.row_count()];
         let mut d_inv = Vec::with_capacity(groups.len());
-        let mut k = DMatrix::identity(r, r);
-        let mut inflation = vec![0.0; m];
-        let mut covered = vec![false; m];
         for (positions, block) in groups {
             let n = positions.len();
             let inv = inverse_if_kept(DMatrix::identity(n, n) - block)?;
-            // K = I − Lᵀ D⁻¹ L by groups; the group's rows of L replaced by those of D⁻¹ L.
-            let l = low.select_rows(&positions);
-            let g = &inv * &l;
-            k -= l.tr_mul(&g);
             for (x, &pos) in positions.iter().enumerate() {
-                low.row_mut(pos).copy_from(&g.row(x));
                 inflation[pos] = inv[(x, x)];
-                covered[pos] = true;
             }
             d_inv.push((positions, inv));
         }
-        // A row in no group has no block of D⁻¹ (as `apply_blocks` takes it).
-        for (pos, _) in covered.iter().enumerate().filter(|(_, &c)| !c) {
-            low.row_mut(pos).fill(0.0);
+        // K = I − Lᵀ D⁻¹ L, groups of rows at a time.
+        let mut k = DMatrix::identity(r, r);
+        for batch in group_batches(&d_inv) {
+            let (_, lt, gt) = l_and_g_transposed(&*low, batch);
+            k.gemm(-1.0, &lt, &gt.transpose(), 1.0);
         }
-        let g = low;
         let k_inv = inverse_if_kept(symmetrised(k))?;
-        let gk = &g * &k_inv;
-        for (pos, out) in inflation.iter_mut().enumerate() {
-            *out += gk.row(pos).dot(&g.row(pos));
+        // Plus diag(G K⁻¹ Gᵀ).
+        for batch in group_batches(&d_inv) {
+            let (positions, _, gt) = l_and_g_transposed(&*low, batch);
+            let kg = &k_inv * &gt;
+            for (x, &pos) in positions.iter().enumerate() {
+                inflation[pos] += gt.column(x).dot(&kg.column(x));
+            }
         }
         Some(FoldDowndate {
             d_inv,
-            g,
+            low,
             k_inv,
             inflation,
         })
@@ -110,15 +166,22 @@ impl FoldDowndate {
         &self.inflation
     }
 
-    /// The held rows' residuals predicted from the training rows: (I − H_kk)⁻¹ e.
+    /// The held rows' residuals predicted from the training rows: (I − H_kk)⁻¹ e =
+    /// D⁻¹e + G K⁻¹ Gᵀe.
     pub fn residuals(&self, e: &DVector<f64>) -> DVector<f64> {
-        self.d_inv_times(e) + &self.g * (&self.k_inv * self.g.tr_mul(e))
+        let de = self.d_inv_times(&as_column(e));
+        let y = &self.k_inv * low_tr_mul(&*self.low, &de);
+        (de + self.g_times(&y)).column(0).into_owned()
     }
 
-    /// D⁻¹ e.
-    fn d_inv_times(&self, e: &DVector<f64>) -> DVector<f64> {
-        let e_m = DMatrix::from_column_slice(e.len(), 1, e.as_slice());
-        apply_d_inv(&self.d_inv, &e_m).column(0).into_owned()
+    /// D⁻¹ v.
+    fn d_inv_times(&self, v: &DMatrix<f64>) -> DMatrix<f64> {
+        apply_d_inv(&self.d_inv, v)
+    }
+
+    /// G y = D⁻¹ (L y).
+    fn g_times(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+        self.d_inv_times(&low_mul(&*self.low, y))
     }
 
     /// The same with a candidate's projected columns' orthonormal basis `u` (held rows) added
@@ -126,22 +189,75 @@ impl FoldDowndate {
     /// training rows nearly lose one of the candidate's directions.
     pub fn residuals_with(&self, u: &DMatrix<f64>, e: &DVector<f64>) -> Option<DVector<f64>> {
         let c = u.ncols();
-        let gu = apply_d_inv(&self.d_inv, u);
-        // K_aug = I − [L U]ᵀ D⁻¹ [L U] = [[K, −X], [−Xᵀ, C]], X = LᵀD⁻¹U.
-        let cross = self.g.tr_mul(u);
+        // [D⁻¹U  D⁻¹e], and Gᵀ of both in one walk over L: [X  Gᵀe], X = LᵀD⁻¹U.
+        let mut ue = DMatrix::zeros(u.nrows(), c + 1);
+        ue.columns_mut(0, c).copy_from(u);
+        ue.column_mut(c).copy_from(e);
+        let d_ue = self.d_inv_times(&ue);
+        let (gu, de) = (d_ue.columns(0, c), d_ue.column(c));
+        let gt = low_tr_mul(&*self.low, &d_ue);
+        let (cross, top) = (gt.columns(0, c), gt.column(c));
+        // K_aug = I − [L U]ᵀ D⁻¹ [L U] = [[K, −X], [−Xᵀ, C]].
         let corner = DMatrix::identity(c, c) - u.tr_mul(&gu);
         // Through the Schur complement of K in K_aug, C − XᵀK⁻¹X.
-        let k_cross = &self.k_inv * &cross;
+        let k_cross = &self.k_inv * cross;
         let schur = symmetrised(corner - cross.tr_mul(&k_cross));
         let schur_inv = inverse_if_kept(schur)?;
         // y = K_aug⁻¹ [Gᵀe; (D⁻¹U)ᵀe] by blocks.
-        let top = self.g.tr_mul(e);
         let bottom = gu.tr_mul(e);
-        let k_top = &self.k_inv * &top;
+        let k_top = &self.k_inv * top;
         let y_bottom = &schur_inv * (&bottom + cross.tr_mul(&k_top));
         let y_top = &k_top + &k_cross * &y_bottom;
-        Some(self.d_inv_times(e) + &self.g * y_top + gu * y_bottom)
+        let g_y = self.g_times(&as_column(&y_top));
+        Some(g_y.column(0) + gu * &y_bottom + de)
     }
+}
+
+/// A vector as a one-column matrix.
+fn as_column(v: &DVector<f64>) -> DMatrix<f64> {
+    DMatrix::from_column_slice(v.len(), 1, v.as_slice())
+}
+
+/// Consecutive groups of D⁻¹ holding about `LOW_ROWS_AT_ONCE` rows together (a group at least).
+fn group_batches(
+    d_inv: &[(Vec<usize>, DMatrix<f64>)],
+) -> impl Iterator<Item = &[(Vec<usize>, DMatrix<f64>)]> {
+    let mut rest = d_inv;
+    std::iter::from_fn(move || {
+        if rest.is_empty() {
+            return None;
+        }
+        let mut rows = 0;
+        let take = rest
+            .iter()
+            .take_while(|(positions, _)| {
+                let first = rows == 0;
+                rows += positions.len();
+                first || rows <= LOW_ROWS_AT_ONCE
+            })
+            .count();
+        let (batch, tail) = rest.split_at(take);
+        rest = tail;
+        Some(batch)
+    })
+}
+
+/// A batch of groups' positions, with Lᵀ and Gᵀ = (D⁻¹L)ᵀ on those positions (D⁻¹ symmetric: a
+/// group's columns of Gᵀ are its columns of Lᵀ times its block).
+fn l_and_g_transposed(
+    low: &dyn LowRank,
+    batch: &[(Vec<usize>, DMatrix<f64>)],
+) -> (Vec<usize>, DMatrix<f64>, DMatrix<f64>) {
+    let positions: Vec<usize> = batch.iter().flat_map(|(p, _)| p.iter().copied()).collect();
+    let lt = low.transposed_rows(&positions);
+    let mut gt = DMatrix::zeros(lt.nrows(), lt.ncols());
+    let mut at = 0;
+    for (group, inv) in batch {
+        let n = group.len();
+        gt.columns_mut(at, n).copy_from(&(lt.columns(at, n) * inv));
+        at += n;
+    }
+    (positions, lt, gt)
 }
 
 fn symmetrised(m: DMatrix<f64>) -> DMatrix<f64> {
@@ -213,7 +329,7 @@ mod tests {
             groups: (0..held.len())
                 .map(|k| (vec![k], DMatrix::zeros(1, 1)))
                 .collect(),
-            low: u.select_rows(held),
+            low: Box::new(u.select_rows(held)),
         }
     }
 
@@ -298,7 +414,7 @@ mod tests {
             .collect();
         let hat = HatRows {
             groups,
-            low: ub.select_rows(&held),
+            low: Box::new(ub.select_rows(&held)),
         };
         let fold = FoldDowndate::new(hat).expect("kept");
         let got = fold.residuals(&e.select_rows(&held));

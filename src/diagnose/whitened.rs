@@ -108,7 +108,7 @@ impl LinearFit for WhitenedFit {
                     groups: (0..set.len())
                         .map(|k| (vec![k], DMatrix::zeros(1, 1)))
                         .collect(),
-                    low: self.basis.u.select_rows(&positions),
+                    low: Box::new(self.basis.u.select_rows(&positions)),
                 })
             })
             .collect()

@@ -15,7 +15,7 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
-use crate::diagnose::downdate::HatRows;
+use crate::diagnose::downdate::{HatRows, LowRank};
 use crate::parallel::{self, in_parallel, split_lengths};
 
 use super::data::Data;
@@ -826,30 +826,36 @@ impl Schur {
     /// The hat matrix on each set of design rows (each among the fit's rows): H_ij =
     /// a_iᵀ M_p⁺ a_j for two rows of point p, plus ρ_iᵀ ρ_j (`row_parts`).
     pub fn hat_rows(&self, sets: &[&[usize]]) -> Vec<HatRows> {
-        let red = self.reduced();
+        let red = Arc::new(self.reduced());
         sets.iter()
             .map(|set| {
-                let mut low = DMatrix::zeros(set.len(), red.dim());
-                let mut coefficients = Vec::with_capacity(set.len());
                 let mut by_point: BTreeMap<usize, Vec<usize>> = BTreeMap::new();
                 for (k, &i) in set.iter().enumerate() {
-                    let (p, a, rho) = self.row_parts(&red, i);
-                    low.set_row(k, &rho.transpose());
-                    coefficients.push(a);
-                    by_point.entry(p).or_default().push(k);
+                    by_point
+                        .entry(self.design.rows[i].point)
+                        .or_default()
+                        .push(k);
                 }
                 let groups = by_point
                     .into_iter()
                     .map(|(p, positions)| {
                         let n = positions.len();
-                        let block = DMatrix::from_fn(n, n, |x, y| {
-                            coefficients[positions[x]]
-                                .dot(&(self.m_pinv[p] * coefficients[positions[y]]))
-                        });
+                        let a: Vec<Vector3<f64>> =
+                            positions.iter().map(|&k| self.design.a(set[k])).collect();
+                        let block =
+                            DMatrix::from_fn(n, n, |x, y| a[x].dot(&(self.m_pinv[p] * a[y])));
                         (positions, block)
                     })
                     .collect();
-                HatRows { groups, low }
+                let low = ReducedRows {
+                    design: self.design.clone(),
+                    red: red.clone(),
+                    set: set.to_vec(),
+                };
+                HatRows {
+                    groups,
+                    low: Box::new(low),
+                }
             })
             .collect()
     }
@@ -952,6 +958,39 @@ impl Reduced {
     /// Rank of the reduced system (rows of each F_p).
     pub fn dim(&self) -> usize {
         self.dim
+    }
+}
+
+/// The hat matrix's low-rank rows ρ_i (`Schur::row_parts`) of a set of design rows, made when
+/// asked from the fit's reduced parts, which every fold shares.
+struct ReducedRows {
+    design: Arc<Design>,
+    red: Arc<Reduced>,
+    set: Vec<usize>,
+}
+
+impl LowRank for ReducedRows {
+    fn row_count(&self) -> usize {
+        self.set.len()
+    }
+
+    fn dim(&self) -> usize {
+        self.red.dim
+    }
+
+    fn transposed_rows(&self, positions: &[usize]) -> DMatrix<f64> {
+        let d = &self.design;
+        let mut out = DMatrix::zeros(self.red.dim, positions.len());
+        let mut entries = Vec::new();
+        for (mut rho, &pos) in out.column_iter_mut().zip(positions) {
+            let i = self.set[pos];
+            rho.gemv(-1.0, &self.red.f_point(d.rows[i].point), &d.a(i), 0.0);
+            d.global_entries(i, &mut entries);
+            for &(c, x) in &entries {
+                rho.axpy(x, &self.red.wt.column(c), 1.0);
+            }
+        }
+        out
     }
 }
 
@@ -1106,7 +1145,9 @@ mod tests {
         let dense = design.to_dense();
         let xw = DMatrix::from_fn(n, dense.ncols(), |r, c| dense[(r, c)] * design.weight(r));
         let u = Basis::new(&xw, RANK_TOL, 0.0).u;
-        let mut assembled = &hat.low * hat.low.transpose();
+        let all_held: Vec<usize> = (0..held.len()).collect();
+        let lt = hat.low.transposed_rows(&all_held);
+        let mut assembled = lt.tr_mul(&lt);
         for (positions, block) in &hat.groups {
             for (x, &px) in positions.iter().enumerate() {
                 for (y, &py) in positions.iter().enumerate() {
