@@ -5,6 +5,7 @@
 //! that reads a session.
 
 pub mod blocked;
+pub mod columns;
 pub mod downdate;
 pub mod engine;
 pub mod forward;

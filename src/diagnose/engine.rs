@@ -9,6 +9,7 @@ use nalgebra::{DMatrix, DVector};
 
 use crate::parallel;
 
+use super::columns::{Columns, ProjectedRows, RowSparse};
 use super::downdate::{FoldDowndate, HatRows};
 use super::projected::Projected;
 use super::stats::EFFECT_RANK_TOL;
@@ -34,6 +35,12 @@ pub trait LinearFit: Sync {
     /// Variance of each held row's prediction under unit whitened noise (in the squared
     /// units of the rows' prediction).
     fn prediction_variances(&self, held: &[usize]) -> Vec<f64>;
+    /// Sparse columns (whitened, over the fit's rows) projected off the design with the
+    /// projection kept implicit: their rows are made when asked, the columns never held dense.
+    /// Err gives them back where the fit has no such form.
+    fn project_off_implicit(&self, m: RowSparse) -> Result<Box<dyn ProjectedRows>, RowSparse> {
+        Err(m)
+    }
     /// Whether a candidate's projected columns are factorised by the SVD of the tall matrix
     /// (a dense fit) rather than from their Gram matrix or QR.
     fn factorises_by_svd(&self) -> bool;
@@ -298,7 +305,7 @@ impl Engine {
         design: &D,
         fits: &[FoldFit<D::Fit>],
         full_res_w: &DVector<f64>,
-        candidate: Option<(&Candidate, &dyn Fn() -> DMatrix<f64>)>,
+        candidate: Option<(&Candidate, &dyn Fn() -> Columns)>,
     ) -> HeldOut {
         let work = candidate.map_or(0, |(c, _)| c.entries);
         let threads = if work >= THREADED_FOLD_ENTRIES {
@@ -318,7 +325,7 @@ impl Engine {
                 let refit = self.fit_base(design, self.training_rows(fold), &self.folds[fold]);
                 let a = match candidate {
                     Some((Candidate { a: Some(a), .. }, _)) => a,
-                    Some((_, make)) => &*columns.get_or_insert_with(make),
+                    Some((_, make)) => &*columns.get_or_insert_with(|| make().into_dense()),
                     None => unreachable!("a base's downdated fold needs no refit"),
                 };
                 self.heldout(design, &refit, Some(a))
@@ -374,28 +381,24 @@ impl Engine {
     }
 
     /// Adding the effect whose columns `columns` makes (all rows, not whitened) to the base.
-    /// Where every fold is downdated the columns are whitened in place and not kept.
+    /// Where every fold is downdated the columns are whitened in place and not kept, and
+    /// sparse columns stay sparse where the fit keeps their projection implicit.
     pub fn evaluate<D: LinearDesign>(
         &self,
         design: &D,
         full: &BaseFit<D::Fit>,
         fold_fits: &[FoldFit<D::Fit>],
-        columns: &dyn Fn() -> DMatrix<f64>,
+        columns: &dyn Fn() -> Columns,
     ) -> Eval {
         let any_refit = fold_fits.iter().any(|f| matches!(f, FoldFit::Refit(_)));
-        let (a, aw) = if any_refit || !self.is_every_row(&full.rows) {
-            let a = columns();
+        let (a, perp) = if any_refit || !self.is_every_row(&full.rows) {
+            let a = columns().into_dense();
             let aw = self.whitened_rows(&a, &full.rows);
-            (Some(a), aw)
+            (Some(a), Projected::new(&full.basis, aw))
         } else {
-            let mut aw = columns();
-            for (i, mut row) in aw.row_iter_mut().enumerate() {
-                row *= self.w[i];
-            }
-            (None, aw)
+            (None, self.projected_in_place(&full.basis, columns()))
         };
-        let (n_columns, entries) = (aw.ncols(), aw.nrows() * aw.ncols());
-        let perp = Projected::new(&full.basis, aw);
+        let (n_columns, entries) = (perp.vt.ncols(), full.rows.len() * perp.vt.ncols());
         let coeff = perp.ut(&full.res_w);
         let chi2_drop = coeff.norm_squared();
         let after_w = &full.res_w - perp.u_times(&coeff);
@@ -439,6 +442,27 @@ impl Engine {
             rms_after,
             heldout_ms: heldout.mean_square(),
             heldout_z2: heldout.mean_z2(),
+        }
+    }
+
+    /// Columns over every row whitened and projected off `fit`: dense ones in place, sparse
+    /// ones implicitly where the fit can.
+    fn projected_in_place<F: LinearFit>(&self, fit: &F, columns: Columns) -> Projected {
+        match columns {
+            Columns::Dense(mut aw) => {
+                for (i, mut row) in aw.row_iter_mut().enumerate() {
+                    row *= self.w[i];
+                }
+                Projected::new(fit, aw)
+            }
+            Columns::Sparse(mut m) => {
+                m.scale_rows(&self.w);
+                let reference = m.column_norm_max();
+                match fit.project_off_implicit(m) {
+                    Ok(rows) => Projected::from_rows(rows, reference),
+                    Err(m) => Projected::new(fit, m.to_dense()),
+                }
+            }
         }
     }
 

@@ -9,6 +9,7 @@ use std::collections::BTreeMap;
 
 use nalgebra::DMatrix;
 
+use super::columns::Columns;
 use super::engine::{BaseFit, Engine, Eval, HeldOut, LinearDesign, LinearFit};
 use super::progress::Counter;
 use super::selection::{Round, Tests};
@@ -39,6 +40,10 @@ pub trait Client {
     fn design(&self, accepted: &[Self::Effect]) -> Self::Design;
     /// The effect's columns over all rows (in the residuals' units, not whitened).
     fn columns(&self, effect: &Self::Effect) -> DMatrix<f64>;
+    /// The same as a candidate is evaluated: sparse where the client makes them so.
+    fn candidate_columns(&self, effect: &Self::Effect) -> Columns {
+        Columns::Dense(self.columns(effect))
+    }
     /// The candidate with any parameter searched over the data set from the base fit (e.g. a
     /// change point's position) and the number of positions tried; None: nothing to test.
     fn search(
@@ -163,11 +168,14 @@ pub fn select<C: Client>(
             let Some((effect, searched)) = client.search(candidate, &full) else {
                 continue;
             };
-            let mut eval = engine.evaluate(&design, &full, &fold_fits, &|| client.columns(&effect));
+            let mut eval = engine.evaluate(&design, &full, &fold_fits, &|| {
+                client.candidate_columns(&effect)
+            });
             let effect = match client.constrained(&effect, eval.theta.as_slice()) {
                 Some(constrained) => {
-                    let held = engine
-                        .evaluate(&design, &full, &fold_fits, &|| client.columns(&constrained));
+                    let held = engine.evaluate(&design, &full, &fold_fits, &|| {
+                        client.candidate_columns(&constrained)
+                    });
                     eval.heldout_ms = held.heldout_ms;
                     eval.heldout_z2 = held.heldout_z2;
                     constrained

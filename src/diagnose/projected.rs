@@ -8,8 +8,12 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use super::columns::ProjectedRows;
 use super::engine::LinearFit;
-use super::stats::{gram_factor, qr_right_factor, Basis, EFFECT_RANK_TOL};
+use super::stats::{gram_factor_of, qr_right_factor_of, Basis, EFFECT_RANK_TOL};
+
+/// Rows of implicit projected columns made at once when they are walked whole.
+const ROWS_AT_ONCE: usize = 2048;
 
 pub struct Projected {
     /// Singular values and right singular vectors of the kept directions.
@@ -24,6 +28,8 @@ enum Left {
     Columns(DMatrix<f64>),
     /// U itself (the dense oracle's SVD).
     U(DMatrix<f64>),
+    /// The projected columns made from the fit when asked: U = rows V S⁻¹.
+    Rows(Box<dyn ProjectedRows>),
 }
 
 impl Projected {
@@ -39,13 +45,30 @@ impl Projected {
                 left: Left::U(basis.u),
             };
         }
-        // Else a direction the model nearly absorbs: the Gram matrix cannot resolve it.
-        let (s, vt) = gram_factor(&columns, EFFECT_RANK_TOL, reference)
-            .unwrap_or_else(|| qr_right_factor(&columns, EFFECT_RANK_TOL, reference));
+        let (s, vt) = right_factor(
+            columns.shape(),
+            &|start, len| columns.rows(start, len).into_owned(),
+            reference,
+        );
         Projected {
             s,
             vt,
             left: Left::Columns(columns),
+        }
+    }
+
+    /// From columns already projected and kept implicit by the fit (`reference`: the largest
+    /// norm of the columns before their projection).
+    pub fn from_rows(rows: Box<dyn ProjectedRows>, reference: f64) -> Projected {
+        let (s, vt) = right_factor(
+            (rows.nrows(), rows.ncols()),
+            &|start, len| rows.rows_at(&(start..start + len).collect::<Vec<_>>()),
+            reference,
+        );
+        Projected {
+            s,
+            vt,
+            left: Left::Rows(rows),
         }
     }
 
@@ -59,6 +82,13 @@ impl Projected {
         match &self.left {
             Left::Columns(columns) => (&self.vt * columns.tr_mul(b)).component_div(&self.s),
             Left::U(u) => u.tr_mul(b),
+            Left::Rows(rows) => {
+                let mut t = DVector::zeros(rows.ncols());
+                for positions in blocks(rows.nrows()) {
+                    t += rows.rows_at(&positions).tr_mul(&b.select_rows(&positions));
+                }
+                (&self.vt * t).component_div(&self.s)
+            }
         }
     }
 
@@ -67,6 +97,15 @@ impl Projected {
         match &self.left {
             Left::Columns(columns) => columns * self.v_scaled(c),
             Left::U(u) => u * c,
+            Left::Rows(rows) => {
+                let v = self.v_scaled(c);
+                let mut out = DVector::zeros(rows.nrows());
+                for positions in blocks(rows.nrows()) {
+                    let part = rows.rows_at(&positions) * &v;
+                    out.rows_mut(positions[0], positions.len()).copy_from(&part);
+                }
+                out
+            }
         }
     }
 
@@ -85,6 +124,15 @@ impl Projected {
         match self.left {
             Left::Columns(ref columns) => columns * self.v_over_s(),
             Left::U(u) => u,
+            Left::Rows(ref rows) => {
+                let v = self.v_over_s();
+                let mut out = DMatrix::zeros(rows.nrows(), v.ncols());
+                for positions in blocks(rows.nrows()) {
+                    let part = rows.rows_at(&positions) * &v;
+                    out.rows_mut(positions[0], positions.len()).copy_from(&part);
+                }
+                out
+            }
         }
     }
 
@@ -93,6 +141,7 @@ impl Projected {
         match &self.left {
             Left::Columns(columns) => columns.select_rows(rows) * self.v_over_s(),
             Left::U(u) => u.select_rows(rows),
+            Left::Rows(projected) => projected.rows_at(rows) * self.v_over_s(),
         }
     }
 
@@ -102,6 +151,25 @@ impl Projected {
             self.vt[(k, c)] / self.s[k]
         })
     }
+}
+
+/// Singular values and Vᵀ of projected columns given a block of rows at a time: from the
+/// Gram matrix, else (a direction the model nearly absorbs, which the Gram matrix cannot
+/// resolve) from the QR factor R.
+fn right_factor(
+    shape: (usize, usize),
+    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    reference: f64,
+) -> (DVector<f64>, DMatrix<f64>) {
+    gram_factor_of(shape, block, EFFECT_RANK_TOL, reference)
+        .unwrap_or_else(|| qr_right_factor_of(shape, block, EFFECT_RANK_TOL, reference))
+}
+
+/// Positions 0..n in consecutive blocks.
+fn blocks(n: usize) -> impl Iterator<Item = Vec<usize>> {
+    (0..n)
+        .step_by(ROWS_AT_ONCE)
+        .map(move |first| (first..(first + ROWS_AT_ONCE).min(n)).collect())
 }
 
 pub fn column_norm_max(m: &DMatrix<f64>) -> f64 {

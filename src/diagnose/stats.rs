@@ -195,7 +195,21 @@ pub fn gram_factor(
     tol: f64,
     reference: f64,
 ) -> Option<(DVector<f64>, DMatrix<f64>)> {
-    let (n, k) = a.shape();
+    gram_factor_of(
+        a.shape(),
+        &|start, len| a.rows(start, len).into_owned(),
+        tol,
+        reference,
+    )
+}
+
+/// [`gram_factor`] of an n × k matrix given a block of rows at a time (`block(start, len)`).
+pub fn gram_factor_of(
+    (n, k): (usize, usize),
+    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    tol: f64,
+    reference: f64,
+) -> Option<(DVector<f64>, DMatrix<f64>)> {
     if n == 0 || k == 0 {
         return Some((DVector::zeros(0), DMatrix::zeros(0, k)));
     }
@@ -206,7 +220,7 @@ pub fn gram_factor(
     let mut start = 0;
     while start < n {
         let len = BLOCK.min(n - start);
-        let block = a.rows(start, len);
+        let block = block(start, len);
         let bt = block.transpose();
         g.gemm(1.0, &bt, &block, 1.0);
         start += len;
@@ -245,8 +259,22 @@ pub fn gram_factor(
 /// rows]): as backward stable as the SVD of the whole matrix, with one block in memory beside
 /// `a`, which stays as it is.
 pub fn qr_right_factor(a: &DMatrix<f64>, tol: f64, reference: f64) -> (DVector<f64>, DMatrix<f64>) {
+    qr_right_factor_of(
+        a.shape(),
+        &|start, len| a.rows(start, len).into_owned(),
+        tol,
+        reference,
+    )
+}
+
+/// [`qr_right_factor`] of an n × k matrix given a block of rows at a time.
+pub fn qr_right_factor_of(
+    (n, k): (usize, usize),
+    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    tol: f64,
+    reference: f64,
+) -> (DVector<f64>, DMatrix<f64>) {
     const BLOCK: usize = 4096;
-    let (n, k) = a.shape();
     if n == 0 || k == 0 {
         return (DVector::zeros(0), DMatrix::zeros(0, k));
     }
@@ -258,7 +286,7 @@ pub fn qr_right_factor(a: &DMatrix<f64>, tol: f64, reference: f64) -> (DVector<f
         stacked.rows_mut(0, r.nrows()).copy_from(&r);
         stacked
             .rows_mut(r.nrows(), len)
-            .copy_from(&a.rows(start, len));
+            .copy_from(&block(start, len));
         r = stacked.qr().r();
         start += len;
     }

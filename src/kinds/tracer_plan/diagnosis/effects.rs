@@ -6,6 +6,7 @@ use std::sync::Arc;
 use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::data::{Data, Obs};
+use crate::diagnose::columns::{Columns, RowSparse};
 use crate::method::tracer_effects::{BeamObservation, LengthEffect, TracerNetworkDiagnosis};
 use crate::solve::multilateration::MultilaterationSolution;
 
@@ -330,13 +331,29 @@ impl EffectModel {
     /// linearised at φ_b. The parameters keep their names and units; a minimum-norm fit lies
     /// on that set.
     fn shared_size(&self, f: DMatrix<f64>) -> DMatrix<f64> {
-        let Some(phases) = &self.phases else {
+        let Some(p) = self.shared_projector(f.ncols()) else {
             return f;
         };
-        if f.ncols() != ECCENTRICITY_BLOCK * phases.len() {
-            return f;
+        // f·P by blocks of rows, in place (each entry's sum as of the whole product).
+        let mut f = f;
+        const ROWS: usize = 4096;
+        let mut start = 0;
+        while start < f.nrows() {
+            let len = ROWS.min(f.nrows() - start);
+            let block = f.rows(start, len) * &p;
+            f.rows_mut(start, len).copy_from(&block);
+            start += len;
         }
-        let k = f.ncols();
+        f
+    }
+
+    /// The projector P of [`EffectModel::shared_size`] for k columns; None where the columns
+    /// stay free.
+    fn shared_projector(&self, k: usize) -> Option<DMatrix<f64>> {
+        let phases = self.phases.as_ref()?;
+        if k != ECCENTRICITY_BLOCK * phases.len() {
+            return None;
+        }
         let mut p = DMatrix::zeros(k, k);
         let norm = (phases.len() as f64).sqrt();
         let radial = DVector::from_fn(k, |c, _| {
@@ -358,17 +375,7 @@ impl EffectModel {
             }
             p[(c + 2, c + 2)] = 1.0;
         }
-        // f·P by blocks of rows, in place (each entry's sum as of the whole product).
-        let mut f = f;
-        const ROWS: usize = 4096;
-        let mut start = 0;
-        while start < f.nrows() {
-            let len = ROWS.min(f.nrows() - start);
-            let block = f.rows(start, len) * &p;
-            f.rows_mut(start, len).copy_from(&block);
-            start += len;
-        }
-        f
+        Some(p)
     }
 
     /// An effect the session's plan kind models.
@@ -439,22 +446,7 @@ impl EffectModel {
             _ => {}
         }
         let mut f = self.absolute(data, &data.obs, geom);
-        // One zeroing state per pass: the home dwell as it stood when the counter was zeroed.
-        let zeroings: Vec<Obs> = data
-            .passes
-            .iter()
-            .map(|members| {
-                let home = &data.obs[data.obs[members[0]].home];
-                let z = home.zeroed;
-                Obs {
-                    t_s: z.t_s,
-                    dn: z.dn,
-                    material_dt_k: z.material_dt_k,
-                    ..home.clone()
-                }
-            })
-            .collect();
-        let f0 = self.absolute(data, &zeroings, geom);
+        let f0 = self.absolute(data, &zeroings(data), geom);
         // In place: a candidate's columns (lengths × up to 3 per station) are held once.
         for (c, mut column) in f.column_iter_mut().enumerate() {
             for (x, o) in column.iter_mut().zip(&data.obs) {
@@ -462,6 +454,54 @@ impl EffectModel {
             }
         }
         self.shared_size(f)
+    }
+
+    /// [`EffectModel::columns`] as a candidate is evaluated: by rows where each length touches
+    /// only its own station's (or pass's) parameters, so that a large session's candidate is
+    /// not held dense; the same values.
+    pub fn candidate_columns(&self, data: &Data, geom: &Geometry) -> Columns {
+        let inner = match self.kind {
+            EffectKind::StationDrift | EffectKind::TracerEccentricity => 3 * data.station_ids.len(),
+            EffectKind::DeadPath => data.station_ids.len(),
+            EffectKind::Settling => data.passes.len(),
+            _ => return Columns::Dense(self.columns(data, geom)),
+        };
+        // Settling's columns are relative already (`columns`).
+        let zeroings = (self.kind != EffectKind::Settling).then(|| zeroings(data));
+        let mut m = RowSparse::new(inner, data.obs.len(), 3);
+        for o in &data.obs {
+            let (first, mut values, count) = self.own_entries(data, o, geom);
+            if let Some(zeroings) = &zeroings {
+                // The home dwell belongs to the same station: the same columns.
+                let (_, at_zeroing, _) = self.own_entries(data, &zeroings[o.pass_group], geom);
+                for (v, z) in values.iter_mut().zip(at_zeroing) {
+                    *v -= z;
+                }
+            }
+            m.push_row((0..count).map(|j| (first + j, values[j])));
+        }
+        match self.shared_projector(inner) {
+            Some(p) => Columns::Sparse(m.with_right(p)),
+            None => Columns::Sparse(m),
+        }
+    }
+
+    /// The absolute columns' entries of one length of an effect with parameters per station
+    /// (or per pass): its first column, values and their number.
+    fn own_entries(&self, data: &Data, o: &Obs, geom: &Geometry) -> (usize, [f64; 3], usize) {
+        match self.kind {
+            EffectKind::StationDrift => {
+                let (u, _) = geom.beam_of(o);
+                let dt = o.t_s - data.station_start_s[o.station];
+                (3 * o.station, [u[0] * dt, u[1] * dt, u[2] * dt], 3)
+            }
+            EffectKind::TracerEccentricity => {
+                let (u, _) = geom.beam_of(o);
+                (3 * o.station, eccentricity_terms(-u), 3)
+            }
+            EffectKind::DeadPath => (o.station, [o.dn.unwrap_or(0.0), 0.0, 0.0], 1),
+            _ => (o.pass_group, [-1.0, 0.0, 0.0], 1),
+        }
     }
 
     /// f(obs): the effect's error in the absolute optical distance per unit parameter.
@@ -515,12 +555,10 @@ impl EffectModel {
                 for (i, o) in obs.iter().enumerate() {
                     let (u, _) = geom.beam_of(o);
                     // The beam leaves the station towards the target: direction −u.
-                    let v = -u;
-                    let az = v.y.atan2(v.x);
-                    let el = v.z.clamp(-1.0, 1.0).asin();
-                    f[(i, 3 * o.station)] = az.cos();
-                    f[(i, 3 * o.station + 1)] = az.sin();
-                    f[(i, 3 * o.station + 2)] = el.sin();
+                    let terms = eccentricity_terms(-u);
+                    for (a, term) in terms.into_iter().enumerate() {
+                        f[(i, 3 * o.station + a)] = term;
+                    }
                 }
                 f
             }
@@ -585,6 +623,30 @@ impl EffectModel {
             }
         }
     }
+}
+
+/// One zeroing state per pass: the home dwell as it stood when the counter was zeroed.
+fn zeroings(data: &Data) -> Vec<Obs> {
+    data.passes
+        .iter()
+        .map(|members| {
+            let home = &data.obs[data.obs[members[0]].home];
+            let z = home.zeroed;
+            Obs {
+                t_s: z.t_s,
+                dn: z.dn,
+                material_dt_k: z.material_dt_k,
+                ..home.clone()
+            }
+        })
+        .collect()
+}
+
+/// (cos az, sin az, sin el) of a beam leaving the station along `v`.
+fn eccentricity_terms(v: Vector3<f64>) -> [f64; 3] {
+    let az = v.y.atan2(v.x);
+    let el = v.z.clamp(-1.0, 1.0).asin();
+    [az.cos(), az.sin(), el.sin()]
 }
 
 #[cfg(test)]

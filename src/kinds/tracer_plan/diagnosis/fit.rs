@@ -12,6 +12,7 @@ use super::dense::{self, DenseFit};
 use super::engine::{LinearDesign, LinearFit};
 use super::loso::{self, HeldOutStation};
 use super::schur::{Design, Schur};
+use crate::diagnose::columns::{ProjectedRows, RowSparse};
 use crate::diagnose::downdate::HatRows;
 
 thread_local! {
@@ -175,6 +176,14 @@ impl LinearFit for Fit {
 
     fn factorises_by_svd(&self) -> bool {
         self.is_dense()
+    }
+
+    /// Structured only: the dense oracle projects the columns whole.
+    fn project_off_implicit(&self, m: RowSparse) -> Result<Box<dyn ProjectedRows>, RowSparse> {
+        match self {
+            Fit::Structured(s) => Ok(s.project_off_implicit(m)),
+            Fit::Dense(_) => Err(m),
+        }
     }
 
     /// Structured only: the dense oracle refits every fold, and so checks the downdates.

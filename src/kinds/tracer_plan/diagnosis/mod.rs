@@ -27,6 +27,7 @@ use nalgebra::{DMatrix, DVector};
 use serde_json::Value;
 
 // The shared machinery, named from this library's modules as their siblings.
+use crate::diagnose::columns::Columns;
 use crate::diagnose::{engine, forward, progress, selection, stats};
 use crate::diagnose::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, NoiseScale,
@@ -204,6 +205,10 @@ impl forward::Client for LengthsClient<'_> {
 
     fn columns(&self, effect: &EffectModel) -> DMatrix<f64> {
         effect.columns(self.data, self.geom)
+    }
+
+    fn candidate_columns(&self, effect: &EffectModel) -> Columns {
+        effect.candidate_columns(self.data, self.geom)
     }
 
     /// A length step's change point: the best position over the passes (Bonferroni over the

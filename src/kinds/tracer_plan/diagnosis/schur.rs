@@ -21,6 +21,8 @@ use crate::parallel::{self, in_parallel, split_lengths};
 use super::data::Data;
 use super::effects::Geometry;
 
+mod implicit;
+
 /// Below this many entries (rows × columns) a projection runs on one thread: threads would
 /// cost more than they save.
 const THREADED_PROJECTION_ENTRIES: usize = 200_000;
@@ -1022,7 +1024,7 @@ mod tests {
     /// A small multilateration design: 6 stations around 30 points, one segment per station,
     /// one effect column, and a point seen from one station only (a rank-deficient block); with
     /// `tiny_effect` a second effect column ~1e-7 of the first.
-    fn small(tiny_effect: bool) -> Design {
+    pub(super) fn small(tiny_effect: bool) -> Design {
         let stations = [
             Vector3::new(-1.0, -1.0, 0.2),
             Vector3::new(2.5, -0.8, 0.6),
