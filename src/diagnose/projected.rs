@@ -11,9 +11,12 @@ use nalgebra::{DMatrix, DVector};
 use super::columns::ProjectedRows;
 use super::engine::LinearFit;
 use super::stats::{gram_factor_of, qr_right_factor_of, Basis, EFFECT_RANK_TOL};
+use crate::parallel;
 
 /// Rows of implicit projected columns made at once when they are walked whole.
 const ROWS_AT_ONCE: usize = 2048;
+/// Threads such a walk runs on.
+const MAX_ROW_THREADS: usize = 2;
 
 pub struct Projected {
     /// Singular values and right singular vectors of the kept directions.
@@ -83,9 +86,12 @@ impl Projected {
             Left::Columns(columns) => (&self.vt * columns.tr_mul(b)).component_div(&self.s),
             Left::U(u) => u.tr_mul(b),
             Left::Rows(rows) => {
+                let parts = in_blocks(rows.nrows(), |positions| {
+                    rows.rows_at(positions).tr_mul(&b.select_rows(positions))
+                });
                 let mut t = DVector::zeros(rows.ncols());
-                for positions in blocks(rows.nrows()) {
-                    t += rows.rows_at(&positions).tr_mul(&b.select_rows(&positions));
+                for part in parts {
+                    t += part;
                 }
                 (&self.vt * t).component_div(&self.s)
             }
@@ -99,12 +105,8 @@ impl Projected {
             Left::U(u) => u * c,
             Left::Rows(rows) => {
                 let v = self.v_scaled(c);
-                let mut out = DVector::zeros(rows.nrows());
-                for positions in blocks(rows.nrows()) {
-                    let part = rows.rows_at(&positions) * &v;
-                    out.rows_mut(positions[0], positions.len()).copy_from(&part);
-                }
-                out
+                let parts = in_blocks(rows.nrows(), |positions| rows.rows_at(positions) * &v);
+                DVector::from_iterator(rows.nrows(), parts.iter().flat_map(|p| p.iter().copied()))
             }
         }
     }
@@ -158,7 +160,7 @@ impl Projected {
 /// resolve) from the QR factor R.
 fn right_factor(
     shape: (usize, usize),
-    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     reference: f64,
 ) -> (DVector<f64>, DMatrix<f64>) {
     gram_factor_of(shape, block, EFFECT_RANK_TOL, reference)
@@ -170,6 +172,13 @@ fn blocks(n: usize) -> impl Iterator<Item = Vec<usize>> {
     (0..n)
         .step_by(ROWS_AT_ONCE)
         .map(move |first| (first..(first + ROWS_AT_ONCE).min(n)).collect())
+}
+
+/// `job` on each block of positions 0..n, the blocks on the cores; the results in the blocks'
+/// order.
+fn in_blocks<R: Send>(n: usize, job: impl Fn(&[usize]) -> R + Sync) -> Vec<R> {
+    let blocks: Vec<Vec<usize>> = blocks(n).collect();
+    parallel::in_groups(&blocks, parallel::threads(MAX_ROW_THREADS), |b| job(b))
 }
 
 pub fn column_norm_max(m: &DMatrix<f64>) -> f64 {

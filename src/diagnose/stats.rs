@@ -3,6 +3,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::parallel;
+
 /// Relative singular value below which a direction counts as not identifiable (gauge,
 /// collinear columns). Rounding in the SVD of the whitened designs is about 1e-15 of the
 /// largest singular value times the condition of the real directions (< 1e4 here).
@@ -185,6 +187,9 @@ const GRAM_ROUNDING: f64 = 1e-14;
 /// kept direction at 1e-5 of the largest (singular values 3e-3) is resolved to ~2e-11.
 const GRAM_CONDITION: f64 = 1e-5;
 
+/// Threads the Gram matrix's blocks of rows run on.
+const MAX_GRAM_THREADS: usize = 2;
+
 /// The right factor (singular values and Vᵀ, the directions above the rank cut as
 /// `Basis::new` keeps them) of a tall `a` from the eigen-decomposition of its k × k Gram
 /// matrix, in time n k² without the n × k orthonormal factor. None when some direction is
@@ -206,24 +211,25 @@ pub fn gram_factor(
 /// [`gram_factor`] of an n × k matrix given a block of rows at a time (`block(start, len)`).
 pub fn gram_factor_of(
     (n, k): (usize, usize),
-    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     tol: f64,
     reference: f64,
 ) -> Option<(DVector<f64>, DMatrix<f64>)> {
     if n == 0 || k == 0 {
         return Some((DVector::zeros(0), DMatrix::zeros(0, k)));
     }
-    let mut g = DMatrix::<f64>::zeros(k, k);
-    // Blocks of rows: each block's transpose is small, and the product runs in the blocked
-    // matrix multiplication.
+    // Blocks of rows: each block's product runs in the blocked matrix multiplication; the
+    // blocks on the cores, their products summed in the blocks' order (the same sum on any
+    // number of cores).
     const BLOCK: usize = 2048;
-    let mut start = 0;
-    while start < n {
-        let len = BLOCK.min(n - start);
-        let block = block(start, len);
-        let bt = block.transpose();
-        g.gemm(1.0, &bt, &block, 1.0);
-        start += len;
+    let starts: Vec<usize> = (0..n).step_by(BLOCK).collect();
+    let parts = parallel::in_groups(&starts, parallel::threads(MAX_GRAM_THREADS), |&start| {
+        let block = block(start, BLOCK.min(n - start));
+        block.tr_mul(&block)
+    });
+    let mut g = DMatrix::<f64>::zeros(k, k);
+    for part in parts {
+        g += part;
     }
     let g = DMatrix::from_fn(k, k, |r, c| 0.5 * (g[(r, c)] + g[(c, r)]));
     let eig = g.symmetric_eigen();
@@ -270,7 +276,7 @@ pub fn qr_right_factor(a: &DMatrix<f64>, tol: f64, reference: f64) -> (DVector<f
 /// [`qr_right_factor`] of an n × k matrix given a block of rows at a time.
 pub fn qr_right_factor_of(
     (n, k): (usize, usize),
-    block: &dyn Fn(usize, usize) -> DMatrix<f64>,
+    block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     tol: f64,
     reference: f64,
 ) -> (DVector<f64>, DMatrix<f64>) {

@@ -373,8 +373,10 @@ pub(crate) fn diagnose_data(
     } else {
         None
     };
-    // Not needed by the rounds: their memory is the candidates'.
+    // Not needed by the rounds: their memory is the candidates'. Many small blocks inside the
+    // heap: returned, or the rounds' peak would add to them.
     data.windows = Vec::new();
+    budget::return_freed_memory();
     let data: &Data = data;
     match &settling_fit {
         Some(fit) => {
@@ -435,6 +437,7 @@ pub(crate) fn diagnose_data(
     );
     notes.extend(selection_notes);
     progress.advance_to(selection_end);
+    budget::return_freed_memory();
     // The final model: joint Gauss–Newton of geometry and accepted effects, on the window
     // means with the settling bias (when accepted) taken off.
     let settled = accepted.iter().any(|m| m.kind == EffectKind::Settling);

@@ -66,6 +66,7 @@ fn moves(data: &Data) -> Vec<Option<[f64; 3]>> {
 /// Rows of one window at time constant tau: whitened deviations d/σ and regressors
 /// c_a·(e(t) − ē)/σ with c_a = −u_a·sign_a (a target shift δX changes the length by −u·δX),
 /// and ē·c_a, the mean's bias per unit offset.
+#[derive(Default)]
 struct WindowRows {
     obs: usize,
     d: Vec<f64>,
@@ -73,38 +74,46 @@ struct WindowRows {
     mean_col: [f64; 3],
 }
 
+/// A window's rows at time constant `tau_s` into `out` (its buffers reused): window `i`,
+/// whose axes moved into it with signs `sign`.
 fn window_rows(
     data: &Data,
     geom: &Geometry,
-    moved: &[Option<[f64; 3]>],
+    (i, sign): (usize, [f64; 3]),
     tau_s: f64,
-) -> Vec<WindowRows> {
-    let mut out = Vec::new();
-    for (i, sign) in moved.iter().enumerate() {
-        let (Some(sign), Some(w)) = (sign, &data.windows[i]) else {
-            continue;
-        };
-        let n = w.samples.len();
-        let (u, _) = geom.beam(data, i);
-        let c: [f64; 3] = std::array::from_fn(|a| -u[a] * sign[a]);
-        let sigma = data.obs[i].sigma_m * (n as f64).sqrt();
-        let e: Vec<f64> = w
-            .samples
-            .iter()
-            .map(|(t, _)| (-(t - w.arrival_s).max(0.0) / tau_s).exp())
-            .collect();
-        let e_mean = e.iter().sum::<f64>() / n as f64;
-        let y_mean = w.samples.iter().map(|s| s.1).sum::<f64>() / n as f64;
-        out.push(WindowRows {
-            obs: i,
-            d: w.samples.iter().map(|s| (s.1 - y_mean) / sigma).collect(),
-            x: e.iter()
-                .map(|ek| std::array::from_fn(|a| c[a] * (ek - e_mean) / sigma))
-                .collect(),
-            mean_col: std::array::from_fn(|a| c[a] * e_mean),
-        });
+    out: &mut WindowRows,
+) {
+    out.obs = i;
+    out.d.clear();
+    out.x.clear();
+    let Some(w) = &data.windows[i] else {
+        return;
+    };
+    let n = w.samples.len();
+    let (u, _) = geom.beam(data, i);
+    let c: [f64; 3] = std::array::from_fn(|a| -u[a] * sign[a]);
+    let sigma = data.obs[i].sigma_m * (n as f64).sqrt();
+    let decay = |t: f64| (-(t - w.arrival_s).max(0.0) / tau_s).exp();
+    let e_mean = w.samples.iter().map(|(t, _)| decay(*t)).sum::<f64>() / n as f64;
+    let y_mean = w.samples.iter().map(|s| s.1).sum::<f64>() / n as f64;
+    for &(t, y) in &w.samples {
+        let ek = decay(t);
+        out.d.push((y - y_mean) / sigma);
+        out.x
+            .push(std::array::from_fn(|a| c[a] * (ek - e_mean) / sigma));
     }
-    out
+    out.mean_col = std::array::from_fn(|a| c[a] * e_mean);
+}
+
+/// The windows settling is tested on: those with raw samples that some axis moved into, with
+/// the moves' signs.
+fn usable_windows(data: &Data) -> Vec<(usize, [f64; 3])> {
+    moves(data)
+        .into_iter()
+        .enumerate()
+        .filter_map(|(i, sign)| Some((i, sign?)))
+        .filter(|&(i, _)| data.windows[i].is_some())
+        .collect()
 }
 
 /// A pass's first window follows the homing dwell, and the arrival before it is not in the
@@ -164,9 +173,16 @@ impl Normal {
 
 /// The normal equations of each fold's windows (window k in fold k mod `FOLDS`), built in one
 /// pass: the full fit's and every fold's training set are sums of them.
-fn fold_normals(rows: &[WindowRows]) -> [Normal; FOLDS] {
+fn fold_normals(
+    data: &Data,
+    geom: &Geometry,
+    usable: &[(usize, [f64; 3])],
+    tau_s: f64,
+) -> [Normal; FOLDS] {
     let mut out = [Normal::zero(); FOLDS];
-    for (k, w) in rows.iter().enumerate() {
+    let mut w = WindowRows::default();
+    for (k, &window) in usable.iter().enumerate() {
+        window_rows(data, geom, window, tau_s, &mut w);
         let part = &mut out[k % FOLDS];
         for (d, x) in w.d.iter().zip(&w.x) {
             let x = Vector3::from(*x);
@@ -209,14 +225,16 @@ fn solve3(xtx: &Matrix3<f64>, xtd: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>
 /// Fit settling at every time constant of the grid and return the best (largest χ² drop),
 /// or None when no window can show it (no raw samples, or no axis moved into a window).
 pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
-    let moved = moves(data);
+    // Each window's rows are made again where needed rather than held for every window: the
+    // raw samples of a large session would take several times their own memory.
+    let usable = usable_windows(data);
+    if usable.is_empty() {
+        return None;
+    }
     let mut best: Option<SettlingFit> = None;
+    let mut w = WindowRows::default();
     for &tau_s in &TAU_GRID_S {
-        let rows = window_rows(data, geom, &moved, tau_s);
-        if rows.is_empty() {
-            return None;
-        }
-        let parts = fold_normals(&rows);
+        let parts = fold_normals(data, geom, &usable, tau_s);
         let Normal { xtx, xtd, dtd, n } = sum_normals(&parts, None);
         let (s, var, df) = solve3(&xtx, &xtd);
         if df == 0 {
@@ -226,46 +244,38 @@ pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
         if best.as_ref().is_some_and(|b| b.chi2_drop >= chi2_drop) {
             continue;
         }
-        let windows = rows.len();
+        let windows = usable.len();
         let dof = n.saturating_sub(windows).max(df + 1);
         let chi2_after = (dtd - chi2_drop).max(f64::MIN_POSITIVE);
         let dof_after = (dof - df) as f64;
         let f_stat = (chi2_drop / df as f64) / (chi2_after / dof_after);
         let p_value = (f_sf(f_stat, df as f64, dof_after) * TAU_GRID_S.len() as f64).min(1.0);
         let bic_delta = dof as f64 * (chi2_after / dtd).ln() + (df + 1) as f64 * (dof as f64).ln();
-        // Held out: fit on the other windows, score each fold's windows.
-        let (mut ms_base, mut ms_after, mut held) = (0.0, 0.0, 0usize);
-        for f in 0..FOLDS {
-            let train = sum_normals(&parts, Some(f));
-            let (sf, _, _) = solve3(&train.xtx, &train.xtd);
-            for w in rows.iter().skip(f).step_by(FOLDS) {
-                let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
-                for (d, x) in w.d.iter().zip(&w.x) {
-                    let pred = Vector3::from(*x).dot(&sf);
-                    ms_base += (d * sigma).powi(2);
-                    ms_after += ((d - pred) * sigma).powi(2);
-                    held += 1;
-                }
-            }
-        }
+        // Held out: each fold's windows scored by the fit on the other windows. In the same
+        // walk, each window mean's bias and the residuals after the full fit.
+        let fold_fits: Vec<Vector3<f64>> = (0..FOLDS)
+            .map(|f| {
+                let train = sum_normals(&parts, Some(f));
+                solve3(&train.xtx, &train.xtd).0
+            })
+            .collect();
+        let (mut ms_base, mut ms_after, mut held, mut ss) = (0.0, 0.0, 0usize, 0.0);
         let mut bias_m = vec![0.0; data.obs.len()];
-        for w in &rows {
+        for (k, &window) in usable.iter().enumerate() {
+            window_rows(data, geom, window, tau_s, &mut w);
+            let sf = &fold_fits[k % FOLDS];
+            let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
+            for (d, x) in w.d.iter().zip(&w.x) {
+                let x = Vector3::from(*x);
+                ms_base += (d * sigma).powi(2);
+                ms_after += ((d - x.dot(sf)) * sigma).powi(2);
+                ss += ((d - x.dot(&s)) * sigma).powi(2);
+                held += 1;
+            }
             bias_m[w.obs] = (0..3).map(|a| w.mean_col[a] * s[a]).sum();
         }
         home_biases(data, tau_s, &mut bias_m);
-        let rms_after_m = {
-            let ss: f64 = rows
-                .iter()
-                .map(|w| {
-                    let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
-                    w.d.iter()
-                        .zip(&w.x)
-                        .map(|(d, x)| ((d - Vector3::from(*x).dot(&s)) * sigma).powi(2))
-                        .sum::<f64>()
-                })
-                .sum();
-            (ss / n.max(1) as f64).sqrt()
-        };
+        let rms_after_m = (ss / n.max(1) as f64).sqrt();
         best = Some(SettlingFit {
             tau_s,
             s_m: s.into(),

@@ -8,13 +8,32 @@
 //! B̃ = (I − P_A) B is B̃ z with z = W Wᵀ Bᵀ(I − P_A) m, and B̃ z = B z − A M⁺ Aᵀ B z, so
 //! q_p = M_p⁺ (s_p − A_pᵀ B_p z): two walks over the rows, point by point.
 
+use std::ops::Range;
 use std::sync::Arc;
 
-use nalgebra::DMatrix;
+use nalgebra::{DMatrix, DMatrixViewMut};
 
 use crate::diagnose::columns::{ProjectedRows, RowSparse};
+use crate::parallel::{self, split_lengths};
 
 use super::{Design, Schur};
+
+/// Points one part of the coefficients' walks takes.
+const POINTS_AT_ONCE: usize = 512;
+const MAX_COEFFICIENT_THREADS: usize = 2;
+
+/// Each part's points with its columns of qt (k × 3 per point).
+fn point_parts<'a>(
+    qt: &'a mut DMatrix<f64>,
+    parts: &[Range<usize>],
+    k: usize,
+) -> Vec<(Range<usize>, &'a mut [f64])> {
+    let pieces = split_lengths(qt.as_mut_slice(), parts.iter().map(|p| 3 * k * p.len()));
+    parts.iter().cloned().zip(pieces).collect()
+}
+
+/// Writes the columns' row at a position (with a scratch list of entries).
+type RowSource<'a> = dyn Fn(usize, &mut [f64], &mut Vec<(usize, f64)>) + Sync + 'a;
 
 /// The projection's coefficients, transposed so that a row's terms are contiguous: qt (k × 3n,
 /// point p's columns 3p..3p + 3) and zt (k × g).
@@ -93,16 +112,15 @@ impl Schur {
     /// what rounding in the first left in the column space.
     pub fn project_off_implicit(&self, m: RowSparse) -> Box<dyn ProjectedRows> {
         let k = m.ncols();
-        let mut entries = Vec::new();
-        let once = self.projection_coefficients(k, &mut |pos, out| m.row_into(pos, out));
+        let once = self.projection_coefficients(k, &|pos, out, _| m.row_into(pos, out));
         let mut projected = ImplicitProjection {
             design: self.design.clone(),
             rows: self.rows.clone(),
             m,
             coefficients: once,
         };
-        let again = self.projection_coefficients(k, &mut |pos, out| {
-            projected.row_into(pos, out, &mut entries)
+        let again = self.projection_coefficients(k, &|pos, out, entries| {
+            projected.row_into(pos, out, entries)
         });
         projected.coefficients.qt += again.qt;
         projected.coefficients.zt += again.zt;
@@ -110,31 +128,64 @@ impl Schur {
     }
 
     /// The coefficients of the projection of the k columns whose row at a position `row`
-    /// writes.
-    fn projection_coefficients(
-        &self,
-        k: usize,
-        row: &mut dyn FnMut(usize, &mut [f64]),
-    ) -> Coefficients {
-        let d = &self.design;
-        let (n, g) = (d.n_points, d.n_global());
-        // First s_p = A_pᵀ m_p per point (kept: qt's storage), and Bᵀ(I − P_A) m.
+    /// writes (with a scratch list of entries). The points in parts on the cores, each
+    /// part's sums of Bᵀ(I − P_A)m added in the parts' order: the same on any number of
+    /// cores.
+    fn projection_coefficients(&self, k: usize, row: &RowSource) -> Coefficients {
+        let (n, g) = (self.design.n_points, self.design.n_global());
+        let threads = parallel::threads(MAX_COEFFICIENT_THREADS);
+        let parts: Vec<Range<usize>> = (0..n)
+            .step_by(POINTS_AT_ONCE)
+            .map(|first| first..(first + POINTS_AT_ONCE).min(n))
+            .collect();
         let mut qt = DMatrix::<f64>::zeros(k, 3 * n);
+
+        // First s_p = A_pᵀ m_p per point (in qt's storage), and Bᵀ(I − P_A) m.
+        let sums =
+            parallel::in_groups_owned(point_parts(&mut qt, &parts, k), threads, |(points, s)| {
+                self.point_sums(points, s, k, row)
+            });
         let mut tt = DMatrix::<f64>::zeros(k, g);
+        for part in sums {
+            tt += part;
+        }
+        // zᵀ = tᵀ W Wᵀ.
+        let zt = (&tt * &self.w_red) * self.w_red.transpose();
+        drop(tt);
+        // q_p = M_p⁺ (s_p − A_pᵀ B_p z).
+        parallel::in_groups_owned(point_parts(&mut qt, &parts, k), threads, |(points, s)| {
+            self.point_coefficients(points, s, k, &zt)
+        });
+        Coefficients { qt, zt }
+    }
+
+    /// For the points `points`: s_p = A_pᵀ m_p into `s` (k × 3 per point), and their rows'
+    /// Bᵀ(I − P_A) m (k × g, transposed).
+    fn point_sums(
+        &self,
+        points: Range<usize>,
+        s: &mut [f64],
+        k: usize,
+        row: &RowSource,
+    ) -> DMatrix<f64> {
+        let d = &self.design;
+        let first = points.start;
+        let mut s = DMatrixViewMut::from_slice(s, k, 3 * points.len());
+        let mut tt = DMatrix::<f64>::zeros(k, d.n_global());
         let mut entries = Vec::new();
         let mut member_rows: Vec<f64> = Vec::new();
         let mut q1 = vec![0.0; 3 * k];
-        for p in 0..n {
+        for p in points {
             let members = self.members(p);
             member_rows.resize(members.len() * k, 0.0);
             for (r, &pos) in member_rows.chunks_mut(k).zip(members) {
-                row(pos, r);
+                row(pos, r, &mut entries);
             }
-            let mut s = qt.columns_mut(3 * p, 3);
+            let at = 3 * (p - first);
             for (r, &pos) in member_rows.chunks(k).zip(members) {
                 let a = d.a(self.rows[pos]);
                 for x in 0..3 {
-                    for (sc, v) in s.column_mut(x).iter_mut().zip(r) {
+                    for (sc, v) in s.column_mut(at + x).iter_mut().zip(r) {
                         *sc += a[x] * v;
                     }
                 }
@@ -143,7 +194,7 @@ impl Schur {
             let mp = self.m_pinv[p];
             for x in 0..3 {
                 for c in 0..k {
-                    q1[x * k + c] = (0..3).map(|y| mp[(x, y)] * s[(c, y)]).sum();
+                    q1[x * k + c] = (0..3).map(|y| mp[(x, y)] * s[(c, at + y)]).sum();
                 }
             }
             for (r, &pos) in member_rows.chunks_mut(k).zip(members) {
@@ -160,13 +211,18 @@ impl Schur {
                 }
             }
         }
-        // zᵀ = tᵀ W Wᵀ.
-        let zt = (&tt * &self.w_red) * self.w_red.transpose();
-        drop(tt);
-        // q_p = M_p⁺ (s_p − A_pᵀ B_p z).
+        tt
+    }
+
+    /// For the points `points`: q_p = M_p⁺ (s_p − A_pᵀ B_p z) in place of s_p in `s`.
+    fn point_coefficients(&self, points: Range<usize>, s: &mut [f64], k: usize, zt: &DMatrix<f64>) {
+        let d = &self.design;
+        let first = points.start;
+        let mut s = DMatrixViewMut::from_slice(s, k, 3 * points.len());
+        let mut entries = Vec::new();
         let mut bz = vec![0.0; k];
-        for p in 0..n {
-            let mut s = qt.columns_mut(3 * p, 3);
+        for p in points {
+            let at = 3 * (p - first);
             for &pos in self.members(p) {
                 let i = self.rows[pos];
                 d.global_entries(i, &mut entries);
@@ -178,20 +234,19 @@ impl Schur {
                 }
                 let a = d.a(i);
                 for x in 0..3 {
-                    for (sc, b) in s.column_mut(x).iter_mut().zip(&bz) {
+                    for (sc, b) in s.column_mut(at + x).iter_mut().zip(&bz) {
                         *sc -= a[x] * b;
                     }
                 }
             }
             let mp = self.m_pinv[p];
             for c in 0..k {
-                let v = [s[(c, 0)], s[(c, 1)], s[(c, 2)]];
+                let v = [s[(c, at)], s[(c, at + 1)], s[(c, at + 2)]];
                 for x in 0..3 {
-                    s[(c, x)] = (0..3).map(|y| mp[(x, y)] * v[y]).sum();
+                    s[(c, at + x)] = (0..3).map(|y| mp[(x, y)] * v[y]).sum();
                 }
             }
         }
-        Coefficients { qt, zt }
     }
 }
 
