@@ -403,7 +403,8 @@ impl Engine {
         let chi2_drop = coeff.norm_squared();
         let after_w = &full.res_w - perp.u_times(&coeff);
         let rms_after = self.rms_reported(&after_w, &full.rows);
-        let theta = perp.solve(&full.res_w);
+        // θ = V S⁻¹ Uᵀ r, from the coefficients Uᵀ r already at hand.
+        let theta = perp.v_scaled(&coeff);
         // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
         let theta_sigma = DVector::from_fn(n_columns, |c, _| {
             (0..perp.rank())

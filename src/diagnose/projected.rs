@@ -112,7 +112,7 @@ impl Projected {
     }
 
     /// V S⁻¹ c.
-    fn v_scaled(&self, c: &DVector<f64>) -> DVector<f64> {
+    pub fn v_scaled(&self, c: &DVector<f64>) -> DVector<f64> {
         self.vt.tr_mul(&c.component_div(&self.s))
     }
 

@@ -32,8 +32,9 @@ pub struct TooLarge {
 /// data, already in memory): a few fits at once (points eliminated: a 3 × 3 block per point
 /// and the reduced system of stations, segments and effects), the design with every effect of
 /// the library accepted (the worst case), the folds downdated from the full fit (each length's
-/// row of the reduced system's part, with its point's block), the candidate under evaluation
-/// with its projection, and the leave-one-station-out blocks.
+/// place in its point's block, the reduced system's part per point shared by the folds), the
+/// candidate under evaluation (sparse, its projection's coefficients per point and over the
+/// global columns), and leave one station out.
 pub fn estimate_bytes(data: &Data) -> u64 {
     let n = data.obs.len() as u64;
     let points = data.problem.nominal_points.len() as u64;
@@ -57,21 +58,21 @@ pub fn estimate_bytes(data: &Data) -> u64 {
     let fits = (2 + threads) * fit;
     // The design: 7 words of geometry per row and the accepted effects' columns.
     let design = n * (7 + all_effects) * F64;
-    // The folds' downdates: every length is held out once, with its row of D⁻¹L (at most the
-    // reduced system's width) and its point's block in its fold.
-    let downdates = n * (global + 12) * F64;
-    // The candidate's columns, whitened and projected in place (its basis is formed a fold's
-    // rows at a time), made again for a fold that is refitted, with the rows' entries gathered
-    // for the projection (11 words a row).
-    let candidates = 2 * n * widest * F64 + 11 * n * F64;
-    // The change-point search's and leverages' per-point rows of the reduced system.
+    // The folds' downdates: every length is held out once, with its point's block and
+    // positions in its fold (12 words), and the reduced system's part per point, shared.
     let reduced = 3 * points * global * F64;
+    let downdates = n * 12 * F64 + reduced;
+    // The candidate: its rows' entries (up to 3 and a start, 5 words a row), its projection's
+    // coefficients (per point and over the global columns, twice while the second pass runs)
+    // and the blocks of its projected rows on the threads. A fold that must be refitted makes
+    // the columns dense: counted, as the worst case.
+    let candidates = 5 * n * F64 + 2 * (3 * points + global) * widest * F64 + n * widest * F64;
     // Leave one station out: its held lengths against the reduced system, on its threads.
     let held = n.div_ceil(stations.max(1));
-    let loso = threads * 4 * held * global * F64;
-    // A candidate's evaluation, the change-point search and leave one station out come one
-    // after another: the largest of them is what the peak holds.
-    let phase = candidates.max(reduced).max(loso);
+    let loso = threads * 3 * held * global * F64;
+    // A candidate's evaluation and leave one station out come one after another: the larger
+    // of them is what the peak holds.
+    let phase = candidates.max(loso);
     ((fits + design + downdates + phase) as f64 * MARGIN) as u64
 }
 

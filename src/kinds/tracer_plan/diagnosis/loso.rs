@@ -94,6 +94,7 @@ fn held_out_station(
     let delta = basis.solve(&rt);
     let nh = held.len();
     let r_dim = basis.reduced_dim();
+    let wt = basis.reduced_transpose();
     let mut f = DMatrix::zeros(nh, r_dim);
     let mut ma: Vec<Vector3<f64>> = Vec::with_capacity(nh);
     let mut a: Vec<Vector3<f64>> = Vec::with_capacity(nh);
@@ -103,7 +104,7 @@ fn held_out_station(
         let point = data.obs[i].point;
         let dp = Vector3::new(delta[3 * point], delta[3 * point + 1], delta[3 * point + 2]);
         z[r] = resid_m[i] * w[i] - ai.dot(&dp);
-        let (m_a, f_i) = basis.held_point_covariance(i);
+        let (m_a, f_i) = basis.held_point_covariance(&wt, i);
         f.set_row(r, &f_i.transpose());
         ma.push(m_a);
         a.push(ai);

@@ -402,6 +402,11 @@ impl Schur {
     }
 
     /// Identifiable directions: the points' kept directions plus the reduced system's.
+    /// Wᵀ (reduced × global): each global column's part contiguous.
+    pub fn reduced_transpose(&self) -> DMatrix<f64> {
+        self.w_red.transpose()
+    }
+
     /// Rank of the reduced system (the stations', segments' and effects' part).
     pub fn reduced_dim(&self) -> usize {
         self.w_red.ncols()
@@ -913,8 +918,13 @@ impl Schur {
     /// For leave-one-station-out: the point parts of the held rows' prediction covariance,
     /// X_H N⁺ X_Hᵀ = blockdiag(A_H M⁺ A_Hᵀ) + F Fᵀ with F_i = Wᵀ C_pᵀ M_p⁺ a_i (whitened held
     /// rows restricted to their points' columns). F_i from point p's rows of this fit (C_pᵀ y
-    /// = Σ b_j (a_j · y)), not from the reduced parts of every point.
-    pub fn held_point_covariance(&self, i: usize) -> (Vector3<f64>, DVector<f64>) {
+    /// = Σ b_j (a_j · y)), not from the reduced parts of every point; `wt`: Wᵀ
+    /// ([`Schur::reduced_transpose`]).
+    pub fn held_point_covariance(
+        &self,
+        wt: &DMatrix<f64>,
+        i: usize,
+    ) -> (Vector3<f64>, DVector<f64>) {
         let d = &self.design;
         let p = d.rows[i].point;
         let m_a = self.m_pinv[p] * d.a(i);
@@ -925,9 +935,7 @@ impl Schur {
             let along = d.a(j).dot(&m_a);
             d.global_entries(j, &mut entries);
             for &(c, x) in &entries {
-                for (k, fk) in f.iter_mut().enumerate() {
-                    *fk += x * along * self.w_red[(c, k)];
-                }
+                f.axpy(x * along, &wt.column(c), 1.0);
             }
         }
         (m_a, f)
