@@ -10,7 +10,7 @@ use nalgebra::{DMatrix, DVector};
 
 use super::columns::ProjectedRows;
 use super::engine::LinearFit;
-use super::stats::{gram_factor_of, qr_right_factor_of, Basis, EFFECT_RANK_TOL};
+use super::stats::{gram_factor, qr_right_factor, Basis, EFFECT_RANK_TOL};
 use crate::parallel;
 
 /// Rows of implicit projected columns made at once when they are walked whole.
@@ -163,8 +163,8 @@ fn right_factor(
     block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     reference: f64,
 ) -> (DVector<f64>, DMatrix<f64>) {
-    gram_factor_of(shape, block, EFFECT_RANK_TOL, reference)
-        .unwrap_or_else(|| qr_right_factor_of(shape, block, EFFECT_RANK_TOL, reference))
+    gram_factor(shape, block, EFFECT_RANK_TOL, reference)
+        .unwrap_or_else(|| qr_right_factor(shape, block, EFFECT_RANK_TOL, reference))
 }
 
 /// Positions 0..n in consecutive blocks.

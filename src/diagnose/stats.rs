@@ -191,25 +191,12 @@ const GRAM_CONDITION: f64 = 1e-5;
 const MAX_GRAM_THREADS: usize = 2;
 
 /// The right factor (singular values and Vᵀ, the directions above the rank cut as
-/// `Basis::new` keeps them) of a tall `a` from the eigen-decomposition of its k × k Gram
-/// matrix, in time n k² without the n × k orthonormal factor. None when some direction is
+/// `Basis::new` keeps them) of a tall n × k matrix `a`, given a block of its rows at a time
+/// (`block(start, len)`), from the eigen-decomposition of its k × k Gram matrix, in time n k²
+/// without the n × k orthonormal factor. None when some direction is
 /// between the Gram's rounding and its accurate range (an effect the model nearly absorbs): the
 /// caller then takes the SVD.
 pub fn gram_factor(
-    a: &DMatrix<f64>,
-    tol: f64,
-    reference: f64,
-) -> Option<(DVector<f64>, DMatrix<f64>)> {
-    gram_factor_of(
-        a.shape(),
-        &|start, len| a.rows(start, len).into_owned(),
-        tol,
-        reference,
-    )
-}
-
-/// [`gram_factor`] of an n × k matrix given a block of rows at a time (`block(start, len)`).
-pub fn gram_factor_of(
     (n, k): (usize, usize),
     block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     tol: f64,
@@ -259,22 +246,12 @@ pub fn gram_factor_of(
     Some((s, vt))
 }
 
-/// Singular values and right vectors (Vᵀ) of a tall `a` (n × k, n ≫ k), the directions
-/// above the rank cut as [`Basis::new`] keeps them, from the SVD of the triangular factor R of
-/// its Householder QR. R is taken block of rows by block of rows (the R of [R so far; the next
-/// rows]): as backward stable as the SVD of the whole matrix, with one block in memory beside
-/// `a`, which stays as it is.
-pub fn qr_right_factor(a: &DMatrix<f64>, tol: f64, reference: f64) -> (DVector<f64>, DMatrix<f64>) {
-    qr_right_factor_of(
-        a.shape(),
-        &|start, len| a.rows(start, len).into_owned(),
-        tol,
-        reference,
-    )
-}
-
-/// [`qr_right_factor`] of an n × k matrix given a block of rows at a time.
-pub fn qr_right_factor_of(
+/// Singular values and right vectors (Vᵀ) of a tall `a` (n × k, n ≫ k, given a block of its
+/// rows at a time), the directions above the rank cut as [`Basis::new`] keeps them, from the
+/// SVD of the triangular factor R of its Householder QR. R is taken block of rows by block of
+/// rows (the R of [R so far; the next rows]): as backward stable as the SVD of the whole
+/// matrix, with one block in memory.
+pub fn qr_right_factor(
     (n, k): (usize, usize),
     block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     tol: f64,
@@ -354,6 +331,11 @@ pub fn max_principal_cosine(a: &DMatrix<f64>, b: &DMatrix<f64>) -> f64 {
 mod tests {
     use super::*;
 
+    /// A dense matrix's blocks of rows.
+    fn blocks_of(a: &DMatrix<f64>) -> impl Fn(usize, usize) -> DMatrix<f64> + Sync + '_ {
+        |start, len| a.rows(start, len).into_owned()
+    }
+
     #[test]
     fn chi2_tail_matches_known_values() {
         // Quantiles from tables: χ²(1) 3.841 -> 0.05, χ²(10) 23.209 -> 0.01, χ²(2) exp(-x/2).
@@ -385,7 +367,8 @@ mod tests {
         };
         let a = DMatrix::from_fn(n, 4, column);
         let reference = (0..4).map(|c| a.column(c).norm()).fold(0.0, f64::max);
-        let (s, vt) = gram_factor(&a, EFFECT_RANK_TOL, reference).expect("well conditioned");
+        let (s, vt) = gram_factor(a.shape(), &blocks_of(&a), EFFECT_RANK_TOL, reference)
+            .expect("well conditioned");
         let basis = Basis::new(&a, EFFECT_RANK_TOL, reference);
         assert_eq!(s.len(), 3);
         assert_eq!(basis.rank(), 3);
@@ -404,10 +387,21 @@ mod tests {
             0 => (7.0 * i as f64 / n as f64).sin(),
             _ => (7.0 * i as f64 / n as f64).sin() + 1e-4 * column(i, 3),
         });
-        assert!(gram_factor(&b, EFFECT_RANK_TOL, b.column(0).norm()).is_none());
+        assert!(gram_factor(
+            b.shape(),
+            &blocks_of(&b),
+            EFFECT_RANK_TOL,
+            b.column(0).norm()
+        )
+        .is_none());
         // There the QR route keeps the SVD's directions: singular values, V Vᵀ, and with
         // U = B V S⁻¹ the fitted values U Uᵀ y and Uᵀ y.
-        let (s, vt) = qr_right_factor(&b, EFFECT_RANK_TOL, b.column(0).norm());
+        let (s, vt) = qr_right_factor(
+            b.shape(),
+            &blocks_of(&b),
+            EFFECT_RANK_TOL,
+            b.column(0).norm(),
+        );
         let svd = Basis::new(&b, EFFECT_RANK_TOL, b.column(0).norm());
         assert_eq!(s.len(), 2);
         assert_eq!(svd.rank(), 2);
@@ -434,7 +428,12 @@ mod tests {
             1 => 0.0,
             _ => column(i, c) + (c as f64 * i as f64 / 10_000.0).sin(),
         });
-        let (s, _) = qr_right_factor(&tall, EFFECT_RANK_TOL, tall.column(0).norm());
+        let (s, _) = qr_right_factor(
+            tall.shape(),
+            &blocks_of(&tall),
+            EFFECT_RANK_TOL,
+            tall.column(0).norm(),
+        );
         let svd = Basis::new(&tall, EFFECT_RANK_TOL, tall.column(0).norm());
         assert_eq!(s.len(), svd.rank());
         assert!((&s - &svd.s).amax() <= 1e-12 * svd.s[0], "{s} vs {}", svd.s);
