@@ -66,6 +66,13 @@ pub fn in_groups_owned<T: Send, R: Send>(
     .collect()
 }
 
+/// Positions 0..n in consecutive blocks of `size` (the last one shorter).
+pub fn position_blocks(n: usize, size: usize) -> impl Iterator<Item = Vec<usize>> {
+    (0..n)
+        .step_by(size.max(1))
+        .map(move |first| (first..(first + size).min(n)).collect())
+}
+
 /// Splits `data` into consecutive pieces of the given lengths.
 pub fn split_lengths<T>(mut data: &mut [T], lengths: impl Iterator<Item = usize>) -> Vec<&mut [T]> {
     let mut pieces = Vec::new();

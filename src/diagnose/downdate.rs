@@ -11,6 +11,8 @@
 
 use nalgebra::{DMatrix, DVector};
 
+use crate::parallel::position_blocks;
+
 /// Smallest eigenvalue of D and of K (their eigenvalues lie in (0, 1]: the share of a
 /// direction's information the training rows keep) for which the fold is downdated; below it
 /// the fold is refitted, so that a direction the training rows nearly lose is decided by the
@@ -58,10 +60,7 @@ const LOW_ROWS_AT_ONCE: usize = 256;
 
 /// The position ranges L is walked in.
 fn low_chunks(low: &dyn LowRank) -> impl Iterator<Item = Vec<usize>> {
-    let m = low.row_count();
-    (0..m)
-        .step_by(LOW_ROWS_AT_ONCE)
-        .map(move |first| (first..(first + LOW_ROWS_AT_ONCE).min(m)).collect())
+    position_blocks(low.row_count(), LOW_ROWS_AT_ONCE)
 }
 
 /// Lᵀ v (v one row per position).

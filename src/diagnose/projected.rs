@@ -105,8 +105,8 @@ impl Projected {
             Left::U(u) => u * c,
             Left::Rows(rows) => {
                 let v = self.v_scaled(c);
-                let parts = in_blocks(rows.nrows(), |positions| rows.rows_at(positions) * &v);
-                DVector::from_iterator(rows.nrows(), parts.iter().flat_map(|p| p.iter().copied()))
+                let v = DMatrix::from_column_slice(v.len(), 1, v.as_slice());
+                rows_times(&**rows, &v).column(0).into_owned()
             }
         }
     }
@@ -126,15 +126,7 @@ impl Projected {
         match self.left {
             Left::Columns(ref columns) => columns * self.v_over_s(),
             Left::U(u) => u,
-            Left::Rows(ref rows) => {
-                let v = self.v_over_s();
-                let mut out = DMatrix::zeros(rows.nrows(), v.ncols());
-                for positions in blocks(rows.nrows()) {
-                    let part = rows.rows_at(&positions) * &v;
-                    out.rows_mut(positions[0], positions.len()).copy_from(&part);
-                }
-                out
-            }
+            Left::Rows(ref rows) => rows_times(&**rows, &self.v_over_s()),
         }
     }
 
@@ -167,18 +159,23 @@ fn right_factor(
         .unwrap_or_else(|| qr_right_factor(shape, block, EFFECT_RANK_TOL, reference))
 }
 
-/// Positions 0..n in consecutive blocks.
-fn blocks(n: usize) -> impl Iterator<Item = Vec<usize>> {
-    (0..n)
-        .step_by(ROWS_AT_ONCE)
-        .map(move |first| (first..(first + ROWS_AT_ONCE).min(n)).collect())
-}
-
 /// `job` on each block of positions 0..n, the blocks on the cores; the results in the blocks'
 /// order.
 fn in_blocks<R: Send>(n: usize, job: impl Fn(&[usize]) -> R + Sync) -> Vec<R> {
-    let blocks: Vec<Vec<usize>> = blocks(n).collect();
+    let blocks: Vec<Vec<usize>> = parallel::position_blocks(n, ROWS_AT_ONCE).collect();
     parallel::in_groups(&blocks, parallel::threads(MAX_ROW_THREADS), |b| job(b))
+}
+
+/// The projected columns' rows times `m`, a block of rows at a time on the cores.
+fn rows_times(rows: &dyn ProjectedRows, m: &DMatrix<f64>) -> DMatrix<f64> {
+    let parts = in_blocks(rows.nrows(), |positions| rows.rows_at(positions) * m);
+    let mut out = DMatrix::zeros(rows.nrows(), m.ncols());
+    let mut at = 0;
+    for part in parts {
+        out.rows_mut(at, part.nrows()).copy_from(&part);
+        at += part.nrows();
+    }
+    out
 }
 
 pub fn column_norm_max(m: &DMatrix<f64>) -> f64 {

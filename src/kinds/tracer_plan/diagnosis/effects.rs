@@ -460,11 +460,8 @@ impl EffectModel {
     /// only its own station's (or pass's) parameters, so that a large session's candidate is
     /// not held dense; the same values.
     pub fn candidate_columns(&self, data: &Data, geom: &Geometry) -> Columns {
-        let inner = match self.kind {
-            EffectKind::StationDrift | EffectKind::TracerEccentricity => 3 * data.station_ids.len(),
-            EffectKind::DeadPath => data.station_ids.len(),
-            EffectKind::Settling => data.passes.len(),
-            _ => return Columns::Dense(self.columns(data, geom)),
+        let Some(inner) = self.own_columns(data) else {
+            return Columns::Dense(self.columns(data, geom));
         };
         // Settling's columns are relative already (`columns`).
         let zeroings = (self.kind != EffectKind::Settling).then(|| zeroings(data));
@@ -486,8 +483,21 @@ impl EffectModel {
         }
     }
 
+    /// The number of columns of an effect with parameters per station (or per pass), whose
+    /// length touches only its own; None for the others.
+    fn own_columns(&self, data: &Data) -> Option<usize> {
+        match self.kind {
+            EffectKind::StationDrift | EffectKind::TracerEccentricity => {
+                Some(3 * data.station_ids.len())
+            }
+            EffectKind::DeadPath => Some(data.station_ids.len()),
+            EffectKind::Settling => Some(data.passes.len()),
+            _ => None,
+        }
+    }
+
     /// The absolute columns' entries of one length of an effect with parameters per station
-    /// (or per pass): its first column, values and their number.
+    /// (or per pass, [`EffectModel::own_columns`]): its first column, values and their number.
     fn own_entries(&self, data: &Data, o: &Obs, geom: &Geometry) -> (usize, [f64; 3], usize) {
         match self.kind {
             EffectKind::StationDrift => {
@@ -496,18 +506,32 @@ impl EffectModel {
                 (3 * o.station, [u[0] * dt, u[1] * dt, u[2] * dt], 3)
             }
             EffectKind::TracerEccentricity => {
+                // The beam leaves the station towards the target: direction −u.
                 let (u, _) = geom.beam_of(o);
                 (3 * o.station, eccentricity_terms(-u), 3)
             }
+            // dn(t) times an error of the declared dead path per station: independent of
+            // where the target is.
             EffectKind::DeadPath => (o.station, [o.dn.unwrap_or(0.0), 0.0, 0.0], 1),
-            _ => (o.pass_group, [-1.0, 0.0, 0.0], 1),
+            // −1 on every length of a pass: the settling offset at its homing.
+            EffectKind::Settling => (o.pass_group, [-1.0, 0.0, 0.0], 1),
+            _ => (0, [0.0; 3], 0),
         }
     }
 
     /// f(obs): the effect's error in the absolute optical distance per unit parameter.
     fn absolute(&self, data: &Data, obs: &[Obs], geom: &Geometry) -> DMatrix<f64> {
         let nobs = obs.len();
-        let m = data.station_ids.len();
+        if let Some(k) = self.own_columns(data) {
+            let mut f = DMatrix::zeros(nobs, k);
+            for (i, o) in obs.iter().enumerate() {
+                let (first, values, count) = self.own_entries(data, o, geom);
+                for (j, v) in values.into_iter().take(count).enumerate() {
+                    f[(i, first + j)] = v;
+                }
+            }
+            return f;
+        }
         match self.kind {
             EffectKind::Own(_) => match &self.own {
                 Some(model) => {
@@ -523,17 +547,6 @@ impl EffectModel {
                 }
                 None => DMatrix::zeros(nobs, 0),
             },
-            EffectKind::StationDrift => {
-                let mut f = DMatrix::zeros(nobs, 3 * m);
-                for (i, o) in obs.iter().enumerate() {
-                    let (u, _) = geom.beam_of(o);
-                    let dt = o.t_s - data.station_start_s[o.station];
-                    for a in 0..3 {
-                        f[(i, 3 * o.station + a)] = u[a] * dt;
-                    }
-                }
-                f
-            }
             EffectKind::Reversal => {
                 let mut f = DMatrix::zeros(nobs, 3);
                 for (i, o) in obs.iter().enumerate() {
@@ -550,18 +563,6 @@ impl EffectModel {
             EffectKind::AirRefraction => DMatrix::from_fn(nobs, 1, |i, _| {
                 obs[i].dn.unwrap_or(0.0) * (geom.beam_of(&obs[i]).1 + data.declared_dead_path_m)
             }),
-            EffectKind::TracerEccentricity => {
-                let mut f = DMatrix::zeros(nobs, 3 * m);
-                for (i, o) in obs.iter().enumerate() {
-                    let (u, _) = geom.beam_of(o);
-                    // The beam leaves the station towards the target: direction −u.
-                    let terms = eccentricity_terms(-u);
-                    for (a, term) in terms.into_iter().enumerate() {
-                        f[(i, 3 * o.station + a)] = term;
-                    }
-                }
-                f
-            }
             // The target moves by v·t (session time) for every station alike: a target shift
             // δX changes the length by −u·δX. Per station this is a special case of a station
             // drift (w = −v, up to a station shift), so it is nested in station_drift with 3
@@ -573,15 +574,6 @@ impl EffectModel {
                     for a in 0..3 {
                         f[(i, a)] = -u[a] * o.t_s;
                     }
-                }
-                f
-            }
-            // dn(t) times an error of the declared dead path per station: independent of
-            // where the target is.
-            EffectKind::DeadPath => {
-                let mut f = DMatrix::zeros(nobs, m);
-                for (i, o) in obs.iter().enumerate() {
-                    f[(i, o.station)] = o.dn.unwrap_or(0.0);
                 }
                 f
             }
@@ -613,14 +605,11 @@ impl EffectModel {
                 }
                 f
             }
-            // −1 on every length of a pass: the settling offset at its homing.
-            EffectKind::Settling => {
-                let mut f = DMatrix::zeros(nobs, data.passes.len());
-                for (i, o) in obs.iter().enumerate() {
-                    f[(i, o.pass_group)] = -1.0;
-                }
-                f
-            }
+            // Made from their own entries above.
+            EffectKind::StationDrift
+            | EffectKind::TracerEccentricity
+            | EffectKind::DeadPath
+            | EffectKind::Settling => DMatrix::zeros(nobs, 0),
         }
     }
 }

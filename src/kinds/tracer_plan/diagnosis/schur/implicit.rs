@@ -51,37 +51,21 @@ struct ImplicitProjection {
 }
 
 impl ImplicitProjection {
-    /// Row `pos` of the projected columns into `out`.
+    /// Row `pos` of the projected columns into `out`: m_i − b_i·z − a_i·q_p.
     fn row_into(&self, pos: usize, out: &mut [f64], entries: &mut Vec<(usize, f64)>) {
         self.m.row_into(pos, out);
-        subtract_terms(
-            &self.design,
-            self.rows[pos],
-            &self.coefficients,
-            out,
-            entries,
-        );
-    }
-}
-
-/// out −= b_i·z + a_i·q_p.
-fn subtract_terms(
-    d: &Design,
-    i: usize,
-    coefficients: &Coefficients,
-    out: &mut [f64],
-    entries: &mut Vec<(usize, f64)>,
-) {
-    d.global_entries(i, entries);
-    for &(c, x) in entries.iter() {
-        for (o, z) in out.iter_mut().zip(coefficients.zt.column(c).iter()) {
-            *o -= x * z;
+        let (d, i, c) = (&self.design, self.rows[pos], &self.coefficients);
+        d.global_entries(i, entries);
+        for &(col, x) in entries.iter() {
+            for (o, z) in out.iter_mut().zip(c.zt.column(col).iter()) {
+                *o -= x * z;
+            }
         }
-    }
-    let (p, a) = (d.rows[i].point, d.a(i));
-    for (x, &ax) in a.iter().enumerate() {
-        for (o, q) in out.iter_mut().zip(coefficients.qt.column(3 * p + x).iter()) {
-            *o -= ax * q;
+        let (p, a) = (d.rows[i].point, d.a(i));
+        for (x, &ax) in a.iter().enumerate() {
+            for (o, q) in out.iter_mut().zip(c.qt.column(3 * p + x).iter()) {
+                *o -= ax * q;
+            }
         }
     }
 }
