@@ -543,6 +543,8 @@ impl Daemon {
                     .join()
                     .unwrap_or_else(|_| Err(anyhow::anyhow!("the job's thread panicked")))
             });
+        // The run's last readings go out on the samples stream before its end is announced.
+        self.samples.flush();
         let (state, error) = match outcome {
             Ok(()) => (JobState::Succeeded, None),
             Err(_) if cancel.is_cancelled() => (

@@ -1111,18 +1111,17 @@ fn a_foxglove_client_watches_a_hil_run_live() {
         .expect("the samples stream");
     assert_eq!(samples.status(), StatusCode::OK);
     let listening = Instant::now();
-    let reader = std::thread::spawn(move || {
+    let (event_sender, stream_events) = std::sync::mpsc::channel::<(String, String)>();
+    std::thread::spawn(move || {
         // (event, data) pairs until the daemon goes away.
-        let mut events = Vec::new();
         let mut name = String::new();
         for line in BufReader::new(samples).lines().map_while(Result::ok) {
             if let Some(event) = line.strip_prefix("event: ") {
                 name = event.to_owned();
             } else if let Some(data) = line.strip_prefix("data: ") {
-                events.push((std::mem::take(&mut name), data.to_owned()));
+                let _ = event_sender.send((std::mem::take(&mut name), data.to_owned()));
             }
         }
-        events
     });
     let id = submit(&client, &daemon, &hil());
     let done = wait_for(&client, &daemon, id, &["succeeded", "failed"]);
@@ -1176,9 +1175,29 @@ fn a_foxglove_client_watches_a_hil_run_live() {
     assert_eq!(&recorded[first..first + WANTED], &received[..]);
 
     // The reading samples client: batches of the tracer's readings, each sample a recorded
-    // one, in order, at most 20 messages a second.
+    // one, in order, at most 20 messages a second. The run's last reading reaches it before
+    // the daemon is killed (on a loaded machine, some time after the job's end is announced).
+    let last_recorded_ns = recorded.last().expect("tracer readings recorded").0;
+    let mut events = Vec::new();
+    let ends_the_run = |data: &str| {
+        serde_json::from_str::<Value>(data).is_ok_and(|b| {
+            b["device"] == "tracer0"
+                && b["t_s"]
+                    .as_array()
+                    .and_then(|t| t.last())
+                    .and_then(Value::as_f64)
+                    == Some(last_recorded_ns as f64 * 1e-9)
+        })
+    };
+    while let Ok((name, data)) = stream_events.recv_timeout(Duration::from_secs(60)) {
+        let last = name == "samples" && ends_the_run(&data);
+        events.push((name, data));
+        if last {
+            break;
+        }
+    }
     daemon.kill_9();
-    let events = reader.join().expect("the samples reader");
+    events.extend(stream_events.iter());
     let lagged = events.iter().any(|(name, _)| name == "lagged");
     let batches: Vec<Value> = events
         .iter()
