@@ -8,7 +8,9 @@ use crate::common;
 use std::path::{Path, PathBuf};
 
 use common::{diagnose_demo, record_session, two_target_diagnose_demo, with_effects};
-use geocal::extract::{stream_dwells, stream_settled, SettledDwells, SettledSession};
+use geocal::extract::{
+    stream_dwells, stream_settled, SettledDwells, SettledSession, WindowSamples,
+};
 use geocal::kinds::tracer_plan::diagnosis::data::Data;
 use geocal::session::reader::read_session;
 
@@ -87,9 +89,23 @@ fn check_session(path: &Path, name: &str) -> SettledSession {
     let from_stream = Data::from_settled(streamed.clone()).expect("data");
     assert_same_data(&from_stream, &from_whole, name);
     // The compact form the diagnosis reads: streamed as the whole read's, the same data.
-    let compact = stream_dwells(path, is_multilateration)
+    let compact = stream_dwells(path, is_multilateration, WindowSamples::Kept)
         .unwrap_or_else(|| panic!("{} does not stream compact", path.display()));
     assert_eq!(compact, SettledDwells::of_settled(whole.clone()), "{name}");
+    // Without the windows' samples (what the calibration's effects fit reads): the same
+    // windows, arrivals and data but for the samples, borrowed or not.
+    let arrivals = stream_dwells(path, is_multilateration, WindowSamples::ArrivalOnly)
+        .unwrap_or_else(|| panic!("{} does not stream arrivals", path.display()));
+    assert_eq!(arrivals, compact.clone().without_window_samples(), "{name}");
+    assert!(arrivals
+        .windows
+        .iter()
+        .flatten()
+        .all(|w| w.samples.is_empty()));
+    let mut from_arrivals = Data::of_dwells(&arrivals).expect("data");
+    assert!(from_arrivals.windows.is_empty());
+    from_arrivals.windows = from_whole.windows.clone();
+    assert_same_data(&from_arrivals, &from_whole, name);
     let from_compact = Data::from_dwells(compact).expect("data");
     assert_same_data(&from_compact, &from_whole, name);
     assert!(

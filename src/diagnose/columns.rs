@@ -6,6 +6,7 @@
 use nalgebra::{DMatrix, DVector};
 
 /// The columns of a candidate effect.
+#[derive(Debug, Clone)]
 pub enum Columns {
     Dense(DMatrix<f64>),
     Sparse(RowSparse),
@@ -16,6 +17,26 @@ impl Columns {
         match self {
             Columns::Dense(m) => m,
             Columns::Sparse(s) => s.to_dense(),
+        }
+    }
+
+    pub fn ncols(&self) -> usize {
+        match self {
+            Columns::Dense(m) => m.ncols(),
+            Columns::Sparse(s) => s.ncols(),
+        }
+    }
+
+    /// Row i's (column, value) for every column that may be nonzero, in ascending columns
+    /// (a dense matrix: every column).
+    pub fn for_row(&self, i: usize, mut f: impl FnMut(usize, f64)) {
+        match self {
+            Columns::Dense(m) => {
+                for c in 0..m.ncols() {
+                    f(c, m[(i, c)]);
+                }
+            }
+            Columns::Sparse(s) => s.for_row(i, f),
         }
     }
 }
@@ -82,25 +103,34 @@ impl RowSparse {
         }
     }
 
-    /// Row i, dense, into `out` (one entry per column).
-    pub fn row_into(&self, i: usize, out: &mut [f64]) {
-        out.fill(0.0);
+    /// Row i's (column, value) for every column that may be nonzero, in ascending columns
+    /// (with a right factor: every column).
+    pub fn for_row(&self, i: usize, mut f: impl FnMut(usize, f64)) {
         let entries = &self.entries[self.starts[i]..self.starts[i + 1]];
         match &self.right {
             None => {
                 for &(c, v) in entries {
-                    out[c as usize] = v;
+                    f(c as usize, v);
                 }
             }
             Some(right) => {
-                for (c, o) in out.iter_mut().enumerate() {
-                    *o = entries
-                        .iter()
-                        .map(|&(j, v)| v * right[(j as usize, c)])
-                        .sum();
+                for c in 0..right.ncols() {
+                    f(
+                        c,
+                        entries
+                            .iter()
+                            .map(|&(j, v)| v * right[(j as usize, c)])
+                            .sum(),
+                    );
                 }
             }
         }
+    }
+
+    /// Row i, dense, into `out` (one entry per column).
+    pub fn row_into(&self, i: usize, out: &mut [f64]) {
+        out.fill(0.0);
+        self.for_row(i, |c, v| out[c] = v);
     }
 
     pub fn to_dense(&self) -> DMatrix<f64> {

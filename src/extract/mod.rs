@@ -18,5 +18,5 @@ pub use points::{
 pub use stillstand::{Stillstand, StillstandDetector};
 pub use windows::{
     stream_dwells, stream_settled, DwellMeasurement, RawWindow, SettledDwells, SettledSession,
-    WindowStream,
+    WindowSamples, WindowStream,
 };

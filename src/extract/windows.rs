@@ -19,8 +19,19 @@ use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped, Stream
 pub struct RawWindow {
     /// Device time of the first sample after `point_begin`: the machine has just arrived.
     pub arrival_s: f64,
-    /// (t_s, length_m) of the settled stretch.
+    /// (t_s, length_m) of the settled stretch (at least 2); empty when read with
+    /// `WindowSamples::ArrivalOnly`.
     pub samples: Vec<(f64, f64)>,
+}
+
+/// What a settled window keeps of its raw samples.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum WindowSamples {
+    /// Every sample of the settled stretch (what the settling test fits).
+    Kept,
+    /// The arrival alone (the zeroing's time), `RawWindow::samples` left empty: what the
+    /// effects' fit of the calibration reads.
+    ArrivalOnly,
 }
 
 /// A session reduced to its settled windows: everything the diagnosis's observations and the
@@ -90,6 +101,8 @@ pub struct SettledDwells {
     pub header: SessionHeader,
     /// Key: id from the topic `/env/<id>` (as `Session::env`).
     pub env: BTreeMap<String, Vec<Stamped<EnvSample>>>,
+    /// Chunks of the file that could not be read (as `Session::damaged`).
+    pub damaged: Vec<DamagedChunk>,
     pub tracer_id: String,
     pub noise: Option<NoiseModel>,
     /// The solve's lengths (`Lengths::of_extraction` of the session's extraction).
@@ -114,21 +127,31 @@ impl SettledDwells {
                 .collect(),
             header: settled.header,
             env: settled.env,
+            damaged: settled.damaged,
             tracer_id: settled.tracer_id,
             noise: settled.noise,
             windows: settled.windows,
             rotations: settled.rotations,
         }
     }
+
+    /// The same windows with their raw samples let go (`WindowSamples::ArrivalOnly`).
+    pub fn without_window_samples(mut self) -> SettledDwells {
+        for window in self.windows.iter_mut().flatten() {
+            window.samples = Vec::new();
+        }
+        self
+    }
 }
 
-/// Streams the session at `path` to its `SettledDwells` when its kind passes `accept_kind`;
-/// None as `stream_settled`.
+/// Streams the session at `path` to its `SettledDwells` (raw samples as `keep` says) when its
+/// kind passes `accept_kind`; None as `stream_settled`.
 pub fn stream_dwells(
     path: &std::path::Path,
     accept_kind: fn(&str) -> bool,
+    keep: WindowSamples,
 ) -> Option<SettledDwells> {
-    let mut sink = WindowStream::compact(accept_kind);
+    let mut sink = WindowStream::compact(accept_kind, keep);
     let streamed = crate::session::reader::stream_session(path, &mut sink)?;
     sink.finish_compact(streamed)
 }
@@ -277,7 +300,7 @@ fn raw_windows(
         .iter()
         .map(|m| {
             let begin = *begins.get(&(m.station.as_str(), m.point, m.pass))?;
-            let mut window = WindowCollector::new(begin, m.settled_s());
+            let mut window = WindowCollector::new(begin, m.settled_s(), WindowSamples::Kept);
             let from = samples.partition_point(|s| s.log_time_ns < begin);
             for s in &samples[from..] {
                 if !window.push(&s.msg) {
@@ -298,17 +321,22 @@ struct WindowCollector {
     from_s: f64,
     to_s: f64,
     arrival_s: Option<f64>,
+    keep: WindowSamples,
+    /// Samples inside the settled stretch (kept or not).
+    settled: usize,
     samples: Vec<(f64, f64)>,
     done: bool,
 }
 
 impl WindowCollector {
-    fn new(begin_ns: u64, (from_s, to_s): (f64, f64)) -> Self {
+    fn new(begin_ns: u64, (from_s, to_s): (f64, f64), keep: WindowSamples) -> Self {
         WindowCollector {
             begin_ns,
             from_s,
             to_s,
             arrival_s: None,
+            keep,
+            settled: 0,
             samples: Vec::new(),
             done: false,
         }
@@ -322,7 +350,10 @@ impl WindowCollector {
         self.arrival_s.get_or_insert(s.t_s);
         if s.t_s <= self.to_s {
             if s.t_s >= self.from_s {
-                self.samples.push((s.t_s, s.length_m));
+                self.settled += 1;
+                if self.keep == WindowSamples::Kept {
+                    self.samples.push((s.t_s, s.length_m));
+                }
             }
         } else {
             self.done = true;
@@ -334,6 +365,7 @@ impl WindowCollector {
     fn restart(&mut self, begin_ns: u64) {
         self.begin_ns = begin_ns;
         self.arrival_s = None;
+        self.settled = 0;
         self.samples.clear();
         self.done = false;
     }
@@ -352,7 +384,7 @@ impl WindowCollector {
         let arrival_s = self.arrival_s?;
         // Held to the end of the diagnosis: no room left from the gathering's growth.
         self.samples.shrink_to_fit();
-        (self.samples.len() >= 2).then_some(RawWindow {
+        (self.settled >= 2).then_some(RawWindow {
             arrival_s,
             samples: self.samples,
         })
@@ -380,6 +412,7 @@ pub struct WindowStream<M = PointMeasurement> {
     pub peak_samples: usize,
     rotations: Rotations,
     targets: TargetNames,
+    keep: WindowSamples,
 }
 
 impl WindowStream<PointMeasurement> {
@@ -413,9 +446,13 @@ impl WindowStream<PointMeasurement> {
 }
 
 impl WindowStream<DwellMeasurement> {
-    /// The compact form: each measured window kept as the solve's length and its few extras.
-    pub fn compact(accept_kind: fn(&str) -> bool) -> Self {
-        WindowStream::with_kind(accept_kind)
+    /// The compact form: each measured window kept as the solve's length and its few extras,
+    /// its raw samples as `keep` says.
+    pub fn compact(accept_kind: fn(&str) -> bool, keep: WindowSamples) -> Self {
+        WindowStream {
+            keep,
+            ..WindowStream::with_kind(accept_kind)
+        }
     }
 
     /// As `finish`, compact.
@@ -433,6 +470,7 @@ impl WindowStream<DwellMeasurement> {
             rotations,
             header: session.header,
             env: session.env,
+            damaged: session.damaged,
             tracer_id: started.tracer_id,
             noise: started.noise,
             lengths: Lengths {
@@ -469,6 +507,7 @@ impl<M: WindowRecord> Gathering<M> for WindowStream<M> {
             peak_samples: 0,
             rotations: Rotations::default(),
             targets: TargetNames::default(),
+            keep: WindowSamples::Kept,
         }
     }
 
@@ -476,11 +515,13 @@ impl<M: WindowRecord> Gathering<M> for WindowStream<M> {
     fn into_parts(self) -> Option<StreamParts<M>> {
         let mut started = self.started?;
         started.pairing.finish(&|_, _| false);
-        let windows = self
+        let mut windows: Vec<Option<RawWindow>> = self
             .windows
             .into_iter()
             .map(WindowCollector::finish)
             .collect();
+        // Collected in the collectors' place, which is larger and grew by doubling.
+        windows.shrink_to_fit();
         Some((started, windows, self.rotations.found))
     }
 
@@ -572,7 +613,8 @@ impl<M: WindowRecord> SessionSink for WindowStream<M> {
             // samples are kept from the open window's begin).
             for i in self.windows.len()..started.pairing.measurements.len() {
                 let m = &started.pairing.measurements[i];
-                let mut window = WindowCollector::new(begin_ns.unwrap_or(0), m.settled_s());
+                let mut window =
+                    WindowCollector::new(begin_ns.unwrap_or(0), m.settled_s(), self.keep);
                 window.push_from_begin(&self.samples);
                 if !window.done {
                     self.gathering.push(i);

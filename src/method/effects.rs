@@ -6,17 +6,17 @@ use std::collections::BTreeMap;
 
 use nalgebra::{DMatrix, Matrix3};
 
-use crate::extract::SettledSession;
+use crate::extract::SettledDwells;
 
 /// Effects fitted jointly with the geometry of a session.
 pub trait EffectsFit: std::fmt::Debug + Send + Sync {
     /// The effects' names (the diagnosis's vocabulary).
     fn names(&self) -> Vec<&'static str>;
-    /// Their joint fit on the session's settled windows: what to take off each length, and
-    /// what it adds.
+    /// Their joint fit on the session's settled windows (their raw samples are not read): what
+    /// to take off each length, and what it adds.
     fn correction(
         &self,
-        settled: &SettledSession,
+        settled: &SettledDwells,
     ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>>;
 }
 

@@ -10,7 +10,7 @@ use crate::solve::misfit::Misfit;
 
 use crate::extract::{
     extract_points, ExtractOptions, Extraction, LengthMeasurement, LengthStream, Lengths,
-    NoiseModel, SettledSession,
+    NoiseModel, SettledDwells, SettledSession,
 };
 use crate::method::SolveSettings;
 use crate::model::kinematics::Structure;
@@ -173,19 +173,19 @@ pub fn solve_detailed(
     let extraction = extract_points(session, Some(&tracer_id), declared_noise, &options)?;
     let lengths = Lengths::of_extraction(&extraction);
     drop(extraction);
-    // The effects' fit reads the settled windows (the same extraction, with its maps).
-    let settled = match settings.effects {
-        Some(_) => Some(SettledSession::of_session(session)?),
-        None => None,
-    };
+    // The effects' fit reads the settled windows (the same extraction), not their samples.
+    if settings.effects.is_some() {
+        let settled = SettledDwells::of_settled(SettledSession::of_session(session)?);
+        return solve_dwells(&settled.without_window_samples(), settings);
+    }
     let extracted = Extracted {
         header: &session.header,
         damaged: &session.damaged,
-        lengths,
+        lengths: &lengths,
         tracer_id,
         declared_noise,
     };
-    solve_extracted(extracted, settings, settled.as_ref())
+    solve_extracted(extracted, settings, None)
 }
 
 /// Solve a multilateration session reduced to its settled windows (`SettledSession`, streamed
@@ -194,10 +194,31 @@ pub fn solve_settled(
     settled: &SettledSession,
     settings: &SolveSettings,
 ) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
+    if settings.effects.is_some() {
+        let dwells = SettledDwells::of_settled(settled.clone()).without_window_samples();
+        return solve_dwells(&dwells, settings);
+    }
     let extracted = Extracted {
         header: &settled.header,
         damaged: &settled.damaged,
-        lengths: Lengths::of_extraction(&settled.extraction),
+        lengths: &Lengths::of_extraction(&settled.extraction),
+        tracer_id: settled.tracer_id.clone(),
+        declared_noise: settled.noise,
+    };
+    solve_extracted(extracted, settings, None)
+}
+
+/// Solve a multilateration session reduced to its compact settled windows (`SettledDwells`,
+/// streamed or of a whole read): the results `solve` gives of that session. What the effects'
+/// fit reads.
+pub fn solve_dwells(
+    settled: &SettledDwells,
+    settings: &SolveSettings,
+) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
+    let extracted = Extracted {
+        header: &settled.header,
+        damaged: &settled.damaged,
+        lengths: &settled.lengths,
         tracer_id: settled.tracer_id.clone(),
         declared_noise: settled.noise,
     };
@@ -208,14 +229,18 @@ pub fn solve_settled(
 /// samples go straight to the point extraction and are never held whole. None when the file
 /// cannot be streamed exactly (not a clean multilateration session with one tracer, a
 /// repaired copy): read it whole then. Effects to fit stream the settled windows their fit
-/// reads (`SettledSession`).
+/// reads (`SettledDwells`, without their raw samples).
 pub fn solve_file_streaming(
     path: &std::path::Path,
     settings: &SolveSettings,
 ) -> Option<Result<MultilaterationResults, MultilaterationError>> {
     if settings.effects.is_some() {
-        let settled = crate::extract::stream_settled(path, is_multilateration)?;
-        return Some(solve_settled(&settled, settings).map(|(results, _)| results));
+        let settled = crate::extract::stream_dwells(
+            path,
+            is_multilateration,
+            crate::extract::WindowSamples::ArrivalOnly,
+        )?;
+        return Some(solve_dwells(&settled, settings).map(|(results, _)| results));
     }
     let kind = crate::config::PlanKind::Multilateration.as_str();
     let solved = solve_file_streaming_detailed(path, settings, kind, |_| false)?;
@@ -248,7 +273,7 @@ pub fn solve_file_streaming_detailed(
     let extracted = Extracted {
         header: &session.header,
         damaged: &session.damaged,
-        lengths,
+        lengths: &lengths,
         tracer_id,
         declared_noise,
     };
@@ -265,7 +290,7 @@ pub(crate) fn is_multilateration(kind: &str) -> bool {
 struct Extracted<'a> {
     header: &'a SessionHeader,
     damaged: &'a [DamagedChunk],
-    lengths: Lengths,
+    lengths: &'a Lengths,
     tracer_id: String,
     declared_noise: Option<NoiseModel>,
 }
@@ -274,7 +299,7 @@ struct Extracted<'a> {
 fn solve_extracted(
     extracted: Extracted<'_>,
     settings: &SolveSettings,
-    settled: Option<&SettledSession>,
+    settled: Option<&SettledDwells>,
 ) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
     let Extracted {
         header,
@@ -288,24 +313,15 @@ fn solve_extracted(
             dropped: extraction.dropped.len(),
         });
     }
-    let mut problem = Problem::of_lengths(&extraction);
     // Effects modelled: the lengths corrected by their jointly fitted contribution (the
-    // geometry of the joint optimum is the solve of the corrected lengths).
+    // geometry of the joint optimum is the solve of the corrected lengths). The fit builds
+    // its own problem: this one is built after it.
     let correction = match (&settings.effects, settled) {
-        (Some(effects), Some(settled)) => {
-            let c = effects
+        (Some(effects), Some(settled)) => Some(
+            effects
                 .correction(settled)
-                .map_err(MultilaterationError::Effects)?;
-            for (obs, dl) in problem
-                .problem
-                .observations
-                .iter_mut()
-                .zip(&c.length_correction_m)
-            {
-                obs.length_m -= dl;
-            }
-            Some(c)
-        }
+                .map_err(MultilaterationError::Effects)?,
+        ),
         (Some(_), None) => {
             return Err(MultilaterationError::Effects(
                 "fitting effects needs the settled windows of the session".into(),
@@ -313,6 +329,17 @@ fn solve_extracted(
         }
         (None, _) => None,
     };
+    let mut problem = Problem::of_lengths(extraction);
+    if let Some(c) = &correction {
+        for (obs, dl) in problem
+            .problem
+            .observations
+            .iter_mut()
+            .zip(&c.length_correction_m)
+        {
+            obs.length_m -= dl;
+        }
+    }
     let (mut solution, robust) = match settings.huber {
         None => (adjust(&problem.problem, &SolveOptions::default())?, None),
         Some(huber) => {

@@ -13,7 +13,7 @@ use super::fit::Fit;
 use super::locate::best_step;
 use super::schur::Design;
 use super::{joint_fit, DiagnoseError};
-use crate::extract::SettledSession;
+use crate::extract::SettledDwells;
 pub use crate::method::effects::EffectCorrection;
 use crate::method::effects::EffectsFit;
 use crate::solve::multilateration::{generator, solve, SolveOptions};
@@ -69,11 +69,11 @@ fn unsupported(name: &'static str) -> Option<CorrectionError> {
 }
 
 /// Effect parameters whose responses are solved together.
-const SOLVED_TOGETHER: usize = 8;
+const SOLVED_TOGETHER: usize = 4;
 
 /// Fit `kinds` jointly with the geometry of a multilateration session (its settled windows).
 pub fn correction(
-    settled: &SettledSession,
+    settled: &SettledDwells,
     kinds: &[EffectKind],
 ) -> Result<EffectCorrection, CorrectionError> {
     let names: Vec<&'static str> = kinds.iter().map(|k| k.name()).collect();
@@ -83,16 +83,19 @@ pub fn correction(
 /// Fit the effects called `names` (of the session's kind's library) jointly with the geometry
 /// of a tracer-network session (its settled windows).
 pub fn correction_named(
-    settled: &SettledSession,
+    settled: &SettledDwells,
     names: &[&'static str],
 ) -> Result<EffectCorrection, CorrectionError> {
-    let data = Data::from_settled(settled.clone()).map_err(DiagnoseError::from)?;
+    let data = Data::of_dwells(settled).map_err(DiagnoseError::from)?;
     let library = Library::of(&data);
     let nominal = solve(&data.problem, &SolveOptions::default()).map_err(DiagnoseError::from)?;
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
-    let nominal_basis = Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
+    // Only a length step's place needs the nominal fit.
+    let nominal_basis = names
+        .contains(&EffectKind::LengthStep.name())
+        .then(|| Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect()));
     let stations_effect = library.network.and_then(|n| n.stations_effect());
     let models: Vec<EffectModel> = names
         .iter()
@@ -108,9 +111,12 @@ pub fn correction_named(
                 return Ok(model);
             }
             // The step's place: the best change point of any pass in the nominal residuals.
+            let Some(nominal_basis) = &nominal_basis else {
+                return Err(CorrectionError::Fit("no nominal fit to place a length step".into()));
+            };
             let r = DVector::from_fn(nobs, |i, _| nominal.residuals_m[i] * w[i]);
             let res_w = nominal_basis.project_off_vec(&r);
-            let (g, k, _, _) = best_step(&data, &nominal_basis, &res_w, None)
+            let (g, k, _, _) = best_step(&data, nominal_basis, &res_w, None)
                 .ok_or_else(|| CorrectionError::Fit("no pass to place a length step in".into()))?;
             Ok(EffectModel {
                 step: Some((g, k)),
@@ -118,6 +124,7 @@ pub fn correction_named(
             })
         })
         .collect::<Result<_, CorrectionError>>()?;
+    drop(nominal_basis);
     // A model linearised about its own parameters (the eccentricity's shared size) is
     // fitted free first, then at that estimate, then once more at the refined one.
     let mut models: Vec<EffectModel> = models;
@@ -154,7 +161,7 @@ pub fn correction_named(
     // How each parameter moves the points when the lengths are corrected by its column
     // (the geometry's least-squares response, S-transformed to the points' datum); the
     // columns are the joint fit's, at its geometry.
-    let columns = fit.basis.design().effects();
+    let design = fit.basis.design();
     let geometry_basis = Fit::new(
         Arc::new(Design::nominal(&data, &fit.geom)),
         (0..nobs).collect(),
@@ -169,8 +176,15 @@ pub fn correction_named(
     let groups: Vec<&[usize]> = all.chunks(SOLVED_TOGETHER).collect();
     let solved =
         crate::parallel::in_groups(&groups, crate::parallel::threads(groups.len()), |group| {
-            let a_w = DMatrix::from_fn(nobs, group.len(), |i, k| columns[(i, group[k])] * w[i]);
-            geometry_basis.solve_columns(&a_w)
+            let mut a_w = DMatrix::zeros(nobs, group.len());
+            let mut row = vec![0.0; parameters];
+            for i in 0..nobs {
+                design.effect_row_into(i, &mut row);
+                for (k, &c) in group.iter().enumerate() {
+                    a_w[(i, k)] = row[c] * w[i];
+                }
+            }
+            geometry_basis.solve_columns(a_w)
         });
     for (steps, group) in solved.iter().zip(&groups) {
         for (step, &c) in steps.column_iter().zip(group.iter()) {
@@ -250,7 +264,7 @@ impl EffectsFit for FittedEffects {
 
     fn correction(
         &self,
-        settled: &SettledSession,
+        settled: &SettledDwells,
     ) -> Result<EffectCorrection, Box<dyn std::error::Error + Send + Sync>> {
         correction_named(settled, &self.0).map_err(Into::into)
     }

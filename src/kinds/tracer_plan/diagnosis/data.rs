@@ -4,9 +4,13 @@
 use std::collections::BTreeMap;
 use std::path::Path;
 
+use crate::extract::windows::Dwell;
 pub use crate::extract::RawWindow;
-use crate::extract::{stream_dwells, Lengths, SettledDwells, SettledSession};
-use crate::session::reader::{read_session, ReadError, Session};
+use crate::extract::{
+    stream_dwells, Lengths, NoiseModel, SettledDwells, SettledSession, WindowSamples,
+};
+use crate::session::messages::{EnvSample, SessionHeader};
+use crate::session::reader::{read_session, ReadError, Session, Stamped};
 use crate::sim::effects::edlen_dn;
 use crate::solve::multilateration::{solve, MultilaterationProblem, SolveOptions};
 
@@ -160,15 +164,21 @@ pub fn settled_of_file(path: &Path) -> Result<Result<SettledSession, DataError>,
 
 /// A session file's settled windows in the compact form the diagnosis holds (`SettledDwells`:
 /// the solve's lengths, no per-window names or maps), read as `settled_of_file` reads.
-pub fn dwells_of_file(path: &Path) -> Result<Result<SettledDwells, DataError>, ReadError> {
-    if let Some(dwells) = stream_dwells(path, diagnosable) {
+/// The windows' raw samples as `keep` says.
+pub fn dwells_of_file(
+    path: &Path,
+    keep: WindowSamples,
+) -> Result<Result<SettledDwells, DataError>, ReadError> {
+    if let Some(dwells) = stream_dwells(path, diagnosable, keep) {
         return Ok(Ok(dwells));
     }
     let session = read_session(path)?;
     Ok(check_kind(&session.header.kind).and_then(|()| {
-        Ok(SettledDwells::of_settled(SettledSession::of_session(
-            &session,
-        )?))
+        let dwells = SettledDwells::of_settled(SettledSession::of_session(&session)?);
+        Ok(match keep {
+            WindowSamples::Kept => dwells,
+            WindowSamples::ArrivalOnly => dwells.without_window_samples(),
+        })
     }))
 }
 
@@ -195,15 +205,68 @@ impl Data {
         check_kind(&settled.header.kind)?;
         let SettledDwells {
             header,
-            env: env_log,
+            env,
             noise,
-            lengths: extraction,
+            lengths,
             dwells,
             windows,
             rotations,
             ..
         } = settled;
-        let full_header = header.clone();
+        let observed = Observed::of(&env, &lengths, &dwells, &windows)?;
+        // Held once, in the observations and the problem, before the solve of `solved`.
+        let Lengths {
+            measurements,
+            stations,
+            dropped,
+            ..
+        } = lengths;
+        drop((measurements, dwells, env));
+        let station_ids = stations.iter().map(|s| s.id.clone()).collect();
+        Ok(observed.solved(
+            header,
+            noise,
+            windows,
+            rotations,
+            station_ids,
+            dropped.len(),
+        ))
+    }
+
+    /// As `from_dwells`, borrowing them, without the raw windows (`windows` left empty, as the
+    /// diagnosis leaves it once the settling test is done): what the effects' fit reads.
+    pub fn of_dwells(settled: &SettledDwells) -> Result<Data, DataError> {
+        check_kind(&settled.header.kind)?;
+        let lengths = &settled.lengths;
+        let observed = Observed::of(&settled.env, lengths, &settled.dwells, &settled.windows)?;
+        Ok(observed.solved(
+            settled.header.clone(),
+            settled.noise,
+            Vec::new(),
+            settled.rotations.clone(),
+            lengths.stations.iter().map(|s| s.id.clone()).collect(),
+            lengths.dropped.len(),
+        ))
+    }
+}
+
+/// The observations of a session's dwells, before their σ are fixed at the calibration's
+/// solution.
+struct Observed {
+    obs: Vec<Obs>,
+    passes: Vec<Vec<usize>>,
+    pass_names: Vec<String>,
+    built: crate::method::multilateration::Problem,
+    station_start_s: Vec<f64>,
+}
+
+impl Observed {
+    fn of(
+        env_log: &BTreeMap<String, Vec<Stamped<EnvSample>>>,
+        extraction: &Lengths,
+        dwells: &[Dwell],
+        windows: &[Option<RawWindow>],
+    ) -> Result<Observed, DataError> {
         if dwells.is_empty() {
             return Err(DataError::NoPoints(extraction.dropped.len()));
         }
@@ -243,7 +306,7 @@ impl Data {
         material.sort_by(|a, b| a.0.total_cmp(&b.0));
 
         // The same adjustment problem `geocal solve` builds; observation i is measurement i.
-        let built = crate::method::multilateration::Problem::of_lengths(&extraction);
+        let built = crate::method::multilateration::Problem::of_lengths(extraction);
         let mut pass_index: BTreeMap<(usize, usize, usize, u32), usize> = BTreeMap::new();
         let mut passes: Vec<Vec<usize>> = Vec::new();
         let mut pass_names = Vec::new();
@@ -257,7 +320,7 @@ impl Data {
         for ((m, d), o) in extraction
             .measurements
             .iter()
-            .zip(&dwells)
+            .zip(dwells)
             .zip(&built.problem.observations)
         {
             let (segment, point) = (o.segment, o.point);
@@ -306,14 +369,6 @@ impl Data {
                 },
             });
         }
-        // Held once, in the observations and the problem, before the solve below.
-        let Lengths {
-            measurements,
-            stations,
-            dropped,
-            ..
-        } = extraction;
-        drop((measurements, dwells));
         for members in &mut passes {
             members.sort_by(|&a, &b| obs[a].t_s.total_cmp(&obs[b].t_s));
             // The homing point's dwell comes first after homing; if it was dropped, the
@@ -334,13 +389,38 @@ impl Data {
                 obs[i].zeroed = zeroed;
             }
         }
-        let m = stations.len();
+        let m = extraction.stations.len();
         let mut station_start_s = vec![f64::INFINITY; m];
         for o in &obs {
             station_start_s[o.station] = station_start_s[o.station].min(o.t_s);
         }
-        // Path-dependent σ evaluated once at the calibration's solution and then held, so that
-        // every fit of the diagnosis weighs the lengths alike.
+        Ok(Observed {
+            obs,
+            passes,
+            pass_names,
+            built,
+            station_start_s,
+        })
+    }
+
+    /// The diagnosis's data: the path-dependent σ evaluated once at the calibration's
+    /// solution and then held, so that every fit of the diagnosis weighs the lengths alike.
+    fn solved(
+        self,
+        header: SessionHeader,
+        noise: Option<NoiseModel>,
+        windows: Vec<Option<RawWindow>>,
+        rotations: Vec<(String, f64)>,
+        station_ids: Vec<String>,
+        dropped_windows: usize,
+    ) -> Data {
+        let Observed {
+            mut obs,
+            passes,
+            pass_names,
+            built,
+            station_start_s,
+        } = self;
         let mut problem = built.problem;
         if let Ok(solution) = solve(&problem, &SolveOptions::default()) {
             problem = problem.with_fixed_sigmas(&solution.sigmas_m);
@@ -348,28 +428,27 @@ impl Data {
                 o.sigma_m = fixed.sigma_m;
             }
         }
-        Ok(Data {
-            header: full_header,
+        Data {
             rotations,
             declared_dead_path_m: noise.map_or(0.0, |n| n.dead_path_m),
             points: built.points,
             point_axes_m: built.axes_m,
-            machine: header.machine,
-            session_id: header.session_id,
+            machine: header.machine.clone(),
+            session_id: header.session_id.clone(),
+            header,
             has_env: obs.iter().all(|o| o.dn.is_some()),
             has_material: obs.iter().all(|o| o.material_dt_k.is_some()),
             windows,
             obs,
-            station_ids: stations.iter().map(|s| s.id.clone()).collect(),
+            station_ids,
             passes,
             pass_names,
             problem,
             station_start_s,
-            dropped_windows: dropped.len(),
-        })
+            dropped_windows,
+        }
     }
 }
-
 impl Data {
     /// What a plan kind's effect models may read of this session.
     pub fn network_session(&self) -> crate::method::tracer_effects::NetworkSession<'_> {

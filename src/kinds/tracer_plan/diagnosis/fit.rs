@@ -81,10 +81,10 @@ impl Fit {
     }
 
     /// [`Fit::solve`] of every column of `y` (structured: together, one walk over the rows
-    /// per step).
-    pub fn solve_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
+    /// per step, the refinement's residuals in `y`'s place).
+    pub fn solve_columns(&self, y: DMatrix<f64>) -> DMatrix<f64> {
         match self {
-            Fit::Structured(s) => s.solve_columns(y),
+            Fit::Structured(s) => s.solve_columns_owned(y),
             Fit::Dense(d) => {
                 let columns: Vec<DVector<f64>> =
                     y.column_iter().map(|c| d.solve(&c.into_owned())).collect();

@@ -33,6 +33,7 @@ use crate::diagnose::{
     Candidate, CorrectedCalibration, DiagnoseOptions, Diagnosis, Gap, NoiseScale,
     StandardisedResidual, StandardisedResiduals, DIAGNOSIS_FORMAT,
 };
+use crate::extract::WindowSamples;
 use crate::session::reader::Session;
 use crate::solve::multilateration::{solve, SolveOptions};
 use data::Data;
@@ -65,7 +66,7 @@ pub fn diagnose_file_detailed(
     path: &Path,
     options: &DiagnoseOptions,
 ) -> anyhow::Result<(Diagnosis, StandardisedResiduals)> {
-    let settled = data::dwells_of_file(path)
+    let settled = data::dwells_of_file(path, WindowSamples::Kept)
         .with_context(|| format!("reading {}", path.display()))?
         .map_err(DiagnoseError::from)
         .with_context(|| format!("diagnosing {}", path.display()))?;
@@ -115,7 +116,7 @@ fn corrected_calibration(
     if kinds.is_empty() {
         return Ok(None);
     }
-    let settled = match data::settled_of_file(path) {
+    let settled = match data::dwells_of_file(path, WindowSamples::ArrivalOnly) {
         Ok(Ok(settled)) => settled,
         Ok(Err(why)) => return Err(why.to_string()),
         Err(why) => return Err(format!("reading {}: {why}", path.display())),
@@ -126,7 +127,7 @@ fn corrected_calibration(
             effects: correct::fit_named(effects),
             ..Default::default()
         };
-        crate::method::multilateration::solve_settled(settled, &settings)
+        crate::method::multilateration::solve_dwells(settled, &settings)
             .map(|(results, _)| results)
             .map_err(|e| e.to_string())
     };
@@ -195,12 +196,14 @@ impl forward::Client for LengthsClient<'_> {
     }
 
     fn design(&self, accepted: &[EffectModel]) -> Arc<Design> {
-        let nobs = self.data.obs.len();
-        Arc::new(self.nominal.with_effects(
-            accepted.iter().fold(DMatrix::zeros(nobs, 0), |d, m| {
-                hcat(&d, &m.columns(self.data, self.geom))
-            }),
-        ))
+        Arc::new(
+            self.nominal.with_effect_blocks(
+                accepted
+                    .iter()
+                    .map(|m| m.candidate_columns(self.data, self.geom))
+                    .collect(),
+            ),
+        )
     }
 
     fn columns(&self, effect: &EffectModel) -> DMatrix<f64> {
@@ -933,13 +936,12 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
     let mut theta = DVector::zeros(widths.iter().sum());
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let design = |geom: &Geometry| {
-        // Side by side; one model's columns as they are made (they are the widest matrix).
+        // Side by side; an effect per station by rows, not dense.
         let effects = models
             .iter()
-            .map(|m| m.columns(data, geom))
-            .reduce(|d, a| hcat(&d, &a))
-            .unwrap_or_else(|| DMatrix::zeros(nobs, 0));
-        Arc::new(Design::nominal(data, geom).with_effects(effects))
+            .map(|m| m.candidate_columns(data, geom))
+            .collect();
+        Arc::new(Design::nominal(data, geom).with_effect_blocks(effects))
     };
     let residual = |geom: &Geometry, a: &Design, theta: &DVector<f64>| {
         let np = geom.len();

@@ -15,6 +15,7 @@ use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Matrix3, Vector3};
 
+use crate::diagnose::columns::Columns;
 use crate::diagnose::downdate::{HatRows, LowRank};
 use crate::parallel::{self, in_parallel, split_lengths};
 
@@ -63,8 +64,10 @@ pub struct Design {
     n_stations: usize,
     n_segments: usize,
     rows: Vec<Row>,
-    /// Unwhitened effect columns (metres per unit parameter, one row per length).
-    effects: DMatrix<f64>,
+    /// Unwhitened effect columns (metres per unit parameter, one row per length): blocks side
+    /// by side, each dense or by rows (an effect per station touches a few columns of a row).
+    effects: Vec<Columns>,
+    effect_columns: usize,
 }
 
 impl Design {
@@ -87,15 +90,25 @@ impl Design {
             n_stations: geom.stations.len(),
             n_segments: geom.distances_m.len(),
             rows,
-            effects: DMatrix::zeros(data.obs.len(), 0),
+            effects: Vec::new(),
+            effect_columns: 0,
         }
     }
 
     /// The same design with `effects` (unwhitened, one row per length) as its extra columns.
     pub fn with_effects(&self, effects: DMatrix<f64>) -> Design {
+        self.with_effect_blocks(vec![Columns::Dense(effects)])
+    }
+
+    /// The same design with the `blocks` of effect columns side by side as its extra columns.
+    pub fn with_effect_blocks(&self, blocks: Vec<Columns>) -> Design {
         Design {
-            effects,
-            ..self.clone()
+            effect_columns: blocks.iter().map(Columns::ncols).sum(),
+            effects: blocks,
+            n_points: self.n_points,
+            n_stations: self.n_stations,
+            n_segments: self.n_segments,
+            rows: self.rows.clone(),
         }
     }
 
@@ -118,16 +131,26 @@ impl Design {
 
     /// Columns after the points': stations, segments, effects.
     pub fn n_global(&self) -> usize {
-        3 * self.n_stations + self.n_segments + self.effects.ncols()
+        3 * self.n_stations + self.n_segments + self.effect_columns
     }
 
     pub fn effect_columns(&self) -> usize {
-        self.effects.ncols()
+        self.effect_columns
     }
 
-    /// The effect columns, unwhitened (one row per length).
-    pub fn effects(&self) -> &DMatrix<f64> {
-        &self.effects
+    /// Row i's effect columns, unwhitened, into `out` (one entry per effect column).
+    pub fn effect_row_into(&self, i: usize, out: &mut [f64]) {
+        out.fill(0.0);
+        self.for_effect_entry(i, |c, v| out[c] = v);
+    }
+
+    /// Row i's unwhitened (effect column, value) for every effect column that may be nonzero.
+    fn for_effect_entry(&self, i: usize, mut f: impl FnMut(usize, f64)) {
+        let mut first = 0;
+        for block in &self.effects {
+            block.for_row(i, |c, v| f(first + c, v));
+            first += block.ncols();
+        }
     }
 
     pub fn point_of(&self, i: usize) -> usize {
@@ -173,9 +196,11 @@ impl Design {
         out.extend_from_slice(&self.sparse(i));
         let first = 3 * self.n_stations + self.n_segments;
         let w = self.rows[i].w;
-        for c in 0..self.effects.ncols() {
-            out.push((first + c, self.effects[(i, c)] * w));
-        }
+        // Every effect column, zero or not: each row has the same number of entries.
+        let start = out.len();
+        out.extend((0..self.effect_columns).map(|c| (first + c, 0.0)));
+        let row = &mut out[start..];
+        self.for_effect_entry(i, |c, v| row[c].1 = v * w);
     }
 
     /// Whitened row i's global part as a dense vector.
@@ -203,9 +228,7 @@ impl Design {
         }
         sum -= x[g + 3 * self.n_stations + r.segment];
         let first = g + 3 * self.n_stations + self.n_segments;
-        for c in 0..self.effects.ncols() {
-            sum += self.effects[(i, c)] * x[first + c];
-        }
+        self.for_effect_entry(i, |c, v| sum += v * x[first + c]);
         sum
     }
 
@@ -220,9 +243,8 @@ impl Design {
             for (c, v) in self.sparse(i) {
                 x[(i, g + c)] = v / r.w;
             }
-            for c in 0..self.effects.ncols() {
-                x[(i, g + 3 * self.n_stations + self.n_segments + c)] = self.effects[(i, c)];
-            }
+            let first = g + 3 * self.n_stations + self.n_segments;
+            self.for_effect_entry(i, |c, v| x[(i, first + c)] = v);
         }
         x
     }
@@ -532,10 +554,15 @@ impl Schur {
     /// [`Schur::solve`] of every column of `y` together (one walk over the rows per step for
     /// all of them).
     pub fn solve_columns(&self, y: &DMatrix<f64>) -> DMatrix<f64> {
-        let mut x = self.normal_solve_columns(&self.xt_columns(y));
+        self.solve_columns_owned(y.clone())
+    }
+
+    /// [`Schur::solve_columns`], the refinement's residuals made in `y`'s place.
+    pub fn solve_columns_owned(&self, mut y: DMatrix<f64>) -> DMatrix<f64> {
+        let mut x = self.normal_solve_columns(&self.xt_columns(&y));
         // One step of iterative refinement: the normal equations square the condition number.
-        let r = y - self.times_columns(&x);
-        x += self.normal_solve_columns(&self.xt_columns(&r));
+        self.subtract_times_columns(&x, &mut y);
+        x += self.normal_solve_columns(&self.xt_columns(&y));
         x
     }
 
@@ -564,10 +591,17 @@ impl Schur {
     }
 
     /// X x over the fit's rows for every column of `x` (whitened, by position).
+    #[cfg(test)]
     fn times_columns(&self, x: &DMatrix<f64>) -> DMatrix<f64> {
+        let mut out = DMatrix::zeros(self.rows.len(), x.ncols());
+        self.subtract_times_columns(x, &mut out);
+        -out
+    }
+
+    /// y − X x over the fit's rows for every column of `x` (whitened, by position), in place.
+    fn subtract_times_columns(&self, x: &DMatrix<f64>, y: &mut DMatrix<f64>) {
         let d = &self.design;
         let offset = 3 * d.n_points;
-        let mut out = DMatrix::zeros(self.rows.len(), x.ncols());
         let mut entries = Vec::new();
         for (pos, &i) in self.rows.iter().enumerate() {
             let p = d.rows[i].point;
@@ -575,14 +609,13 @@ impl Schur {
             d.global_entries(i, &mut entries);
             for col in 0..x.ncols() {
                 let xp = x.fixed_view::<3, 1>(3 * p, col);
-                out[(pos, col)] = a.dot(&xp)
+                y[(pos, col)] -= a.dot(&xp)
                     + entries
                         .iter()
                         .map(|&(c, v)| v * x[(offset + c, col)])
                         .sum::<f64>();
             }
         }
-        out
     }
 
     /// y minus its projection on the design's column space (over the fit's rows).
@@ -953,7 +986,7 @@ struct RowEntries {
 
 impl RowEntries {
     fn of(design: &Design, rows: &[usize]) -> RowEntries {
-        let width = 4 + design.effects.ncols();
+        let width = 4 + design.effect_columns;
         let mut out = RowEntries {
             a: rows.iter().map(|&i| design.a(i)).collect(),
             width,
@@ -1093,8 +1126,10 @@ mod tests {
             n_stations: stations.len(),
             n_segments: stations.len(),
             rows,
-            effects,
+            effects: Vec::new(),
+            effect_columns: 0,
         }
+        .with_effects(effects)
     }
 
     #[test]
@@ -1150,6 +1185,60 @@ mod tests {
                 "least squares column {c}: {gap:e}"
             );
         }
+    }
+
+    /// Effect columns held by rows (a per-station effect's few entries, and a block times a
+    /// right factor) beside a dense block give the design the same columns held dense: the
+    /// same dense design, predictions and least-squares solution.
+    #[test]
+    fn effect_blocks_by_rows_equal_the_dense_columns() {
+        use crate::diagnose::columns::RowSparse;
+        let dense = small(false);
+        let n = dense.lengths();
+        let mut per_station = RowSparse::new(3 * dense.n_stations, n, 1);
+        let mut turned = RowSparse::new(2, n, 2);
+        for i in 0..n {
+            let s = dense.station_of(i);
+            let t = 1e-3 * (i % 5) as f64;
+            per_station.push_row([(3 * s + i % 3, t)]);
+            turned.push_row([(0, t), (1, -0.5 * t)]);
+        }
+        let right = DMatrix::from_row_slice(2, 3, &[1.0, 0.5, 0.0, -0.25, 2.0, 1.0]);
+        let turned = turned.with_right(right);
+        let blocks = vec![
+            Columns::Dense(
+                dense
+                    .to_dense()
+                    .columns(dense.n_params() - 1, 1)
+                    .into_owned(),
+            ),
+            Columns::Sparse(per_station.clone()),
+            Columns::Sparse(turned.clone()),
+        ];
+        let held = Design {
+            effects: Vec::new(),
+            effect_columns: 0,
+            ..dense.clone()
+        };
+        let by_rows = held.with_effect_blocks(blocks.clone());
+        let all_dense = held.with_effects(
+            blocks
+                .into_iter()
+                .map(Columns::into_dense)
+                .reduce(|a, b| crate::kinds::tracer_plan::diagnosis::hcat(&a, &b))
+                .expect("blocks"),
+        );
+        assert_eq!(by_rows.effect_columns(), 1 + 3 * 6 + 3);
+        assert_eq!(by_rows.to_dense(), all_dense.to_dense());
+        let x = DVector::from_fn(by_rows.n_params(), |r, _| ((r * 7 % 13) as f64 - 6.0) * 0.1);
+        let y = DVector::from_fn(n, |r, _| ((r * 5 % 11) as f64 - 5.0) * 0.2);
+        for i in 0..n {
+            assert_eq!(by_rows.predict(i, &x), all_dense.predict(i, &x), "row {i}");
+        }
+        let all: Vec<usize> = (0..n).collect();
+        let a = Schur::new(Arc::new(by_rows), all.clone()).solve(&y);
+        let b = Schur::new(Arc::new(all_dense), all).solve(&y);
+        assert_eq!(a, b);
     }
 
     /// The hat rows of a fold (one station's lengths of every sixth point, like a
