@@ -9,6 +9,11 @@
 //! `DIAGNOSE_BENCH_MEMORY_LIMIT=BYTES` diagnoses under that limit: 0 shows each size's estimate
 //! in its refusal; `DIAGNOSE_BENCH_EFFECTS=NAMES` the effects of the `solve --effects` row,
 //! `station_drift` by default (the widest: 3 per station), empty for no such row).
+//!
+//! `cargo bench --bench diagnose_session -- kinds`: every plan kind's diagnosis against its
+//! solve on the outside sessions of `../shared/sessions/` (recorded by another writer), in
+//! process (the child modes) and end to end (`geocal solve` and `geocal diagnose`), medians of
+//! five runs each.
 
 mod common;
 
@@ -118,6 +123,10 @@ fn main() {
         child(Path::new(&args[k + 1]));
         return;
     }
+    if args.iter().skip(1).any(|a| a == "kinds") {
+        kinds_table();
+        return;
+    }
     if let Some(k) = args.iter().position(|a| a == "--solve-child") {
         solve_child(Path::new(&args[k + 1]), &args[k + 2..]);
         return;
@@ -194,6 +203,101 @@ fn main() {
             Err(e) => println!("| {size} | | {command} | failed: {e} |"),
         }
     }
+}
+
+const KIND_RUNS: usize = 5;
+
+/// Every outside session's diagnosis against its solve: in process (the child modes: the
+/// work alone) and end to end (the `geocal` commands, process start and output included).
+fn kinds_table() {
+    let dir = Path::new(env!("CARGO_MANIFEST_DIR")).join("../shared/sessions");
+    let mut sessions: Vec<PathBuf> = std::fs::read_dir(&dir)
+        .map(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .map(|e| e.path().join("session.mcap"))
+                .filter(|p| p.exists())
+                .collect()
+        })
+        .unwrap_or_default();
+    sessions.sort();
+    if sessions.is_empty() {
+        println!("no outside sessions under {}", dir.display());
+        return;
+    }
+    println!(
+        "| session | kind | rows | solve | diagnose | wall / solve | `geocal solve` | `geocal diagnose` | wall / solve, end to end | peak RSS solve / diagnose | peak RSS / solve |"
+    );
+    println!("|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for path in sessions {
+        let name = path
+            .parent()
+            .and_then(Path::file_name)
+            .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+        let kind = geocal::session::reader::read_session(&path)
+            .map(|s| s.header.kind)
+            .unwrap_or_else(|e| format!("unreadable: {e}"));
+        let (mut solve, mut diagnose) = (Vec::new(), Vec::new());
+        let (mut solve_cli, mut diagnose_cli) = (Vec::new(), Vec::new());
+        let (mut solve_rss, mut diagnose_rss, mut rows) = (0.0f64, 0.0f64, String::new());
+        for _ in 0..KIND_RUNS {
+            let parts = (
+                run_child("--solve-child", &path, &[]),
+                run_child("--child", &path, &[]),
+            );
+            let (Ok(s), Ok(d)) = parts else {
+                println!("| {name} | {kind} | failed: {parts:?} |");
+                break;
+            };
+            let num = |f: &[String], k: usize| f[k].parse::<f64>().unwrap_or(f64::NAN);
+            solve.push(num(&s, 0));
+            diagnose.push(num(&d, 0));
+            solve_rss = solve_rss.max(num(&s, 3));
+            diagnose_rss = diagnose_rss.max(num(&d, 3));
+            rows.clone_from(&d[4]);
+            solve_cli.push(end_to_end("solve", &path));
+            diagnose_cli.push(end_to_end("diagnose", &path));
+        }
+        if solve.is_empty() {
+            continue;
+        }
+        let (s, d) = (median(&mut solve), median(&mut diagnose));
+        let (sc, dc) = (median(&mut solve_cli), median(&mut diagnose_cli));
+        println!(
+            "| {name} | {kind} | {rows} | {:.1} ms | {:.1} ms | {:.1}× | {:.1} ms | {:.1} ms | {:.1}× | {:.1} / {:.1} MiB | {:.2}× |",
+            1e3 * s,
+            1e3 * d,
+            d / s,
+            1e3 * sc,
+            1e3 * dc,
+            dc / sc,
+            solve_rss / 1024.0,
+            diagnose_rss / 1024.0,
+            diagnose_rss / solve_rss,
+        );
+    }
+}
+
+/// Wall seconds of `geocal COMMAND --json PATH` (NaN when it fails).
+fn end_to_end(command: &str, path: &Path) -> f64 {
+    let started = std::time::Instant::now();
+    let ok = Command::new(env!("CARGO_BIN_EXE_geocal"))
+        .args([command, "--json"])
+        .arg(path)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::null())
+        .status()
+        .is_ok_and(|s| s.success());
+    if ok {
+        started.elapsed().as_secs_f64()
+    } else {
+        f64::NAN
+    }
+}
+
+fn median(values: &mut [f64]) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values.get(values.len() / 2).copied().unwrap_or(f64::NAN)
 }
 
 /// Runs this benchmark as a child in `mode` on `path` (then `extra`); its RESULT line's fields.

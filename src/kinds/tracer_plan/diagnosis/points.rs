@@ -4,13 +4,16 @@
 pub use crate::diagnose::lengths::{PointDeparture, PointsGap, PointsLevel, TargetOffsetTest};
 
 use std::collections::BTreeMap;
+use std::sync::Arc;
 
 use nalgebra::{DMatrix, DVector, Vector3};
 
 use super::data::Data;
 use super::effects::Geometry;
+use super::fit::Fit;
 use super::locate::{octant_key, WhereEntry};
-use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL, RANK_TOL as GEOMETRY_RANK_TOL};
+use super::schur::Design;
+use super::stats::{chi2_sf, Basis, EFFECT_RANK_TOL};
 use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
@@ -211,19 +214,18 @@ pub(crate) fn effect_point_move(
     let n = per_pass.pass_points.len();
     let w = DVector::from_iterator(data.obs.len(), data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let whiten = |m: &DMatrix<f64>| DMatrix::from_fn(m.nrows(), m.ncols(), |i, c| m[(i, c)] * w[i]);
-    let j_w =
-        whiten(&Geometry::from_solution(&per_pass.solution).jacobian_of(data, &per_pass.point_of));
     let a_w = whiten(effects);
-    let geometry = Basis::new(&j_w, GEOMETRY_RANK_TOL, 0.0);
+    // The geometry's fit on the solve's structure (points eliminated block by block): the
+    // steps' gauge, whatever it is, is taken off by the S-transform below.
+    let geom = Geometry::from_solution(&per_pass.solution);
+    let design = Design::with_points(data, &geom, |i| per_pass.point_of[i]);
+    let geometry = Fit::new(Arc::new(design), (0..data.obs.len()).collect());
     let absorbed = &a_w - geometry.project_off(&a_w);
     let reference = (0..absorbed.ncols())
         .map(|c| absorbed.column(c).norm())
         .fold(0.0, f64::max);
-    let mut k = DMatrix::zeros(3 * n, absorbed.ncols());
-    for c in 0..absorbed.ncols() {
-        let step = geometry.solve(&absorbed.column(c).into_owned());
-        k.column_mut(c).copy_from(&step.rows(0, 3 * n));
-    }
+    let steps = geometry.solve_columns(absorbed);
+    let k = steps.rows(0, 3 * n).into_owned();
     // S-transform to the inner-constraint datum of the points' covariance: the rigid motion
     // (at the solved points) that the minimum-norm step carries is removed as there.
     let nominal: Vec<Vector3<f64>> = per_pass

@@ -73,16 +73,27 @@ pub struct Design {
 impl Design {
     /// The nominal model's design at `geom`, weighted by the lengths' declared σ.
     pub fn nominal(data: &Data, geom: &Geometry) -> Design {
+        Design::with_points(data, geom, |i| data.obs[i].point)
+    }
+
+    /// [`Design::nominal`] with length i on `geom`'s point `point_of(i)` (the points level's
+    /// one point per plan point and pass).
+    pub fn with_points(data: &Data, geom: &Geometry, point_of: impl Fn(usize) -> usize) -> Design {
         let rows = data
             .obs
             .iter()
             .enumerate()
-            .map(|(i, o)| Row {
-                point: o.point,
-                station: o.station,
-                segment: o.segment,
-                u: geom.beam(data, i).0,
-                w: 1.0 / o.sigma_m,
+            .map(|(i, o)| {
+                let point = point_of(i);
+                let v = geom.stations[o.station] - geom.points[point];
+                let d = v.norm();
+                Row {
+                    point,
+                    station: o.station,
+                    segment: o.segment,
+                    u: v / d,
+                    w: 1.0 / o.sigma_m,
+                }
             })
             .collect();
         Design {
