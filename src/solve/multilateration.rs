@@ -949,7 +949,11 @@ pub const MAX_DENSE_COVARIANCE_UNKNOWNS: usize = 1500;
 /// The full covariance of all points (3n x 3n, point-major) in the inner-constraint datum,
 /// including the correlations between points that shared stations cause; `None` when the
 /// problem has more than `MAX_DENSE_COVARIANCE_UNKNOWNS` unknowns (dense algebra).
-/// Pseudo-inverse of the normal matrix, then the S-transform to inner constraints on points.
+/// A generalised inverse of the normal matrix, then the S-transform to inner constraints on
+/// points: any generalised inverse gives the same result once S-transformed, when the rigid
+/// motions are the normal matrix's only null directions. The points are eliminated block by
+/// block (`by_elimination`); a problem where that cannot be shown to hold takes the
+/// pseudo-inverse of the whole normal matrix (`by_eigen`).
 pub fn dense_point_covariance(
     problem: &MultilaterationProblem,
     solution: &MultilaterationSolution,
@@ -957,27 +961,147 @@ pub fn dense_point_covariance(
     let m = solution.stations.len();
     let s = solution.segment_distance_m.len();
     let n = solution.points.len();
-    let unknowns = 3 * m + s + 3 * n;
-    if unknowns > MAX_DENSE_COVARIANCE_UNKNOWNS {
+    if 3 * m + s + 3 * n > MAX_DENSE_COVARIANCE_UNKNOWNS {
         return None;
     }
+    let centre = problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
+    // The rigid motions at the solution (g) and at the nominal points (e), points' rows.
+    let mut g = DMatrix::<f64>::zeros(3 * n, 6);
+    let mut e = DMatrix::<f64>::zeros(3 * n, 6);
+    for i in 0..n {
+        g.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(&solution.points[i], &centre));
+        e.view_mut((3 * i, 0), (3, 6))
+            .copy_from(&generator(&problem.nominal_points[i], &centre));
+    }
+    let etg_inv = (e.transpose() * &g).try_inverse()?;
+    let q = by_elimination(problem, solution).or_else(|| by_eigen(problem, solution))?;
+    // S-transform: T Q Tᵀ with T = I − g (eᵀg)⁻¹ eᵀ on the points' rows (e has no stations'
+    // rows, so the stations' part of a generalised inverse drops out).
+    let k = &g * etg_inv;
+    let tq = &q - &k * (e.transpose() * &q);
+    Some(&tq - (&tq * &e) * k.transpose())
+}
+
+/// Rows of one length's whitened Jacobian: (station j's 3 columns, segment column, point's 3).
+fn whitened_row(
+    problem: &MultilaterationProblem,
+    solution: &MultilaterationSolution,
+    k: usize,
+) -> (usize, Vector3<f64>, f64) {
+    let obs = &problem.observations[k];
+    let sigma_m = solution.sigmas_m[k];
+    let j = problem.segments[obs.segment].station;
+    let d = solution.stations[j] - solution.points[obs.point];
+    (j, d / d.norm() / sigma_m, -1.0 / sigma_m)
+}
+
+/// The points' block of a generalised inverse of the normal matrix, the points eliminated
+/// block by block: M⁻¹ + F S⁺ Fᵀ with M the points' 3 × 3 blocks, F = M⁻¹ Cᵀ and S the
+/// reduced matrix of the stations and segments. None when a point's block or S has a null
+/// direction other than the 6 rigid motions (the pseudo-inverse of the whole matrix then).
+fn by_elimination(
+    problem: &MultilaterationProblem,
+    solution: &MultilaterationSolution,
+) -> Option<DMatrix<f64>> {
+    let (m, s, n) = (
+        solution.stations.len(),
+        solution.segment_distance_m.len(),
+        solution.points.len(),
+    );
+    let r = 3 * m + s;
+    let mut blocks = vec![Matrix3::<f64>::zeros(); n];
+    let mut coupling = DMatrix::<f64>::zeros(r, 3 * n);
+    let mut reduced = DMatrix::<f64>::zeros(r, r);
+    for k in 0..problem.observations.len() {
+        let (j, u, w_segment) = whitened_row(problem, solution, k);
+        let obs = &problem.observations[k];
+        let (p, seg) = (obs.point, 3 * m + obs.segment);
+        let outer = u * u.transpose();
+        blocks[p] += outer;
+        for a in 0..3 {
+            for b in 0..3 {
+                reduced[(3 * j + a, 3 * j + b)] += outer[(a, b)];
+                // Station × point: u (−u)ᵀ.
+                coupling[(3 * j + a, 3 * p + b)] -= outer[(a, b)];
+            }
+            reduced[(3 * j + a, seg)] += u[a] * w_segment;
+            reduced[(seg, 3 * j + a)] += u[a] * w_segment;
+            // Segment × point: w_segment (−u)ᵀ.
+            coupling[(seg, 3 * p + a)] -= w_segment * u[a];
+        }
+        reduced[(seg, seg)] += w_segment * w_segment;
+    }
+    let largest = blocks
+        .iter()
+        .map(|b| b.trace())
+        .fold(reduced.trace(), f64::max);
+    let mut inverses = Vec::with_capacity(n);
+    for block in &blocks {
+        if block.symmetric_eigen().eigenvalues.min() <= largest * 1e-12 {
+            return None;
+        }
+        inverses.push(block.try_inverse()?);
+    }
+    // F = M⁻¹ Cᵀ (3n × r), S = A − C M⁻¹ Cᵀ.
+    let mut f = DMatrix::<f64>::zeros(3 * n, r);
+    for (p, inverse) in inverses.iter().enumerate() {
+        let c_p = coupling.columns(3 * p, 3);
+        f.rows_mut(3 * p, 3).copy_from(&(inverse * c_p.transpose()));
+    }
+    reduced -= &coupling * &f;
+    let eigen = reduced.symmetric_eigen();
+    let top = eigen.eigenvalues.amax();
+    let kept: Vec<usize> = (0..r)
+        .filter(|&k| eigen.eigenvalues[k] > top * 1e-12)
+        .collect();
+    // The rigid motions' 6 directions, and no other.
+    if kept.len() + 6 != r {
+        return None;
+    }
+    let mut v_scaled = DMatrix::<f64>::zeros(r, kept.len());
+    for (c, &k) in kept.iter().enumerate() {
+        v_scaled.set_column(
+            c,
+            &(eigen.eigenvectors.column(k) / eigen.eigenvalues[k].sqrt()),
+        );
+    }
+    let fv = &f * v_scaled;
+    let mut q = &fv * fv.transpose();
+    for (p, inverse) in inverses.iter().enumerate() {
+        let mut block = q.view_mut((3 * p, 3 * p), (3, 3));
+        block += inverse;
+    }
+    Some(q)
+}
+
+/// The points' block of the pseudo-inverse of the whole normal matrix (its eigenvalues above
+/// 1e-12 of the largest).
+fn by_eigen(
+    problem: &MultilaterationProblem,
+    solution: &MultilaterationSolution,
+) -> Option<DMatrix<f64>> {
+    let (m, s, n) = (
+        solution.stations.len(),
+        solution.segment_distance_m.len(),
+        solution.points.len(),
+    );
+    let unknowns = 3 * m + s + 3 * n;
     let point_col = |i: usize| 3 * m + s + 3 * i;
     let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);
     let mut row = [0.0; 7];
     let mut cols = [0usize; 7];
-    // The σ the solve weighed with (path-dependent ones at the solution).
-    for (obs, &sigma_m) in problem.observations.iter().zip(&solution.sigmas_m) {
-        let j = problem.segments[obs.segment].station;
-        let d = solution.stations[j] - solution.points[obs.point];
-        let u = d / d.norm() / sigma_m;
-        for k in 0..3 {
-            cols[k] = 3 * j + k;
-            row[k] = u[k];
-            cols[3 + k] = point_col(obs.point) + k;
-            row[3 + k] = -u[k];
+    for k in 0..problem.observations.len() {
+        let (j, u, w_segment) = whitened_row(problem, solution, k);
+        let obs = &problem.observations[k];
+        for a in 0..3 {
+            cols[a] = 3 * j + a;
+            row[a] = u[a];
+            cols[3 + a] = point_col(obs.point) + a;
+            row[3 + a] = -u[a];
         }
         cols[6] = 3 * m + obs.segment;
-        row[6] = -1.0 / sigma_m;
+        row[6] = w_segment;
         for a in 0..7 {
             for b in 0..7 {
                 normal[(cols[a], cols[b])] += row[a] * row[b];
@@ -994,24 +1118,8 @@ pub fn dense_point_covariance(
             pinv += v * v.transpose() / lambda;
         }
     }
-    let centre = problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
-    let mut g = DMatrix::<f64>::zeros(unknowns, 6);
-    let mut e = DMatrix::<f64>::zeros(unknowns, 6);
-    for (j, station) in solution.stations.iter().enumerate() {
-        g.view_mut((3 * j, 0), (3, 6))
-            .copy_from(&generator(station, &centre));
-    }
-    for i in 0..n {
-        g.view_mut((point_col(i), 0), (3, 6))
-            .copy_from(&generator(&solution.points[i], &centre));
-        e.view_mut((point_col(i), 0), (3, 6))
-            .copy_from(&generator(&problem.nominal_points[i], &centre));
-    }
-    let etg_inv = (e.transpose() * &g).try_inverse()?;
-    let transform = DMatrix::<f64>::identity(unknowns, unknowns) - &g * etg_inv * e.transpose();
-    let q = &transform * pinv * transform.transpose();
     Some(
-        q.view((point_col(0), point_col(0)), (3 * n, 3 * n))
+        pinv.view((point_col(0), point_col(0)), (3 * n, 3 * n))
             .into_owned(),
     )
 }
@@ -1642,6 +1750,40 @@ pub(crate) mod tests {
             assert!((d - t).abs() < 1e-10);
         }
         assert!(sol.residual_rms_m < 1e-12);
+    }
+
+    /// The points eliminated block by block and the pseudo-inverse of the whole normal matrix
+    /// give one covariance once S-transformed (two beam segments per station: segments too).
+    #[test]
+    fn dense_point_covariance_by_elimination_equals_the_pseudo_inverse() {
+        let syn = synthetic(37, [4, 3, 3], &stations5(), &[2, 3], 30e-9, true);
+        let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
+        let n = sol.points.len();
+        let centre = syn.problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
+        let mut g = DMatrix::<f64>::zeros(3 * n, 6);
+        let mut e = DMatrix::<f64>::zeros(3 * n, 6);
+        for i in 0..n {
+            g.view_mut((3 * i, 0), (3, 6))
+                .copy_from(&generator(&sol.points[i], &centre));
+            e.view_mut((3 * i, 0), (3, 6))
+                .copy_from(&generator(&syn.problem.nominal_points[i], &centre));
+        }
+        let k = &g * (e.transpose() * &g).try_inverse().expect("eᵀg");
+        let inner = |q: DMatrix<f64>| {
+            let tq = &q - &k * (e.transpose() * &q);
+            &tq - (&tq * &e) * k.transpose()
+        };
+        let eliminated = by_elimination(&syn.problem, &sol).expect("a solvable problem");
+        let whole = by_eigen(&syn.problem, &sol).expect("pseudo-inverse");
+        // The generalised inverses differ (gauge) before the transform, not after it.
+        assert!((&eliminated - &whole).amax() > 1e-6 * whole.amax());
+        let (a, b) = (inner(eliminated), inner(whole));
+        assert!(
+            (&a - &b).amax() <= 1e-9 * b.amax(),
+            "{:e} of {:e}",
+            (&a - &b).amax(),
+            b.amax()
+        );
     }
 
     #[test]
