@@ -189,15 +189,12 @@ pub fn solve_detailed(
 }
 
 /// Solve a multilateration session reduced to its settled windows (`SettledSession`, streamed
-/// or of a whole read): the results `solve` gives of that session.
+/// or of a whole read): the results `solve` gives of that session, without effects (their fit
+/// reads the compact windows: `solve_dwells`).
 pub fn solve_settled(
     settled: &SettledSession,
     settings: &SolveSettings,
 ) -> Result<(MultilaterationResults, MultilaterationSolution), MultilaterationError> {
-    if settings.effects.is_some() {
-        let dwells = SettledDwells::of_settled(settled.clone()).without_window_samples();
-        return solve_dwells(&dwells, settings);
-    }
     let extracted = Extracted {
         header: &settled.header,
         damaged: &settled.damaged,

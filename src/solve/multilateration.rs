@@ -958,9 +958,7 @@ pub fn dense_point_covariance(
     problem: &MultilaterationProblem,
     solution: &MultilaterationSolution,
 ) -> Option<DMatrix<f64>> {
-    let m = solution.stations.len();
-    let s = solution.segment_distance_m.len();
-    let n = solution.points.len();
+    let (m, s, n) = unknown_counts(solution);
     if 3 * m + s + 3 * n > MAX_DENSE_COVARIANCE_UNKNOWNS {
         return None;
     }
@@ -981,6 +979,15 @@ pub fn dense_point_covariance(
     let k = &g * etg_inv;
     let tq = &q - &k * (e.transpose() * &q);
     Some(&tq - (&tq * &e) * k.transpose())
+}
+
+/// (stations, segments, points) of a solution.
+fn unknown_counts(solution: &MultilaterationSolution) -> (usize, usize, usize) {
+    (
+        solution.stations.len(),
+        solution.segment_distance_m.len(),
+        solution.points.len(),
+    )
 }
 
 /// Rows of one length's whitened Jacobian: (station j's 3 columns, segment column, point's 3).
@@ -1004,11 +1011,7 @@ fn by_elimination(
     problem: &MultilaterationProblem,
     solution: &MultilaterationSolution,
 ) -> Option<DMatrix<f64>> {
-    let (m, s, n) = (
-        solution.stations.len(),
-        solution.segment_distance_m.len(),
-        solution.points.len(),
-    );
+    let (m, s, n) = unknown_counts(solution);
     let r = 3 * m + s;
     let mut blocks = vec![Matrix3::<f64>::zeros(); n];
     let mut coupling = DMatrix::<f64>::zeros(r, 3 * n);
@@ -1081,11 +1084,7 @@ fn by_eigen(
     problem: &MultilaterationProblem,
     solution: &MultilaterationSolution,
 ) -> Option<DMatrix<f64>> {
-    let (m, s, n) = (
-        solution.stations.len(),
-        solution.segment_distance_m.len(),
-        solution.points.len(),
-    );
+    let (m, s, n) = unknown_counts(solution);
     let unknowns = 3 * m + s + 3 * n;
     let point_col = |i: usize| 3 * m + s + 3 * i;
     let mut normal = DMatrix::<f64>::zeros(unknowns, unknowns);

@@ -92,10 +92,6 @@ pub fn correction_named(
     let geom = Geometry::from_solution(&nominal);
     let nobs = data.obs.len();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
-    // Only a length step's place needs the nominal fit.
-    let nominal_basis = names
-        .contains(&EffectKind::LengthStep.name())
-        .then(|| Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect()));
     let stations_effect = library.network.and_then(|n| n.stations_effect());
     let models: Vec<EffectModel> = names
         .iter()
@@ -110,13 +106,13 @@ pub fn correction_named(
             if model.kind != EffectKind::LengthStep {
                 return Ok(model);
             }
-            // The step's place: the best change point of any pass in the nominal residuals.
-            let Some(nominal_basis) = &nominal_basis else {
-                return Err(CorrectionError::Fit("no nominal fit to place a length step".into()));
-            };
+            // The step's place: the best change point of any pass in the nominal residuals
+            // (the names are distinct: one step, one nominal fit).
+            let nominal_basis =
+                Fit::new(Arc::new(Design::nominal(&data, &geom)), (0..nobs).collect());
             let r = DVector::from_fn(nobs, |i, _| nominal.residuals_m[i] * w[i]);
             let res_w = nominal_basis.project_off_vec(&r);
-            let (g, k, _, _) = best_step(&data, nominal_basis, &res_w, None)
+            let (g, k, _, _) = best_step(&data, &nominal_basis, &res_w, None)
                 .ok_or_else(|| CorrectionError::Fit("no pass to place a length step in".into()))?;
             Ok(EffectModel {
                 step: Some((g, k)),
@@ -124,7 +120,6 @@ pub fn correction_named(
             })
         })
         .collect::<Result<_, CorrectionError>>()?;
-    drop(nominal_basis);
     // A model linearised about its own parameters (the eccentricity's shared size) is
     // fitted free first, then at that estimate, then once more at the refined one.
     let mut models: Vec<EffectModel> = models;

@@ -107,6 +107,7 @@ impl Design {
     }
 
     /// The same design with `effects` (unwhitened, one row per length) as its extra columns.
+    #[cfg(test)]
     pub fn with_effects(&self, effects: DMatrix<f64>) -> Design {
         self.with_effect_blocks(vec![Columns::Dense(effects)])
     }
