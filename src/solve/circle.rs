@@ -51,6 +51,12 @@ impl CircleFit {
         (angle, var.max(0.0).sqrt())
     }
 
+    /// Covariance of points `j`'s and `k`'s angles, both measured from point `reference`.
+    pub fn angle_covariance(&self, reference: usize, j: usize, k: usize) -> f64 {
+        let c = |a: usize, b: usize| self.covariance[(6 + a, 6 + b)];
+        c(j, k) - c(j, reference) - c(reference, k) + c(reference, reference)
+    }
+
     pub fn centre_covariance(&self) -> Matrix3<f64> {
         self.covariance.fixed_view::<3, 3>(0, 0).into_owned()
     }
@@ -452,6 +458,8 @@ mod tests {
         ];
         let truth_values = quantities(&fit0);
         let mut sums = vec![0.0; predicted.len()];
+        // The two angles from point 0 share its error: their cross-covariance too.
+        let mut cross = 0.0;
         for _ in 0..trials {
             let z = DVector::<f64>::from_fn(3 * m, |_, _| StandardNormal.sample(&mut rng));
             let noise = &chol * z;
@@ -462,10 +470,21 @@ mod tests {
                 .map(|(j, p)| p + Vector3::new(noise[3 * j], noise[3 * j + 1], noise[3 * j + 2]))
                 .collect();
             let fit = fit_circle(&noisy, None, Some(Vector3::z())).expect("fit");
-            for (k, q) in quantities(&fit).iter().enumerate() {
+            let q = quantities(&fit);
+            for (k, q) in q.iter().enumerate() {
                 sums[k] += (q - truth_values[k]).powi(2);
             }
+            cross += (q[0] - truth_values[0]) * (q[1] - truth_values[1]);
         }
+        let correlation = |c: f64, v0: f64, v1: f64| c / (v0 * v1).sqrt();
+        let predicted_correlation =
+            correlation(fit0.angle_covariance(0, 3, 7), predicted[0], predicted[1]);
+        let monte_carlo_correlation = correlation(cross, sums[0], sums[1]);
+        assert!(
+            (monte_carlo_correlation - predicted_correlation).abs() < 3.0 / (trials as f64).sqrt(),
+            "angle correlation: Monte Carlo {monte_carlo_correlation}, \
+             predicted {predicted_correlation}"
+        );
         for (k, (ss, want)) in sums.iter().zip(&predicted).enumerate() {
             let ratio = ss / trials as f64 / want;
             assert!(

@@ -56,6 +56,7 @@ mod tests {
             reference_station: "c0".into(),
             note: String::new(),
             steps: vec![step("c0", 0.0), step("c1", 3e-6)],
+            error_covariance_rad2: Vec::new(),
         };
         let b = step_angle_budgets(&rotary, &UncertaintyConfig::default());
         assert_eq!(b[0].combined_standard_uncertainty, 0.0);

@@ -57,6 +57,11 @@ pub struct RotaryResult {
     pub reference_station: String,
     pub note: String,
     pub steps: Vec<StepResult>,
+    /// Covariance of the steps' `error_rad`, rad², rows and columns in the order of `steps`
+    /// (the reference station's row and column are 0): the steps share the reference station,
+    /// so their errors are correlated. Empty in results written before it was reported.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub error_covariance_rad2: Vec<Vec<f64>>,
 }
 
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq)]
@@ -178,6 +183,24 @@ fn sqrt_diag(m: &nalgebra::Matrix3<f64>) -> [f64; 3] {
     [0, 1, 2].map(|k| m[(k, k)].max(0.0).sqrt())
 }
 
+/// The covariance of the `count` stations' angles from station 0 (the reference): row and
+/// column 0 are 0.
+fn step_error_covariance(fit: &crate::solve::circle::CircleFit, count: usize) -> Vec<Vec<f64>> {
+    (0..count)
+        .map(|j| {
+            (0..count)
+                .map(|k| {
+                    if j == 0 || k == 0 {
+                        0.0
+                    } else {
+                        fit.angle_covariance(0, j, k)
+                    }
+                })
+                .collect()
+        })
+        .collect()
+}
+
 /// Solve a rotary-tracer session.
 pub fn solve(
     session: &Session,
@@ -253,6 +276,7 @@ fn table_axis(
     if mismatch(&flipped) < mismatch(&fit) {
         fit = flipped;
     }
+    let error_covariance_rad2 = step_error_covariance(&fit, on_table.len());
     let steps = on_table
         .iter()
         .enumerate()
@@ -290,6 +314,7 @@ fn table_axis(
                sigmas propagated from the stations' joint covariance"
             .into(),
         steps,
+        error_covariance_rad2,
     };
     Ok(RotaryTracerResults {
         multilateration: results,
