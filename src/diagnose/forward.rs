@@ -66,6 +66,9 @@ pub trait Client {
         full: &BaseFit<<Self::Design as LinearDesign>::Fit>,
         heldout: &HeldOut,
     ) -> Gap;
+    /// The first round's base fit over every row, when it is made (a client that reports
+    /// from the start's fit after the selection keeps what it needs of it).
+    fn first_base_fitted(&self, _full: &BaseFit<<Self::Design as LinearDesign>::Fit>) {}
     /// The notes of the first round, given the held-out rows predicted.
     fn cross_validation_notes(&self, engine: &Engine, predicted: usize) -> Vec<String>;
     /// The note of a candidate the nominal model absorbs.
@@ -152,6 +155,7 @@ pub fn select<C: Client>(
         let base_heldout_z2 = heldout.mean_z2();
         let count = heldout.count;
         if round == 0 {
+            client.first_base_fitted(&full);
             notes.extend(client.cross_validation_notes(engine, count));
         }
         if gap_before.is_none() {

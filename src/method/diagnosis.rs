@@ -160,14 +160,37 @@ impl JointFit {
 /// Relative singular value below which a direction of the design is not determined.
 const RANK_CUT: f64 = 1e-9;
 
+/// A minimum-norm least-squares solution with its rank, and what its covariance is made from.
+struct Pinv {
+    sol: DVector<f64>,
+    rank: usize,
+    covariance: CovarianceOf,
+}
+
+enum CovarianceOf {
+    Whole(DMatrix<f64>),
+    /// V S⁻¹ over the kept directions of the design with unit columns, and the columns'
+    /// norms: the covariance V S⁻² Vᵀ back in the columns' units, made only when asked for.
+    Factor(DMatrix<f64>, Vec<f64>),
+}
+
+impl Pinv {
+    fn covariance(self) -> DMatrix<f64> {
+        match self.covariance {
+            CovarianceOf::Whole(cov) => cov,
+            CovarianceOf::Factor(v_scaled, norms) => {
+                let mut cov = &v_scaled * v_scaled.transpose();
+                unscale_covariance(&mut cov, &norms);
+                cov
+            }
+        }
+    }
+}
+
 /// Minimum-norm least squares of the whitened design `x` against `b`, and the pseudo-inverse
 /// covariance (xᵀx)⁺ with the rank; block by block when the model's local `blocks` give a
 /// design of full rank.
-fn pinv_solve(
-    x: &DMatrix<f64>,
-    b: &DVector<f64>,
-    blocks: &[LocalBlock],
-) -> (DVector<f64>, DMatrix<f64>, usize) {
+fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>, blocks: &[LocalBlock]) -> Pinv {
     // Columns scaled to unit norm so that the rank cut does not depend on their units.
     let norms: Vec<f64> = (0..x.ncols())
         .map(|c| x.column(c).norm().max(f64::MIN_POSITIVE))
@@ -177,8 +200,13 @@ fn pinv_solve(
         scaled.column_mut(c).scale_mut(1.0 / n);
     }
     if let Some((mut sol, mut cov, rank)) = super::blocked_lsq::solve_blocked(&scaled, b, blocks) {
-        unscale(&mut sol, &mut cov, &norms);
-        return (sol, cov, rank);
+        unscale_solution(&mut sol, &norms);
+        unscale_covariance(&mut cov, &norms);
+        return Pinv {
+            sol,
+            rank,
+            covariance: CovarianceOf::Whole(cov),
+        };
     }
     let p = x.ncols();
     // Only Uᵀb is needed: for a tall design, from the SVD of its factor R and Qᵀb, the SVD's
@@ -193,7 +221,11 @@ fn pinv_solve(
         (scaled.svd(true, true), b.clone())
     };
     let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        return (DVector::zeros(p), DMatrix::zeros(p, p), 0);
+        return Pinv {
+            sol: DVector::zeros(p),
+            rank: 0,
+            covariance: CovarianceOf::Whole(DMatrix::zeros(p, p)),
+        };
     };
     let smax = svd.singular_values.max();
     let keep: Vec<usize> = (0..svd.singular_values.len())
@@ -209,17 +241,25 @@ fn pinv_solve(
         sol += &v * coeff;
         v_scaled.set_column(j, &(v / s));
     }
-    let mut cov = &v_scaled * v_scaled.transpose();
-    unscale(&mut sol, &mut cov, &norms);
-    (sol, cov, keep.len())
+    unscale_solution(&mut sol, &norms);
+    Pinv {
+        sol,
+        rank: keep.len(),
+        covariance: CovarianceOf::Factor(v_scaled, norms),
+    }
 }
 
-/// The solution and covariance of the design with unit columns back in the columns' units.
-fn unscale(sol: &mut DVector<f64>, cov: &mut DMatrix<f64>, norms: &[f64]) {
-    let p = sol.len();
-    for i in 0..p {
-        sol[i] /= norms[i];
-        for j in 0..p {
+/// The solution of the design with unit columns back in the columns' units.
+fn unscale_solution(sol: &mut DVector<f64>, norms: &[f64]) {
+    for (value, n) in sol.iter_mut().zip(norms) {
+        *value /= n;
+    }
+}
+
+/// Its covariance back in the columns' units.
+fn unscale_covariance(cov: &mut DMatrix<f64>, norms: &[f64]) {
+    for i in 0..norms.len() {
+        for j in 0..norms.len() {
             cov[(i, j)] /= norms[i] * norms[j];
         }
     }
@@ -259,6 +299,8 @@ pub fn joint_fit(
     let blocks = model.local_blocks();
     let mut iterations = 0;
     let mut cost = f64::INFINITY;
+    // The last factorisation, when it was made at the parameters returned.
+    let mut at_end = None;
     for _ in 0..30 {
         iterations += 1;
         let a = columns(&params);
@@ -266,13 +308,19 @@ pub fn joint_fit(
         let rw = r.component_div(&sigma);
         cost = cost.min(rw.norm_squared());
         let design = whitened(concat(&model.jacobian(&params), &a));
-        let (step, _, _) = pinv_solve(&design, &rw, &blocks);
+        let solved = pinv_solve(&design, &rw, &blocks);
+        // Converged when the step would move no modelled quantity by more than 1e-6 of its
+        // σ: it is not taken, so this factorisation gives the covariance at the end.
+        if (&design * &solved.sol).amax() < 1e-6 {
+            at_end = Some((a, r, rw, solved));
+            break;
+        }
         // Halve a step that raises the cost (a poor start far from the optimum).
         let mut scale = 1.0;
         let mut accepted = false;
         for _ in 0..8 {
-            let p_try = &params + step.rows(0, np) * scale;
-            let t_try = &theta + step.rows(np, nt) * scale;
+            let p_try = &params + solved.sol.rows(0, np) * scale;
+            let t_try = &theta + solved.sol.rows(np, nt) * scale;
             let c = residual(&p_try, &columns(&p_try), &t_try)
                 .component_div(&sigma)
                 .norm_squared();
@@ -285,17 +333,21 @@ pub fn joint_fit(
             }
             scale *= 0.5;
         }
-        // Converged when the step moves no modelled quantity by more than 1e-6 of its σ.
-        let moved = (&design * &step).amax() * scale;
-        if !accepted || moved < 1e-6 {
+        if !accepted {
+            at_end = Some((a, r, rw, solved));
             break;
         }
     }
-    let a = columns(&params);
-    let r = residual(&params, &a, &theta);
-    let rw = r.component_div(&sigma);
-    let design = whitened(concat(&model.jacobian(&params), &a));
-    let (_, covariance, rank) = pinv_solve(&design, &rw, &blocks);
+    let (a, r, rw, solved) = at_end.unwrap_or_else(|| {
+        let a = columns(&params);
+        let r = residual(&params, &a, &theta);
+        let rw = r.component_div(&sigma);
+        let design = whitened(concat(&model.jacobian(&params), &a));
+        let solved = pinv_solve(&design, &rw, &blocks);
+        (a, r, rw, solved)
+    });
+    let rank = solved.rank;
+    let covariance = solved.covariance();
     let chi2 = rw.norm_squared();
     JointFit {
         effect_contribution: &a * &theta,

@@ -68,6 +68,8 @@ struct ResidualsClient<'a> {
     sigma: &'a DVector<f64>,
     /// The model's local parameter blocks (eliminated group by group).
     blocks: &'a [LocalBlock],
+    /// The nominal model's leverages over every row, from the selection's first base fit.
+    nominal_leverages: std::sync::OnceLock<Vec<f64>>,
 }
 
 impl forward::Client for ResidualsClient<'_> {
@@ -106,6 +108,11 @@ impl forward::Client for ResidualsClient<'_> {
             heldout_floor_m: 1.0,
             heldout_ratio: heldout.mean_z2().sqrt(),
         }
+    }
+
+    fn first_base_fitted(&self, full: &BaseFit<ModelFit>) {
+        // The selection starts from the nominal model: its first base is the nominal fit.
+        let _ = self.nominal_leverages.set(full.basis.leverages());
     }
 
     fn cross_validation_notes(&self, _engine: &Engine, count: usize) -> Vec<String> {
@@ -285,13 +292,14 @@ pub fn diagnose(
         groups.len()
     )];
     let blocks = model.local_blocks();
-    let client = ResidualsClient {
+    let mut client = ResidualsClient {
         model,
         library: &library,
         x: &x,
         columns: &columns,
         sigma: &sigma,
         blocks: &blocks,
+        nominal_leverages: std::sync::OnceLock::new(),
     };
     let Selection {
         accepted,
@@ -336,9 +344,11 @@ pub fn diagnose(
             .fit((0..n).collect())
             .leverages()
     };
-    let nominal_leverage = ModelDesign::new(x.clone(), blocks.clone())
-        .fit((0..n).collect())
-        .leverages();
+    let nominal_leverage = client.nominal_leverages.take().unwrap_or_else(|| {
+        ModelDesign::new(x.clone(), blocks.clone())
+            .fit((0..n).collect())
+            .leverages()
+    });
     let explained =
         (!accepted.is_empty()).then(|| final_fit.effect_contribution.component_div(&sigma));
     let where_ = locate(

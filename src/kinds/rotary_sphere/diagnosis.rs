@@ -240,14 +240,27 @@ impl SphereResidualModel {
         }
     }
 
+    /// Every sphere's centre at `params`, each made once for all its points.
+    fn centres(&self, params: &DVector<f64>) -> Vec<Vector3<f64>> {
+        (0..self.spheres.len())
+            .map(|s| self.centre(params, s))
+            .collect()
+    }
+
     /// The outward normal at each probed point (from its sphere's centre).
-    fn normal(&self, params: &DVector<f64>, p: &Point) -> Vector3<f64> {
-        let d = Self::probed_point(p) - self.centre(params, p.sphere);
-        if d.norm() > 0.0 {
-            d.normalize()
-        } else {
-            p.direction
-        }
+    fn normals(&self, params: &DVector<f64>) -> Vec<Vector3<f64>> {
+        let centres = self.centres(params);
+        self.points
+            .iter()
+            .map(|p| {
+                let d = Self::probed_point(p) - centres[p.sphere];
+                if d.norm() > 0.0 {
+                    d.normalize()
+                } else {
+                    p.direction
+                }
+            })
+            .collect()
     }
 
     /// M (3 × directions) of the lobing's constraint Σ_k w_k d_k n_k = 0: column k is
@@ -335,19 +348,19 @@ impl ResidualModel for SphereResidualModel {
         &self.labels
     }
     fn residuals(&self, params: &DVector<f64>) -> DVector<f64> {
+        let centres = self.centres(params);
         DVector::from_iterator(
             self.points.len(),
-            self.points.iter().map(|p| {
-                self.radius_m - (Self::probed_point(p) - self.centre(params, p.sphere)).norm()
-            }),
+            self.points
+                .iter()
+                .map(|p| self.radius_m - (Self::probed_point(p) - centres[p.sphere]).norm()),
         )
     }
     fn jacobian(&self, params: &DVector<f64>) -> DMatrix<f64> {
         // The modelled reading falls as the centre moves along the outward normal (the
         // sphere meets the probe earlier).
         let mut jac = DMatrix::zeros(self.points.len(), params.len());
-        for (i, p) in self.points.iter().enumerate() {
-            let n = self.normal(params, p);
+        for (i, (p, n)) in self.points.iter().zip(self.normals(params)).enumerate() {
             match &self.axis {
                 Some(map) => {
                     let row = -(n.transpose() * map.g.rows(3 * p.sphere, 3));
@@ -474,8 +487,8 @@ impl Effect for SphereForm<'_> {
     fn columns(&self, params: &DVector<f64>) -> DMatrix<f64> {
         let m = self.0;
         let mut a = DMatrix::zeros(m.points.len(), TURNING_FORM_TERMS.len());
-        for (i, p) in m.points.iter().enumerate() {
-            let n = rz(-p.angle_rad) * m.normal(params, p);
+        for (i, (p, normal)) in m.points.iter().zip(m.normals(params)).enumerate() {
+            let n = rz(-p.angle_rad) * normal;
             for (k, y) in turning_form_harmonics(&n).iter().enumerate() {
                 a[(i, k)] = -y;
             }
@@ -500,8 +513,7 @@ impl Effect for ThermalDrift<'_> {
     fn columns(&self, params: &DVector<f64>) -> DMatrix<f64> {
         let m = self.0;
         let mut a = DMatrix::zeros(m.points.len(), 3);
-        for (i, p) in m.points.iter().enumerate() {
-            let n = m.normal(params, p);
+        for (i, (p, n)) in m.points.iter().zip(m.normals(params)).enumerate() {
             for k in 0..3 {
                 a[(i, k)] = -p.t_s * n[k];
             }
