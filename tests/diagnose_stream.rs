@@ -180,10 +180,19 @@ fn a_cut_file_is_read_whole() {
     let cut = dir.path().join("cut.mcap");
     std::fs::write(&cut, &bytes[..bytes.len() * 3 / 4]).expect("write");
     assert!(stream_settled(&cut, is_multilateration).is_none());
-    let settled = geocal::kinds::tracer_plan::diagnosis::data::settled_of_file(&cut)
-        .expect("read")
-        .expect("settled");
-    let whole = SettledSession::of_session(&read_session(&cut).expect("session")).expect("whole");
-    assert_eq!(settled, whole);
-    assert!(!settled.extraction.measurements.is_empty());
+    assert!(stream_dwells(&cut, is_multilateration, WindowSamples::ArrivalOnly).is_none());
+    for keep in [WindowSamples::Kept, WindowSamples::ArrivalOnly] {
+        let settled = geocal::kinds::tracer_plan::diagnosis::data::dwells_of_file(&cut, keep)
+            .expect("read")
+            .expect("settled");
+        let whole = SettledDwells::of_settled(
+            SettledSession::of_session(&read_session(&cut).expect("session")).expect("whole"),
+        );
+        let whole = match keep {
+            WindowSamples::Kept => whole,
+            WindowSamples::ArrivalOnly => whole.without_window_samples(),
+        };
+        assert_eq!(settled, whole);
+        assert!(!settled.lengths.measurements.is_empty());
+    }
 }

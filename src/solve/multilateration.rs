@@ -962,8 +962,21 @@ pub fn dense_point_covariance(
     if 3 * m + s + 3 * n > MAX_DENSE_COVARIANCE_UNKNOWNS {
         return None;
     }
+    let q = by_elimination(problem, solution).or_else(|| by_eigen(problem, solution))?;
+    inner_constraint(problem, solution, &q)
+}
+
+/// The S-transform of a generalised inverse `q` of the normal matrix onto the inner
+/// constraint of the points (T q Tᵀ with T = I − g (eᵀg)⁻¹ eᵀ on the points' rows, g the
+/// rigid motions at the solution and e at the nominal points; e has no stations' rows, so the
+/// stations' part of `q` drops out). None when eᵀg is singular.
+fn inner_constraint(
+    problem: &MultilaterationProblem,
+    solution: &MultilaterationSolution,
+    q: &DMatrix<f64>,
+) -> Option<DMatrix<f64>> {
+    let n = solution.points.len();
     let centre = problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
-    // The rigid motions at the solution (g) and at the nominal points (e), points' rows.
     let mut g = DMatrix::<f64>::zeros(3 * n, 6);
     let mut e = DMatrix::<f64>::zeros(3 * n, 6);
     for i in 0..n {
@@ -972,12 +985,8 @@ pub fn dense_point_covariance(
         e.view_mut((3 * i, 0), (3, 6))
             .copy_from(&generator(&problem.nominal_points[i], &centre));
     }
-    let etg_inv = (e.transpose() * &g).try_inverse()?;
-    let q = by_elimination(problem, solution).or_else(|| by_eigen(problem, solution))?;
-    // S-transform: T Q Tᵀ with T = I − g (eᵀg)⁻¹ eᵀ on the points' rows (e has no stations'
-    // rows, so the stations' part of a generalised inverse drops out).
-    let k = &g * etg_inv;
-    let tq = &q - &k * (e.transpose() * &q);
+    let k = &g * (e.transpose() * &g).try_inverse()?;
+    let tq = q - &k * (e.transpose() * q);
     Some(&tq - (&tq * &e) * k.transpose())
 }
 
@@ -1757,21 +1766,7 @@ pub(crate) mod tests {
     fn dense_point_covariance_by_elimination_equals_the_pseudo_inverse() {
         let syn = synthetic(37, [4, 3, 3], &stations5(), &[2, 3], 30e-9, true);
         let sol = solve(&syn.problem, &SolveOptions::default()).expect("solve");
-        let n = sol.points.len();
-        let centre = syn.problem.nominal_points.iter().sum::<Vector3<f64>>() / n as f64;
-        let mut g = DMatrix::<f64>::zeros(3 * n, 6);
-        let mut e = DMatrix::<f64>::zeros(3 * n, 6);
-        for i in 0..n {
-            g.view_mut((3 * i, 0), (3, 6))
-                .copy_from(&generator(&sol.points[i], &centre));
-            e.view_mut((3 * i, 0), (3, 6))
-                .copy_from(&generator(&syn.problem.nominal_points[i], &centre));
-        }
-        let k = &g * (e.transpose() * &g).try_inverse().expect("eᵀg");
-        let inner = |q: DMatrix<f64>| {
-            let tq = &q - &k * (e.transpose() * &q);
-            &tq - (&tq * &e) * k.transpose()
-        };
+        let inner = |q: DMatrix<f64>| inner_constraint(&syn.problem, &sol, &q).expect("eᵀg");
         let eliminated = by_elimination(&syn.problem, &sol).expect("a solvable problem");
         let whole = by_eigen(&syn.problem, &sol).expect("pseudo-inverse");
         // The generalised inverses differ (gauge) before the transform, not after it.

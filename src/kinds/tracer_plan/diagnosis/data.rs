@@ -151,20 +151,11 @@ pub fn check_kind(kind: &str) -> Result<(), DataError> {
     Err(DataError::Kind(kind.to_string(), supported))
 }
 
-/// A session file's settled windows for the corrected calibration: streamed when the file is
-/// clean (its tracer stream never held whole), else from the whole read (damaged, cut short,
-/// repaired, of another kind). The outer error: the file could not be read.
-pub fn settled_of_file(path: &Path) -> Result<Result<SettledSession, DataError>, ReadError> {
-    if let Some(settled) = crate::extract::stream_settled(path, diagnosable) {
-        return Ok(Ok(settled));
-    }
-    let session = read_session(path)?;
-    Ok(check_kind(&session.header.kind).and_then(|()| Ok(SettledSession::of_session(&session)?)))
-}
-
 /// A session file's settled windows in the compact form the diagnosis holds (`SettledDwells`:
-/// the solve's lengths, no per-window names or maps), read as `settled_of_file` reads.
-/// The windows' raw samples as `keep` says.
+/// the solve's lengths, no per-window names or maps), the windows' raw samples as `keep`
+/// says: streamed when the file is clean (its tracer stream never held whole), else from the
+/// whole read (damaged, cut short, repaired, of another kind). The outer error: the file
+/// could not be read.
 pub fn dwells_of_file(
     path: &Path,
     keep: WindowSamples,

@@ -35,7 +35,12 @@ impl Geometry {
 
     /// [`Geometry::beam`] of one observation.
     pub fn beam_of(&self, o: &Obs) -> (Vector3<f64>, f64) {
-        let v = self.stations[o.station] - self.points[o.point];
+        self.beam_between(o.station, o.point)
+    }
+
+    /// The unit vector from `point` to `station` and their distance.
+    pub fn beam_between(&self, station: usize, point: usize) -> (Vector3<f64>, f64) {
+        let v = self.stations[station] - self.points[point];
         let d = v.norm();
         (v / d, d)
     }

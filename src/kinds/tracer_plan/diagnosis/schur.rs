@@ -67,7 +67,6 @@ pub struct Design {
     /// Unwhitened effect columns (metres per unit parameter, one row per length): blocks side
     /// by side, each dense or by rows (an effect per station touches a few columns of a row).
     effects: Vec<Columns>,
-    effect_columns: usize,
 }
 
 impl Design {
@@ -85,13 +84,11 @@ impl Design {
             .enumerate()
             .map(|(i, o)| {
                 let point = point_of(i);
-                let v = geom.stations[o.station] - geom.points[point];
-                let d = v.norm();
                 Row {
                     point,
                     station: o.station,
                     segment: o.segment,
-                    u: v / d,
+                    u: geom.beam_between(o.station, point).0,
                     w: 1.0 / o.sigma_m,
                 }
             })
@@ -102,7 +99,6 @@ impl Design {
             n_segments: geom.distances_m.len(),
             rows,
             effects: Vec::new(),
-            effect_columns: 0,
         }
     }
 
@@ -115,7 +111,6 @@ impl Design {
     /// The same design with the `blocks` of effect columns side by side as its extra columns.
     pub fn with_effect_blocks(&self, blocks: Vec<Columns>) -> Design {
         Design {
-            effect_columns: blocks.iter().map(Columns::ncols).sum(),
             effects: blocks,
             n_points: self.n_points,
             n_stations: self.n_stations,
@@ -143,11 +138,11 @@ impl Design {
 
     /// Columns after the points': stations, segments, effects.
     pub fn n_global(&self) -> usize {
-        3 * self.n_stations + self.n_segments + self.effect_columns
+        3 * self.n_stations + self.n_segments + self.effect_columns()
     }
 
     pub fn effect_columns(&self) -> usize {
-        self.effect_columns
+        self.effects.iter().map(Columns::ncols).sum()
     }
 
     /// Row i's effect columns, unwhitened, into `out` (one entry per effect column).
@@ -210,7 +205,7 @@ impl Design {
         let w = self.rows[i].w;
         // Every effect column, zero or not: each row has the same number of entries.
         let start = out.len();
-        out.extend((0..self.effect_columns).map(|c| (first + c, 0.0)));
+        out.extend((0..self.effect_columns()).map(|c| (first + c, 0.0)));
         let row = &mut out[start..];
         self.for_effect_entry(i, |c, v| row[c].1 = v * w);
     }
@@ -998,7 +993,7 @@ struct RowEntries {
 
 impl RowEntries {
     fn of(design: &Design, rows: &[usize]) -> RowEntries {
-        let width = 4 + design.effect_columns;
+        let width = 4 + design.effect_columns();
         let mut out = RowEntries {
             a: rows.iter().map(|&i| design.a(i)).collect(),
             width,
@@ -1139,7 +1134,6 @@ mod tests {
             n_segments: stations.len(),
             rows,
             effects: Vec::new(),
-            effect_columns: 0,
         }
         .with_effects(effects)
     }
@@ -1229,7 +1223,6 @@ mod tests {
         ];
         let held = Design {
             effects: Vec::new(),
-            effect_columns: 0,
             ..dense.clone()
         };
         let by_rows = held.with_effect_blocks(blocks.clone());
