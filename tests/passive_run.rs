@@ -70,7 +70,7 @@ fn a_passive_run_recovers_the_truth_and_reports_every_unplanned_stop() {
                 pass,
                 point,
                 ..
-            } => Some((station, pass, point)),
+            } => Some((station.to_string(), pass, point)),
             _ => None,
         })
         .collect();

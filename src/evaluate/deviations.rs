@@ -11,6 +11,7 @@ use super::iso230_2::{evaluate, AxisType, Curves, CurvesError, Evaluation};
 use crate::extract::{extract_points, ExtractOptions, Extraction, NoiseModel, PointMeasurement};
 use crate::method::multilateration::MultilaterationResults;
 use crate::method::Results;
+use crate::session::messages::AxisMap;
 use crate::session::reader::Session;
 use crate::solve::multilateration::PathSigma;
 
@@ -285,7 +286,7 @@ type Segment = (String, String, u32);
 type StationPass = (String, String, u32, usize);
 
 /// The approach of each axis at a point: the sign of its last move.
-type Approach = BTreeMap<String, i8>;
+type Approach = AxisMap<i8>;
 
 /// The station passes whose homing (the dwell at point 0, where the counter is zeroed) was
 /// approached otherwise than the segment's usual homing (of the same station, target and beam
@@ -854,8 +855,8 @@ mod tests {
             pass,
             target: "t0".into(),
             nominal_m: [0.0; 3],
-            axes: BTreeMap::new(),
-            approach: AXES.iter().map(|a| (a.to_string(), approach)).collect(),
+            axes: AxisMap::new(),
+            approach: AXES.iter().map(|a| (*a, approach)).collect(),
             beam_segment: 0,
             length_m: 0.0,
             sigma_m: 1e-7,

@@ -6,19 +6,19 @@ use std::collections::BTreeMap;
 
 use super::points::{DroppedWindow, ExtractOptions, NoiseModel, StationSeen, DAMAGED_CHUNK};
 use super::stillstand::{Stillstand, StillstandDetector};
-use crate::session::messages::{RunEvent, TracerSample};
+use crate::session::messages::{AxisMap, Name, RunEvent, TracerSample};
 use crate::session::reader::Stamped;
 
 /// A `point_begin` whose `point_end` has not come yet.
 pub(crate) struct OpenWindow {
     pub(crate) log_time_ns: u64,
-    pub(crate) station: String,
+    pub(crate) station: Name,
     pub(crate) point: usize,
     pub(crate) pass: usize,
-    pub(crate) target: String,
+    pub(crate) target: Name,
     pub(crate) nominal_m: [f64; 3],
-    pub(crate) axes: BTreeMap<String, f64>,
-    pub(crate) approach: BTreeMap<String, i8>,
+    pub(crate) axes: AxisMap<f64>,
+    pub(crate) approach: AxisMap<i8>,
 }
 
 /// A closed window whose samples settled.
@@ -103,6 +103,9 @@ impl<M> Pairing<M> {
     }
 
     fn index_of(&mut self, id: &str, hint: Option<[f64; 3]>) -> usize {
+        if let Some(&index) = self.station_index.get(id) {
+            return index;
+        }
         let next = self.station_index.len();
         let stations = &mut self.stations;
         *self.station_index.entry(id.to_string()).or_insert_with(|| {
@@ -168,7 +171,7 @@ impl<M> Pairing<M> {
                     // Its point_begin was in a damaged chunk.
                     if lost(since_ns, event.log_time_ns) {
                         self.dropped.push(DroppedWindow {
-                            station: station.clone(),
+                            station: station.to_string(),
                             point: *point,
                             pass: *pass,
                             reason: DAMAGED_CHUNK.into(),
@@ -280,7 +283,7 @@ impl<M> Pairing<M> {
 
 fn dropped(w: &OpenWindow, reason: &str) -> DroppedWindow {
     DroppedWindow {
-        station: w.station.clone(),
+        station: w.station.to_string(),
         point: w.point,
         pass: w.pass,
         reason: reason.to_string(),

@@ -1,13 +1,11 @@
 //! Point extraction: pairs `point_begin`/`point_end` events, takes the tracer samples inside
 //! each window, finds their settled stretch and reduces it to one length with its sigma.
 
-use std::collections::BTreeMap;
-
 use serde::Serialize;
 
 use super::pairing::{Measured, Pairing};
 pub use crate::config::noise::NoiseModel;
-use crate::session::messages::{SessionHeader, TracerSample};
+use crate::session::messages::{AxisMap, SessionHeader, TracerSample};
 use crate::session::reader::{Session, Stamped};
 pub use crate::solve::multilateration::PathSigma;
 
@@ -49,8 +47,8 @@ pub struct PointMeasurement {
     pub pass: usize,
     pub target: String,
     pub nominal_m: [f64; 3],
-    pub axes: BTreeMap<String, f64>,
-    pub approach: BTreeMap<String, i8>,
+    pub axes: AxisMap<f64>,
+    pub approach: AxisMap<i8>,
     pub beam_segment: u32,
     pub length_m: f64,
     /// σ of the mean length. With a declared noise model this is its value for a beam of
@@ -132,11 +130,11 @@ pub fn extract_points(
 pub(super) fn point_measurement(m: Measured, noise: Option<NoiseModel>) -> PointMeasurement {
     let (w, settled) = (m.window, m.settled);
     PointMeasurement {
-        station: w.station,
+        station: w.station.to_string(),
         station_index: m.station_index,
         point: w.point,
         pass: w.pass,
-        target: w.target,
+        target: w.target.to_string(),
         nominal_m: w.nominal_m,
         axes: w.axes,
         approach: w.approach,

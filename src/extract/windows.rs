@@ -11,7 +11,7 @@ use super::lengths::{length_measurement, LengthMeasurement, Lengths, TargetNames
 use super::pairing::{Measured, StreamStart};
 use super::points::{point_measurement, ExtractError, PointMeasurement, StationSeen};
 use super::{extract_points, ExtractOptions, Extraction, NoiseModel};
-use crate::session::messages::{EnvSample, RunEvent, SessionHeader, TracerSample};
+use crate::session::messages::{AxisMap, EnvSample, RunEvent, SessionHeader, TracerSample};
 use crate::session::reader::{DamagedChunk, Session, SessionSink, Stamped, Streamed};
 
 /// The raw samples of one settled dwell window (what its mean length averages).
@@ -88,7 +88,7 @@ pub struct DwellMeasurement {
 }
 
 /// Per axis x, y, z: its entry of a `point_begin`'s map, 0 for an axis not named.
-fn xyz<T: Copy + Default>(map: &BTreeMap<String, T>) -> [T; 3] {
+fn xyz<T: Copy + Default>(map: &AxisMap<T>) -> [T; 3] {
     XYZ.map(|a| map.get(a).copied().unwrap_or_default())
 }
 
@@ -214,7 +214,7 @@ struct Rotations {
 impl Rotations {
     fn event(&mut self, event: &RunEvent) {
         match event {
-            RunEvent::StationBegin { station, .. } => self.current = Some(station.clone()),
+            RunEvent::StationBegin { station, .. } => self.current = Some(station.to_string()),
             RunEvent::StationEnd { .. } => self.current = None,
             RunEvent::Rotation { commanded_rad, .. } => {
                 if let Some(station) = &self.current {

@@ -110,10 +110,10 @@ fn windows_with(
                 }
                 let (samples, first_seq, last_seq) = inside(begin, k);
                 out.push(Window {
-                    station: station.clone(),
+                    station: station.to_string(),
                     point: *point,
                     pass: *pass,
-                    target: target.clone(),
+                    target: target.to_string(),
                     samples,
                     first_seq,
                     last_seq,

@@ -15,7 +15,7 @@ use geocal_drivers::{AxisPositions, DeviceError, LinkFault};
 use crate::extract::{Stillstand, StillstandDetector};
 use crate::plan::Plan;
 use crate::session::messages::{
-    EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
+    AxisMap, EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
 };
 use crate::session::reader::{Completeness, Session, Stamped};
 
@@ -581,7 +581,7 @@ fn replayed_error(device: &str, code: &str, message: &str) -> Option<DeviceError
 /// Commanded and recorded axis positions agree (1 nm: the plan is rebuilt from its JSON).
 const AXIS_MATCH_M: f64 = 1e-9;
 
-fn axes_match(a: &AxisPositions, b: &std::collections::BTreeMap<String, f64>) -> bool {
+fn axes_match(a: &AxisPositions, b: &AxisMap<f64>) -> bool {
     a.len() == b.len()
         && a.iter()
             .all(|(k, v)| b.get(k).is_some_and(|w| (v - w).abs() <= AXIS_MATCH_M))
@@ -594,8 +594,10 @@ fn same_axes(a: &AxisPositions, h: &[f64; 3]) -> bool {
         .all(|(name, v)| a.get(*name).is_some_and(|w| (v - w).abs() <= AXIS_MATCH_M))
 }
 
-pub fn show_axes(a: &std::collections::BTreeMap<String, f64>) -> String {
-    let parts: Vec<String> = a.iter().map(|(k, v)| format!("{k}={v} m")).collect();
+pub fn show_axes<'a, K: std::fmt::Display + 'a>(
+    a: impl IntoIterator<Item = (&'a K, &'a f64)>,
+) -> String {
+    let parts: Vec<String> = a.into_iter().map(|(k, v)| format!("{k}={v} m")).collect();
     format!("({})", parts.join(", "))
 }
 
@@ -669,8 +671,11 @@ mod tests {
                     pass: 0,
                     target: "t0".into(),
                     nominal_m: [0.0; 3],
-                    axes: axes(plan().points[point].axes_m),
-                    approach: BTreeMap::new(),
+                    axes: axes(plan().points[point].axes_m)
+                        .iter()
+                        .map(|(name, value)| (name.as_str(), *value))
+                        .collect(),
+                    approach: AxisMap::new(),
                 },
             )
         };

@@ -14,7 +14,6 @@ pub mod control;
 pub(crate) mod kind_faults;
 pub mod passive;
 
-use std::collections::BTreeMap;
 use std::sync::Arc;
 
 use tokio_util::sync::CancellationToken;
@@ -28,7 +27,7 @@ use crate::clock::Clock;
 use crate::extract::{Stillstand, StillstandDetector};
 use crate::plan::{Plan, PlanRotation, PlanTarget, AXES};
 use crate::session::messages::{
-    EnvSample, MachineStateSample, RotaryStateSample, RunEvent, TracerSample,
+    AxisMap, EnvSample, MachineStateSample, Name, RotaryStateSample, RunEvent, TracerSample,
 };
 use crate::session::recorder::RecorderHandle;
 
@@ -91,7 +90,7 @@ pub struct ResumeAt {
     pub segment_offset: u32,
     /// Where the machine was last commanded, and the approach signs then.
     pub commanded: Option<[f64; 3]>,
-    pub approach: BTreeMap<String, i8>,
+    pub approach: AxisMap<i8>,
 }
 
 /// Called after each finished point with (done, total).
@@ -139,7 +138,7 @@ pub struct Sequencer<'a> {
     devices: Devices,
     recorder: RecorderHandle,
     clock: Arc<dyn Clock>,
-    approach: BTreeMap<String, i8>,
+    approach: AxisMap<i8>,
     /// Where the machine was last sent (for the approach directions).
     commanded: Option<[f64; 3]>,
     /// Where the machine reported arrival; None while moving or unknown.
@@ -175,7 +174,7 @@ impl<'a> Sequencer<'a> {
             devices,
             recorder,
             clock,
-            approach: AXES.iter().map(|a| (a.to_string(), 0)).collect(),
+            approach: AXES.iter().map(|a| (*a, 0)).collect(),
             commanded: None,
             position: None,
             last_sample: None,
@@ -210,7 +209,7 @@ impl<'a> Sequencer<'a> {
         self.segment_offset = at.segment_offset;
         self.commanded = at.commanded;
         for (axis, sign) in &at.approach {
-            self.approach.insert(axis.clone(), *sign);
+            self.approach.insert(axis.as_str(), *sign);
         }
         self.resume = Some(at);
         self
@@ -261,7 +260,7 @@ impl<'a> Sequencer<'a> {
             self.station = station.id.clone();
             if !resumed.is_some_and(|r| r.station_begun) {
                 self.event(RunEvent::StationBegin {
-                    station: station.id.clone(),
+                    station: station.id.as_str().into(),
                     station_index,
                     hint_m: station.hint_m,
                 });
@@ -326,7 +325,7 @@ impl<'a> Sequencer<'a> {
                 }
             }
             self.event(RunEvent::StationEnd {
-                station: station.id.clone(),
+                station: station.id.as_str().into(),
             });
         }
         self.poll_environment().await?;
@@ -540,7 +539,7 @@ impl<'a> Sequencer<'a> {
         // first sample of the new segment (a driver may still hold samples from before).
         if before.is_some_and(|b| b.beam_segment != reading.beam_segment) {
             self.event(RunEvent::Rehome {
-                station: self.station.clone(),
+                station: self.station.as_str().into(),
                 beam_segment: reading.beam_segment + self.segment_offset,
             });
         }
@@ -649,7 +648,7 @@ impl<'a> Sequencer<'a> {
         }
         let segment = self.last_sample.map_or(0, |s| s.beam_segment) + self.segment_offset;
         self.event(RunEvent::Rehome {
-            station: station.to_string(),
+            station: Name::from(station),
             beam_segment: segment,
         });
         Ok(())
@@ -760,7 +759,7 @@ impl<'a> Sequencer<'a> {
             for (k, axis) in AXES.iter().enumerate() {
                 let delta = target[k] - from[k];
                 if delta != 0.0 {
-                    self.approach.insert(axis.to_string(), delta.signum() as i8);
+                    self.approach.insert(*axis, delta.signum() as i8);
                 }
             }
         }
@@ -776,14 +775,14 @@ impl<'a> Sequencer<'a> {
         pass: usize,
     ) -> RunEvent {
         RunEvent::PointBegin {
-            station: station.to_string(),
+            station: Name::from(station),
             point,
             pass,
-            target: target.id.clone(),
+            target: target.id.as_str().into(),
             nominal_m: self.plan.nominal_m(point, target),
             axes: AXES
                 .iter()
-                .map(|a| a.to_string())
+                .copied()
                 .zip(self.plan.points[point].axes_m)
                 .collect(),
             approach: self.approach.clone(),
@@ -921,14 +920,14 @@ impl<'a> Sequencer<'a> {
             return Ok(Step::BeamBroken);
         }
         self.event(RunEvent::PointEnd {
-            station: station.to_string(),
+            station: Name::from(station),
             point,
             pass,
         });
         let joints = self.devices.machine.controller_trims();
         if !joints.is_empty() {
             self.event(RunEvent::ControllerTrims {
-                station: station.to_string(),
+                station: Name::from(station),
                 point,
                 pass,
                 joints,

@@ -266,7 +266,7 @@ impl Sequencer<'_> {
         for (station_index, station) in plan.stations.iter().enumerate() {
             self.station = station.id.clone();
             self.event(RunEvent::StationBegin {
-                station: station.id.clone(),
+                station: station.id.as_str().into(),
                 station_index,
                 hint_m: station.hint_m,
             });
@@ -317,7 +317,7 @@ impl Sequencer<'_> {
                         Action::End { index } => {
                             if let Some(e) = matcher.expected(index).cloned() {
                                 self.event(RunEvent::PointEnd {
-                                    station: station.id.clone(),
+                                    station: station.id.as_str().into(),
                                     point: e.point,
                                     pass: e.pass,
                                 });
@@ -331,8 +331,8 @@ impl Sequencer<'_> {
                         Action::Unplanned { index, message } => {
                             let e = matcher.expected(index).cloned();
                             self.event(RunEvent::UnplannedStop {
-                                station: station.id.clone(),
-                                target: target.id.clone(),
+                                station: station.id.as_str().into(),
+                                target: target.id.as_str().into(),
                                 pass: e.as_ref().map_or(0, |e| e.pass),
                                 point: e.as_ref().map_or(0, |e| e.point),
                                 message,
@@ -342,7 +342,7 @@ impl Sequencer<'_> {
                 }
             }
             self.event(RunEvent::StationEnd {
-                station: station.id.clone(),
+                station: station.id.as_str().into(),
             });
         }
         self.poll_environment().await?;

@@ -5,6 +5,8 @@ use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
+pub use super::axis_map::{AxisMap, Name};
+
 pub const SESSION_FORMAT: &str = "geocal-session/1";
 
 pub const TOPIC_SESSION: &str = "/geocal/session";
@@ -166,33 +168,33 @@ pub struct ProbeSample {
 #[serde(tag = "kind", rename_all = "snake_case", try_from = "WireEvent")]
 pub enum RunEvent {
     StationBegin {
-        station: String,
+        station: Name,
         station_index: usize,
         #[serde(default)]
         hint_m: Option<[f64; 3]>,
     },
     PointBegin {
-        station: String,
+        station: Name,
         point: usize,
         pass: usize,
         #[serde(default)]
-        target: String,
+        target: Name,
         nominal_m: [f64; 3],
         #[serde(default)]
-        axes: BTreeMap<String, f64>,
+        axes: AxisMap<f64>,
         #[serde(default)]
-        approach: BTreeMap<String, i8>,
+        approach: AxisMap<i8>,
     },
     PointEnd {
-        station: String,
+        station: Name,
         point: usize,
         pass: usize,
     },
     StationEnd {
-        station: String,
+        station: Name,
     },
     Rehome {
-        station: String,
+        station: Name,
         beam_segment: u32,
     },
     Rotation {
@@ -241,9 +243,9 @@ pub enum RunEvent {
         resume_index: u32,
         messages_kept: u64,
         #[serde(default, skip_serializing_if = "Option::is_none")]
-        station: Option<String>,
+        station: Option<Name>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
-        target: Option<String>,
+        target: Option<Name>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
         pass: Option<usize>,
         #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -265,8 +267,8 @@ pub enum RunEvent {
     /// dwell was complete (src/sequencer/passive.rs). `point`/`pass` name the stop that was
     /// expected; a window open at this event is not used.
     UnplannedStop {
-        station: String,
-        target: String,
+        station: Name,
+        target: Name,
         pass: usize,
         point: usize,
         message: String,
@@ -285,7 +287,7 @@ pub enum RunEvent {
     ProbeBegin {
         posture: usize,
         point: usize,
-        axes: BTreeMap<String, f64>,
+        axes: AxisMap<f64>,
     },
     ProbeEnd {
         posture: usize,
@@ -296,7 +298,7 @@ pub enum RunEvent {
     /// pose until `pose_end` belong to it.
     PoseBegin {
         pose: usize,
-        axes: BTreeMap<String, f64>,
+        axes: AxisMap<f64>,
     },
     PoseEnd {
         pose: usize,
@@ -304,7 +306,7 @@ pub enum RunEvent {
     /// The controller's compensation trims at the end of a point's dwell (a real controller
     /// that exposes them: LinuxCNC in a real-controller HIL run), after its `point_end`.
     ControllerTrims {
-        station: String,
+        station: Name,
         point: usize,
         pass: usize,
         joints: Vec<geocal_drivers::ControllerTrim>,
@@ -323,16 +325,16 @@ pub enum RunEvent {
 /// cost about a third of the time to read a large session.
 #[derive(Deserialize)]
 struct WireEvent {
-    kind: String,
-    station: Option<String>,
+    kind: Name,
+    station: Option<Name>,
     station_index: Option<usize>,
     hint_m: Option<[f64; 3]>,
     point: Option<usize>,
     pass: Option<usize>,
-    target: Option<String>,
+    target: Option<Name>,
     nominal_m: Option<[f64; 3]>,
-    axes: Option<BTreeMap<String, f64>>,
-    approach: Option<BTreeMap<String, i8>>,
+    axes: Option<AxisMap<f64>>,
+    approach: Option<AxisMap<i8>>,
     beam_segment: Option<u32>,
     table: Option<String>,
     commanded_rad: Option<f64>,
@@ -503,8 +505,8 @@ mod tests {
                 pass: 1,
                 target: "t0".into(),
                 nominal_m: [0.1, 0.2, 0.3],
-                axes: BTreeMap::from([("x".into(), 0.1)]),
-                approach: BTreeMap::from([("x".into(), -1)]),
+                axes: AxisMap::from([("x", 0.1)]),
+                approach: AxisMap::from([("x", -1)]),
             },
             RunEvent::PointEnd {
                 station: "s1".into(),
@@ -611,7 +613,7 @@ mod tests {
             RunEvent::ProbeBegin {
                 posture: 1,
                 point: 4,
-                axes: BTreeMap::from([("a".into(), 1.5)]),
+                axes: AxisMap::from([("a", 1.5)]),
             },
             RunEvent::ProbeEnd {
                 posture: 1,
@@ -619,7 +621,7 @@ mod tests {
             },
             RunEvent::PoseBegin {
                 pose: 2,
-                axes: BTreeMap::from([("rz".into(), 0.1)]),
+                axes: AxisMap::from([("rz", 0.1)]),
             },
             RunEvent::PoseEnd { pose: 2 },
         ];

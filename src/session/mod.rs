@@ -1,6 +1,7 @@
 //! The recorded session: message types (the geocal-session/1 contract), the MCAP recorder
 //! and the one session reader that solve, replay, diagnose and report share.
 
+pub mod axis_map;
 pub mod damage;
 pub mod file_stream;
 pub mod kind_messages;

@@ -7,7 +7,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 
 use geocal::session::messages::{
-    DeviceInfo, MachineInfo, RunEvent, SessionHeader, TargetInfo, TracerSample, SESSION_FORMAT,
+    AxisMap, DeviceInfo, MachineInfo, RunEvent, SessionHeader, TargetInfo, TracerSample,
+    SESSION_FORMAT,
 };
 use geocal::session::recorder::{Recorder, RecorderOptions};
 use nalgebra::Vector3;
@@ -128,20 +129,14 @@ pub fn generate(path: &Path, grid: [usize; 3], seed: u64) -> usize {
         h.tracer(TRACER, &s, log_ns(t_s));
         seq += 1;
     };
-    let axes = |p: &[f64; 3]| -> BTreeMap<String, f64> {
-        ["x", "y", "z"]
-            .iter()
-            .zip(p)
-            .map(|(a, v)| (a.to_string(), *v))
-            .collect()
-    };
+    let axes = |p: &[f64; 3]| -> AxisMap<f64> { ["x", "y", "z"].into_iter().zip(*p).collect() };
     for (j, station) in stations.iter().enumerate() {
         let id = format!("s{}", j + 1);
         let hint = station + Vector3::from_fn(|_, _| rng.random_range(-0.03..0.03));
         t_s += 180.0;
         h.event(
             &RunEvent::StationBegin {
-                station: id.clone(),
+                station: id.as_str().into(),
                 station_index: j,
                 hint_m: Some([hint.x, hint.y, hint.z]),
             },
@@ -149,8 +144,7 @@ pub fn generate(path: &Path, grid: [usize; 3], seed: u64) -> usize {
         );
         let home = (station - truth[0]).norm();
         let length = |x: &Vector3<f64>| (station - x).norm() - home;
-        let mut approach: BTreeMap<String, i8> =
-            ["x", "y", "z"].iter().map(|a| (a.to_string(), 0)).collect();
+        let mut approach: AxisMap<i8> = ["x", "y", "z"].into_iter().map(|a| (a, 0)).collect();
         for (i, nom) in nominal.iter().enumerate() {
             if i > 0 {
                 let from = truth[i - 1];
@@ -163,14 +157,14 @@ pub fn generate(path: &Path, grid: [usize; 3], seed: u64) -> usize {
                 for (a, axis) in ["x", "y", "z"].iter().enumerate() {
                     let d = nom[a] - nominal[i - 1][a];
                     if d != 0.0 {
-                        approach.insert(axis.to_string(), d.signum() as i8);
+                        approach.insert(*axis, d.signum() as i8);
                     }
                 }
             }
             t_s += DT_S;
             h.event(
                 &RunEvent::PointBegin {
-                    station: id.clone(),
+                    station: id.as_str().into(),
                     point: i,
                     pass: 0,
                     target: "t0".into(),
@@ -190,7 +184,7 @@ pub fn generate(path: &Path, grid: [usize; 3], seed: u64) -> usize {
             }
             h.event(
                 &RunEvent::PointEnd {
-                    station: id.clone(),
+                    station: id.as_str().into(),
                     point: i,
                     pass: 0,
                 },
@@ -198,7 +192,7 @@ pub fn generate(path: &Path, grid: [usize; 3], seed: u64) -> usize {
             );
         }
         h.event(
-            &RunEvent::StationEnd { station: id },
+            &RunEvent::StationEnd { station: id.into() },
             log_ns(t_s) + 2_000_000,
         );
     }

@@ -139,7 +139,7 @@ fn commanded_poses(session: &Session) -> Vec<PlatformPose> {
         .iter()
         .filter_map(|e| match &e.msg {
             RunEvent::PoseBegin { axes, .. } => {
-                let v: Option<Vec<f64>> = POSE_AXES.iter().map(|a| axes.get(*a).copied()).collect();
+                let v: Option<Vec<f64>> = POSE_AXES.iter().map(|a| axes.get(a).copied()).collect();
                 let v = v?;
                 Some(PlatformPose {
                     translation_m: [v[0], v[1], v[2]],

@@ -144,7 +144,7 @@ fn first_unfinished_posture(plan: &ProbeInstallPlan, session: &Session) -> usize
 fn last_commanded(session: &Session) -> Option<[f64; 5]> {
     session.events.iter().rev().find_map(|e| match &e.msg {
         RunEvent::ProbeBegin { axes, .. } => {
-            let v: Option<Vec<f64>> = CMM_AXES.iter().map(|a| axes.get(*a).copied()).collect();
+            let v: Option<Vec<f64>> = CMM_AXES.iter().map(|a| axes.get(a).copied()).collect();
             v.and_then(|v| <[f64; 5]>::try_from(v).ok())
         }
         _ => None,

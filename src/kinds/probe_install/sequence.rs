@@ -93,7 +93,10 @@ impl<'a> ProbeInstallSequencer<'a> {
             self.log.event(RunEvent::ProbeBegin {
                 posture: p.posture,
                 point: p.point,
-                axes: commanded,
+                axes: commanded
+                    .iter()
+                    .map(|(name, value)| (name.as_str(), *value))
+                    .collect(),
             });
             for _ in 0..plan.readings_per_point {
                 self.read_probe().await?;

@@ -104,7 +104,7 @@ fn table_stations(session: &Session) -> Result<(String, Vec<TableStation>), Rota
                 if let Some(last) = out.last_mut() {
                     last.until_ns = last.until_ns.min(stamped.log_time_ns);
                 }
-                current = Some(station.clone());
+                current = Some(station.to_string());
             }
             RunEvent::StationEnd { .. } => {
                 if let Some(last) = out.last_mut() {

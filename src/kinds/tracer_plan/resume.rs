@@ -116,7 +116,7 @@ impl Interrupted {
             .max()
             .unwrap_or(0);
         if let Some((axes, approach)) = last_begin {
-            let commanded: Option<Vec<f64>> = AXES.iter().map(|a| axes.get(*a).copied()).collect();
+            let commanded: Option<Vec<f64>> = AXES.iter().map(|a| axes.get(a).copied()).collect();
             at.commanded = commanded.and_then(|c| <[f64; 3]>::try_from(c).ok());
             at.approach = approach.clone();
         }
@@ -180,8 +180,8 @@ impl Continuation {
         let event = RunEvent::Resume {
             resume_index: self.interruption.resume_index,
             messages_kept: self.interruption.messages_kept(),
-            station: at.as_ref().map(|w| w.0.clone()),
-            target: at.as_ref().map(|w| w.1.clone()),
+            station: at.as_ref().map(|w| w.0.as_str().into()),
+            target: at.as_ref().map(|w| w.1.as_str().into()),
             pass: at.as_ref().map(|w| w.2),
             point: at.as_ref().map(|w| w.3),
             height_index: None,

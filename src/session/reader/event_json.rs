@@ -4,10 +4,8 @@
 //! and goes through serde_json (`WireEvent`), so the result is always the one serde_json
 //! gives; only the common case is faster (no struct of thirty optional fields per event).
 
-use std::collections::BTreeMap;
-
 use super::tracer_json::Cursor;
-use crate::session::messages::RunEvent;
+use crate::session::messages::{AxisMap, Name, RunEvent};
 
 /// The event, when `data` is exactly
 /// `{"kind":"point_begin","station":S,"point":U,"pass":U,"target":S,"nominal_m":[F,F,F],
@@ -62,7 +60,7 @@ pub(super) fn parse_compact(data: &[u8]) -> Option<RunEvent> {
 }
 
 /// A JSON string without escapes or control characters, valid UTF-8.
-fn string(p: &mut Cursor<'_>) -> Option<String> {
+fn string(p: &mut Cursor<'_>) -> Option<Name> {
     p.literal(b"\"")?;
     let rest = p.data.get(p.at..)?;
     let len = rest
@@ -73,7 +71,7 @@ fn string(p: &mut Cursor<'_>) -> Option<String> {
     }
     let text = std::str::from_utf8(&rest[..len]).ok()?;
     p.at += len + 1;
-    Some(text.to_owned())
+    Some(Name::new(text))
 }
 
 /// A JSON object of such strings to values read by `value` (a repeated key keeps its last
@@ -81,9 +79,9 @@ fn string(p: &mut Cursor<'_>) -> Option<String> {
 fn map<'a, T>(
     p: &mut Cursor<'a>,
     value: impl Fn(&mut Cursor<'a>) -> Option<T>,
-) -> Option<BTreeMap<String, T>> {
+) -> Option<AxisMap<T>> {
     p.literal(b"{")?;
-    let mut entries = BTreeMap::new();
+    let mut entries = AxisMap::new();
     if p.literal(b"}").is_some() {
         return Some(entries);
     }
@@ -126,8 +124,8 @@ mod tests {
             pass: 1,
             target: "t0".into(),
             nominal_m,
-            axes: BTreeMap::from([("x".into(), 0.1), ("y".into(), -2.5), ("z".into(), 1e-3)]),
-            approach: BTreeMap::from([("x".into(), approach), ("y".into(), 0), ("z".into(), 1)]),
+            axes: AxisMap::from([("x", 0.1), ("y", -2.5), ("z", 1e-3)]),
+            approach: AxisMap::from([("x", approach), ("y", 0), ("z", 1)]),
         }
     }
 
@@ -139,10 +137,10 @@ mod tests {
                 station: "Süd".into(),
                 point: 0,
                 pass: 0,
-                target: String::new(),
+                target: Name::default(),
                 nominal_m: [0.0; 3],
-                axes: BTreeMap::new(),
-                approach: BTreeMap::new(),
+                axes: AxisMap::new(),
+                approach: AxisMap::new(),
             },
             RunEvent::PointEnd {
                 station: "s16".into(),

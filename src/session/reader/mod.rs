@@ -1,6 +1,8 @@
 //! The one session reader (solve, replay, diagnose, report): MCAP bytes -> typed, time-sorted
 //! streams per topic. Indexed through the summary when valid, linear (crash-tolerant) otherwise.
 
+#[cfg(test)]
+mod allocations;
 mod assemble;
 mod decoder;
 mod dispatch;

@@ -4,6 +4,7 @@ use std::io::Cursor;
 use mcap::records::{op, MessageHeader};
 use proptest::prelude::*;
 
+use super::allocations::allocations_in;
 use super::dispatch::{env_id, probe_id, rotary_id, tracer_id};
 use super::indexed::{read_indexed_bounded, CHUNKS_IN_FLIGHT_PER_THREAD};
 use super::testutil::*;
@@ -640,4 +641,102 @@ fn topic_ids() {
     assert_eq!(probe_id("/probe/arm0/reading"), Some("arm0"));
     assert_eq!(probe_id("/probe//reading"), None);
     assert_eq!(messages::tracer_topic("x"), "/tracer/x/range");
+}
+
+/// A file of `points` dwell points, each a `point_begin`, four tracer samples and a
+/// `point_end`, in geocal's compact JSON or (`spaced`) as another writer might lay it out:
+/// spaces after the separators and the fields in another order.
+fn dwell_file(points: usize, spaced: bool) -> Vec<u8> {
+    let mut w = mcap::WriteOptions::new()
+        .compression(None)
+        .create(Cursor::new(Vec::new()))
+        .unwrap();
+    let no_meta = BTreeMap::new();
+    let channel = |w: &mut mcap::Writer<Cursor<Vec<u8>>>, name, schema: &str, topic| {
+        let id = w.add_schema(name, "jsonschema", schema.as_bytes()).unwrap();
+        w.add_channel(id, topic, "json", &no_meta).unwrap()
+    };
+    let session = channel(&mut w, "geocal.Session", schema::SESSION, "/geocal/session");
+    let tracer = channel(
+        &mut w,
+        "geocal.TracerSample",
+        schema::TRACER,
+        "/tracer/t0/range",
+    );
+    let event = channel(&mut w, "geocal.RunEvent", schema::EVENT, "/run/event");
+    let mut t = 0;
+    let mut put = |w: &mut mcap::Writer<Cursor<Vec<u8>>>, channel_id, json: &str| {
+        t += 1000;
+        let header = MessageHeader {
+            channel_id,
+            sequence: 0,
+            log_time: t,
+            publish_time: t,
+        };
+        w.write_to_known_channel(&header, json.as_bytes()).unwrap();
+    };
+    put(&mut w, session, &serde_json::to_string(&header()).unwrap());
+    for point in 0..points {
+        let x = point as f64 * 1e-3;
+        let (begin, end) = if spaced {
+            (
+                format!(
+                    r#"{{"point": {point}, "kind": "point_begin", "station": "s1", "pass": 0, "target": "t0", "nominal_m": [{x}, 0.25, -0.5], "axes": {{"z": -0.5, "x": {x}, "y": 0.25}}, "approach": {{"x": 1, "y": 0, "z": -1}}}}"#
+                ),
+                format!(r#"{{"station": "s1", "kind": "point_end", "point": {point}, "pass": 0}}"#),
+            )
+        } else {
+            let begin = RunEvent::PointBegin {
+                station: "s1".into(),
+                point,
+                pass: 0,
+                target: "t0".into(),
+                nominal_m: [x, 0.25, -0.5],
+                axes: messages::AxisMap::from([("x", x), ("y", 0.25), ("z", -0.5)]),
+                approach: messages::AxisMap::from([("x", 1), ("y", 0), ("z", -1)]),
+            };
+            let end = RunEvent::PointEnd {
+                station: "s1".into(),
+                point,
+                pass: 0,
+            };
+            (
+                serde_json::to_string(&begin).unwrap(),
+                serde_json::to_string(&end).unwrap(),
+            )
+        };
+        put(&mut w, event, &begin);
+        for k in 0..4 {
+            let sample = tracer_sample((4 * point + k) as u64);
+            put(&mut w, tracer, &serde_json::to_string(&sample).unwrap());
+        }
+        put(&mut w, event, &end);
+    }
+    w.finish().unwrap();
+    w.into_inner().into_inner()
+}
+
+/// Decoding run events and tracer samples allocates nothing per message, in geocal's compact
+/// layout (the fast path) and in another writer's (serde): a read of eight times the points
+/// allocates only what its growing containers take (a few doublings), not one per message.
+#[test]
+fn decoding_allocates_nothing_per_message() {
+    for spaced in [false, true] {
+        let allocations = |points| {
+            let bytes = dwell_file(points, spaced);
+            let (decoder, count) = allocations_in(|| read_linear(&bytes, "x").unwrap());
+            let session = decoder.into_session("x", 0).unwrap();
+            assert_eq!(session.events.len(), 2 * points);
+            assert_eq!(session.tracers["t0"].len(), 4 * points);
+            assert!(session.completeness.is_complete());
+            count
+        };
+        let (few, many) = (allocations(500), allocations(4000));
+        println!("spaced {spaced}: {few} allocations for 500 points, {many} for 4000");
+        assert!(
+            many.saturating_sub(few) < 64,
+            "spaced {spaced}: 21 000 more messages cost {} more allocations",
+            many.saturating_sub(few)
+        );
+    }
 }

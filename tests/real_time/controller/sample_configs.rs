@@ -856,7 +856,7 @@ pub fn axis_mm_whole_run_stopped_by_an_estop_resumes_with_nothing_lost() {
         let mut points: Vec<(String, usize)> = run_events(&finished)
             .into_iter()
             .filter_map(|e| match e {
-                RunEvent::PointEnd { station, point, .. } => Some((station, point)),
+                RunEvent::PointEnd { station, point, .. } => Some((station.to_string(), point)),
                 _ => None,
             })
             .collect();
