@@ -616,35 +616,40 @@ impl Problem {
 
     pub fn of_lengths(extraction: &Lengths) -> Problem {
         let target = |m: &LengthMeasurement| extraction.targets[m.target].as_str();
-        // Point order: by target, then plan index, so results read in plan order.
-        let mut first_seen: BTreeMap<(&str, usize), usize> = BTreeMap::new();
-        for (i, m) in extraction.measurements.iter().enumerate() {
-            first_seen.entry((target(m), m.point)).or_insert(i);
-        }
-        let point_index: BTreeMap<(&str, usize), usize> = first_seen
-            .keys()
-            .enumerate()
-            .map(|(k, key)| (*key, k))
+        // Targets by the rank of their id, so that the maps below compare integers.
+        let mut ids: Vec<&str> = extraction.targets.iter().map(String::as_str).collect();
+        ids.sort_unstable();
+        ids.dedup();
+        let rank: Vec<usize> = extraction
+            .targets
+            .iter()
+            .map(|t| ids.partition_point(|id| *id < t.as_str()))
             .collect();
-        let mut points = Vec::with_capacity(first_seen.len());
-        let mut axes_m = Vec::with_capacity(first_seen.len());
-        for &i in first_seen.values() {
-            let m = &extraction.measurements[i];
+        // Point order: by target, then plan index, so results read in plan order.
+        let mut point_index: BTreeMap<(usize, usize), usize> = BTreeMap::new();
+        for (i, m) in extraction.measurements.iter().enumerate() {
+            point_index.entry((rank[m.target], m.point)).or_insert(i);
+        }
+        let mut points = Vec::with_capacity(point_index.len());
+        let mut axes_m = Vec::with_capacity(point_index.len());
+        for (k, first) in point_index.values_mut().enumerate() {
+            let m = &extraction.measurements[*first];
             points.push((target(m).to_owned(), m.point, m.nominal_m));
             axes_m.push(m.axes_m);
+            *first = k;
         }
-        let mut segment_index: BTreeMap<(usize, &str, u32), usize> = BTreeMap::new();
+        let mut segment_index: BTreeMap<(usize, usize, u32), usize> = BTreeMap::new();
         let mut segments = Vec::new();
         let mut observations = Vec::with_capacity(extraction.measurements.len());
         for m in &extraction.measurements {
             let segment = *segment_index
-                .entry((m.station_index, target(m), m.beam_segment))
+                .entry((m.station_index, rank[m.target], m.beam_segment))
                 .or_insert_with(|| {
                     segments.push((m.station_index, target(m).to_owned(), m.beam_segment));
                     segments.len() - 1
                 });
             observations.push(LengthObservation {
-                point: point_index[&(target(m), m.point)],
+                point: point_index[&(rank[m.target], m.point)],
                 segment,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,

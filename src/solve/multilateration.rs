@@ -192,6 +192,12 @@ struct Layout {
     obs_local_segment: Vec<usize>,
     /// Threads the elimination and the covariance use (1 for small problems).
     threads: usize,
+    /// Entries of `obs_order` grouped by station, ascending within each (CSR with
+    /// `station_obs_start`): the order in which the serial sweep over the points meets them.
+    station_obs: Vec<usize>,
+    station_obs_start: Vec<usize>,
+    /// The stations split into `threads` consecutive ranges of about equal observations.
+    station_ranges: Vec<std::ops::Range<usize>>,
     /// Six point coordinates held during the iterations: (point, axis).
     fixed: [(usize, usize); 6],
 }
@@ -217,21 +223,28 @@ impl Layout {
     }
     /// The points split into `self.threads` consecutive ranges of about equal work.
     fn point_ranges(&self) -> Vec<std::ops::Range<usize>> {
-        let total = self.cols.len();
-        let mut ranges = Vec::with_capacity(self.threads);
-        let mut start = 0;
-        for t in 1..=self.threads {
-            let end = if t == self.threads {
-                self.n
-            } else {
-                let goal = total * t / self.threads;
-                start + self.point_cols_start[start..self.n].partition_point(|&c| c < goal)
-            };
-            ranges.push(start..end);
-            start = end;
-        }
-        ranges
+        consecutive_ranges(&self.point_cols_start, self.threads)
     }
+}
+
+/// Items 0..n (n = `starts.len() - 1`, item i owning `starts[i]..starts[i + 1]` of the work)
+/// split into `parts` consecutive ranges of about equal work.
+fn consecutive_ranges(starts: &[usize], parts: usize) -> Vec<std::ops::Range<usize>> {
+    let n = starts.len() - 1;
+    let total = starts[n];
+    let mut ranges = Vec::with_capacity(parts);
+    let mut start = 0;
+    for t in 1..=parts {
+        let end = if t == parts {
+            n
+        } else {
+            let goal = total * t / parts;
+            start + starts[start..n].partition_point(|&c| c < goal)
+        };
+        ranges.push(start..end);
+        start = end;
+    }
+    ranges
 }
 
 /// Below this many lower-triangle updates per elimination (Σ k²/2 over the points) threads
@@ -474,13 +487,34 @@ fn build_layout(problem: &MultilaterationProblem) -> Result<Layout, SolveError> 
     point_runs_start.push(runs.len());
     point_cols_start.push(cols.len());
     let fixed = choose_gauge(&problem.nominal_points)?;
+    let threads = solve_threads(&point_cols_start);
+    let station_of =
+        |e: usize| problem.segments[problem.observations[obs_order[e]].segment].station;
+    let mut station_obs_start = vec![0usize; m + 1];
+    for e in 0..obs_order.len() {
+        station_obs_start[station_of(e) + 1] += 1;
+    }
+    for j in 0..m {
+        station_obs_start[j + 1] += station_obs_start[j];
+    }
+    let mut fill = station_obs_start.clone();
+    let mut station_obs = vec![0usize; obs_order.len()];
+    for e in 0..obs_order.len() {
+        let j = station_of(e);
+        station_obs[fill[j]] = e;
+        fill[j] += 1;
+    }
+    let station_ranges = consecutive_ranges(&station_obs_start, threads);
     Ok(Layout {
         n,
         m,
         nv,
         obs_order,
         point_obs_start,
-        threads: solve_threads(&point_cols_start),
+        threads,
+        station_obs,
+        station_obs_start,
+        station_ranges,
         cols,
         point_cols_start,
         summation_order,
@@ -623,11 +657,31 @@ struct Normal {
     v: DMatrix<f64>,
     gv: DVector<f64>,
     // Work buffers.
+    /// Per entry of `obs_order`: its beam direction, weight and residual at the parameters.
+    obs_terms: Vec<ObsTerm>,
+    /// Per range of stations: its rows and columns of V and entries of g_v.
+    station_parts: Vec<(DMatrix<f64>, DVector<f64>)>,
     uinv: Vec<Matrix3<f64>>,
     y: Vec<f64>,
     yg: Vec<Vector3<f64>>,
     a: DMatrix<f64>,
     b: DVector<f64>,
+}
+
+/// One observation's linearisation: the unit beam direction (point to station), its weight
+/// 1/σ² and its residual (measured − predicted length).
+#[derive(Clone, Copy, Default)]
+struct ObsTerm {
+    dir: Vector3<f64>,
+    weight: f64,
+    residual_m: f64,
+}
+
+impl ObsTerm {
+    /// w · dir dirᵀ, the observation's block of the point's and the station's normal matrix.
+    fn outer(&self) -> Matrix3<f64> {
+        self.dir * self.dir.transpose() * self.weight
+    }
 }
 
 impl Normal {
@@ -639,6 +693,17 @@ impl Normal {
             w: vec![0.0; wlen],
             v: DMatrix::zeros(layout.nv, layout.nv),
             gv: DVector::zeros(layout.nv),
+            obs_terms: vec![ObsTerm::default(); layout.obs_order.len()],
+            station_parts: layout
+                .station_ranges
+                .iter()
+                .map(|_| {
+                    (
+                        DMatrix::zeros(layout.nv, layout.nv),
+                        DVector::zeros(layout.nv),
+                    )
+                })
+                .collect(),
             uinv: vec![Matrix3::zeros(); layout.n],
             y: vec![0.0; wlen],
             yg: vec![Vector3::zeros(); layout.n],
@@ -647,78 +712,146 @@ impl Normal {
         }
     }
 
+    /// The normal equations at `p`: per point its block U_i, gradient g_i and cross block W_i
+    /// (the points split over the threads), then the stations' block V and gradient g_v (the
+    /// stations split over the threads, each element summed in the serial sweep's order).
     fn build(
         &mut self,
         problem: &MultilaterationProblem,
         layout: &Layout,
         p: &Params,
     ) -> Result<(), SolveError> {
+        self.build_points(problem, layout, p)?;
+        self.build_stations(problem, layout);
+        Ok(())
+    }
+
+    fn build_points(
+        &mut self,
+        problem: &MultilaterationProblem,
+        layout: &Layout,
+        p: &Params,
+    ) -> Result<(), SolveError> {
+        let ranges = layout.point_ranges();
+        let lens = || ranges.iter().map(|r| r.len());
+        let w_lens = ranges
+            .iter()
+            .map(|r| layout.w_offset(r.end) - layout.w_offset(r.start));
+        let obs_lens = ranges
+            .iter()
+            .map(|r| layout.point_obs_start[r.end] - layout.point_obs_start[r.start]);
+        let parts: Vec<_> = ranges
+            .iter()
+            .cloned()
+            .zip(split_lengths(&mut self.u, lens()))
+            .zip(split_lengths(&mut self.gx, lens()))
+            .zip(split_lengths(&mut self.w, w_lens))
+            .zip(split_lengths(&mut self.obs_terms, obs_lens))
+            .collect();
+        let results = in_parallel(parts, |((((range, us), gs), w), terms)| {
+            w.fill(0.0);
+            let w_base = layout.w_offset(range.start);
+            let obs_base = layout.point_obs_start[range.start];
+            for (q, i) in range.enumerate() {
+                let mut u = Matrix3::zeros();
+                let mut g = Vector3::zeros();
+                let k = layout.k(i);
+                let off = layout.w_offset(i) - w_base;
+                for e in layout.point_obs_start[i]..layout.point_obs_start[i + 1] {
+                    let obs = &problem.observations[layout.obs_order[e]];
+                    let s = obs.segment;
+                    let j = problem.segments[s].station;
+                    let diff = p.stations[j] - p.points[i];
+                    let dist = diff.norm();
+                    if !(dist > 0.0 && dist.is_finite()) {
+                        return Err(SolveError::Singular(format!(
+                            "point {i} coincides with station {j}"
+                        )));
+                    }
+                    let term = ObsTerm {
+                        dir: diff / dist,
+                        weight: 1.0 / (obs.sigma_m * obs.sigma_m),
+                        residual_m: obs.length_m - (dist - p.distances_m[s]),
+                    };
+                    terms[e - obs_base] = term;
+                    let (dir, wt, r) = (term.dir, term.weight, term.residual_m);
+                    let uu = term.outer();
+                    // d(pred)/dX = −dir, d(pred)/dP = dir, d(pred)/dd = −1.
+                    u += uu;
+                    g -= dir * (wt * r);
+                    let ls = layout.obs_local_station[e];
+                    let lg = layout.obs_local_segment[e];
+                    for a in 0..3 {
+                        for c in 0..3 {
+                            w[off + a * k + ls + c] -= uu[(a, c)];
+                        }
+                        w[off + a * k + lg] += wt * dir[a];
+                    }
+                }
+                // Held coordinates: decouple their row and column, unit diagonal, no gradient.
+                for &(fp, ax) in &layout.fixed {
+                    if fp == i {
+                        for c in 0..3 {
+                            u[(ax, c)] = 0.0;
+                            u[(c, ax)] = 0.0;
+                        }
+                        u[(ax, ax)] = 1.0;
+                        g[ax] = 0.0;
+                        for c in 0..k {
+                            w[off + ax * k + c] = 0.0;
+                        }
+                    }
+                }
+                us[q] = u;
+                gs[q] = g;
+            }
+            Ok(())
+        });
+        results.into_iter().collect()
+    }
+
+    fn build_stations(&mut self, problem: &MultilaterationProblem, layout: &Layout) {
         let m = layout.m;
-        self.w.iter_mut().for_each(|x| *x = 0.0);
+        let terms = &self.obs_terms;
+        let parts: Vec<_> = layout
+            .station_ranges
+            .iter()
+            .zip(self.station_parts.iter_mut())
+            .collect();
+        in_parallel(parts, |(stations, (v, gv))| {
+            for j in stations.clone() {
+                let entries = &layout.station_obs
+                    [layout.station_obs_start[j]..layout.station_obs_start[j + 1]];
+                for &e in entries {
+                    let s = problem.observations[layout.obs_order[e]].segment;
+                    let term = &terms[e];
+                    let (dir, wt, r) = (term.dir, term.weight, term.residual_m);
+                    let uu = term.outer();
+                    let sj = 3 * j;
+                    let sc = 3 * m + s;
+                    for a in 0..3 {
+                        for c in 0..3 {
+                            v[(sj + a, sj + c)] += uu[(a, c)];
+                        }
+                        v[(sj + a, sc)] -= wt * dir[a];
+                        v[(sc, sj + a)] -= wt * dir[a];
+                        gv[sj + a] += wt * r * dir[a];
+                    }
+                    v[(sc, sc)] += wt;
+                    gv[sc] -= wt * r;
+                }
+            }
+        });
+        // Each range wrote only its own stations' and segments' elements (the rest stayed
+        // zero), so the sum copies them exactly.
         self.v.fill(0.0);
         self.gv.fill(0.0);
-        for i in 0..layout.n {
-            let mut u = Matrix3::zeros();
-            let mut g = Vector3::zeros();
-            let k = layout.k(i);
-            let off = layout.w_offset(i);
-            for e in layout.point_obs_start[i]..layout.point_obs_start[i + 1] {
-                let obs = &problem.observations[layout.obs_order[e]];
-                let s = obs.segment;
-                let j = problem.segments[s].station;
-                let diff = p.stations[j] - p.points[i];
-                let dist = diff.norm();
-                if !(dist > 0.0 && dist.is_finite()) {
-                    return Err(SolveError::Singular(format!(
-                        "point {i} coincides with station {j}"
-                    )));
-                }
-                let dir = diff / dist;
-                let r = obs.length_m - (dist - p.distances_m[s]);
-                let wt = 1.0 / (obs.sigma_m * obs.sigma_m);
-                let uu = dir * dir.transpose() * wt;
-                // d(pred)/dX = −dir, d(pred)/dP = dir, d(pred)/dd = −1.
-                u += uu;
-                g -= dir * (wt * r);
-                let sj = 3 * j;
-                let sc = 3 * m + s;
-                for a in 0..3 {
-                    for c in 0..3 {
-                        self.v[(sj + a, sj + c)] += uu[(a, c)];
-                    }
-                    self.v[(sj + a, sc)] -= wt * dir[a];
-                    self.v[(sc, sj + a)] -= wt * dir[a];
-                    self.gv[sj + a] += wt * r * dir[a];
-                }
-                self.v[(sc, sc)] += wt;
-                self.gv[sc] -= wt * r;
-                let ls = layout.obs_local_station[e];
-                let lg = layout.obs_local_segment[e];
-                for a in 0..3 {
-                    for c in 0..3 {
-                        self.w[off + a * k + ls + c] -= uu[(a, c)];
-                    }
-                    self.w[off + a * k + lg] += wt * dir[a];
-                }
-            }
-            // Held coordinates: decouple their row and column, unit diagonal, no gradient.
-            for &(fp, ax) in &layout.fixed {
-                if fp == i {
-                    for c in 0..3 {
-                        u[(ax, c)] = 0.0;
-                        u[(c, ax)] = 0.0;
-                    }
-                    u[(ax, ax)] = 1.0;
-                    g[ax] = 0.0;
-                    for c in 0..k {
-                        self.w[off + ax * k + c] = 0.0;
-                    }
-                }
-            }
-            self.u[i] = u;
-            self.gx[i] = g;
+        for (v, gv) in &mut self.station_parts {
+            self.v += &*v;
+            self.gv += &*gv;
+            v.fill(0.0);
+            gv.fill(0.0);
         }
-        Ok(())
     }
 
     /// Solves (H + λ diag H) δ = g by eliminating the points. On success, δ is in
