@@ -3,7 +3,7 @@
 
 use nalgebra::{DMatrix, DVector, Matrix3, Matrix3x6, Matrix6, Vector3};
 
-use crate::parallel::{in_parallel, split_lengths};
+use crate::parallel::{in_groups, in_parallel, split_lengths};
 
 /// One relative length: |station − point| − d(segment), measured by the tracer.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -638,15 +638,28 @@ struct Params {
 
 /// Half the weighted sum of squared residuals.
 fn cost(problem: &MultilaterationProblem, p: &Params) -> f64 {
-    let mut c = 0.0;
-    for obs in &problem.observations {
+    let squared = |obs: &LengthObservation| {
         let j = problem.segments[obs.segment].station;
         let pred = (p.stations[j] - p.points[obs.point]).norm() - p.distances_m[obs.segment];
         let r = (obs.length_m - pred) / obs.sigma_m;
-        c += r * r;
+        r * r
+    };
+    let sum = |squares: &mut dyn Iterator<Item = f64>| squares.fold(0.0, |c, rr| c + rr);
+    let observations = &problem.observations;
+    if observations.len() < THREADED_COST_OBSERVATIONS {
+        return 0.5 * sum(&mut observations.iter().map(squared));
     }
-    0.5 * c
+    // The squares on the threads, summed here in the observations' order as one thread would.
+    let squares = in_groups(
+        observations,
+        crate::parallel::threads(MAX_SOLVE_THREADS),
+        squared,
+    );
+    0.5 * sum(&mut squares.into_iter())
 }
+
+/// From this many observations the cost's squares are computed on the threads.
+const THREADED_COST_OBSERVATIONS: usize = 20_000;
 
 /// Normal equations JᵀWJ, JᵀWr in block form, and buffers for the reduced solve.
 struct Normal {
@@ -876,21 +889,31 @@ impl Normal {
         };
         let sol = chol.solve(&self.b);
         dv.copy_from(&sol);
-        for (i, d) in dx.iter_mut().enumerate() {
-            let k = layout.k(i);
-            let off = layout.w_offset(i);
-            let cols = layout.point_cols(i);
-            let mut t = self.yg[i];
-            for a in 0..3 {
-                let row = &self.y[off + a * k..off + (a + 1) * k];
-                t[a] -= layout
-                    .summation(i)
-                    .iter()
-                    .map(|&c| row[c] * sol[cols[c]])
-                    .sum::<f64>();
+        // Back-substitution, the points split over the threads (each point's step is its own).
+        let ranges = layout.point_ranges();
+        let parts: Vec<_> = ranges
+            .iter()
+            .cloned()
+            .zip(split_lengths(dx, ranges.iter().map(|r| r.len())))
+            .collect();
+        let (y, yg) = (&self.y, &self.yg);
+        in_parallel(parts, |(range, steps)| {
+            for (d, i) in steps.iter_mut().zip(range) {
+                let k = layout.k(i);
+                let off = layout.w_offset(i);
+                let cols = layout.point_cols(i);
+                let mut t = yg[i];
+                for a in 0..3 {
+                    let row = &y[off + a * k..off + (a + 1) * k];
+                    t[a] -= layout
+                        .summation(i)
+                        .iter()
+                        .map(|&c| row[c] * sol[cols[c]])
+                        .sum::<f64>();
+                }
+                *d = t;
             }
-            *d = t;
-        }
+        });
         Ok(true)
     }
 
