@@ -670,8 +670,6 @@ struct Normal {
     v: DMatrix<f64>,
     gv: DVector<f64>,
     // Work buffers.
-    /// Per entry of `obs_order`: its beam direction, weight and residual at the parameters.
-    obs_terms: Vec<ObsTerm>,
     /// Per range of stations: its rows and columns of V and entries of g_v.
     station_parts: Vec<(DMatrix<f64>, DVector<f64>)>,
     uinv: Vec<Matrix3<f64>>,
@@ -683,7 +681,6 @@ struct Normal {
 
 /// One observation's linearisation: the unit beam direction (point to station), its weight
 /// 1/σ² and its residual (measured − predicted length).
-#[derive(Clone, Copy, Default)]
 struct ObsTerm {
     dir: Vector3<f64>,
     weight: f64,
@@ -691,6 +688,18 @@ struct ObsTerm {
 }
 
 impl ObsTerm {
+    /// At the parameters `p`; None when the point sits on the station.
+    fn at(problem: &MultilaterationProblem, obs: &LengthObservation, p: &Params) -> Option<Self> {
+        let s = obs.segment;
+        let diff = p.stations[problem.segments[s].station] - p.points[obs.point];
+        let dist = diff.norm();
+        (dist > 0.0 && dist.is_finite()).then(|| ObsTerm {
+            dir: diff / dist,
+            weight: 1.0 / (obs.sigma_m * obs.sigma_m),
+            residual_m: obs.length_m - (dist - p.distances_m[s]),
+        })
+    }
+
     /// w · dir dirᵀ, the observation's block of the point's and the station's normal matrix.
     fn outer(&self) -> Matrix3<f64> {
         self.dir * self.dir.transpose() * self.weight
@@ -706,7 +715,6 @@ impl Normal {
             w: vec![0.0; wlen],
             v: DMatrix::zeros(layout.nv, layout.nv),
             gv: DVector::zeros(layout.nv),
-            obs_terms: vec![ObsTerm::default(); layout.obs_order.len()],
             station_parts: layout
                 .station_ranges
                 .iter()
@@ -735,7 +743,7 @@ impl Normal {
         p: &Params,
     ) -> Result<(), SolveError> {
         self.build_points(problem, layout, p)?;
-        self.build_stations(problem, layout);
+        self.build_stations(problem, layout, p);
         Ok(())
     }
 
@@ -750,21 +758,16 @@ impl Normal {
         let w_lens = ranges
             .iter()
             .map(|r| layout.w_offset(r.end) - layout.w_offset(r.start));
-        let obs_lens = ranges
-            .iter()
-            .map(|r| layout.point_obs_start[r.end] - layout.point_obs_start[r.start]);
         let parts: Vec<_> = ranges
             .iter()
             .cloned()
             .zip(split_lengths(&mut self.u, lens()))
             .zip(split_lengths(&mut self.gx, lens()))
             .zip(split_lengths(&mut self.w, w_lens))
-            .zip(split_lengths(&mut self.obs_terms, obs_lens))
             .collect();
-        let results = in_parallel(parts, |((((range, us), gs), w), terms)| {
+        let results = in_parallel(parts, |(((range, us), gs), w)| {
             w.fill(0.0);
             let w_base = layout.w_offset(range.start);
-            let obs_base = layout.point_obs_start[range.start];
             for (q, i) in range.enumerate() {
                 let mut u = Matrix3::zeros();
                 let mut g = Vector3::zeros();
@@ -772,21 +775,12 @@ impl Normal {
                 let off = layout.w_offset(i) - w_base;
                 for e in layout.point_obs_start[i]..layout.point_obs_start[i + 1] {
                     let obs = &problem.observations[layout.obs_order[e]];
-                    let s = obs.segment;
-                    let j = problem.segments[s].station;
-                    let diff = p.stations[j] - p.points[i];
-                    let dist = diff.norm();
-                    if !(dist > 0.0 && dist.is_finite()) {
+                    let Some(term) = ObsTerm::at(problem, obs, p) else {
+                        let j = problem.segments[obs.segment].station;
                         return Err(SolveError::Singular(format!(
                             "point {i} coincides with station {j}"
                         )));
-                    }
-                    let term = ObsTerm {
-                        dir: diff / dist,
-                        weight: 1.0 / (obs.sigma_m * obs.sigma_m),
-                        residual_m: obs.length_m - (dist - p.distances_m[s]),
                     };
-                    terms[e - obs_base] = term;
                     let (dir, wt, r) = (term.dir, term.weight, term.residual_m);
                     let uu = term.outer();
                     // d(pred)/dX = −dir, d(pred)/dP = dir, d(pred)/dd = −1.
@@ -823,9 +817,9 @@ impl Normal {
         results.into_iter().collect()
     }
 
-    fn build_stations(&mut self, problem: &MultilaterationProblem, layout: &Layout) {
+    /// After `build_points`, which checked every observation's geometry.
+    fn build_stations(&mut self, problem: &MultilaterationProblem, layout: &Layout, p: &Params) {
         let m = layout.m;
-        let terms = &self.obs_terms;
         let parts: Vec<_> = layout
             .station_ranges
             .iter()
@@ -836,8 +830,13 @@ impl Normal {
                 let entries = &layout.station_obs
                     [layout.station_obs_start[j]..layout.station_obs_start[j + 1]];
                 for &e in entries {
-                    let s = problem.observations[layout.obs_order[e]].segment;
-                    let term = &terms[e];
+                    let obs = &problem.observations[layout.obs_order[e]];
+                    let s = obs.segment;
+                    // Made again as `build_points` made it (holding them all would cost the
+                    // memory of the observations again).
+                    let Some(term) = ObsTerm::at(problem, obs, p) else {
+                        continue;
+                    };
                     let (dir, wt, r) = (term.dir, term.weight, term.residual_m);
                     let uu = term.outer();
                     let sj = 3 * j;
