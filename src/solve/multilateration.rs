@@ -225,6 +225,35 @@ impl Layout {
     fn point_ranges(&self) -> Vec<std::ops::Range<usize>> {
         consecutive_ranges(&self.point_cols_start, self.threads)
     }
+
+    /// Per range of `point_ranges`: the range, its pieces of two buffers with one entry per
+    /// point and of one laid out as W (a 3 × k block per point).
+    #[allow(clippy::type_complexity)]
+    fn split_by_points<'a, A, B, C>(
+        &self,
+        per_point: &'a mut [A],
+        per_point_too: &'a mut [B],
+        blocks: &'a mut [C],
+    ) -> Vec<(
+        std::ops::Range<usize>,
+        &'a mut [A],
+        &'a mut [B],
+        &'a mut [C],
+    )> {
+        let ranges = self.point_ranges();
+        let lens = || ranges.iter().map(|r| r.len());
+        let block_lens = ranges
+            .iter()
+            .map(|r| self.w_offset(r.end) - self.w_offset(r.start));
+        ranges
+            .iter()
+            .cloned()
+            .zip(split_lengths(per_point, lens()))
+            .zip(split_lengths(per_point_too, lens()))
+            .zip(split_lengths(blocks, block_lens))
+            .map(|(((range, a), b), c)| (range, a, b, c))
+            .collect()
+    }
 }
 
 /// Items 0..n (n = `starts.len() - 1`, item i owning `starts[i]..starts[i + 1]` of the work)
@@ -753,19 +782,8 @@ impl Normal {
         layout: &Layout,
         p: &Params,
     ) -> Result<(), SolveError> {
-        let ranges = layout.point_ranges();
-        let lens = || ranges.iter().map(|r| r.len());
-        let w_lens = ranges
-            .iter()
-            .map(|r| layout.w_offset(r.end) - layout.w_offset(r.start));
-        let parts: Vec<_> = ranges
-            .iter()
-            .cloned()
-            .zip(split_lengths(&mut self.u, lens()))
-            .zip(split_lengths(&mut self.gx, lens()))
-            .zip(split_lengths(&mut self.w, w_lens))
-            .collect();
-        let results = in_parallel(parts, |(((range, us), gs), w)| {
+        let parts = layout.split_by_points(&mut self.u, &mut self.gx, &mut self.w);
+        let results = in_parallel(parts, |(range, us, gs, w)| {
             w.fill(0.0);
             let w_base = layout.w_offset(range.start);
             for (q, i) in range.enumerate() {
@@ -919,20 +937,9 @@ impl Normal {
     /// Per point: U_i⁻¹ of the damped block, U_i⁻¹ g_i and Y_i = U_i⁻¹ W_i (points split over
     /// the threads; each point's figures are its own).
     fn prepare_points(&mut self, layout: &Layout, lambda: f64) -> Result<(), SolveError> {
-        let ranges = layout.point_ranges();
-        let lens = || ranges.iter().map(|r| r.len());
-        let y_lens = ranges
-            .iter()
-            .map(|r| layout.w_offset(r.end) - layout.w_offset(r.start));
-        let parts: Vec<_> = ranges
-            .iter()
-            .cloned()
-            .zip(split_lengths(&mut self.uinv, lens()))
-            .zip(split_lengths(&mut self.yg, lens()))
-            .zip(split_lengths(&mut self.y, y_lens))
-            .collect();
+        let parts = layout.split_by_points(&mut self.uinv, &mut self.yg, &mut self.y);
         let (u, gx, w) = (&self.u, &self.gx, &self.w);
-        let results = in_parallel(parts, |(((range, uinv), yg), y)| {
+        let results = in_parallel(parts, |(range, uinv, yg, y)| {
             let base = layout.w_offset(range.start);
             for (p, i) in range.enumerate() {
                 let mut ud = u[i];
