@@ -44,6 +44,8 @@ pub struct MeteoSensorReading {
 
 /// Where the emulator gets its values; the core's simulated world implements it.
 pub trait TracerSource: Send {
+    /// The reading at `t_s`, seconds since the emulator started: a stream frame's tick (which
+    /// may have passed, when the emulator runs late), or the moment of a homing.
     fn sample(&mut self, t_s: f64) -> SourceReading;
     /// The host homed at `t_s` (a notification: the emulator keeps the origin itself).
     fn home(&mut self, t_s: f64);
