@@ -119,21 +119,44 @@ fn tick_time_source() -> Box<dyn TracerSource> {
     })
 }
 
-/// Frames read in a burst after a stall are timed at the ticks they were measured at, not
-/// at their reception. The test's runtime has one thread, so blocking it stalls the
-/// emulator and the driver alike; the emulator then sends the missed ticks' frames at once.
+/// The emulator on a thread and runtime of its own, so that stalling the test's runtime
+/// stalls the driver alone, as a loaded host does; its pty path. It stops when the returned
+/// sender is dropped.
+fn emulator_on_its_own_thread() -> (String, tokio::sync::oneshot::Sender<()>) {
+    let (path_tx, path_rx) = std::sync::mpsc::channel();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    std::thread::spawn(move || {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        runtime.block_on(async move {
+            let (emulator, _host_end) = Hpi3dEmulator::spawn_pty(
+                emulator_config(FaultConfig::default()),
+                tick_time_source(),
+            )
+            .unwrap();
+            let path = emulator.slave_path().unwrap().display().to_string();
+            path_tx.send(path).unwrap();
+            let _ = stop_rx.await;
+        });
+    });
+    (path_rx.recv().unwrap(), stop_tx)
+}
+
+/// Frames read in a burst after the driver stalled are timed at the ticks they were
+/// measured at, not at their reception.
 #[tokio::test]
 async fn sample_times_follow_the_device_ticks_through_a_burst() {
-    let (_emulator, host_end) =
-        Hpi3dEmulator::spawn_pty(emulator_config(FaultConfig::default()), tick_time_source())
-            .unwrap();
+    let (path, _stop) = emulator_on_its_own_thread();
     // Generous time-outs: a loaded machine may stall this test for longer than the stall.
     let config = Hpi3dConfig {
+        port: path,
         ack_timeout_s: 1.0,
         stream_timeout_s: 5.0,
         ..driver_config()
     };
-    let mut tracer = Hpi3dTracer::from_io(host_end, config).await.unwrap();
+    let mut tracer = Hpi3dTracer::open(config).await.unwrap();
     let mut s = samples(&mut tracer, RATE_HZ as usize).await;
     let before_stall = s.last().unwrap().length_m;
     std::thread::sleep(Duration::from_millis(150));
@@ -146,14 +169,15 @@ async fn sample_times_follow_the_device_ticks_through_a_burst() {
     let mut sorted: Vec<f64> = warmed_up.iter().map(offset).collect();
     sorted.sort_by(f64::total_cmp);
     let median = sorted[sorted.len() / 2];
-    let on_tick = |r: &TracerReading| (offset(r) - median).abs() < 0.002;
+    let on_tick = |r: &TracerReading| (offset(r) - median).abs() < 0.005;
     let near = warmed_up.iter().filter(|r| on_tick(r)).count();
     assert!(
         near * 100 >= warmed_up.len() * 95,
-        "{near} of {} samples within 2 ms of their tick",
+        "{near} of {} samples within 5 ms of their tick",
         warmed_up.len()
     );
-    // The frames measured during the stall (read together up to 150 ms later).
+    // The frames measured during the stall (read together up to 150 ms later); the
+    // emulator measures when its task runs, so its own delays add to the tolerance.
     let stalled: Vec<&TracerReading> = s
         .iter()
         .filter(|r| r.length_m > before_stall + 0.01 && r.length_m < before_stall + 0.14)
@@ -162,7 +186,7 @@ async fn sample_times_follow_the_device_ticks_through_a_burst() {
     let near = stalled.iter().filter(|r| on_tick(r)).count();
     assert!(
         near * 10 >= stalled.len() * 9,
-        "{near} of {} frames of the burst within 2 ms of their tick",
+        "{near} of {} frames of the burst within 5 ms of their tick",
         stalled.len()
     );
     for w in s.windows(2) {

@@ -44,8 +44,6 @@ pub struct MeteoSensorReading {
 
 /// Where the emulator gets its values; the core's simulated world implements it.
 pub trait TracerSource: Send {
-    /// The reading at `t_s`, seconds since the emulator started: a stream frame's tick (which
-    /// may have passed, when the emulator runs late), or the moment of a homing.
     fn sample(&mut self, t_s: f64) -> SourceReading;
     /// The host homed at `t_s` (a notification: the emulator keeps the origin itself).
     fn home(&mut self, t_s: f64);
@@ -460,9 +458,6 @@ impl Device {
     }
 }
 
-/// Stream frames more than this late are not sent in a burst: the grid restarts instead.
-const MAX_CATCH_UP: Duration = Duration::from_millis(500);
-
 async fn run<S>(io: S, mut device: Device, period: Duration, meteo_period: Duration)
 where
     S: AsyncRead + AsyncWrite + Send + 'static,
@@ -470,10 +465,8 @@ where
     let (mut rd, mut wr) = tokio::io::split(io);
     let start = Instant::now();
     let mut decoder = HostDecoder::new();
-    // The device's own clock: one stream frame per tick, measured at the tick, none skipped
-    // when this task runs late (they go out together, as a device's buffered frames would).
     let mut stream_tick = tokio::time::interval(period);
-    stream_tick.set_missed_tick_behavior(MissedTickBehavior::Burst);
+    stream_tick.set_missed_tick_behavior(MissedTickBehavior::Skip);
     let mut meteo_tick = tokio::time::interval(meteo_period);
     meteo_tick.set_missed_tick_behavior(MissedTickBehavior::Skip);
     let mut buf = [0u8; 512];
@@ -494,15 +487,7 @@ where
                 // A pty with no slave open errors until one opens again: wait and retry.
                 Err(_) => tokio::time::sleep(Duration::from_millis(20)).await,
             },
-            tick = stream_tick.tick() => {
-                if tick.elapsed() > MAX_CATCH_UP {
-                    // Stalled for long (a closed pty): the frames of that time are lost
-                    // whole, and the grid starts again from now.
-                    stream_tick.reset();
-                    continue;
-                }
-                device.stream_frame((tick - start).as_secs_f64(), &mut out);
-            }
+            _ = stream_tick.tick() => device.stream_frame(start.elapsed().as_secs_f64(), &mut out),
             _ = meteo_tick.tick() => device.meteo_frames(start.elapsed().as_secs_f64(), &mut out),
         }
         if !out.is_empty() && wr.write_all(&out).await.is_err() {
