@@ -89,7 +89,7 @@ async fn hpi3d_lengths_and_meteo_are_recorded_in_si() {
     assert!(samples.len() >= 150, "{} samples", samples.len());
     for pair in samples.windows(2) {
         assert_eq!(pair[1].msg.seq, pair[0].msg.seq + 1, "a sample was lost");
-        // t_s is the driver's reception time: frames read together share it.
+        // The driver's times never go backwards (frames read together may share one).
         assert!(pair[1].msg.t_s >= pair[0].msg.t_s);
     }
     for s in samples {

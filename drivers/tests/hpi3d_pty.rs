@@ -50,6 +50,7 @@ fn driver_config() -> Hpi3dConfig {
         retries: 3,
         stream_timeout_s: 0.15,
         flag_clear_interval_s: 0.02,
+        stream_rate_hz: RATE_HZ,
         ..Hpi3dConfig::default()
     }
 }
@@ -104,6 +105,93 @@ async fn streams_with_consecutive_seq() {
     assert_eq!(c.bytes_skipped, 0);
     assert_eq!(c.retries, 0);
     assert_eq!(emulator.stats().acks_sent, 4);
+}
+
+/// The emulator's own clock as the length: each frame reads the time it was measured at.
+fn tick_time_source() -> Box<dyn TracerSource> {
+    Box::new(FnSource {
+        sample: |t_s: f64| SourceReading {
+            length_m: t_s,
+            beam_ok: true,
+            signal: 0.8,
+        },
+        meteo: vec![],
+    })
+}
+
+/// The emulator on a thread and runtime of its own, so that stalling the test's runtime
+/// stalls the driver alone, as a loaded host does; its pty path. It stops when the returned
+/// sender is dropped.
+fn emulator_on_its_own_thread() -> (String, tokio::sync::oneshot::Sender<()>) {
+    let (path_tx, path_rx) = std::sync::mpsc::channel();
+    let (stop_tx, stop_rx) = tokio::sync::oneshot::channel::<()>();
+    std::thread::spawn(move || {
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_all()
+            .build()
+            .unwrap();
+        runtime.block_on(async move {
+            let (emulator, _host_end) = Hpi3dEmulator::spawn_pty(
+                emulator_config(FaultConfig::default()),
+                tick_time_source(),
+            )
+            .unwrap();
+            let path = emulator.slave_path().unwrap().display().to_string();
+            path_tx.send(path).unwrap();
+            let _ = stop_rx.await;
+        });
+    });
+    (path_rx.recv().unwrap(), stop_tx)
+}
+
+/// Frames read in a burst after the driver stalled are timed at the ticks they were
+/// measured at, not at their reception.
+#[tokio::test]
+async fn sample_times_follow_the_device_ticks_through_a_burst() {
+    let (path, _stop) = emulator_on_its_own_thread();
+    // Generous time-outs: a loaded machine may stall this test for longer than the stall.
+    let config = Hpi3dConfig {
+        port: path,
+        ack_timeout_s: 1.0,
+        stream_timeout_s: 5.0,
+        ..driver_config()
+    };
+    let mut tracer = Hpi3dTracer::open(config).await.unwrap();
+    let mut s = samples(&mut tracer, RATE_HZ as usize).await;
+    let before_stall = s.last().unwrap().length_m;
+    std::thread::sleep(Duration::from_millis(150));
+    s.extend(samples(&mut tracer, RATE_HZ as usize).await);
+
+    // t_s and the emulator's clock differ by a constant (when each started, and the
+    // least delay of the line) wherever the times follow the ticks.
+    let offset = |r: &TracerReading| r.t_s - r.length_m;
+    let warmed_up = &s[(0.2 * RATE_HZ) as usize..];
+    let mut sorted: Vec<f64> = warmed_up.iter().map(offset).collect();
+    sorted.sort_by(f64::total_cmp);
+    let median = sorted[sorted.len() / 2];
+    let on_tick = |r: &TracerReading| (offset(r) - median).abs() < 0.005;
+    let near = warmed_up.iter().filter(|r| on_tick(r)).count();
+    assert!(
+        near * 100 >= warmed_up.len() * 95,
+        "{near} of {} samples within 5 ms of their tick",
+        warmed_up.len()
+    );
+    // The frames measured during the stall (read together up to 150 ms later); the
+    // emulator measures when its task runs, so its own delays add to the tolerance.
+    let stalled: Vec<&TracerReading> = s
+        .iter()
+        .filter(|r| r.length_m > before_stall + 0.01 && r.length_m < before_stall + 0.14)
+        .collect();
+    assert!(stalled.len() >= 50, "{} frames in the stall", stalled.len());
+    let near = stalled.iter().filter(|r| on_tick(r)).count();
+    assert!(
+        near * 10 >= stalled.len() * 9,
+        "{near} of {} frames of the burst within 5 ms of their tick",
+        stalled.len()
+    );
+    for w in s.windows(2) {
+        assert!(w[1].t_s >= w[0].t_s, "{w:?}");
+    }
 }
 
 #[tokio::test]

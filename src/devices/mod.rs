@@ -133,6 +133,8 @@ fn hpi3d_config(config: &Config) -> Hpi3dConfig {
     let tracer = &config.devices.tracer;
     let mut c = tracer.hpi3d.clone().unwrap_or_default();
     c.id = tracer.id.clone();
+    // The samples are timed on the stream's grid, so the driver needs its rate.
+    c.stream_rate_hz = tracer.sample_rate_hz;
     // The Environment handle reads the meteo stream only if it is asked for.
     c.meteo = config
         .devices

@@ -12,6 +12,7 @@ use tokio::sync::mpsc;
 use tokio::task::JoinHandle;
 use tokio::time::Instant;
 
+use super::clock::StreamClock;
 use super::codec::{encode_host, DeviceDecoder};
 use super::frame::{DeviceFrame, HostCommand, HostFrame, Meteo};
 use crate::traits::{DeviceError, EnvReading, Environment, LinkFault, Tracer, TracerReading};
@@ -48,6 +49,9 @@ pub struct Hpi3dConfig {
     pub flag_clear_interval_s: f64,
     /// Samples buffered for a slow consumer; beyond it new samples are counted and dropped.
     pub sample_queue: usize,
+    /// Frames per second of the distance stream (the device: 25 Hz). Sample times are laid
+    /// on this grid by frame count (docs/protocols/hpi3d.md, "Timestamps").
+    pub stream_rate_hz: f64,
 }
 
 impl Default for Hpi3dConfig {
@@ -63,6 +67,7 @@ impl Default for Hpi3dConfig {
             stream_timeout_s: 1.0,
             flag_clear_interval_s: 0.5,
             sample_queue: 4096,
+            stream_rate_hz: 25.0,
         }
     }
 }
@@ -147,6 +152,14 @@ impl Hpi3dTracer {
         let stream_timeout = duration(&id, "stream_timeout_s", config.stream_timeout_s)?;
         let flag_clear_interval =
             duration(&id, "flag_clear_interval_s", config.flag_clear_interval_s)?;
+        let clock =
+            StreamClock::new(config.stream_rate_hz).ok_or_else(|| DeviceError::Rejected {
+                device: id.clone(),
+                message: format!(
+                    "stream_rate_hz = {} is not a valid rate: expected a positive number of frames per second",
+                    config.stream_rate_hz
+                ),
+            })?;
         let (rd, wr) = tokio::io::split(io);
         let (sample_tx, samples) = mpsc::channel(config.sample_queue.max(1));
         let (ack_tx, acks) = mpsc::unbounded_channel();
@@ -154,6 +167,7 @@ impl Hpi3dTracer {
         let reader = tokio::spawn(reader_task(
             rd,
             Instant::now(),
+            clock,
             sample_tx,
             ack_tx,
             shared.clone(),
@@ -404,6 +418,7 @@ impl MeteoAssembler {
 async fn reader_task<R: AsyncRead + Unpin>(
     mut rd: R,
     start: Instant,
+    mut clock: StreamClock,
     samples: mpsc::Sender<TracerReading>,
     acks: mpsc::UnboundedSender<HostCommand>,
     shared: Arc<Shared>,
@@ -420,8 +435,9 @@ async fn reader_task<R: AsyncRead + Unpin>(
             Ok(n) => n,
             Err(e) => break format!("read failed: {e}"),
         };
-        // Device time is not in the frames: stamp on reception.
-        let t_s = start.elapsed().as_secs_f64();
+        // Device time is not in the frames: distance frames are timed by their count from
+        // this reception time, meteo frames (not counted) keep it.
+        let recv_s = start.elapsed().as_secs_f64();
         decoder.feed_into(&buf[..n], &mut frames);
         let stats = decoder.stats();
         let mut ignored = 0;
@@ -448,7 +464,7 @@ async fn reader_task<R: AsyncRead + Unpin>(
                     }
                     let reading = TracerReading {
                         seq: beam.seq,
-                        t_s,
+                        t_s: clock.stamp(beam.seq, recv_s),
                         length_m: d.position_m(),
                         signal: d.status.signal(),
                         tracking,
@@ -465,10 +481,14 @@ async fn reader_task<R: AsyncRead + Unpin>(
                     if command == HostCommand::Home && beam.broken {
                         beam.rehomed = true;
                     }
+                    // A stream switched on again ticks on a grid of its own.
+                    if command == HostCommand::DistanceOn {
+                        clock.restart();
+                    }
                     let _ = acks.send(command);
                 }
                 DeviceFrame::Meteo(m) => {
-                    if let Some(r) = meteo.push(&m, t_s) {
+                    if let Some(r) = meteo.push(&m, recv_s) {
                         let mut q = lock(&shared.meteo);
                         if q.len() >= METEO_QUEUE {
                             q.pop_front();
@@ -501,6 +521,7 @@ mod tests {
         assert_eq!(c.baud, 3_000_000);
         assert_eq!(c.port, "/dev/ttyACM0");
         assert!(c.meteo);
+        assert_eq!(c.stream_rate_hz, 25.0);
         assert!(serde_json::from_str::<Hpi3dConfig>(r#"{"baudrate": 9600}"#).is_err());
         assert!(serde_json::from_str::<Hpi3dConfig>(r#"{"stream": "velocity"}"#).is_err());
     }
@@ -514,6 +535,22 @@ mod tests {
         };
         let err = Hpi3dTracer::from_io(a, config).await.err().unwrap();
         assert!(matches!(err, DeviceError::Rejected { .. }), "{err}");
+    }
+
+    #[tokio::test]
+    async fn rejects_a_stream_rate_that_is_not_a_rate() {
+        for rate in [0.0, -25.0, f64::NAN, f64::INFINITY] {
+            let (a, _b) = tokio::io::duplex(64);
+            let config = Hpi3dConfig {
+                stream_rate_hz: rate,
+                ..Hpi3dConfig::default()
+            };
+            let err = Hpi3dTracer::from_io(a, config).await.err().unwrap();
+            assert!(
+                matches!(&err, DeviceError::Rejected { message, .. } if message.contains("stream_rate_hz")),
+                "{err}"
+            );
+        }
     }
 
     #[test]
