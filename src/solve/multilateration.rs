@@ -1108,6 +1108,12 @@ pub(crate) fn generator(q: &Vector3<f64>, centre: &Vector3<f64>) -> Matrix3x6<f6
 /// Largest problem (unknowns) for which `dense_point_covariance` answers.
 pub const MAX_DENSE_COVARIANCE_UNKNOWNS: usize = 1500;
 
+/// Whether `dense_point_covariance` can answer for this problem: known before solving it.
+pub fn dense_point_covariance_fits(problem: &MultilaterationProblem) -> bool {
+    3 * problem.station_hints.len() + problem.segments.len() + 3 * problem.nominal_points.len()
+        <= MAX_DENSE_COVARIANCE_UNKNOWNS
+}
+
 /// The full covariance of all points (3n x 3n, point-major) in the inner-constraint datum,
 /// including the correlations between points that shared stations cause; `None` when the
 /// problem has more than `MAX_DENSE_COVARIANCE_UNKNOWNS` unknowns (dense algebra).

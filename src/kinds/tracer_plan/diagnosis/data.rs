@@ -12,7 +12,9 @@ use crate::extract::{
 use crate::session::messages::{EnvSample, SessionHeader};
 use crate::session::reader::{read_session, ReadError, Session, Stamped};
 use crate::sim::effects::edlen_dn;
-use crate::solve::multilateration::{solve, MultilaterationProblem, SolveOptions};
+use crate::solve::multilateration::{
+    solve, MultilaterationProblem, MultilaterationSolution, SolveOptions,
+};
 
 #[derive(Debug, Clone)]
 pub struct Obs {
@@ -61,6 +63,9 @@ pub struct Data {
     pub passes: Vec<Vec<usize>>,
     pub pass_names: Vec<String>,
     pub problem: MultilaterationProblem,
+    /// The calibration: `problem` solved (the fit its σ were fixed at, so solving `problem`
+    /// again gives it back); taken by the diagnosis. None when that solve failed, or taken.
+    pub nominal: Option<MultilaterationSolution>,
     /// Per station: the first observation time (origin of drift ramps).
     pub station_start_s: Vec<f64>,
     pub has_env: bool,
@@ -413,7 +418,8 @@ impl Observed {
             station_start_s,
         } = self;
         let mut problem = built.problem;
-        if let Ok(solution) = solve(&problem, &SolveOptions::default()) {
+        let nominal = solve(&problem, &SolveOptions::default()).ok();
+        if let Some(solution) = &nominal {
             problem = problem.with_fixed_sigmas(&solution.sigmas_m);
             for (o, fixed) in obs.iter_mut().zip(&problem.observations) {
                 o.sigma_m = fixed.sigma_m;
@@ -435,6 +441,7 @@ impl Observed {
             passes,
             pass_names,
             problem,
+            nominal,
             station_start_s,
             dropped_windows,
         }

@@ -300,7 +300,10 @@ pub(crate) fn diagnose_data(
 ) -> Result<DataDiagnosis, DiagnoseError> {
     let k_folds = options.folds.max(data.station_ids.len());
     budget::check(data, options.memory_limit_bytes)?;
-    let solution = solve(&data.problem, &SolveOptions::default())?;
+    let solution = match data.nominal.take() {
+        Some(solution) => solution,
+        None => solve(&data.problem, &SolveOptions::default())?,
+    };
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
     // Fold of a length: (point + station) mod K, so every held-out length has its point seen

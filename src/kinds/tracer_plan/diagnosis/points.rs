@@ -18,8 +18,8 @@ use crate::method::multilateration::point_observations;
 use crate::model::kinematics::Structure;
 use crate::solve::geometric_errors::{grid_from_points, whitened_design, DecompositionOptions};
 use crate::solve::multilateration::{
-    dense_point_covariance, generator, solve, LengthObservation, MultilaterationProblem,
-    MultilaterationSolution, SolveOptions,
+    dense_point_covariance, dense_point_covariance_fits, generator, solve, LengthObservation,
+    MultilaterationProblem, MultilaterationSolution, SolveOptions,
 };
 
 /// Relative singular value below which a direction of the (column-normalised) quasi-rigid
@@ -161,11 +161,13 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
         segments: data.problem.segments.clone(),
         observations,
     };
+    let too_large = || "the per-pass problem is too large for the dense point covariance";
+    if !dense_point_covariance_fits(&problem) {
+        return Err(too_large().into());
+    }
     let solution = solve(&problem, &SolveOptions::default())
         .map_err(|e| format!("the per-pass multilateration: {e}"))?;
-    let cov = dense_point_covariance(&problem, &solution).ok_or_else(|| {
-        "the per-pass problem is too large for the dense point covariance".to_string()
-    })?;
+    let cov = dense_point_covariance(&problem, &solution).ok_or_else(|| too_large().to_string())?;
     let info = pass_points
         .iter()
         .map(|p| data.points[p.point].clone())

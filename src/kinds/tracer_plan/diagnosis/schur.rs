@@ -257,23 +257,90 @@ impl Design {
     }
 }
 
-/// Pseudo-inverse of a symmetric 3 × 3 block with the relative eigenvalue cut, and the
-/// directions cut.
-fn pinv3(m: &Matrix3<f64>) -> (Matrix3<f64>, Vec<Vector3<f64>>) {
+/// A symmetric 3 × 3 block's pseudo-inverse with the relative eigenvalue cut.
+struct PseudoInverse3 {
+    inv: Matrix3<f64>,
+    /// F with inv = Fᵀ F (a row per kept direction, zero rows for the cut ones).
+    factor: Matrix3<f64>,
+    /// The directions cut.
+    null: Vec<Vector3<f64>>,
+}
+
+fn pinv3(m: &Matrix3<f64>) -> PseudoInverse3 {
     let eig = m.symmetric_eigen();
     let top = eig.eigenvalues.amax();
     let mut inv = Matrix3::zeros();
+    let mut factor = Matrix3::zeros();
     let mut null = Vec::new();
     for k in 0..3 {
         let v = eig.eigenvectors.column(k).into_owned();
         let l = eig.eigenvalues[k];
         if l > EIGEN_TOL * top && l > 0.0 {
             inv += v * v.transpose() / l;
+            factor.set_row(k, &(v.transpose() / l.sqrt()));
         } else {
             null.push(v);
         }
     }
-    (inv, null)
+    PseudoInverse3 { inv, factor, null }
+}
+
+/// Points whose elimination terms are stacked before they are taken off the reduced system
+/// in one matrix product.
+const POINTS_PER_PRODUCT: usize = 256;
+
+/// The points' elimination terms C_pᵀ M_p⁺ C_p = (F_p C_p)ᵀ (F_p C_p) taken off the reduced
+/// system a block of points at a time: each point's 3 rows of F_p C_p stacked over the global
+/// columns, then S −= ZᵀZ as one matrix product.
+struct EliminationRows {
+    /// (3 · POINTS_PER_PRODUCT) × g, column-major; rows past `used` are stale.
+    z: DMatrix<f64>,
+    used: usize,
+}
+
+impl EliminationRows {
+    fn new(g: usize) -> EliminationRows {
+        EliminationRows {
+            z: DMatrix::zeros(3 * POINTS_PER_PRODUCT, g),
+            used: 0,
+        }
+    }
+
+    /// Adds a point's rows F C over the touched columns `cols` (C's columns `c_local`).
+    fn push(
+        &mut self,
+        factor: &Matrix3<f64>,
+        cols: &[usize],
+        c_local: &[Vector3<f64>],
+        s: &mut DMatrix<f64>,
+    ) {
+        if self.used == POINTS_PER_PRODUCT {
+            self.take_off(s);
+        }
+        let at = 3 * self.used;
+        self.z.rows_mut(at, 3).fill(0.0);
+        for (&c, cv) in cols.iter().zip(c_local) {
+            let fc = factor * cv;
+            for r in 0..3 {
+                self.z[(at + r, c)] = fc[r];
+            }
+        }
+        self.used += 1;
+    }
+
+    /// S −= ZᵀZ over the rows pushed, and starts again.
+    fn take_off(&mut self, s: &mut DMatrix<f64>) {
+        if self.used == 0 {
+            return;
+        }
+        let (rows, g) = (3 * self.used, self.z.ncols());
+        let stride = self.z.nrows();
+        let z = self.z.rows(0, rows);
+        let zt =
+            nalgebra::DMatrixView::from_slice_with_strides(self.z.as_slice(), g, rows, stride, 1);
+        s.gemm(-1.0, &zt, &z, 1.0);
+        self.used = 0;
+    }
 }
 
 /// The least-squares fit of a design on a set of its rows, points eliminated: what the dense
@@ -329,6 +396,7 @@ impl Schur {
         let mut slot = vec![usize::MAX; g];
         let mut cols: Vec<usize> = Vec::new();
         let mut c_local: Vec<Vector3<f64>> = Vec::new();
+        let mut elimination = EliminationRows::new(g);
         for p in 0..n {
             let members = &point_rows[point_start[p]..point_start[p + 1]];
             let mut m = Matrix3::zeros();
@@ -356,26 +424,17 @@ impl Schur {
                     c_local[slot[cx]] += a * vx;
                 }
             }
-            let (inv, null) = pinv3(&m);
+            let PseudoInverse3 { inv, factor, null } = pinv3(&m);
             point_rank += 3 - null.len();
             point_null.extend(null.into_iter().map(|v| (p, v)));
             // S −= C_pᵀ M_p⁺ C_p on the touched columns.
-            let h: Vec<Vector3<f64>> = c_local.iter().map(|c| inv * c).collect();
-            // Symmetric: each pair once (the symmetrisation below averages the two triangles).
-            for (x, &cx) in cols.iter().enumerate() {
-                for (y, &cy) in cols.iter().enumerate().skip(x) {
-                    let v = c_local[x].dot(&h[y]);
-                    s[(cx, cy)] -= v;
-                    if cx != cy {
-                        s[(cy, cx)] -= v;
-                    }
-                }
-            }
+            elimination.push(&factor, &cols, &c_local, &mut s);
             for &c in &cols {
                 slot[c] = usize::MAX;
             }
             m_pinv.push(inv);
         }
+        elimination.take_off(&mut s);
         // Symmetrise against the rounding of the two triangles' sums, and equilibrate: Ŝ =
         // D⁻¹ S D⁻¹ with D the columns' norms, so that the rank cut does not depend on the
         // columns' units. An effect column whose whitened entries are ~1e-7 of a station's
