@@ -101,7 +101,17 @@ struct Candidate<'a> {
     /// Its columns projected off the full fit, for their orthonormal basis U's rows (where a
     /// fold is downdated).
     projected: Option<&'a Projected>,
-    res_w: &'a DVector<f64>,
+    after: After<'a>,
+}
+
+/// The full fit's whitened residuals with the candidate.
+#[derive(Clone, Copy)]
+enum After<'a> {
+    /// Over all rows.
+    Residuals(&'a DVector<f64>),
+    /// As the full fit's residuals minus U c, c = Uᵀ r: made on each fold's held rows from the
+    /// rows of U the fold makes anyway (one walk over the candidate's rows fewer).
+    Coefficients(&'a DVector<f64>),
 }
 
 /// The held-out residuals of the folds: Σ r², Σ (σ² + prediction variance), Σ r²/that, and
@@ -187,13 +197,28 @@ impl Engine {
 
     /// RMS in the reported units of whitened residuals over `rows`.
     pub fn rms_reported(&self, res_w: &DVector<f64>, rows: &[usize]) -> f64 {
-        (res_w
+        (self.ss_reported(res_w, rows) / rows.len().max(1) as f64).sqrt()
+    }
+
+    /// Sum of squares in the reported units of whitened residuals over `rows`.
+    fn ss_reported(&self, res_w: &DVector<f64>, rows: &[usize]) -> f64 {
+        res_w
             .iter()
             .zip(rows)
             .map(|(r, &i)| (r / self.w_report[i]).powi(2))
-            .sum::<f64>()
-            / rows.len().max(1) as f64)
-            .sqrt()
+            .sum()
+    }
+
+    /// Whether the folds hold out every row exactly once.
+    fn folds_hold_each_row_once(&self) -> bool {
+        let mut held = vec![false; self.r.len()];
+        for &h in self.folds.iter().flatten() {
+            match held.get_mut(h) {
+                Some(seen) if !*seen => *seen = true,
+                _ => return false,
+            }
+        }
+        held.into_iter().all(|seen| seen)
     }
 
     pub fn fit_base<D: LinearDesign>(
@@ -261,6 +286,8 @@ impl Engine {
     /// One fold's held-out residuals: downdated from the full fit where the fold is, else
     /// refitted. None where the training rows nearly lose one of the candidate's directions:
     /// the caller refits that fold with the candidate's columns.
+    /// With it, where the candidate's residuals with it were made on the held rows, their sum
+    /// of squares in the reported units.
     fn heldout_fold<D: LinearDesign>(
         &self,
         design: &D,
@@ -268,18 +295,27 @@ impl Engine {
         fit: &FoldFit<D::Fit>,
         full_res_w: &DVector<f64>,
         candidate: Option<&Candidate>,
-    ) -> Option<HeldOut> {
+    ) -> Option<(HeldOut, Option<f64>)> {
         let held = &self.folds[fold];
+        let mut after_ss = None;
         let (downdate, residuals) = match fit {
             FoldFit::Refit(fit) => {
-                return Some(self.heldout(design, fit, candidate.and_then(|c| c.a)))
+                return Some((self.heldout(design, fit, candidate.and_then(|c| c.a)), None))
             }
             FoldFit::Downdated(downdate) => {
                 let residuals = match candidate {
                     None => downdate.residuals(&full_res_w.select_rows(held)),
                     Some(c) => {
                         let u = c.projected?.u_rows(held);
-                        downdate.residuals_with(&u, &c.res_w.select_rows(held))?
+                        let after = match c.after {
+                            After::Residuals(after) => after.select_rows(held),
+                            After::Coefficients(coeff) => {
+                                let after = full_res_w.select_rows(held) - &u * coeff;
+                                after_ss = Some(self.ss_reported(&after, held));
+                                after
+                            }
+                        };
+                        downdate.residuals_with(&u, &after)?
                     }
                 };
                 (downdate, residuals)
@@ -293,20 +329,21 @@ impl Engine {
             out.z2 += x * x / inflation;
             out.count += 1;
         }
-        Some(out)
+        Some((out, after_ss))
     }
 
     /// The folds' held-out residuals summed in the folds' order. With a candidate on many
     /// rows the folds run on their own threads, each fold's figures computed as alone; a fold
     /// the candidate cannot be downdated in is refitted here, with `columns` (the candidate's,
-    /// made again unless held).
+    /// made again unless held). With them, when every fold made the candidate's residuals on
+    /// its held rows, their sum of squares in the reported units.
     fn heldout_sum<D: LinearDesign>(
         &self,
         design: &D,
         fits: &[FoldFit<D::Fit>],
         full_res_w: &DVector<f64>,
         candidate: Option<(&Candidate, &dyn Fn() -> Columns)>,
-    ) -> HeldOut {
+    ) -> (HeldOut, Option<f64>) {
         let work = candidate.map_or(0, |(c, _)| c.entries);
         let threads = if work >= THREADED_FOLD_ENTRIES {
             parallel::threads(MAX_FOLD_THREADS)
@@ -320,22 +357,24 @@ impl Engine {
         });
         let mut columns: Option<DMatrix<f64>> = None;
         let mut sum = HeldOut::default();
+        let mut after_ss = Some(0.0);
         for (fold, h) in per_fold.into_iter().enumerate() {
-            let h = h.unwrap_or_else(|| {
+            let (h, fold_after_ss) = h.unwrap_or_else(|| {
                 let refit = self.fit_base(design, self.training_rows(fold), &self.folds[fold]);
                 let a = match candidate {
                     Some((Candidate { a: Some(a), .. }, _)) => a,
                     Some((_, make)) => &*columns.get_or_insert_with(|| make().into_dense()),
                     None => unreachable!("a base's downdated fold needs no refit"),
                 };
-                self.heldout(design, &refit, Some(a))
+                (self.heldout(design, &refit, Some(a)), None)
             });
             sum.ss += h.ss;
             sum.floor += h.floor;
             sum.z2 += h.z2;
             sum.count += h.count;
+            after_ss = after_ss.zip(fold_after_ss).map(|(a, b)| a + b);
         }
-        sum
+        (sum, after_ss)
     }
 
     /// The folds of a base: downdated from the full fit (on all rows, in order) where its hat
@@ -376,7 +415,7 @@ impl Engine {
     pub fn base<D: LinearDesign>(&self, design: &D, all_rows: &[usize]) -> Bases<D::Fit> {
         let full = self.fit_base(design, all_rows.to_vec(), &[]);
         let fold_fits = self.fold_fits(design, &full);
-        let heldout = self.heldout_sum(design, &fold_fits, &full.res_w, None);
+        let (heldout, _) = self.heldout_sum(design, &fold_fits, &full.res_w, None);
         (full, fold_fits, heldout)
     }
 
@@ -391,18 +430,21 @@ impl Engine {
         columns: &dyn Fn() -> Columns,
     ) -> Eval {
         let any_refit = fold_fits.iter().any(|f| matches!(f, FoldFit::Refit(_)));
-        let (a, perp) = if any_refit || !self.is_every_row(&full.rows) {
+        let (a, perp, coeff) = if any_refit || !self.is_every_row(&full.rows) {
             let a = columns().into_dense();
             let aw = self.whitened_rows(&a, &full.rows);
-            (Some(a), Projected::new(&full.basis, aw))
+            let perp = Projected::new(&full.basis, aw);
+            let coeff = perp.ut(&full.res_w);
+            (Some(a), perp, coeff)
         } else {
-            (None, self.projected_in_place(&full.basis, columns()))
+            let (perp, coeff) = self.projected_in_place(&full.basis, columns(), &full.res_w);
+            (None, perp, coeff)
         };
         let (n_columns, entries) = (perp.vt.ncols(), full.rows.len() * perp.vt.ncols());
-        let coeff = perp.ut(&full.res_w);
         let chi2_drop = coeff.norm_squared();
-        let after_w = &full.res_w - perp.u_times(&coeff);
-        let rms_after = self.rms_reported(&after_w, &full.rows);
+        // Every fold downdated, each row held out once: the folds make the residuals after.
+        let after_w = (any_refit || !self.folds_hold_each_row_once())
+            .then(|| &full.res_w - perp.u_times(&coeff));
         // θ = V S⁻¹ Uᵀ r, from the coefficients Uᵀ r already at hand.
         let theta = perp.v_scaled(&coeff);
         // Cov(θ) = V S⁻² Vᵀ of the projected (Frisch–Waugh) design.
@@ -431,9 +473,23 @@ impl Engine {
             a: a.as_ref(),
             entries,
             projected: perp.as_ref(),
-            res_w: &after_w,
+            after: match &after_w {
+                Some(after_w) => After::Residuals(after_w),
+                None => After::Coefficients(&coeff),
+            },
         };
-        let heldout = self.heldout_sum(design, fold_fits, &full.res_w, Some((&candidate, columns)));
+        let (heldout, folds_after_ss) =
+            self.heldout_sum(design, fold_fits, &full.res_w, Some((&candidate, columns)));
+        let rms_after = match (&after_w, folds_after_ss, &perp) {
+            (Some(after_w), _, _) => self.rms_reported(after_w, &full.rows),
+            (None, Some(ss), _) => (ss / full.rows.len().max(1) as f64).sqrt(),
+            // A fold refitted after all: the residuals after made whole.
+            (None, None, perp) => {
+                let made = perp.as_ref().map(|p| p.u_times(&coeff));
+                let after_w = &full.res_w - made.unwrap_or_else(|| DVector::zeros(coeff.len()));
+                self.rms_reported(&after_w, &full.rows)
+            }
+        };
         Eval {
             chi2_drop,
             df,
@@ -448,8 +504,14 @@ impl Engine {
 
     /// Columns over every row whitened and projected off `fit`: dense ones in place, sparse
     /// ones implicitly where the fit can.
-    fn projected_in_place<F: LinearFit>(&self, fit: &F, columns: Columns) -> Projected {
-        match columns {
+    /// With Uᵀ b for the `b` given over every row.
+    fn projected_in_place<F: LinearFit>(
+        &self,
+        fit: &F,
+        columns: Columns,
+        b: &DVector<f64>,
+    ) -> (Projected, DVector<f64>) {
+        let projected = match columns {
             Columns::Dense(mut aw) => {
                 for (i, mut row) in aw.row_iter_mut().enumerate() {
                     row *= self.w[i];
@@ -460,11 +522,13 @@ impl Engine {
                 m.scale_rows(&self.w);
                 let reference = m.column_norm_max();
                 match fit.project_off_implicit(m) {
-                    Ok(rows) => Projected::from_rows(rows, reference),
+                    Ok(rows) => return Projected::from_rows(rows, reference, b),
                     Err(m) => Projected::new(fit, m.to_dense()),
                 }
             }
-        }
+        };
+        let ut = projected.ut(b);
+        (projected, ut)
     }
 
     /// Orthonormal basis of the candidate's columns projected off the full fit (for the

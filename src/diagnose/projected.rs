@@ -10,7 +10,9 @@ use nalgebra::{DMatrix, DVector};
 
 use super::columns::ProjectedRows;
 use super::engine::LinearFit;
-use super::stats::{gram_factor, qr_right_factor, Basis, EFFECT_RANK_TOL};
+use super::stats::{
+    factor_gram, gram_and_cross, gram_factor, qr_right_factor, Basis, EFFECT_RANK_TOL,
+};
 use crate::parallel;
 
 /// Rows of implicit projected columns made at once when they are walked whole.
@@ -61,17 +63,44 @@ impl Projected {
     }
 
     /// From columns already projected and kept implicit by the fit (`reference`: the largest
-    /// norm of the columns before their projection).
-    pub fn from_rows(rows: Box<dyn ProjectedRows>, reference: f64) -> Projected {
-        let (s, vt) = right_factor(
-            (rows.nrows(), rows.ncols()),
-            &|start, len| rows.rows_at(&(start..start + len).collect::<Vec<_>>()),
-            reference,
-        );
-        Projected {
-            s,
-            vt,
-            left: Left::Rows(rows),
+    /// norm of the columns before their projection), with Uᵀ b: on the Gram route from the
+    /// same walk over the rows as the Gram matrix (the rows are made again at each walk).
+    pub fn from_rows(
+        rows: Box<dyn ProjectedRows>,
+        reference: f64,
+        b: &DVector<f64>,
+    ) -> (Projected, DVector<f64>) {
+        let shape = (rows.nrows(), rows.ncols());
+        let gram_route = {
+            let block = |start, len| rows.rows_at(&(start..start + len).collect::<Vec<_>>());
+            let (gram, cross) = gram_and_cross(shape, &block, Some(b));
+            match factor_gram(gram, shape.0, EFFECT_RANK_TOL, reference) {
+                Some((s, vt)) => Ok((s, vt, cross)),
+                None => Err(qr_right_factor(shape, &block, EFFECT_RANK_TOL, reference)),
+            }
+        };
+        match gram_route {
+            Ok((s, vt, cross)) => {
+                let ut = match cross {
+                    Some(cross) => (&vt * cross).component_div(&s),
+                    None => DVector::zeros(s.len()),
+                };
+                let projected = Projected {
+                    s,
+                    vt,
+                    left: Left::Rows(rows),
+                };
+                (projected, ut)
+            }
+            Err((s, vt)) => {
+                let projected = Projected {
+                    s,
+                    vt,
+                    left: Left::Rows(rows),
+                };
+                let ut = projected.ut(b);
+                (projected, ut)
+            }
         }
     }
 

@@ -197,26 +197,58 @@ const MAX_GRAM_THREADS: usize = 2;
 /// between the Gram's rounding and its accurate range (an effect the model nearly absorbs): the
 /// caller then takes the SVD.
 pub fn gram_factor(
-    (n, k): (usize, usize),
+    shape: (usize, usize),
     block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     tol: f64,
     reference: f64,
 ) -> Option<(DVector<f64>, DMatrix<f64>)> {
-    if n == 0 || k == 0 {
-        return Some((DVector::zeros(0), DMatrix::zeros(0, k)));
-    }
-    // Blocks of rows: each block's product runs in the blocked matrix multiplication; the
-    // blocks on the cores, their products summed in the blocks' order (the same sum on any
-    // number of cores).
+    factor_gram(
+        gram_and_cross(shape, block, None).0,
+        shape.0,
+        tol,
+        reference,
+    )
+}
+
+/// AᵀA of a tall n × k matrix A given a block of its rows at a time, and Aᵀb for a `b` over
+/// its rows when given, in one walk over the rows. The blocks' products run in the blocked
+/// matrix multiplication, the blocks on the cores, their products summed in the blocks' order
+/// (the same sums on any number of cores).
+pub fn gram_and_cross(
+    (n, k): (usize, usize),
+    block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
+    b: Option<&DVector<f64>>,
+) -> (DMatrix<f64>, Option<DVector<f64>>) {
     const BLOCK: usize = 2048;
     let starts: Vec<usize> = (0..n).step_by(BLOCK).collect();
     let parts = parallel::in_groups(&starts, parallel::threads(MAX_GRAM_THREADS), |&start| {
-        let block = block(start, BLOCK.min(n - start));
-        block.tr_mul(&block)
+        let len = BLOCK.min(n - start);
+        let block = block(start, len);
+        let cross = b.map(|b| block.tr_mul(&b.rows(start, len)));
+        (block.tr_mul(&block), cross)
     });
-    let mut g = DMatrix::<f64>::zeros(k, k);
-    for part in parts {
-        g += part;
+    let mut gram = DMatrix::<f64>::zeros(k, k);
+    let mut cross = b.map(|_| DVector::<f64>::zeros(k));
+    for (g, c) in parts {
+        gram += g;
+        if let (Some(sum), Some(c)) = (cross.as_mut(), c) {
+            *sum += c;
+        }
+    }
+    (gram, cross)
+}
+
+/// The right factor of a matrix of `rows` rows from its Gram matrix (`gram_factor`); None
+/// when the Gram route is not accurate enough for it.
+pub fn factor_gram(
+    g: DMatrix<f64>,
+    rows: usize,
+    tol: f64,
+    reference: f64,
+) -> Option<(DVector<f64>, DMatrix<f64>)> {
+    let k = g.ncols();
+    if rows == 0 || k == 0 {
+        return Some((DVector::zeros(0), DMatrix::zeros(0, k)));
     }
     let g = DMatrix::from_fn(k, k, |r, c| 0.5 * (g[(r, c)] + g[(c, r)]));
     let eig = g.symmetric_eigen();

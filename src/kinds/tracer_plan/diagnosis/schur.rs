@@ -285,61 +285,106 @@ fn pinv3(m: &Matrix3<f64>) -> PseudoInverse3 {
     PseudoInverse3 { inv, factor, null }
 }
 
-/// Points whose elimination terms are stacked before they are taken off the reduced system
-/// in one matrix product.
-const POINTS_PER_PRODUCT: usize = 256;
-
-/// The points' elimination terms C_pᵀ M_p⁺ C_p = (F_p C_p)ᵀ (F_p C_p) taken off the reduced
-/// system a block of points at a time: each point's 3 rows of F_p C_p stacked over the global
-/// columns, then S −= ZᵀZ as one matrix product.
-struct EliminationRows {
-    /// (3 · POINTS_PER_PRODUCT) × g, column-major; rows past `used` are stale.
-    z: DMatrix<f64>,
-    used: usize,
+/// The reduced system S = Σ_p (D_p − C_pᵀ M_p⁺ C_p) (D_p = Σ b bᵀ over point p's rows, C_p =
+/// Σ a bᵀ) summed point by point: each point's term is formed whole over its touched columns
+/// (ascending) before it is added, so the sum holds only what each point leaves (not the large
+/// D_p and C_pᵀM⁺C_p that cancel); the terms of consecutive points on the same columns are
+/// summed over those columns and go into S when the columns change. The terms are symmetric:
+/// only their lower triangles are formed.
+struct ReducedSum {
+    /// Columns of the running sum and of the point's term (ascending).
+    cols: Vec<usize>,
+    /// The running sum and the point's term, column-major over `cols`.
+    sum: Vec<f64>,
+    term: Vec<f64>,
+    /// F_p C_p's three rows over the touched columns.
+    fc: [Vec<f64>; 3],
 }
 
-impl EliminationRows {
-    fn new(g: usize) -> EliminationRows {
-        EliminationRows {
-            z: DMatrix::zeros(3 * POINTS_PER_PRODUCT, g),
-            used: 0,
+impl ReducedSum {
+    fn new() -> ReducedSum {
+        ReducedSum {
+            cols: Vec::new(),
+            sum: Vec::new(),
+            term: Vec::new(),
+            fc: [Vec::new(), Vec::new(), Vec::new()],
         }
     }
 
-    /// Adds a point's rows F C over the touched columns `cols` (C's columns `c_local`).
-    fn push(
-        &mut self,
-        factor: &Matrix3<f64>,
-        cols: &[usize],
-        c_local: &[Vector3<f64>],
-        s: &mut DMatrix<f64>,
-    ) {
-        if self.used == POINTS_PER_PRODUCT {
-            self.take_off(s);
+    /// Starts a point's term over `cols` (ascending), the running sum moved into `s` first
+    /// when its columns are others.
+    fn begin_point(&mut self, cols: &[usize], s: &mut DMatrix<f64>) {
+        let k = cols.len();
+        if self.cols != cols {
+            self.flush(s);
+            self.cols.clear();
+            self.cols.extend_from_slice(cols);
+            self.sum.clear();
+            self.sum.resize(k * k, 0.0);
         }
-        let at = 3 * self.used;
-        self.z.rows_mut(at, 3).fill(0.0);
-        for (&c, cv) in cols.iter().zip(c_local) {
-            let fc = factor * cv;
-            for r in 0..3 {
-                self.z[(at + r, c)] = fc[r];
+        self.term.clear();
+        self.term.resize(k * k, 0.0);
+    }
+
+    /// D_p's part from one row: its entries by slot (ascending).
+    fn add_row(&mut self, entries: &[(usize, f64)]) {
+        let k = self.cols.len();
+        for (n, &(x, vx)) in entries.iter().enumerate() {
+            for &(y, vy) in &entries[n..] {
+                self.term[x * k + y] += vx * vy;
             }
         }
-        self.used += 1;
     }
 
-    /// S −= ZᵀZ over the rows pushed, and starts again.
-    fn take_off(&mut self, s: &mut DMatrix<f64>) {
-        if self.used == 0 {
-            return;
+    /// Ends the point: its term less (F C)ᵀ(F C) (F: M_p⁺ = FᵀF; `c` per slot), then added.
+    fn end_point(&mut self, factor: &Matrix3<f64>, c: &[Vector3<f64>]) {
+        let k = c.len();
+        for row in &mut self.fc {
+            row.clear();
         }
-        let (rows, g) = (3 * self.used, self.z.ncols());
-        let stride = self.z.nrows();
-        let z = self.z.rows(0, rows);
-        let zt =
-            nalgebra::DMatrixView::from_slice_with_strides(self.z.as_slice(), g, rows, stride, 1);
-        s.gemm(-1.0, &zt, &z, 1.0);
-        self.used = 0;
+        for cj in c {
+            let fc = factor * cj;
+            for (row, v) in self.fc.iter_mut().zip(fc.iter()) {
+                row.push(*v);
+            }
+        }
+        let [f0, f1, f2] = &self.fc;
+        for (x, column) in self.term.chunks_exact_mut(k).enumerate() {
+            let (a0, a1, a2) = (f0[x], f1[x], f2[x]);
+            let below = column[x..]
+                .iter_mut()
+                .zip(&f0[x..])
+                .zip(&f1[x..])
+                .zip(&f2[x..]);
+            for (((t, &b0), &b1), &b2) in below {
+                *t -= a0 * b0 + a1 * b1 + a2 * b2;
+            }
+        }
+        for (x, (sum, term)) in self
+            .sum
+            .chunks_exact_mut(k)
+            .zip(self.term.chunks_exact(k))
+            .enumerate()
+        {
+            for (s, t) in sum[x..].iter_mut().zip(&term[x..]) {
+                *s += t;
+            }
+        }
+    }
+
+    /// The running sum into S (both triangles).
+    fn flush(&mut self, s: &mut DMatrix<f64>) {
+        let k = self.cols.len();
+        for (x, &cx) in self.cols.iter().enumerate() {
+            for (y, &cy) in self.cols.iter().enumerate().skip(x) {
+                let v = self.sum[x * k + y];
+                s[(cy, cx)] += v;
+                if cy != cx {
+                    s[(cx, cy)] += v;
+                }
+            }
+        }
+        self.sum.fill(0.0);
     }
 }
 
@@ -392,49 +437,67 @@ impl Schur {
         // reduced system's equilibration.
         let mut column_norm2 = vec![0.0; g];
         let mut entries = Vec::new();
+        // Per member row of the current point: its entries by slot, and its a.
+        let mut row_entries: Vec<(usize, f64)> = Vec::new();
+        let mut row_starts: Vec<usize> = Vec::new();
         // Local column slots of the current point's touched global columns.
         let mut slot = vec![usize::MAX; g];
         let mut cols: Vec<usize> = Vec::new();
         let mut c_local: Vec<Vector3<f64>> = Vec::new();
-        let mut elimination = EliminationRows::new(g);
+        let mut reduced = ReducedSum::new();
         for p in 0..n {
             let members = &point_rows[point_start[p]..point_start[p + 1]];
             let mut m = Matrix3::zeros();
             cols.clear();
-            c_local.clear();
+            row_entries.clear();
+            row_starts.clear();
             for &pos in members {
                 let i = rows[pos];
                 let a = design.a(i);
                 m += a * a.transpose();
                 design.global_entries(i, &mut entries);
-                for (x, &(cx, vx)) in entries.iter().enumerate() {
+                row_starts.push(row_entries.len());
+                for &(cx, vx) in &entries {
                     column_norm2[cx] += vx * vx;
-                    // D = Σ b bᵀ (its entries summed per pair of the row's columns).
-                    for &(cy, vy) in &entries[x..] {
-                        s[(cx, cy)] += vx * vy;
-                        if cx != cy {
-                            s[(cy, cx)] += vx * vy;
-                        }
-                    }
                     if slot[cx] == usize::MAX {
-                        slot[cx] = cols.len();
+                        slot[cx] = 0;
                         cols.push(cx);
-                        c_local.push(Vector3::zeros());
                     }
-                    c_local[slot[cx]] += a * vx;
+                    row_entries.push((cx, vx));
+                }
+            }
+            row_starts.push(row_entries.len());
+            cols.sort_unstable();
+            for (k, &c) in cols.iter().enumerate() {
+                slot[c] = k;
+            }
+            for entry in &mut row_entries {
+                entry.0 = slot[entry.0];
+            }
+            for r in 0..members.len() {
+                row_entries[row_starts[r]..row_starts[r + 1]].sort_unstable_by_key(|e| e.0);
+            }
+            reduced.begin_point(&cols, &mut s);
+            c_local.clear();
+            c_local.resize(cols.len(), Vector3::zeros());
+            for (r, &pos) in members.iter().enumerate() {
+                let a = design.a(rows[pos]);
+                let entries = &row_entries[row_starts[r]..row_starts[r + 1]];
+                reduced.add_row(entries);
+                for &(x, vx) in entries {
+                    c_local[x] += a * vx;
                 }
             }
             let PseudoInverse3 { inv, factor, null } = pinv3(&m);
             point_rank += 3 - null.len();
             point_null.extend(null.into_iter().map(|v| (p, v)));
-            // S −= C_pᵀ M_p⁺ C_p on the touched columns.
-            elimination.push(&factor, &cols, &c_local, &mut s);
+            reduced.end_point(&factor, &c_local);
             for &c in &cols {
                 slot[c] = usize::MAX;
             }
             m_pinv.push(inv);
         }
-        elimination.take_off(&mut s);
+        reduced.flush(&mut s);
         // Symmetrise against the rounding of the two triangles' sums, and equilibrate: Ŝ =
         // D⁻¹ S D⁻¹ with D the columns' norms, so that the rank cut does not depend on the
         // columns' units. An effect column whose whitened entries are ~1e-7 of a station's
