@@ -6,6 +6,7 @@ use nalgebra::{Matrix3, Vector3};
 use super::data::Data;
 use super::effects::Geometry;
 use super::stats::f_sf;
+use crate::parallel;
 
 /// Time constants searched (s); Bonferroni over them.
 pub const TAU_GRID_S: [f64; 11] = [0.1, 0.15, 0.2, 0.3, 0.5, 0.7, 1.0, 1.5, 2.0, 3.0, 5.0];
@@ -222,6 +223,9 @@ fn solve3(xtx: &Matrix3<f64>, xtd: &Vector3<f64>) -> (Vector3<f64>, Vector3<f64>
     (s, var, rank)
 }
 
+/// Threads the time constants' walks over the raw samples run on.
+const MAX_THREADS: usize = 2;
+
 /// Fit settling at every time constant of the grid and return the best (largest χ² drop),
 /// or None when no window can show it (no raw samples, or no axis moved into a window).
 pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
@@ -231,67 +235,85 @@ pub fn evaluate(data: &Data, geom: &Geometry) -> Option<SettlingFit> {
     if usable.is_empty() {
         return None;
     }
-    let mut best: Option<SettlingFit> = None;
-    let mut w = WindowRows::default();
-    for &tau_s in &TAU_GRID_S {
-        let parts = fold_normals(data, geom, &usable, tau_s);
-        let Normal { xtx, xtd, dtd, n } = sum_normals(&parts, None);
-        let (s, var, df) = solve3(&xtx, &xtd);
+    // Each time constant's normal equations (one walk over the raw samples), on the cores.
+    let normals = parallel::in_groups(&TAU_GRID_S, parallel::threads(MAX_THREADS), |&tau_s| {
+        fold_normals(data, geom, &usable, tau_s)
+    });
+    // The largest χ² drop, the first of equal ones.
+    let mut best: Option<(usize, f64)> = None;
+    for (t, parts) in normals.iter().enumerate() {
+        let Normal { xtx, xtd, .. } = sum_normals(parts, None);
+        let (s, _, df) = solve3(&xtx, &xtd);
         if df == 0 {
             return None;
         }
         let chi2_drop = s.dot(&xtd);
-        if best.as_ref().is_some_and(|b| b.chi2_drop >= chi2_drop) {
-            continue;
+        if !best.is_some_and(|(_, b)| b >= chi2_drop) {
+            best = Some((t, chi2_drop));
         }
-        let windows = usable.len();
-        let dof = n.saturating_sub(windows).max(df + 1);
-        let chi2_after = (dtd - chi2_drop).max(f64::MIN_POSITIVE);
-        let dof_after = (dof - df) as f64;
-        let f_stat = (chi2_drop / df as f64) / (chi2_after / dof_after);
-        let p_value = (f_sf(f_stat, df as f64, dof_after) * TAU_GRID_S.len() as f64).min(1.0);
-        let bic_delta = dof as f64 * (chi2_after / dtd).ln() + (df + 1) as f64 * (dof as f64).ln();
-        // Held out: each fold's windows scored by the fit on the other windows. In the same
-        // walk, each window mean's bias and the residuals after the full fit.
-        let fold_fits: Vec<Vector3<f64>> = (0..FOLDS)
-            .map(|f| {
-                let train = sum_normals(&parts, Some(f));
-                solve3(&train.xtx, &train.xtd).0
-            })
-            .collect();
-        let (mut ms_base, mut ms_after, mut held, mut ss) = (0.0, 0.0, 0usize, 0.0);
-        let mut bias_m = vec![0.0; data.obs.len()];
-        for (k, &window) in usable.iter().enumerate() {
-            window_rows(data, geom, window, tau_s, &mut w);
-            let sf = &fold_fits[k % FOLDS];
-            let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
-            for (d, x) in w.d.iter().zip(&w.x) {
-                let x = Vector3::from(*x);
-                ms_base += (d * sigma).powi(2);
-                ms_after += ((d - x.dot(sf)) * sigma).powi(2);
-                ss += ((d - x.dot(&s)) * sigma).powi(2);
-                held += 1;
-            }
-            bias_m[w.obs] = (0..3).map(|a| w.mean_col[a] * s[a]).sum();
-        }
-        home_biases(data, tau_s, &mut bias_m);
-        let rms_after_m = (ss / n.max(1) as f64).sqrt();
-        best = Some(SettlingFit {
-            tau_s,
-            s_m: s.into(),
-            s_sigma_m: var.map(f64::sqrt).into(),
-            df,
-            windows,
-            dof,
-            chi2_base: dtd,
-            chi2_drop,
-            p_value,
-            bic_delta,
-            rms_after_m,
-            heldout_ms_base_m2: ms_base / held.max(1) as f64,
-            heldout_ms_after_m2: ms_after / held.max(1) as f64,
-            bias_m,
-        });
     }
-    best
+    let (t, _) = best?;
+    Some(fit_at(data, geom, &usable, TAU_GRID_S[t], &normals[t]))
+}
+
+/// The settling fit at time constant `tau_s`, from its folds' normal equations `parts`.
+fn fit_at(
+    data: &Data,
+    geom: &Geometry,
+    usable: &[(usize, [f64; 3])],
+    tau_s: f64,
+    parts: &[Normal; FOLDS],
+) -> SettlingFit {
+    let Normal { xtx, xtd, dtd, n } = sum_normals(parts, None);
+    let (s, var, df) = solve3(&xtx, &xtd);
+    let chi2_drop = s.dot(&xtd);
+    let windows = usable.len();
+    let dof = n.saturating_sub(windows).max(df + 1);
+    let chi2_after = (dtd - chi2_drop).max(f64::MIN_POSITIVE);
+    let dof_after = (dof - df) as f64;
+    let f_stat = (chi2_drop / df as f64) / (chi2_after / dof_after);
+    let p_value = (f_sf(f_stat, df as f64, dof_after) * TAU_GRID_S.len() as f64).min(1.0);
+    let bic_delta = dof as f64 * (chi2_after / dtd).ln() + (df + 1) as f64 * (dof as f64).ln();
+    // Held out: each fold's windows scored by the fit on the other windows. In the same
+    // walk, each window mean's bias and the residuals after the full fit.
+    let fold_fits: Vec<Vector3<f64>> = (0..FOLDS)
+        .map(|f| {
+            let train = sum_normals(parts, Some(f));
+            solve3(&train.xtx, &train.xtd).0
+        })
+        .collect();
+    let (mut ms_base, mut ms_after, mut held, mut ss) = (0.0, 0.0, 0usize, 0.0);
+    let mut bias_m = vec![0.0; data.obs.len()];
+    let mut w = WindowRows::default();
+    for (k, &window) in usable.iter().enumerate() {
+        window_rows(data, geom, window, tau_s, &mut w);
+        let sf = &fold_fits[k % FOLDS];
+        let sigma = data.obs[w.obs].sigma_m * (w.d.len() as f64).sqrt();
+        for (d, x) in w.d.iter().zip(&w.x) {
+            let x = Vector3::from(*x);
+            ms_base += (d * sigma).powi(2);
+            ms_after += ((d - x.dot(sf)) * sigma).powi(2);
+            ss += ((d - x.dot(&s)) * sigma).powi(2);
+            held += 1;
+        }
+        bias_m[w.obs] = (0..3).map(|a| w.mean_col[a] * s[a]).sum();
+    }
+    home_biases(data, tau_s, &mut bias_m);
+    let rms_after_m = (ss / n.max(1) as f64).sqrt();
+    SettlingFit {
+        tau_s,
+        s_m: s.into(),
+        s_sigma_m: var.map(f64::sqrt).into(),
+        df,
+        windows,
+        dof,
+        chi2_base: dtd,
+        chi2_drop,
+        p_value,
+        bic_delta,
+        rms_after_m,
+        heldout_ms_base_m2: ms_base / held.max(1) as f64,
+        heldout_ms_after_m2: ms_after / held.max(1) as f64,
+        bias_m,
+    }
 }
