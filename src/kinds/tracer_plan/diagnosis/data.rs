@@ -31,22 +31,26 @@ pub struct Obs {
     pub t_s: f64,
     pub length_m: f64,
     pub sigma_m: f64,
-    /// Sign of the last move of x, y, z before this dwell.
-    pub approach: [f64; 3],
-    pub nominal_m: [f64; 3],
+    /// Sign of the last move of x, y, z before this dwell (−1, 0 or 1).
+    pub approach: [i8; 3],
     /// Edlén n − n_ref from the logged air at t_s, when the session has an environment log.
     pub dn: Option<f64>,
     /// Mean logged material temperature at t_s minus 20 °C, when the log has material sensors.
     pub material_dt_k: Option<f64>,
     /// Commanded axis positions x, y, z (from `point_begin`; 0 for an axis not named).
     pub axes_m: [f64; 3],
-    /// When the counter was zeroed for this length's pass (the homing, just before the home
-    /// dwell begins), with the logged air and material temperature then: an effect that
-    /// changes in time is zeroed at that instant, not at the home dwell's middle.
-    pub zeroed: Zeroing,
 }
 
-/// The state of a pass's homing (the instant its counter was zeroed).
+impl Obs {
+    /// The approach signs as numbers.
+    pub fn approach_sign(&self, axis: usize) -> f64 {
+        f64::from(self.approach[axis])
+    }
+}
+
+/// The state of a pass's homing (the instant its counter was zeroed, just before the home
+/// dwell begins), with the logged air and material temperature then: an effect that changes in
+/// time is zeroed at that instant, not at the home dwell's middle.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Zeroing {
     pub t_s: f64,
@@ -59,9 +63,10 @@ pub struct Data {
     pub session_id: String,
     pub obs: Vec<Obs>,
     pub station_ids: Vec<String>,
-    /// Per pass group: observation indices in time order, and a readable name.
+    /// Per pass group: observation indices in time order, a readable name and its homing.
     pub passes: Vec<Vec<usize>>,
     pub pass_names: Vec<String>,
+    pub pass_zeroings: Vec<Zeroing>,
     pub problem: MultilaterationProblem,
     /// The calibration: `problem` solved (the fit its σ were fixed at, so solving `problem`
     /// again gives it back); taken by the diagnosis. None when that solve failed, or taken.
@@ -252,6 +257,7 @@ struct Observed {
     obs: Vec<Obs>,
     passes: Vec<Vec<usize>>,
     pass_names: Vec<String>,
+    pass_zeroings: Vec<Zeroing>,
     built: crate::method::multilateration::Problem,
     station_start_s: Vec<f64>,
 }
@@ -353,18 +359,13 @@ impl Observed {
                 t_s,
                 length_m: m.length_m,
                 sigma_m: m.sigma_m,
-                approach: d.approach.map(f64::from),
-                nominal_m: m.nominal_m,
+                approach: d.approach,
                 dn: air_at(&env, t_s),
                 material_dt_k: material_dt_k(t_s),
                 axes_m: d.axes_m,
-                zeroed: Zeroing {
-                    t_s,
-                    dn: None,
-                    material_dt_k: None,
-                },
             });
         }
+        let mut pass_zeroings = Vec::with_capacity(passes.len());
         for members in &mut passes {
             members.sort_by(|&a, &b| obs[a].t_s.total_cmp(&obs[b].t_s));
             // The homing point's dwell comes first after homing; if it was dropped, the
@@ -375,14 +376,13 @@ impl Observed {
                 .find(|&i| built.points[obs[i].point].1 == 0)
                 .unwrap_or(members[0]);
             let t_s = arrival_s[home];
-            let zeroed = Zeroing {
+            pass_zeroings.push(Zeroing {
                 t_s,
                 dn: air_at(&env, t_s),
                 material_dt_k: material_dt_k(t_s),
-            };
+            });
             for &i in members.iter() {
                 obs[i].home = home;
-                obs[i].zeroed = zeroed;
             }
         }
         let m = extraction.stations.len();
@@ -394,6 +394,7 @@ impl Observed {
             obs,
             passes,
             pass_names,
+            pass_zeroings,
             built,
             station_start_s,
         })
@@ -414,6 +415,7 @@ impl Observed {
             mut obs,
             passes,
             pass_names,
+            pass_zeroings,
             built,
             station_start_s,
         } = self;
@@ -440,6 +442,7 @@ impl Observed {
             station_ids,
             passes,
             pass_names,
+            pass_zeroings,
             problem,
             nominal,
             station_start_s,

@@ -557,7 +557,7 @@ impl EffectModel {
                 for (i, o) in obs.iter().enumerate() {
                     let (u, _) = geom.beam_of(o);
                     for a in 0..3 {
-                        f[(i, a)] = -u[a] * 0.5 * o.approach[a];
+                        f[(i, a)] = -u[a] * 0.5 * o.approach_sign(a);
                     }
                 }
                 f
@@ -623,9 +623,9 @@ impl EffectModel {
 fn zeroings(data: &Data) -> Vec<Obs> {
     data.passes
         .iter()
-        .map(|members| {
+        .zip(&data.pass_zeroings)
+        .map(|(members, z)| {
             let home = &data.obs[data.obs[members[0]].home];
-            let z = home.zeroed;
             Obs {
                 t_s: z.t_s,
                 dn: z.dn,

@@ -153,19 +153,24 @@ pub fn locate(
     for (a, axis) in ["x", "y", "z"].iter().enumerate() {
         for (s, sign) in [(1.0, "+"), (-1.0, "-")] {
             let members = (0..nobs)
-                .filter(|&i| data.obs[i].approach[a] == s)
+                .filter(|&i| data.obs[i].approach_sign(a) == s)
                 .collect();
             groups.push(("direction", format!("{axis}{sign}"), members));
         }
     }
     let centre: [f64; 3] = std::array::from_fn(|a| {
-        data.obs.iter().map(|o| o.nominal_m[a]).sum::<f64>() / nobs.max(1) as f64
+        data.obs
+            .iter()
+            .map(|o| data.points[o.point].2[a])
+            .sum::<f64>()
+            / nobs.max(1) as f64
     });
     for octant in 0..8 {
         let key = octant_key(octant);
         let members = (0..nobs)
             .filter(|&i| {
-                (0..3).all(|a| (data.obs[i].nominal_m[a] > centre[a]) == (octant >> a & 1 == 1))
+                let nominal_m = data.points[data.obs[i].point].2;
+                (0..3).all(|a| (nominal_m[a] > centre[a]) == (octant >> a & 1 == 1))
             })
             .collect();
         groups.push(("region", key, members));

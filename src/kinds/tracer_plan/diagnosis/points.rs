@@ -139,7 +139,7 @@ pub fn per_pass_points(data: &Data, lengths_m: &[f64]) -> Result<PerPass, String
             pass_points.push(PassPoint {
                 point: o.point,
                 pass: o.pass,
-                approach: o.approach,
+                approach: std::array::from_fn(|a| o.approach_sign(a)),
             });
             pass_points.len() - 1
         });
