@@ -1172,12 +1172,23 @@ impl LowRank for ReducedRows {
         let d = &self.design;
         let mut out = DMatrix::zeros(self.red.dim, positions.len());
         let mut entries = Vec::new();
-        for (mut rho, &pos) in out.column_iter_mut().zip(positions) {
+        let k = self.red.dim;
+        let (f, wt) = (self.red.f.as_slice(), self.red.wt.as_slice());
+        // On contiguous slices: these loops vectorise, a view's iterators do not.
+        for (rho, &pos) in out.as_mut_slice().chunks_exact_mut(k).zip(positions) {
             let i = self.set[pos];
-            rho.gemv(-1.0, &self.red.f_point(d.rows[i].point), &d.a(i), 0.0);
+            let (p, a) = (d.rows[i].point, d.a(i));
+            let fp = &f[3 * p * k..(3 * p + 3) * k];
+            let (f0, rest) = fp.split_at(k);
+            let (f1, f2) = rest.split_at(k);
+            for (((r, x0), x1), x2) in rho.iter_mut().zip(f0).zip(f1).zip(f2) {
+                *r = -(x0 * a[0] + x1 * a[1] + x2 * a[2]);
+            }
             d.global_entries(i, &mut entries);
             for &(c, x) in &entries {
-                rho.axpy(x, &self.red.wt.column(c), 1.0);
+                for (r, w) in rho.iter_mut().zip(&wt[c * k..(c + 1) * k]) {
+                    *r += x * w;
+                }
             }
         }
         out

@@ -11,7 +11,7 @@
 use std::ops::Range;
 use std::sync::Arc;
 
-use nalgebra::{DMatrix, DMatrixViewMut};
+use nalgebra::DMatrix;
 
 use crate::diagnose::columns::{ProjectedRows, RowSparse};
 use crate::parallel::{self, split_lengths};
@@ -30,6 +30,12 @@ fn point_parts<'a>(
 ) -> Vec<(Range<usize>, &'a mut [f64])> {
     let pieces = split_lengths(qt.as_mut_slice(), parts.iter().map(|p| 3 * k * p.len()));
     parts.iter().cloned().zip(pieces).collect()
+}
+
+/// Column `j` of a k-row matrix as a slice (contiguous loops over it vectorise; a view's
+/// iterator does not).
+fn column(m: &DMatrix<f64>, j: usize, k: usize) -> &[f64] {
+    &m.as_slice()[j * k..(j + 1) * k]
 }
 
 /// Writes the columns' row at a position (with a scratch list of entries).
@@ -55,15 +61,16 @@ impl ImplicitProjection {
     fn row_into(&self, pos: usize, out: &mut [f64], entries: &mut Vec<(usize, f64)>) {
         self.m.row_into(pos, out);
         let (d, i, c) = (&self.design, self.rows[pos], &self.coefficients);
+        let k = out.len();
         d.global_entries(i, entries);
         for &(col, x) in entries.iter() {
-            for (o, z) in out.iter_mut().zip(c.zt.column(col).iter()) {
+            for (o, z) in out.iter_mut().zip(column(&c.zt, col, k)) {
                 *o -= x * z;
             }
         }
         let (p, a) = (d.rows[i].point, d.a(i));
         for (x, &ax) in a.iter().enumerate() {
-            for (o, q) in out.iter_mut().zip(c.qt.column(3 * p + x).iter()) {
+            for (o, q) in out.iter_mut().zip(column(&c.qt, 3 * p + x, k)) {
                 *o -= ax * q;
             }
         }
@@ -154,8 +161,8 @@ impl Schur {
     ) -> DMatrix<f64> {
         let d = &self.design;
         let first = points.start;
-        let mut s = DMatrixViewMut::from_slice(s, k, 3 * points.len());
         let mut tt = DMatrix::<f64>::zeros(k, d.n_global());
+        let tt_columns = tt.as_mut_slice();
         let mut entries = Vec::new();
         let mut member_rows: Vec<f64> = Vec::new();
         let mut q1 = vec![0.0; 3 * k];
@@ -166,10 +173,11 @@ impl Schur {
                 row(pos, r, &mut entries);
             }
             let at = 3 * (p - first);
+            let sp = &mut s[at * k..(at + 3) * k];
             for (r, &pos) in member_rows.chunks(k).zip(members) {
                 let a = d.a(self.rows[pos]);
-                for x in 0..3 {
-                    for (sc, v) in s.column_mut(at + x).iter_mut().zip(r) {
+                for (x, column) in sp.chunks_exact_mut(k).enumerate() {
+                    for (sc, v) in column.iter_mut().zip(r) {
                         *sc += a[x] * v;
                     }
                 }
@@ -178,7 +186,7 @@ impl Schur {
             let mp = self.m_pinv[p];
             for x in 0..3 {
                 for c in 0..k {
-                    q1[x * k + c] = (0..3).map(|y| mp[(x, y)] * s[(c, at + y)]).sum();
+                    q1[x * k + c] = (0..3).map(|y| mp[(x, y)] * sp[y * k + c]).sum();
                 }
             }
             for (r, &pos) in member_rows.chunks_mut(k).zip(members) {
@@ -189,7 +197,8 @@ impl Schur {
                 }
                 d.global_entries(i, &mut entries);
                 for &(col, x) in &entries {
-                    for (t, v) in tt.column_mut(col).iter_mut().zip(r.iter()) {
+                    let t = &mut tt_columns[col * k..(col + 1) * k];
+                    for (t, v) in t.iter_mut().zip(r.iter()) {
                         *t += x * v;
                     }
                 }
@@ -202,32 +211,32 @@ impl Schur {
     fn point_coefficients(&self, points: Range<usize>, s: &mut [f64], k: usize, zt: &DMatrix<f64>) {
         let d = &self.design;
         let first = points.start;
-        let mut s = DMatrixViewMut::from_slice(s, k, 3 * points.len());
         let mut entries = Vec::new();
         let mut bz = vec![0.0; k];
         for p in points {
             let at = 3 * (p - first);
+            let sp = &mut s[at * k..(at + 3) * k];
             for &pos in self.members(p) {
                 let i = self.rows[pos];
                 d.global_entries(i, &mut entries);
                 bz.fill(0.0);
                 for &(col, x) in &entries {
-                    for (b, z) in bz.iter_mut().zip(zt.column(col).iter()) {
+                    for (b, z) in bz.iter_mut().zip(column(zt, col, k)) {
                         *b += x * z;
                     }
                 }
                 let a = d.a(i);
-                for x in 0..3 {
-                    for (sc, b) in s.column_mut(at + x).iter_mut().zip(&bz) {
+                for (x, column) in sp.chunks_exact_mut(k).enumerate() {
+                    for (sc, b) in column.iter_mut().zip(&bz) {
                         *sc -= a[x] * b;
                     }
                 }
             }
             let mp = self.m_pinv[p];
             for c in 0..k {
-                let v = [s[(c, at)], s[(c, at + 1)], s[(c, at + 2)]];
+                let v = [sp[c], sp[k + c], sp[2 * k + c]];
                 for x in 0..3 {
-                    s[(c, at + x)] = (0..3).map(|y| mp[(x, y)] * v[y]).sum();
+                    sp[x * k + c] = (0..3).map(|y| mp[(x, y)] * v[y]).sum();
                 }
             }
         }
