@@ -480,13 +480,16 @@ impl Engine {
         };
         let (heldout, folds_after_ss) =
             self.heldout_sum(design, fold_fits, &full.res_w, Some((&candidate, columns)));
-        let rms_after = match (&after_w, folds_after_ss, &perp) {
-            (Some(after_w), _, _) => self.rms_reported(after_w, &full.rows),
-            (None, Some(ss), _) => (ss / full.rows.len().max(1) as f64).sqrt(),
-            // A fold refitted after all: the residuals after made whole.
-            (None, None, perp) => {
-                let made = perp.as_ref().map(|p| p.u_times(&coeff));
-                let after_w = &full.res_w - made.unwrap_or_else(|| DVector::zeros(coeff.len()));
+        let rms_after = match (&after_w, folds_after_ss) {
+            (Some(after_w), _) => self.rms_reported(after_w, &full.rows),
+            (None, Some(ss)) => (ss / full.rows.len().max(1) as f64).sqrt(),
+            // A fold refitted after all: the residuals after made whole (every fold was
+            // downdated when this route was taken, so the projection is held).
+            (None, None) => {
+                let after_w = match &perp {
+                    Some(perp) => &full.res_w - perp.u_times(&coeff),
+                    None => full.res_w.clone(),
+                };
                 self.rms_reported(&after_w, &full.rows)
             }
         };

@@ -71,37 +71,28 @@ impl Projected {
         b: &DVector<f64>,
     ) -> (Projected, DVector<f64>) {
         let shape = (rows.nrows(), rows.ncols());
-        let gram_route = {
+        // Uᵀb = S⁻¹ Vᵀ (Aᵀb) on the Gram route; the QR route walks the rows again for it.
+        let (s, vt, ut) = {
             let block = |start, len| rows.rows_at(&(start..start + len).collect::<Vec<_>>());
-            let (gram, cross) = gram_and_cross(shape, &block, Some(b));
+            let (gram, cross) = gram_and_cross(shape, &block, b);
             match factor_gram(gram, shape.0, EFFECT_RANK_TOL, reference) {
-                Some((s, vt)) => Ok((s, vt, cross)),
-                None => Err(qr_right_factor(shape, &block, EFFECT_RANK_TOL, reference)),
+                Some((s, vt)) => {
+                    let ut = (&vt * cross).component_div(&s);
+                    (s, vt, Some(ut))
+                }
+                None => {
+                    let (s, vt) = qr_right_factor(shape, &block, EFFECT_RANK_TOL, reference);
+                    (s, vt, None)
+                }
             }
         };
-        match gram_route {
-            Ok((s, vt, cross)) => {
-                let ut = match cross {
-                    Some(cross) => (&vt * cross).component_div(&s),
-                    None => DVector::zeros(s.len()),
-                };
-                let projected = Projected {
-                    s,
-                    vt,
-                    left: Left::Rows(rows),
-                };
-                (projected, ut)
-            }
-            Err((s, vt)) => {
-                let projected = Projected {
-                    s,
-                    vt,
-                    left: Left::Rows(rows),
-                };
-                let ut = projected.ut(b);
-                (projected, ut)
-            }
-        }
+        let projected = Projected {
+            s,
+            vt,
+            left: Left::Rows(rows),
+        };
+        let ut = ut.unwrap_or_else(|| projected.ut(b));
+        (projected, ut)
     }
 
     /// Identifiable directions (the projected rank).

@@ -203,37 +203,44 @@ pub fn gram_factor(
     reference: f64,
 ) -> Option<(DVector<f64>, DMatrix<f64>)> {
     factor_gram(
-        gram_and_cross(shape, block, None).0,
+        block_products(shape, block, None).0,
         shape.0,
         tol,
         reference,
     )
 }
 
-/// AᵀA of a tall n × k matrix A given a block of its rows at a time, and Aᵀb for a `b` over
-/// its rows when given, in one walk over the rows. The blocks' products run in the blocked
-/// matrix multiplication, the blocks on the cores, their products summed in the blocks' order
-/// (the same sums on any number of cores).
+/// AᵀA and Aᵀb of a tall n × k matrix A given a block of its rows at a time, in one walk over
+/// the rows.
 pub fn gram_and_cross(
+    shape: (usize, usize),
+    block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
+    b: &DVector<f64>,
+) -> (DMatrix<f64>, DVector<f64>) {
+    block_products(shape, block, Some(b))
+}
+
+/// AᵀA, and Aᵀb when `b` is given (else an empty vector). The blocks' products run in the
+/// blocked matrix multiplication, the blocks on the cores, their products summed in the
+/// blocks' order (the same sums on any number of cores).
+fn block_products(
     (n, k): (usize, usize),
     block: &(dyn Fn(usize, usize) -> DMatrix<f64> + Sync),
     b: Option<&DVector<f64>>,
-) -> (DMatrix<f64>, Option<DVector<f64>>) {
+) -> (DMatrix<f64>, DVector<f64>) {
     const BLOCK: usize = 2048;
     let starts: Vec<usize> = (0..n).step_by(BLOCK).collect();
     let parts = parallel::in_groups(&starts, parallel::threads(MAX_GRAM_THREADS), |&start| {
         let len = BLOCK.min(n - start);
         let block = block(start, len);
-        let cross = b.map(|b| block.tr_mul(&b.rows(start, len)));
+        let cross = b.map_or_else(|| DVector::zeros(0), |b| block.tr_mul(&b.rows(start, len)));
         (block.tr_mul(&block), cross)
     });
     let mut gram = DMatrix::<f64>::zeros(k, k);
-    let mut cross = b.map(|_| DVector::<f64>::zeros(k));
+    let mut cross = DVector::<f64>::zeros(if b.is_some() { k } else { 0 });
     for (g, c) in parts {
         gram += g;
-        if let (Some(sum), Some(c)) = (cross.as_mut(), c) {
-            *sum += c;
-        }
+        cross += c;
     }
     (gram, cross)
 }

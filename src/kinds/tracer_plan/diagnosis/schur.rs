@@ -471,11 +471,9 @@ impl Schur {
             for (k, &c) in cols.iter().enumerate() {
                 slot[c] = k;
             }
+            // Slots follow the global columns' order, so each row's entries stay ascending.
             for entry in &mut row_entries {
                 entry.0 = slot[entry.0];
-            }
-            for r in 0..members.len() {
-                row_entries[row_starts[r]..row_starts[r + 1]].sort_unstable_by_key(|e| e.0);
             }
             reduced.begin_point(&cols, &mut s);
             c_local.clear();
