@@ -10,5 +10,6 @@ pub mod hexapod_weighted;
 pub mod misfit;
 pub mod multilateration;
 pub mod probe_install;
+mod resection;
 pub mod robust;
 pub mod rotary_sphere;
