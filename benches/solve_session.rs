@@ -626,12 +626,17 @@ struct CeresRun {
     summary_linear: Duration,
     iterations: u64,
     chi2: f64,
-    chi2_start: f64,
     points: Vec<Vector3<f64>>,
 }
 
-/// Writes the extracted problem as the peer reads it: the same start as geocal's (points at
-/// nominal, stations at their hints, homing distances fitted), the σ geocal weighed each
+/// The peer's first trust region radius beside Ceres's default (1e4): from this problem's
+/// start Ceres then takes Gauss–Newton steps and converges in 3 iterations instead of 9–14
+/// (any radius from 1e10 up does; 1e8 still takes 10).
+const CERES_GAUSS_NEWTON_RADIUS: f64 = 1e12;
+
+/// Writes the extracted problem as the peer reads it: the same input as geocal's (points at
+/// nominal, stations at their hints, homing distances fitted; geocal's own resection of the
+/// stations is part of its timed solve), the σ geocal weighed each
 /// length with at its solution (fixed for Ceres), six point coordinates held as the gauge.
 fn write_peer_problem(
     problem: &MultilaterationProblem,
@@ -680,12 +685,16 @@ fn write_peer_problem(
     std::fs::write(path, text)
 }
 
-fn run_ceres(exe: &Path, problem_file: &Path) -> Result<CeresRun, String> {
+/// The peer on `problem_file` with 2 threads, from Ceres's default first trust region or
+/// from `radius`.
+fn run_ceres(exe: &Path, problem_file: &Path, radius: Option<f64>) -> Result<CeresRun, String> {
     let points_file = problem_file.with_extension("points");
-    let output = Command::new(exe)
-        .arg(problem_file)
-        .arg(&points_file)
-        .arg("2")
+    let mut command = Command::new(exe);
+    command.arg(problem_file).arg(&points_file).arg("2");
+    if let Some(radius) = radius {
+        command.arg(format!("{radius:e}"));
+    }
+    let output = command
         .output()
         .map_err(|e| format!("cannot run {}: {e}", exe.display()))?;
     let stdout = String::from_utf8_lossy(&output.stdout);
@@ -713,7 +722,6 @@ fn run_ceres(exe: &Path, problem_file: &Path) -> Result<CeresRun, String> {
         summary_linear: Duration::from_secs_f64(v["ceres_linear_solver_s"].as_f64().unwrap_or(0.0)),
         iterations: v["iterations"].as_u64().unwrap_or(0),
         chi2: v["chi2"].as_f64().unwrap_or(f64::NAN),
-        chi2_start: v["chi2_start"].as_f64().unwrap_or(f64::NAN),
         points,
     })
 }
@@ -762,55 +770,67 @@ fn compare_with_ceres(cases: &[Case]) {
         // Side by side: each repeat runs geocal end to end, then Ceres on the same problem.
         let mut geocal_runs = Vec::new();
         let mut ceres_runs = Vec::new();
+        let mut gauss_newton_runs = Vec::new();
         for _ in 0..repeats {
             match run_geocal_solve(&path, &out) {
                 Ok(run) => geocal_runs.push(run),
                 Err(e) => println!("{}: {e}", case.name),
             }
             if let Ok(exe) = &peer {
-                match run_ceres(exe, &problem_file) {
-                    Ok(run) => ceres_runs.push(run),
-                    Err(e) => println!("{}: Ceres failed: {e}", case.name),
+                for (radius, runs) in [
+                    (None, &mut ceres_runs),
+                    (Some(CERES_GAUSS_NEWTON_RADIUS), &mut gauss_newton_runs),
+                ] {
+                    match run_ceres(exe, &problem_file, radius) {
+                        Ok(run) => runs.push(run),
+                        Err(e) => println!("{}: Ceres failed: {e}", case.name),
+                    }
                 }
             }
         }
         let best_geocal = geocal_runs.iter().min_by_key(|r| r.wall);
         let best_ceres = ceres_runs.iter().min_by_key(|r| r.solve_time);
-        rows.push((
-            case.name,
+        let best_gauss_newton = gauss_newton_runs.iter().min_by_key(|r| r.solve_time);
+        let peer_best = |run: Option<&CeresRun>| {
+            run.map(|c| PeerBest {
+                solve_time: c.solve_time,
+                summary_total: c.summary_total,
+                summary_linear: c.summary_linear,
+                iterations: c.iterations,
+                chi2: c.chi2,
+                point_rms_m: rms_error(&c.points, &truth),
+            })
+        };
+        rows.push(Row {
+            name: case.name,
             samples,
-            problem.observations.len(),
+            lengths: problem.observations.len(),
             file_mb,
-            best_geocal.map(|r| (r.wall, r.cpu, r.peak_rss_kib)),
-            solution.iterations,
-            solution.chi2,
-            geocal_rms,
-            best_ceres.map(|c| {
-                (
-                    c.solve_time,
-                    (c.summary_total, c.summary_linear),
-                    c.iterations,
-                    c.chi2,
-                    c.chi2_start,
-                    rms_error(&c.points, &truth),
-                )
-            }),
-        ));
+            geocal: best_geocal.map(|r| (r.wall, r.cpu, r.peak_rss_kib)),
+            iterations: solution.iterations,
+            chi2: solution.chi2,
+            point_rms_m: geocal_rms,
+            ceres: peer_best(best_ceres),
+            gauss_newton: peer_best(best_gauss_newton),
+        });
     }
     println!();
     println!(
         "geocal solve end to end (read, extract, solve, covariance, results; best of {repeats}, \
          /usr/bin/time) vs the Ceres peer's solve alone (DENSE_SCHUR, 2 threads, best of \
-         {repeats}), side by side; point error = RMS vs the truth after a rigid fit"
+         {repeats}), side by side: from Ceres's default first trust region (1e4) and from \
+         {CERES_GAUSS_NEWTON_RADIUS:e} (Gauss–Newton steps); point error = RMS vs the truth \
+         after a rigid fit"
     );
     println!(
         "| case | tracer samples | lengths | file | geocal wall | geocal CPU | peak RSS | \
-         iterations | Ceres solve | Ceres summary total / linear solver | ratio geocal/Ceres | \
-         Ceres iterations | point error geocal | point error Ceres | chi2 geocal | chi2 Ceres |"
+         iterations | Ceres solve, default radius (summary total / linear solver), iterations | \
+         ratio | Ceres solve, radius {CERES_GAUSS_NEWTON_RADIUS:e}, iterations | ratio | \
+         point error geocal | point error Ceres (both) | chi2 geocal | chi2 Ceres (both) |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|");
-    for (name, samples, lengths, mb, g, iters, chi2, rms, c) in rows {
-        let (wall, cpu, rss) = match g {
+    for row in rows {
+        let (wall, cpu, rss) = match row.geocal {
             Some((w, c, r)) => (
                 fmt_time(w),
                 fmt_time(c),
@@ -818,30 +838,70 @@ fn compare_with_ceres(cases: &[Case]) {
             ),
             None => ("-".into(), "-".into(), "-".into()),
         };
-        let (ctime, csummary, ratio, citers, crms, cchi2) = match (c, g) {
-            (Some((t, (total, linear), it, chi2c, _start, crms)), g) => (
-                fmt_time(t),
-                format!("{} / {}", fmt_time(total), fmt_time(linear)),
-                g.map_or("-".into(), |(w, _, _)| {
-                    format!("{:.2}", w.as_secs_f64() / t.as_secs_f64())
-                }),
-                it.to_string(),
-                format!("{:.3} µm", crms * 1e6),
-                format!("{chi2c:.1}"),
-            ),
-            (None, _) => (
-                "-".into(),
-                "-".into(),
-                "-".into(),
-                "-".into(),
-                "-".into(),
-                "-".into(),
-            ),
+        let ratio = |peer: &Option<PeerBest>| match (peer, row.geocal) {
+            (Some(c), Some((w, _, _))) => {
+                format!("{:.2}", w.as_secs_f64() / c.solve_time.as_secs_f64())
+            }
+            _ => "-".into(),
         };
+        let either = |f: &dyn Fn(&PeerBest) -> String| {
+            [&row.ceres, &row.gauss_newton]
+                .iter()
+                .map(|c| c.as_ref().map_or("-".into(), f))
+                .collect::<Vec<_>>()
+                .join(" / ")
+        };
+        let default_peer = row.ceres.as_ref().map_or("-".into(), |c| {
+            format!(
+                "{} ({} / {}), {}",
+                fmt_time(c.solve_time),
+                fmt_time(c.summary_total),
+                fmt_time(c.summary_linear),
+                c.iterations
+            )
+        });
+        let gauss_newton_peer = row.gauss_newton.as_ref().map_or("-".into(), |c| {
+            format!("{}, {}", fmt_time(c.solve_time), c.iterations)
+        });
         println!(
-            "| {name} | {samples} | {lengths} | {mb:.0} MB | {wall} | {cpu} | {rss} | {iters} | \
-             {ctime} | {csummary} | {ratio} | {citers} | {:.3} µm | {crms} | {chi2:.1} | {cchi2} |",
-            rms * 1e6
+            "| {} | {} | {} | {:.0} MB | {wall} | {cpu} | {rss} | {} | {default_peer} | {} | \
+             {gauss_newton_peer} | {} | {:.3} µm | {} | {:.1} | {} |",
+            row.name,
+            row.samples,
+            row.lengths,
+            row.file_mb,
+            row.iterations,
+            ratio(&row.ceres),
+            ratio(&row.gauss_newton),
+            row.point_rms_m * 1e6,
+            either(&|c| format!("{:.3} µm", c.point_rms_m * 1e6)),
+            row.chi2,
+            either(&|c| format!("{:.1}", c.chi2)),
         );
     }
+}
+
+/// The best of a Ceres peer's runs on one case.
+struct PeerBest {
+    solve_time: Duration,
+    summary_total: Duration,
+    summary_linear: Duration,
+    iterations: u64,
+    chi2: f64,
+    point_rms_m: f64,
+}
+
+/// One case of the comparison.
+struct Row {
+    name: &'static str,
+    samples: usize,
+    lengths: usize,
+    file_mb: f64,
+    /// geocal's best wall, its CPU and peak RSS (KiB).
+    geocal: Option<(Duration, Duration, u64)>,
+    iterations: usize,
+    chi2: f64,
+    point_rms_m: f64,
+    ceres: Option<PeerBest>,
+    gauss_newton: Option<PeerBest>,
 }
