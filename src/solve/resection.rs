@@ -116,8 +116,9 @@ mod tests {
     use crate::solve::multilateration::tests::{stations5, synthetic};
 
     /// A noise-free problem whose lengths are those of the nominal points, with the stations'
-    /// hints centimetres off.
-    fn nominal_lengths(offset_m: f64) -> (MultilaterationProblem, Vec<Vector3<f64>>, Vec<f64>) {
+    /// hints 3 cm off in each coordinate.
+    fn nominal_lengths() -> (MultilaterationProblem, Vec<Vector3<f64>>, Vec<f64>) {
+        let offset_m = 0.03;
         let stations = stations5();
         let mut syn = synthetic(3, [4, 4, 3], &stations, &[1, 3], 30e-9, false);
         let problem = &mut syn.problem;
@@ -133,17 +134,23 @@ mod tests {
         (syn.problem, stations, syn.true_distances_m)
     }
 
-    #[test]
-    fn stations_centimetres_off_settle_on_the_truth() {
-        let (problem, truth, true_distances) = nominal_lengths(0.03);
+    /// The stations resected from their hints, the distances from zero.
+    fn resected_from_the_hints(problem: &MultilaterationProblem) -> (Vec<Vector3<f64>>, Vec<f64>) {
         let mut stations: Vec<_> = problem.station_hints.iter().flatten().copied().collect();
         let mut distances = vec![0.0; problem.segments.len()];
         resect(
-            &problem,
+            problem,
             &problem.nominal_points,
             &mut stations,
             &mut distances,
         );
+        (stations, distances)
+    }
+
+    #[test]
+    fn stations_centimetres_off_settle_on_the_truth() {
+        let (problem, truth, true_distances) = nominal_lengths();
+        let (stations, distances) = resected_from_the_hints(&problem);
         for (j, (got, want)) in stations.iter().zip(&truth).enumerate() {
             assert!(
                 (got - want).amax() < 1e-9,
@@ -160,7 +167,7 @@ mod tests {
 
     #[test]
     fn a_station_whose_points_lie_in_a_line_keeps_its_start() {
-        let (mut problem, _, _) = nominal_lengths(0.03);
+        let (mut problem, _, _) = nominal_lengths();
         // Station 2 sees only points on the grid's first row (one line along x).
         let row: Vec<usize> = (0..problem.nominal_points.len())
             .filter(|&i| problem.nominal_points[i].y == 0.0 && problem.nominal_points[i].z == 0.0)
@@ -170,14 +177,7 @@ mod tests {
             .observations
             .retain(|o| problem.segments[o.segment].station != 2 || row.contains(&o.point));
         let start: Vec<_> = problem.station_hints.iter().flatten().copied().collect();
-        let mut stations = start.clone();
-        let mut distances = vec![0.0; problem.segments.len()];
-        resect(
-            &problem,
-            &problem.nominal_points,
-            &mut stations,
-            &mut distances,
-        );
+        let (stations, distances) = resected_from_the_hints(&problem);
         assert_eq!(
             stations[2], start[2],
             "moved along a direction its lengths do not fix"
