@@ -1674,6 +1674,7 @@ fn solve_on_threads(
 /// below which the weights count as settled (χ² then moves by well under 0.1 %).
 const MAX_REWEIGHTS: usize = 4;
 const REWEIGHT_TOLERANCE: f64 = 1e-4;
+
 /// The Marquardt factor to start from near the minimum: small enough that the network's weak
 /// directions (a station against its homing distance) take their Gauss–Newton step at once.
 /// A damping of 1e-3 there takes five more iterations on a 10 000-point session; a step that

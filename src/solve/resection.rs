@@ -17,8 +17,9 @@ const MAX_STEPS: usize = 8;
 const SETTLED_STEP_M: f64 = 1e-9;
 
 /// Stations and homing distances fitted to the lengths with `points` held. A station whose
-/// normal equations are singular (too few or degenerate points) keeps its start, and so do
-/// its segments' distances; the joint fit then starts from them as before.
+/// normal equations are singular or nearly so (too few points, or points in a line) stays
+/// where it stands, and so do its segments' distances; the caller keeps the result only if
+/// it lowers the cost.
 pub(super) fn resect(
     problem: &MultilaterationProblem,
     points: &[Vector3<f64>],
