@@ -229,6 +229,8 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         started.elapsed().as_secs_f64()
     );
     let wrong_cal = Calibration::load(&wrong.results_path).expect("results");
+    let session = geocal::session::reader::read_session(&wrong.session_path).expect("session");
+    let trims_of_joint = |k: usize| trims_summary(&session, k);
     for (k, what) in [(0, "flipped sign"), (1, "header line")] {
         let r = pass_rule(&cal, &wrong_cal, k, interp[k]);
         let (rms_after, bound, rms_before) = (r.rms_after_m, r.real_time_bound_m, r.rms_before_m);
@@ -241,24 +243,31 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         );
         assert!(
             rms_after > bound,
-            "{} with a {what} passed: the bad-tables run's curve {:?}, {} points measured",
+            "{} with a {what} passed: the bad-tables run's curve {:?}, {} points measured, {}",
             POSITIONING[k],
             wrong_cal
                 .positioning(k)
                 .map(|c| (c.positions_m, c.values, c.sigma)),
-            wrong.summary.points_measured
+            wrong.summary.points_measured,
+            trims_of_joint(k)
         );
     }
     let flipped = pass_rule(&cal, &wrong_cal, 0, interp[0]);
     let (flipped_after, before_x) = (flipped.rms_after_m, flipped.rms_before_m);
     assert!(
         flipped_after > 1.5 * before_x,
-        "the flipped table doubles EXX"
+        "the flipped table doubles EXX: {:.3} µm after against {:.3} µm before; the bad-tables \
+         run's curve {:?}; {}",
+        flipped_after * 1e6,
+        before_x * 1e6,
+        wrong_cal
+            .positioning(0)
+            .map(|c| (c.positions_m, c.values, c.sigma)),
+        trims_of_joint(0)
     );
 
     // The reversal trim of z: the table's value changes from rest at every reversal, and
     // LinuxCNC's applied trim stays where it was.
-    let session = geocal::session::reader::read_session(&wrong.session_path).expect("session");
     let (mut reversed, mut not_applied) = (0, 0);
     for e in &session.events {
         if let geocal::session::messages::RunEvent::ControllerTrims { joints, .. } = &e.msg {
@@ -291,6 +300,27 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         verification.contains("LinuxCNC's dead band") && verification.contains("joint 2: "),
         "{verification}"
     );
+}
+
+/// What LinuxCNC applied to joint `k` over a run: the trims events' count and the RMS of
+/// the table's value and of the applied trim, for a failure's message.
+fn trims_summary(session: &geocal::session::reader::Session, k: usize) -> String {
+    let (mut count, mut table, mut applied) = (0usize, 0.0f64, 0.0f64);
+    for e in &session.events {
+        if let geocal::session::messages::RunEvent::ControllerTrims { joints, .. } = &e.msg {
+            if let Some(j) = joints.iter().find(|j| j.joint == k) {
+                count += 1;
+                table += j.table_m * j.table_m;
+                applied += j.applied_m * j.applied_m;
+            }
+        }
+    }
+    let rms = |ss: f64| (ss / count.max(1) as f64).sqrt() * 1e6;
+    format!(
+        "joint {k}: {count} trims events, RMS table {:.3} µm, RMS applied {:.3} µm",
+        rms(table),
+        rms(applied)
+    )
 }
 
 /// A reversal trim inside LinuxCNC's dead band from rest at 40 m/s² and a 0.25 ms servo
