@@ -175,6 +175,15 @@ enum CovarianceOf {
 }
 
 impl Pinv {
+    /// No solution: a factorisation that did not converge.
+    fn zero(p: usize) -> Pinv {
+        Pinv {
+            sol: DVector::zeros(p),
+            rank: 0,
+            covariance: CovarianceOf::Whole(DMatrix::zeros(p, p)),
+        }
+    }
+
     fn covariance(self) -> DMatrix<f64> {
         match self.covariance {
             CovarianceOf::Whole(cov) => cov,
@@ -209,37 +218,48 @@ fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>, blocks: &[LocalBlock]) -> Pinv
         };
     }
     let p = x.ncols();
-    // Only Uᵀb is needed: for a tall design, from the SVD of its factor R and Qᵀb, the SVD's
-    // iterations on p × p and Q never formed (`tall_svd`: the same singular values and
-    // pseudo-inverse to rounding).
-    let (svd, ub) = if super::tall_svd::is_tall(scaled.nrows(), p) {
+    // The solution needs the singular values, V, and each kept direction's uₖᵀb. For a tall
+    // design, from its factor R = Q R' and Qᵀb (`tall_svd`: the same singular values and
+    // pseudo-inverse to rounding); and R's right vectors are the left ones of Rᵀ, whose SVD
+    // without its right vectors costs half of R's with both: uₖᵀ(Qᵀb) = vₖᵀRᵀ(Qᵀb)/sₖ.
+    let (singular_values, v, utb) = if super::tall_svd::is_tall(scaled.nrows(), p) {
         let qr = scaled.qr();
         let mut qtb = b.clone();
         qr.q_tr_mul(&mut qtb);
-        (qr.r().svd(true, true), qtb.rows(0, p).into_owned())
-    } else {
-        (scaled.svd(true, true), b.clone())
-    };
-    let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
-        return Pinv {
-            sol: DVector::zeros(p),
-            rank: 0,
-            covariance: CovarianceOf::Whole(DMatrix::zeros(p, p)),
+        let r = qr.r();
+        let rt_qtb = r.tr_mul(&qtb.rows(0, p));
+        let svd = r.transpose().svd(true, false);
+        let Some(v) = svd.u else {
+            return Pinv::zero(p);
         };
+        let utb = DVector::from_fn(p, |k, _| {
+            let s = svd.singular_values[k];
+            if s > 0.0 {
+                v.column(k).dot(&rt_qtb) / s
+            } else {
+                0.0
+            }
+        });
+        (svd.singular_values, v, utb)
+    } else {
+        let svd = scaled.svd(true, true);
+        let (Some(u), Some(vt)) = (svd.u, svd.v_t) else {
+            return Pinv::zero(p);
+        };
+        let utb = u.tr_mul(b);
+        (svd.singular_values, vt.transpose(), utb)
     };
-    let smax = svd.singular_values.max();
-    let keep: Vec<usize> = (0..svd.singular_values.len())
-        .filter(|&k| smax > 0.0 && svd.singular_values[k] > RANK_CUT * smax)
+    let smax = singular_values.max();
+    let keep: Vec<usize> = (0..singular_values.len())
+        .filter(|&k| smax > 0.0 && singular_values[k] > RANK_CUT * smax)
         .collect();
     let mut sol = DVector::zeros(p);
     // V S⁻¹ over the kept directions: the covariance V S⁻² Vᵀ is one product.
     let mut v_scaled = DMatrix::zeros(p, keep.len());
     for (j, &k) in keep.iter().enumerate() {
-        let s = svd.singular_values[k];
-        let coeff = u.column(k).dot(&ub) / s;
-        let v = vt.row(k).transpose();
-        sol += &v * coeff;
-        v_scaled.set_column(j, &(v / s));
+        let s = singular_values[k];
+        sol.axpy(utb[k] / s, &v.column(k), 1.0);
+        v_scaled.set_column(j, &(v.column(k) / s));
     }
     unscale_solution(&mut sol, &norms);
     Pinv {
