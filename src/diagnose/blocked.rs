@@ -17,6 +17,7 @@ use super::stats::{Basis, RANK_TOL};
 use super::whitened::{tall_basis, WhitenedDesign, WhitenedFit};
 use crate::method::diagnosis::BlockLayout;
 pub use crate::method::diagnosis::LocalBlock;
+use crate::method::tall_svd::largest_singular_value;
 
 /// The whitened design over all rows with its local blocks (disjoint in rows and columns).
 pub struct BlockedDesign {
@@ -68,14 +69,6 @@ pub struct BlockedFit {
     null: DMatrix<f64>,
 }
 
-fn spectral_norm(m: &DMatrix<f64>) -> f64 {
-    if m.is_empty() {
-        0.0
-    } else {
-        m.clone().svd(false, false).singular_values.max()
-    }
-}
-
 impl BlockFit {
     /// U Uᵀ v over the block's positions, subtracted from `v` (a vector over the fit's rows).
     fn project_off(&self, v: &mut nalgebra::DVectorViewMut<f64>) {
@@ -121,8 +114,8 @@ impl LinearDesign for BlockedDesign {
         // the global columns' and of each block's (within √2 of the design's).
         let reference = locals
             .iter()
-            .map(|(_, m)| spectral_norm(m))
-            .fold(spectral_norm(&global_rows), f64::max);
+            .map(|(_, m)| largest_singular_value(m))
+            .fold(largest_singular_value(&global_rows), f64::max);
         let blocks: Vec<BlockFit> = locals
             .into_iter()
             .zip(self.blocks.iter())

@@ -79,11 +79,7 @@ pub fn solve_blocked(
         carried.push(t);
         factors.push(f);
     }
-    let global_norm = if g > 0 {
-        g_all.clone().svd(false, false).singular_values.max()
-    } else {
-        0.0
-    };
+    let global_norm = super::tall_svd::largest_singular_value(&g_all);
     let reduced_f = if g > 0 { Some(factor(reduced)?) } else { None };
     let reduced_min = reduced_f.as_ref().map_or(f64::INFINITY, |f| f.s.min());
     // σ_min(X) ≥ min(σ_min(G̃), σ_min(L)) / (1 + ‖T‖), σ_max(X) ≤ √(‖G‖² + ‖L‖²).
