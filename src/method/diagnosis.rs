@@ -219,9 +219,9 @@ fn pinv_solve(x: &DMatrix<f64>, b: &DVector<f64>, blocks: &[LocalBlock]) -> Pinv
     }
     let p = x.ncols();
     // The solution needs the singular values, V, and each kept direction's uₖᵀb. For a tall
-    // design, from its factor R = Q R' and Qᵀb (`tall_svd`: the same singular values and
-    // pseudo-inverse to rounding); and R's right vectors are the left ones of Rᵀ, whose SVD
-    // without its right vectors costs half of R's with both: uₖᵀ(Qᵀb) = vₖᵀRᵀ(Qᵀb)/sₖ.
+    // design X = QR, from R and Qᵀb (`tall_svd`: the same singular values and pseudo-inverse
+    // to rounding); R's right vectors are the left ones of Rᵀ, whose SVD without its right
+    // vectors costs half of R's with both, and uₖᵀ(Qᵀb) = vₖᵀRᵀ(Qᵀb)/sₖ.
     let (singular_values, v, utb) = if super::tall_svd::is_tall(scaled.nrows(), p) {
         let qr = scaled.qr();
         let mut qtb = b.clone();

@@ -230,7 +230,6 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
     );
     let wrong_cal = Calibration::load(&wrong.results_path).expect("results");
     let session = geocal::session::reader::read_session(&wrong.session_path).expect("session");
-    let trims_of_joint = |k: usize| trims_summary(&session, k);
     for (k, what) in [(0, "flipped sign"), (1, "header line")] {
         let r = pass_rule(&cal, &wrong_cal, k, interp[k]);
         let (rms_after, bound, rms_before) = (r.rms_after_m, r.real_time_bound_m, r.rms_before_m);
@@ -249,7 +248,7 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
                 .positioning(k)
                 .map(|c| (c.positions_m, c.values, c.sigma)),
             wrong.summary.points_measured,
-            trims_of_joint(k)
+            trims_summary(&session, k)
         );
     }
     let flipped = pass_rule(&cal, &wrong_cal, 0, interp[0]);
@@ -263,7 +262,7 @@ pub fn linuxcnc_applies_geocal_tables_and_bad_tables_fail_verification() {
         wrong_cal
             .positioning(0)
             .map(|c| (c.positions_m, c.values, c.sigma)),
-        trims_of_joint(0)
+        trims_summary(&session, 0)
     );
 
     // The reversal trim of z: the table's value changes from rest at every reversal, and
