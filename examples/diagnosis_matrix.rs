@@ -1,5 +1,6 @@
 //! Validation of `geocal diagnose`: simulated sessions with one effect (or none) switched on,
 //! diagnosed; prints the confusion matrix (true effect x first selected), the gap ratios, the
+//! held-out RMS after the effect over the clean session's (the same seed's row `none`), the
 //! points level before/after, and with `--twin` the diagnosis against the effect-free twin.
 //!
 //! `cargo run --example diagnosis_matrix -- N [--twin] [--twin-seeds M]`: N seeds per row
@@ -97,6 +98,11 @@ struct Scores {
     twin_pts_before: f64,
     twin_pts_after: f64,
     twin_pts_seeds: usize,
+    /// Held-out RMS after the selected effects over the clean session's (the same seed and
+    /// plan, the row `none`): sum, largest, seeds compared.
+    vs_clean: f64,
+    vs_clean_max: f64,
+    vs_clean_seeds: usize,
 }
 
 impl Scores {
@@ -129,6 +135,12 @@ impl Scores {
                 self.twin_pts_after += a.chi2_per_dof;
             }
         }
+    }
+
+    fn add_vs_clean(&mut self, ratio: f64) {
+        self.vs_clean += ratio;
+        self.vs_clean_max = self.vs_clean_max.max(ratio);
+        self.vs_clean_seeds += 1;
     }
 
     fn mean(sum: f64, n: usize) -> String {
@@ -174,8 +186,13 @@ fn main() {
                 .map(|&(truth, line)| (truth, line, &two_targets, " (2 targets)")),
         );
     let mut rows: Vec<(String, Scores, Scores)> = Vec::new();
+    // The clean session's held-out RMS per (plan, seed), from the row `none` run first.
+    let mut clean_level: std::collections::HashMap<(&str, u64), f64> = Default::default();
     for (truth, line, base, label) in cases {
-        if only.as_deref().is_some_and(|o| o != truth) {
+        if only
+            .as_deref()
+            .is_some_and(|o| !o.split(',').any(|o| o == truth))
+        {
             continue;
         }
         let (mut alone, mut against) = (Scores::default(), Scores::default());
@@ -186,6 +203,11 @@ fn main() {
             let d = geocal::kinds::diagnosis::diagnose_file(&session, &Default::default())
                 .expect("diagnose");
             alone.add(&d, truth, &names);
+            if truth == "none" {
+                clean_level.insert((label, seed), d.gap.heldout_rms_m);
+            } else if let Some(clean) = clean_level.get(&(label, seed)) {
+                alone.add_vs_clean(d.gap_after.heldout_rms_m / clean);
+            }
             if std::env::var("VERBOSE").is_ok() {
                 println!("{}", geocal::diagnose::text(&d));
             }
@@ -216,8 +238,18 @@ fn main() {
         print!("{:>8}", &n[..n.len().min(7)]);
     }
     println!(
-        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}",
-        "top-1", "unexpl", "confd", "false", "z before", "z after", "pts bef", "pts aft", "pts ok"
+        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}{:>9}{:>9}",
+        "top-1",
+        "unexpl",
+        "confd",
+        "false",
+        "z before",
+        "z after",
+        "pts bef",
+        "pts aft",
+        "pts ok",
+        "/clean",
+        "max"
     );
     for (label, r, _) in &rows {
         print!("{label:<26}");
@@ -225,7 +257,7 @@ fn main() {
             print!("{c:>8}");
         }
         println!(
-            "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}",
+            "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}{:>9}{:>9}",
             r.top1,
             r.unexplained,
             r.confounded,
@@ -235,6 +267,12 @@ fn main() {
             Scores::mean(r.pts_before, r.pts_seeds),
             Scores::mean(r.pts_after, r.pts_seeds),
             format!("{}/{}", r.pts_clean, r.pts_seeds),
+            Scores::mean(r.vs_clean, r.vs_clean_seeds),
+            if r.vs_clean_seeds == 0 {
+                "-".into()
+            } else {
+                fig(r.vs_clean_max)
+            },
         );
     }
     if twin {

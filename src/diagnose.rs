@@ -37,8 +37,8 @@ pub const DIAGNOSIS_FORMAT: &str = "geocal-diagnosis/1";
 pub struct DiagnoseOptions {
     /// Family-wise false-alarm level of each round of selection and of the `where` tests.
     pub alpha: f64,
-    /// Minimum number of cross-validation folds (a multilateration session uses at least twice
-    /// its number of stations).
+    /// Minimum number of cross-validation folds (a multilateration session's selection uses at
+    /// least its number of stations, its reported gaps at least twice that).
     pub folds: usize,
     /// Memory the diagnosis may use (bytes); None: the machine's available memory
     /// (`MemAvailable` in /proc/meminfo). A diagnosis estimated to need more is refused

@@ -155,6 +155,26 @@ fn corrected_calibration(
     }))
 }
 
+/// Cross-validation folds of the lengths: fold of a length = (point + station) mod K, so every
+/// held-out length has its point seen from the other stations and its station from the other
+/// points (K ≥ stations: a fold takes at most one length from a point).
+///
+/// The selection's held-out test uses K = max(5, stations); the gaps reported before and after
+/// use K = max(5, 2 × stations), where a fold takes a length from at most half the points. With
+/// K = stations every point loses one length in every fold: on a plan with little redundancy
+/// the training fits then have little to spare, and the held-out RMS measures their prediction
+/// variance (which every added parameter grows) more than the model's misfit. That harsher
+/// test is kept as the selection's gate; "how far" is the finer estimate.
+fn folds_of(data: &Data, k: usize) -> Vec<Vec<usize>> {
+    (0..k)
+        .map(|f| {
+            (0..data.obs.len())
+                .filter(|&i| (data.obs[i].point + data.obs[i].station) % k == f)
+                .collect()
+        })
+        .collect()
+}
+
 /// The base fit's gap: the fitted RMS and χ²/dof, the held-out RMS, floor and ratio.
 fn gap_of(engine: &Engine, full: &BaseFit<Fit>, heldout: &HeldOut) -> Gap {
     let n = full.rows.len();
@@ -298,7 +318,7 @@ pub(crate) fn diagnose_data(
     data: &mut Data,
     options: &DiagnoseOptions,
 ) -> Result<DataDiagnosis, DiagnoseError> {
-    let k_folds = options.folds.max(2 * data.station_ids.len());
+    let stations = data.station_ids.len();
     budget::check(data, options.memory_limit_bytes)?;
     let solution = match data.nominal.take() {
         Some(solution) => solution,
@@ -306,25 +326,12 @@ pub(crate) fn diagnose_data(
     };
     let nobs = data.obs.len();
     let geom = Geometry::from_solution(&solution);
-    // Fold of a length: (point + station) mod K, so every held-out length has its point seen
-    // from the other stations and its station from the other points. K ≥ 2 × stations: a
-    // fold takes at most one length from a point and from at most half the points. With
-    // K = stations every point lost one length in every fold, and on a plan with little
-    // redundancy the held-out figure then measured the training fits' prediction variance
-    // (which every added parameter grows) more than the model's misfit.
-    let folds = (0..k_folds)
-        .map(|f| {
-            (0..nobs)
-                .filter(|&i| (data.obs[i].point + data.obs[i].station) % k_folds == f)
-                .collect()
-        })
-        .collect();
     let w = DVector::from_iterator(nobs, data.obs.iter().map(|o| 1.0 / o.sigma_m));
     let mut engine = Engine {
         w_report: w.clone(),
         w,
         r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
-        folds,
+        folds: folds_of(data, options.folds.max(stations)),
     };
     let mut notes = vec![format!(
         "{} lengths from {} stations; {} dwell windows dropped by extraction",
@@ -369,7 +376,6 @@ pub(crate) fn diagnose_data(
     // samples).
     let mut accepted: Vec<EffectModel> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
-    let mut gap_before: Option<Gap> = None;
 
     // Settling shows in the raw samples inside the dwell windows, which no other candidate
     // predicts: it is tested there (its own block of data, in the first round's family), and
@@ -399,8 +405,6 @@ pub(crate) fn diagnose_data(
             let status = tests.alone_status(alpha_each);
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
-                let (full, _, heldout) = engine.base(&nominal_design, &all_rows);
-                gap_before = Some(gap_of(&engine, &full, &heldout));
                 for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
                     *r -= b;
                 }
@@ -423,7 +427,8 @@ pub(crate) fn diagnose_data(
     let start = Start {
         accepted,
         records,
-        gap_before,
+        // Reported over the finer folds below, from the recorded lengths.
+        gap_before: None,
         // The first round's family includes the settling test.
         extra_first_round_tests: usize::from(settling_fit.is_some()),
     };
@@ -431,7 +436,7 @@ pub(crate) fn diagnose_data(
         mut accepted,
         confounded: confounded_kinds,
         records,
-        gap_before,
+        gap_before: _,
         last_base,
         final_round,
         notes: selection_notes,
@@ -445,6 +450,27 @@ pub(crate) fn diagnose_data(
         &mut progress,
     );
     notes.extend(selection_notes);
+    // The gaps reported, before and after the selected effects (as the selection's last round
+    // modelled them), over the finer folds; the selection's tests keep theirs.
+    let mut report_engine = Engine {
+        w: engine.w.clone(),
+        w_report: engine.w_report.clone(),
+        r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
+        folds: folds_of(data, options.folds.max(2 * stations)),
+    };
+    let (full, _, heldout) = report_engine.base(&nominal_design, &all_rows);
+    let gap_before = gap_of(&report_engine, &full, &heldout);
+    let last_base = last_base.map(|_| {
+        report_engine.r = engine.r.clone();
+        let design = forward::Client::design(&client, &accepted);
+        let (full, _, heldout) = report_engine.base(&design, &all_rows);
+        gap_of(&report_engine, &full, &heldout)
+    });
+    notes.push(format!(
+        "the held-out gaps before and after are over {} folds, the selection's held-out test over {}",
+        report_engine.folds.len(),
+        engine.folds.len()
+    ));
     progress.advance_to(selection_end);
     budget::return_freed_memory();
     // The final model: joint Gauss–Newton of geometry and accepted effects, on the window
