@@ -461,6 +461,10 @@ pub(crate) fn diagnose_data(
     let (full, _, heldout) = report_engine.base(&nominal_design, &all_rows);
     let gap_before = gap_of(&report_engine, &full, &heldout);
     let last_base = last_base.map(|_| {
+        if accepted.is_empty() {
+            // The nominal model on the recorded lengths: the gap before.
+            return gap_before.clone();
+        }
         report_engine.r = engine.r.clone();
         let design = forward::Client::design(&client, &accepted);
         let (full, _, heldout) = report_engine.base(&design, &all_rows);
