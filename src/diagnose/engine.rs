@@ -419,6 +419,13 @@ impl Engine {
         (full, fold_fits, heldout)
     }
 
+    /// The held-out residuals of this engine's folds around `full`, a base fit on every row
+    /// of the same residuals and weights (made by another engine with other folds).
+    pub fn heldout_of<D: LinearDesign>(&self, design: &D, full: &BaseFit<D::Fit>) -> HeldOut {
+        let fold_fits = self.fold_fits(design, full);
+        self.heldout_sum(design, &fold_fits, &full.res_w, None).0
+    }
+
     /// Adding the effect whose columns `columns` makes (all rows, not whitened) to the base.
     /// Where every fold is downdated the columns are whitened in place and not kept, and
     /// sparse columns stay sparse where the fit keeps their projection implicit.

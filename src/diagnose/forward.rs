@@ -123,10 +123,14 @@ pub struct Selection<C: Client> {
 }
 
 /// Forward selection over `available` at family-wise `alpha` per round, at most `max_rounds`
-/// + 1 rounds; `progress` ticks once per base fit and per candidate.
+/// + 1 rounds; `progress` ticks once per base fit and per candidate. The gaps it returns are
+/// held out over `report`'s folds when given (its residuals and weights are `engine`'s, so
+/// the base fits on every row serve both), else over the selection's.
+#[allow(clippy::too_many_arguments)]
 pub fn select<C: Client>(
     client: &C,
     engine: &Engine,
+    report: Option<&Engine>,
     available: &[C::Effect],
     start: Start<C>,
     alpha: f64,
@@ -152,14 +156,20 @@ pub fn select<C: Client>(
         let (full, fold_fits, heldout) = engine.base(&design, &all_rows);
         progress.tick(1);
         let base_gap = client.gap(engine, &full, &heldout);
+        let reported_gap = || match report {
+            Some(report) => client.gap(report, &full, &report.heldout_of(&design, &full)),
+            None => base_gap.clone(),
+        };
         let base_heldout_z2 = heldout.mean_z2();
         let count = heldout.count;
         if round == 0 {
             client.first_base_fitted(&full);
             notes.extend(client.cross_validation_notes(engine, count));
         }
+        let mut round_gap = None;
         if gap_before.is_none() {
-            gap_before = Some(base_gap.clone());
+            round_gap = Some(reported_gap());
+            gap_before.clone_from(&round_gap);
         }
         let candidates: Vec<C::Effect> = available
             .iter()
@@ -272,7 +282,7 @@ pub fn select<C: Client>(
                 accepted.extend(group);
             }
             (None, None) => {
-                last_base = Some(base_gap);
+                last_base = Some(round_gap.unwrap_or_else(reported_gap));
                 break;
             }
         }

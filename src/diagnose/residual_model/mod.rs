@@ -312,6 +312,7 @@ pub fn diagnose(
     } = forward::select(
         &client,
         &engine,
+        None,
         &(0..library.len()).collect::<Vec<usize>>(),
         Start::default(),
         options.alpha,

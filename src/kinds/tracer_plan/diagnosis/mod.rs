@@ -158,13 +158,6 @@ fn corrected_calibration(
 /// Cross-validation folds of the lengths: fold of a length = (point + station) mod K, so every
 /// held-out length has its point seen from the other stations and its station from the other
 /// points (K ≥ stations: a fold takes at most one length from a point).
-///
-/// The selection's held-out test uses K = max(5, stations); the gaps reported before and after
-/// use K = max(5, 2 × stations), where a fold takes a length from at most half the points. With
-/// K = stations every point loses one length in every fold: on a plan with little redundancy
-/// the training fits then have little to spare, and the held-out RMS measures their prediction
-/// variance (which every added parameter grows) more than the model's misfit. That harsher
-/// test is kept as the selection's gate; "how far" is the finer estimate.
 fn folds_of(data: &Data, k: usize) -> Vec<Vec<usize>> {
     (0..k)
         .map(|f| {
@@ -173,6 +166,36 @@ fn folds_of(data: &Data, k: usize) -> Vec<Vec<usize>> {
                 .collect()
         })
         .collect()
+}
+
+/// How many folds the reported gaps (before and after) are held out over: enough that a fold
+/// takes, on average, at most a quarter of a point's redundant stations; None when the
+/// selection's `selection_folds` already do. A point seen from m stations has m − 3 redundant
+/// ones, and a fold takes one (point, station) pair from a share m/K of the points:
+/// K ≥ 4m/(m − 3) (10 for points seen from 5 stations, 5 from 16).
+///
+/// The selection's held-out test uses K = max(5, stations). With K = stations every point
+/// loses one length in every fold; where points have few lengths to spare the training fits
+/// then predict the held-out lengths with a variance that every added parameter grows, and
+/// the held-out RMS measures that more than the model's misfit. That harsher test is kept as
+/// the selection's gate, which a flexible candidate that does not predict fails; "how far" is
+/// the finer estimate.
+fn report_fold_count(data: &Data, selection_folds: usize) -> Option<usize> {
+    let stations = data.station_ids.len().max(1);
+    let mut pairs: Vec<usize> = data
+        .obs
+        .iter()
+        .map(|o| o.point * stations + o.station)
+        .collect();
+    pairs.sort_unstable();
+    pairs.dedup();
+    let points = pairs.chunk_by(|a, b| a / stations == b / stations).count();
+    let per_point = pairs.len() as f64 / points.max(1) as f64;
+    if per_point <= 3.0 {
+        return None;
+    }
+    let folds = ((4.0 * per_point / (per_point - 3.0)).ceil() as usize).min(pairs.len());
+    (folds > selection_folds).then_some(folds)
 }
 
 /// The base fit's gap: the fitted RMS and χ²/dof, the held-out RMS, floor and ratio.
@@ -376,6 +399,11 @@ pub(crate) fn diagnose_data(
     // samples).
     let mut accepted: Vec<EffectModel> = Vec::new();
     let mut records: BTreeMap<EffectKind, Candidate> = BTreeMap::new();
+    let mut gap_before: Option<Gap> = None;
+    // The gaps reported, before and after the selected effects, over finer folds where the
+    // selection's would leave the training fits short of redundancy.
+    let report_folds =
+        report_fold_count(data, engine.folds.len()).map(|folds| folds_of(data, folds));
 
     // Settling shows in the raw samples inside the dwell windows, which no other candidate
     // predicts: it is tested there (its own block of data, in the first round's family), and
@@ -405,6 +433,14 @@ pub(crate) fn diagnose_data(
             let status = tests.alone_status(alpha_each);
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
+                let before = Engine {
+                    w: engine.w.clone(),
+                    w_report: engine.w_report.clone(),
+                    r: engine.r.clone(),
+                    folds: report_folds.clone().unwrap_or_else(|| engine.folds.clone()),
+                };
+                let (full, _, heldout) = before.base(&nominal_design, &all_rows);
+                gap_before = Some(gap_of(&before, &full, &heldout));
                 for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
                     *r -= b;
                 }
@@ -424,11 +460,23 @@ pub(crate) fn diagnose_data(
         geom: &geom,
         nominal: &nominal_design,
     };
+    let report_engine = report_folds.map(|folds| Engine {
+        w: engine.w.clone(),
+        w_report: engine.w_report.clone(),
+        r: engine.r.clone(),
+        folds,
+    });
+    if let Some(report) = &report_engine {
+        notes.push(format!(
+            "the held-out gaps before and after are over {} folds (a fold takes at most a quarter of a point's redundant stations on average), the selection's held-out test over {}",
+            report.folds.len(),
+            engine.folds.len()
+        ));
+    }
     let start = Start {
         accepted,
         records,
-        // Reported over the finer folds below, from the recorded lengths.
-        gap_before: None,
+        gap_before,
         // The first round's family includes the settling test.
         extra_first_round_tests: usize::from(settling_fit.is_some()),
     };
@@ -436,13 +484,14 @@ pub(crate) fn diagnose_data(
         mut accepted,
         confounded: confounded_kinds,
         records,
-        gap_before: _,
+        gap_before,
         last_base,
         final_round,
         notes: selection_notes,
     } = forward::select(
         &client,
         &engine,
+        report_engine.as_ref(),
         &available,
         start,
         options.alpha,
@@ -450,31 +499,6 @@ pub(crate) fn diagnose_data(
         &mut progress,
     );
     notes.extend(selection_notes);
-    // The gaps reported, before and after the selected effects (as the selection's last round
-    // modelled them), over the finer folds; the selection's tests keep theirs.
-    let mut report_engine = Engine {
-        w: engine.w.clone(),
-        w_report: engine.w_report.clone(),
-        r: DVector::from_iterator(nobs, solution.residuals_m.iter().copied()),
-        folds: folds_of(data, options.folds.max(2 * stations)),
-    };
-    let (full, _, heldout) = report_engine.base(&nominal_design, &all_rows);
-    let gap_before = gap_of(&report_engine, &full, &heldout);
-    let last_base = last_base.map(|_| {
-        if accepted.is_empty() {
-            // The nominal model on the recorded lengths: the gap before.
-            return gap_before.clone();
-        }
-        report_engine.r = engine.r.clone();
-        let design = forward::Client::design(&client, &accepted);
-        let (full, _, heldout) = report_engine.base(&design, &all_rows);
-        gap_of(&report_engine, &full, &heldout)
-    });
-    notes.push(format!(
-        "the held-out gaps before and after are over {} folds, the selection's held-out test over {}",
-        report_engine.folds.len(),
-        engine.folds.len()
-    ));
     progress.advance_to(selection_end);
     budget::return_freed_memory();
     // The final model: joint Gauss–Newton of geometry and accepted effects, on the window
