@@ -123,9 +123,11 @@ pub struct Selection<C: Client> {
 }
 
 /// Forward selection over `available` at family-wise `alpha` per round, at most `max_rounds`
-/// + 1 rounds; `progress` ticks once per base fit and per candidate. The gaps it returns are
-/// held out over `report`'s folds when given (its residuals and weights are `engine`'s, so
-/// the base fits on every row serve both), else over the selection's.
+/// + 1 rounds; `progress` ticks once per base fit and per candidate.
+///
+/// The gaps it returns are held out over `report`'s folds when given (its residuals and
+/// weights are `engine`'s, so the base fits on every row serve both), else over the
+/// selection's.
 #[allow(clippy::too_many_arguments)]
 pub fn select<C: Client>(
     client: &C,
