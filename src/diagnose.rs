@@ -38,7 +38,8 @@ pub struct DiagnoseOptions {
     /// Family-wise false-alarm level of each round of selection and of the `where` tests.
     pub alpha: f64,
     /// Minimum number of cross-validation folds (a multilateration session's selection uses at
-    /// least its number of stations, its reported gaps at least twice that).
+    /// least its number of stations, and its reported gaps finer folds where points have few
+    /// stations to spare).
     pub folds: usize,
     /// Memory the diagnosis may use (bytes); None: the machine's available memory
     /// (`MemAvailable` in /proc/meminfo). A diagnosis estimated to need more is refused
