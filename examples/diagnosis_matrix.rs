@@ -77,6 +77,24 @@ fn fig(v: f64) -> String {
     }
 }
 
+/// The selection's columns, in both tables: (label, width).
+const SELECTION_COLUMNS: [(&str, usize); 6] = [
+    ("top-1", 7),
+    ("unexpl", 7),
+    ("confd", 7),
+    ("false", 7),
+    ("z before", 9),
+    ("z after", 9),
+];
+
+/// A header line: each label right-aligned in its width.
+fn print_header(groups: &[&[(&str, usize)]]) {
+    for (label, width) in groups.iter().copied().flatten() {
+        print!("{label:>width$}");
+    }
+    println!();
+}
+
 /// Scores of one row over its seeds (`names`: the confusion matrix's columns).
 #[derive(Default)]
 struct Scores {
@@ -237,20 +255,16 @@ fn main() {
     for n in &names {
         print!("{:>8}", &n[..n.len().min(7)]);
     }
-    println!(
-        "{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>9}{:>9}{:>7}{:>9}{:>9}",
-        "top-1",
-        "unexpl",
-        "confd",
-        "false",
-        "z before",
-        "z after",
-        "pts bef",
-        "pts aft",
-        "pts ok",
-        "/clean",
-        "max"
-    );
+    print_header(&[
+        &SELECTION_COLUMNS[..],
+        &[
+            ("pts bef", 9),
+            ("pts aft", 9),
+            ("pts ok", 7),
+            ("/clean", 9),
+            ("max", 9),
+        ],
+    ]);
     for (label, r, _) in &rows {
         print!("{label:<26}");
         for c in &r.counts {
@@ -278,19 +292,11 @@ fn main() {
     if twin {
         println!();
         println!("against the effect-free twin (`geocal diagnose REC --twin CONFIG.toml`), first {twin_seeds} seeds of each row");
-        println!(
-            "{:<26}{:>7}{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>10}{:>10}",
-            "",
-            "seeds",
-            "top-1",
-            "unexpl",
-            "confd",
-            "false",
-            "z before",
-            "z after",
-            "twin bef",
-            "twin aft"
-        );
+        print_header(&[
+            &[("", 26), ("seeds", 7)][..],
+            &SELECTION_COLUMNS,
+            &[("twin bef", 10), ("twin aft", 10)],
+        ]);
         for (label, _, t) in &rows {
             println!(
                 "{label:<26}{:>7}{:>7}{:>7}{:>7}{:>7}{:>9}{:>9}{:>10}{:>10}",
