@@ -190,11 +190,20 @@ fn report_fold_count(data: &Data, selection_folds: usize) -> Option<usize> {
     pairs.sort_unstable();
     pairs.dedup();
     let points = pairs.chunk_by(|a, b| a / stations == b / stations).count();
-    let per_point = pairs.len() as f64 / points.max(1) as f64;
+    folds_for_stations_per_point(pairs.len(), points, selection_folds)
+}
+
+/// [`report_fold_count`] for `pairs` (point, station) pairs over `points` points.
+fn folds_for_stations_per_point(
+    pairs: usize,
+    points: usize,
+    selection_folds: usize,
+) -> Option<usize> {
+    let per_point = pairs as f64 / points.max(1) as f64;
     if per_point <= 3.0 {
         return None;
     }
-    let folds = ((4.0 * per_point / (per_point - 3.0)).ceil() as usize).min(pairs.len());
+    let folds = ((4.0 * per_point / (per_point - 3.0)).ceil() as usize).min(pairs);
     (folds > selection_folds).then_some(folds)
 }
 
@@ -1040,5 +1049,25 @@ pub(crate) fn joint_fit(data: &Data, start: &Geometry, models: &[EffectModel]) -
         geom,
         resid_m: r.iter().copied().collect(),
         theta,
+    }
+}
+
+#[cfg(test)]
+mod report_folds_tests {
+    use super::folds_for_stations_per_point;
+
+    #[test]
+    fn finer_folds_where_points_have_few_stations_to_spare() {
+        // 27 points from 5 stations: 2 redundant stations a point, 10 folds (5 would take
+        // half of them in every fold).
+        assert_eq!(folds_for_stations_per_point(135, 27, 5), Some(10));
+        // 16 stations: the selection's 16 folds take a 13th of them already.
+        assert_eq!(folds_for_stations_per_point(16_000, 1_000, 16), None);
+        // 4 stations: one redundant station a point, 16 folds.
+        assert_eq!(folds_for_stations_per_point(72, 18, 5), Some(16));
+        // No redundancy: nothing to hold out.
+        assert_eq!(folds_for_stations_per_point(54, 18, 5), None);
+        // Never more folds than pairs.
+        assert_eq!(folds_for_stations_per_point(7, 2, 1), Some(7));
     }
 }
