@@ -192,6 +192,9 @@ pub fn diagnose_against_twin_detailed(
         }
     }
     let unmatched = rec.obs.len() - matched;
+    // The recording's calibration was solved on its own lengths: the corrected ones are
+    // solved again.
+    data.nominal = None;
     let DataDiagnosis {
         mut diagnosis,
         effect_m,
