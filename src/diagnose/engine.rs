@@ -419,6 +419,16 @@ impl Engine {
         (full, fold_fits, heldout)
     }
 
+    /// The same residuals and weights over other folds.
+    pub fn with_folds(&self, folds: Vec<Vec<usize>>) -> Engine {
+        Engine {
+            w: self.w.clone(),
+            r: self.r.clone(),
+            w_report: self.w_report.clone(),
+            folds,
+        }
+    }
+
     /// The held-out residuals of this engine's folds around `full`, a base fit on every row
     /// of the same residuals and weights (made by another engine with other folds).
     pub fn heldout_of<D: LinearDesign>(&self, design: &D, full: &BaseFit<D::Fit>) -> HeldOut {

@@ -442,14 +442,10 @@ pub(crate) fn diagnose_data(
             let status = tests.alone_status(alpha_each);
             records.insert(EffectKind::Settling, settling_record(fit, status));
             if passes {
-                let before = Engine {
-                    w: engine.w.clone(),
-                    w_report: engine.w_report.clone(),
-                    r: engine.r.clone(),
-                    folds: report_folds.clone().unwrap_or_else(|| engine.folds.clone()),
-                };
+                let finer = report_folds.clone().map(|folds| engine.with_folds(folds));
+                let before = finer.as_ref().unwrap_or(&engine);
                 let (full, _, heldout) = before.base(&nominal_design, &all_rows);
-                gap_before = Some(gap_of(&before, &full, &heldout));
+                gap_before = Some(gap_of(before, &full, &heldout));
                 for (r, b) in engine.r.iter_mut().zip(&fit.bias_m) {
                     *r -= b;
                 }
@@ -469,12 +465,7 @@ pub(crate) fn diagnose_data(
         geom: &geom,
         nominal: &nominal_design,
     };
-    let report_engine = report_folds.map(|folds| Engine {
-        w: engine.w.clone(),
-        w_report: engine.w_report.clone(),
-        r: engine.r.clone(),
-        folds,
-    });
+    let report_engine = report_folds.map(|folds| engine.with_folds(folds));
     if let Some(report) = &report_engine {
         notes.push(format!(
             "the held-out gaps before and after are over {} folds (a fold takes at most a quarter of a point's redundant stations on average), the selection's held-out test over {}",
