@@ -5,7 +5,8 @@
 //! peer (bench/ceres_multilateration.cc, optional) on the same extracted problem.
 //!
 //! `cargo bench --bench solve_session [-- NAME...]`: only the cases whose name contains one of
-//! the NAMEs (`phases`, `1k`, `10k`, `10k-dense`, `100k`).
+//! the NAMEs (`phases`, `1k`, `10k`, `10k-dense`, `100k`). `-- floor`: what reading each 10k
+//! file cannot go below, beside the parts of geocal's read and solve.
 
 mod common;
 
@@ -325,6 +326,10 @@ fn main() {
     if wanted("phases") {
         phases();
     }
+    if filters.iter().any(|f| f == "floor") {
+        floor();
+        return;
+    }
     let cases: Vec<Case> = CASES.iter().copied().filter(|c| wanted(c.name)).collect();
     if !cases.is_empty() {
         compare_with_ceres(&cases);
@@ -444,6 +449,225 @@ fn phases() {
          the extracted problem alone)",
         fmt_time(sum)
     );
+}
+
+/// A sink that drops everything: the streamed read alone, without the extraction.
+struct Discard;
+
+impl geocal::session::reader::SessionSink for Discard {
+    fn begin(&mut self, _: &SessionHeader, _: &[String], _: usize) -> bool {
+        true
+    }
+
+    fn batch(
+        &mut self,
+        _: &mut [Vec<geocal::session::reader::Stamped<TracerSample>>],
+        _: &mut Vec<geocal::session::reader::Stamped<RunEvent>>,
+    ) -> bool {
+        true
+    }
+}
+
+/// Where a file's compressed pieces are: (offset, stored bytes, compression, uncompressed
+/// bytes) of every chunk, from the summary; a file without chunks in 1 MiB pieces (as
+/// geocal's reader reads it).
+type Piece = (u64, usize, String, usize);
+
+fn compressed_pieces(path: &Path) -> Vec<Piece> {
+    let bytes = std::fs::read(path).expect("read session");
+    match mcap::Summary::read(&bytes).expect("summary") {
+        Some(s) if !s.chunk_indexes.is_empty() => s
+            .chunk_indexes
+            .iter()
+            .map(|c| {
+                let start = c.chunk_start_offset + c.chunk_length - c.compressed_size;
+                let (stored, uncompressed) = (c.compressed_size, c.uncompressed_size);
+                (start, stored as usize, c.compression.clone(), uncompressed as usize)
+            })
+            .collect(),
+        _ => {
+            // Runs of whole records from after the magic, each at least 1 MiB.
+            let mut pieces = Vec::new();
+            let (mut start, mut at) = (8, 8);
+            while at + 9 <= bytes.len() {
+                let len = u64::from_le_bytes(bytes[at + 1..at + 9].try_into().expect("8 bytes"));
+                at += 9 + len as usize;
+                if at - start >= 1 << 20 || at + 9 > bytes.len() {
+                    pieces.push((start as u64, at - start, String::new(), at - start));
+                    start = at;
+                }
+            }
+            pieces
+        }
+    }
+}
+
+/// Converts every JSON number with a fraction or exponent in the messages of `records` (whole
+/// MCAP records) to an f64, as any reader of the samples must; returns how many.
+fn convert_floats(records: &[u8], sum: &mut f64) -> usize {
+    const MESSAGE: u8 = 0x05;
+    let mut converted = 0;
+    let mut at = 0;
+    while at + 9 <= records.len() {
+        let len = u64::from_le_bytes(records[at + 1..at + 9].try_into().expect("8 bytes"));
+        let end = (at + 9 + len as usize).min(records.len());
+        if records[at] == MESSAGE && end >= at + 9 + 22 {
+            let data = &records[at + 9 + 22..end];
+            let mut i = 0;
+            while i < data.len() {
+                if data[i] == b':' && data.get(i + 1).is_some_and(|b| b.is_ascii_digit()) {
+                    let number = &data[i + 1..];
+                    let n = number
+                        .iter()
+                        .position(|b| !matches!(b, b'0'..=b'9' | b'.' | b'e' | b'E' | b'-' | b'+'))
+                        .unwrap_or(number.len());
+                    if number[..n].iter().any(|b| matches!(b, b'.' | b'e' | b'E')) {
+                        if let Ok(value) = lexical_core::parse::<f64>(&number[..n]) {
+                            *sum += value;
+                            converted += 1;
+                        }
+                    }
+                    i += n;
+                }
+                i += 1;
+            }
+        }
+        at = end;
+    }
+    converted
+}
+
+/// Every piece of `path` read from the file and decompressed on `threads` threads into a
+/// buffer each thread reuses, nothing else: what any reader of the file spends at least; with
+/// `floats`, also every float of its messages converted. Returns the bytes decompressed and
+/// the floats converted.
+fn read_and_decompress(path: &Path, pieces: &[Piece], threads: usize, floats: bool) -> (usize, usize) {
+    use std::os::unix::fs::FileExt;
+    use std::sync::atomic::{AtomicUsize, Ordering};
+    let file = std::fs::File::open(path).expect("open session");
+    let next = AtomicUsize::new(0);
+    let total = AtomicUsize::new(0);
+    let converted = AtomicUsize::new(0);
+    std::thread::scope(|scope| {
+        for _ in 0..threads {
+            scope.spawn(|| {
+                let mut stored = Vec::new();
+                let mut out = Vec::new();
+                let mut zstd = zstd::bulk::Decompressor::new().expect("zstd");
+                loop {
+                    let i = next.fetch_add(1, Ordering::Relaxed);
+                    let Some((at, n, compression, uncompressed)) = pieces.get(i) else {
+                        break;
+                    };
+                    // Zeroed only where they grow, as the reader's buffers.
+                    if stored.len() < *n {
+                        stored.resize(*n, 0);
+                    }
+                    file.read_exact_at(&mut stored[..*n], *at).expect("read chunk");
+                    if out.len() < *uncompressed && !compression.is_empty() {
+                        out.resize(*uncompressed, 0);
+                    }
+                    let (stored, out) = (&stored[..*n], &mut out[..]);
+                    let wrote = match compression.as_str() {
+                        "zstd" => zstd
+                            .decompress_to_buffer(stored, &mut out[..*uncompressed])
+                            .expect("zstd chunk"),
+                        "lz4" => {
+                            let mut lz4 = lz4::Decoder::new(stored).expect("lz4 chunk");
+                            std::io::Read::read_exact(&mut lz4, &mut out[..*uncompressed])
+                                .expect("lz4 chunk");
+                            *uncompressed
+                        }
+                        _ => stored.len(),
+                    };
+                    total.fetch_add(wrote, Ordering::Relaxed);
+                    if floats {
+                        let records = if compression.is_empty() {
+                            stored
+                        } else {
+                            &out[..wrote]
+                        };
+                        let mut sum = 0.0;
+                        converted.fetch_add(convert_floats(records, &mut sum), Ordering::Relaxed);
+                        std::hint::black_box(sum);
+                    }
+                }
+            });
+        }
+    });
+    (total.into_inner(), converted.into_inner())
+}
+
+/// The 10k files' floor beside geocal's parts, each the median of five runs on this process:
+/// reading and decompressing alone (two threads), the same converting every float of the
+/// messages, geocal's streamed read dropping what it reads, the read with the extraction, the
+/// solve with its covariance. The floor of `geocal solve` end to end is the decompression and
+/// the floats plus the solve (any reader must decompress every chunk and convert the samples'
+/// numbers, and the solve needs every length before it starts), and never less than their CPU
+/// time spread over both cores.
+fn floor() {
+    let repeats = 5;
+    println!(
+        "\nfloor of the 10k files (median of {repeats} runs, wall / CPU of all threads; two \
+         cores): every chunk read and decompressed on two threads and nothing else, beside \
+         geocal's own parts"
+    );
+    println!(
+        "| file | decompressed | floats | read + decompress | + convert every float | geocal \
+         read, nothing kept | geocal read + extraction | solve + covariance | floor: \
+         decompress + floats + solve, wall (their CPU / 2) |"
+    );
+    println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
+    for case in CASES.iter().filter(|c| c.name.starts_with("10k") && c.rate == 1) {
+        let path = case.session_file();
+        let mut decompress = Phase::new("decompress");
+        let mut with_floats = Phase::new("decompress + floats");
+        let mut read = Phase::new("read");
+        let mut extract = Phase::new("extract");
+        let mut adjust = Phase::new("solve");
+        let pieces = compressed_pieces(&path);
+        let (mut bytes, mut floats) = (0, 0);
+        for _ in 0..repeats {
+            bytes = decompress.run(|| read_and_decompress(&path, &pieces, 2, false)).0;
+            floats = with_floats.run(|| read_and_decompress(&path, &pieces, 2, true)).1;
+            read.run(|| stream_session(&path, &mut Discard).expect("a clean file streams"));
+            let lengths = extract.run(|| {
+                let mut sink = LengthStream::new("multilateration");
+                stream_session(&path, &mut sink).expect("a clean file streams");
+                sink.finish().expect("begun").0
+            });
+            let problem = geocal::method::multilateration::Problem::of_lengths(&lengths).problem;
+            adjust.run(|| solve(&problem, &SolveOptions::default()).expect("solve"));
+        }
+        let cell = |p: &Phase| {
+            let cpu = if p.cpu.is_empty() {
+                "-".to_string()
+            } else {
+                fmt_time(median(p.cpu.clone()))
+            };
+            format!("{} / {cpu}", fmt_time(median(p.times.clone())))
+        };
+        let cpu_of = |p: &Phase| {
+            if p.cpu.is_empty() {
+                Duration::ZERO
+            } else {
+                median(p.cpu.clone())
+            }
+        };
+        println!(
+            "| {} | {:.0} MB | {:.2} M | {} | {} | {} | {} | {} | {} ({}) |",
+            case.name,
+            bytes as f64 / 1e6,
+            floats as f64 / 1e6,
+            cell(&decompress),
+            cell(&with_floats),
+            cell(&read),
+            cell(&extract),
+            cell(&adjust),
+            fmt_time(median(with_floats.times.clone()) + median(adjust.times.clone())),
+            fmt_time((cpu_of(&with_floats) + cpu_of(&adjust)) / 2)
+        );
+    }
 }
 
 #[derive(Clone, Copy)]
