@@ -482,7 +482,12 @@ fn compressed_pieces(path: &Path) -> Vec<Piece> {
             .map(|c| {
                 let start = c.chunk_start_offset + c.chunk_length - c.compressed_size;
                 let (stored, uncompressed) = (c.compressed_size, c.uncompressed_size);
-                (start, stored as usize, c.compression.clone(), uncompressed as usize)
+                (
+                    start,
+                    stored as usize,
+                    c.compression.clone(),
+                    uncompressed as usize,
+                )
             })
             .collect(),
         _ => {
@@ -515,7 +520,11 @@ fn convert_floats(records: &[u8], sum: &mut f64) -> usize {
             let data = &records[at + 9 + 22..end];
             let mut i = 0;
             while i < data.len() {
-                if data[i] == b':' && data.get(i + 1).is_some_and(|b| b.is_ascii_digit()) {
+                if data[i] == b':'
+                    && data
+                        .get(i + 1)
+                        .is_some_and(|b| b.is_ascii_digit() || *b == b'-')
+                {
                     let number = &data[i + 1..];
                     let n = number
                         .iter()
@@ -541,7 +550,12 @@ fn convert_floats(records: &[u8], sum: &mut f64) -> usize {
 /// buffer each thread reuses, nothing else: what any reader of the file spends at least; with
 /// `floats`, also every float of its messages converted. Returns the bytes decompressed and
 /// the floats converted.
-fn read_and_decompress(path: &Path, pieces: &[Piece], threads: usize, floats: bool) -> (usize, usize) {
+fn read_and_decompress(
+    path: &Path,
+    pieces: &[Piece],
+    threads: usize,
+    floats: bool,
+) -> (usize, usize) {
     use std::os::unix::fs::FileExt;
     use std::sync::atomic::{AtomicUsize, Ordering};
     let file = std::fs::File::open(path).expect("open session");
@@ -563,7 +577,8 @@ fn read_and_decompress(path: &Path, pieces: &[Piece], threads: usize, floats: bo
                     if stored.len() < *n {
                         stored.resize(*n, 0);
                     }
-                    file.read_exact_at(&mut stored[..*n], *at).expect("read chunk");
+                    file.read_exact_at(&mut stored[..*n], *at)
+                        .expect("read chunk");
                     if out.len() < *uncompressed && !compression.is_empty() {
                         out.resize(*uncompressed, 0);
                     }
@@ -618,7 +633,10 @@ fn floor() {
          decompress + floats + solve, wall (their CPU / 2) |"
     );
     println!("|---|---:|---:|---:|---:|---:|---:|---:|---:|");
-    for case in CASES.iter().filter(|c| c.name.starts_with("10k") && c.rate == 1) {
+    for case in CASES
+        .iter()
+        .filter(|c| c.name.starts_with("10k") && c.rate == 1)
+    {
         let path = case.session_file();
         let mut decompress = Phase::new("decompress");
         let mut with_floats = Phase::new("decompress + floats");
@@ -628,8 +646,12 @@ fn floor() {
         let pieces = compressed_pieces(&path);
         let (mut bytes, mut floats) = (0, 0);
         for _ in 0..repeats {
-            bytes = decompress.run(|| read_and_decompress(&path, &pieces, 2, false)).0;
-            floats = with_floats.run(|| read_and_decompress(&path, &pieces, 2, true)).1;
+            bytes = decompress
+                .run(|| read_and_decompress(&path, &pieces, 2, false))
+                .0;
+            floats = with_floats
+                .run(|| read_and_decompress(&path, &pieces, 2, true))
+                .1;
             read.run(|| stream_session(&path, &mut Discard).expect("a clean file streams"));
             let lengths = extract.run(|| {
                 let mut sink = LengthStream::new("multilateration");

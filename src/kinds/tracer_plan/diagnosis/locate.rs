@@ -9,10 +9,17 @@ use super::effects::Geometry;
 use super::fit::Fit;
 use super::schur::{Reduced, Schur};
 use super::stats::chi2_sf;
+use crate::parallel;
 
 /// Time blocks: enough that a ramp or a step is localised, few enough that each block holds
 /// tens of lengths (the χ² test of a block needs more than a handful of degrees of freedom).
 const TIME_BLOCKS: usize = 8;
+
+/// A change point: pass group, position in the pass, score statistic.
+type Step = (usize, usize, f64);
+
+/// Threads the change-point search walks its passes on.
+const MAX_STEP_THREADS: usize = 8;
 
 /// The best single change point in any pass of `stations` (None = all): (pass group, position,
 /// score χ²(1) statistic, number of positions tried). `res_w` is orthogonal to span(basis).
@@ -43,37 +50,59 @@ pub fn best_steps(
     };
     let w: Vec<f64> = data.obs.iter().map(|o| 1.0 / o.sigma_m).collect();
     let reduced = basis.reduced();
-    stations
-        .iter()
-        .map(|&station| best_step_in(data, basis, &reduced, &w, res_w, station))
+    let threads = parallel::threads(MAX_STEP_THREADS);
+    // Each station's passes in up to `threads` consecutive runs, all runs on the cores.
+    let mut runs: Vec<(usize, Vec<usize>)> = Vec::new();
+    for (s, &station) in stations.iter().enumerate() {
+        let passes: Vec<usize> = (0..data.passes.len())
+            .filter(|&g| station.is_none_or(|st| data.obs[data.passes[g][0]].station == st))
+            .collect();
+        let size = passes.len().div_ceil(threads).max(1);
+        runs.extend(passes.chunks(size).map(|run| (s, run.to_vec())));
+    }
+    let found = parallel::in_groups(&runs, threads, |(s, passes)| {
+        (*s, best_step_in(data, basis, &reduced, &w, res_w, passes))
+    });
+    // The first best in pass order wins, as in one walk over a station's passes.
+    let mut best: Vec<(Option<Step>, usize)> = vec![(None, 0); stations.len()];
+    for (s, (step, tried)) in found {
+        let (kept, count) = &mut best[s];
+        *count += tried;
+        if let Some(step) = step.filter(|f| kept.is_none_or(|b| f.2 > b.2)) {
+            *kept = Some(step);
+        }
+    }
+    best.into_iter()
+        .map(|(step, tried)| step.map(|(g, k, stat)| (g, k, stat, tried)))
         .collect()
 }
 
+/// The best change point in `passes` (pass group, position, statistic) and how many positions
+/// were tried.
 fn best_step_in(
     data: &Data,
     basis: &Schur,
     reduced: &Reduced,
     w: &[f64],
     res_w: &nalgebra::DVector<f64>,
-    station: Option<usize>,
-) -> Option<(usize, usize, f64, usize)> {
-    let mut best: Option<(usize, usize, f64)> = None;
+    passes: &[usize],
+) -> (Option<Step>, usize) {
+    let mut best: Option<Step> = None;
     let mut tried = 0;
     // The suffix indicator's projection on the model, |P v|², in the split form of the
     // column space: per point q_pᵀ M_p⁺ q_p (q_p = Σ v_i a_i over its rows) plus |Σ v_i ρ_i|².
     let mut q: Vec<nalgebra::Vector3<f64>> =
         vec![nalgebra::Vector3::zeros(); basis.design().n_points()];
-    for (g, members) in data.passes.iter().enumerate() {
-        if station.is_some_and(|s| data.obs[members[0]].station != s) {
-            continue;
-        }
+    let (mut rho, mut entries) = (nalgebra::DVector::zeros(reduced.dim()), Vec::new());
+    for &g in passes {
+        let members = &data.passes[g];
         // Walk the split from the end: the step column is the suffix indicator (whitened).
         let mut rho_sum: Option<nalgebra::DVector<f64>> = None;
         let mut point_part = 0.0;
         let (mut cc, mut cr) = (0.0, 0.0);
         for k in (1..members.len()).rev() {
             let i = members[k];
-            let (p, a, rho) = basis.row_parts(reduced, i);
+            let (p, a) = basis.row_parts(reduced, i, &mut rho, &mut entries);
             let m = basis.m_pinv(p);
             let old = q[p];
             let new = old + a * w[i];
@@ -81,7 +110,7 @@ fn best_step_in(
             q[p] = new;
             match rho_sum.as_mut() {
                 Some(sum) => sum.axpy(w[i], &rho, 1.0),
-                None => rho_sum = Some(rho * w[i]),
+                None => rho_sum = Some(&rho * w[i]),
             }
             cc += w[i] * w[i];
             cr += w[i] * res_w[i];
@@ -101,7 +130,7 @@ fn best_step_in(
             q[data.obs[i].point] = nalgebra::Vector3::zeros();
         }
     }
-    best.map(|(g, k, s)| (g, k, s, tried))
+    (best, tried)
 }
 
 /// The octant's name by the sign of each axis from the mean, e.g. `x+y-z+`.

@@ -28,6 +28,8 @@ mod implicit;
 /// cost more than they save.
 const THREADED_PROJECTION_ENTRIES: usize = 200_000;
 const MAX_PROJECTION_THREADS: usize = 8;
+/// Rows whose leverages one thread computes at a time.
+const LEVERAGE_ROWS_AT_ONCE: usize = 4096;
 /// Columns of a pseudo-inverse block solved together (each group holds a few parameter-long
 /// columns).
 const PINV_SOLVED_TOGETHER: usize = 8;
@@ -978,17 +980,25 @@ impl Schur {
 
     /// Row i's coordinates in the column space: (point, a_i, M_p⁺, ρ_i) with
     /// |P_X v|² = Σ_p q_pᵀ M_p⁺ q_p + |Σ v_i ρ_i|², q_p = Σ_{i of p} v_i a_i.
-    pub fn row_parts(&self, red: &Reduced, i: usize) -> (usize, Vector3<f64>, DVector<f64>) {
+    /// ρ_i is written into `rho` (the reduced system's dimension); `entries` is scratch, so
+    /// that a walk over the rows allocates nothing per row.
+    pub fn row_parts(
+        &self,
+        red: &Reduced,
+        i: usize,
+        rho: &mut DVector<f64>,
+        entries: &mut Vec<(usize, f64)>,
+    ) -> (usize, Vector3<f64>) {
         let d = &self.design;
         let p = d.rows[i].point;
         let a = d.a(i);
-        let mut entries = Vec::new();
-        d.global_entries(i, &mut entries);
-        let mut rho = -(red.f_point(p) * a);
-        for &(c, x) in &entries {
+        d.global_entries(i, entries);
+        red.f_point(p).mul_to(&a, rho);
+        rho.neg_mut();
+        for &(c, x) in entries.iter() {
             rho.axpy(x, &red.wt.column(c), 1.0);
         }
-        (p, a, rho)
+        (p, a)
     }
 
     pub fn m_pinv(&self, p: usize) -> &Matrix3<f64> {
@@ -1035,13 +1045,17 @@ impl Schur {
     /// Diagonal of the hat matrix over the fit's rows (by position).
     pub fn leverages(&self) -> Vec<f64> {
         let red = self.reduced();
-        self.rows
-            .iter()
-            .map(|&i| {
-                let (p, a, rho) = self.row_parts(&red, i);
-                a.dot(&(self.m_pinv[p] * a)) + rho.norm_squared()
-            })
-            .collect()
+        let blocks: Vec<&[usize]> = self.rows.chunks(LEVERAGE_ROWS_AT_ONCE).collect();
+        parallel::in_groups(&blocks, parallel::threads(MAX_PROJECTION_THREADS), |rows| {
+            let (mut rho, mut entries) = (DVector::zeros(red.dim), Vec::new());
+            rows.iter()
+                .map(|&i| {
+                    let (p, a) = self.row_parts(&red, i, &mut rho, &mut entries);
+                    a.dot(&(self.m_pinv[p] * a)) + rho.norm_squared()
+                })
+                .collect::<Vec<f64>>()
+        })
+        .concat()
     }
 
     /// Entries (cols × cols, full parameter order) of the pseudo-inverse of the normal matrix:
