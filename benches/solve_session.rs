@@ -328,7 +328,6 @@ fn main() {
     }
     if filters.iter().any(|f| f == "floor") {
         floor();
-        return;
     }
     let cases: Vec<Case> = CASES.iter().copied().filter(|c| wanted(c.name)).collect();
     if !cases.is_empty() {
