@@ -978,10 +978,10 @@ impl Schur {
         Reduced { f, wt, dim: r }
     }
 
-    /// Row i's coordinates in the column space: (point, a_i, M_p⁺, ρ_i) with
-    /// |P_X v|² = Σ_p q_pᵀ M_p⁺ q_p + |Σ v_i ρ_i|², q_p = Σ_{i of p} v_i a_i.
-    /// ρ_i is written into `rho` (the reduced system's dimension); `entries` is scratch, so
-    /// that a walk over the rows allocates nothing per row.
+    /// Row i's coordinates in the column space: its point p and a_i, with ρ_i written into
+    /// `rho` (the reduced system's dimension), such that
+    /// |P_X v|² = Σ_p q_pᵀ M_p⁺ q_p + |Σ v_i ρ_i|², q_p = Σ_{i of p} v_i a_i. `entries` is
+    /// scratch, so that a walk over the rows allocates nothing per row.
     pub fn row_parts(
         &self,
         red: &Reduced,
