@@ -118,6 +118,8 @@ fn child(path: &Path) {
 }
 
 fn main() {
+    // The children measure what `geocal solve` and `geocal diagnose` do, arenas included.
+    geocal::allocator::limit_arenas();
     let args: Vec<String> = std::env::args().collect();
     if let Some(k) = args.iter().position(|a| a == "--child") {
         child(Path::new(&args[k + 1]));

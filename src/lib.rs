@@ -1,6 +1,7 @@
 //! geocal: geometric calibration of machine tools, CMMs, rotary tables and hexapods.
 //! See ../README.md and docs/ for the architecture; each module's top comment says what it owns.
 
+pub mod allocator;
 pub mod clock;
 pub mod compensate;
 pub mod config;

@@ -316,6 +316,7 @@ fn main() -> ExitCode {
     } else {
         logger.init();
     }
+    geocal::allocator::limit_arenas();
     let progress = geocal::progress::Mode::for_stderr(cli.quiet);
     match dispatch(cli.command, progress) {
         Ok(()) => ExitCode::SUCCESS,

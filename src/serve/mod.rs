@@ -2,7 +2,6 @@
 //! that run jobs (runs one at a time, session jobs beside them), the HTTP control API, and a
 //! client that speaks to it.
 
-mod allocator;
 pub mod api;
 pub mod auth;
 pub mod catalog;
@@ -35,7 +34,7 @@ use crate::kinds::Registry;
 /// Start the daemon and serve until SIGTERM or SIGINT: then stop taking jobs, cancel the
 /// running one cleanly (its session flushed and resumable) and return.
 pub fn serve(config: ServeConfig, registry: Registry) -> anyhow::Result<()> {
-    allocator::limit_arenas();
+    crate::allocator::limit_arenas();
     let token = match &config.token_file {
         Some(path) => Some(auth::Token::load(path)?),
         None if !config.listen.ip().is_loopback() => anyhow::bail!(

@@ -1,11 +1,13 @@
-//! The allocator's arena limit: solves run on threads beside a recording, and glibc would
-//! give them up to 8 arenas per core, each keeping a solve's freed memory resident for good.
+//! The allocator's arena limit: the reader's, the solve's and the diagnosis's work runs on
+//! threads (in the daemon beside a recording), and glibc would give them up to 8 arenas per
+//! core, each keeping freed memory resident: a peak that varies from run to run, and in the
+//! daemon one that creeps.
 
-/// Arenas the daemon's threads share (as `MALLOC_ARENA_MAX=2`).
+/// Arenas geocal's threads share (as `MALLOC_ARENA_MAX=2`).
 const ARENAS: i32 = 2;
 
-/// Limits glibc's arenas, unless the operator set `MALLOC_ARENA_MAX` (then that holds).
-/// Call before the daemon starts its threads.
+/// Limits glibc's arenas, unless the user set `MALLOC_ARENA_MAX` (then that holds). Call
+/// before any thread starts.
 #[cfg(all(target_os = "linux", target_env = "gnu"))]
 pub fn limit_arenas() {
     if std::env::var_os("MALLOC_ARENA_MAX").is_some() {
