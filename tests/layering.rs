@@ -17,6 +17,7 @@ const LAYERS: &[&[&str]] = &[
         "compensate",
         "progress_sink",
         "parallel",
+        "allocator",
     ],
     &["session"],
     &["config"],
