@@ -293,6 +293,20 @@ impl Phase {
         }
     }
 
+    fn median_wall(&self) -> Duration {
+        median(self.times.clone())
+    }
+
+    /// None where the process's CPU time could not be read.
+    fn median_cpu(&self) -> Option<Duration> {
+        (!self.cpu.is_empty()).then(|| median(self.cpu.clone()))
+    }
+
+    /// The median CPU time as a table cell ("-" where it could not be read).
+    fn cpu_cell(&self) -> String {
+        self.median_cpu().map_or("-".to_string(), fmt_time)
+    }
+
     /// Times `f`; keeps the largest heap peak (above the heap at its start) over the runs.
     fn run<T>(&mut self, f: impl FnOnce() -> T) -> T {
         let cpu0 = common::cpu_time();
@@ -424,16 +438,11 @@ fn phases() {
     for p in [
         &file_read, &decode, &read, &extract, &build, &adjust, &method, &streamed, &whole,
     ] {
-        let cpu = if p.cpu.is_empty() {
-            "-".to_string()
-        } else {
-            fmt_time(median(p.cpu.clone()))
-        };
         println!(
             "| {} | {} | {} | {:.0} MiB | {:.0} MiB | {} |",
             p.name,
-            fmt_time(median(p.times.clone())),
-            cpu,
+            fmt_time(p.median_wall()),
+            p.cpu_cell(),
             mib(p.peak_bytes),
             mib(p.heap_after),
             p.note
@@ -660,21 +669,8 @@ fn floor() {
             let problem = geocal::method::multilateration::Problem::of_lengths(&lengths).problem;
             adjust.run(|| solve(&problem, &SolveOptions::default()).expect("solve"));
         }
-        let cell = |p: &Phase| {
-            let cpu = if p.cpu.is_empty() {
-                "-".to_string()
-            } else {
-                fmt_time(median(p.cpu.clone()))
-            };
-            format!("{} / {cpu}", fmt_time(median(p.times.clone())))
-        };
-        let cpu_of = |p: &Phase| {
-            if p.cpu.is_empty() {
-                Duration::ZERO
-            } else {
-                median(p.cpu.clone())
-            }
-        };
+        let cell = |p: &Phase| format!("{} / {}", fmt_time(p.median_wall()), p.cpu_cell());
+        let cpu_of = |p: &Phase| p.median_cpu().unwrap_or_default();
         println!(
             "| {} | {:.0} MB | {:.2} M | {} | {} | {} | {} | {} | {} ({}) |",
             case.name,
@@ -685,7 +681,7 @@ fn floor() {
             cell(&read),
             cell(&extract),
             cell(&adjust),
-            fmt_time(median(with_floats.times.clone()) + median(adjust.times.clone())),
+            fmt_time(with_floats.median_wall() + adjust.median_wall()),
             fmt_time((cpu_of(&with_floats) + cpu_of(&adjust)) / 2)
         );
     }

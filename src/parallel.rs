@@ -27,6 +27,18 @@ pub fn in_parallel<P: Send, R: Send>(parts: Vec<P>, job: impl Fn(P) -> R + Sync)
     })
 }
 
+/// `here` on this thread and `beside` on its own at the same time; both results.
+pub fn join<A, B: Send>(here: impl FnOnce() -> A, beside: impl FnOnce() -> B + Send) -> (A, B) {
+    std::thread::scope(|scope| {
+        let other = scope.spawn(beside);
+        let a = here();
+        match other.join() {
+            Ok(b) => (a, b),
+            Err(panic) => std::panic::resume_unwind(panic),
+        }
+    })
+}
+
 /// `job` on every item, the items in at most `threads` consecutive groups each on its own
 /// thread; the results in the items' order.
 pub fn in_groups<T: Sync, R: Send>(
@@ -107,6 +119,23 @@ mod tests {
                 assert!(groups.iter().all(|&g| g > 0));
             }
         }
+    }
+
+    #[test]
+    fn join_gives_each_side_its_own_result_and_passes_a_panic_on() {
+        let mut here_ran = false;
+        let (a, b) = join(
+            || {
+                here_ran = true;
+                std::thread::current().id()
+            },
+            || std::thread::current().id(),
+        );
+        assert!(here_ran);
+        assert_eq!(a, std::thread::current().id());
+        assert_ne!(b, a);
+        let caught = std::panic::catch_unwind(|| join(|| 1, || -> i32 { panic!("beside") }));
+        assert!(caught.is_err());
     }
 
     #[test]

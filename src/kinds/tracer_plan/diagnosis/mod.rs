@@ -515,18 +515,18 @@ pub(crate) fn diagnose_data(
         _ => std::borrow::Cow::Borrowed(data),
     };
     // The nominal model's fit (for where the recorded lengths depart) beside the final one.
-    let (final_fit, nominal_basis) = std::thread::scope(|scope| {
-        let nominal = scope.spawn(|| Fit::new(nominal_design.clone(), (0..nobs).collect()));
-        let mut final_fit = joint_fit(&fit_data, &geom, &accepted);
-        if accepted.iter().any(EffectModel::is_linearised) {
-            accepted = EffectModel::all_linearised_at(&accepted, data, final_fit.theta.as_slice());
-            final_fit = joint_fit(&fit_data, &geom, &accepted);
-        }
-        let nominal = nominal
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-        (final_fit, nominal)
-    });
+    let (final_fit, nominal_basis) = crate::parallel::join(
+        || {
+            let mut final_fit = joint_fit(&fit_data, &geom, &accepted);
+            if accepted.iter().any(EffectModel::is_linearised) {
+                accepted =
+                    EffectModel::all_linearised_at(&accepted, data, final_fit.theta.as_slice());
+                final_fit = joint_fit(&fit_data, &geom, &accepted);
+            }
+            final_fit
+        },
+        || Fit::new(nominal_design.clone(), (0..nobs).collect()),
+    );
     progress.tick(1);
     let residuals =
         standardised_residuals(data, &solution.residuals_m, &final_fit.resid_m, &accepted);
@@ -586,8 +586,17 @@ pub(crate) fn diagnose_data(
         }
         None => (data, fit_data.as_ref(), chi2),
     };
-    let (where_, remaining) = std::thread::scope(|scope| {
-        let remaining = scope.spawn(|| {
+    let (mut where_, remaining) = crate::parallel::join(
+        || {
+            locate(
+                data,
+                &geom,
+                &solution.residuals_m,
+                &nominal_basis,
+                options.alpha,
+            )
+        },
+        || {
             locate(
                 fit_data,
                 &final_fit.geom,
@@ -595,20 +604,8 @@ pub(crate) fn diagnose_data(
                 &final_fit.basis,
                 alpha_part,
             )
-        });
-        let where_ = locate(
-            data,
-            &geom,
-            &solution.residuals_m,
-            &nominal_basis,
-            options.alpha,
-        );
-        let remaining = remaining
-            .join()
-            .unwrap_or_else(|panic| std::panic::resume_unwind(panic));
-        (where_, remaining)
-    });
-    let mut where_ = where_;
+        },
+    );
     let (held_out, skipped) =
         fit::leave_one_station_out(data, &nominal_design, &solution.residuals_m);
     if !skipped.is_empty() {
